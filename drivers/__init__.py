@@ -1,0 +1,1 @@
+"""Instrument drivers: wire protocols of magnetometers and supplies. Imports neither rig nor sim."""

@@ -1,0 +1,74 @@
+"""Checks that say, before fitting, whether the data can support a calibration."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rig.calibration.params import Array
+from rig.calibration.residuals import Samples
+from rig.errors import CalibrationError
+
+CONSTANT_FIELD_SPREAD = 0.01
+"""Relative spread of |h| (std/mean) below which the field magnitude counts as constant."""
+
+
+def field_magnitude_spread(s: Samples) -> float:
+    """Relative spread std(|h|)/mean(|h|) of the reference field magnitude."""
+    mag = s.field_magnitude_ut
+    return float(np.std(mag) / np.mean(mag))
+
+
+def is_constant_field(s: Samples) -> bool:
+    """True when |h| is (nearly) constant: the centered and TWOSTEP problems are then singular."""
+    return field_magnitude_spread(s) < CONSTANT_FIELD_SPREAD
+
+
+def require_varying_field(s: Samples, method: str) -> None:
+    """Raise a one-line error when ``method`` cannot work because |h| is nearly constant."""
+    if is_constant_field(s):
+        raise CalibrationError(
+            f"the field magnitude is nearly constant (spread {100 * field_magnitude_spread(s):.2f} %"
+            f" < {100 * CONSTANT_FIELD_SPREAD:.0f} %), so the {method} estimator is singular: use"
+            " --method ml or --method ellipsoid, or record data at several field magnitudes"
+        )
+
+
+def check_samples(s: Samples, n_parameters: int) -> None:
+    """Minimum sample count, positive field magnitude, independent telemetry channels."""
+    needed = max(2 * n_parameters, n_parameters + 10)
+    if s.n < needed:
+        raise CalibrationError(
+            f"only {s.n} samples for {n_parameters} parameters: record at least {needed} samples"
+            " (more directions and field levels)"
+        )
+    bad = np.flatnonzero(~(s.field_magnitude_ut > 0.0))
+    if bad.size:
+        raise CalibrationError(
+            f"the reference field magnitude is zero or negative in {bad.size} samples (first at"
+            f" sample {bad[0] + 1}): the fit needs |h| > 0; remove those rows or fix the field column"
+        )
+    check_telemetry_rank(s.telemetry, s.channels)
+
+
+def check_telemetry_rank(u: Array, channels: tuple[str, ...]) -> None:
+    """Each channel must vary and be linearly independent of the others and of the offset."""
+    if u.shape[1] == 0:
+        return
+    for j, name in enumerate(channels):
+        col = u[:, j]
+        if np.ptp(col) <= 1e-9 * max(1.0, float(np.max(np.abs(col)))):
+            raise CalibrationError(
+                f"telemetry channel '{name}' is constant ({col[0]:g}), so its coefficient cannot be"
+                " told from the offset: drop it from --telemetry or record it varying"
+            )
+    centered = u - u.mean(axis=0)
+    normed = centered / np.linalg.norm(centered, axis=0)
+    _, sv, vt = np.linalg.svd(normed, full_matrices=False)
+    if sv[-1] < 1e-6 * sv[0]:
+        null = vt[-1]
+        involved = [channels[j] for j in np.argsort(-np.abs(null)) if abs(null[j]) > 0.1]
+        names = ", ".join(f"'{c}'" for c in involved)
+        raise CalibrationError(
+            f"telemetry channels {names} are linearly dependent (identical, scaled or summing to"
+            " another), so their coefficients are not separable: drop one of them from --telemetry"
+        )

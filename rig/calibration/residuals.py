@@ -1,0 +1,311 @@
+"""Residuals and analytic Jacobians shared by every estimator.
+
+Three residual families, each with its Jacobian (checked against finite differences in the tests):
+
+* **scalar** (attitude independent): ``r_k = |W (m_k - o - K^T u_k)| - |h_k|`` in uT, parameters
+  ``p = [a, b, c, x0, y0, z0, rho, phi, lambda, k_1, ..., k_J]`` (Springmann-Cutler, rad);
+* **vector** (field vector known): ``r_k = m_k - L R h_k - o - K^T u_k`` (3 per sample, uT),
+  parameters as scalar plus a small mounting-rotation error ``delta`` (rad, about the DUT axes)
+  after the angles: ``R = exp([delta]x) R_ref``;
+* **z-domain** (Alonso-Shuster / Crassidis): ``z_k = |m_k|^2 - |h_k|^2`` against
+  ``2 m_k^T c(u_k) - S_k E - c(u_k)^T (I + E)^-1 c(u_k)``, parameters
+  ``theta = [c0, E11, E22, E33, E12, E13, E23, c_1, ..., c_J]`` with ``c(u) = c0 + sum_j c_j u_j``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from rig.calibration.params import (
+    SPRINGMANN_KEYS,
+    Array,
+    Calibration,
+    lower_from_metric,
+    rotation_from_vector,
+    skew,
+    springmann_matrix,
+    springmann_matrix_derivatives,
+    springmann_shape_from_matrix,
+)
+
+AXES = ("x", "y", "z")
+ROTATION_KEYS = ("rot_x", "rot_y", "rot_z")
+
+
+@dataclass(frozen=True)
+class Samples:
+    """Calibration input: raw readings (N, 3) uT, reference field, telemetry (N, J).
+
+    ``field_ut`` is (N, 3) for a vector calibration; ``field_magnitude_ut`` (N,) is always set.
+    """
+
+    measured_ut: Array
+    field_magnitude_ut: Array
+    telemetry: Array
+    channels: tuple[str, ...] = ()
+    field_ut: Array | None = None
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(self.measured_ut.shape[0])
+
+    @property
+    def n_channels(self) -> int:
+        """Number of telemetry channels."""
+        return int(self.telemetry.shape[1])
+
+    @staticmethod
+    def build(
+        measured_ut: Array,
+        *,
+        field_ut: Array | None = None,
+        field_magnitude_ut: Array | None = None,
+        telemetry: Array | None = None,
+        channels: tuple[str, ...] = (),
+    ) -> Samples:
+        """Assemble from arrays; exactly one of ``field_ut`` and ``field_magnitude_ut``."""
+        m = np.asarray(measured_ut, dtype=float).reshape(-1, 3)
+        if field_ut is not None:
+            h = np.asarray(field_ut, dtype=float).reshape(-1, 3)
+            mag = np.linalg.norm(h, axis=1)
+        elif field_magnitude_ut is not None:
+            h = None
+            mag = np.asarray(field_magnitude_ut, dtype=float).reshape(-1)
+        else:
+            raise ValueError("give field_ut or field_magnitude_ut")
+        u = np.zeros((m.shape[0], 0)) if telemetry is None else np.asarray(telemetry, float)
+        u = u.reshape(m.shape[0], -1)
+        if not channels:
+            channels = tuple(f"u{j + 1}" for j in range(u.shape[1]))
+        return Samples(m, mag, u, tuple(channels), h)
+
+    def as_scalar(self) -> Samples:
+        """The same samples with the field vector dropped (only ``|h|`` kept)."""
+        return Samples(self.measured_ut, self.field_magnitude_ut, self.telemetry, self.channels)
+
+
+def parameter_names(channels: tuple[str, ...], *, vector: bool) -> tuple[str, ...]:
+    """Names of the entries of the physical parameter vector ``p``."""
+    names = list(SPRINGMANN_KEYS)
+    if vector:
+        names += list(ROTATION_KEYS)
+    for ch in channels:
+        names += [f"k[{ch}].{ax}" for ax in AXES]
+    return tuple(names)
+
+
+def k_start(vector: bool) -> int:
+    """Index of the first current-to-bias coefficient in ``p``."""
+    return 12 if vector else 9
+
+
+def p_from_calibration(cal: Calibration, *, vector: bool) -> Array:
+    """Physical parameter vector of a calibration (rotation error zero for vector)."""
+    shape = springmann_shape_from_matrix(cal.sensor)
+    parts = [shape[:3], cal.offset_ut, shape[3:]]
+    if vector:
+        parts.append(np.zeros(3))
+    parts.append(cal.k_ut_per_unit.reshape(-1))
+    return np.concatenate(parts)
+
+
+def calibration_from_p(
+    p: Array, channels: tuple[str, ...], *, rotation_ref: Array | None = None
+) -> Calibration:
+    """Inverse of :func:`p_from_calibration`; with ``rotation_ref`` the model is vector."""
+    shape = np.concatenate([p[:3], p[6:9]])
+    vector = rotation_ref is not None
+    rot = np.eye(3)
+    if rotation_ref is not None:
+        rot = rotation_from_vector(p[9:12]) @ rotation_ref
+    k = p[k_start(vector) :].reshape(-1, 3)
+    return Calibration(springmann_matrix(shape), p[3:6].copy(), k, channels, rot)
+
+
+def _shape(p: Array) -> Array:
+    return np.concatenate([p[:3], p[6:9]])
+
+
+def scalar_residuals(p: Array, s: Samples) -> tuple[Array, Array]:
+    """Scalar residuals ``|W v_k| - |h_k|`` (uT) and their Jacobian (N, 9 + 3J) in ``p``."""
+    shape = _shape(p)
+    lower = springmann_matrix(shape)
+    w = np.linalg.inv(lower)
+    k = p[9:].reshape(-1, 3)
+    v = s.measured_ut - p[3:6]
+    if k.size:
+        v = v - s.telemetry @ k
+    g = v @ w.T
+    ng = np.sqrt(np.einsum("ij,ij->i", g, g))
+    r = ng - s.field_magnitude_ut
+    nhat = g / ng[:, None]
+    q = nhat @ w  # rows are W^T n_hat
+    jac = np.empty((s.n, p.size))
+    outer = (q[:, :, None] * g[:, None, :]).reshape(s.n, 9)
+    d_shape = -outer @ springmann_matrix_derivatives(shape).reshape(6, 9).T
+    jac[:, 0:3] = d_shape[:, 0:3]
+    jac[:, 6:9] = d_shape[:, 3:6]
+    jac[:, 3:6] = -q
+    for j in range(k.shape[0]):
+        jac[:, 9 + 3 * j : 12 + 3 * j] = -s.telemetry[:, j : j + 1] * q
+    return r, jac
+
+
+def scalar_noise_gain(p: Array, s: Samples) -> Array:
+    """``|W^T n_hat_k|``: how raw isotropic noise maps into the magnitude residual (per sample)."""
+    shape = _shape(p)
+    w = np.linalg.inv(springmann_matrix(shape))
+    k = p[9:].reshape(-1, 3)
+    v = s.measured_ut - p[3:6]
+    if k.size:
+        v = v - s.telemetry @ k
+    g = v @ w.T
+    nhat = g / np.linalg.norm(g, axis=1)[:, None]
+    return np.asarray(np.linalg.norm(nhat @ w, axis=1))
+
+
+def vector_residuals(p: Array, s: Samples, rotation_ref: Array) -> tuple[Array, Array]:
+    """Vector residuals ``m - L R h - o - K^T u`` flattened (3N,) uT and Jacobian (3N, 12 + 3J)."""
+    if s.field_ut is None:
+        raise ValueError("vector residuals need the field vector")
+    shape = _shape(p)
+    lower = springmann_matrix(shape)
+    rot = rotation_from_vector(p[9:12]) @ rotation_ref
+    k = p[12:].reshape(-1, 3)
+    hr = s.field_ut @ rot.T  # R h, field in the DUT frame
+    pred = hr @ lower.T + p[3:6]
+    if k.size:
+        pred = pred + s.telemetry @ k
+    r = s.measured_ut - pred
+    n = s.n
+    jac = np.zeros((n, 3, p.size))
+    d_lower = springmann_matrix_derivatives(shape)  # (6, 3, 3)
+    d_shape = -np.einsum("iab,nb->nai", d_lower, hr)
+    jac[:, :, 0:3] = d_shape[:, :, 0:3]
+    jac[:, :, 6:9] = d_shape[:, :, 3:6]
+    jac[:, :, 3:6] = -np.eye(3)
+    # d(exp([d]x) R h)/dd = -[R h]x at d = 0 (first order about the reference); residual sign flips.
+    jac[:, :, 9:12] = np.einsum("ab,nbc->nac", lower, _skew_rows(hr))
+    for j in range(k.shape[0]):
+        jac[:, :, 12 + 3 * j : 15 + 3 * j] = -s.telemetry[:, j, None, None] * np.eye(3)
+    return r.reshape(-1), jac.reshape(3 * n, p.size)
+
+
+def _skew_rows(v: Array) -> Array:
+    """Stack of cross-product matrices, shape (N, 3, 3)."""
+    out = np.zeros((v.shape[0], 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = -v[:, 2], v[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = v[:, 2], -v[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = -v[:, 1], v[:, 0]
+    return out
+
+
+# --- z-domain (Crassidis / Alonso-Shuster) --------------------------------------------------------
+
+E_INDEX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def sym_from_e(e6: Array) -> Array:
+    """Symmetric 3x3 from ``[E11, E22, E33, E12, E13, E23]``."""
+    e = np.zeros((3, 3))
+    for value, (i, j) in zip(e6, E_INDEX, strict=True):
+        e[i, j] = e[j, i] = value
+    return e
+
+
+def quadratic_features(m: Array) -> Array:
+    """``S_k = [m1^2, m2^2, m3^2, 2 m1 m2, 2 m1 m3, 2 m2 m3]`` (Crassidis eq. 2c), shape (N, 6)."""
+    return np.column_stack(
+        [m[:, 0] ** 2, m[:, 1] ** 2, m[:, 2] ** 2,
+         2 * m[:, 0] * m[:, 1], 2 * m[:, 0] * m[:, 2], 2 * m[:, 1] * m[:, 2]]
+    )  # fmt: skip
+
+
+def z_observation(s: Samples) -> Array:
+    """Attitude-independent observation ``z_k = |m_k|^2 - |h_k|^2`` (uT^2, eq. 3a)."""
+    return np.asarray(np.einsum("ij,ij->i", s.measured_ut, s.measured_ut) - s.field_magnitude_ut**2)
+
+
+def z_linear_design(s: Samples) -> Array:
+    """The linear part ``L_k`` of the z model: ``[2 m^T, -S_k, 2 u_j m^T ...]``, shape (N, 9 + 3J)."""
+    cols = [2.0 * s.measured_ut, -quadratic_features(s.measured_ut)]
+    for j in range(s.n_channels):
+        cols.append(2.0 * s.telemetry[:, j : j + 1] * s.measured_ut)
+    return np.hstack(cols)
+
+
+def z_residuals(theta: Array, s: Samples, mu_ut2: float = 0.0) -> tuple[Array, Array]:
+    """z-domain residuals divided by ``2 |h_k|`` (so roughly uT) and their Jacobian in ``theta``."""
+    lin = z_linear_design(s)
+    c0, e6 = theta[:3], theta[3:9]
+    cj = theta[9:].reshape(-1, 3)
+    c_u = np.broadcast_to(c0, (s.n, 3)) + (s.telemetry @ cj if cj.size else 0.0)
+    y = np.linalg.solve(np.eye(3) + sym_from_e(e6), c_u.T).T  # (I + E)^-1 c(u_k)
+    model = lin @ theta - np.einsum("ij,ij->i", c_u, y) + mu_ut2
+    scale = 2.0 * s.field_magnitude_ut
+    r = (z_observation(s) - model) / scale
+    dmodel = lin.copy()
+    dmodel[:, 0:3] -= 2.0 * y
+    for idx, (i, j) in enumerate(E_INDEX):
+        dmodel[:, 3 + idx] += (1.0 if i == j else 2.0) * y[:, i] * y[:, j]
+    for j in range(cj.shape[0]):
+        dmodel[:, 9 + 3 * j : 12 + 3 * j] -= 2.0 * s.telemetry[:, j : j + 1] * y
+    return r, -dmodel / scale[:, None]
+
+
+def p_from_theta(theta: Array) -> Array:
+    """Scalar physical parameters ``p`` from z-domain ``theta`` (Crassidis eqs. 6-9 generalized).
+
+    ``I + E = W^T W`` is the metric, ``o = (I + E)^-1 c0`` and ``k_j = (I + E)^-1 c_j``.
+    Raises ``np.linalg.LinAlgError`` when ``I + E`` is not positive definite.
+    """
+    metric = np.eye(3) + sym_from_e(theta[3:9])
+    lower = lower_from_metric(metric)
+    shape = springmann_shape_from_matrix(lower)
+    o = np.linalg.solve(metric, theta[:3])
+    k = np.linalg.solve(metric, theta[9:].reshape(-1, 3).T).T
+    return np.concatenate([shape[:3], o, shape[3:], k.reshape(-1)])
+
+
+def theta_from_p(p: Array) -> Array:
+    """Inverse of :func:`p_from_theta` (used to start TWOSTEP from any scalar estimate)."""
+    lower = springmann_matrix(_shape(p))
+    w = np.linalg.inv(lower)
+    metric = w.T @ w
+    e = metric - np.eye(3)
+    e6 = np.array([e[i, j] for i, j in E_INDEX])
+    c0 = metric @ p[3:6]
+    cj = (metric @ p[9:].reshape(-1, 3).T).T
+    return np.concatenate([c0, e6, cj.reshape(-1)])
+
+
+def numeric_jacobian(fun: Callable[[Array], Array], x: Array, rel_step: float = 1e-6) -> Array:
+    """Central-difference Jacobian of a smooth closed-form map (for covariance propagation only)."""
+    f0 = np.asarray(fun(x))
+    jac = np.empty((f0.size, x.size))
+    for i in range(x.size):
+        h = rel_step * max(1.0, abs(float(x[i])))
+        xp, xm = x.copy(), x.copy()
+        xp[i] += h
+        xm[i] -= h
+        jac[:, i] = (np.asarray(fun(xp)) - np.asarray(fun(xm))) / (2 * h)
+    return jac
+
+
+__all__ = [
+    "Samples",
+    "calibration_from_p",
+    "numeric_jacobian",
+    "p_from_calibration",
+    "p_from_theta",
+    "parameter_names",
+    "scalar_residuals",
+    "skew",
+    "theta_from_p",
+    "vector_residuals",
+    "z_residuals",
+]

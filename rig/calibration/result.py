@@ -1,0 +1,311 @@
+"""A calibration result: parameters, uncertainty, the Cramer-Rao bound, residuals and warnings."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from rig.calibration.linear import Estimate
+from rig.calibration.params import Array, Calibration
+from rig.calibration.residuals import (
+    AXES,
+    Samples,
+    calibration_from_p,
+    k_start,
+    parameter_names,
+    scalar_noise_gain,
+    scalar_residuals,
+    vector_residuals,
+)
+from rig.calibration.solver import covariance_from_jacobian
+
+ModelKind = Literal["scalar", "vector"]
+ANGLE_KEYS = frozenset({"rho", "phi", "lambda", "rot_x", "rot_y", "rot_z"})
+CORRELATION_WARN = 0.9
+"""Parameter pairs correlated more strongly than this get a warning."""
+ANGULAR_FIELDS_UT = (20.0, 50.0)
+"""Field strengths for the angular uncertainty (Springmann-Cutler Tables 3-4)."""
+SPRINGMANN_JSON = {
+    "a": "a", "b": "b", "c": "c", "x0": "x0_ut", "y0": "y0_ut", "z0": "z0_ut",
+    "rho": "rho_deg", "phi": "phi_deg", "lambda": "lambda_deg",
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class ChiSquareTest:
+    """Residuals against a noise floor: statistic, degrees of freedom, p-value and a verdict."""
+
+    statistic: float
+    dof: int
+    p_value: float
+    verdict: Literal["consistent", "above noise floor", "below noise floor"]
+
+    @property
+    def reduced(self) -> float:
+        """Statistic per degree of freedom (1 when residuals match the noise floor)."""
+        return self.statistic / self.dof
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Everything a fit produces. Angles in ``p`` are rad; units at the boundary in :meth:`to_dict`."""
+
+    model: ModelKind
+    method: str
+    samples: int
+    calibration: Calibration
+    names: tuple[str, ...]
+    p: Array
+    covariance: Array
+    crlb: Array
+    residuals_nt: Array
+    noise_nt: float | None
+    noise_estimated_nt: float
+    noise_floor_nt: float
+    chi2: ChiSquareTest
+    warnings: tuple[str, ...]
+    iterations: int
+
+    @property
+    def sigma(self) -> Array:
+        """1-sigma of ``p`` from the estimator's own covariance."""
+        return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+
+    @property
+    def crlb_sigma(self) -> Array:
+        """1-sigma Cramer-Rao bound of ``p`` at the estimate."""
+        return np.sqrt(np.maximum(np.diag(self.crlb), 0.0))
+
+    @property
+    def crlb_ratio(self) -> Array:
+        """Reported sigma over the Cramer-Rao sigma (1 = efficient)."""
+        return self.sigma / np.maximum(self.crlb_sigma, 1e-300)
+
+    @property
+    def residual_rms_nt(self) -> float:
+        """Root mean square of the corrected-field residuals (nT)."""
+        return float(np.sqrt(np.mean(self.residuals_nt**2)))
+
+    @property
+    def residual_mean_nt(self) -> float:
+        """Mean corrected-field residual (nT)."""
+        return float(np.mean(self.residuals_nt))
+
+    @property
+    def residual_max_nt(self) -> float:
+        """Largest absolute corrected-field residual (nT)."""
+        return float(np.max(np.abs(self.residuals_nt)))
+
+    def angular_uncertainty_deg(self, field_ut: float) -> float:
+        """Direction uncertainty ``atan(rms / |B|)`` (deg) at field strength ``field_ut``."""
+        return math.degrees(math.atan(self.residual_rms_nt / 1000.0 / field_ut))
+
+    def correlations(self, threshold: float = CORRELATION_WARN) -> list[tuple[str, str, float]]:
+        """Parameter pairs with ``|correlation| > threshold``, strongest first."""
+        sd = self.sigma
+        corr = self.covariance / np.outer(np.maximum(sd, 1e-300), np.maximum(sd, 1e-300))
+        pairs = [
+            (self.names[i], self.names[j], float(corr[i, j]))
+            for i in range(len(sd))
+            for j in range(i + 1, len(sd))
+            if abs(corr[i, j]) > threshold
+        ]
+        return sorted(pairs, key=lambda t: -abs(t[2]))
+
+    def value(self, name: str) -> float:
+        """Parameter by name, in user units (deg for angles)."""
+        i = self.names.index(name)
+        return float(np.degrees(self.p[i]) if name in ANGLE_KEYS else self.p[i])
+
+    def to_dict(self) -> dict[str, Any]:
+        """The result file (contract): see README, 'Result file'."""
+        cal = self.calibration
+        sp = cal.springmann
+        cr = cal.crassidis
+        spv = dict(zip(("a", "b", "c", "x0", "y0", "z0", "rho", "phi", "lambda"), sp.as_vector()))
+        out: dict[str, Any] = {
+            "model": self.model,
+            "method": self.method,
+            "samples": self.samples,
+            "channels": list(cal.channels),
+            "correction": {
+                "matrix": cal.correction_matrix.tolist(),
+                "offset_ut": cal.offset_ut.tolist(),
+                "k_ut_per_unit": {
+                    ch: cal.k_ut_per_unit[j].tolist() for j, ch in enumerate(cal.channels)
+                },
+                "equation": "h = matrix @ (m - offset_ut - sum_j k_j * u_j)",
+            },
+            "springmann": {
+                SPRINGMANN_JSON[k]: float(math.degrees(v) if k in ANGLE_KEYS else v)
+                for k, v in spv.items()
+            },
+            "crassidis": {"b_ut": cr.b_ut.tolist(), "D": cr.d_matrix.tolist()},
+            "mounting": self._mounting(),
+            "sigma": self._by_group(self.sigma),
+            "crlb_sigma": self._by_group(self.crlb_sigma),
+            "crlb_ratio": self._by_group(self.crlb_ratio, ratio=True),
+            "residual_rms_nt": self.residual_rms_nt,
+            "residual_mean_nt": self.residual_mean_nt,
+            "residual_max_nt": self.residual_max_nt,
+            "noise_nt": self.noise_nt,
+            "noise_estimated_nt": self.noise_estimated_nt,
+            "noise_floor_nt": self.noise_floor_nt,
+            "chi2": {
+                "statistic": self.chi2.statistic,
+                "dof": self.chi2.dof,
+                "reduced": self.chi2.reduced,
+                "p_value": self.chi2.p_value,
+                "verdict": self.chi2.verdict,
+            },
+            "angular_uncertainty_deg": {
+                f"{b:g}_ut": self.angular_uncertainty_deg(b) for b in ANGULAR_FIELDS_UT
+            },
+            "correlations": [{"a": a, "b": b, "r": r} for a, b, r in self.correlations()],
+            "warnings": list(self.warnings),
+            "iterations": self.iterations,
+        }
+        return out
+
+    def _mounting(self) -> dict[str, Any]:
+        if self.model == "scalar":
+            return {"observable": False}
+        from scipy.spatial.transform import Rotation
+
+        rot = Rotation.from_matrix(self.calibration.rotation)
+        return {
+            "observable": True,
+            "rotation_matrix": self.calibration.rotation.tolist(),
+            "rotation_vector_deg": np.degrees(rot.as_rotvec()).tolist(),
+            "angle_deg": float(np.degrees(rot.magnitude())),
+        }
+
+    def _by_group(self, values: Array, *, ratio: bool = False) -> dict[str, Any]:
+        def conv(name: str, v: float) -> float:
+            return float(math.degrees(v) if (name in ANGLE_KEYS and not ratio) else v)
+
+        named = dict(zip(self.names, values, strict=True))
+        out: dict[str, Any] = {
+            "springmann": {SPRINGMANN_JSON[k]: conv(k, named[k]) for k in SPRINGMANN_JSON},
+            "k_ut_per_unit": {
+                ch: [float(named[f"k[{ch}].{ax}"]) for ax in AXES]
+                for ch in self.calibration.channels
+            },
+        }
+        if self.model == "vector":
+            out["mounting_deg"] = [conv(k, named[k]) for k in ("rot_x", "rot_y", "rot_z")]
+        return out
+
+
+def _chi_square(weighted_residuals: Array, noise: float, n_params: int) -> ChiSquareTest:
+    from scipy.stats import chi2
+
+    dof = max(int(weighted_residuals.size) - n_params, 1)
+    stat = float(np.sum((weighted_residuals / noise) ** 2))
+    p_value = float(chi2.sf(stat, dof))
+    verdict: Literal["consistent", "above noise floor", "below noise floor"] = "consistent"
+    if p_value < 1e-3:
+        verdict = "above noise floor"
+    elif p_value > 1 - 1e-3:
+        verdict = "below noise floor"
+    return ChiSquareTest(stat, dof, p_value, verdict)
+
+
+def summarize(
+    est: Estimate, s: Samples, noise_nt: float | None, extra_warnings: tuple[str, ...] = ()
+) -> CalibrationResult:
+    """Assemble a :class:`CalibrationResult` from an estimate and its data."""
+    vector = est.rotation_ref is not None
+    names = parameter_names(s.channels, vector=vector)
+    cal = calibration_from_p(est.p, s.channels, rotation_ref=est.rotation_ref)
+    robust_w = np.ones(s.n) if est.sample_weights is None else est.sample_weights
+    if vector:
+        assert est.rotation_ref is not None
+        raw, jac = vector_residuals(est.p, s, est.rotation_ref)
+        weighted = raw * np.repeat(np.sqrt(robust_w), 3)
+        fisher_jac = jac
+        corrected = cal.apply(s.measured_ut, s.telemetry if s.n_channels else None) - s.field_ut
+        residuals_nt = 1000.0 * corrected.reshape(-1)
+        floor_gain = float(np.linalg.norm(cal.correction_matrix) / np.sqrt(3.0))
+    else:
+        r, jac = scalar_residuals(est.p, s)
+        gain = scalar_noise_gain(est.p, s)
+        weighted = r * np.sqrt(robust_w) / gain
+        fisher_jac = jac / gain[:, None]
+        residuals_nt = 1000.0 * r
+        floor_gain = float(np.sqrt(np.mean(gain**2)))
+    n_eff = float(np.sum(robust_w > 0)) * (3 if vector else 1)
+    sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - est.p.size, 1.0)))
+    noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
+    crlb = covariance_from_jacobian(fisher_jac, noise_ut**2)
+    chi = _chi_square(weighted, noise_ut, est.p.size)
+    result = CalibrationResult(
+        model="vector" if vector else "scalar",
+        method=est.method,
+        samples=s.n,
+        calibration=cal,
+        names=names,
+        p=est.p,
+        covariance=est.covariance,
+        crlb=crlb,
+        residuals_nt=residuals_nt,
+        noise_nt=noise_nt,
+        noise_estimated_nt=1000.0 * sigma_hat,
+        noise_floor_nt=1000.0 * noise_ut * floor_gain,
+        chi2=chi,
+        warnings=(),
+        iterations=est.iterations,
+    )
+    warnings = list(extra_warnings) + list(est.notes)
+    warnings += _warnings(result, s, est, noise_nt)
+    return _replace_warnings(result, tuple(warnings))
+
+
+def _replace_warnings(result: CalibrationResult, warnings: tuple[str, ...]) -> CalibrationResult:
+    from dataclasses import replace
+
+    return replace(result, warnings=warnings)
+
+
+def _warnings(
+    result: CalibrationResult, s: Samples, est: Estimate, noise_nt: float | None
+) -> list[str]:
+    out: list[str] = []
+    if result.model == "scalar":
+        out.append(
+            "scalar (attitude-independent) calibration: the mounting rotation is unobservable;"
+            " the correction is in the sensor's own frame with x as reference axis"
+        )
+    if noise_nt is not None and result.chi2.verdict == "above noise floor":
+        out.append(
+            f"residuals exceed the {noise_nt:g} nT noise floor (chi2/dof {result.chi2.reduced:.2f}):"
+            " the model misses something (a telemetry channel, a delay, a nonlinear sensor)"
+        )
+    if noise_nt is not None and result.chi2.verdict == "below noise floor":
+        out.append(
+            f"residuals are below the {noise_nt:g} nT noise floor (chi2/dof"
+            f" {result.chi2.reduced:.2f}): --noise-nt overstates the noise"
+        )
+    if est.sample_weights is not None:
+        low = int(np.sum(est.sample_weights < 0.5))
+        out.append(f"robust reweighting down-weighted {low} of {s.n} samples below 0.5")
+    ks = k_start(result.model == "vector")
+    for a, b, r in result.correlations()[:6]:
+        msg = f"parameters {a} and {b} are correlated (r = {r:+.3f})"
+        k_name = b if b.startswith("k[") else a if a.startswith("k[") else None
+        other = a if k_name == b else b
+        if k_name is not None and other in ("x0", "y0", "z0"):
+            ch = k_name[2 : k_name.index("]")]
+            j = s.channels.index(ch)
+            low = float(np.min(np.abs(s.telemetry[:, j])))
+            msg += (
+                f": channel '{ch}' never returns near zero (min |u| = {low:.3g}); record a"
+                " segment with that channel at zero to separate offset and coefficient"
+            )
+        elif result.names.index(a) < ks and result.names.index(b) < ks:
+            msg += ": cover more field directions and magnitudes"
+        out.append(msg)
+    return out

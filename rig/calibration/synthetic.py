@@ -1,0 +1,134 @@
+"""Synthetic data with known truth, for tests, benchmarks and the example data set.
+
+Pure numpy and seeded: the same arguments always give the same arrays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rig.calibration.params import Array, Calibration, Springmann, rotation_from_vector
+from rig.calibration.residuals import Samples
+
+ORBIT_PERIOD_S = 5820.0
+"""A 650 km low Earth orbit (RAX: 97 min)."""
+RAX_CHANNELS = ("i_px", "i_mx", "i_py", "i_my", "i_eps")
+RAX_TRUTH = Springmann(
+    a=0.890, b=0.910, c=1.130, x0=-0.687, y0=9.909, z0=-7.701,
+    rho=np.radians(-1.039), phi=np.radians(-3.974), lam=np.radians(5.019),
+)  # fmt: skip
+"""The PNI magnetometer of Springmann and Cutler, Table 1, calibration 3."""
+RAX_K_UT_PER_A = np.array(
+    [[1.8, -0.9, 0.4], [-1.2, 1.5, -0.3], [0.6, 2.1, -1.0], [-0.5, -1.7, 1.3], [0.8, -0.6, 1.9]]
+)
+"""Current-to-bias coefficients (uT/A): four solar panels (+x, -x, +y, -y) and the EPS."""
+
+
+@dataclass(frozen=True)
+class SyntheticCase:
+    """Noisy samples with the truth that made them."""
+
+    time_s: Array
+    samples: Samples
+    truth: Calibration
+    noise_ut: float
+    field_ut: Array
+    """True field in the field (reference) frame, (N, 3) uT."""
+
+    def with_noise(self, seed: int) -> SyntheticCase:
+        """Same truth and field, a new noise draw."""
+        rng = np.random.default_rng(seed)
+        clean = self.truth.predict(self.field_ut, self.samples.telemetry)
+        m = clean + self.noise_ut * rng.standard_normal(clean.shape)
+        s = self.samples
+        return SyntheticCase(
+            self.time_s,
+            Samples(m, s.field_magnitude_ut, s.telemetry, s.channels, s.field_ut),
+            self.truth,
+            self.noise_ut,
+            self.field_ut,
+        )
+
+
+def _rotations(axis: Array, angles: Array) -> Array:
+    """Rodrigues rotation matrices about a unit axis, shape (N, 3, 3)."""
+    k = axis / np.linalg.norm(axis)
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    s, c = np.sin(angles)[:, None, None], np.cos(angles)[:, None, None]
+    return np.eye(3) + s * kx + (1 - c) * (kx @ kx)
+
+
+def rax_like(
+    n_samples: int = 6000,
+    *,
+    seed: int = 1,
+    noise_ut: float = 0.1,
+    dt_s: float = 1.0,
+    channels: int = 5,
+) -> SyntheticCase:
+    """A tumbling CubeSat in a 97 min orbit, after Springmann and Cutler's RAX case.
+
+    |h| swings between 20 and 50 uT twice per orbit; panel currents follow the sun direction on
+    each of the +x, -x, +y, -y faces and drop to zero in eclipse (38 % of the orbit); the EPS draws
+    0.35 A plus 1.2 A beacon spikes of 2 s every 20 s. ``channels`` keeps the first 0-5 of those.
+    Only the field magnitude is a reference here (attitude independent), as on orbit.
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(n_samples) * dt_s
+    phase = 2 * np.pi * t / ORBIT_PERIOD_S
+    magnitude = 35.0 - 15.0 * np.cos(2 * phase)
+    direction_i = np.column_stack([np.cos(2 * phase), 0.3 * np.sin(phase), np.sin(2 * phase)])
+    direction_i /= np.linalg.norm(direction_i, axis=1)[:, None]
+    # Tumbling: two incommensurate spins make the field sweep the whole body sphere.
+    body = _rotations(np.array([0.0, 0.0, 1.0]), np.radians(2.1) * t) @ _rotations(
+        np.array([1.0, 0.4, 0.0]), np.radians(0.83) * t
+    )
+    field_b = np.einsum("nji,nj->ni", body, magnitude[:, None] * direction_i)
+    sun_b = np.einsum("nji,j->ni", body, np.array([0.6, 0.8, 0.0]))
+    in_sun = (phase % (2 * np.pi)) < 0.62 * 2 * np.pi
+    normals = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]])
+    panels = 0.5 * np.clip(sun_b @ normals.T, 0.0, None) * in_sun[:, None]
+    beacon = (t % 20.0) < 2.0
+    eps = 0.35 + 0.05 * in_sun + 1.2 * beacon
+    telemetry_all = np.round(np.column_stack([panels, eps]), 3)  # 1 mA telemetry resolution
+    telemetry = telemetry_all[:, :channels]
+    names = RAX_CHANNELS[:channels]
+    truth = Calibration.from_springmann(RAX_TRUTH, RAX_K_UT_PER_A[:channels], names)
+    full_truth = Calibration.from_springmann(RAX_TRUTH, RAX_K_UT_PER_A, RAX_CHANNELS)
+    m = full_truth.predict(field_b, telemetry_all) + noise_ut * rng.standard_normal((n_samples, 3))
+    samples = Samples(m, np.linalg.norm(field_b, axis=1), telemetry, names, None)
+    return SyntheticCase(t, samples, truth, noise_ut, field_b)
+
+
+def cage_like(
+    n_samples: int = 2000,
+    *,
+    seed: int = 2,
+    noise_ut: float = 0.05,
+    channels: int = 2,
+    mounting_deg: tuple[float, float, float] = (1.5, -2.0, 3.0),
+) -> SyntheticCase:
+    """A Helmholtz-cage sweep: field vectors of 10-80 uT in all directions, load-current steps.
+
+    Each load channel steps through 0, 1, 2, 3 A in blocks (so it returns to zero), independently
+    of the others; the DUT is mounted with a small rotation ``mounting_deg`` (rotation vector, deg).
+    """
+    rng = np.random.default_rng(seed)
+    direction = rng.standard_normal((n_samples, 3))
+    direction /= np.linalg.norm(direction, axis=1)[:, None]
+    magnitude = rng.uniform(10.0, 80.0, n_samples)
+    field = direction * magnitude[:, None]
+    block = max(n_samples // 40, 1)
+    levels = rng.integers(0, 4, size=(n_samples // block + 1, channels)).astype(float)
+    telemetry = np.repeat(levels, block, axis=0)[:n_samples]
+    names = tuple(f"load{j + 1}_a" for j in range(channels))
+    sp = Springmann(1.02, 0.97, 1.05, 2.5, -1.2, 0.8, np.radians(0.8), np.radians(-0.6),
+                    np.radians(1.1))  # fmt: skip
+    k = rng.uniform(-1.5, 1.5, size=(channels, 3))
+    rot = rotation_from_vector(np.radians(np.array(mounting_deg)))
+    truth = Calibration.from_springmann(sp, k, names, rotation=rot)
+    m = truth.predict(field, telemetry) + noise_ut * rng.standard_normal((n_samples, 3))
+    samples = Samples(m, magnitude, telemetry, names, field)
+    return SyntheticCase(np.arange(n_samples, dtype=float), samples, truth, noise_ut, field)

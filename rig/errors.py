@@ -1,0 +1,17 @@
+"""The project's error hierarchy.
+
+Every error a user can cause is a :class:`RigError` whose message is one line that names the input
+and the fix; the CLI prints it and exits with code 2, never with a traceback.
+"""
+
+
+class RigError(Exception):
+    """Root of all errors raised deliberately by the rig."""
+
+
+class UserInputError(RigError):
+    """Bad input from the user (file, column, option): fixable by changing the input."""
+
+
+class CalibrationError(RigError):
+    """The data cannot support the requested calibration (singular, rank deficient, diverged)."""

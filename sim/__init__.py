@@ -1,0 +1,1 @@
+"""Simulated cage behind real wire protocols. Imports neither rig nor drivers."""
