@@ -10,7 +10,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 
 from rig.calibration.diagnostics import is_constant_field, require_varying_field
 from rig.calibration.params import Array, Calibration
@@ -100,18 +99,30 @@ def _telemetry_products(u: Array) -> Array:
     n_ch = u.shape[1]
     if n_ch == 0:
         return np.zeros((u.shape[0], 0))
-    cols = [u] + [
-        (u[:, i] * u[:, j])[:, None] for i in range(n_ch) for j in range(i, n_ch)
-    ]
+    cols = [u] + [(u[:, i] * u[:, j])[:, None] for i in range(n_ch) for j in range(i, n_ch)]
     x = np.hstack(cols)
-    centered = x - x.mean(axis=0)
-    norms = np.linalg.norm(centered, axis=0)
-    keep_nonzero = norms > 1e-12 * max(float(norms.max()), 1e-300)
-    x, centered, norms = x[:, keep_nonzero], centered[:, keep_nonzero], norms[keep_nonzero]
-    _, r, piv = scipy.linalg.qr(centered / norms, mode="economic", pivoting=True)
-    diag = np.abs(np.diag(r))
-    rank = int(np.sum(diag > 1e-9 * diag[0]))
-    return np.asarray(x[:, np.sort(piv[:rank])])
+    return x[:, independent_columns(x - x.mean(axis=0))]
+
+
+def independent_columns(x: Array, rel_tol: float = 1e-9) -> Array:
+    """Indices of a maximal linearly independent subset of the columns of ``x``, in order.
+
+    Greedy Gram-Schmidt on the (small) Gram matrix: a column is kept when its part orthogonal to
+    the kept ones carries more than ``rel_tol`` of its own norm squared.
+    """
+    gram = x.T @ x
+    keep: list[int] = []
+    for i in range(gram.shape[0]):
+        own = gram[i, i]
+        if own <= 1e-300:
+            continue
+        if keep:
+            g_kk = gram[np.ix_(keep, keep)]
+            g_ki = gram[keep, i]
+            own = own - g_ki @ np.linalg.solve(g_kk, g_ki)
+        if own > rel_tol * gram[i, i]:
+            keep.append(i)
+    return np.asarray(keep, dtype=int)
 
 
 def _delta_method(

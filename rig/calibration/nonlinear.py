@@ -41,10 +41,10 @@ def ml_fit(
     p = scalar_start(s).p if start is None else np.asarray(start, float)
     robust_w = np.ones(s.n)
     iterations = 0
-    passes = MAX_IRLS_PASSES if robust else 3
-    for _ in range(passes):
-        gain = scalar_noise_gain(p, s)
-        w = robust_w / gain**2
+    # Pass 1 fits with the noise gains of the start; pass 2 refreshes them (a second-order effect,
+    # so it converges at once). Robust fits iterate until the IRLS weights settle.
+    for pass_index in range(MAX_IRLS_PASSES if robust else 2):
+        w = robust_w / scalar_noise_gain(p, s) ** 2
         sw = np.sqrt(w)
 
         def fun(x: Array, sw: Array = sw) -> tuple[Array, Array]:
@@ -53,28 +53,21 @@ def ml_fit(
 
         sol = levenberg_marquardt(fun, p)
         iterations += sol.iterations
-        step = float(np.max(np.abs(sol.x - p) / np.maximum(np.abs(p), 1e-3)))
         p = sol.x
         if robust:
             r, _ = scalar_residuals(p, s)
-            new_w = robust_weights(r / gain, robust)
+            new_w = robust_weights(r / scalar_noise_gain(p, s), robust)
             change = float(np.max(np.abs(new_w - robust_w)))
             robust_w = new_w
-            if change < 1e-3 and step < 1e-9:
+            if change < 1e-3 and pass_index > 0:
                 break
-        elif step < 1e-9:
-            break
     if not sol.converged:
         raise CalibrationError(
             "the maximum-likelihood fit did not converge: check the column order and units, or try"
             " --method twostep"
         )
-    gain = scalar_noise_gain(p, s)
-    w = robust_w / gain**2
-    r, jac = scalar_residuals(p, s)
     dof = max(float(np.sum(robust_w > 0)) - p.size, 1.0)
-    variance = float(np.sum(w * r**2) / dof)
-    cov = covariance_from_jacobian(jac * np.sqrt(w)[:, None], variance)
+    cov = covariance_from_jacobian(sol.jacobian, sol.cost / dof)
     return Estimate(
         "ml", p, cov, sample_weights=None if robust is None else robust_w, iterations=iterations
     )

@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-import scipy.linalg
 
 Array = npt.NDArray[np.float64]
 
@@ -146,7 +145,9 @@ class Crassidis:
 
 def crassidis_from_correction(w: Array, offset_ut: Array) -> tuple[Crassidis, Array]:
     """Polar-decompose ``W = U (I + D)``; return the Crassidis form and the orthogonal ``U``."""
-    u, p = scipy.linalg.polar(w, side="right")  # W = U P, P symmetric positive definite
+    left, sv, right_t = np.linalg.svd(w)  # W = U P with U = left right_t, P = right_t^T S right_t
+    u = left @ right_t
+    p = right_t.T @ np.diag(sv) @ right_t
     del_ = p - np.eye(3)
     d = 0.5 * (del_ + del_.T)
     return Crassidis(b_ut=(np.eye(3) + d) @ offset_ut, d_matrix=d), np.asarray(u)
@@ -164,8 +165,12 @@ def skew(v: Array) -> Array:
 
 
 def rotation_from_vector(rotvec: Array) -> Array:
-    """Rotation matrix ``exp([rotvec]x)`` (rotation vector in rad)."""
-    return np.asarray(scipy.linalg.expm(skew(rotvec)))
+    """Rotation matrix ``exp([rotvec]x)`` (rotation vector in rad, Rodrigues' formula)."""
+    angle = float(np.linalg.norm(rotvec))
+    k = skew(np.asarray(rotvec, dtype=float))
+    if angle < 1e-8:
+        return np.eye(3) + k + 0.5 * (k @ k)
+    return np.eye(3) + (np.sin(angle) / angle) * k + ((1 - np.cos(angle)) / angle**2) * (k @ k)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,217 @@
+"""The ``rig`` command.
+
+Exit codes: 0 success, 1 unexpected internal error, 2 bad input or a calibration the data cannot
+support (one line on stderr naming the problem and the fix), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from rig import __version__
+from rig.errors import RigError, UserInputError
+
+EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the project's one-line error and exit code 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(EXIT_INPUT, f"rig: {message} (see '{self.prog} --help')\n")
+
+
+def _columns(text: str) -> list[str]:
+    return [c.strip() for c in text.split(",") if c.strip()]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line interface."""
+    parser = _Parser(prog="rig", description="Helmholtz-cage magnetometer test rig.")
+    parser.add_argument("--version", action="version", version=f"rig {__version__}")
+    verbosity = parser.add_mutually_exclusive_group()
+    verbosity.add_argument("-q", "--quiet", action="store_true", help="print errors only")
+    verbosity.add_argument(
+        "-v", "--verbose", action="store_true", help="more detail, tracebacks on internal errors"
+    )
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    cal = sub.add_parser(
+        "calibrate",
+        help="fit scale, offset, misalignment and current-to-bias to a CSV file",
+        description=(
+            "Fit m = T h + o + sum_j k_j u_j to recorded data. --field gives a vector (cage)"
+            " calibration, --field-magnitude an attitude-independent (scalar) one. Any consistent"
+            " field unit works; results are labelled uT."
+        ),
+    )
+    cal.add_argument("data", type=Path, metavar="DATA.csv", help="CSV file with a header row")
+    cal.add_argument(
+        "--measured", required=True, type=_columns, metavar="COLX,COLY,COLZ",
+        help="raw DUT reading columns",
+    )  # fmt: skip
+    ref = cal.add_mutually_exclusive_group(required=True)
+    ref.add_argument(
+        "--field", type=_columns, metavar="COLX,COLY,COLZ",
+        help="reference field vector columns (vector calibration)",
+    )  # fmt: skip
+    ref.add_argument(
+        "--field-magnitude", metavar="COL", help="reference field magnitude column (scalar)"
+    )
+    cal.add_argument(
+        "--telemetry", type=_columns, default=[], metavar="COL1,COL2,...",
+        help="telemetry channels (currents) whose bias to fit",
+    )  # fmt: skip
+    cal.add_argument(
+        "--method", choices=("ml", "twostep", "centered", "ellipsoid", "vector"),
+        help="estimator (default: vector with --field, ml with --field-magnitude)",
+    )  # fmt: skip
+    cal.add_argument(
+        "--noise-nt", type=float, metavar="SIGMA",
+        help="raw noise per axis, 1-sigma in nT: the chi-square test and Cramer-Rao bound use it",
+    )  # fmt: skip
+    cal.add_argument(
+        "--robust", choices=("huber", "bisquare"), help="reweight against outliers (ml, vector)"
+    )
+    cal.add_argument("--out", type=Path, metavar="RESULT.json", help="write the result file")
+    cal.add_argument(
+        "--c-header", type=Path, metavar="FILE.h", help="write a C header for flight software"
+    )
+    cal.set_defaults(func=_cmd_calibrate)
+
+    ex = sub.add_parser(
+        "example-data",
+        help="write a synthetic data set with known truth",
+        description=(
+            "rax: a tumbling CubeSat with four panel currents and EPS beacons (scalar); cage: a"
+            " Helmholtz-cage sweep with two load channels (vector)."
+        ),
+    )
+    ex.add_argument("out", type=Path, metavar="OUT.csv")
+    ex.add_argument("--kind", choices=("rax", "cage"), default="rax")
+    ex.add_argument("--samples", type=int, default=6000, metavar="N")
+    ex.add_argument("--seed", type=int, default=1)
+    ex.add_argument("--noise-nt", type=float, default=100.0, metavar="SIGMA")
+    ex.set_defaults(func=_cmd_example_data)
+    return parser
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from rig.calibration import Samples, calibrate
+    from rig.io.csv_table import read_columns
+
+    if len(args.measured) != 3:
+        raise UserInputError(f"--measured needs three columns X,Y,Z, got {len(args.measured)}")
+    if args.field is not None and len(args.field) != 3:
+        raise UserInputError(f"--field needs three columns X,Y,Z, got {len(args.field)}")
+    if len(set(args.telemetry)) != len(args.telemetry):
+        raise UserInputError("--telemetry names a column twice: list each channel once")
+    wanted = list(args.measured) + (args.field or [args.field_magnitude]) + list(args.telemetry)
+    cols = read_columns(args.data, list(dict.fromkeys(wanted)))
+    import numpy as np
+
+    measured = np.column_stack([cols[c] for c in args.measured])
+    telemetry = np.column_stack([cols[c] for c in args.telemetry]) if args.telemetry else None
+    if args.field is not None:
+        samples = Samples.build(
+            measured,
+            field_ut=np.column_stack([cols[c] for c in args.field]),
+            telemetry=telemetry,
+            channels=tuple(args.telemetry),
+        )
+    else:
+        samples = Samples.build(
+            measured,
+            field_magnitude_ut=cols[args.field_magnitude],
+            telemetry=telemetry,
+            channels=tuple(args.telemetry),
+        )
+    result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust)
+    if args.out is not None:
+        _write(args.out, json.dumps(result.to_dict(), indent=2) + "\n")
+    if args.c_header is not None:
+        from rig.calibration.export_c import c_header
+
+        _write(args.c_header, c_header(result, prefix=args.c_header.stem, source=str(args.data)))
+    if not args.quiet:
+        from rig.report.tables import calibration_table
+
+        print(calibration_table(result, source=str(args.data), verbose=args.verbose))
+        for path in (args.out, args.c_header):
+            if path is not None:
+                print(f"wrote {path}")
+    return EXIT_OK
+
+
+def _write(path: Path, text: str) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise UserInputError(f"cannot write {path}: {exc.strerror}: choose another path") from None
+
+
+def _cmd_example_data(args: argparse.Namespace) -> int:
+    from rig.calibration.synthetic import cage_like, rax_like
+    from rig.io.csv_table import write_columns
+
+    if args.samples < 100:
+        raise UserInputError(f"--samples must be at least 100, got {args.samples}")
+    noise_ut = args.noise_nt / 1000.0
+    if args.kind == "rax":
+        case = rax_like(args.samples, seed=args.seed, noise_ut=noise_ut)
+        s = case.samples
+        cols = {"time_s": case.time_s}
+        cols |= {f"m{ax}_ut": s.measured_ut[:, i] for i, ax in enumerate("xyz")}
+        cols["b_ut"] = s.field_magnitude_ut
+        cols |= {ch: s.telemetry[:, j] for j, ch in enumerate(s.channels)}
+        hint = "--measured mx_ut,my_ut,mz_ut --field-magnitude b_ut --telemetry " + ",".join(
+            s.channels
+        )
+    else:
+        case = cage_like(args.samples, seed=args.seed, noise_ut=noise_ut)
+        s = case.samples
+        cols = {"time_s": case.time_s}
+        cols |= {f"m{ax}_ut": s.measured_ut[:, i] for i, ax in enumerate("xyz")}
+        cols |= {f"h{ax}_ut": case.field_ut[:, i] for i, ax in enumerate("xyz")}
+        cols |= {ch: s.telemetry[:, j] for j, ch in enumerate(s.channels)}
+        hint = "--measured mx_ut,my_ut,mz_ut --field hx_ut,hy_ut,hz_ut --telemetry " + ",".join(
+            s.channels
+        )
+    write_columns(args.out, cols)
+    if not args.quiet:
+        print(f"wrote {args.out}: {args.samples} samples ({args.kind}); calibrate it with")
+        print(f"  rig calibrate {args.out} {hint} --noise-nt {args.noise_nt:g}")
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``rig`` command; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        code: int = args.func(args)
+        return code
+    except RigError as exc:
+        print(f"rig: error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except KeyboardInterrupt:
+        print("rig: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # a bug: one line unless the user asked for the traceback
+        if args.verbose:
+            raise
+        print(
+            f"rig: internal error: {type(exc).__name__}: {exc} (rerun with -v for the traceback"
+            " and report it)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL
+
+
+if __name__ == "__main__":
+    sys.exit(main())
