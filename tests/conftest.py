@@ -1,0 +1,19 @@
+"""Shared synthetic-truth fixtures (generated here, seeded)."""
+
+from __future__ import annotations
+
+import pytest
+
+from rig.calibration.synthetic import SyntheticCase, cage_like, rax_like
+
+
+@pytest.fixture(scope="session")
+def rax_case() -> SyntheticCase:
+    """RAX-like on-orbit case: |h| 20-50 uT, 4 panel currents and EPS beacons, 0.1 uT noise."""
+    return rax_like(3000, seed=11)
+
+
+@pytest.fixture(scope="session")
+def cage_case() -> SyntheticCase:
+    """Cage sweep with a field vector, two load channels and a mounting rotation."""
+    return cage_like(1500, seed=12)

@@ -1,0 +1,175 @@
+"""Each estimator recovers synthetic truth within 3 sigma of its own covariance; failure modes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rig.calibration import Samples, calibrate
+from rig.calibration.residuals import p_from_calibration
+from rig.calibration.synthetic import SyntheticCase, cage_like, rax_like
+from rig.errors import CalibrationError
+
+# chi-square 99.9 % quantiles for the normalized estimation error squared (NEES)
+CHI2_999 = {24: 51.18, 18: 42.31}
+
+
+def _check_within_3_sigma(result, truth_p: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    err = result.p - truth_p
+    z = err / result.sigma
+    worst = int(np.argmax(np.abs(z)))
+    assert np.abs(z).max() < 3.0, f"{result.names[worst]} is {z[worst]:+.2f} sigma off"
+    nees = float(err @ np.linalg.solve(result.covariance, err))
+    assert nees < CHI2_999[err.size], f"NEES {nees:.1f} for {err.size} parameters"
+
+
+@pytest.mark.parametrize("method", ["ml", "twostep", "centered", "ellipsoid"])
+def test_scalar_estimators_recover_truth(rax_case: SyntheticCase, method: str) -> None:
+    result = calibrate(rax_case.samples, method, noise_nt=100.0)  # type: ignore[arg-type]
+    assert result.model == "scalar" and result.method == method
+    _check_within_3_sigma(result, p_from_calibration(rax_case.truth, vector=False))
+    assert result.chi2.verdict == "consistent"
+
+
+def test_vector_estimator_recovers_truth_and_mounting(cage_case: SyntheticCase) -> None:
+    result = calibrate(cage_case.samples, noise_nt=50.0)
+    assert result.model == "vector" and result.method == "vector"
+    truth = p_from_calibration(cage_case.truth, vector=True)
+    # The rotation error angles refer to the fitted mounting: compare the mountings directly.
+    rot_err = result.calibration.rotation @ cage_case.truth.rotation.T
+    angle = np.arccos(np.clip((np.trace(rot_err) - 1) / 2, -1, 1))
+    rot_sigma = float(np.linalg.norm(result.sigma[9:12]))
+    assert angle < 3 * rot_sigma, f"mounting off by {np.degrees(angle):.4f} deg"
+    mask = np.ones(truth.size, bool)
+    mask[9:12] = False
+    z = (result.p - truth)[mask] / result.sigma[mask]
+    assert np.abs(z).max() < 3.0
+    mounting = result.to_dict()["mounting"]
+    np.testing.assert_allclose(mounting["rotation_vector_deg"], [1.5, -2.0, 3.0], atol=0.02)
+    # Vector least squares is efficient: the reported sigma equals the CRLB up to sigma_hat/sigma.
+    assert np.allclose(result.crlb_ratio, result.noise_estimated_nt / 50.0, rtol=1e-6)
+    assert abs(result.residual_rms_nt / result.noise_floor_nt - 1.0) < 0.05
+
+
+def test_scalar_method_on_cage_data_uses_magnitude_only(cage_case: SyntheticCase) -> None:
+    result = calibrate(cage_case.samples, "ml", noise_nt=50.0)
+    assert result.model == "scalar"
+    assert any("only |h| was used" in w for w in result.warnings)
+    # the sensor matrix (rotation removed) still matches the truth's Springmann form
+    np.testing.assert_allclose(
+        result.calibration.springmann.as_vector()[:3],
+        cage_case.truth.springmann.as_vector()[:3],
+        atol=5 * float(result.sigma[:3].max()),
+    )
+
+
+def test_rax_claim_telemetry_brings_residuals_to_the_noise_floor() -> None:
+    """Springmann-Cutler: without telemetry the residual is several times the noise floor."""
+    without = calibrate(rax_like(6000, seed=21, channels=0).samples, "ml", noise_nt=100.0)
+    panels = calibrate(rax_like(6000, seed=21, channels=4).samples, "ml", noise_nt=100.0)
+    full = calibrate(rax_like(6000, seed=21, channels=5).samples, "ml", noise_nt=100.0)
+    assert without.residual_rms_nt > 3.0 * without.noise_floor_nt
+    assert panels.residual_rms_nt > 1.2 * panels.noise_floor_nt  # EPS beacons still visible
+    assert abs(full.residual_rms_nt / full.noise_floor_nt - 1.0) < 0.10
+    assert abs(full.residual_rms_nt / 100.0 - 1.0) < 0.10
+    assert without.chi2.verdict == "above noise floor"
+    assert any("exceed" in w for w in without.warnings)
+    assert full.chi2.verdict == "consistent"
+    assert full.angular_uncertainty_deg(20.0) < without.angular_uncertainty_deg(20.0) / 3
+
+
+def test_constant_field_centered_is_refused_and_ml_works() -> None:
+    rng = np.random.default_rng(5)
+    n = 800
+    d = rng.standard_normal((n, 3))
+    h = 48.0 * d / np.linalg.norm(d, axis=1)[:, None]
+    base = cage_like(n, seed=5, channels=1)
+    truth = base.truth
+    u = base.samples.telemetry
+    m = truth.sensor @ (h.T) + truth.offset_ut[:, None] + (u @ truth.k_ut_per_unit).T
+    m = m.T + 0.05 * rng.standard_normal((n, 3))
+    s = Samples.build(m, field_magnitude_ut=np.full(n, 48.0), telemetry=u, channels=("i",))
+    for method in ("centered", "twostep"):
+        with pytest.raises(CalibrationError, match="nearly constant"):
+            calibrate(s, method)  # type: ignore[arg-type]
+    truth_p = p_from_calibration(
+        type(truth)(truth.sensor, truth.offset_ut, truth.k_ut_per_unit, ("i",)), vector=False
+    )
+    for method in ("ellipsoid", "ml"):
+        result = calibrate(s, method, noise_nt=50.0)  # type: ignore[arg-type]
+        z = (result.p - truth_p) / result.sigma
+        assert np.abs(z).max() < 3.0, (method, z)
+
+
+def test_robust_reweighting_rejects_outliers(rax_case: SyntheticCase) -> None:
+    s0 = rax_case.samples
+    m = s0.measured_ut.copy()
+    rng = np.random.default_rng(9)
+    bad = rng.choice(s0.n, size=s0.n // 50, replace=False)  # 2 % spikes of 5-20 uT
+    m[bad] += rng.uniform(5, 20, size=(bad.size, 3)) * rng.choice([-1, 1], size=(bad.size, 3))
+    s = Samples(m, s0.field_magnitude_ut, s0.telemetry, s0.channels)
+    truth = p_from_calibration(rax_case.truth, vector=False)
+    plain = calibrate(s, "ml")
+    robust = calibrate(s, "ml", robust="bisquare")
+    err_plain = np.abs((plain.p - truth) / robust.sigma).max()
+    err_robust = np.abs((robust.p - truth) / robust.sigma).max()
+    assert err_plain > 10.0
+    assert err_robust < 4.0
+    assert any("down-weighted" in w for w in robust.warnings)
+
+
+def test_robust_vector_rejects_outliers(cage_case: SyntheticCase) -> None:
+    s0 = cage_case.samples
+    m = s0.measured_ut.copy()
+    m[::40] += 15.0
+    s = Samples(m, s0.field_magnitude_ut, s0.telemetry, s0.channels, s0.field_ut)
+    truth = p_from_calibration(cage_case.truth, vector=True)
+    result = calibrate(s, "vector", robust="huber")
+    z = (result.p - truth)[:9] / result.sigma[:9]
+    assert np.abs(z).max() < 4.0
+
+
+def test_offset_correlated_with_channel_that_never_returns_to_zero() -> None:
+    case = cage_like(1200, seed=8, channels=1)
+    s0 = case.samples
+    u = 5.0 + 0.2 * s0.telemetry  # 5.0-5.6 A, never near zero
+    m = case.truth.predict(s0.field_ut, u) + 0.05 * np.random.default_rng(1).standard_normal((s0.n, 3))
+    result = calibrate(Samples(m, s0.field_magnitude_ut, u, s0.channels, s0.field_ut))
+    text = " ".join(result.warnings)
+    assert "never returns near zero" in text and "load1_a" in text
+
+
+def test_identical_channels_are_rank_deficient(rax_case: SyntheticCase) -> None:
+    s0 = rax_case.samples
+    u = np.column_stack([s0.telemetry[:, 0], s0.telemetry[:, 0]])
+    s = Samples(s0.measured_ut, s0.field_magnitude_ut, u, ("a", "b"))
+    with pytest.raises(CalibrationError, match=r"'a', 'b' are linearly dependent"):
+        calibrate(s)
+
+
+def test_constant_channel_is_refused(rax_case: SyntheticCase) -> None:
+    s0 = rax_case.samples
+    s = Samples(s0.measured_ut, s0.field_magnitude_ut, np.full((s0.n, 1), 2.0), ("bus",))
+    with pytest.raises(CalibrationError, match="'bus' is constant"):
+        calibrate(s)
+
+
+def test_too_few_samples_and_zero_field() -> None:
+    case = rax_like(30, seed=2)
+    with pytest.raises(CalibrationError, match="only 30 samples for 24 parameters"):
+        calibrate(case.samples)
+    s0 = rax_like(500, seed=2).samples
+    mag = s0.field_magnitude_ut.copy()
+    mag[7] = 0.0
+    with pytest.raises(CalibrationError, match="zero or negative in 1 samples"):
+        calibrate(Samples(s0.measured_ut, mag, s0.telemetry, s0.channels))
+
+
+def test_apply_corrects_raw_data(rax_case: SyntheticCase) -> None:
+    result = calibrate(rax_case.samples, noise_nt=100.0)
+    s = rax_case.samples
+    corrected = result.calibration.apply(s.measured_ut, s.telemetry)
+    err_nt = 1000 * (np.linalg.norm(corrected, axis=1) - s.field_magnitude_ut)
+    assert abs(np.sqrt(np.mean(err_nt**2)) - result.residual_rms_nt) < 1e-6
+    with pytest.raises(ValueError, match="needs telemetry"):
+        result.calibration.apply(s.measured_ut)
