@@ -49,7 +49,9 @@ def main() -> int:
 
     case = rax_like(args.samples, seed=5)
     s = case.samples
-    print(f"data: {s.n} samples, {s.n_channels} telemetry channels, {9 + 3 * s.n_channels} parameters")
+    print(
+        f"data: {s.n} samples, {s.n_channels} telemetry channels, {9 + 3 * s.n_channels} parameters"
+    )
     start = scalar_start(s).p
 
     t_ours, est = best_of(args.repeat, lambda: ml_fit(s, start=start))
@@ -72,12 +74,18 @@ def main() -> int:
     max_diff = float(np.max(np.abs(est.p - base.x) / np.sqrt(np.diag(est.covariance))))
     ratio = t_base / t_ours
     print(f"ours   (analytic J, LM normal eqs): {t_ours * 1000:8.1f} ms  cost {cost_ours:.6e}")
-    print(f"scipy least_squares, 2-point FD J : {t_base * 1000:8.1f} ms  cost {cost_base:.6e}"
-          f"  ({base.nfev} evaluations)")
-    print(f"speed-up: {ratio:.1f}x (target >= 10x)   largest parameter difference:"
-          f" {max_diff:.3f} sigma")
-    print(f"peak traced memory of the fit: {peak / 2**20:.1f} MiB"
-          f" (Jacobian alone {s.n * 24 * 8 / 2**20:.1f} MiB)")
+    print(
+        f"scipy least_squares, 2-point FD J : {t_base * 1000:8.1f} ms  cost {cost_base:.6e}"
+        f"  ({base.nfev} evaluations)"
+    )
+    print(
+        f"speed-up: {ratio:.1f}x (target >= 10x)   largest parameter difference:"
+        f" {max_diff:.3f} sigma"
+    )
+    print(
+        f"peak traced memory of the fit: {peak / 2**20:.1f} MiB"
+        f" (Jacobian alone {s.n * 24 * 8 / 2**20:.1f} MiB)"
+    )
 
     with tempfile.TemporaryDirectory() as tmp:
         csv = Path(tmp) / "bench.csv"
@@ -97,8 +105,10 @@ def main() -> int:
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-c", "import numpy, scipy.linalg"], check=True)
         t_import = time.perf_counter() - t0
-    print(f"rig calibrate on the {s.n}-row CSV: {min(walls):.3f} s wall (target < 1 s),"
-          f" peak RSS {rss:.0f} MiB; python+numpy+scipy start-up alone {t_import:.3f} s")
+    print(
+        f"rig calibrate on the {s.n}-row CSV: {min(walls):.3f} s wall (target < 1 s),"
+        f" peak RSS {rss:.0f} MiB; python+numpy+scipy start-up alone {t_import:.3f} s"
+    )
     ok = ratio >= 10.0 and min(walls) < 1.0
     print("PASS" if ok else "MISS")
     return 0 if ok else 1

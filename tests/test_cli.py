@@ -118,7 +118,9 @@ def test_c_header_compiles_and_matches_apply(rax_csv: Path, tmp_path: Path) -> N
     res = json.loads(out.read_text())
     corr = res["correction"]
     u = np.array([0.1, 0.0, 0.4, 0.0, 1.55])
-    bias = np.array(corr["offset_ut"]) + u @ np.array([corr["k_ut_per_unit"][c] for c in RAX_CHANNELS])
+    bias = np.array(corr["offset_ut"]) + u @ np.array(
+        [corr["k_ut_per_unit"][c] for c in RAX_CHANNELS]
+    )
     want = np.array(corr["matrix"]) @ (np.array([12.5, -30.25, 8.0]) - bias)
     np.testing.assert_allclose(got, want, atol=2e-4)
 
@@ -154,7 +156,9 @@ def _damaged(rax_csv: Path, tmp_path: Path, line_no: int, col: int, value: str) 
 
 def test_non_numeric_cell(rax_csv: Path, tmp_path: Path) -> None:
     path = _damaged(rax_csv, tmp_path, 57, 2, "abc")
-    _one_line_error(rig("calibrate", str(path), *RAX_ARGS), "line 57", "'my_ut'", "'abc' is not a number")
+    _one_line_error(
+        rig("calibrate", str(path), *RAX_ARGS), "line 57", "'my_ut'", "'abc' is not a number"
+    )
 
 
 def test_empty_cell(rax_csv: Path, tmp_path: Path) -> None:
@@ -176,7 +180,9 @@ def test_too_few_samples(rax_csv: Path, tmp_path: Path) -> None:
 def test_identical_telemetry_channels(rax_csv: Path, tmp_path: Path) -> None:
     lines = rax_csv.read_text().splitlines()
     path = tmp_path / "dup.csv"
-    path.write_text("\n".join(f"{ln},{ln.split(',')[5] if i else 'copy'}" for i, ln in enumerate(lines)) + "\n")
+    path.write_text(
+        "\n".join(f"{ln},{ln.split(',')[5] if i else 'copy'}" for i, ln in enumerate(lines)) + "\n"
+    )
     proc = rig("calibrate", str(path), "--measured", "mx_ut,my_ut,mz_ut", "--field-magnitude",
                "b_ut", "--telemetry", "i_px,copy")  # fmt: skip
     _one_line_error(proc, "linearly dependent", "'i_px'", "'copy'", "drop one")

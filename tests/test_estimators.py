@@ -133,7 +133,9 @@ def test_offset_correlated_with_channel_that_never_returns_to_zero() -> None:
     case = cage_like(1200, seed=8, channels=1)
     s0 = case.samples
     u = 5.0 + 0.2 * s0.telemetry  # 5.0-5.6 A, never near zero
-    m = case.truth.predict(s0.field_ut, u) + 0.05 * np.random.default_rng(1).standard_normal((s0.n, 3))
+    m = case.truth.predict(s0.field_ut, u) + 0.05 * np.random.default_rng(1).standard_normal(
+        (s0.n, 3)
+    )
     result = calibrate(Samples(m, s0.field_magnitude_ut, u, s0.channels, s0.field_ut))
     text = " ".join(result.warnings)
     assert "never returns near zero" in text and "load1_a" in text

@@ -30,16 +30,32 @@ def _compare(analytic: np.ndarray, numeric: np.ndarray) -> None:
 
 
 def test_scalar_jacobian(rax_case: SyntheticCase) -> None:
-    s = Samples(*(a[:200] for a in (rax_case.samples.measured_ut, rax_case.samples.field_magnitude_ut, rax_case.samples.telemetry)), rax_case.samples.channels)
+    s = Samples(
+        *(
+            a[:200]
+            for a in (
+                rax_case.samples.measured_ut,
+                rax_case.samples.field_magnitude_ut,
+                rax_case.samples.telemetry,
+            )
+        ),
+        rax_case.samples.channels,
+    )
     p = _perturbed(p_from_calibration(rax_case.truth, vector=False), 1)
-    r, jac = scalar_residuals(p, s)
+    _, jac = scalar_residuals(p, s)
     assert jac.shape == (200, 9 + 3 * s.n_channels)
     _compare(jac, numeric_jacobian(lambda x: scalar_residuals(x, s)[0], p))
 
 
 def test_vector_jacobian(cage_case: SyntheticCase) -> None:
     s0 = cage_case.samples
-    s = Samples(s0.measured_ut[:150], s0.field_magnitude_ut[:150], s0.telemetry[:150], s0.channels, s0.field_ut[:150])
+    s = Samples(
+        s0.measured_ut[:150],
+        s0.field_magnitude_ut[:150],
+        s0.telemetry[:150],
+        s0.channels,
+        s0.field_ut[:150],
+    )
     p = _perturbed(p_from_calibration(cage_case.truth, vector=True), 2)
     p[9:12] = 0.0  # the rotation error is defined about the reference rotation
     rot = cage_case.truth.rotation

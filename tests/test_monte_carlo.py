@@ -20,7 +20,9 @@ def _monte_carlo(case: SyntheticCase, method: str, noise_nt: float, vector: bool
         err = result.p - truth
         if vector:  # rotation errors are about each fit's own mounting: compare to the truth's
             rel = result.calibration.rotation @ case.truth.rotation.T
-            err[9:12] = 0.5 * np.array([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]])
+            err[9:12] = 0.5 * np.array(
+                [rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]]
+            )
         errors.append(err)
         sigmas.append(result.sigma)
         crlbs.append(result.crlb_sigma)

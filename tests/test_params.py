@@ -47,7 +47,10 @@ def test_matrix_matches_springmann_equations() -> None:
     assert np.isclose(m[1], b * (h[1] * np.cos(rho) + h[0] * np.sin(rho)))
     assert np.isclose(
         m[2],
-        c * (h[0] * np.sin(lam) + h[1] * np.sin(phi) * np.cos(lam) + h[2] * np.cos(phi) * np.cos(lam)),
+        c
+        * (
+            h[0] * np.sin(lam) + h[1] * np.sin(phi) * np.cos(lam) + h[2] * np.cos(phi) * np.cos(lam)
+        ),
     )
 
 
@@ -123,7 +126,9 @@ def test_scalar_representative_preserves_magnitude(sp: Springmann, rv: np.ndarra
 def test_apply_inverts_predict() -> None:
     sp = Springmann(0.9, 1.1, 1.02, 1.0, -2.0, 3.0, 0.01, -0.02, 0.03)
     k = np.array([[1.0, -0.5, 0.2], [0.3, 0.0, -1.1]])
-    cal = Calibration.from_springmann(sp, k, ("i1", "i2"), rotation=rotation_from_vector(np.array([0.1, -0.2, 0.05])))
+    cal = Calibration.from_springmann(
+        sp, k, ("i1", "i2"), rotation=rotation_from_vector(np.array([0.1, -0.2, 0.05]))
+    )
     rng = np.random.default_rng(0)
     h = rng.normal(size=(50, 3)) * 30
     u = rng.uniform(0, 3, size=(50, 2))

@@ -53,7 +53,10 @@ def c_header(result: CalibrationResult, prefix: str = "magcal", source: str = ""
     if n_ch:
         lines += [
             f"static const float {fn}_k_ut_per_unit[{n_ch}][3] = {{",
-            *(f"    {{{_floats(row)}}}, /* {ch} */" for row, ch in zip(cal.k_ut_per_unit, cal.channels, strict=True)),
+            *(
+                f"    {{{_floats(row)}}}, /* {ch} */"
+                for row, ch in zip(cal.k_ut_per_unit, cal.channels, strict=True)
+            ),
             "};",
         ]
     lines += [

@@ -66,9 +66,7 @@ def calibrate(
     return summarize(est, data, noise_nt, notes)
 
 
-def _run(
-    method: Method, s: Samples, noise_nt: float | None, robust: RobustLoss | None
-) -> Estimate:
+def _run(method: Method, s: Samples, noise_nt: float | None, robust: RobustLoss | None) -> Estimate:
     if method == "vector":
         return _robust_vector(s, robust) if robust else vector_fit(s)
     if method == "ml":

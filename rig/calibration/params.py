@@ -82,7 +82,7 @@ def springmann_matrix(shape: Array) -> Array:
 
 def springmann_matrix_derivatives(shape: Array) -> Array:
     """``dL/d[a, b, c, rho, phi, lambda]`` as an array of shape (6, 3, 3)."""
-    a, b, c, rho, phi, lam = shape
+    _, b, c, rho, phi, lam = shape
     sr, cr = np.sin(rho), np.cos(rho)
     sp, cp = np.sin(phi), np.cos(phi)
     sl, cl = np.sin(lam), np.cos(lam)
@@ -156,7 +156,7 @@ def crassidis_from_correction(w: Array, offset_ut: Array) -> tuple[Crassidis, Ar
 def correction_from_crassidis(cr: Crassidis) -> tuple[Array, Array]:
     """``(W, o)`` with ``W = I + D`` and ``o = (I + D)^-1 b`` (rotation taken as identity)."""
     w = np.eye(3) + cr.d_matrix
-    return w, np.linalg.solve(w, cr.b_ut)
+    return w, np.asarray(np.linalg.solve(w, cr.b_ut), dtype=float)
 
 
 def skew(v: Array) -> Array:
@@ -169,8 +169,10 @@ def rotation_from_vector(rotvec: Array) -> Array:
     angle = float(np.linalg.norm(rotvec))
     k = skew(np.asarray(rotvec, dtype=float))
     if angle < 1e-8:
-        return np.eye(3) + k + 0.5 * (k @ k)
-    return np.eye(3) + (np.sin(angle) / angle) * k + ((1 - np.cos(angle)) / angle**2) * (k @ k)
+        return np.asarray(np.eye(3) + k + 0.5 * (k @ k))
+    return np.asarray(
+        np.eye(3) + (np.sin(angle) / angle) * k + ((1 - np.cos(angle)) / angle**2) * (k @ k)
+    )
 
 
 @dataclass(frozen=True)

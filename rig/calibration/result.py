@@ -125,7 +125,13 @@ class CalibrationResult:
         cal = self.calibration
         sp = cal.springmann
         cr = cal.crassidis
-        spv = dict(zip(("a", "b", "c", "x0", "y0", "z0", "rho", "phi", "lambda"), sp.as_vector()))
+        spv = dict(
+            zip(
+                ("a", "b", "c", "x0", "y0", "z0", "rho", "phi", "lambda"),
+                sp.as_vector(),
+                strict=True,
+            )
+        )
         out: dict[str, Any] = {
             "model": self.model,
             "method": self.method,
@@ -223,7 +229,7 @@ def summarize(
     cal = calibration_from_p(est.p, s.channels, rotation_ref=est.rotation_ref)
     robust_w = np.ones(s.n) if est.sample_weights is None else est.sample_weights
     if vector:
-        assert est.rotation_ref is not None
+        assert est.rotation_ref is not None and s.field_ut is not None
         raw, jac = vector_residuals(est.p, s, est.rotation_ref)
         weighted = raw * np.repeat(np.sqrt(robust_w), 3)
         fisher_jac = jac
@@ -290,8 +296,8 @@ def _warnings(
             f" {result.chi2.reduced:.2f}): --noise-nt overstates the noise"
         )
     if est.sample_weights is not None:
-        low = int(np.sum(est.sample_weights < 0.5))
-        out.append(f"robust reweighting down-weighted {low} of {s.n} samples below 0.5")
+        n_low = int(np.sum(est.sample_weights < 0.5))
+        out.append(f"robust reweighting down-weighted {n_low} of {s.n} samples below 0.5")
     ks = k_start(result.model == "vector")
     for a, b, r in result.correlations()[:6]:
         msg = f"parameters {a} and {b} are correlated (r = {r:+.3f})"
@@ -299,8 +305,7 @@ def _warnings(
         other = a if k_name == b else b
         if k_name is not None and other in ("x0", "y0", "z0"):
             ch = k_name[2 : k_name.index("]")]
-            j = s.channels.index(ch)
-            low = float(np.min(np.abs(s.telemetry[:, j])))
+            low = float(np.min(np.abs(s.telemetry[:, s.channels.index(ch)])))
             msg += (
                 f": channel '{ch}' never returns near zero (min |u| = {low:.3g}); record a"
                 " segment with that channel at zero to separate offset and coefficient"

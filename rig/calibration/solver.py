@@ -54,7 +54,8 @@ def levenberg_marquardt(
     damping = 1e-4
     converged = False
     iteration = 0
-    for iteration in range(1, max_iterations + 1):
+    while iteration < max_iterations:
+        iteration += 1
         jtj = jac.T @ jac
         grad = jac.T @ r
         scale = np.maximum(np.diag(jtj), 1e-30)
@@ -72,7 +73,9 @@ def levenberg_marquardt(
             converged = True  # no descent direction left: at a minimum within precision
             break
         reduction = (cost - cost_new) / max(cost, 1e-300)
-        step_size = float(np.sqrt(np.sum(step**2 * scale) / max(float(np.sum(x**2 * scale)), 1e-300)))
+        step_size = float(
+            np.sqrt(np.sum(step**2 * scale) / max(float(np.sum(x**2 * scale)), 1e-300))
+        )
         x, r, jac, cost = x_new, r_new, jac_new, cost_new
         damping = max(damping / 5.0, 1e-12)
         if reduction < rel_tol and step_size < np.sqrt(rel_tol):

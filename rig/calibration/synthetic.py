@@ -57,7 +57,7 @@ def _rotations(axis: Array, angles: Array) -> Array:
     k = axis / np.linalg.norm(axis)
     kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     s, c = np.sin(angles)[:, None, None], np.cos(angles)[:, None, None]
-    return np.eye(3) + s * kx + (1 - c) * (kx @ kx)
+    return np.asarray(np.eye(3) + s * kx + (1 - c) * (kx @ kx))
 
 
 def rax_like(
@@ -76,7 +76,7 @@ def rax_like(
     Only the field magnitude is a reference here (attitude independent), as on orbit.
     """
     rng = np.random.default_rng(seed)
-    t = np.arange(n_samples) * dt_s
+    t = np.arange(n_samples, dtype=float) * dt_s
     phase = 2 * np.pi * t / ORBIT_PERIOD_S
     magnitude = 35.0 - 15.0 * np.cos(2 * phase)
     direction_i = np.column_stack([np.cos(2 * phase), 0.3 * np.sin(phase), np.sin(2 * phase)])

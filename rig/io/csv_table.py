@@ -30,7 +30,9 @@ def _header(path: Path) -> tuple[int, list[str], str]:
     except IsADirectoryError:
         raise UserInputError(f"{path} is a directory: give a CSV file") from None
     except UnicodeDecodeError:
-        raise UserInputError(f"{path} is not a text CSV file (not UTF-8): export it as CSV") from None
+        raise UserInputError(
+            f"{path} is not a text CSV file (not UTF-8): export it as CSV"
+        ) from None
     except PermissionError:
         raise UserInputError(f"{path}: permission denied: check the file's permissions") from None
     raise UserInputError(f"{path} is empty: it needs a header row and data rows")
@@ -70,10 +72,10 @@ def read_columns(path: str | Path, columns: list[str]) -> dict[str, Array]:
         raise UserInputError(f"{path} has a header but no data rows")
     bad = ~np.isfinite(data)
     if bad.any():
-        row, col = (int(v) for v in np.argwhere(bad)[0])
-        line = _data_line_numbers(path, header_index)[row]
+        bad_row, bad_col = (int(v) for v in np.argwhere(bad)[0])
+        line = _data_line_numbers(path, header_index)[bad_row]
         raise UserInputError(
-            f"{path} line {line}, column '{columns[col]}': value is NaN or infinite"
+            f"{path} line {line}, column '{columns[bad_col]}': value is NaN or infinite"
             f" ({int(bad.any(axis=1).sum())} such rows): remove or repair those rows"
         )
     return {name: data[:, j].copy() for j, name in enumerate(columns)}
@@ -111,7 +113,9 @@ def _raise_bad_cell(
                     raise UserInputError(
                         f"{path} line {number}, column '{names[i]}': {what}: fix or delete that row"
                     ) from None
-    raise UserInputError(f"{path}: cannot read the numeric columns: check the delimiter and quoting")
+    raise UserInputError(
+        f"{path}: cannot read the numeric columns: check the delimiter and quoting"
+    )
 
 
 def write_columns(path: str | Path, columns: dict[str, Array], fmt: str = "%.6f") -> None:

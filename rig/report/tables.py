@@ -31,7 +31,11 @@ def _fmt(value: float, sigma: float) -> tuple[str, str]:
 
 def calibration_table(result: CalibrationResult, source: str = "", verbose: bool = False) -> str:
     """The result as the table ``rig calibrate`` prints."""
-    kind = "vector (field vector known)" if result.model == "vector" else "scalar (attitude independent)"
+    kind = (
+        "vector (field vector known)"
+        if result.model == "vector"
+        else "scalar (attitude independent)"
+    )
     n_ch = len(result.calibration.channels)
     lines = [
         f"Calibration of {source or 'data'}: {kind} model, method {result.method},"
@@ -56,10 +60,14 @@ def calibration_table(result: CalibrationResult, source: str = "", verbose: bool
         )
     chi = result.chi2
     noise_src = (
-        f"--noise-nt {result.noise_nt:g}" if result.noise_nt is not None else "estimated from residuals"
+        f"--noise-nt {result.noise_nt:g}"
+        if result.noise_nt is not None
+        else "estimated from residuals"
     )
-    what = "corrected field minus reference, per axis" if result.model == "vector" else (
-        "corrected |h| minus reference |h|"
+    what = (
+        "corrected field minus reference, per axis"
+        if result.model == "vector"
+        else ("corrected |h| minus reference |h|")
     )
     lines += [
         "",
