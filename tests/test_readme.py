@@ -1,0 +1,43 @@
+"""The README's main command works (its `rig` steps, run in a scratch folder)."""
+
+from __future__ import annotations
+
+import json
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+from rig.cli import main
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def _block(marker: str) -> str:
+    text = README.read_text()
+    match = re.search(rf"<!-- {marker} -->\s*```sh\n(.*?)\n```\s*<!-- /{marker} -->", text, re.S)
+    assert match, f"README lacks the {marker} block"
+    return match.group(1).strip()
+
+
+def test_readme_has_exactly_two_commands() -> None:
+    for marker in ("main-command", "test-command"):
+        assert "\n" not in _block(marker), f"{marker} must be one line"
+    assert "pytest" in _block("test-command")
+
+
+def test_main_command_rig_steps(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    steps = [s.strip() for s in _block("main-command").split("&&")]
+    rig_steps = [shlex.split(s)[1:] for s in steps if s.startswith(".venv/bin/rig ")]
+    assert len(rig_steps) == 2
+    for argv in rig_steps:
+        assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "k[i_eps].z" in out and "chi2/dof" in out
+    result = json.loads((tmp_path / "runs/example/result.json").read_text())
+    assert result["model"] == "scalar" and abs(result["residual_rms_nt"] / 100 - 1) < 0.1
+    assert (tmp_path / "runs/example/magcal.h").read_text().startswith("/* magcal")
