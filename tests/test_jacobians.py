@@ -82,3 +82,13 @@ def test_z_model_is_exact_at_truth(rax_case: SyntheticCase) -> None:
     assert np.abs(r).max() < 1e-9
     r_scalar, _ = scalar_residuals(p_from_calibration(rax_case.truth, vector=False), s)
     assert np.abs(r_scalar).max() < 1e-9
+
+
+def test_weighted_scalar_residuals_equal_weighting_afterwards(rax_case: SyntheticCase) -> None:
+    s = rax_case.samples
+    p = p_from_calibration(rax_case.truth, vector=False)
+    sw = np.random.default_rng(4).uniform(0.5, 2.0, s.n)
+    r, jac = scalar_residuals(p, s)
+    rw, jw = scalar_residuals(p, s, sw)
+    np.testing.assert_allclose(rw, r * sw, rtol=1e-13)
+    np.testing.assert_allclose(jw, jac * sw[:, None], rtol=1e-12, atol=1e-15)

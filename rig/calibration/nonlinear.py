@@ -12,6 +12,7 @@ from rig.calibration.residuals import (
     p_from_theta,
     scalar_noise_gain,
     scalar_residuals,
+    scalar_residuals_only,
     theta_from_p,
     z_residuals,
 )
@@ -20,6 +21,9 @@ from rig.calibration.solver import covariance_from_jacobian, levenberg_marquardt
 from rig.errors import CalibrationError
 
 MAX_IRLS_PASSES = 12
+GAIN_TOLERANCE = 1e-3
+"""Noise-gain change (relative) below which the ML weights are not refreshed: the efficiency lost
+to a weight error e is of order e^2."""
 
 
 def scalar_start(s: Samples) -> Estimate:
@@ -41,26 +45,30 @@ def ml_fit(
     p = scalar_start(s).p if start is None else np.asarray(start, float)
     robust_w = np.ones(s.n)
     iterations = 0
-    # Pass 1 fits with the noise gains of the start; pass 2 refreshes them (a second-order effect,
-    # so it converges at once). Robust fits iterate until the IRLS weights settle.
+    # Pass 1 fits with the noise gains of the start; pass 2 refreshes them if they moved (from a
+    # cold start). Robust fits iterate until the IRLS weights settle.
+    gain = scalar_noise_gain(p, s)
     for pass_index in range(MAX_IRLS_PASSES if robust else 2):
-        w = robust_w / scalar_noise_gain(p, s) ** 2
+        w = robust_w / gain**2
         sw = np.sqrt(w)
 
         def fun(x: Array, sw: Array = sw) -> tuple[Array, Array]:
-            r, jac = scalar_residuals(x, s)
-            return r * sw, jac * sw[:, None]
+            return scalar_residuals(x, s, sw)
 
         sol = levenberg_marquardt(fun, p)
         iterations += sol.iterations
         p = sol.x
+        new_gain = scalar_noise_gain(p, s)
+        gain_change = float(np.max(np.abs(new_gain / gain - 1.0)))
+        gain = new_gain
         if robust:
-            r, _ = scalar_residuals(p, s)
-            new_w = robust_weights(r / scalar_noise_gain(p, s), robust)
+            new_w = robust_weights(scalar_residuals_only(p, s) / gain, robust)
             change = float(np.max(np.abs(new_w - robust_w)))
             robust_w = new_w
             if change < 1e-3 and pass_index > 0:
                 break
+        elif gain_change < GAIN_TOLERANCE:
+            break  # refreshing the weights would move the estimate by a negligible amount
     if not sol.converged:
         raise CalibrationError(
             "the maximum-likelihood fit did not converge: check the column order and units, or try"

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -47,6 +48,11 @@ class Samples:
     telemetry: Array
     channels: tuple[str, ...] = ()
     field_ut: Array | None = None
+
+    @cached_property
+    def telemetry_by_channel(self) -> Array:
+        """Telemetry as (J, N), each channel contiguous (for the Jacobian's column passes)."""
+        return np.ascontiguousarray(self.telemetry.T)
 
     @property
     def n(self) -> int:
@@ -130,40 +136,61 @@ def _shape(p: Array) -> Array:
     return np.concatenate([p[:3], p[6:9]])
 
 
-def scalar_residuals(p: Array, s: Samples) -> tuple[Array, Array]:
-    """Scalar residuals ``|W v_k| - |h_k|`` (uT) and their Jacobian (N, 9 + 3J) in ``p``."""
+def scalar_residuals(
+    p: Array, s: Samples, sqrt_weights: Array | None = None
+) -> tuple[Array, Array]:
+    """Scalar residuals ``|W v_k| - |h_k|`` (uT) and their Jacobian (N, 9 + 3J) in ``p``.
+
+    With ``sqrt_weights`` both come multiplied row by row (cheaper than weighting afterwards).
+    """
     shape = _shape(p)
-    lower = springmann_matrix(shape)
-    w = np.linalg.inv(lower)
+    k = p[9:].reshape(-1, 3)
+    w, g = _corrected(p, s)
+    ng = np.sqrt(np.einsum("ij,ij->i", g, g))
+    r = ng - s.field_magnitude_ut
+    q = (g / ng[:, None]) @ w  # rows are W^T n_hat; every Jacobian column is linear in q
+    if sqrt_weights is not None:
+        r = r * sqrt_weights
+        q = q * sqrt_weights[:, None]
+    # Column-major output and axis-major inputs: every column is one contiguous pass.
+    jac = np.empty((s.n, p.size), order="F")
+    qt, gt = np.ascontiguousarray(q.T), np.ascontiguousarray(g.T)
+    ut = s.telemetry_by_channel
+    d_lower = springmann_matrix_derivatives(shape)
+    for i, col in enumerate((0, 1, 2, 6, 7, 8)):  # d|g|/dtheta = -(W^T n)^T (dL/dtheta) g
+        nz = list(zip(*np.nonzero(d_lower[i]), strict=True))
+        out = jac[:, col]
+        np.multiply(qt[nz[0][0]], gt[nz[0][1]], out=out)
+        out *= -d_lower[i, nz[0][0], nz[0][1]]
+        for a_, b_ in nz[1:]:
+            out -= d_lower[i, a_, b_] * qt[a_] * gt[b_]
+    for ax in range(3):
+        np.negative(qt[ax], out=jac[:, 3 + ax])
+        for j in range(k.shape[0]):
+            np.multiply(ut[j], jac[:, 3 + ax], out=jac[:, 9 + 3 * j + ax])
+    return r, jac
+
+
+def _corrected(p: Array, s: Samples) -> tuple[Array, Array]:
+    """``W`` and the corrected field ``g_k = W (m_k - o - K^T u_k)``, shape (N, 3)."""
+    w: Array = np.linalg.inv(springmann_matrix(_shape(p)))
     k = p[9:].reshape(-1, 3)
     v = s.measured_ut - p[3:6]
     if k.size:
         v = v - s.telemetry @ k
-    g = v @ w.T
-    ng = np.sqrt(np.einsum("ij,ij->i", g, g))
-    r = ng - s.field_magnitude_ut
-    nhat = g / ng[:, None]
-    q = nhat @ w  # rows are W^T n_hat
-    jac = np.empty((s.n, p.size))
-    outer = (q[:, :, None] * g[:, None, :]).reshape(s.n, 9)
-    d_shape = -outer @ springmann_matrix_derivatives(shape).reshape(6, 9).T
-    jac[:, 0:3] = d_shape[:, 0:3]
-    jac[:, 6:9] = d_shape[:, 3:6]
-    jac[:, 3:6] = -q
-    for j in range(k.shape[0]):
-        jac[:, 9 + 3 * j : 12 + 3 * j] = -s.telemetry[:, j : j + 1] * q
-    return r, jac
+    g: Array = v @ w.T
+    return w, g
+
+
+def scalar_residuals_only(p: Array, s: Samples) -> Array:
+    """The residuals of :func:`scalar_residuals` without the Jacobian (uT)."""
+    _, g = _corrected(p, s)
+    return np.asarray(np.sqrt(np.einsum("ij,ij->i", g, g)) - s.field_magnitude_ut)
 
 
 def scalar_noise_gain(p: Array, s: Samples) -> Array:
     """``|W^T n_hat_k|``: how raw isotropic noise maps into the magnitude residual (per sample)."""
-    shape = _shape(p)
-    w = np.linalg.inv(springmann_matrix(shape))
-    k = p[9:].reshape(-1, 3)
-    v = s.measured_ut - p[3:6]
-    if k.size:
-        v = v - s.telemetry @ k
-    g = v @ w.T
+    w, g = _corrected(p, s)
     nhat = g / np.linalg.norm(g, axis=1)[:, None]
     return np.asarray(np.linalg.norm(nhat @ w, axis=1))
 

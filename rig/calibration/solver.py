@@ -39,12 +39,17 @@ def levenberg_marquardt(
     *,
     max_iterations: int = 100,
     rel_tol: float = 1e-12,
+    stat_tol: float = 1e-2,
 ) -> LeastSquaresSolution:
     """Minimize ``|r(x)|^2`` from ``x0``; ``fun`` returns ``(r, dr/dx)``.
 
     Marquardt scaling by ``diag(J^T J)``; the damping shrinks after a successful step and grows after
-    a rejected one. Converged when the relative cost reduction and the scaled step are both below
-    ``rel_tol`` (cost) and ``sqrt(rel_tol)`` (step).
+    a rejected one. Converged when the linear model predicts a cost decrease below ``rel_tol`` of
+    the cost, or below what moving the estimate by ``stat_tol`` of its own standard deviation
+    would give (``stat_tol^2`` times the residual variance): checked before evaluating, so a
+    converged fit costs no extra evaluation. Also converged when
+    an accepted step reduces the cost by less than ``rel_tol`` and moves less than
+    ``sqrt(rel_tol)`` (scaled).
     """
     x = np.asarray(x0, dtype=float).copy()
     r, jac = fun(x)
@@ -52,6 +57,7 @@ def levenberg_marquardt(
     if not np.isfinite(cost):
         raise FloatingPointError("residuals are not finite at the starting point")
     damping = 1e-4
+    dof = max(r.size - x.size, 1)
     converged = False
     iteration = 0
     while iteration < max_iterations:
@@ -62,6 +68,9 @@ def levenberg_marquardt(
         accepted = False
         while damping < 1e16:
             step = -np.linalg.solve(jtj + damping * np.diag(scale), grad)
+            predicted = -(2.0 * grad @ step + step @ jtj @ step)
+            if predicted <= max(rel_tol * cost, stat_tol**2 * cost / dof):
+                break  # the model predicts no useful decrease: converged without evaluating
             x_new = x + step
             r_new, jac_new = fun(x_new)
             cost_new = float(r_new @ r_new)
@@ -70,7 +79,9 @@ def levenberg_marquardt(
                 break
             damping *= 8.0
         if not accepted:
-            converged = True  # no descent direction left: at a minimum within precision
+            # Either the predicted decrease is negligible or no damping gives descent: at a
+            # minimum within precision.
+            converged = True
             break
         reduction = (cost - cost_new) / max(cost, 1e-300)
         step_size = float(
