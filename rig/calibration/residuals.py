@@ -173,7 +173,7 @@ def scalar_residuals(
 
 def _corrected(p: Array, s: Samples) -> tuple[Array, Array]:
     """``W`` and the corrected field ``g_k = W (m_k - o - K^T u_k)``, shape (N, 3)."""
-    w: Array = np.linalg.inv(springmann_matrix(_shape(p)))
+    w = np.asarray(np.linalg.inv(springmann_matrix(_shape(p))), dtype=np.float64)
     k = p[9:].reshape(-1, 3)
     v = s.measured_ut - p[3:6]
     if k.size:
