@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import difflib
+import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -56,15 +58,17 @@ def read_columns(path: str | Path, columns: list[str]) -> dict[str, Array]:
             )
         index.append(names.index(col))
     try:
-        data = np.loadtxt(
-            path,
-            delimiter=delimiter,
-            skiprows=header_index + 1,
-            usecols=index,
-            comments="#",
-            ndmin=2,
-            encoding="utf-8-sig",
-        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data": see below
+            data = np.loadtxt(
+                path,
+                delimiter=delimiter,
+                skiprows=header_index + 1,
+                usecols=index,
+                comments="#",
+                ndmin=2,
+                encoding="utf-8-sig",
+            )
     except ValueError:
         _raise_bad_cell(path, header_index, names, index, delimiter)
         raise  # pragma: no cover - _raise_bad_cell always raises
@@ -107,12 +111,17 @@ def _raise_bad_cell(
                     )
                 cell = cells[i].strip()
                 try:
-                    float(cell)
+                    value = float(cell)
                 except ValueError:
                     what = "is empty" if not cell else f"'{cell[:20]}' is not a number"
                     raise UserInputError(
                         f"{path} line {number}, column '{names[i]}': {what}: fix or delete that row"
                     ) from None
+                if not math.isfinite(value):
+                    raise UserInputError(
+                        f"{path} line {number}, column '{names[i]}': value is NaN or infinite:"
+                        " remove or repair that row"
+                    )
     raise UserInputError(
         f"{path}: cannot read the numeric columns: check the delimiter and quoting"
     )
