@@ -7,7 +7,8 @@ from typing import Literal
 import numpy as np
 
 from rig.calibration.diagnostics import check_samples
-from rig.calibration.linear import Estimate, centered_fit, ellipsoid_fit, vector_fit
+from rig.calibration.estimate import Estimate
+from rig.calibration.linear import centered_fit, ellipsoid_fit, vector_fit
 from rig.calibration.nonlinear import MAX_IRLS_PASSES, ml_fit, twostep_fit
 from rig.calibration.residuals import Samples, vector_residuals
 from rig.calibration.result import CalibrationResult, summarize

@@ -1,21 +1,18 @@
 """Closed-form estimators: cage linear least squares, algebraic ellipsoid, centered.
 
-Each returns an :class:`Estimate` in the physical parameterization with a covariance of its own:
+Each returns an :class:`~rig.calibration.estimate.Estimate` in the physical parameterization with a covariance of its own:
 the linear least-squares covariance of its coefficients, mapped to the physical parameters.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from rig.calibration.diagnostics import is_constant_field, require_varying_field
+from rig.calibration.estimate import Estimate, delta_method
 from rig.calibration.params import Array, Calibration
 from rig.calibration.residuals import (
     Samples,
-    numeric_jacobian,
     p_from_calibration,
     p_from_theta,
     quadratic_features,
@@ -26,23 +23,6 @@ from rig.calibration.residuals import (
 )
 from rig.calibration.solver import covariance_from_jacobian
 from rig.errors import CalibrationError
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """Parameters ``p`` (see :func:`rig.calibration.residuals.parameter_names`) with covariance.
-
-    ``rotation_ref`` is set for a vector estimate (the mounting rotation the ``rot_*`` error angles
-    refer to) and ``None`` for a scalar one. ``sample_weights`` are robust weights, if any.
-    """
-
-    method: str
-    p: Array
-    covariance: Array
-    rotation_ref: Array | None = None
-    sample_weights: Array | None = None
-    iterations: int = 0
-    notes: tuple[str, ...] = field(default=())
 
 
 def _weighted_lstsq(x: Array, y: Array, w: Array | None) -> tuple[Array, Array, Array]:
@@ -125,21 +105,6 @@ def independent_columns(x: Array, rel_tol: float = 1e-9) -> Array:
     return np.asarray(keep, dtype=int)
 
 
-def _delta_method(
-    to_p: Callable[[Array], Array], theta: Array, cov_theta: Array, what: str
-) -> tuple[Array, Array]:
-    """Map an estimate and its covariance through a closed-form map (Jacobian by differences)."""
-    try:
-        p = to_p(theta)
-        g = numeric_jacobian(to_p, theta)
-    except (np.linalg.LinAlgError, ValueError) as exc:
-        raise CalibrationError(
-            f"the {what} estimate is not a valid ellipsoid (its metric is not positive definite):"
-            " cover more field directions, or use --method ml"
-        ) from exc
-    return p, g @ cov_theta @ g.T
-
-
 def centered_fit(s: Samples) -> Estimate:
     """Centered estimator (Crassidis eqs. 15-18) extended with telemetry regressors.
 
@@ -147,6 +112,10 @@ def centered_fit(s: Samples) -> Estimate:
     ``|b(u)|^2`` (terms in ``u_j`` and ``u_i u_j``) get free coefficients; centering removes the
     constant. Weights ``1/sigma_k^2`` with ``sigma_k ~ 2 |h_k|`` (eq. 5b, isotropic noise).
     Singular when |h| is constant: that case raises a :class:`CalibrationError`.
+
+    The regressors hold the noisy readings (errors in variables), so the estimate carries a bias of
+    order ``sigma^2 / |h|^2`` that does not shrink with N: about 0.6 sigma on the scale factors at
+    100 nT noise and 2000 samples (Monte Carlo, 60 draws). Use it as a start, not as the answer.
     """
     require_varying_field(s, "centered")
     lin = z_linear_design(s)
@@ -161,7 +130,7 @@ def centered_fit(s: Samples) -> Estimate:
     dof = max(s.n - x.shape[1] - 1, 1)
     variance = float(np.sum(w * resid**2) / dof)
     cov_theta = variance * inv[:n_theta, :n_theta]
-    p, cov = _delta_method(p_from_theta, coef[:n_theta], cov_theta, "centered")
+    p, cov = delta_method(p_from_theta, coef[:n_theta], cov_theta, "centered")
     return Estimate("centered", p, cov)
 
 
@@ -170,7 +139,9 @@ def ellipsoid_fit(s: Samples) -> Estimate:
 
     The quadric ``(m - c(u))^T M (m - c(u)) = |h|^2`` is linear in ``M``, ``M o``, ``M k_j`` and the
     nuisance telemetry terms. With |h| constant the constant term is the normalization (Foster and
-    Elkaim) and the scale comes from |h|; with |h| varying, |h|^2 is the right-hand side.
+    Elkaim) and the scale comes from |h|; with |h| varying, |h|^2 is the right-hand side, and the
+    problem is then the same linear model as :func:`centered_fit` (centering is the intercept),
+    so the two agree.
     """
     quad = quadratic_features(s.measured_ut)
     mu = [s.telemetry[:, j : j + 1] * s.measured_ut for j in range(s.n_channels)]
@@ -200,7 +171,7 @@ def ellipsoid_fit(s: Samples) -> Estimate:
             m_sym, lin, kj = scale * m_sym, scale * lin, scale * kj
         return p_from_theta(_theta_from_metric(m_sym, lin, kj))
 
-    p, cov = _delta_method(to_p, coef[:n_theta], cov_coef, "ellipsoid")
+    p, cov = delta_method(to_p, coef[:n_theta], cov_coef, "ellipsoid")
     note = ("constant |h|: Foster-Elkaim normalization",) if constant else ()
     return Estimate("ellipsoid", p, cov, notes=note)
 
@@ -209,9 +180,3 @@ def _theta_from_metric(metric: Array, m_o: Array, m_k: Array) -> Array:
     e = metric - np.eye(3)
     e6 = np.array([e[0, 0], e[1, 1], e[2, 2], e[0, 1], e[0, 2], e[1, 2]])
     return np.concatenate([m_o, e6, m_k.reshape(-1)])
-
-
-def covariance_for(p: Array, jac: Array, residuals: Array) -> Array:
-    """Covariance ``s^2 (J^T J)^-1`` with ``s^2`` the residual variance (dof-corrected)."""
-    dof = max(residuals.size - p.size, 1)
-    return covariance_from_jacobian(jac, float(residuals @ residuals) / dof)

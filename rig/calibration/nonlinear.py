@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from rig.calibration.diagnostics import is_constant_field, require_varying_field
-from rig.calibration.linear import Estimate, _delta_method, centered_fit, ellipsoid_fit
+from rig.calibration.estimate import Estimate, delta_method
+from rig.calibration.linear import centered_fit, ellipsoid_fit
 from rig.calibration.params import Array
 from rig.calibration.residuals import (
     Samples,
@@ -104,5 +105,5 @@ def twostep_fit(s: Samples, noise_ut: float | None = None) -> Estimate:
         raise CalibrationError("TWOSTEP's Gauss-Newton step did not converge: try --method ml")
     dof = max(s.n - sol.x.size, 1)
     cov_theta = covariance_from_jacobian(sol.jacobian, sol.cost / dof)
-    p, cov = _delta_method(p_from_theta, sol.x, cov_theta, "TWOSTEP")
+    p, cov = delta_method(p_from_theta, sol.x, cov_theta, "TWOSTEP")
     return Estimate("twostep", p, cov, iterations=sol.iterations)

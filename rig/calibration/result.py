@@ -8,7 +8,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from rig.calibration.linear import Estimate
+from rig.calibration.estimate import Estimate
 from rig.calibration.params import Array, Calibration
 from rig.calibration.residuals import (
     AXES,
