@@ -83,6 +83,29 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cal.set_defaults(func=_cmd_calibrate)
 
+    sim = sub.add_parser(
+        "sim",
+        help="run the simulated cage (Modbus, serial and I2C devices on loopback)",
+        description=(
+            "Start the physics-based simulated cage behind the real wire protocols and keep it"
+            " running until Ctrl-C or SIGTERM. Listens on loopback and pseudo-terminals only."
+        ),
+    )
+    sim.add_argument(
+        "--config", metavar="SIM.toml", help="simulator configuration (default: built-in cage)"
+    )
+    sim.add_argument(
+        "--endpoints-json", type=Path, metavar="FILE", help="write the device endpoints as JSON"
+    )
+    sim.add_argument(
+        "--rig-config",
+        type=Path,
+        metavar="FILE.toml",
+        help="write a rig configuration for the devices",
+    )
+    sim.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    sim.set_defaults(func=_cmd_sim)
+
     ex = sub.add_parser(
         "example-data",
         help="write a synthetic data set with known truth",
@@ -153,6 +176,12 @@ def _write(path: Path, text: str) -> None:
         path.write_text(text, encoding="utf-8")
     except OSError as exc:
         raise UserInputError(f"cannot write {path}: {exc.strerror}: choose another path") from None
+
+
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from rig.sim_command import run_sim
+
+    return run_sim(args.config, args.endpoints_json, args.rig_config, args.duration, args.quiet)
 
 
 def _cmd_example_data(args: argparse.Namespace) -> int:

@@ -1,0 +1,66 @@
+"""A configurable ASCII-line magnetometer on a pseudo-terminal (reference sensor).
+
+Streams one line per sample, formatted by ``line_format`` (``{x} {y} {z}`` in uT, ``{t}`` the
+device's seconds since start), at ``rate_hz``, paced at the baud rate like a real UART.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from sim.links import damage, open_pty
+from sim.physics import Faults
+
+
+class AsciiMagnetometer:
+    """Line-oriented magnetometer: ``x y z`` in uT, newline-terminated."""
+
+    def __init__(self, read_ut: Callable[[], np.ndarray], faults: Faults, *, rate_hz: float = 20.0,
+                 baudrate: int = 115200, line_format: str = "{x:.4f} {y:.4f} {z:.4f}",
+                 seed: int = 0) -> None:  # fmt: skip
+        self.read_ut = read_ut
+        self.faults = faults
+        self.rate_hz = rate_hz
+        self.baudrate = baudrate
+        self.line_format = line_format
+        self.lines_sent = 0
+        self.pty = open_pty()
+        self._rng = random.Random(seed)
+        self._stop = threading.Event()
+        self._t0 = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="ascii-mag", daemon=True)
+        self._thread.start()
+
+    @property
+    def path(self) -> str:
+        """The serial port path a client opens."""
+        return self.pty.path
+
+    def _run(self) -> None:
+        period = 1.0 / self.rate_hz
+        next_t = time.monotonic()
+        while not self._stop.wait(max(0.0, next_t - time.monotonic())):
+            next_t += period
+            if self.faults.silent or self.faults.disconnect:
+                continue
+            x, y, z = (float(v) for v in self.read_ut())
+            line = self.line_format.format(x=x, y=y, z=z, t=time.monotonic() - self._t0) + "\n"
+            data = damage(line.encode("ascii"), self.faults, self._rng)
+            try:
+                os.write(self.pty.master, data)
+            except OSError:
+                continue  # nobody reading and the buffer is full: the line is lost, as on a UART
+            self.lines_sent += 1
+            self._stop.wait(len(data) * 10.0 / self.baudrate)
+
+    def close(self) -> None:
+        """Stop streaming and close the pty."""
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        self.pty.close()

@@ -1,0 +1,246 @@
+"""The simulated cage's configuration: every physical parameter, read from a TOML file.
+
+The file is the single source of truth (the hidden DUT parameters included: tests may read them,
+the rig never does). ``seed`` drives every random draw, so a file always gives the same cage.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+DEFAULT_CONFIG = Path(__file__).with_name("default_cage.toml")
+REGMAP_DIR = Path(__file__).with_name("regmaps")
+
+
+class SimConfigError(ValueError):
+    """The simulator configuration file is malformed (message names the key and the fix)."""
+
+
+def _vec(d: dict[str, Any], key: str, where: str, n: int = 3) -> tuple[float, ...]:
+    value = d.get(key)
+    if not isinstance(value, list) or len(value) != n:
+        raise SimConfigError(f"{where}.{key} must be a list of {n} numbers")
+    return tuple(float(v) for v in value)
+
+
+def _mat(d: dict[str, Any], key: str, where: str) -> tuple[tuple[float, ...], ...]:
+    value = d.get(key)
+    if not isinstance(value, list) or len(value) != 3:
+        raise SimConfigError(f"{where}.{key} must be a 3x3 list of lists")
+    return tuple(_vec({"r": row}, "r", f"{where}.{key}") for row in value)
+
+
+@dataclass(frozen=True)
+class CageConfig:
+    """Coils: field = coil_matrix @ currents + ambient."""
+
+    coil_matrix_ut_per_a: tuple[tuple[float, ...], ...]
+    resistance_ohm: tuple[float, ...]
+    inductance_h: tuple[float, ...]
+    polarity: str  # "relay" (H-bridge relays per axis) or "bipolar"
+    hot_switch_limit_a: float = 0.05
+
+
+@dataclass(frozen=True)
+class AmbientConfig:
+    """Lab field: constant + slow sinusoidal drift + mains ripple + white noise."""
+
+    field_ut: tuple[float, ...]
+    drift_amplitude_ut: tuple[float, ...] = (0.0, 0.0, 0.0)
+    drift_period_s: tuple[float, ...] = (600.0, 900.0, 1200.0)
+    ripple_amplitude_ut: tuple[float, ...] = (0.0, 0.0, 0.0)
+    ripple_hz: float = 50.0
+    noise_ut: float = 0.0
+
+
+@dataclass(frozen=True)
+class EndpointConfig:
+    """Where a device listens: Modbus TCP, Modbus RTU on a pty, a serial pty, or an I2C bus."""
+
+    transport: str
+    device_id: int = 1
+    baudrate: int = 115200
+
+
+@dataclass(frozen=True)
+class SupplyConfig:
+    """A coil supply or a load-current channel (a supply into a resistor, or an electronic load)."""
+
+    name: str
+    kind: str  # "riden-rd60xx" or "regmap"
+    endpoint: EndpointConfig
+    axis: int | None = None  # coil axis 0-2, None for a load channel
+    model_id: int = 60125
+    regmap: str = ""
+    resistance_ohm: float = 5.0
+    tau_s: float = 0.002
+    input_voltage_v: float = 48.0
+
+
+@dataclass(frozen=True)
+class RelayConfig:
+    """Polarity relays (one H-bridge per axis) on a Modbus register-map device."""
+
+    name: str
+    regmap: str
+    endpoint: EndpointConfig
+
+
+@dataclass(frozen=True)
+class MagnetometerConfig:
+    """A magnetometer at the DUT position with its truth (Springmann-Cutler form, rad inside)."""
+
+    name: str
+    kind: str  # "hmr2300", "ascii-mag", "rm3100"
+    endpoint: EndpointConfig
+    scale: tuple[float, ...] = (1.0, 1.0, 1.0)
+    nonorth_deg: tuple[float, ...] = (0.0, 0.0, 0.0)  # rho, phi, lambda
+    mounting_deg: tuple[float, ...] = (0.0, 0.0, 0.0)  # rotation vector, cage -> sensor frame
+    offset_ut: tuple[float, ...] = (0.0, 0.0, 0.0)
+    k_ut_per_a: dict[str, tuple[float, ...]] = field(default_factory=dict)
+    delay_s: dict[str, float] = field(default_factory=dict)
+    noise_ut: float = 0.0
+    rate_hz: float = 20.0
+    serial_number: str = "0001"
+    i2c_address: int = 0x20
+    line_format: str = "{x:.4f} {y:.4f} {z:.4f}"
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """The whole simulated cage."""
+
+    seed: int
+    cage: CageConfig
+    ambient: AmbientConfig
+    supplies: tuple[SupplyConfig, ...]
+    relay: RelayConfig | None
+    magnetometers: tuple[MagnetometerConfig, ...]
+    source: str = ""
+
+    def supply(self, name: str) -> SupplyConfig:
+        """A supply or load channel by name."""
+        for s in self.supplies:
+            if s.name == name:
+                return s
+        raise KeyError(name)
+
+    def magnetometer(self, name: str) -> MagnetometerConfig:
+        """A magnetometer by name."""
+        for m in self.magnetometers:
+            if m.name == name:
+                return m
+        raise KeyError(name)
+
+
+AXES = {"x": 0, "y": 1, "z": 2}
+
+
+def _endpoint(d: dict[str, Any], where: str) -> EndpointConfig:
+    transport = d.get("transport")
+    allowed = ("modbus-tcp", "modbus-rtu", "serial", "i2c")
+    if transport not in allowed:
+        raise SimConfigError(f"{where}.transport must be one of {', '.join(allowed)}")
+    return EndpointConfig(
+        str(transport), int(d.get("device_id", 1)), int(d.get("baudrate", 115200))
+    )
+
+
+def load_config(path: str | Path = DEFAULT_CONFIG) -> SimConfig:
+    """Parse and validate a simulator TOML file."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise SimConfigError(f"{path}: no such simulator configuration file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SimConfigError(f"{path}: not valid TOML: {exc}") from None
+    try:
+        return _parse(raw, str(path))
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, SimConfigError):
+            raise SimConfigError(f"{path}: {exc}") from None
+        raise SimConfigError(f"{path}: missing or malformed entry {exc}") from None
+
+
+def _parse(raw: dict[str, Any], source: str) -> SimConfig:
+    c = raw["cage"]
+    cage = CageConfig(
+        coil_matrix_ut_per_a=_mat(c, "coil_matrix_ut_per_a", "cage"),
+        resistance_ohm=_vec(c, "resistance_ohm", "cage"),
+        inductance_h=_vec(c, "inductance_h", "cage"),
+        polarity=str(c.get("polarity", "relay")),
+        hot_switch_limit_a=float(c.get("hot_switch_limit_a", 0.05)),
+    )
+    if cage.polarity not in ("relay", "bipolar"):
+        raise SimConfigError("cage.polarity must be 'relay' or 'bipolar'")
+    a = raw["ambient"]
+    ambient = AmbientConfig(
+        field_ut=_vec(a, "field_ut", "ambient"),
+        drift_amplitude_ut=_vec(a, "drift_amplitude_ut", "ambient"),
+        drift_period_s=_vec(a, "drift_period_s", "ambient"),
+        ripple_amplitude_ut=_vec(a, "ripple_amplitude_ut", "ambient"),
+        ripple_hz=float(a.get("ripple_hz", 50.0)),
+        noise_ut=float(a.get("noise_ut", 0.0)),
+    )
+    supplies = []
+    for i, s in enumerate(raw.get("supplies", [])):
+        where = f"supplies[{i}]"
+        axis = s.get("axis")
+        if axis is not None and axis not in AXES:
+            raise SimConfigError(f"{where}.axis must be x, y or z")
+        supplies.append(
+            SupplyConfig(
+                name=str(s["name"]),
+                kind=str(s["kind"]),
+                endpoint=_endpoint(s, where),
+                axis=None if axis is None else AXES[axis],
+                model_id=int(s.get("model_id", 60125)),
+                regmap=str(s.get("regmap", "")),
+                resistance_ohm=float(s.get("resistance_ohm", 5.0)),
+                tau_s=float(s.get("tau_s", 0.002)),
+                input_voltage_v=float(s.get("input_voltage_v", 48.0)),
+            )
+        )
+    axes_driven = sorted(s.axis for s in supplies if s.axis is not None)
+    if axes_driven != [0, 1, 2]:
+        raise SimConfigError("supplies must drive each coil axis x, y, z exactly once")
+    relay = None
+    if "relay" in raw:
+        r = raw["relay"]
+        relay = RelayConfig(str(r["name"]), str(r["regmap"]), _endpoint(r, "relay"))
+    if cage.polarity == "relay" and relay is None:
+        raise SimConfigError("cage.polarity = 'relay' needs a [relay] device")
+    mags = []
+    for i, m in enumerate(raw.get("magnetometers", [])):
+        where = f"magnetometers[{i}]"
+        mags.append(
+            MagnetometerConfig(
+                name=str(m["name"]),
+                kind=str(m["kind"]),
+                endpoint=_endpoint(m, where),
+                scale=_vec(m, "scale", where) if "scale" in m else (1.0, 1.0, 1.0),
+                nonorth_deg=_vec(m, "nonorth_deg", where) if "nonorth_deg" in m else (0, 0, 0),
+                mounting_deg=_vec(m, "mounting_deg", where) if "mounting_deg" in m else (0, 0, 0),
+                offset_ut=_vec(m, "offset_ut", where) if "offset_ut" in m else (0, 0, 0),
+                k_ut_per_a={
+                    k: _vec({"v": v}, "v", f"{where}.k_ut_per_a.{k}")
+                    for k, v in m.get("k_ut_per_a", {}).items()
+                },
+                delay_s={k: float(v) for k, v in m.get("delay_s", {}).items()},
+                noise_ut=float(m.get("noise_ut", 0.0)),
+                rate_hz=float(m.get("rate_hz", 20.0)),
+                serial_number=str(m.get("serial_number", "0001")),
+                i2c_address=int(m.get("i2c_address", 0x20)),
+                line_format=str(m.get("line_format", "{x:.4f} {y:.4f} {z:.4f}")),
+            )
+        )
+        for ch in mags[-1].k_ut_per_a:
+            if ch not in {s.name for s in supplies if s.axis is None}:
+                raise SimConfigError(f"{where}.k_ut_per_a names '{ch}', which is no load channel")
+    return SimConfig(
+        int(raw.get("seed", 0)), cage, ambient, tuple(supplies), relay, tuple(mags), source
+    )

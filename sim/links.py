@@ -1,0 +1,183 @@
+"""Real transports for the simulated devices: pseudo-terminals and loopback TCP, with link faults.
+
+* :func:`open_pty` - one raw pty pair: the device holds the master, the client opens the path.
+* :class:`PtyNullModem` - two pty pairs joined by a relay thread, for servers that must open a
+  path themselves (pymodbus' serial server); it can drop, corrupt or delay what the device sends
+  and ignores requests to other bus addresses (an RS-485 bus stays silent).
+* :class:`TcpProxy` - a loopback TCP front for a server, with the same faults and disconnects.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import random
+import select
+import threading
+import tty
+from dataclasses import dataclass
+
+from sim.physics import Faults
+
+
+@dataclass
+class Pty:
+    """A raw pseudo-terminal: ``master`` fd for the device, ``path`` for the client."""
+
+    master: int
+    slave: int
+    path: str
+
+    def close(self) -> None:
+        """Close both ends."""
+        for fd in (self.master, self.slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def open_pty() -> Pty:
+    """A raw pty pair (no echo, no CR/LF translation). Keep ``slave`` open: it keeps the master
+    readable while no client has the path open."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    tty.setraw(master)
+    os.set_blocking(master, False)  # a full buffer loses data (as a UART does), never blocks
+    return Pty(master, slave, os.ttyname(slave))
+
+
+def damage(data: bytes, faults: Faults, rng: random.Random) -> bytes:
+    """Apply drop and corrupt faults to bytes on their way to the client."""
+    if faults.drop_rate > 0 and rng.random() < faults.drop_rate:
+        cut = rng.randrange(len(data) + 1)
+        data = data[:cut]
+    if faults.corrupt_rate > 0 and data and rng.random() < faults.corrupt_rate:
+        i = rng.randrange(len(data))
+        data = data[:i] + bytes([data[i] ^ (1 << rng.randrange(8))]) + data[i + 1 :]
+    return data
+
+
+class PtyNullModem:
+    """Two ptys cross-connected: ``device_path`` for the server, ``client_path`` for the client.
+
+    ``device_id`` (Modbus RTU) makes the modem drop requests addressed to other ids and to
+    nobody, so the client sees a silent bus as on real RS-485.
+    """
+
+    def __init__(self, faults: Faults, device_id: int | None = None, seed: int = 0) -> None:
+        self.device_side = open_pty()
+        self.client_side = open_pty()
+        self.faults = faults
+        self.device_id = device_id
+        self._rng = random.Random(seed)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="pty-null-modem", daemon=True)
+        self._thread.start()
+
+    @property
+    def device_path(self) -> str:
+        """Path the device-side server opens."""
+        return self.device_side.path
+
+    @property
+    def client_path(self) -> str:
+        """Path a client (driver, mbpoll) opens."""
+        return self.client_side.path
+
+    def _run(self) -> None:
+        dev, cli = self.device_side.master, self.client_side.master
+        while not self._stop.is_set():
+            try:
+                ready, _, _ = select.select([dev, cli], [], [], 0.05)
+            except (OSError, ValueError):
+                return
+            for fd in ready:
+                try:
+                    data = os.read(fd, 4096)
+                except OSError:
+                    continue
+                if fd == cli:
+                    if self.faults.disconnect or self.faults.silent:
+                        continue
+                    if self.device_id is not None and data and data[0] != self.device_id:
+                        continue  # another station's request: the bus stays silent
+                    with contextlib.suppress(OSError):
+                        os.write(dev, data)
+                else:
+                    if self.faults.disconnect or self.faults.silent:
+                        continue
+                    if self.faults.reply_delay_s > 0:
+                        self._stop.wait(self.faults.reply_delay_s)
+                    out = damage(data, self.faults, self._rng)
+                    if out:
+                        with contextlib.suppress(OSError):
+                            os.write(cli, out)
+
+    def close(self) -> None:
+        """Stop relaying and close the ptys."""
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        self.device_side.close()
+        self.client_side.close()
+
+
+class TcpProxy:
+    """A loopback TCP front end for ``backend_port`` with link faults; runs on an asyncio loop."""
+
+    def __init__(self, backend_port: int, faults: Faults, seed: int = 0) -> None:
+        self.backend_port = backend_port
+        self.faults = faults
+        self.port = 0
+        self._server: asyncio.Server | None = None
+        self._rng = random.Random(seed)
+        self._writers: set[asyncio.StreamWriter] = set()
+
+    async def start(self) -> int:
+        """Listen on an ephemeral loopback port; returns it."""
+        self._server = await asyncio.start_server(self._client, "127.0.0.1", 0)
+        self.port = int(self._server.sockets[0].getsockname()[1])
+        return self.port
+
+    async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if self.faults.disconnect:
+            writer.close()
+            return
+        try:
+            b_reader, b_writer = await asyncio.open_connection("127.0.0.1", self.backend_port)
+        except OSError:
+            writer.close()
+            return
+        self._writers.update((writer, b_writer))
+
+        async def pump(src: asyncio.StreamReader, dst: asyncio.StreamWriter, reply: bool) -> None:
+            try:
+                while data := await src.read(4096):
+                    if self.faults.disconnect:
+                        break
+                    if reply:
+                        if self.faults.silent:
+                            continue
+                        if self.faults.reply_delay_s > 0:
+                            await asyncio.sleep(self.faults.reply_delay_s)
+                        data = damage(data, self.faults, self._rng)
+                    dst.write(data)
+                    await dst.drain()
+            except (ConnectionError, OSError):
+                pass
+            finally:
+                dst.close()
+
+        await asyncio.gather(pump(reader, b_writer, False), pump(b_reader, writer, True))
+        self._writers.difference_update((writer, b_writer))
+
+    def drop_connections(self) -> None:
+        """Close every open connection now (call on the proxy's loop)."""
+        for w in list(self._writers):
+            w.close()
+
+    async def stop(self) -> None:
+        """Stop listening and close connections."""
+        self.drop_connections()
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()

@@ -1,0 +1,190 @@
+"""Modbus device models (pymodbus 3.16 ``SimDevice`` with an async action) bound to the physics.
+
+The action runs on every access before pymodbus answers: reads refresh the live registers from
+the physics; writes are checked and applied to the physics (or refused with a Modbus exception).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable, Coroutine
+from typing import Any
+
+from pymodbus.constants import ExcCodes
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from sim.physics import CagePhysics, Faults, Supply, riden_model
+from sim.regmap import Register, RegMap
+
+Action = Callable[[int, int, int, int, list[int], Any], Coroutine[Any, Any, ExcCodes | None]]
+READ_CODES = {1, 2, 3, 4}
+
+# Riden RD60xx holding registers (ShayBox/Riden, Baldanos/rd6006).
+R_ID, R_SN_H, R_SN_L, R_FW = 0, 1, 2, 3
+R_TEMP_C_SIGN, R_TEMP_C, R_TEMP_F_SIGN, R_TEMP_F = 4, 5, 6, 7
+R_V_SET, R_I_SET, R_V_OUT, R_I_OUT, R_P_H, R_P_L, R_V_IN = 8, 9, 10, 11, 12, 13, 14
+R_LOCK, R_PROTECT, R_CVCC, R_OUTPUT, R_PRESET = 15, 16, 17, 18, 19
+R_M0_V, R_M0_I, R_M0_OVP, R_M0_OCP = 80, 81, 82, 83
+RIDEN_SIZE = 120
+RIDEN_WRITABLE = {R_V_SET, R_I_SET, R_LOCK, R_OUTPUT, R_PRESET, *range(80, 120)}
+
+
+async def _apply_faults(faults: Faults) -> ExcCodes | None:
+    if faults.silent:
+        await asyncio.sleep(3600.0)  # the client times out first
+    if faults.reply_delay_s > 0:
+        await asyncio.sleep(faults.reply_delay_s)
+    if faults.exception_code:
+        return ExcCodes(faults.exception_code)
+    return None
+
+
+def riden_device(supply: Supply, device_id: int, serial_number: int = 12345) -> SimDevice:
+    """A Riden RD60xx (model from ``supply.cfg.model_id``) on Modbus ``device_id``."""
+    model_id = supply.cfg.model_id
+    _, v_lsb, i_lsb, _, _ = riden_model(model_id)
+    start = time.monotonic()
+
+    def refresh(regs: list[int], base: int) -> None:
+        def put(addr: int, value: int) -> None:
+            if 0 <= addr - base < len(regs):
+                regs[addr - base] = value & 0xFFFF
+
+        with supply.lock:
+            i_out = supply.output_current()
+            v_out = supply.output_voltage()
+            put(R_ID, model_id)
+            put(R_SN_H, serial_number >> 16)
+            put(R_SN_L, serial_number & 0xFFFF)
+            put(R_FW, 140)
+            temp_c = 28 + min(20.0, (time.monotonic() - start) / 600.0 * abs(i_out))
+            put(R_TEMP_C, round(temp_c))
+            put(R_TEMP_F, round(temp_c * 9 / 5 + 32))
+            put(R_V_SET, round(supply.v_set / v_lsb))
+            put(R_I_SET, round(supply.i_set / i_lsb))
+            put(R_V_OUT, round(v_out / v_lsb))
+            put(R_I_OUT, round(i_out / i_lsb))
+            power = round(v_out * i_out * 100)
+            put(R_P_H, power >> 16)
+            put(R_P_L, power & 0xFFFF)
+            put(R_V_IN, round(supply.cfg.input_voltage_v * 100))
+            put(R_PROTECT, supply.protection)
+            put(R_CVCC, 1 if supply.cc_mode() else 0)
+            put(R_OUTPUT, 1 if supply.output else 0)
+            put(R_M0_OVP, round(supply.ovp_v / v_lsb))
+            put(R_M0_OCP, round(supply.ocp_a / i_lsb))
+
+    async def action(fc: int, start_address: int, address: int, count: int,
+                     regs: list[int], values: Any) -> ExcCodes | None:  # fmt: skip
+        fault = await _apply_faults(supply.faults)
+        if fault is not None:
+            return fault
+        if values is None or fc in READ_CODES:
+            refresh(regs, start_address)
+            return None
+        for offset, word in enumerate(values):
+            addr = address + offset
+            if addr not in RIDEN_WRITABLE:
+                return ExcCodes.ILLEGAL_ADDRESS
+            try:
+                if addr == R_V_SET:
+                    supply.set_voltage(word * v_lsb)
+                elif addr == R_I_SET:
+                    supply.set_current(word * i_lsb)
+                elif addr == R_OUTPUT:
+                    if word not in (0, 1):
+                        return ExcCodes.ILLEGAL_VALUE
+                    supply.set_output(bool(word))
+                elif addr == R_M0_OVP:
+                    with supply.lock:
+                        supply.ovp_v = word * v_lsb
+                elif addr == R_M0_OCP:
+                    with supply.lock:
+                        supply.ocp_a = word * i_lsb
+            except ValueError:
+                return ExcCodes.ILLEGAL_VALUE
+        return None
+
+    regs0 = [0] * RIDEN_SIZE
+    refresh(regs0, 0)
+    return SimDevice(
+        id=device_id,
+        simdata=[SimData(address=0, values=regs0, datatype=DataType.REGISTERS)],
+        action=action,
+    )
+
+
+def regmap_device(
+    spec: RegMap, device_id: int, physics: CagePhysics, supply: Supply | None, faults: Faults
+) -> SimDevice:
+    """A device described by a register map, bound to a supply/e-load or the polarity relays."""
+
+    def value_of(reg: Register) -> float:
+        if reg.role == "constant":
+            return reg.value
+        if reg.role.startswith("polarity_"):
+            return 1.0 if physics.relays.sign["xyz".index(reg.role[-1])] < 0 else 0.0
+        assert supply is not None
+        getters: dict[str, Callable[[], float]] = {
+            "v_set": lambda: supply.v_set,
+            "i_set": lambda: supply.i_set,
+            "v_out": supply.output_voltage,
+            "i_out": supply.output_current,
+            "output": lambda: 1.0 if supply.output else 0.0,
+            "mode": lambda: 1.0 if supply.cc_mode() else 0.0,
+            "protection": lambda: float(supply.protection),
+        }
+        return getters[reg.role]() if reg.role in getters else stored.get(reg.name, 0.0)
+
+    stored: dict[str, float] = {}
+
+    def refresh(regs: list[int], base: int) -> None:
+        for reg in spec.registers:
+            words = reg.encode(value_of(reg))
+            for i, w in enumerate(words):
+                if 0 <= reg.address + i - base < len(regs):
+                    regs[reg.address + i - base] = w
+
+    def apply(reg: Register, value: float) -> None:
+        if reg.role.startswith("polarity_"):
+            physics.set_polarity("xyz".index(reg.role[-1]), -1 if value else 1)
+        elif reg.role == "v_set" and supply is not None:
+            supply.set_voltage(value)
+        elif reg.role == "i_set" and supply is not None:
+            supply.set_current(value)
+        elif reg.role == "output" and supply is not None:
+            if value not in (0.0, 1.0):
+                raise ValueError("output must be 0 or 1")
+            supply.set_output(bool(value))
+        else:
+            stored[reg.name] = value
+
+    by_address = {r.address: r for r in spec.registers}
+
+    async def action(fc: int, start_address: int, address: int, count: int,
+                     regs: list[int], values: Any) -> ExcCodes | None:  # fmt: skip
+        fault = await _apply_faults(faults)
+        if fault is not None:
+            return fault
+        if values is None or fc in READ_CODES:
+            refresh(regs, start_address)
+            return None
+        words = list(values)
+        pos = 0
+        while pos < len(words):
+            reg = by_address.get(address + pos)
+            if reg is None or reg.access != "rw" or pos + reg.width > len(words):
+                return ExcCodes.ILLEGAL_ADDRESS
+            try:
+                apply(reg, reg.decode(words[pos : pos + reg.width]))
+            except ValueError:
+                return ExcCodes.ILLEGAL_VALUE
+            pos += reg.width
+        return None
+
+    blocks = [
+        SimData(address=r.address, values=r.encode(0.0), datatype=DataType.REGISTERS)
+        for r in sorted(spec.registers, key=lambda r: r.address)
+    ]
+    return SimDevice(id=device_id, simdata=blocks, action=action)

@@ -1,0 +1,332 @@
+"""Physics of the simulated cage: supplies, coils, polarity relays, load currents, ambient field
+and magnetometers with hidden truth.
+
+Everything is evaluated lazily at monotonic wall-clock time, so protocol servers running in other
+threads see one consistent, continuously evolving cage. The DUT model is the project's measurement
+model (ARCHITECTURE.md, contract)::
+
+    m(t) = L R h(t) + o + sum_j k_j u_j(t - tau_j) + n(t),   h = K I(t) + B_ambient(t)
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from sim.config import MagnetometerConfig, SimConfig, SupplyConfig
+from sim.signals import FirstOrderSignal
+
+Array = npt.NDArray[np.float64]
+
+RIDEN_MODELS: dict[range, tuple[str, float, float, float, float]] = {
+    # id range: (name, V per count, A per count, V max, A max)
+    range(60060, 60065): ("RD6006", 0.01, 0.001, 60.0, 6.0),
+    range(60065, 60066): ("RD6006P", 0.001, 0.0001, 60.0, 6.0),
+    range(60120, 60130): ("RD6012", 0.01, 0.01, 60.0, 12.0),
+    range(60180, 60190): ("RD6018", 0.01, 0.01, 60.0, 18.0),
+}
+
+
+def riden_model(model_id: int) -> tuple[str, float, float, float, float]:
+    """(name, V/count, A/count, V max, A max) for a Riden model ID (register 0)."""
+    for ids, spec in RIDEN_MODELS.items():
+        if model_id in ids:
+            return spec
+    raise ValueError(f"unknown Riden model id {model_id}")
+
+
+def now_s() -> float:
+    """The simulator's clock: monotonic seconds."""
+    return time.monotonic()
+
+
+@dataclass
+class Faults:
+    """Faults on demand for one device (set by tests or the operator; read by its server)."""
+
+    reply_delay_s: float = 0.0
+    silent: bool = False  # no reply at all (timeout)
+    drop_rate: float = 0.0  # probability of dropping a reply byte stream
+    corrupt_rate: float = 0.0  # probability of flipping a byte in a reply
+    exception_code: int = 0  # Modbus exception returned for every request (0 = none)
+    disconnect: bool = False  # close connections / stop talking
+    stuck: bool = False  # sensor repeats its last reading
+
+
+class Supply:
+    """A DC supply channel: CV/CC into a resistive (and for coils inductive) load.
+
+    Set-points and limits are in V and A; the output current relaxes with the load's time constant.
+    Over-voltage and over-current protection turn the output off and latch ``protection``
+    (1 OVP, 2 OCP) until the output is enabled again.
+    """
+
+    def __init__(self, cfg: SupplyConfig, resistance_ohm: float, tau_s: float, v_max: float,
+                 i_max: float) -> None:  # fmt: skip
+        self.cfg = cfg
+        self.name = cfg.name
+        self.resistance_ohm = resistance_ohm
+        self.v_max, self.i_max = v_max, i_max
+        self.v_set = 0.0
+        self.i_set = 0.0
+        self.ovp_v = v_max * 1.1
+        self.ocp_a = i_max * 1.1
+        self.output = False
+        self.protection = 0
+        self.current = FirstOrderSignal(tau_s)
+        self.faults = Faults()
+        self.lock = threading.RLock()
+        self.writes = 0
+
+    def _target(self) -> float:
+        if not self.output:
+            return 0.0
+        return min(self.v_set / self.resistance_ohm, self.i_set)
+
+    def cc_mode(self) -> bool:
+        """True when the current limit, not the voltage, sets the output."""
+        with self.lock:
+            return self.output and self.v_set / self.resistance_ohm > self.i_set
+
+    def _update(self, t_s: float) -> None:
+        if self.output and (self.v_set > self.ovp_v):
+            self._trip(t_s, 1)
+        elif self.output and self._target() > self.ocp_a:
+            self._trip(t_s, 2)
+        self.current.set_target(t_s, self._target())
+
+    def _trip(self, t_s: float, code: int) -> None:
+        self.output = False
+        self.protection = code
+
+    def set_voltage(self, volts: float, t_s: float | None = None) -> None:
+        """Voltage set-point (V), 0 to ``v_max``."""
+        if not 0.0 <= volts <= self.v_max:
+            raise ValueError(f"{self.name}: {volts} V outside 0-{self.v_max} V")
+        with self.lock:
+            self.v_set = volts
+            self.writes += 1
+            self._update(now_s() if t_s is None else t_s)
+
+    def set_current(self, amps: float, t_s: float | None = None) -> None:
+        """Current limit (A), 0 to ``i_max``."""
+        if not 0.0 <= amps <= self.i_max:
+            raise ValueError(f"{self.name}: {amps} A outside 0-{self.i_max} A")
+        with self.lock:
+            self.i_set = amps
+            self.writes += 1
+            self._update(now_s() if t_s is None else t_s)
+
+    def set_output(self, on: bool, t_s: float | None = None) -> None:
+        """Output enable; enabling clears a latched protection."""
+        with self.lock:
+            self.output = bool(on)
+            if on:
+                self.protection = 0
+            self.writes += 1
+            self._update(now_s() if t_s is None else t_s)
+
+    def trip(self, code: int = 2, t_s: float | None = None) -> None:
+        """Fault on demand: a protection trip (1 OVP, 2 OCP)."""
+        with self.lock:
+            self._trip(now_s() if t_s is None else t_s, code)
+            self._update(now_s() if t_s is None else t_s)
+
+    def output_current(self, t_s: float | None = None) -> float:
+        """Actual output current (A) at ``t_s``."""
+        return self.current.value(now_s() if t_s is None else t_s)
+
+    def output_voltage(self, t_s: float | None = None) -> float:
+        """Output voltage (V): ``I R``, capped at the set-point."""
+        with self.lock:
+            if not self.output:
+                return 0.0
+            return min(self.output_current(t_s) * self.resistance_ohm, self.v_set)
+
+
+@dataclass
+class PolarityRelays:
+    """One H-bridge relay per coil axis: +1 or -1. Switching a live coil is a hot switch."""
+
+    hot_switch_limit_a: float
+    sign: list[int] = field(default_factory=lambda: [1, 1, 1])
+    hot_switches: int = 0
+    faults: Faults = field(default_factory=Faults)
+
+
+def springmann_matrix(scale: tuple[float, ...], nonorth_rad: tuple[float, ...]) -> Array:
+    """Sensor matrix of Springmann and Cutler eqs. 5-7 (lower triangular)."""
+    a, b, c = scale
+    rho, phi, lam = nonorth_rad
+    return np.array(
+        [
+            [a, 0.0, 0.0],
+            [b * math.sin(rho), b * math.cos(rho), 0.0],
+            [
+                c * math.sin(lam),
+                c * math.sin(phi) * math.cos(lam),
+                c * math.cos(phi) * math.cos(lam),
+            ],
+        ]
+    )
+
+
+def rotation_matrix(rotvec_rad: Array) -> Array:
+    """Rotation matrix of a rotation vector (Rodrigues)."""
+    angle = float(np.linalg.norm(rotvec_rad))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = rotvec_rad / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.asarray(np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * (kx @ kx))
+
+
+class Magnetometer:
+    """A magnetometer's truth: ``m = T h + o + sum_j k_j u_j(t - tau_j) + n`` (uT)."""
+
+    def __init__(self, cfg: MagnetometerConfig, rng: np.random.Generator) -> None:
+        self.cfg = cfg
+        self.name = cfg.name
+        self.sensor = springmann_matrix(cfg.scale, tuple(math.radians(v) for v in cfg.nonorth_deg))
+        self.rotation = rotation_matrix(np.radians(np.array(cfg.mounting_deg)))
+        self.t_matrix = self.sensor @ self.rotation
+        self.offset_ut = np.array(cfg.offset_ut)
+        self.faults = Faults()
+        self._rng = rng
+        self._lock = threading.Lock()
+        self._last: Array | None = None
+
+    def truth_reading(self, field_ut: Array, loads_a: dict[str, float]) -> Array:
+        """Noise-free reading for a field (cage frame) and delayed load currents (uT)."""
+        m = self.t_matrix @ field_ut + self.offset_ut
+        for ch, k in self.cfg.k_ut_per_a.items():
+            m = m + np.asarray(k) * loads_a.get(ch, 0.0)
+        return np.asarray(m)
+
+    def sample(self, field_ut: Array, loads_a: dict[str, float]) -> Array:
+        """One noisy reading (uT); a stuck sensor repeats its last one."""
+        with self._lock:
+            if self.faults.stuck and self._last is not None:
+                return self._last.copy()
+            noise = self.cfg.noise_ut * self._rng.standard_normal(3)
+            self._last = self.truth_reading(field_ut, loads_a) + noise
+            return self._last.copy()
+
+
+class CagePhysics:
+    """The cage: supplies drive coils through polarity relays; loads bias the magnetometers."""
+
+    def __init__(self, cfg: SimConfig) -> None:
+        self.cfg = cfg
+        self.rng = np.random.default_rng(cfg.seed)
+        self.coil_matrix = np.array(cfg.cage.coil_matrix_ut_per_a)
+        self.supplies: dict[str, Supply] = {}
+        self.coil_supply: list[Supply] = [None, None, None]  # type: ignore[list-item]
+        for s in cfg.supplies:
+            if s.axis is not None:
+                r = cfg.cage.resistance_ohm[s.axis]
+                tau = cfg.cage.inductance_h[s.axis] / r
+            else:
+                r, tau = s.resistance_ohm, s.tau_s
+            v_max, i_max = self._limits(s)
+            supply = Supply(s, r, tau, v_max, i_max)
+            self.supplies[s.name] = supply
+            if s.axis is not None:
+                self.coil_supply[s.axis] = supply
+        self.relays = PolarityRelays(cfg.cage.hot_switch_limit_a)
+        self.bipolar_sign = [1, 1, 1]
+        self.magnetometers = {
+            m.name: Magnetometer(m, np.random.default_rng([cfg.seed, i]))
+            for i, m in enumerate(cfg.magnetometers)
+        }
+        ph = np.random.default_rng([cfg.seed, 99]).uniform(0, 2 * np.pi, size=6)
+        self._drift_phase, self._ripple_phase = ph[:3], ph[3:]
+        self._ambient_rng = np.random.default_rng([cfg.seed, 100])
+        self._lock = threading.Lock()
+        self.events: list[tuple[float, str]] = []
+
+    @staticmethod
+    def _limits(s: SupplyConfig) -> tuple[float, float]:
+        if s.kind == "riden-rd60xx":
+            _, _, _, v_max, i_max = riden_model(s.model_id)
+            return v_max, i_max
+        from sim.regmap import load_regmap
+
+        spec = load_regmap(s.regmap)
+        return spec.v_max, spec.i_max
+
+    # --- polarity -------------------------------------------------------------------------------
+
+    def set_polarity(self, axis: int, sign: int, t_s: float | None = None) -> None:
+        """Flip the relay H-bridge of ``axis`` to ``sign`` (+1/-1). Hot switching trips the supply.
+
+        Break-before-make: a real relay switching an inductive coil carrying current arcs; the
+        simulator records a hot switch and trips that axis's supply (OCP) so the rig must bring the
+        current to zero first.
+        """
+        t = now_s() if t_s is None else t_s
+        sign = 1 if sign >= 0 else -1
+        if sign == self.relays.sign[axis]:
+            return
+        supply = self.coil_supply[axis]
+        live = abs(supply.output_current(t))
+        if live > self.relays.hot_switch_limit_a:
+            self.relays.hot_switches += 1
+            self.events.append((t, f"hot switch on axis {'xyz'[axis]} at {live:.3f} A"))
+            supply.trip(2, t)
+        self.relays.sign[axis] = sign
+
+    # --- field ----------------------------------------------------------------------------------
+
+    def coil_currents(self, t_s: float | None = None) -> Array:
+        """Signed coil currents (A), polarity included."""
+        t = now_s() if t_s is None else t_s
+        signs = self.relays.sign if self.cfg.cage.polarity == "relay" else self.bipolar_sign
+        return np.array([signs[i] * self.coil_supply[i].output_current(t) for i in range(3)])
+
+    def ambient_ut(self, t_s: float, noise: bool = True) -> Array:
+        """Lab field at the DUT (uT): constant, drift, mains ripple and (optionally) noise."""
+        a = self.cfg.ambient
+        b = np.array(a.field_ut)
+        b = b + np.array(a.drift_amplitude_ut) * np.sin(
+            2 * np.pi * t_s / np.array(a.drift_period_s) + self._drift_phase
+        )
+        b = b + np.array(a.ripple_amplitude_ut) * np.sin(
+            2 * np.pi * a.ripple_hz * t_s + self._ripple_phase
+        )
+        if noise and a.noise_ut > 0:
+            with self._lock:
+                b = b + a.noise_ut * self._ambient_rng.standard_normal(3)
+        return np.asarray(b)
+
+    def field_ut(self, t_s: float | None = None, noise: bool = True) -> Array:
+        """True field at the DUT in the cage frame: ``K I + B_ambient`` (uT)."""
+        t = now_s() if t_s is None else t_s
+        return np.asarray(self.coil_matrix @ self.coil_currents(t) + self.ambient_ut(t, noise))
+
+    def load_currents(
+        self, t_s: float, delays_s: dict[str, float] | None = None
+    ) -> dict[str, float]:
+        """Load-channel currents (A), each at ``t - tau_j``."""
+        delays = delays_s or {}
+        return {
+            name: s.output_current(t_s - delays.get(name, 0.0))
+            for name, s in self.supplies.items()
+            if s.cfg.axis is None
+        }
+
+    def read_magnetometer(self, name: str, t_s: float | None = None) -> Array:
+        """One noisy reading of a magnetometer (uT, its own frame, before quantization)."""
+        t = now_s() if t_s is None else t_s
+        mag = self.magnetometers[name]
+        return mag.sample(self.field_ut(t), self.load_currents(t, mag.cfg.delay_s))
+
+    def safe(self) -> None:
+        """Turn every output off (the simulator's own emergency stop)."""
+        for s in self.supplies.values():
+            s.set_output(False)

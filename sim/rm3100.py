@@ -1,0 +1,191 @@
+"""PNI RM3100 at register level behind an smbus2-compatible object (``i2c_rdwr``).
+
+Over I2C the register address is plain (the manual's 0x80 read bit is SPI only). Multi-byte
+transfers auto-increment. Results are 24-bit two's complement, big-endian; the gain depends on the
+cycle count (``0.3671 CC + 1.5`` counts per uT, 75 at the default CC = 200). A transfer to another
+address, or any transfer while the NACK fault is on, raises ``OSError(121)`` like the kernel.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from sim.physics import Faults
+
+POLL, CMM, CCX, CCY, CCZ, TMRC = 0x00, 0x01, 0x04, 0x06, 0x08, 0x0B
+MX, BIST, STATUS, HSHAKE, REVID = 0x24, 0x33, 0x34, 0x35, 0x36
+REVID_VALUE = 0x22
+I2C_M_RD = 0x0001
+TMRC_HZ = {0x92: 600.0, 0x93: 300.0, 0x94: 150.0, 0x95: 75.0, 0x96: 37.0, 0x97: 18.0,
+           0x98: 9.0, 0x99: 4.5, 0x9A: 2.3, 0x9B: 1.2, 0x9C: 0.6, 0x9D: 0.3, 0x9E: 0.15,
+           0x9F: 0.075}  # fmt: skip
+SECONDS_PER_CYCLE = 1.0 / (430.0 * 3 * 200)  # manual: CC = 200 gives about 430 Hz for 3 axes
+
+
+def gain_counts_per_ut(cycle_count: int) -> float:
+    """Counts per uT for a cycle count (PNI's linear fit)."""
+    return 0.3671 * cycle_count + 1.5
+
+
+class Rm3100:
+    """The device's registers and measurement timing."""
+
+    def __init__(
+        self, read_ut: Callable[[], np.ndarray], faults: Faults, address: int = 0x20
+    ) -> None:
+        self.read_ut = read_ut
+        self.faults = faults
+        self.address = address
+        self.regs = bytearray(0x40)
+        for reg in (CCX, CCY, CCZ):
+            self.regs[reg : reg + 2] = (200).to_bytes(2, "big")
+        self.regs[TMRC] = 0x96
+        self.regs[REVID] = REVID_VALUE
+        self.regs[HSHAKE] = 0x1B
+        self._ready_at: float | None = None  # completion time of a pending single measurement
+        self._continuous_since: float | None = None
+        self._last_cont_index = -1
+        self._lock = threading.Lock()
+
+    def cycle_counts(self) -> tuple[int, int, int]:
+        """CCX, CCY, CCZ."""
+        return tuple(int.from_bytes(self.regs[r : r + 2], "big") for r in (CCX, CCY, CCZ))  # type: ignore[return-value]
+
+    def _conversion_s(self) -> float:
+        return sum(self.cycle_counts()) * SECONDS_PER_CYCLE
+
+    def _measure(self) -> None:
+        """Latch a reading into MX..MZ and raise DRDY."""
+        if self.faults.stuck and self.regs[STATUS] & 0x80:
+            return
+        reading = np.asarray(self.read_ut(), dtype=float)
+        for i, cc in enumerate(self.cycle_counts()):
+            counts = round(float(reading[i]) * gain_counts_per_ut(cc))
+            counts = max(-(1 << 23), min((1 << 23) - 1, counts)) & 0xFFFFFF
+            self.regs[MX + 3 * i : MX + 3 * i + 3] = counts.to_bytes(3, "big")
+        self.regs[STATUS] |= 0x80
+
+    def _advance(self) -> None:
+        now = time.monotonic()
+        if self._ready_at is not None and now >= self._ready_at:
+            self._ready_at = None
+            self._measure()
+        if self._continuous_since is not None:
+            rate = min(TMRC_HZ.get(self.regs[TMRC], 37.0), 1.0 / self._conversion_s())
+            index = int((now - self._continuous_since) * rate)
+            if index > self._last_cont_index:
+                self._last_cont_index = index
+                self._measure()
+
+    def write(self, reg: int, data: bytes) -> None:
+        """Register write with auto-increment."""
+        for offset, value in enumerate(data):
+            r = reg + offset
+            if r >= len(self.regs):
+                return
+            if r == POLL:
+                if value & 0x70:
+                    self.regs[STATUS] &= 0x7F
+                    self._ready_at = time.monotonic() + self._conversion_s()
+            elif r == CMM:
+                self.regs[CMM] = value
+                if value & 0x01:
+                    self._continuous_since = time.monotonic()
+                    self._last_cont_index = 0
+                else:
+                    self._continuous_since = None
+            elif r == TMRC:
+                self.regs[TMRC] = value
+                self._continuous_since = None  # writing TMRC terminates continuous mode
+            elif r in (REVID, STATUS) or MX <= r < MX + 9:
+                continue  # read-only
+            else:
+                self.regs[r] = value
+
+    def read(self, reg: int, length: int) -> bytes:
+        """Register read with auto-increment; reading the results clears DRDY."""
+        out = bytes(self.regs[reg : reg + length]).ljust(length, b"\x00")
+        if reg <= CMM < reg + length:
+            self._continuous_since = None  # reading CMM terminates continuous mode
+        if reg < MX + 9 and reg + length > MX:
+            self.regs[STATUS] &= 0x7F
+        return out
+
+
+class SimI2CBus:
+    """An smbus2-compatible bus object carrying simulated devices (``i2c_rdwr`` and friends)."""
+
+    def __init__(self) -> None:
+        self.devices: dict[int, Rm3100] = {}
+        self._lock = threading.Lock()
+        self.transfers = 0
+
+    def attach(self, device: Rm3100) -> None:
+        """Put a device on the bus at its address."""
+        self.devices[device.address] = device
+
+    def _device(self, addr: int) -> Rm3100:
+        dev = self.devices.get(addr)
+        if dev is None or dev.faults.silent or dev.faults.disconnect:
+            raise OSError(errno.EREMOTEIO, "Remote I/O error")  # errno 121, as the kernel
+        return dev
+
+    def i2c_rdwr(self, *msgs: Any) -> None:
+        """Combined transfer: a register-address write, then reads or more writes."""
+        with self._lock:
+            self.transfers += 1
+            pointer: int | None = None
+            for msg in msgs:
+                dev = self._device(int(msg.addr))
+                dev._advance()
+                if msg.flags & I2C_M_RD:
+                    data = dev.read(pointer or 0, int(msg.len))
+                    ctypes.memmove(msg.buf, data, int(msg.len))
+                    pointer = (pointer or 0) + int(msg.len)
+                else:
+                    payload = ctypes.string_at(msg.buf, int(msg.len))
+                    if not payload:
+                        continue
+                    pointer = payload[0]
+                    if len(payload) > 1:
+                        dev.write(pointer, payload[1:])
+                        pointer += len(payload) - 1
+
+    # SMBus block helpers (32-byte limit, as in the kernel)
+    def read_i2c_block_data(
+        self, addr: int, reg: int, length: int, force: bool | None = None
+    ) -> list[int]:
+        """SMBus block read."""
+        if length > 32:
+            raise ValueError("SMBus block reads are limited to 32 bytes")
+        with self._lock:
+            dev = self._device(addr)
+            dev._advance()
+            return list(dev.read(reg, length))
+
+    def write_i2c_block_data(
+        self, addr: int, reg: int, data: list[int], force: bool | None = None
+    ) -> None:
+        """SMBus block write."""
+        with self._lock:
+            dev = self._device(addr)
+            dev._advance()
+            dev.write(reg, bytes(data))
+
+    def read_byte_data(self, addr: int, reg: int, force: bool | None = None) -> int:
+        """SMBus byte read."""
+        return self.read_i2c_block_data(addr, reg, 1)[0]
+
+    def write_byte_data(self, addr: int, reg: int, value: int, force: bool | None = None) -> None:
+        """SMBus byte write."""
+        self.write_i2c_block_data(addr, reg, [value])
+
+    def close(self) -> None:
+        """Nothing to release (API compatibility)."""
