@@ -38,10 +38,18 @@ def build_parser() -> argparse.ArgumentParser:
     verbosity.add_argument(
         "-v", "--verbose", action="store_true", help="more detail, tracebacks on internal errors"
     )
+    # -q/-v are accepted before or after the subcommand (``rig -q sim`` and ``rig sim -q``).
+    common = _Parser(add_help=False)
+    common_v = common.add_mutually_exclusive_group()
+    common_v.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                          help="print errors only")  # fmt: skip
+    common_v.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
+                          help="more detail, tracebacks on internal errors")  # fmt: skip
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     cal = sub.add_parser(
         "calibrate",
+        parents=[common],
         help="fit scale, offset, misalignment and current-to-bias to a CSV file",
         description=(
             "Fit m = T h + o + sum_j k_j u_j to recorded data. --field gives a vector (cage)"
@@ -85,6 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = sub.add_parser(
         "sim",
+        parents=[common],
         help="run the simulated cage (Modbus, serial and I2C devices on loopback)",
         description=(
             "Start the physics-based simulated cage behind the real wire protocols and keep it"
@@ -108,6 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     ex = sub.add_parser(
         "example-data",
+        parents=[common],
         help="write a synthetic data set with known truth",
         description=(
             "rax: a tumbling CubeSat with four panel currents and EPS beacons (scalar); cage: a"

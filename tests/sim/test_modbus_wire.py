@@ -1,0 +1,153 @@
+"""Simulated supplies, load and relays over Modbus TCP and RTU, read and written by Debian's mbpoll
+(an independent libmodbus client) and by a plain pymodbus client for the faults."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import time
+from typing import Any
+
+import pytest
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ModbusException
+
+from sim.cage import SimulatedCage
+
+MBPOLL = shutil.which("mbpoll")
+needs_mbpoll = pytest.mark.skipif(
+    MBPOLL is None, reason="mbpoll not installed (.ci/run installs it)"
+)
+
+
+def mbpoll(
+    dev: dict[str, Any], *args: str, write: list[str] | None = None
+) -> subprocess.CompletedProcess[str]:
+    assert MBPOLL is not None
+    if dev["protocol"] == "modbus-tcp":
+        where = ["-m", "tcp", "-p", str(dev["port"]), "-a", str(dev["device_id"])]
+        target = "127.0.0.1"
+    else:
+        where = ["-m", "rtu", "-b", str(dev["baudrate"]), "-P", "none", "-a", str(dev["device_id"])]
+        target = dev["path"]
+    cmd = [MBPOLL, *where, "-0", "-1", "-o", "1", *args, target, *(write or [])]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=20)
+
+
+def values(proc: subprocess.CompletedProcess[str]) -> dict[int, float]:
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return {int(a): float(v) for a, v in re.findall(r"^\[(\d+)\]:\s+(-?[\d.]+)", proc.stdout, re.M)}
+
+
+@needs_mbpoll
+@pytest.mark.parametrize("name", ["coil_x", "coil_y"])
+def test_riden_over_tcp_and_rtu(devices: dict[str, Any], cage: SimulatedCage, name: str) -> None:
+    dev = devices[name]
+    regs = values(mbpoll(dev, "-r", "0", "-c", "4", "-t", "4"))
+    assert regs[0] == 60125 and regs[2] == 12345  # RD6012, serial low word
+    for reg, value in (("8", "1200"), ("9", "150"), ("18", "1")):  # 12.00 V, 1.50 A, output on
+        assert mbpoll(dev, "-r", reg, "-t", "4", write=[value]).returncode == 0
+    time.sleep(0.3)  # > 10 L/R time constants
+    regs = values(mbpoll(dev, "-r", "8", "-c", "11", "-t", "4"))
+    r_ohm = cage.physics.supplies[name].resistance_ohm
+    # 12 V into ~4 ohm wants 3 A > 1.5 A: constant current at 1.50 A, V_OUT = I R
+    assert regs[11] == 150 and regs[17] == 1 and regs[18] == 1
+    assert abs(regs[10] / 100 - 1.5 * r_ohm) <= 0.01
+    assert mbpoll(dev, "-r", "18", "-t", "4", write=["0"]).returncode == 0
+
+
+@needs_mbpoll
+def test_exception_replies(devices: dict[str, Any]) -> None:
+    dev = devices["coil_x"]
+    over = mbpoll(dev, "-r", "8", "-t", "4", write=["7000"])  # 70 V on a 60 V supply
+    assert over.returncode != 0 and "Illegal data value" in over.stdout + over.stderr
+    hole = mbpoll(dev, "-r", "500", "-t", "4")
+    assert hole.returncode != 0 and "Illegal data address" in hole.stdout + hole.stderr
+    ro = mbpoll(dev, "-r", "10", "-t", "4", write=["5"])  # V_OUT is read-only
+    assert ro.returncode != 0 and "Illegal data address" in ro.stdout + ro.stderr
+
+
+@needs_mbpoll
+def test_electronic_load_float32_and_bias(devices: dict[str, Any], cage: SimulatedCage) -> None:
+    dev = devices["load_panel"]
+    assert mbpoll(dev, "-r", str(0x0A01), "-t", "4:float", "-B", write=["2.5"]).returncode == 0
+    assert mbpoll(dev, "-r", str(0x0A10), "-t", "4", write=["1"]).returncode == 0
+    time.sleep(0.1)
+    meas = values(mbpoll(dev, "-r", str(0x0B02), "-t", "4:float", "-B"))
+    assert abs(meas[0x0B02] - 2.5) < 1e-3
+    assert abs(cage.physics.load_currents(time.monotonic())["load_panel"] - 2.5) < 1e-3
+    assert mbpoll(dev, "-r", str(0x0A10), "-t", "4", write=["0"]).returncode == 0
+
+
+@needs_mbpoll
+def test_relay_polarity_and_hot_switch(devices: dict[str, Any], cage: SimulatedCage) -> None:
+    relay, coil = devices["polarity"], devices["coil_z"]
+    for reg, value in (("8", "800"), ("9", "50"), ("18", "1")):  # 0.50 A on z
+        assert mbpoll(coil, "-r", reg, "-t", "4", write=[value]).returncode == 0
+    time.sleep(0.3)
+    before = cage.physics.coil_currents()[2]
+    assert abs(before - 0.5) < 1e-3
+    hot = cage.physics.relays.hot_switches
+    assert mbpoll(relay, "-r", "2", "-t", "4", write=["1"]).returncode == 0  # flip while live
+    assert cage.physics.relays.hot_switches == hot + 1
+    regs = values(mbpoll(coil, "-r", "16", "-c", "3", "-t", "4"))
+    assert regs[16] == 2 and regs[18] == 0  # OCP latched, output off
+    # the right way: current to zero, switch, then on again: the field reverses
+    time.sleep(0.3)
+    assert mbpoll(relay, "-r", "2", "-t", "4", write=["0"]).returncode == 0
+    assert cage.physics.relays.hot_switches == hot + 1
+    assert mbpoll(relay, "-r", "2", "-t", "4", write=["1"]).returncode == 0
+    assert mbpoll(coil, "-r", "18", "-t", "4", write=["1"]).returncode == 0
+    time.sleep(0.3)
+    assert abs(cage.physics.coil_currents()[2] + 0.5) < 1e-3
+    assert mbpoll(coil, "-r", "18", "-t", "4", write=["0"]).returncode == 0
+    time.sleep(0.3)
+    assert mbpoll(relay, "-r", "2", "-t", "4", write=["0"]).returncode == 0
+
+
+def test_injected_exception_timeout_and_disconnect(
+    devices: dict[str, Any], cage: SimulatedCage
+) -> None:
+    dev = devices["coil_x"]
+    faults = cage.faults["coil_x"]
+    with ModbusTcpClient("127.0.0.1", port=dev["port"], timeout=0.5, retries=0) as c:
+        assert c.read_holding_registers(0, count=1, device_id=1).registers == [60125]
+        faults.exception_code = 6  # slave device busy
+        try:
+            rr = c.read_holding_registers(0, count=1, device_id=1)
+        finally:
+            faults.exception_code = 0
+        assert rr.isError() and rr.exception_code == 6
+        faults.silent = True
+        try:
+            with pytest.raises(ModbusException):
+                c.read_holding_registers(0, count=1, device_id=1)
+        finally:
+            faults.silent = False
+    with ModbusTcpClient("127.0.0.1", port=dev["port"], timeout=0.5, retries=0) as c:
+        assert c.read_holding_registers(0, count=1, device_id=1).registers == [60125]
+        cage.drop_connections("coil_x")
+        time.sleep(0.1)
+        with pytest.raises(ModbusException):
+            c.read_holding_registers(0, count=1, device_id=1)
+
+
+def test_rtu_corrupt_frames_and_silent_bus(devices: dict[str, Any], cage: SimulatedCage) -> None:
+    dev = devices["load_bus"]
+    faults = cage.faults["load_bus"]
+    with ModbusSerialClient(dev["path"], baudrate=dev["baudrate"], timeout=0.3, retries=0) as c:
+        assert c.read_holding_registers(0, count=1, device_id=1).registers == [60062]
+        faults.corrupt_rate = 1.0
+        try:
+            with pytest.raises(ModbusException):
+                c.read_holding_registers(0, count=1, device_id=1)
+        finally:
+            faults.corrupt_rate = 0.0
+        time.sleep(0.4)
+        with pytest.raises(ModbusException):  # nobody at address 7 on this bus: silence
+            c.read_holding_registers(0, count=1, device_id=7)
+        time.sleep(0.4)
+        c.close()
+        c.connect()
+        assert c.read_holding_registers(0, count=1, device_id=1).registers == [60062]

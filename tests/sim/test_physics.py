@@ -1,0 +1,125 @@
+"""Physics of the simulated cage against its own configuration (the truth)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sim.config import SimConfigError, load_config
+from sim.physics import CagePhysics, Magnetometer
+
+T0 = 1000.0  # explicit times: the physics is evaluated at any given instant
+
+
+@pytest.fixture()
+def physics() -> CagePhysics:
+    return CagePhysics(load_config())
+
+
+def drive(p: CagePhysics, currents_a: list[float], t_s: float) -> None:
+    for axis, amps in enumerate(currents_a):
+        supply = p.coil_supply[axis]
+        supply.set_voltage(40.0, t_s)
+        supply.set_current(abs(amps), t_s)
+        if p.cfg.cage.polarity == "relay":
+            p.set_polarity(axis, 1 if amps >= 0 else -1, t_s)
+        supply.set_output(True, t_s)
+
+
+def test_field_is_coil_matrix_times_current_plus_ambient(physics: CagePhysics) -> None:
+    cfg = physics.cfg.cage
+    currents = [0.8, -0.5, 1.2]
+    drive(physics, currents, T0)
+    tau = [cfg.inductance_h[i] / cfg.resistance_ohm[i] for i in range(3)]
+    t_settled = T0 + 20 * max(tau)  # e^-20: settled to 1e-9
+    expected = np.array(cfg.coil_matrix_ut_per_a) @ currents + physics.ambient_ut(
+        t_settled, noise=False
+    )
+    np.testing.assert_allclose(physics.field_ut(t_settled, noise=False), expected, atol=1e-3)
+    # one time constant into the step: 1 - 1/e of the way, per axis
+    for axis in range(3):
+        got = physics.coil_currents(T0 + tau[axis])[axis]
+        assert math.isclose(got, currents[axis] * (1 - math.exp(-1)), rel_tol=1e-9)
+
+
+def test_supply_cv_cc_and_protection(physics: CagePhysics) -> None:
+    s = physics.supplies["coil_x"]
+    r = s.resistance_ohm
+    s.set_voltage(2.0, T0)
+    s.set_current(5.0, T0)
+    s.set_output(True, T0)
+    assert not s.cc_mode() and math.isclose(s.output_current(T0 + 5), 2.0 / r)
+    s.set_current(0.2, T0 + 5)
+    assert s.cc_mode() and math.isclose(s.output_current(T0 + 10), 0.2)
+    with pytest.raises(ValueError, match="outside"):
+        s.set_voltage(70.0, T0 + 10)
+    s.ocp_a = 0.1
+    s.set_current(0.3, T0 + 11)  # above the OCP threshold
+    assert s.protection == 2 and not s.output
+    assert physics.supplies["coil_x"].output_current(T0 + 20) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_dut_reading_is_its_truth_model_within_noise(physics: CagePhysics) -> None:
+    drive(physics, [0.5, 0.3, -0.4], T0)
+    t = T0 + 1.0
+    mag = physics.magnetometers["dut"]
+    h = physics.field_ut(t, noise=False)
+    readings = np.array([physics.read_magnetometer("dut", t) for _ in range(2000)])
+    cfg = mag.cfg
+    # truth written out independently: m = L R h + o (no load current flowing)
+    a, b, c = cfg.scale
+    rho, phi, lam = np.radians(cfg.nonorth_deg)
+    lower = np.array([[a, 0, 0], [b * np.sin(rho), b * np.cos(rho), 0],
+                      [c * np.sin(lam), c * np.sin(phi) * np.cos(lam), c * np.cos(phi) * np.cos(lam)]])  # fmt: skip
+    rv = np.radians(cfg.mounting_deg)
+    angle = np.linalg.norm(rv)
+    k = rv / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    rot = np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+    truth = lower @ rot @ h + np.array(cfg.offset_ut)
+    noise = cfg.noise_ut + physics.cfg.ambient.noise_ut
+    assert np.all(np.abs(readings.mean(axis=0) - truth) < 5 * noise / np.sqrt(2000))
+    np.testing.assert_allclose(readings.std(axis=0), cfg.noise_ut, rtol=0.1)
+
+
+def test_load_current_biases_the_dut_after_its_delay(physics: CagePhysics) -> None:
+    mag = physics.magnetometers["dut"]
+    load = physics.supplies["load_panel"]
+    load.set_voltage(12.0, T0)
+    load.set_current(3.0, T0 + 1)
+    load.set_output(True, T0 + 1)
+    delay = mag.cfg.delay_s["load_panel"]
+    k = np.array(mag.cfg.k_ut_per_a["load_panel"])
+    t_before, t_after = T0 + 1 + 0.5 * delay, T0 + 1 + delay + 0.05
+    assert physics.load_currents(t_before, mag.cfg.delay_s)["load_panel"] == pytest.approx(
+        0.0, abs=1e-12
+    )
+    shift = mag.truth_reading(np.zeros(3), physics.load_currents(t_after, mag.cfg.delay_s))
+    shift -= mag.truth_reading(np.zeros(3), {})
+    np.testing.assert_allclose(shift, 3.0 * k, rtol=1e-6)
+
+
+def test_stuck_sensor_repeats(physics: CagePhysics) -> None:
+    mag: Magnetometer = physics.magnetometers["reference"]
+    first = physics.read_magnetometer("reference", T0)
+    mag.faults.stuck = True
+    np.testing.assert_array_equal(physics.read_magnetometer("reference", T0 + 5), first)
+
+
+def test_same_seed_same_cage() -> None:
+    a, b = CagePhysics(load_config()), CagePhysics(load_config())
+    np.testing.assert_array_equal(a.read_magnetometer("dut", T0), b.read_magnetometer("dut", T0))
+
+
+def test_config_errors_name_the_key(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    text = load_config().source
+    bad = tmp_path / "bad.toml"
+    bad.write_text(Path(text).read_text().replace('polarity = "relay"', 'polarity = "sideways"'))
+    with pytest.raises(SimConfigError, match=r"cage.polarity must be 'relay' or 'bipolar'"):
+        load_config(bad)
+    bad.write_text("[cage\n")
+    with pytest.raises(SimConfigError, match="not valid TOML"):
+        load_config(bad)
