@@ -134,6 +134,9 @@ class SimulatedCage:
                                               "bus": "sim", "address": m.i2c_address}  # fmt: skip
                 else:
                     raise ValueError(f"magnetometer '{m.name}': unknown kind '{m.kind}'")
+            for name, settings in self.cfg.faults.items():
+                for key, value in settings.items():
+                    setattr(self.faults[name], key, value)
         except BaseException:
             self.stop()
             raise

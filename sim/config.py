@@ -120,6 +120,8 @@ class SimConfig:
     relay: RelayConfig | None
     magnetometers: tuple[MagnetometerConfig, ...]
     source: str = ""
+    faults: dict[str, dict[str, float | bool | int]] = field(default_factory=dict)
+    """Faults active from the start, per device name (fields of ``sim.physics.Faults``)."""
 
     def supply(self, name: str) -> SupplyConfig:
         """A supply or load channel by name."""
@@ -241,6 +243,19 @@ def _parse(raw: dict[str, Any], source: str) -> SimConfig:
         for ch in mags[-1].k_ut_per_a:
             if ch not in {s.name for s in supplies if s.axis is None}:
                 raise SimConfigError(f"{where}.k_ut_per_a names '{ch}', which is no load channel")
+    names = {s.name for s in supplies} | {m.name for m in mags} | ({relay.name} if relay else set())
+    fault_keys = {"reply_delay_s", "silent", "drop_rate", "corrupt_rate", "exception_code",
+                  "disconnect", "stuck"}  # fmt: skip
+    faults: dict[str, dict[str, float | bool | int]] = {}
+    for name, table in raw.get("faults", {}).items():
+        if name not in names:
+            raise SimConfigError(f"faults.{name}: no device of that name")
+        unknown = set(table) - fault_keys
+        if unknown:
+            raise SimConfigError(
+                f"faults.{name}: unknown keys {sorted(unknown)}; use {sorted(fault_keys)}"
+            )
+        faults[name] = dict(table)
     return SimConfig(
-        int(raw.get("seed", 0)), cage, ambient, tuple(supplies), relay, tuple(mags), source
+        int(raw.get("seed", 0)), cage, ambient, tuple(supplies), relay, tuple(mags), source, faults
     )

@@ -128,9 +128,9 @@ def regmap_device(
         assert supply is not None
         getters: dict[str, Callable[[], float]] = {
             "v_set": lambda: supply.v_set,
-            "i_set": lambda: supply.i_set,
-            "v_out": supply.output_voltage,
-            "i_out": supply.output_current,
+            "i_set": lambda: sign() * supply.i_set,
+            "v_out": lambda: sign() * supply.output_voltage(),
+            "i_out": lambda: sign() * supply.output_current(),
             "output": lambda: 1.0 if supply.output else 0.0,
             "mode": lambda: 1.0 if supply.cc_mode() else 0.0,
             "protection": lambda: float(supply.protection),
@@ -138,6 +138,13 @@ def regmap_device(
         return getters[reg.role]() if reg.role in getters else stored.get(reg.name, 0.0)
 
     stored: dict[str, float] = {}
+    axis = None if supply is None else supply.cfg.axis
+
+    def sign() -> float:
+        """Output polarity of a bipolar coil supply (+1 otherwise)."""
+        if spec.bipolar and axis is not None:
+            return float(physics.bipolar_sign[axis])
+        return 1.0
 
     def refresh(regs: list[int], base: int) -> None:
         for reg in spec.registers:
@@ -152,7 +159,13 @@ def regmap_device(
         elif reg.role == "v_set" and supply is not None:
             supply.set_voltage(value)
         elif reg.role == "i_set" and supply is not None:
-            supply.set_current(value)
+            if spec.bipolar and axis is not None:
+                supply.set_current(abs(value))
+                physics.set_bipolar_sign(axis, -1 if value < 0 else 1)
+            elif value < 0:
+                raise ValueError("this supply is unipolar: current set-point must be >= 0")
+            else:
+                supply.set_current(value)
         elif reg.role == "output" and supply is not None:
             if value not in (0.0, 1.0):
                 raise ValueError("output must be 0 or 1")

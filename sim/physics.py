@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from sim.config import MagnetometerConfig, SimConfig, SupplyConfig
+from sim.config import MagnetometerConfig, SimConfig, SimConfigError, SupplyConfig
 from sim.signals import FirstOrderSignal
 
 Array = npt.NDArray[np.float64]
@@ -238,6 +238,13 @@ class CagePhysics:
             self.supplies[s.name] = supply
             if s.axis is not None:
                 self.coil_supply[s.axis] = supply
+        if cfg.cage.polarity == "bipolar":
+            for s in cfg.supplies:
+                if s.axis is not None and not (s.kind == "regmap" and self._bipolar(s)):
+                    raise SimConfigError(
+                        f"supply '{s.name}': cage.polarity = 'bipolar' needs a bipolar"
+                        " register-map supply on every coil axis"
+                    )
         self.relays = PolarityRelays(cfg.cage.hot_switch_limit_a)
         self.bipolar_sign = [1, 1, 1]
         self.magnetometers = {
@@ -249,6 +256,12 @@ class CagePhysics:
         self._ambient_rng = np.random.default_rng([cfg.seed, 100])
         self._lock = threading.Lock()
         self.events: list[tuple[float, str]] = []
+
+    @staticmethod
+    def _bipolar(s: SupplyConfig) -> bool:
+        from sim.regmap import load_regmap
+
+        return load_regmap(s.regmap).bipolar
 
     @staticmethod
     def _limits(s: SupplyConfig) -> tuple[float, float]:
@@ -280,6 +293,23 @@ class CagePhysics:
             self.events.append((t, f"hot switch on axis {'xyz'[axis]} at {live:.3f} A"))
             supply.trip(2, t)
         self.relays.sign[axis] = sign
+
+    def set_bipolar_sign(self, axis: int, sign: int, t_s: float | None = None) -> None:
+        """Output polarity of a four-quadrant supply: the current reverses through zero.
+
+        The supply's own current signal is unsigned, so a sign change restarts it from the mirrored
+        value: the coil current passes continuously through zero with the coil's time constant.
+        """
+        t = now_s() if t_s is None else t_s
+        sign = 1 if sign >= 0 else -1
+        if sign == self.bipolar_sign[axis]:
+            return
+        supply = self.coil_supply[axis]
+        present = supply.output_current(t)
+        self.bipolar_sign[axis] = sign
+        supply.current.jump(t, -present)
+        with supply.lock:
+            supply.current.set_target(t, supply._target())
 
     # --- field ----------------------------------------------------------------------------------
 

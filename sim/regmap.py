@@ -83,6 +83,7 @@ class RegMap:
     v_max: float = 0.0
     i_max: float = 0.0
     source: str = ""
+    bipolar: bool = False  # signed current set-point and readback (four-quadrant supply)
 
     def by_role(self, role: str) -> Register | None:
         """The register playing ``role``, if any."""
@@ -139,4 +140,5 @@ def load_regmap(path: str) -> RegMap:
     return RegMap(
         kind, str(dev.get("model", p.stem)), tuple(regs),
         float(dev.get("v_max", 0.0)), float(dev.get("i_max", 0.0)), str(p),
+        bool(dev.get("bipolar", False)),
     )  # fmt: skip

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -123,3 +124,66 @@ def test_config_errors_name_the_key(tmp_path) -> None:  # type: ignore[no-untype
     bad.write_text("[cage\n")
     with pytest.raises(SimConfigError, match="not valid TOML"):
         load_config(bad)
+
+
+def bipolar_config(tmp_path: Path) -> Path:
+    text = Path(load_config().source).read_text()
+    text = text.replace('polarity = "relay"', 'polarity = "bipolar"')
+    for axis in "xyz":
+        text = (
+            text.replace(
+                f'kind = "riden-rd60xx"\nmodel_id = 60125                      # RD6012\naxis = "{axis}"',
+                f'kind = "regmap"\nregmap = "bipolar-supply"\naxis = "{axis}"',
+            )
+            .replace(
+                f'kind = "riden-rd60xx"\nmodel_id = 60125\naxis = "{axis}"',
+                f'kind = "regmap"\nregmap = "bipolar-supply"\naxis = "{axis}"',
+            )
+            .replace(
+                f'kind = "riden-rd60xx"\nmodel_id = 60181                      # RD6018\naxis = "{axis}"',
+                f'kind = "regmap"\nregmap = "bipolar-supply"\naxis = "{axis}"',
+            )
+        )
+    path = tmp_path / "bipolar.toml"
+    path.write_text(text)
+    return path
+
+
+def test_bipolar_supply_reverses_through_zero_over_modbus(tmp_path: Path) -> None:
+    from pymodbus.client import ModbusTcpClient
+
+    from sim.cage import SimulatedCage
+
+    cfg = load_config(bipolar_config(tmp_path))
+    assert cfg.cage.polarity == "bipolar"
+    with SimulatedCage(cfg) as cage:
+        dev = cage.endpoints_document()["devices"]["coil_x"]
+        assert dev["kind"] == "regmap-supply"
+        with ModbusTcpClient("127.0.0.1", port=dev["port"], timeout=2) as c:
+            assert not c.write_register(0x10, 1000, device_id=1).isError()  # 10 V
+            assert not c.write_register(0x11, 400, device_id=1).isError()  # +0.4 A
+            assert not c.write_register(0x12, 1, device_id=1).isError()
+            time.sleep(0.3)
+            assert abs(cage.physics.coil_currents()[0] - 0.4) < 1e-3
+            neg = (-400) & 0xFFFF  # int16 two's complement
+            assert not c.write_register(0x11, neg, device_id=1).isError()
+            t_flip = time.monotonic()
+            tau = cfg.cage.inductance_h[0] / cfg.cage.resistance_ohm[0]
+            mid = cage.physics.coil_currents(t_flip + tau * math.log(2))[0]
+            assert abs(mid) < 0.02  # passes through zero, continuously
+            time.sleep(0.3)
+            i_out = c.read_holding_registers(0x21, count=1, device_id=1).registers[0]
+            assert i_out == neg  # signed readback
+            assert abs(cage.physics.coil_currents()[0] + 0.4) < 1e-3
+
+
+def test_faults_from_the_configuration(tmp_path: Path) -> None:
+    from sim.cage import SimulatedCage
+
+    path = tmp_path / "faulty.toml"
+    path.write_text(Path(load_config().source).read_text() + "\n[faults.dut]\nstuck = true\n")
+    with SimulatedCage(load_config(path)) as cage:
+        assert cage.faults["dut"].stuck is True
+    path.write_text(Path(load_config().source).read_text() + "\n[faults.nobody]\nsilent = true\n")
+    with pytest.raises(SimConfigError, match=r"faults\.nobody: no device"):
+        load_config(path)
