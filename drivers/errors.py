@@ -1,0 +1,29 @@
+"""Errors raised by drivers. Each message names the device and its port, and says what to check.
+
+``drivers`` may not import ``rig``; the rig treats :class:`DeviceError` like its own errors (one
+line to the user, hardware to its safe state).
+"""
+
+
+class DeviceError(Exception):
+    """Root of driver errors: a device misbehaved or could not be reached."""
+
+
+class DeviceTimeoutError(DeviceError):
+    """No (complete) reply within the timeout, after the allowed retries."""
+
+
+class DeviceProtocolError(DeviceError):
+    """A reply arrived but is malformed, truncated or does not match the request."""
+
+
+class DeviceRefusedError(DeviceError):
+    """The device answered with an error (a Modbus exception, ``Re-enter``, ``WE OFF``)."""
+
+
+class DeviceNotFoundError(DeviceError):
+    """The port or bus cannot be opened, or the device does not identify as expected."""
+
+
+class LimitError(DeviceError):
+    """A set-point outside the device's range or the configured limit was refused before sending."""

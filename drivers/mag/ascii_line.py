@@ -1,0 +1,78 @@
+"""A configurable line-oriented magnetometer: one sample per text line.
+
+Covers space-separated Arduino bridges (``x y z`` in uT at 115200) and CSV loggers
+(``Timestamp_ms,B1x_nT,B1y_nT,B1z_nT,...``): a delimiter (None = whitespace), the three column
+indices, a scale to uT, an optional poll command and lines to skip (headers).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from drivers.errors import DeviceProtocolError, DeviceTimeoutError
+from drivers.psu.riden import Identity
+from drivers.transport.serial_port import SerialPort
+
+
+@dataclass(frozen=True)
+class LineFormat:
+    """How to read a line: ``columns`` are the x, y, z indices; ``scale_to_ut`` multiplies them."""
+
+    delimiter: str | None = None
+    columns: tuple[int, int, int] = (0, 1, 2)
+    scale_to_ut: float = 1.0
+    terminator: bytes = b"\n"
+    poll_command: bytes = b""
+
+    def parse(self, line: bytes) -> tuple[float, float, float]:
+        """One line to (x, y, z) uT, or DeviceProtocolError naming the line."""
+        text = line.decode("ascii", errors="replace").strip()
+        cells = text.split(self.delimiter) if self.delimiter else text.split()
+        try:
+            x, y, z = (float(cells[i]) * self.scale_to_ut for i in self.columns)
+        except (IndexError, ValueError):
+            raise DeviceProtocolError(f"unreadable magnetometer line {text[:60]!r}") from None
+        return x, y, z
+
+
+class AsciiLineMagnetometer:
+    """Reads samples from a serial line; skips garbled lines up to ``max_bad_lines`` in a row."""
+
+    def __init__(self, url: str, *, baudrate: int = 115200, fmt: LineFormat | None = None,
+                 timeout_s: float = 0.5, max_bad_lines: int = 3, name: str = "ascii-mag") -> None:  # fmt: skip
+        self.name = name
+        self.fmt = fmt or LineFormat()
+        self.port = SerialPort(url, baudrate, timeout_s=timeout_s, name=name)
+        self.max_bad_lines = max_bad_lines
+        self.bad_lines = 0
+
+    def identify(self) -> Identity:
+        """Line sensors have no identity query; reads one sample to prove the link."""
+        self.read()
+        return Identity("ASCII line magnetometer", "", "")
+
+    def flush(self) -> None:
+        """Drop buffered (stale) lines so the next read is fresh."""
+        self.port.drain_input(quiet_s=0.0)
+
+    def read(self) -> tuple[float, float, float]:
+        """The next complete line as uT."""
+        if self.fmt.poll_command:
+            self.port.write(self.fmt.poll_command)
+        for _ in range(self.max_bad_lines + 1):
+            line = self.port.read_until(self.fmt.terminator)
+            try:
+                return self.fmt.parse(line)
+            except DeviceProtocolError:
+                self.bad_lines += 1
+        raise DeviceProtocolError(
+            f"{self.name} on {self.port.url}: {self.max_bad_lines + 1} unreadable lines in a row;"
+            " check the baud rate and the line format"
+        )
+
+    def close(self) -> None:
+        """Close the port."""
+        self.port.close()
+
+
+__all__ = ["AsciiLineMagnetometer", "DeviceTimeoutError", "LineFormat"]

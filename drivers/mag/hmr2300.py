@@ -1,0 +1,223 @@
+"""Honeywell HMR2300 smart magnetometer (RS-232/RS-485) by its datasheet command set.
+
+* Commands ``*ddCMD<CR>``; write-protected ones are preceded by ``*ddWE``.
+* 15000 counts per gauss = 150 counts per uT, +-30000 counts.
+* Binary samples are 7 bytes ``XH XL YH YL ZH ZL CR`` (two's complement, big-endian). A data byte
+  can be 0x0D, so frames are read by fixed length and realigned on the stride of 7, never split on CR.
+* ASCII samples are 28 bytes: per axis sign, two digits, comma, three digits, two spaces; then CR.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+from drivers.errors import (
+    DeviceNotFoundError,
+    DeviceProtocolError,
+    DeviceRefusedError,
+    DeviceTimeoutError,
+)
+from drivers.transport.serial_port import SerialPort
+
+COUNTS_PER_UT = 150.0
+RATES_SPS = (10, 20, 25, 30, 40, 50, 60, 100, 123, 154)
+BINARY_LEN, ASCII_LEN = 7, 28
+ESC = b"\x1b"
+
+
+@dataclass(frozen=True)
+class Hmr2300Identity:
+    """ID, serial number and firmware version."""
+
+    device_id: int
+    serial: str
+    firmware: str
+
+
+def parse_binary(frame: bytes) -> tuple[float, float, float]:
+    """One 7-byte binary frame to uT."""
+    if len(frame) != BINARY_LEN or frame[6] != 0x0D:
+        raise DeviceProtocolError(f"HMR2300: bad binary frame {frame!r}")
+    x, y, z = struct.unpack(">hhh", frame[:6])
+    return x / COUNTS_PER_UT, y / COUNTS_PER_UT, z / COUNTS_PER_UT
+
+
+def parse_ascii(frame: bytes) -> tuple[float, float, float]:
+    """One 28-byte ASCII sample to uT (accepts blank, '+' or '-' signs and blanked zeros)."""
+    if len(frame) != ASCII_LEN or not frame.endswith(b"\r"):
+        raise DeviceProtocolError(f"HMR2300: bad ASCII sample {frame!r}")
+    text = frame.decode("ascii", errors="replace")
+    out = []
+    for start in (0, 9, 18):
+        field = text[start : start + 7].replace(",", "").replace(" ", "")
+        try:
+            out.append(int(field) / COUNTS_PER_UT)
+        except ValueError:
+            raise DeviceProtocolError(
+                f"HMR2300: unreadable axis value {text[start : start + 7]!r}"
+            ) from None
+    return out[0], out[1], out[2]
+
+
+class Hmr2300:
+    """An HMR2300 on a serial port (path or pyserial URL)."""
+
+    def __init__(self, url: str, *, baudrate: int = 9600, device_id: int | None = None,
+                 timeout_s: float = 0.5, retries: int = 2, name: str = "HMR2300") -> None:  # fmt: skip
+        self.name = name
+        self.port = SerialPort(url, baudrate, timeout_s=timeout_s, name=name)
+        self.retries = retries
+        self.binary = False
+        self.streaming = False
+        self._buf = bytearray()
+        self.resyncs = 0
+        self.port.write(ESC)  # stop a stream left running by a previous session
+        self.port.drain_input()
+        self.device_id = self._query_id() if device_id is None else device_id
+
+    # --- commands -------------------------------------------------------------------------------
+
+    def _command(self, cmd: str, expect: str | None = None, device_id: int | None = None) -> str:
+        """Send ``*ddcmd`` and return the reply line (without CR); retries on timeout."""
+        dd = self.device_id if device_id is None else device_id
+        line = f"*{dd:02d}{cmd}\r".encode("ascii")
+        last: Exception | None = None
+        for _ in range(self.retries + 1):
+            self.port.write(line)
+            try:
+                reply = self.port.read_until(b"\r").decode("ascii", errors="replace").rstrip("\r")
+            except DeviceTimeoutError as exc:
+                last = exc
+                self.port.drain_input()
+                continue
+            if reply == "WE OFF":
+                raise DeviceRefusedError(
+                    f"{self.name} on {self.port.url}: '{cmd}' needs write enable (WE)"
+                )
+            if reply == "Re-enter":
+                raise DeviceRefusedError(
+                    f"{self.name} on {self.port.url}: '{cmd}' was not understood (Re-enter)"
+                )
+            if expect is not None and reply != expect:
+                raise DeviceProtocolError(
+                    f"{self.name} on {self.port.url}: '{cmd}' answered {reply!r}, expected {expect!r}"
+                )
+            return reply
+        assert last is not None
+        raise last
+
+    def _protected(self, cmd: str, expect: str) -> str:
+        self._command("WE", "OK")
+        return self._command(cmd, expect)
+
+    def _query_id(self) -> int:
+        reply = self._command("ID=", device_id=99)
+        if not reply.startswith("ID="):
+            raise DeviceNotFoundError(
+                f"{self.name} on {self.port.url}: answered {reply!r} to *99ID=; is it an HMR2300?"
+            )
+        return int(reply[3:].strip())
+
+    def identify(self) -> Hmr2300Identity:
+        """ID, serial number (``*dd#``) and software version (``*ddF``)."""
+        serial = self._command("#")
+        if not serial.startswith("SER#"):
+            raise DeviceProtocolError(
+                f"{self.name} on {self.port.url}: serial query answered {serial!r}"
+            )
+        firmware = self._command("F")
+        return Hmr2300Identity(self.device_id, serial[4:].strip(), firmware.split(":")[-1].strip())
+
+    def set_binary(self, binary: bool) -> None:
+        """Binary (7-byte) or ASCII (28-byte) output."""
+        self._protected("B" if binary else "A", "BINARY ON" if binary else "ASCII ON")
+        self.binary = binary
+
+    def set_rate(self, sps: int) -> None:
+        """Continuous-mode sample rate, one of the datasheet's rates."""
+        if sps not in RATES_SPS:
+            raise ValueError(f"{self.name}: {sps} sps is not one of {RATES_SPS}")
+        self._protected(f"R={sps}", "OK")
+
+    def set_averaging(self, on: bool) -> None:
+        """The device's IIR average."""
+        self._protected("VN" if on else "VF", "AVG ON" if on else "AVG OFF")
+
+    def set_reset_pulse(self) -> None:
+        """One set/reset pulse (degaussing); the next three readings are discarded here."""
+        self._command("]S", "SET")
+        for _ in range(3):
+            self.read()
+
+    # --- data -----------------------------------------------------------------------------------
+
+    def read(self) -> tuple[float, float, float]:
+        """One polled sample (uT)."""
+        if self.streaming:
+            raise RuntimeError("stop the stream before polling")
+        n = BINARY_LEN if self.binary else ASCII_LEN
+        for attempt in range(self.retries + 1):
+            self.port.write(f"*{self.device_id:02d}P\r".encode("ascii"))
+            try:
+                frame = self.port.read_exact(n)
+                return parse_binary(frame) if self.binary else parse_ascii(frame)
+            except DeviceProtocolError:
+                if attempt == self.retries:
+                    raise
+                self.port.drain_input()
+        raise AssertionError("unreachable")
+
+    def start_stream(self) -> None:
+        """Continuous output at the set rate."""
+        self._buf.clear()
+        self.port.write(f"*{self.device_id:02d}C\r".encode("ascii"))
+        self.streaming = True
+
+    def stop_stream(self) -> None:
+        """ESC stops the stream; pending bytes are discarded."""
+        self.port.write(ESC)
+        self.streaming = False
+        self.port.drain_input()
+        self._buf.clear()
+
+    def _frames(self, data: bytes) -> Iterator[tuple[float, float, float]]:
+        """Frames from the stream buffer, realigning on the stride when a frame is broken."""
+        self._buf += data
+        n = BINARY_LEN if self.binary else ASCII_LEN
+        while len(self._buf) >= n:
+            frame = bytes(self._buf[:n])
+            if frame[-1] == 0x0D and (self.binary or frame[3:4] == b","):
+                try:
+                    value = parse_binary(frame) if self.binary else parse_ascii(frame)
+                except DeviceProtocolError:
+                    value = None
+                if value is not None:
+                    del self._buf[:n]
+                    yield value
+                    continue
+            # Misaligned or damaged: drop one byte and look for a frame whose last byte is CR and
+            # whose next frame boundary also holds a CR (binary data may contain 0x0D).
+            self.resyncs += 1
+            del self._buf[:1]
+            while len(self._buf) >= 2 * n and not (
+                self._buf[n - 1] == 0x0D and self._buf[2 * n - 1] == 0x0D
+            ):
+                del self._buf[:1]
+
+    def read_stream(self, max_wait_s: float = 0.5) -> list[tuple[float, float, float]]:
+        """All complete samples received so far (waits up to ``max_wait_s`` for at least one)."""
+        deadline = time.monotonic() + max_wait_s
+        out = list(self._frames(self.port.read_available()))
+        while not out and time.monotonic() < deadline:
+            time.sleep(0.002)
+            out = list(self._frames(self.port.read_available()))
+        return out
+
+    def close(self) -> None:
+        """Stop any stream and close the port."""
+        if self.streaming:
+            self.stop_stream()
+        self.port.close()

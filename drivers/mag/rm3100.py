@@ -1,0 +1,90 @@
+"""PNI RM3100 over I2C: cycle counts, single (POLL) and continuous (CMM) measurements, DRDY.
+
+Plain register addresses over I2C (the manual's 0x80 read bit is SPI only). Results are 24-bit
+two's complement, big-endian; gain = 0.3671 CC + 1.5 counts per uT (75 at CC = 200).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from drivers.errors import DeviceNotFoundError, DeviceTimeoutError
+from drivers.psu.riden import Identity
+from drivers.transport.i2c import I2CDevice
+
+POLL, CMM, CCX, TMRC, MX, STATUS, REVID = 0x00, 0x01, 0x04, 0x0B, 0x24, 0x34, 0x36
+REVID_VALUE = 0x22
+TMRC_HZ = {0x92: 600.0, 0x93: 300.0, 0x94: 150.0, 0x95: 75.0, 0x96: 37.0, 0x97: 18.0,
+           0x98: 9.0, 0x99: 4.5, 0x9A: 2.3, 0x9B: 1.2, 0x9C: 0.6, 0x9D: 0.3}  # fmt: skip
+
+
+def gain_counts_per_ut(cycle_count: int) -> float:
+    """Counts per uT at a cycle count (PNI's linear fit)."""
+    return 0.3671 * cycle_count + 1.5
+
+
+def decode_results(raw: bytes, cycle_count: int) -> tuple[float, float, float]:
+    """Nine result bytes (MX, MY, MZ) to uT."""
+    g = gain_counts_per_ut(cycle_count)
+    x, y, z = (int.from_bytes(raw[i : i + 3], "big", signed=True) / g for i in (0, 3, 6))
+    return x, y, z
+
+
+class Rm3100:
+    """An RM3100 at ``address`` (0x20-0x23) on ``bus`` (bus number or smbus2-compatible object)."""
+
+    def __init__(self, bus: int | Any, address: int = 0x20, *, cycle_count: int = 200,
+                 name: str = "RM3100") -> None:  # fmt: skip
+        self.name = name
+        self.dev = I2CDevice(bus, address, name=name)
+        self.identify()
+        self.cycle_count = 0
+        self.set_cycle_count(cycle_count)
+        self.continuous = False
+
+    def identify(self) -> Identity:
+        """Checks REVID = 0x22."""
+        rev = self.dev.read(REVID, 1)[0]
+        if rev != REVID_VALUE:
+            raise DeviceNotFoundError(
+                f"{self.name} at {self.dev.where}: REVID 0x{rev:02x}, expected 0x22; is it an RM3100?"
+            )
+        return Identity("RM3100", "", f"0x{rev:02x}")
+
+    def set_cycle_count(self, cc: int) -> None:
+        """Same cycle count on all axes (30-400 typical; higher = lower noise, slower)."""
+        if not 1 <= cc <= 0xFFFF:
+            raise ValueError(f"{self.name}: cycle count {cc} outside 1-65535")
+        self.dev.write(CCX, list(cc.to_bytes(2, "big")) * 3)
+        self.cycle_count = cc
+
+    def _wait_drdy(self, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not self.dev.read(STATUS, 1)[0] & 0x80:
+            if time.monotonic() > deadline:
+                raise DeviceTimeoutError(
+                    f"{self.name} at {self.dev.where}: no data ready within {timeout_s:g} s"
+                )
+            time.sleep(0.0005)
+
+    def read(self, timeout_s: float = 0.2) -> tuple[float, float, float]:
+        """One measurement (uT): a POLL in single mode, the next result in continuous mode."""
+        if not self.continuous:
+            self.dev.write(POLL, [0x70])
+        self._wait_drdy(timeout_s)
+        return decode_results(self.dev.read(MX, 9), self.cycle_count)
+
+    def start_continuous(self, tmrc: int = 0x96) -> float:
+        """Continuous measurement at the TMRC rate (0x92-0x9D); returns the nominal rate (Hz)."""
+        if tmrc not in TMRC_HZ:
+            raise ValueError(f"{self.name}: TMRC 0x{tmrc:02x} outside 0x92-0x9D")
+        self.dev.write(TMRC, [tmrc])
+        self.dev.write(CMM, [0x71])
+        self.continuous = True
+        return TMRC_HZ[tmrc]
+
+    def stop_continuous(self) -> None:
+        """Back to single measurements (writing CMM = 0)."""
+        self.dev.write(CMM, [0x00])
+        self.continuous = False

@@ -1,0 +1,1 @@
+"""Supplies, electronic loads and polarity relays over Modbus."""

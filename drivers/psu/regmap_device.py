@@ -1,0 +1,130 @@
+"""Supplies, electronic loads and polarity relays described by a register-map file."""
+
+from __future__ import annotations
+
+from drivers.errors import DeviceProtocolError, LimitError
+from drivers.psu.riden import Identity, SupplyReading
+from drivers.regmap import Register, RegisterMap, RegisterMapError
+from drivers.transport.modbus import ModbusLink
+
+
+class MappedDevice:
+    """Common register access for map-described devices."""
+
+    def __init__(self, link: ModbusLink, regmap: RegisterMap, name: str) -> None:
+        self.link = link
+        self.map = regmap
+        self.name = name
+
+    def _read(self, reg: Register) -> float:
+        return reg.decode(self.link.read_registers(reg.address, reg.width))
+
+    def _write(self, reg: Register, value: float) -> None:
+        if reg.access != "rw":
+            raise RegisterMapError(f"{self.map.source}: register '{reg.name}' is read-only")
+        words = reg.encode(value)
+        if len(words) == 1:
+            self.link.write_register(reg.address, words[0])
+        else:
+            self.link.write_registers(reg.address, words)
+
+    def identify(self) -> Identity:
+        """The map's model name (maps carry no serial-number registers unless given)."""
+        serial_reg = self.map.role("serial")
+        serial = str(int(self._read(serial_reg))) if serial_reg else ""
+        return Identity(self.map.model, serial, "")
+
+
+class MappedSupply(MappedDevice):
+    """A supply or electronic load: current (and for supplies voltage) set-points, enable, readback.
+
+    A bipolar supply takes a signed current; for the others negative set-points are refused.
+    """
+
+    def __init__(self, link: ModbusLink, regmap: RegisterMap, *, name: str = "supply",
+                 max_voltage_v: float | None = None, max_current_a: float | None = None) -> None:  # fmt: skip
+        if regmap.kind not in ("supply", "eload"):
+            raise RegisterMapError(f"{regmap.source}: kind '{regmap.kind}' is not a supply or load")
+        super().__init__(link, regmap, name)
+        self.i_set_reg = regmap.require("i_set")
+        self.output_reg = regmap.require("output")
+        self.max_voltage_v = min(
+            regmap.v_max, max_voltage_v if max_voltage_v is not None else regmap.v_max
+        )
+        self.max_current_a = min(
+            regmap.i_max, max_current_a if max_current_a is not None else regmap.i_max
+        )
+
+    @property
+    def bipolar(self) -> bool:
+        """True when the current set-point is signed."""
+        return self.map.bipolar
+
+    def set_voltage(self, volts: float) -> float:
+        """Voltage set-point (V), if the device has one."""
+        reg = self.map.require("v_set")
+        if not 0.0 <= volts <= self.max_voltage_v:
+            raise LimitError(f"{self.name}: {volts:g} V is outside 0-{self.max_voltage_v:g} V")
+        self._write(reg, volts)
+        return volts
+
+    def set_current(self, amps: float) -> float:
+        """Current set-point (A); signed only for a bipolar supply."""
+        low = -self.max_current_a if self.bipolar else 0.0
+        if not low <= amps <= self.max_current_a:
+            raise LimitError(f"{self.name}: {amps:g} A is outside {low:g}-{self.max_current_a:g} A")
+        self._write(self.i_set_reg, amps)
+        return amps
+
+    def set_output(self, on: bool) -> None:
+        """Output (or load input) enable."""
+        self._write(self.output_reg, 1.0 if on else 0.0)
+
+    def read(self) -> SupplyReading:
+        """Set-points and measured output (registers the map lacks read as 0)."""
+
+        def get(role: str) -> float:
+            reg = self.map.role(role)
+            return self._read(reg) if reg is not None else 0.0
+
+        prot = int(get("protection"))
+        return SupplyReading(
+            v_set_v=get("v_set"), i_set_a=get("i_set"), v_out_v=get("v_out"), i_out_a=get("i_out"),
+            output_on=bool(get("output")), constant_current=bool(get("mode")),
+            protection={0: "", 1: "OVP", 2: "OCP"}.get(prot, f"code {prot}"),
+        )  # fmt: skip
+
+    def safe(self) -> None:
+        """Output off, current set-point to zero."""
+        self.set_output(False)
+        self._write(self.i_set_reg, 0.0)
+
+
+class PolarityRelay(MappedDevice):
+    """H-bridge relays, one per coil axis: 0 = normal, 1 = reversed.
+
+    Switching a coil that carries current arcs the contacts; the cage controller brings the axis to
+    zero before calling :meth:`set_polarity` (break before make).
+    """
+
+    def __init__(self, link: ModbusLink, regmap: RegisterMap, *, name: str = "polarity") -> None:
+        if regmap.kind != "relay":
+            raise RegisterMapError(f"{regmap.source}: kind '{regmap.kind}' is not a relay board")
+        super().__init__(link, regmap, name)
+        self.regs = [regmap.require(f"polarity_{ax}") for ax in "xyz"]
+
+    def polarity(self, axis: int) -> int:
+        """+1 (normal) or -1 (reversed)."""
+        value = self._read(self.regs[axis])
+        if value not in (0.0, 1.0):
+            raise DeviceProtocolError(
+                f"{self.name} at {self.link.where}: relay state {value:g} is not 0 or 1"
+            )
+        return -1 if value else 1
+
+    def set_polarity(self, axis: int, sign: int) -> None:
+        """Set axis ``axis`` (0-2) to ``sign`` (+1 or -1)."""
+        self._write(self.regs[axis], 1.0 if sign < 0 else 0.0)
+
+    def safe(self) -> None:
+        """Relays carry no energy of their own: nothing to switch (supplies go safe first)."""

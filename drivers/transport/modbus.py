@@ -1,0 +1,150 @@
+"""The one place that talks to pymodbus (pinned to 3.16): both of its error channels - raised
+exceptions and error responses - become :mod:`drivers.errors`, with bounded retries."""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+from pymodbus import FramerType
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
+
+from drivers.errors import (
+    DeviceNotFoundError,
+    DeviceProtocolError,
+    DeviceRefusedError,
+    DeviceTimeoutError,
+)
+
+EXCEPTION_NAMES = {
+    1: "illegal function", 2: "illegal data address", 3: "illegal data value",
+    4: "device failure", 5: "acknowledge", 6: "device busy", 8: "memory parity error",
+    10: "gateway path unavailable", 11: "gateway target failed to respond",
+}  # fmt: skip
+
+logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # errors reach the user through ours
+
+
+class ModbusLink:
+    """A Modbus device on TCP (``host``/``port``) or RTU (``path``: a device or pyserial URL).
+
+    Requests that time out or come back garbled are retried ``retries`` times; a Modbus exception
+    reply is never retried (the device answered: repeating the request would not change it).
+    """
+
+    def __init__(
+        self,
+        *,
+        name: str,
+        host: str | None = None,
+        port: int = 502,
+        path: str | None = None,
+        baudrate: int = 115200,
+        parity: str = "N",
+        device_id: int = 1,
+        timeout_s: float = 0.5,
+        retries: int = 2,
+    ) -> None:
+        if (host is None) == (path is None):
+            raise ValueError("give exactly one of host (Modbus TCP) and path (Modbus RTU)")
+        self.name = name
+        self.device_id = device_id
+        self.retries = retries
+        self.where = f"{host}:{port}" if host is not None else f"{path}"
+        self._client: Any
+        if host is not None:
+            self._client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0)
+        else:
+            assert path is not None
+            self._client = ModbusSerialClient(
+                path,
+                framer=FramerType.RTU,
+                baudrate=baudrate,
+                parity=parity,
+                timeout=timeout_s,
+                retries=0,
+            )
+        self.connect()
+
+    def connect(self) -> None:
+        """(Re)open the connection."""
+        try:
+            ok = self._client.connect()
+        except (ModbusException, OSError) as exc:
+            ok = False
+            detail = f" ({exc})"
+        else:
+            detail = ""
+        if not ok:
+            raise DeviceNotFoundError(
+                f"{self.name}: cannot connect to Modbus device at {self.where}{detail};"
+                " check power, cable, address and port"
+            )
+
+    def _call(self, what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        last: Exception | None = None
+        for attempt in range(self.retries + 1):
+            try:
+                if not self._client.connected:
+                    self.connect()
+                rr = fn(*args, device_id=self.device_id, **kwargs)
+            except ConnectionException as exc:
+                last = exc
+                self._client.close()
+                continue
+            except ModbusIOException as exc:
+                last = exc
+                continue
+            except ModbusException as exc:
+                last = exc
+                time.sleep(0.05 * (attempt + 1))  # let a garbled line settle before retrying
+                continue
+            if rr.isError():
+                code = getattr(rr, "exception_code", 0)
+                raise DeviceRefusedError(
+                    f"{self.name} at {self.where} refused {what}: Modbus exception {code}"
+                    f" ({EXCEPTION_NAMES.get(code, 'unknown')})"
+                )
+            return rr
+        if isinstance(last, ConnectionException | DeviceNotFoundError):
+            raise DeviceNotFoundError(
+                f"{self.name} at {self.where}: connection lost during {what} ({last});"
+                " check power and cable"
+            )
+        if isinstance(last, ModbusIOException):
+            raise DeviceTimeoutError(
+                f"{self.name} at {self.where}: no reply to {what} after {self.retries + 1}"
+                " attempts; check power, cable, baud rate and device id"
+            )
+        raise DeviceProtocolError(
+            f"{self.name} at {self.where}: malformed reply to {what} after {self.retries + 1}"
+            f" attempts ({last}); check for noise on the line or a wrong framing"
+        )
+
+    def read_registers(self, address: int, count: int = 1) -> list[int]:
+        """Holding registers (function 3)."""
+        rr = self._call(f"reading {count} register(s) at {address}", self._client.read_holding_registers,
+                        address, count=count)  # fmt: skip
+        regs = list(rr.registers)
+        if len(regs) != count:
+            raise DeviceProtocolError(
+                f"{self.name} at {self.where}: asked for {count} registers at {address}, got {len(regs)}"
+            )
+        return regs
+
+    def write_register(self, address: int, value: int) -> None:
+        """One holding register (function 6)."""
+        self._call(
+            f"writing {value} to register {address}", self._client.write_register, address, value
+        )
+
+    def write_registers(self, address: int, values: list[int]) -> None:
+        """Several holding registers (function 16)."""
+        self._call(f"writing {len(values)} registers at {address}", self._client.write_registers,
+                   address, values)  # fmt: skip
+
+    def close(self) -> None:
+        """Close the connection."""
+        self._client.close()
