@@ -13,13 +13,44 @@ from typing import Any
 from rig.errors import UserInputError
 
 
-def rig_config_toml(endpoints: dict[str, Any], sim_config: str) -> str:
-    """A rig configuration (TOML) that points at the simulated devices."""
+def rig_config_toml(
+    endpoints: dict[str, Any], sim_config: str, nominal_k: list[list[float]] | None = None
+) -> str:
+    """A rig configuration (TOML) that points at the simulated devices.
+
+    The [cage] section maps the coil supplies by their roles and uses the coil constants rounded to
+    1 uT/A as the nameplate (nominal) model until the cage is characterized.
+    """
     lines = [
         "# Rig configuration written by `rig sim`: the devices of the simulated cage.",
         f"# simulator configuration: {sim_config}",
         "",
     ]
+    devices = endpoints["devices"]
+    roles = {dev.get("role"): name for name, dev in devices.items()}
+    if all(f"coil_{ax}" in roles for ax in "xyz"):
+        reference = next((n for n, d in devices.items() if d["kind"] == "ascii-mag"), None)
+        lines += [
+            "[cage]",
+            "axes = { " + ", ".join(f'{ax} = "{roles[f"coil_{ax}"]}"' for ax in "xyz") + " }",
+        ]
+        if "polarity" in roles:
+            lines.append(f'polarity = "{roles["polarity"]}"')
+        if reference:
+            lines.append(f'reference = "{reference}"')
+        lines += [
+            'calibration = "cage-calibration.json"',
+            "max_current_a = [1.5, 1.5, 1.5]",
+            "max_field_ut = 120.0",
+            "max_slew_a_per_s = 5.0",
+            "compliance_v = 12.0",
+        ]
+        if nominal_k is not None:
+            rows = ", ".join(
+                "[" + ", ".join(f"{round(v):.1f}" for v in row) + "]" for row in nominal_k
+            )
+            lines.append(f"nominal_k_ut_per_a = [{rows}]")
+        lines.append("")
     for name, dev in endpoints["devices"].items():
         lines.append(f"[devices.{name}]")
         for key, value in dev.items():
@@ -60,9 +91,10 @@ def run_sim(
     try:
         endpoints = cage.start()
         text = json.dumps(endpoints, indent=2) + "\n"
+        nominal = [[float(v) for v in row] for row in cfg.cage.coil_matrix_ut_per_a]
         for path, content in (
             (endpoints_json, text),
-            (rig_config, rig_config_toml(endpoints, cfg.source)),
+            (rig_config, rig_config_toml(endpoints, cfg.source, nominal)),
         ):
             if path is not None:
                 try:

@@ -52,8 +52,10 @@ class AsciiLineMagnetometer:
         return Identity("ASCII line magnetometer", "", "")
 
     def flush(self) -> None:
-        """Drop buffered (stale) lines so the next read is fresh."""
+        """Drop buffered (stale) lines and the partial line in flight, so the next read is a
+        complete line measured after this call."""
         self.port.drain_input(quiet_s=0.0)
+        self.port.read_until(self.fmt.terminator)
 
     def read(self) -> tuple[float, float, float]:
         """The next complete line as uT."""

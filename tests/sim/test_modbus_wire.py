@@ -45,22 +45,22 @@ def values(proc: subprocess.CompletedProcess[str]) -> dict[int, float]:
 def test_riden_over_tcp_and_rtu(devices: dict[str, Any], cage: SimulatedCage, name: str) -> None:
     dev = devices[name]
     regs = values(mbpoll(dev, "-r", "0", "-c", "4", "-t", "4"))
-    assert regs[0] == 60125 and regs[2] == 12345  # RD6012, serial low word
-    for reg, value in (("8", "1200"), ("9", "150"), ("18", "1")):  # 12.00 V, 1.50 A, output on
+    assert regs[0] == 60065 and regs[2] == 12345  # RD6006P, serial low word
+    for reg, value in (("8", "12000"), ("9", "15000"), ("18", "1")):  # 12.000 V, 1.5000 A, on
         assert mbpoll(dev, "-r", reg, "-t", "4", write=[value]).returncode == 0
     time.sleep(0.3)  # > 10 L/R time constants
     regs = values(mbpoll(dev, "-r", "8", "-c", "11", "-t", "4"))
     r_ohm = cage.physics.supplies[name].resistance_ohm
     # 12 V into ~4 ohm wants 3 A > 1.5 A: constant current at 1.50 A, V_OUT = I R
-    assert regs[11] == 150 and regs[17] == 1 and regs[18] == 1
-    assert abs(regs[10] / 100 - 1.5 * r_ohm) <= 0.01
+    assert regs[11] == 15000 and regs[17] == 1 and regs[18] == 1
+    assert abs(regs[10] / 1000 - 1.5 * r_ohm) <= 0.001
     assert mbpoll(dev, "-r", "18", "-t", "4", write=["0"]).returncode == 0
 
 
 @needs_mbpoll
 def test_exception_replies(devices: dict[str, Any]) -> None:
     dev = devices["coil_x"]
-    over = mbpoll(dev, "-r", "8", "-t", "4", write=["7000"])  # 70 V on a 60 V supply
+    over = mbpoll(dev, "-r", "8", "-t", "4", write=["65000"])  # 65 V on a 60 V supply
     assert over.returncode != 0 and "Illegal data value" in over.stdout + over.stderr
     hole = mbpoll(dev, "-r", "500", "-t", "4")
     assert hole.returncode != 0 and "Illegal data address" in hole.stdout + hole.stderr
@@ -83,7 +83,7 @@ def test_electronic_load_float32_and_bias(devices: dict[str, Any], cage: Simulat
 @needs_mbpoll
 def test_relay_polarity_and_hot_switch(devices: dict[str, Any], cage: SimulatedCage) -> None:
     relay, coil = devices["polarity"], devices["coil_z"]
-    for reg, value in (("8", "800"), ("9", "50"), ("18", "1")):  # 0.50 A on z
+    for reg, value in (("8", "8000"), ("9", "5000"), ("18", "1")):  # 8 V, 0.5 A on z
         assert mbpoll(coil, "-r", reg, "-t", "4", write=[value]).returncode == 0
     time.sleep(0.3)
     before = cage.physics.coil_currents()[2]
@@ -112,7 +112,7 @@ def test_injected_exception_timeout_and_disconnect(
     dev = devices["coil_x"]
     faults = cage.faults["coil_x"]
     with ModbusTcpClient("127.0.0.1", port=dev["port"], timeout=0.5, retries=0) as c:
-        assert c.read_holding_registers(0, count=1, device_id=1).registers == [60125]
+        assert c.read_holding_registers(0, count=1, device_id=1).registers == [60065]
         faults.exception_code = 6  # slave device busy
         try:
             rr = c.read_holding_registers(0, count=1, device_id=1)
@@ -126,7 +126,7 @@ def test_injected_exception_timeout_and_disconnect(
         finally:
             faults.silent = False
     with ModbusTcpClient("127.0.0.1", port=dev["port"], timeout=0.5, retries=0) as c:
-        assert c.read_holding_registers(0, count=1, device_id=1).registers == [60125]
+        assert c.read_holding_registers(0, count=1, device_id=1).registers == [60065]
         cage.drop_connections("coil_x")
         time.sleep(0.1)
         with pytest.raises(ModbusException):

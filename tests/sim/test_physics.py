@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import time
 from pathlib import Path
 
@@ -130,19 +131,10 @@ def bipolar_config(tmp_path: Path) -> Path:
     text = Path(load_config().source).read_text()
     text = text.replace('polarity = "relay"', 'polarity = "bipolar"')
     for axis in "xyz":
-        text = (
-            text.replace(
-                f'kind = "riden-rd60xx"\nmodel_id = 60125                      # RD6012\naxis = "{axis}"',
-                f'kind = "regmap"\nregmap = "bipolar-supply"\naxis = "{axis}"',
-            )
-            .replace(
-                f'kind = "riden-rd60xx"\nmodel_id = 60125\naxis = "{axis}"',
-                f'kind = "regmap"\nregmap = "bipolar-supply"\naxis = "{axis}"',
-            )
-            .replace(
-                f'kind = "riden-rd60xx"\nmodel_id = 60181                      # RD6018\naxis = "{axis}"',
-                f'kind = "regmap"\nregmap = "bipolar-supply"\naxis = "{axis}"',
-            )
+        text = re.sub(
+            rf'kind = "riden-rd60xx"\nmodel_id = \d+[^\n]*\naxis = "{axis}"',
+            f'kind = "regmap"\nregmap = "bipolar-supply"\naxis = "{axis}"',
+            text,
         )
     path = tmp_path / "bipolar.toml"
     path.write_text(text)

@@ -37,7 +37,7 @@ def test_rig_sim_publishes_endpoints_and_stops_on_sigint(tmp_path: Path) -> None
         x = devices["coil_x"]
         with ModbusTcpClient(x["host"], port=x["port"], timeout=2) as c:
             assert c.read_holding_registers(0, count=1, device_id=x["device_id"]).registers == [
-                60125
+                60065
             ]
             assert not c.write_register(18, 1, device_id=1).isError()  # output on
         assert f"port = {x['port']}" in cfg.read_text()

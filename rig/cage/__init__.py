@@ -1,0 +1,1 @@
+"""The cage controller: field commands to safe coil currents, trim, null, characterization."""

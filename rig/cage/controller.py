@@ -1,0 +1,266 @@
+"""The cage controller: field commands to currents, ramps, polarity, trim, null and safe state.
+
+Every current the controller sends comes from :func:`rig.cage.limits.plan_ramp`, so the per-axis
+current limit and the slew limit hold for every command; the drivers check their own ranges again.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from rig.cage.limits import CageLimitError, CageLimits, plan_ramp
+from rig.cage.model import CageModel
+from rig.errors import RigError
+
+Array = npt.NDArray[np.float64]
+
+
+class CurrentSource(Protocol):
+    """A supply driving one coil (unipolar, or bipolar with a signed set-point)."""
+
+    def set_voltage(self, volts: float) -> float: ...
+    def set_current(self, amps: float) -> float: ...
+    def set_output(self, on: bool) -> None: ...
+    def safe(self) -> None: ...
+
+
+class Polarity(Protocol):
+    """H-bridge relays, one per axis."""
+
+    def set_polarity(self, axis: int, sign: int) -> None: ...
+
+
+class FieldSensor(Protocol):
+    """A magnetometer returning (x, y, z) in uT."""
+
+    def read(self) -> tuple[float, float, float]: ...
+
+
+@dataclass
+class AxisDrive:
+    """One coil axis: its supply, how polarity is made, the supply's compliance voltage (V) and a
+    read-back of the actual output current (A, unsigned) used for break-before-make."""
+
+    supply: CurrentSource
+    bipolar: bool
+    compliance_v: float
+    output_current: Callable[[], float] | None = None
+
+
+@dataclass(frozen=True)
+class TrimResult:
+    """Outcome of a closed-loop trim."""
+
+    currents_a: Array
+    measured_ut: Array
+    error_nt: float
+    iterations: int
+    settled: bool
+
+
+class CageController:
+    """Drives three coil axes so that the field at the DUT follows commands, within limits."""
+
+    def __init__(
+        self,
+        axes: list[AxisDrive],
+        model: CageModel,
+        limits: CageLimits,
+        *,
+        relays: Polarity | None = None,
+        reference: FieldSensor | None = None,
+        reference_to_cage: tuple[Array, Array] | None = None,
+        sleep: Callable[[float], None] = time.sleep,
+        zero_threshold_a: float = 0.02,
+    ) -> None:
+        if len(axes) != 3:
+            raise ValueError("a cage has three axes")
+        if any(not a.bipolar for a in axes) and relays is None:
+            raise RigError("unipolar coil supplies need polarity relays in the rig configuration")
+        self.axes = axes
+        self.model = model
+        self.limits = limits
+        self.relays = relays
+        self.reference = reference
+        self.reference_to_cage = reference_to_cage
+        self.sleep = sleep
+        self.zero_threshold_a = zero_threshold_a
+        self.currents = np.zeros(3)
+        self.signs = [1, 1, 1]
+        self.sent: list[Array] = []  # every set-point vector sent, for audit and tests
+        self.enabled = False
+
+    # --- outputs --------------------------------------------------------------------------------
+
+    def enable(self) -> None:
+        """Set-points to zero at the compliance voltage, outputs on, relays normal."""
+        for axis, drive in enumerate(self.axes):
+            drive.supply.set_current(0.0)
+            drive.supply.set_voltage(drive.compliance_v)
+            if not drive.bipolar and self.relays is not None:
+                self.relays.set_polarity(axis, 1)
+            drive.supply.set_output(True)
+        self.currents = np.zeros(3)
+        self.signs = [1, 1, 1]
+        self.enabled = True
+
+    def _send(self, point: Array) -> None:
+        for axis, drive in enumerate(self.axes):
+            value = float(point[axis])
+            if value == self.currents[axis]:
+                continue
+            if drive.bipolar:
+                drive.supply.set_current(value)
+                continue
+            sign = -1 if value < 0 else 1
+            if value != 0.0 and sign != self.signs[axis]:
+                self._flip(axis, sign)
+            drive.supply.set_current(abs(value))
+        self.currents = point.copy()
+        self.sent.append(point.copy())
+
+    def _flip(self, axis: int, sign: int) -> None:
+        """Break before make: wait for the coil current to decay, then switch the relay."""
+        drive = self.axes[axis]
+        if self.currents[axis] != 0.0:
+            raise CageLimitError(
+                f"axis {'xyz'[axis]}: polarity change requested at non-zero set-point"
+            )
+        if drive.output_current is not None:
+            deadline = time.monotonic() + 2.0
+            while drive.output_current() > self.zero_threshold_a:
+                if time.monotonic() > deadline:
+                    raise RigError(
+                        f"axis {'xyz'[axis]}: coil current did not decay below"
+                        f" {self.zero_threshold_a:g} A within 2 s; check the supply"
+                    )
+                self.sleep(0.01)
+        assert self.relays is not None
+        self.relays.set_polarity(axis, sign)
+        self.signs[axis] = sign
+
+    def set_currents(self, target_a: npt.ArrayLike) -> Array:
+        """Ramp to signed coil currents (A) within the limits; returns the currents set."""
+        if not self.enabled:
+            self.enable()
+        target = np.asarray(target_a, float)
+        for point in plan_ramp(self.currents, target, self.limits):
+            self._send(point)
+            self.sleep(self.limits.step_s)
+        return self.currents.copy()
+
+    def set_field(self, field_ut: npt.ArrayLike) -> Array:
+        """Ramp to the currents the model gives for ``field_ut`` (uT, cage frame)."""
+        field = np.asarray(field_ut, float)
+        self.limits.check_field(field, "set_field")
+        currents = self.model.currents_a(field)
+        self.limits.check_currents(currents, f"field {np.round(field, 2).tolist()} uT")
+        return self.set_currents(currents)
+
+    def null_field(self) -> Array:
+        """Cancel the ambient field (target 0 uT)."""
+        return self.set_field(np.zeros(3))
+
+    def safe(self) -> list[str]:
+        """Ramp to zero if possible, then every output off; never raises. Returns problems seen."""
+        problems: list[str] = []
+        if self.enabled:
+            try:
+                self.set_currents(np.zeros(3))
+            except Exception as exc:  # a dead link must not stop the others going safe
+                problems.append(f"ramp to zero failed: {exc}")
+        for axis, drive in enumerate(self.axes):
+            try:
+                drive.supply.safe()
+            except Exception as exc:
+                problems.append(f"axis {'xyz'[axis]} supply: {exc}")
+        self.enabled = False
+        self.currents = np.zeros(3)
+        return problems
+
+    # --- measurement ----------------------------------------------------------------------------
+
+    def measure_ut(self, samples: int = 10, *, fresh: bool = True) -> Array:
+        """Mean of ``samples`` consecutive reference readings, in the cage frame (uT).
+
+        ``fresh`` discards what a streaming sensor buffered before this call (readings from
+        before the last command).
+        """
+        if self.reference is None:
+            raise RigError(
+                "no reference magnetometer configured: trim and characterization need one"
+            )
+        flush = getattr(self.reference, "flush", None)
+        if fresh and flush is not None:
+            flush()
+        raw = np.mean([self.reference.read() for _ in range(samples)], axis=0)
+        if self.reference_to_cage is not None:
+            matrix, offset = self.reference_to_cage
+            return np.asarray(matrix @ (raw - offset))
+        return np.asarray(raw)
+
+    def wait_settled(
+        self,
+        target_ut: Array,
+        tolerance_nt: float,
+        settle_s: float,
+        timeout_s: float,
+        average_n: int = 10,
+    ) -> bool:
+        """True once the running mean of ``average_n`` reference samples has stayed within
+        ``tolerance_nt`` of the target for ``settle_s`` without interruption."""
+        recent: deque[Array] = deque(maxlen=average_n)
+        start = time.monotonic()
+        inside_since: float | None = None
+        fresh = True
+        while time.monotonic() - start < timeout_s:
+            recent.append(self.measure_ut(1, fresh=fresh))
+            fresh = False  # consecutive samples from here on, so mains ripple averages out
+            now = time.monotonic()
+            if len(recent) < average_n:
+                continue
+            err_nt = 1000.0 * float(np.linalg.norm(np.mean(recent, axis=0) - target_ut))
+            if err_nt > tolerance_nt:
+                inside_since = None
+                continue
+            inside_since = now if inside_since is None else inside_since
+            if now - inside_since >= settle_s:
+                return True
+        return False
+
+    def trim(
+        self,
+        target_ut: npt.ArrayLike,
+        *,
+        tolerance_nt: float = 10.0,
+        settle_s: float = 0.5,
+        samples: int = 10,
+        max_iterations: int = 8,
+        transient_s: float = 0.2,
+    ) -> TrimResult:
+        """Closed loop on the reference: correct the currents by ``K^-1 (target - measured)``
+        until the averaged error is within ``tolerance_nt``, then confirm it stays there for
+        ``settle_s`` ("within X nT for Y s")."""
+        target = np.asarray(target_ut, float)
+        self.set_field(target)
+        measured = target
+        err = np.inf
+        for iteration in range(1, max_iterations + 1):
+            self.sleep(transient_s)
+            measured = self.measure_ut(samples)
+            err = 1000.0 * float(np.linalg.norm(target - measured))
+            if err <= tolerance_nt:
+                settled = self.wait_settled(
+                    target, tolerance_nt, settle_s, timeout_s=4 * settle_s + 2
+                )
+                return TrimResult(self.currents.copy(), measured, err, iteration, settled)
+            correction = np.linalg.solve(self.model.k_ut_per_a, target - measured)
+            self.set_currents(self.currents + correction)
+        return TrimResult(self.currents.copy(), measured, err, max_iterations, False)

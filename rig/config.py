@@ -1,0 +1,190 @@
+"""Rig configuration (TOML): devices, ports, addresses, cage limits and channel names.
+
+    [cage]
+    axes = { x = "coil_x", y = "coil_y", z = "coil_z" }   # supply per coil axis
+    polarity = "polarity"            # relay board; omit when every coil supply is bipolar
+    reference = "reference"          # magnetometer for trim and characterization
+    calibration = "cage.json"        # cage model file (relative to this file); optional
+    max_current_a = [2.0, 2.0, 2.0]
+    max_field_ut = 150.0
+    max_slew_a_per_s = 4.0
+    compliance_v = 20.0
+
+    [devices.coil_x]
+    kind = "riden-rd60xx"            # see DEVICE_KINDS
+    protocol = "modbus-tcp"          # or modbus-rtu, serial, i2c
+    host = "127.0.0.1"
+    port = 5020
+    device_id = 1
+
+Every error names the file and the key and says what to write instead.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rig.errors import UserInputError
+
+DEVICE_KINDS = {
+    "riden-rd60xx": ("modbus-tcp", "modbus-rtu"),
+    "regmap-supply": ("modbus-tcp", "modbus-rtu"),
+    "regmap-eload": ("modbus-tcp", "modbus-rtu"),
+    "regmap-relay": ("modbus-tcp", "modbus-rtu"),
+    "hmr2300": ("serial",),
+    "ascii-mag": ("serial",),
+    "rm3100": ("i2c",),
+    "lis3mdl": ("i2c",),
+}
+REQUIRED = {
+    "modbus-tcp": ("host", "port"),
+    "modbus-rtu": ("path",),
+    "serial": ("path",),
+    "i2c": ("address",),
+}
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    """One device: its kind, transport and the transport's parameters."""
+
+    name: str
+    kind: str
+    protocol: str
+    params: dict[str, Any]
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """A transport or driver parameter."""
+        return self.params.get(key, default)
+
+
+@dataclass(frozen=True)
+class CageConfig:
+    """Which devices make the cage, and its limits."""
+
+    axes: tuple[str, str, str]
+    polarity: str | None
+    reference: str | None
+    calibration: Path | None
+    max_current_a: tuple[float, float, float]
+    max_field_ut: float
+    max_slew_a_per_s: float
+    compliance_v: float
+    step_s: float = 0.05
+    nominal_k_ut_per_a: tuple[tuple[float, ...], ...] | None = None
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """The whole rig configuration."""
+
+    path: Path
+    devices: dict[str, DeviceConfig]
+    cage: CageConfig | None = None
+    raw: dict[str, Any] = field(default_factory=dict)
+
+
+def _err(path: Path, where: str, msg: str) -> UserInputError:
+    return UserInputError(f"{path}: {where}: {msg}")
+
+
+def _numbers(path: Path, where: str, value: Any, n: int) -> tuple[float, ...]:
+    if (
+        not isinstance(value, list)
+        or len(value) != n
+        or not all(isinstance(v, int | float) for v in value)
+    ):
+        raise _err(path, where, f"must be a list of {n} numbers")
+    return tuple(float(v) for v in value)
+
+
+def _positive(path: Path, where: str, value: Any) -> float:
+    if not isinstance(value, int | float) or value <= 0:
+        raise _err(path, where, "must be a positive number")
+    return float(value)
+
+
+def load_rig_config(path: str | Path) -> RigConfig:
+    """Parse and validate a rig configuration file."""
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UserInputError(
+            f"{path}: no such rig configuration; check the path (rig sim --rig-config writes one)"
+        ) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise UserInputError(f"{path}: not valid TOML ({exc}); fix the syntax") from None
+    devices: dict[str, DeviceConfig] = {}
+    for name, spec in raw.get("devices", {}).items():
+        where = f"[devices.{name}]"
+        if not isinstance(spec, dict):
+            raise _err(path, where, "must be a table")
+        kind = spec.get("kind")
+        if kind not in DEVICE_KINDS:
+            raise _err(path, f"{where}.kind", f"{kind!r} is not one of {', '.join(DEVICE_KINDS)}")
+        protocol = spec.get("protocol")
+        if protocol not in DEVICE_KINDS[kind]:
+            raise _err(
+                path,
+                f"{where}.protocol",
+                f"{protocol!r} does not suit {kind}; use {' or '.join(DEVICE_KINDS[kind])}",
+            )
+        for key in REQUIRED[protocol]:
+            if key not in spec:
+                raise _err(path, where, f"needs '{key}' for {protocol}")
+        if kind.startswith("regmap") and "regmap" not in spec:
+            raise _err(path, where, "needs 'regmap' (a register-map file or a shipped map name)")
+        params = {k: v for k, v in spec.items() if k not in ("kind", "protocol")}
+        devices[name] = DeviceConfig(name, kind, protocol, params)
+    cage = _cage(path, raw.get("cage"), devices) if "cage" in raw else None
+    return RigConfig(path, devices, cage, raw)
+
+
+def _cage(path: Path, c: Any, devices: dict[str, DeviceConfig]) -> CageConfig:
+    if not isinstance(c, dict):
+        raise _err(path, "[cage]", "must be a table")
+    axes = c.get("axes")
+    if not isinstance(axes, dict) or set(axes) != {"x", "y", "z"}:
+        raise _err(
+            path,
+            "[cage].axes",
+            'must name a supply for x, y and z: axes = { x = "...", y = "...", z = "..." }',
+        )
+    for ax, name in axes.items():
+        if name not in devices or devices[name].kind not in ("riden-rd60xx", "regmap-supply"):
+            raise _err(path, f"[cage].axes.{ax}", f"'{name}' is not a supply in [devices]")
+    polarity = c.get("polarity")
+    if polarity is not None and (
+        polarity not in devices or devices[polarity].kind != "regmap-relay"
+    ):
+        raise _err(
+            path, "[cage].polarity", f"'{polarity}' is not a regmap-relay device in [devices]"
+        )
+    reference = c.get("reference")
+    if reference is not None and (
+        reference not in devices
+        or devices[reference].kind not in ("hmr2300", "ascii-mag", "rm3100", "lis3mdl")
+    ):
+        raise _err(path, "[cage].reference", f"'{reference}' is not a magnetometer in [devices]")
+    calibration = c.get("calibration")
+    nominal = c.get("nominal_k_ut_per_a")
+    if nominal is not None:
+        if not isinstance(nominal, list) or len(nominal) != 3:
+            raise _err(path, "[cage].nominal_k_ut_per_a", "must be a 3x3 list of lists (uT/A)")
+        nominal = tuple(_numbers(path, "[cage].nominal_k_ut_per_a", row, 3) for row in nominal)
+    return CageConfig(
+        axes=(axes["x"], axes["y"], axes["z"]),
+        polarity=polarity,
+        reference=reference,
+        calibration=(path.parent / calibration) if calibration else None,
+        max_current_a=_numbers(path, "[cage].max_current_a", c.get("max_current_a"), 3),  # type: ignore[arg-type]
+        max_field_ut=_positive(path, "[cage].max_field_ut", c.get("max_field_ut")),
+        max_slew_a_per_s=_positive(path, "[cage].max_slew_a_per_s", c.get("max_slew_a_per_s")),
+        compliance_v=_positive(path, "[cage].compliance_v", c.get("compliance_v", 20.0)),
+        step_s=_positive(path, "[cage].step_s", c.get("step_s", 0.05)),
+        nominal_k_ut_per_a=nominal,
+    )
