@@ -75,7 +75,7 @@ def build_cage(cfg: RigConfig, stack: ExitStack, i2c_bus: Any | None = None) -> 
     drives = []
     for name in c.axes:
         supply = open_device(cfg.devices[name], i2c_bus)
-        stack.callback(supply.link.close)
+        stack.callback(supply.close)
         bipolar = bool(getattr(supply, "bipolar", False))
 
         def current(s: Any = supply) -> float:
@@ -87,7 +87,7 @@ def build_cage(cfg: RigConfig, stack: ExitStack, i2c_bus: Any | None = None) -> 
     relays = None
     if c.polarity is not None:
         relays = open_device(cfg.devices[c.polarity], i2c_bus)
-        stack.callback(relays.link.close)
+        stack.callback(relays.close)
     reference = None
     reference_to_cage = None
     if c.reference is not None:

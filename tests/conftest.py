@@ -17,3 +17,11 @@ def rax_case() -> SyntheticCase:
 def cage_case() -> SyntheticCase:
     """Cage sweep with a field vector, two load channels and a mounting rotation."""
     return cage_like(1500, seed=12)
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--rig-config",
+        default=None,
+        help="a rig configuration (TOML) of real hardware: enables tests/hardware",
+    )

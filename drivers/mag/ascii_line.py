@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from drivers.errors import DeviceProtocolError, DeviceTimeoutError
-from drivers.psu.riden import Identity
+from drivers.identity import Identity
 from drivers.transport.serial_port import SerialPort
 
 

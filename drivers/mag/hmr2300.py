@@ -12,7 +12,6 @@ from __future__ import annotations
 import struct
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 from drivers.errors import (
     DeviceNotFoundError,
@@ -20,21 +19,13 @@ from drivers.errors import (
     DeviceRefusedError,
     DeviceTimeoutError,
 )
+from drivers.identity import Identity
 from drivers.transport.serial_port import SerialPort
 
 COUNTS_PER_UT = 150.0
 RATES_SPS = (10, 20, 25, 30, 40, 50, 60, 100, 123, 154)
 BINARY_LEN, ASCII_LEN = 7, 28
 ESC = b"\x1b"
-
-
-@dataclass(frozen=True)
-class Hmr2300Identity:
-    """ID, serial number and firmware version."""
-
-    device_id: int
-    serial: str
-    firmware: str
 
 
 def parse_binary(frame: bytes) -> tuple[float, float, float]:
@@ -121,15 +112,15 @@ class Hmr2300:
             )
         return int(reply[3:].strip())
 
-    def identify(self) -> Hmr2300Identity:
-        """ID, serial number (``*dd#``) and software version (``*ddF``)."""
+    def identify(self) -> Identity:
+        """Serial number (``*dd#``) and software version (``*ddF``); the ID is ``device_id``."""
         serial = self._command("#")
         if not serial.startswith("SER#"):
             raise DeviceProtocolError(
                 f"{self.name} on {self.port.url}: serial query answered {serial!r}"
             )
         firmware = self._command("F")
-        return Hmr2300Identity(self.device_id, serial[4:].strip(), firmware.split(":")[-1].strip())
+        return Identity("HMR2300", serial[4:].strip(), firmware.split(":")[-1].strip())
 
     def set_binary(self, binary: bool) -> None:
         """Binary (7-byte) or ASCII (28-byte) output."""

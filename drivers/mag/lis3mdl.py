@@ -10,7 +10,7 @@ import time
 from typing import Any
 
 from drivers.errors import DeviceNotFoundError, DeviceTimeoutError
-from drivers.psu.riden import Identity
+from drivers.identity import Identity
 from drivers.transport.i2c import I2CDevice
 
 WHO_AM_I, CTRL_REG1, CTRL_REG2, CTRL_REG3, CTRL_REG4, STATUS, OUT_X_L = (
@@ -62,6 +62,9 @@ class Lis3mdl:
             for i in (0, 2, 4)
         )
         return x, y, z
+
+    def close(self) -> None:
+        """Nothing to release: the bus belongs to whoever opened it."""
 
     def safe(self) -> None:
         """Power-down mode."""

@@ -10,7 +10,7 @@ import time
 from typing import Any
 
 from drivers.errors import DeviceNotFoundError, DeviceTimeoutError
-from drivers.psu.riden import Identity
+from drivers.identity import Identity
 from drivers.transport.i2c import I2CDevice
 
 POLL, CMM, CCX, TMRC, MX, STATUS, REVID = 0x00, 0x01, 0x04, 0x0B, 0x24, 0x34, 0x36
@@ -83,6 +83,9 @@ class Rm3100:
         self.dev.write(CMM, [0x71])
         self.continuous = True
         return TMRC_HZ[tmrc]
+
+    def close(self) -> None:
+        """Nothing to release: the bus belongs to whoever opened it."""
 
     def stop_continuous(self) -> None:
         """Back to single measurements (writing CMM = 0)."""

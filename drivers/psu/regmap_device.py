@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from drivers.errors import DeviceProtocolError, LimitError
-from drivers.psu.riden import Identity, SupplyReading
+from drivers.identity import Identity
+from drivers.psu.riden import SupplyReading
 from drivers.regmap import Register, RegisterMap, RegisterMapError
 from drivers.transport.modbus import ModbusLink
 
@@ -27,6 +28,10 @@ class MappedDevice:
             self.link.write_register(reg.address, words[0])
         else:
             self.link.write_registers(reg.address, words)
+
+    def close(self) -> None:
+        """Close the Modbus link."""
+        self.link.close()
 
     def identify(self) -> Identity:
         """The map's model name (maps carry no serial-number registers unless given)."""

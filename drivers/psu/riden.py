@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from drivers.errors import DeviceNotFoundError, LimitError
+from drivers.identity import Identity
 from drivers.transport.modbus import ModbusLink
 
 MODELS: tuple[tuple[range, str, float, float, float, float], ...] = (
@@ -21,15 +22,6 @@ MODELS: tuple[tuple[range, str, float, float, float, float], ...] = (
 )
 REG_ID, REG_V_SET, REG_I_SET, REG_V_OUT, REG_I_OUT = 0, 8, 9, 10, 11
 REG_PROTECT, REG_CVCC, REG_OUTPUT = 16, 17, 18
-
-
-@dataclass(frozen=True)
-class Identity:
-    """What a device says it is."""
-
-    model: str
-    serial: str
-    firmware: str
 
 
 @dataclass(frozen=True)
@@ -114,3 +106,7 @@ class RidenSupply:
         self.set_output(False)
         self.link.write_register(REG_I_SET, 0)
         self.link.write_register(REG_V_SET, 0)
+
+    def close(self) -> None:
+        """Close the Modbus link (the output keeps its state: call :meth:`safe` first)."""
+        self.link.close()
