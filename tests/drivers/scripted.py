@@ -11,6 +11,7 @@ import select
 import socket
 import struct
 import threading
+import time
 import tty
 from dataclasses import dataclass, field
 
@@ -37,6 +38,7 @@ class Exchange:
 
     request: bytes
     reply: bytes
+    delay_s: float = 0.0  # wait before replying (e.g. until the driver has opened the port)
 
 
 @dataclass
@@ -71,6 +73,8 @@ class ScriptedSerialPeer:
                 if got != step.request:
                     self.mismatches.append(f"expected {step.request.hex(' ')}, got {got.hex(' ')}")
                     break
+            if step.delay_s:
+                time.sleep(step.delay_s)
             if step.reply:
                 os.write(self.master, step.reply)
         self.done.set()

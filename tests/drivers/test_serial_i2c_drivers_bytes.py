@@ -120,7 +120,7 @@ def test_hmr2300_not_an_hmr2300() -> None:
 
 def test_ascii_line_formats_and_garbage() -> None:
     peer = ScriptedSerialPeer([
-        Exchange(b"", b"12.5 -3.25 40.0\n"),
+        Exchange(b"", b"12.5 -3.25 40.0\n", delay_s=0.3),  # pyserial flushes input on open
         Exchange(b"", b"\x00\xffgarbage\n"),
         Exchange(b"", b"1.0 2.0 3.0\n"),
         Exchange(b"", b"x\ny\nz\nw\n"),
