@@ -12,6 +12,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from drivers.errors import DeviceError
 from rig import __version__
 from rig.errors import RigError, UserInputError
 
@@ -115,6 +116,37 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     sim.set_defaults(func=_cmd_sim)
 
+    cage = sub.add_parser(
+        "cage",
+        parents=[common],
+        help="drive the cage: characterize it, set or null a field",
+        description="Cage operations on the devices of a rig configuration (rig sim --rig-config writes one).",
+    )
+    cage_sub = cage.add_subparsers(dest="cage_command", required=True, parser_class=_Parser)
+    ch = cage_sub.add_parser(
+        "characterize", parents=[common], help="fit B = K I + B0 from a current sweep"
+    )
+    ch.add_argument("--rig-config", type=Path, required=True, metavar="FILE.toml")
+    ch.add_argument("--amplitude", type=float, default=1.0, metavar="A", help="sweep current (A)")
+    ch.add_argument(
+        "--samples", type=int, default=20, metavar="N", help="reference samples per point"
+    )
+    ch.add_argument("--repeats", type=int, default=2, metavar="R", help="times through the sweep")
+    ch.set_defaults(func=_cmd_cage_characterize)
+    sf = cage_sub.add_parser("set-field", parents=[common], help="ramp to a field and hold it")
+    sf.add_argument(
+        "field", type=float, nargs=3, metavar=("BX", "BY", "BZ"), help="field in uT, cage frame"
+    )
+    sf.add_argument("--rig-config", type=Path, required=True, metavar="FILE.toml")
+    sf.add_argument(
+        "--trim", action="store_true", help="close the loop on the reference magnetometer"
+    )
+    sf.add_argument("--tolerance-nt", type=float, default=10.0, metavar="NT")
+    sf.add_argument(
+        "--hold", type=float, metavar="S", help="hold for S seconds (default: until Ctrl-C)"
+    )
+    sf.set_defaults(func=_cmd_cage_set_field)
+
     ex = sub.add_parser(
         "example-data",
         parents=[common],
@@ -194,6 +226,20 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     return run_sim(args.config, args.endpoints_json, args.rig_config, args.duration, args.quiet)
 
 
+def _cmd_cage_characterize(args: argparse.Namespace) -> int:
+    from rig.cage_command import run_characterize
+
+    return run_characterize(args.rig_config, args.amplitude, args.samples, args.repeats, args.quiet)
+
+
+def _cmd_cage_set_field(args: argparse.Namespace) -> int:
+    from rig.cage_command import run_set_field
+
+    return run_set_field(
+        args.rig_config, args.field, args.trim, args.tolerance_nt, args.hold, args.quiet
+    )
+
+
 def _cmd_example_data(args: argparse.Namespace) -> int:
     from rig.calibration.synthetic import cage_like, rax_like
     from rig.io.csv_table import write_columns
@@ -235,7 +281,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         code: int = args.func(args)
         return code
-    except RigError as exc:
+    except (RigError, DeviceError) as exc:
         print(f"rig: error: {exc}", file=sys.stderr)
         return EXIT_INPUT
     except KeyboardInterrupt:

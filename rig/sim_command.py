@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import signal
 import threading
 import time
@@ -10,7 +11,10 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+import numpy as np
+
 from rig.errors import UserInputError
+from sim.config import MagnetometerConfig
 
 
 def rig_config_toml(
@@ -54,7 +58,9 @@ def rig_config_toml(
     for name, dev in endpoints["devices"].items():
         lines.append(f"[devices.{name}]")
         for key, value in dev.items():
-            if isinstance(value, bool):
+            if isinstance(value, list):
+                lines.append(f"{key} = {json.dumps(value)}")
+            elif isinstance(value, bool):
                 lines.append(f"{key} = {'true' if value else 'false'}")
             elif isinstance(value, int | float):
                 lines.append(f"{key} = {value}")
@@ -62,6 +68,19 @@ def rig_config_toml(
                 lines.append(f"{key} = {json.dumps(str(value))}")
         lines.append("")
     return "\n".join(lines)
+
+
+def reference_certificate(mag: MagnetometerConfig) -> dict[str, Any]:
+    """The reference magnetometer's calibration certificate: its small errors are known, as a
+    calibrated fluxgate's are (``h = correction_matrix @ (m - correction_offset_ut)``)."""
+    from sim.physics import rotation_matrix, springmann_matrix
+
+    t = springmann_matrix(mag.scale, tuple(math.radians(v) for v in mag.nonorth_deg))
+    t = t @ rotation_matrix(np.radians(np.array(mag.mounting_deg)))
+    return {
+        "correction_matrix": np.linalg.inv(t).tolist(),
+        "correction_offset_ut": [float(v) for v in mag.offset_ut],
+    }
 
 
 def run_sim(
@@ -92,6 +111,9 @@ def run_sim(
         endpoints = cage.start()
         text = json.dumps(endpoints, indent=2) + "\n"
         nominal = [[float(v) for v in row] for row in cfg.cage.coil_matrix_ut_per_a]
+        for mag in cfg.magnetometers:
+            if mag.kind == "ascii-mag" and mag.name in endpoints["devices"]:
+                endpoints["devices"][mag.name] |= reference_certificate(mag)
         for path, content in (
             (endpoints_json, text),
             (rig_config, rig_config_toml(endpoints, cfg.source, nominal)),

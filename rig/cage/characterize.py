@@ -18,7 +18,7 @@ Array = npt.NDArray[np.float64]
 
 def sweep_points(amplitude_a: float) -> Array:
     """Zero, +-a on each axis, the four (+-a, +-a, +-a) diagonals; zero between groups to expose
-    ambient drift. 15 points for 5 unknowns per output axis (K row, B0, drift)."""
+    ambient drift. 14 points for 5 unknowns per output axis (K row, B0, drift)."""
     a = amplitude_a
     pts: list[list[float]] = [[0.0, 0.0, 0.0]]
     for axis in range(3):

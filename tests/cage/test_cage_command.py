@@ -1,0 +1,85 @@
+"""`rig cage` against a `rig sim` process: characterize, trim and hold, limits, safe state."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from pymodbus.client import ModbusTcpClient
+
+
+@pytest.fixture(scope="module")
+def sim_rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, dict]]:  # type: ignore[type-arg]
+    tmp = tmp_path_factory.mktemp("simrig")
+    rig_toml, ep = tmp / "rig.toml", tmp / "endpoints.json"
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "-q", "sim", "--rig-config", str(rig_toml),
+                             "--endpoints-json", str(ep)])  # fmt: skip
+    deadline = time.monotonic() + 20
+    while not (rig_toml.exists() and ep.exists()):
+        assert proc.poll() is None and time.monotonic() < deadline
+        time.sleep(0.05)
+    yield rig_toml, json.loads(ep.read_text())["devices"]
+    proc.send_signal(signal.SIGINT)
+    proc.wait(timeout=15)
+
+
+def rig(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "rig.cli", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+def outputs_on(devices: dict) -> list[bool]:  # type: ignore[type-arg]
+    states = []
+    for name in ("coil_x", "coil_z"):
+        d = devices[name]
+        with ModbusTcpClient(d["host"], port=d["port"]) as c:
+            states.append(bool(c.read_holding_registers(18, count=1, device_id=1).registers[0]))
+    return states
+
+
+@pytest.mark.slow
+def test_characterize_then_trimmed_field(sim_rig: tuple[Path, dict]) -> None:  # type: ignore[type-arg]
+    rig_toml, devices = sim_rig
+    proc = rig(
+        "cage", "characterize", "--rig-config", str(rig_toml), "--repeats", "1", "--samples", "5"
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "residual rms" in proc.stdout and "wrote" in proc.stdout
+    cal = json.loads((rig_toml.parent / "cage-calibration.json").read_text())
+    assert cal["schema"] == "rig.cage-calibration/1" and abs(cal["k_ut_per_a"][0][0] - 40.2) < 0.01
+    proc = rig(
+        "cage",
+        "set-field",
+        "10",
+        "-5",
+        "5",
+        "--trim",
+        "--hold",
+        "0.3",
+        "--rig-config",
+        str(rig_toml),
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "settled" in proc.stdout and "outputs ramped down and off" in proc.stdout
+    assert outputs_on(devices) == [False, False]
+
+
+def test_limits_and_bad_config_are_one_line_errors(
+    sim_rig: tuple[Path, dict], tmp_path: Path
+) -> None:  # type: ignore[type-arg]
+    rig_toml, devices = sim_rig
+    proc = rig("cage", "set-field", "100", "100", "0", "--rig-config", str(rig_toml))
+    assert proc.returncode == 2 and "beyond the 120 uT field limit" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert outputs_on(devices) == [False, False]
+    bad = tmp_path / "rig.toml"
+    bad.write_text(rig_toml.read_text().replace('kind = "riden-rd60xx"', 'kind = "riden"', 1))
+    proc = rig("cage", "set-field", "0", "0", "0", "--rig-config", str(bad))
+    assert proc.returncode == 2 and "'riden' is not one of" in proc.stderr
