@@ -6,10 +6,9 @@ Sensitivity 6842 / 3421 / 2281 / 1711 LSB per gauss at +-4 / 8 / 12 / 16 G (1 G 
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
-from drivers.errors import DeviceNotFoundError, DeviceTimeoutError
+from drivers.errors import DeviceNotFoundError
 from drivers.identity import Identity
 from drivers.transport.i2c import I2CDevice
 
@@ -49,13 +48,7 @@ class Lis3mdl:
 
     def read(self, timeout_s: float = 0.1) -> tuple[float, float, float]:
         """Next sample (uT) once ZYXDA (status bit 3) is set."""
-        deadline = time.monotonic() + timeout_s
-        while not self.dev.read(STATUS, 1)[0] & 0x08:
-            if time.monotonic() > deadline:
-                raise DeviceTimeoutError(
-                    f"{self.name} at {self.dev.where}: no new data within {timeout_s:g} s"
-                )
-            time.sleep(0.001)
+        self.dev.wait_for_bit(STATUS, 0x08, timeout_s, poll_s=0.001)
         raw = self.dev.read(OUT_X_L | AUTO_INCREMENT, 6)
         x, y, z = (
             int.from_bytes(raw[i : i + 2], "little", signed=True) / self.lsb_per_ut

@@ -6,10 +6,9 @@ two's complement, big-endian; gain = 0.3671 CC + 1.5 counts per uT (75 at CC = 2
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
-from drivers.errors import DeviceNotFoundError, DeviceTimeoutError
+from drivers.errors import DeviceNotFoundError
 from drivers.identity import Identity
 from drivers.transport.i2c import I2CDevice
 
@@ -59,20 +58,11 @@ class Rm3100:
         self.dev.write(CCX, list(cc.to_bytes(2, "big")) * 3)
         self.cycle_count = cc
 
-    def _wait_drdy(self, timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
-        while not self.dev.read(STATUS, 1)[0] & 0x80:
-            if time.monotonic() > deadline:
-                raise DeviceTimeoutError(
-                    f"{self.name} at {self.dev.where}: no data ready within {timeout_s:g} s"
-                )
-            time.sleep(0.0005)
-
     def read(self, timeout_s: float = 0.2) -> tuple[float, float, float]:
         """One measurement (uT): a POLL in single mode, the next result in continuous mode."""
         if not self.continuous:
             self.dev.write(POLL, [0x70])
-        self._wait_drdy(timeout_s)
+        self.dev.wait_for_bit(STATUS, 0x80, timeout_s)  # DRDY
         return decode_results(self.dev.read(MX, 9), self.cycle_count)
 
     def start_continuous(self, tmrc: int = 0x96) -> float:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import time
 from typing import Any
 
 from smbus2 import SMBus, i2c_msg
@@ -55,6 +56,19 @@ class I2CDevice:
         w, r = i2c_msg.write(self.address, [register]), i2c_msg.read(self.address, length)
         self._rdwr(w, r)
         return bytes(r)
+
+    def wait_for_bit(
+        self, register: int, mask: int, timeout_s: float, poll_s: float = 0.0005
+    ) -> None:
+        """Poll ``register`` until ``mask`` is set (data ready), or :class:`DeviceTimeoutError`."""
+        deadline = time.monotonic() + timeout_s
+        while not self.read(register, 1)[0] & mask:
+            if time.monotonic() > deadline:
+                raise DeviceTimeoutError(
+                    f"{self.name} at {self.where}: no data ready within {timeout_s:g} s"
+                    f" (register 0x{register:02x} bit mask 0x{mask:02x})"
+                )
+            time.sleep(poll_s)
 
     def write(self, register: int, data: bytes | list[int]) -> None:
         """Write ``data`` starting at ``register`` (auto-increment)."""
