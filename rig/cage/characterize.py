@@ -88,7 +88,7 @@ def characterize(
     k, b0, k_sigma, b0_sigma, rms, drift = fit_cage(points, np.array(fields), np.array(times))
     meta = {
         "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-        "instruments": instruments or {},
+        "instruments": instruments if instruments is not None else controller.instruments(),
         "amplitude_a": amplitude_a,
         "points": len(points),
         "repeats": repeats,

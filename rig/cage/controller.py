@@ -185,6 +185,28 @@ class CageController:
         self.currents = np.zeros(3)
         return problems
 
+    def instruments(self) -> dict[str, str]:
+        """Identity of every instrument that can say it (model, serial, firmware), for records."""
+        found: dict[str, str] = {}
+        named: list[tuple[str, object]] = [
+            (f"coil_{'xyz'[i]}", a.supply) for i, a in enumerate(self.axes)
+        ]
+        named += [("polarity", self.relays), ("reference", self.reference)]
+        for role, device in named:
+            identify = getattr(device, "identify", None)
+            if identify is None or (
+                role == "reference" and getattr(device, "fmt", None) is not None
+            ):
+                continue  # a line-oriented sensor identifies only by reading a sample
+            try:
+                ident = identify()
+            except Exception as exc:  # a record, not a check: note the failure and go on
+                found[role] = f"unidentified ({exc})"
+                continue
+            found[role] = " ".join(p for p in (ident.model, ident.serial and f"SN {ident.serial}",
+                                                ident.firmware and f"FW {ident.firmware}") if p)  # fmt: skip
+        return found
+
     # --- measurement ----------------------------------------------------------------------------
 
     def measure_ut(self, samples: int = 10, *, fresh: bool = True) -> Array:
