@@ -222,6 +222,7 @@ class CageController:
         flush = getattr(self.reference, "flush", None)
         if fresh and flush is not None:
             flush()
+            self.reference.read()  # a sample taken before the flush may still be on its way
         raw = np.mean([self.reference.read() for _ in range(samples)], axis=0)
         if self.reference_to_cage is not None:
             matrix, offset = self.reference_to_cage
@@ -268,21 +269,24 @@ class CageController:
         transient_s: float = 0.2,
     ) -> TrimResult:
         """Closed loop on the reference: correct the currents by ``K^-1 (target - measured)``
-        until the averaged error is within ``tolerance_nt``, then confirm it stays there for
-        ``settle_s`` ("within X nT for Y s")."""
+        until the averaged error is within half of ``tolerance_nt``, then confirm the field stays
+        within ``tolerance_nt`` for ``settle_s`` ("within X nT for Y s")."""
         target = np.asarray(target_ut, float)
         self.set_field(target)
         measured = target
         err = np.inf
+        iteration = 0
         for iteration in range(1, max_iterations + 1):
             self.sleep(transient_s)
             measured = self.measure_ut(samples)
             err = 1000.0 * float(np.linalg.norm(target - measured))
-            if err <= tolerance_nt:
-                settled = self.wait_settled(
-                    target, tolerance_nt, settle_s, timeout_s=4 * settle_s + 2
-                )
-                return TrimResult(self.currents.copy(), measured, err, iteration, settled)
+            # Aim for half the tolerance, so that measurement noise does not leave the true field
+            # sitting on the edge; accept anything within the tolerance once iterations run out.
+            if err <= 0.5 * tolerance_nt or iteration == max_iterations:
+                break
             correction = np.linalg.solve(self.model.k_ut_per_a, target - measured)
             self.set_currents(self.currents + correction)
-        return TrimResult(self.currents.copy(), measured, err, max_iterations, False)
+        if err <= tolerance_nt:
+            settled = self.wait_settled(target, tolerance_nt, settle_s, timeout_s=4 * settle_s + 2)
+            return TrimResult(self.currents.copy(), measured, err, iteration, settled)
+        return TrimResult(self.currents.copy(), measured, err, iteration, False)
