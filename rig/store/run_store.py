@@ -1,0 +1,312 @@
+"""The run store (contract): a run is a folder ``<runs-dir>/<run-id>/`` holding ``run.sqlite``.
+
+SQLite in WAL mode. Writers queue rows; one thread commits them in small batches (every
+``COMMIT_INTERVAL_S``), so a killed process loses at most the last batch. A run whose ``status`` is
+still ``running`` when it is next opened was killed: it is marked ``incomplete`` and stays readable.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import queue
+import sqlite3
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rig.errors import UserInputError
+
+COMMIT_INTERVAL_S = 0.2
+"""At most this much data (plus one commit's duration) is at risk if the process is killed."""
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS samples (t REAL NOT NULL, device TEXT NOT NULL, x REAL, y REAL, z REAL);
+CREATE TABLE IF NOT EXISTS channels (t REAL NOT NULL, channel TEXT NOT NULL, commanded REAL, measured REAL);
+CREATE TABLE IF NOT EXISTS commands (t REAL NOT NULL, step INTEGER, kind TEXT NOT NULL, payload TEXT);
+CREATE TABLE IF NOT EXISTS events (t REAL NOT NULL, level TEXT NOT NULL, message TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS steps (idx INTEGER PRIMARY KEY, name TEXT, kind TEXT, t_start REAL, t_end REAL);
+CREATE TABLE IF NOT EXISTS results (name TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE INDEX IF NOT EXISTS samples_device_t ON samples (device, t);
+CREATE INDEX IF NOT EXISTS channels_channel_t ON channels (channel, t);
+"""
+
+TABLE_COLUMNS = {
+    "samples": ("t", "device", "x", "y", "z"),
+    "channels": ("t", "channel", "commanded", "measured"),
+    "commands": ("t", "step", "kind", "payload"),
+    "events": ("t", "level", "message"),
+}
+
+
+def now_iso() -> str:
+    """UTC time, seconds resolution."""
+    return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+
+
+def _connect(path: Path) -> sqlite3.Connection:
+    con = sqlite3.connect(path, check_same_thread=False, timeout=10.0)
+    con.execute("PRAGMA journal_mode=WAL")
+    con.execute(
+        "PRAGMA synchronous=NORMAL"
+    )  # WAL + NORMAL: an application crash loses nothing committed
+    return con
+
+
+class RunWriter:
+    """Write side of one run. Thread safe: any thread may call the ``add_*`` methods."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.path = folder / "run.sqlite"
+        self._con = _connect(self.path)
+        self._con.executescript(SCHEMA)
+        self._con.commit()
+        self._queue: queue.SimpleQueue[tuple[str, tuple[Any, ...]] | None] = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self.rows_written = 0
+        self._thread = threading.Thread(target=self._run, name="run-store", daemon=True)
+        self._thread.start()
+
+    # --- queued rows ----------------------------------------------------------------------------
+
+    def add_sample(self, t: float, device: str, xyz: tuple[float, float, float]) -> None:
+        """A magnetometer reading (uT) at monotonic time ``t``."""
+        self._queue.put(("samples", (t, device, *xyz)))
+
+    def add_channel(
+        self, t: float, channel: str, commanded: float | None, measured: float | None
+    ) -> None:
+        """A commanded and/or measured current (A) of a coil or load channel."""
+        self._queue.put(("channels", (t, channel, commanded, measured)))
+
+    def add_command(self, t: float, step: int | None, kind: str, payload: dict[str, Any]) -> None:
+        """A command the engine executed."""
+        self._queue.put(("commands", (t, step, kind, json.dumps(payload))))
+
+    def add_event(self, t: float, level: str, message: str) -> None:
+        """A log event (info, warning, error, operator)."""
+        self._queue.put(("events", (t, level, message)))
+
+    # --- immediate writes -----------------------------------------------------------------------
+
+    def set_meta(self, **values: Any) -> None:
+        """Metadata, written and committed at once."""
+        with self._lock:
+            self._con.executemany(
+                "INSERT OR REPLACE INTO meta VALUES (?, ?)",
+                [(k, json.dumps(v)) for k, v in values.items()],
+            )
+            self._con.commit()
+
+    def set_step(self, idx: int, name: str, kind: str, t_start: float, t_end: float | None) -> None:
+        """Start (and later end) of a procedure step."""
+        with self._lock:
+            self._con.execute(
+                "INSERT OR REPLACE INTO steps VALUES (?, ?, ?, ?, ?)",
+                (idx, name, kind, t_start, t_end),
+            )
+            self._con.commit()
+
+    def set_result(self, name: str, value: Any) -> None:
+        """A named result (calibration, check verdict), JSON-serializable."""
+        with self._lock:
+            self._con.execute(
+                "INSERT OR REPLACE INTO results VALUES (?, ?)", (name, json.dumps(value))
+            )
+            self._con.commit()
+
+    # --- the commit thread ----------------------------------------------------------------------
+
+    def _drain(self) -> int:
+        batches: dict[str, list[tuple[Any, ...]]] = {}
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if item is None:
+                continue
+            batches.setdefault(item[0], []).append(item[1])
+        if not batches:
+            return 0
+        with self._lock:
+            for table, rows in batches.items():
+                cols = TABLE_COLUMNS[table]
+                self._con.executemany(
+                    f"INSERT INTO {table} ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})",
+                    rows,
+                )
+            self._con.commit()
+        n = sum(len(r) for r in batches.values())
+        self.rows_written += n
+        return n
+
+    def _run(self) -> None:
+        while not self._stop.wait(COMMIT_INTERVAL_S):
+            self._drain()
+
+    def flush(self) -> None:
+        """Commit everything queued so far."""
+        self._drain()
+
+    def close(self, status: str, reason: str) -> None:
+        """Commit the rest, record the exit status and reason, close the database."""
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self._drain()
+        self.set_meta(status=status, reason=reason, end_time=now_iso())
+        with self._lock:
+            self._con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            self._con.close()
+
+
+@dataclass(frozen=True)
+class RunInfo:
+    """A stored run as listed by ``rig runs``."""
+
+    run_id: str
+    folder: Path
+    meta: dict[str, Any]
+
+    @property
+    def status(self) -> str:
+        """complete, aborted, error, incomplete or running."""
+        return str(self.meta.get("status", "incomplete"))
+
+
+class RunReader:
+    """Read side of a stored run (opened read-write only to mark a killed run incomplete)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.path = folder / "run.sqlite"
+        if not self.path.exists():
+            raise UserInputError(
+                f"{folder}: not a run folder (no run.sqlite); list runs with 'rig runs'"
+            )
+        self._con = _connect(self.path)
+        meta = self.meta()
+        if meta.get("status") == "running" and not _owner_alive(meta.get("pid")):
+            self._con.execute(
+                "INSERT OR REPLACE INTO meta VALUES ('status', ?), ('reason', ?)",
+                (
+                    json.dumps("incomplete"),
+                    json.dumps("the rig process ended without closing the run (killed?)"),
+                ),
+            )
+            self._con.commit()
+
+    def meta(self) -> dict[str, Any]:
+        """All metadata."""
+        return {k: json.loads(v) for k, v in self._con.execute("SELECT key, value FROM meta")}
+
+    def samples(self, device: str) -> list[tuple[float, float, float, float]]:
+        """(t, x, y, z) rows of one magnetometer, in time order."""
+        return list(
+            self._con.execute(
+                "SELECT t, x, y, z FROM samples WHERE device = ? ORDER BY t", (device,)
+            )
+        )
+
+    def devices(self) -> list[str]:
+        """Magnetometers with samples."""
+        return [
+            r[0] for r in self._con.execute("SELECT DISTINCT device FROM samples ORDER BY device")
+        ]
+
+    def channel(self, name: str) -> list[tuple[float, float | None, float | None]]:
+        """(t, commanded, measured) rows of a current channel."""
+        return list(self._con.execute(
+            "SELECT t, commanded, measured FROM channels WHERE channel = ? ORDER BY t", (name,)))  # fmt: skip
+
+    def channel_names(self) -> list[str]:
+        """Recorded current channels."""
+        return [
+            r[0]
+            for r in self._con.execute("SELECT DISTINCT channel FROM channels ORDER BY channel")
+        ]
+
+    def commands(self) -> list[tuple[float, int | None, str, dict[str, Any]]]:
+        """(t, step, kind, payload) of every command."""
+        return [(t, s, k, json.loads(p)) for t, s, k, p in self._con.execute(
+            "SELECT t, step, kind, payload FROM commands ORDER BY t")]  # fmt: skip
+
+    def events(self) -> list[tuple[float, str, str]]:
+        """(t, level, message) log events."""
+        return list(self._con.execute("SELECT t, level, message FROM events ORDER BY t"))
+
+    def steps(self) -> list[tuple[int, str, str, float, float | None]]:
+        """(index, name, kind, t_start, t_end) of each step."""
+        return list(
+            self._con.execute("SELECT idx, name, kind, t_start, t_end FROM steps ORDER BY idx")
+        )
+
+    def results(self) -> dict[str, Any]:
+        """Named results."""
+        return {k: json.loads(v) for k, v in self._con.execute("SELECT name, value FROM results")}
+
+    def count(self, table: str) -> int:
+        """Rows in a table."""
+        if table not in ("samples", "channels", "commands", "events", "steps", "results"):
+            raise ValueError(table)
+        return int(self._con.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0])
+
+    def close(self) -> None:
+        """Close the database."""
+        self._con.close()
+
+
+def _owner_alive(pid: Any) -> bool:
+    import os
+
+    if not isinstance(pid, int):
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def new_run(runs_dir: Path, label: str, **meta: Any) -> RunWriter:
+    """Create ``<runs_dir>/<date>-<time>-<label>/`` with a fresh store marked running."""
+    import os
+    import re
+
+    safe_label = re.sub(r"[^A-Za-z0-9_.-]+", "-", label).strip("-") or "run"
+    stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%d-%H%M%S")
+    folder = runs_dir / f"{stamp}-{safe_label}"
+    n = 1
+    while folder.exists():
+        n += 1
+        folder = runs_dir / f"{stamp}-{safe_label}-{n}"
+    try:
+        folder.mkdir(parents=True)
+    except OSError as exc:
+        raise UserInputError(
+            f"cannot create the run folder {folder}: {exc.strerror}; check --runs-dir"
+        ) from None
+    writer = RunWriter(folder)
+    writer.set_meta(run_id=folder.name, status="running", pid=os.getpid(), start_time=now_iso(),
+                    start_monotonic=time.monotonic(), **meta)  # fmt: skip
+    return writer
+
+
+def list_runs(runs_dir: Path) -> list[RunInfo]:
+    """Every run folder under ``runs_dir``, newest first."""
+    out: list[RunInfo] = []
+    if not runs_dir.exists():
+        return out
+    for folder in sorted(runs_dir.iterdir(), reverse=True):
+        if (folder / "run.sqlite").exists():
+            reader = RunReader(folder)
+            out.append(RunInfo(folder.name, folder, reader.meta()))
+            reader.close()
+    return out
