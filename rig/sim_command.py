@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from rig.errors import UserInputError
-from sim.config import MagnetometerConfig
+from sim.config import MagnetometerConfig, SimConfig
 
 
 def rig_config_toml(
@@ -44,9 +44,9 @@ def rig_config_toml(
             lines.append(f'reference = "{reference}"')
         lines += [
             'calibration = "cage-calibration.json"',
-            "max_current_a = [1.5, 1.5, 1.5]",
+            "max_current_a = [2.5, 2.5, 2.5]",
             "max_field_ut = 120.0",
-            "max_slew_a_per_s = 5.0",
+            "max_slew_a_per_s = 10.0",
             "compliance_v = 12.0",
         ]
         if nominal_k is not None:
@@ -83,6 +83,20 @@ def reference_certificate(mag: MagnetometerConfig) -> dict[str, Any]:
     }
 
 
+def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig) -> str:
+    """The rig configuration for a running simulated cage: devices, cage section, the reference's
+    certificate and the coil constants as nameplate values."""
+    devices = {name: dict(dev) for name, dev in endpoints["devices"].items()}
+    for mag in cfg.magnetometers:
+        if mag.kind == "ascii-mag" and mag.name in devices:
+            devices[mag.name] |= reference_certificate(mag)
+            devices[mag.name]["rate_hz"] = mag.rate_hz
+        elif mag.name in devices:
+            devices[mag.name]["rate_hz"] = mag.rate_hz
+    nominal = [[float(v) for v in row] for row in cfg.cage.coil_matrix_ut_per_a]
+    return rig_config_toml({"devices": devices}, cfg.source, nominal)
+
+
 def run_sim(
     config_path: str | None,
     endpoints_json: Path | None,
@@ -110,13 +124,9 @@ def run_sim(
     try:
         endpoints = cage.start()
         text = json.dumps(endpoints, indent=2) + "\n"
-        nominal = [[float(v) for v in row] for row in cfg.cage.coil_matrix_ut_per_a]
-        for mag in cfg.magnetometers:
-            if mag.kind == "ascii-mag" and mag.name in endpoints["devices"]:
-                endpoints["devices"][mag.name] |= reference_certificate(mag)
         for path, content in (
             (endpoints_json, text),
-            (rig_config, rig_config_toml(endpoints, cfg.source, nominal)),
+            (rig_config, sim_rig_config(endpoints, cfg)),
         ):
             if path is not None:
                 try:

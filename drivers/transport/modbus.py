@@ -4,6 +4,7 @@ exceptions and error responses - become :mod:`drivers.errors`, with bounded retr
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from typing import Any
 
@@ -53,6 +54,7 @@ class ModbusLink:
         self.device_id = device_id
         self.retries = retries
         self.where = f"{host}:{port}" if host is not None else f"{path}"
+        self._lock = threading.RLock()
         self._client: Any
         if host is not None:
             self._client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0)
@@ -84,6 +86,10 @@ class ModbusLink:
             )
 
     def _call(self, what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        with self._lock:  # one request at a time per link, whichever thread asks
+            return self._call_locked(what, fn, *args, **kwargs)
+
+    def _call_locked(self, what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
         last: Exception | None = None
         for attempt in range(self.retries + 1):
             try:

@@ -1,0 +1,1 @@
+"""The run engine: executes procedure plans on the rig, records everything, safe state on exit."""

@@ -1,0 +1,169 @@
+"""From recorded data to results: settled windows, noise floor, calibration, acceptance checks."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from rig.calibration import Samples, calibrate
+from rig.errors import CalibrationError
+from rig.store.run_store import RunReader
+
+Array = npt.NDArray[np.float64]
+
+
+def change_times(reader: RunReader) -> Array:
+    """(start, end) of every field and load change: a field command is logged when its ramp (or
+    trim) has finished and carries the time it was issued; a load change is instantaneous."""
+    rows = [
+        (float(p.get("t_issued", t)), t)
+        for t, _, kind, p in reader.commands()
+        if kind in ("field", "load")
+    ]
+    return np.array(rows, float).reshape(-1, 2)
+
+
+def settled(times: Array, changes: Array, settle_s: float) -> npt.NDArray[np.bool_]:
+    """True for samples outside every change interval extended by ``settle_s`` after its end."""
+    ok = np.ones(times.shape, bool)
+    for start, end in changes.reshape(-1, 2):
+        ok &= ~((times >= start) & (times < end + settle_s))
+    return ok
+
+
+def step_windows(reader: RunReader, names: list[str] | None) -> list[tuple[float, float]]:
+    """(start, end) of the named steps, or of every field step when ``names`` is empty."""
+    field_kinds = {"null_field", "set_field", "hold", "sphere_sweep", "axis_sweep", "rotate"}
+    out = []
+    for _, name, kind, t0, t1 in reader.steps():
+        if t1 is None:
+            continue
+        if (names and name in names) or (not names and kind in field_kinds):
+            out.append((t0, t1))
+    return out
+
+
+def _in_windows(t: Array, windows: list[tuple[float, float]]) -> npt.NDArray[np.bool_]:
+    mask = np.zeros(t.shape, bool)
+    for a, b in windows:
+        mask |= (t >= a) & (t <= b)
+    return mask
+
+
+def to_cage_frame(xyz: Array, correction: dict[str, Any] | None) -> Array:
+    """Reference readings through its certificate: ``h = M (m - o)``."""
+    if not correction:
+        return xyz
+    m = np.array(correction["matrix"], float)
+    o = np.array(correction["offset_ut"], float)
+    return np.asarray((xyz - o) @ m.T)
+
+
+def hold_values(reader: RunReader, channel: str, t: Array) -> Array:
+    """A channel's measured current (A) at times ``t`` (the last reading before each time)."""
+    rows = [
+        (tt, m if m is not None else c)
+        for tt, c, m in reader.channel(channel)
+        if (m if m is not None else c) is not None
+    ]
+    if not rows:
+        return np.zeros_like(t)
+    ts = np.array([r[0] for r in rows])
+    vs = np.array([r[1] for r in rows], float)
+    idx = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, None)
+    return np.asarray(vs[idx])
+
+
+def noise_floor(
+    reader: RunReader, window: tuple[float, float], devices: list[str], settle_s: float
+) -> dict[str, float]:
+    """Per device: RMS over axes of the sample standard deviation in a settled window (nT)."""
+    changes = change_times(reader)
+    out = {}
+    for dev in devices:
+        rows = np.array(reader.samples(dev), float).reshape(-1, 4)
+        if rows.size == 0:
+            continue
+        keep = _in_windows(rows[:, 0], [window]) & settled(rows[:, 0], changes, settle_s)
+        if keep.sum() >= 5:
+            out[dev] = float(1000.0 * np.sqrt(np.mean(np.var(rows[keep, 1:], axis=0, ddof=1))))
+    return out
+
+
+def calibration_samples(
+    reader: RunReader,
+    dut: str,
+    reference: str,
+    telemetry: list[str],
+    steps: list[str],
+    settle_s: float,
+    correction: dict[str, Any] | None,
+) -> Samples:
+    """DUT readings with the reference field (cage frame) and load currents at the same times."""
+    rows = np.array(reader.samples(dut), float).reshape(-1, 4)
+    ref = np.array(reader.samples(reference), float).reshape(-1, 4)
+    if rows.shape[0] == 0 or ref.shape[0] < 2:
+        raise CalibrationError(
+            f"no samples of '{dut}' or '{reference}' in this run: check the magnetometers"
+        )
+    t = rows[:, 0]
+    keep = _in_windows(t, step_windows(reader, steps)) & settled(t, change_times(reader), settle_s)
+    keep &= (t >= ref[0, 0]) & (t <= ref[-1, 0])
+    if keep.sum() == 0:
+        raise CalibrationError(
+            "no settled DUT samples in the selected steps: hold each field longer than settle_s"
+        )
+    t = t[keep]
+    field = np.column_stack([np.interp(t, ref[:, 0], ref[:, 1 + i]) for i in range(3)])
+    field = to_cage_frame(field, correction)
+    u = np.column_stack([hold_values(reader, ch, t) for ch in telemetry]) if telemetry else None
+    return Samples.build(rows[keep, 1:], field_ut=field, telemetry=u, channels=tuple(telemetry))
+
+
+def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict[str, str],
+                  correction: dict[str, Any] | None) -> dict[str, Any]:  # fmt: skip
+    """The ``calibrate`` step: fit the DUT from the run so far; returns the result file content."""
+    dut = magnetometers.get(params["magnetometer"], params["magnetometer"])
+    samples = calibration_samples(reader, dut, magnetometers.get("reference", "reference"),
+                                  params["telemetry"], params["steps"], params["settle_s"], correction)  # fmt: skip
+    method = params["method"] or ("vector" if params["model"] == "vector" else "ml")
+    if params["model"] == "scalar" and method == "vector":
+        raise CalibrationError("a scalar calibration cannot use method 'vector'")
+    result = calibrate(samples, method, noise_nt=params["noise_nt"] or None)  # type: ignore[arg-type]
+    return result.to_dict()
+
+
+def lookup(results: dict[str, Any], result: str, path: str) -> float:
+    """``results[result]`` then a dotted path (``springmann.a``, ``residual_rms_nt``)."""
+    if result not in results:
+        raise KeyError(f"no result '{result}' (results so far: {', '.join(results) or 'none'})")
+    value: Any = results[result]
+    for part in path.split("."):
+        if not isinstance(value, dict) or part not in value:
+            raise KeyError(f"result '{result}' has no '{path}'")
+        value = value[part]
+    if not isinstance(value, int | float):
+        raise KeyError(f"'{result}.{path}' is not a number")
+    return float(value)
+
+
+def evaluate_criteria(results: dict[str, Any], criteria: list[dict[str, Any]]) -> dict[str, Any]:
+    """PASS/FAIL per criterion with value, limits and margin; the overall verdict."""
+    rows = []
+    for c in criteria:
+        name = c.get("name") or f"{c['result']}.{c['value']}"
+        try:
+            value = lookup(results, c["result"], c["value"])
+        except KeyError as exc:
+            rows.append({"name": name, "verdict": "FAIL", "reason": str(exc).strip("'\"")})
+            continue
+        lo, hi = c.get("min"), c.get("max")
+        ok = (lo is None or value >= lo) and (hi is None or value <= hi)
+        margins = [value - lo] if lo is not None else []
+        margins += [hi - value] if hi is not None else []
+        rows.append({"name": name, "value": value, "min": lo, "max": hi, "margin": min(margins),
+                     "verdict": "PASS" if ok else "FAIL"})  # fmt: skip
+    overall = "PASS" if rows and all(r["verdict"] == "PASS" for r in rows) else "FAIL"
+    return {"criteria": rows, "overall": overall}

@@ -1,0 +1,393 @@
+"""Execute a procedure on the rig: schedule commands, sample, record, analyse, safe state on exit.
+
+Every exit path - success, a failed check, an error, a device that stops answering, Ctrl-C,
+SIGTERM - leaves the ``with ExitStack()`` block, whose callbacks ramp the coils down and switch
+every supply and load off before the links close; the run is then closed with its status.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import shutil
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+import numpy as np
+
+from drivers.errors import DeviceError
+from rig import __version__
+from rig.config import RigConfig
+from rig.devices import build_cage, open_device
+from rig.engine.analysis import calibrate_run, evaluate_criteria, noise_floor
+from rig.engine.live import LiveView
+from rig.engine.sampling import BufferedSensor, SensorSampler
+from rig.errors import RigError
+from rig.procedure.language import Procedure
+from rig.procedure.plan import StepPlan, compile_plan
+from rig.store.run_store import RunReader, RunWriter, new_run
+
+Confirm = Callable[[str], bool]
+
+
+class RunAborted(RigError):  # noqa: N818 - an outcome, not a fault
+    """The operator (Ctrl-C, SIGTERM, a declined prompt) stopped the run."""
+
+
+@dataclass
+class RunOutcome:
+    """How a run ended."""
+
+    status: str  # complete, failed (checks failed), aborted, error
+    reason: str
+    folder: Path
+    results: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def exit_code(self) -> int:
+        """0 complete, 1 checks failed, 2 error, 130 aborted."""
+        return {"complete": 0, "failed": 1, "error": 2, "aborted": 130}.get(self.status, 2)
+
+
+class Runner:
+    """Runs one procedure on one rig."""
+
+    def __init__(self, proc: Procedure, cfg: RigConfig, runs_dir: Path, *, i2c_bus: Any | None = None,
+                 confirm: Confirm | None = None, quiet: bool = False, live: bool = True) -> None:  # fmt: skip
+        self.proc = proc
+        self.cfg = cfg
+        self.runs_dir = runs_dir
+        self.i2c_bus = i2c_bus
+        self.confirm = confirm
+        self.quiet = quiet
+        self.live_enabled = live and not quiet
+        self.results: dict[str, Any] = {}
+        self.paused = threading.Event()
+        self.abort = threading.Event()
+        self.lateness_s: list[float] = []
+        self.writer: RunWriter | None = None
+        self.loads: dict[str, Any] = {}
+        self.commanded_loads: dict[str, float] = {}
+        self.samplers: dict[str, SensorSampler] = {}
+        self.controller: Any = None
+        self.live: LiveView | None = None
+
+    # --- lifecycle ------------------------------------------------------------------------------
+
+    def run(self) -> RunOutcome:
+        """Execute the whole procedure; always returns an outcome with the run folder."""
+        params = self.proc.parameters
+        self.writer = w = new_run(
+            self.runs_dir, params.get("dut_serial") or self.proc.path.stem,
+            procedure=self.proc.title, procedure_file=self.proc.path.name, parameters=params,
+            operator=params.get("operator", ""), dut_serial=params.get("dut_serial", ""),
+            software_version=__version__, rig_config=str(self.cfg.path), magnetometers=self.proc.magnetometers,
+            loads=list(self.proc.loads),
+        )  # fmt: skip
+        (w.folder / "procedure.yaml").write_text(self.proc.text, encoding="utf-8")
+        shutil.copy(self.cfg.path, w.folder / "rig.toml")
+        old = self._install_signals()
+        status, reason = "error", "unknown"
+        try:
+            with ExitStack() as stack:
+                self._open(stack)
+                for plan in compile_plan(self.proc):
+                    self._execute(plan)
+            verdict = self.results.get("verdict", {}).get("overall")
+            status, reason = (
+                ("failed", "acceptance checks failed")
+                if verdict == "FAIL"
+                else ("complete", "all steps done")
+            )
+        except (KeyboardInterrupt, RunAborted) as exc:
+            status, reason = "aborted", str(exc) or "interrupted by the operator (Ctrl-C)"
+        except (RigError, DeviceError) as exc:
+            status, reason = "error", str(exc)
+        except Exception as exc:  # record it, leave hardware safe (done above), then re-raise
+            status, reason = "error", f"internal error: {type(exc).__name__}: {exc}"
+            raise
+        finally:
+            if self.live is not None:
+                self.live.stop()
+            for name, s in self.samplers.items():
+                w.set_meta(**{f"samples_{name}": s.count})
+            if self.lateness_s:
+                lat = np.array(self.lateness_s)
+                w.set_meta(command_lateness_p99_ms=float(1000 * np.percentile(lat, 99)),
+                           command_lateness_max_ms=float(1000 * lat.max()))  # fmt: skip
+            w.close(status, reason)
+            self._restore_signals(old)
+        return RunOutcome(status, reason, w.folder, self.results)
+
+    def _install_signals(self) -> dict[int, Any]:
+        if threading.current_thread() is not threading.main_thread():
+            return {}
+
+        def on_term(signum: int, frame: FrameType | None) -> None:
+            raise RunAborted("stopped by SIGTERM")
+
+        def on_usr1(signum: int, frame: FrameType | None) -> None:
+            if self.paused.is_set():
+                self.paused.clear()
+            else:
+                self.paused.set()
+
+        return {
+            signal.SIGTERM: signal.signal(signal.SIGTERM, on_term),
+            signal.SIGUSR1: signal.signal(signal.SIGUSR1, on_usr1),
+        }
+
+    @staticmethod
+    def _restore_signals(old: dict[int, Any]) -> None:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+    def _event(self, level: str, message: str) -> None:
+        assert self.writer is not None
+        self.writer.add_event(time.monotonic(), level, message)
+
+    def _open(self, stack: ExitStack) -> None:
+        """Open every device; register safe states and closes on ``stack`` (LIFO)."""
+        w = self.writer
+        assert w is not None
+        self.controller = build_cage(self.cfg, stack, self.i2c_bus)
+        instruments = dict(self.controller.instruments())
+        mags = self.proc.magnetometers
+        for role, dev_name in mags.items():
+            if dev_name not in self.cfg.devices:
+                raise RigError(
+                    f"{self.proc.path}: magnetometer role '{role}' names '{dev_name}', which is not in {self.cfg.path}"
+                )
+            if (
+                role == "reference"
+                and self.cfg.cage is not None
+                and self.cfg.cage.reference == dev_name
+            ):
+                driver = self.controller.reference
+            else:
+                driver = open_device(self.cfg.devices[dev_name], self.i2c_bus)
+                stack.callback(driver.close)
+            with contextlib.suppress(Exception):
+                if not hasattr(driver, "fmt"):
+                    ident = driver.identify()
+                    instruments[role] = f"{ident.model} {ident.serial}".strip()
+            sampler = SensorSampler(
+                dev_name,
+                driver,
+                w.add_sample,
+                float(self.cfg.devices[dev_name].get("rate_hz", 20.0)),
+            )
+            sampler.start()
+            stack.callback(sampler.stop)
+            self.samplers[dev_name] = sampler
+            if role == "reference":
+                self.controller.reference = BufferedSensor(sampler)
+        for name in self.proc.loads:
+            if name not in self.cfg.devices:
+                raise RigError(
+                    f"{self.proc.path}: load '{name}' is not a device in {self.cfg.path}"
+                )
+            load = open_device(self.cfg.devices[name], self.i2c_bus)
+            stack.callback(load.close)
+            stack.callback(self._safe_load, name, load)
+            load.set_current(0.0)
+            if self.cfg.devices[name].kind == "riden-rd60xx":
+                load.set_voltage(float(self.cfg.devices[name].get("compliance_v", 12.0)))
+            load.set_output(True)
+            self.loads[name] = load
+            self.commanded_loads[name] = 0.0
+            with contextlib.suppress(Exception):
+                ident = load.identify()
+                instruments[name] = f"{ident.model} {ident.serial}".strip()
+        correction = None
+        ref_name = mags.get("reference")
+        if (
+            ref_name
+            and ref_name in self.cfg.devices
+            and self.cfg.devices[ref_name].get("correction_matrix") is not None
+        ):
+            dev = self.cfg.devices[ref_name]
+            correction = {
+                "matrix": dev.get("correction_matrix"),
+                "offset_ut": dev.get("correction_offset_ut", [0, 0, 0]),
+            }
+        w.set_meta(instruments=instruments, reference_correction=correction,
+                   cage_model=self.controller.model.to_dict())  # fmt: skip
+        self.correction = correction
+        monitor_stop = threading.Event()
+        monitor = threading.Thread(
+            target=self._monitor, args=(monitor_stop,), name="current-monitor", daemon=True
+        )
+        monitor.start()
+        stack.callback(monitor.join, 2.0)
+        stack.callback(monitor_stop.set)
+        if self.live_enabled:
+            self.live = LiveView(self)
+            self.live.start()
+
+    def _safe_load(self, name: str, load: Any) -> None:
+        try:
+            load.safe()
+        except (DeviceError, OSError) as exc:
+            self._event("error", f"load {name} did not go safe: {exc}")
+
+    def _monitor(self, stop: threading.Event) -> None:
+        """Read back load and coil currents at about 5 Hz."""
+        w = self.writer
+        assert w is not None
+        while not stop.wait(0.2):
+            for name, load in list(self.loads.items()):
+                try:
+                    w.add_channel(
+                        time.monotonic(),
+                        name,
+                        self.commanded_loads.get(name),
+                        float(load.read().i_out_a),
+                    )
+                except (DeviceError, OSError) as exc:
+                    self._event("warning", f"reading {name}: {exc}")
+
+    # --- steps ----------------------------------------------------------------------------------
+
+    def _wait_until(self, t_target: float) -> float:
+        """Sleep until ``t_target`` (monotonic), honouring pause and abort; returns the time shift
+        added by pauses."""
+        shift = 0.0
+        while True:
+            if self.abort.is_set():
+                raise RunAborted("aborted")
+            if self.paused.is_set():
+                t_pause = time.monotonic()
+                self._event("operator", "paused")
+                while self.paused.is_set() and not self.abort.is_set():
+                    time.sleep(0.05)
+                shift += time.monotonic() - t_pause
+                self._event("operator", "resumed")
+                continue
+            remaining = t_target + shift - time.monotonic()
+            if remaining <= 0:
+                return shift
+            time.sleep(min(remaining, 0.05))
+
+    def _execute(self, plan: StepPlan) -> None:
+        w = self.writer
+        assert w is not None
+        step = plan.step
+        t0 = time.monotonic()
+        self.current_step = (step.index, step.name, t0, plan.duration_s)
+        w.set_step(step.index, step.name, step.kind, t0, None)
+        self._event("info", f"step {step.index + 1}/{len(self.proc.steps)}: {step.name}")
+        for cmd in plan.commands:
+            t0 += self._wait_until(t0 + cmd.t_s)
+            now = time.monotonic()
+            if cmd.kind in ("field", "load"):
+                self.lateness_s.append(now - (t0 + cmd.t_s))
+            self._command(step.index, cmd.kind, cmd.payload, now)
+        w.set_step(step.index, step.name, step.kind, self.current_step[2], time.monotonic())
+        if step.kind == "null_field":
+            w.flush()
+            reader = RunReader(w.folder)
+            try:
+                noise = noise_floor(
+                    reader, (self.current_step[2], time.monotonic()), list(self.samplers), 0.3
+                )
+            finally:
+                reader.close()
+            mags = self.proc.magnetometers
+            result = {f"{role}_noise_nt": noise[dev] for role, dev in mags.items() if dev in noise}
+            self._result(step.name, result)
+
+    def _result(self, name: str, value: Any) -> None:
+        assert self.writer is not None
+        self.results[name] = value
+        self.writer.set_result(name, value)
+
+    def _command(self, step_idx: int, kind: str, payload: dict[str, Any], now: float) -> None:
+        w = self.writer
+        assert w is not None
+        if kind == "field":
+            target = np.array(payload["field_ut"])
+            if payload.get("trim"):
+                result = self.controller.trim(target)
+                if not result.settled:
+                    self._event("warning", f"trim did not settle: {result.error_nt:.1f} nT")
+            else:
+                self.controller.set_field(target)
+            # Logged when the ramp has finished: analysis counts settling from here.
+            w.add_command(time.monotonic(), step_idx, kind, payload | {"t_issued": now})
+            for ax, amps in enumerate(self.controller.currents):
+                w.add_channel(time.monotonic(), f"coil_{'xyz'[ax]}", float(amps), None)
+        elif kind == "load":
+            w.add_command(now, step_idx, kind, payload)
+            name, amps = payload["channel"], float(payload["current_a"])
+            self.loads[name].set_current(amps)
+            self.commanded_loads[name] = amps
+            w.add_channel(time.monotonic(), name, amps, None)
+        elif kind == "prompt":
+            text = payload["text"]
+            if self.confirm is None:
+                if not sys.stdin.isatty():
+                    raise RigError(
+                        f"the procedure asks the operator: {text!r}; run in a terminal, or pass --yes"
+                    )
+                ok = input(f"\n{text} [y/N] ").strip().lower() in ("y", "yes")
+            else:
+                ok = self.confirm(text)
+            self._event("operator", f"prompt {text!r}: {'confirmed' if ok else 'declined'}")
+            if not ok:
+                raise RunAborted(f"the operator declined: {text}")
+        elif kind == "calibrate":
+            w.flush()
+            reader = RunReader(w.folder)
+            try:
+                result = calibrate_run(reader, payload, self.proc.magnetometers, self.correction)
+            finally:
+                reader.close()
+            name = self.proc.steps[step_idx].name
+            self._result(name, result)
+        elif kind == "characterize_cage":
+            from rig.cage.characterize import characterize
+
+            model = characterize(self.controller, payload["amplitude_a"], samples=payload["samples"],
+                                 repeats=payload["repeats"])  # fmt: skip
+            self.controller.model = model
+            if self.cfg.cage is not None and self.cfg.cage.calibration is not None:
+                version = model.save(self.cfg.cage.calibration)
+                model.meta["file"] = str(version)
+            w.set_meta(cage_model=model.to_dict())
+            self._result(self.proc.steps[step_idx].name, {
+                "k_ut_per_a": model.k_ut_per_a.tolist(), "b0_ut": model.b0_ut.tolist(),
+                "k_sigma_ut_per_a": model.k_sigma.tolist(), "b0_sigma_ut": model.b0_sigma_ut.tolist(),
+                "residual_rms_nt": model.meta["residual_rms_nt"],
+                "condition_number": model.meta["condition_number"],
+            })  # fmt: skip
+        elif kind == "check":
+            verdict = evaluate_criteria(self.results, payload["criteria"])
+            self._result("verdict", verdict)
+            for row in verdict["criteria"]:
+                self._event(
+                    "info" if row["verdict"] == "PASS" else "warning",
+                    f"check {row['name']}: {row['verdict']}",
+                )
+        elif kind == "report":
+            w.flush()
+            from rig.report.text_report import write_text_report
+
+            write_text_report(w.folder)
+        elif kind == "end":
+            pass
+        else:
+            raise AssertionError(kind)
+
+
+def json_dumps(value: Any) -> str:
+    """JSON for the terminal summary."""
+    return json.dumps(value, indent=2, default=float)

@@ -1,0 +1,126 @@
+"""Magnetometer sampling threads: each sensor at its own rate, monotonic timestamps, into the store.
+
+The sampler is the only reader of its sensor. Others (the cage controller's trim) read through
+:class:`BufferedSensor`, which hands out the sampler's samples as they arrive.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+from drivers.errors import DeviceError
+from drivers.mag.hmr2300 import Hmr2300
+
+Sink = Callable[[float, str, tuple[float, float, float]], None]
+
+
+class SensorSampler:
+    """Reads ``driver`` continuously in a thread; every sample goes to ``sink`` and to subscribers."""
+
+    def __init__(self, name: str, driver: Any, sink: Sink, rate_hz: float = 20.0) -> None:
+        self.name = name
+        self.driver = driver
+        self.sink = sink
+        self.rate_hz = rate_hz
+        self.count = 0
+        self.error: Exception | None = None
+        self.latest: tuple[float, tuple[float, float, float]] | None = None
+        self._cond = threading.Condition()
+        self._recent: deque[tuple[int, float, tuple[float, float, float]]] = deque(maxlen=1000)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"sampler-{name}", daemon=True)
+
+    def start(self) -> None:
+        """Configure streaming where the sensor streams, then start the thread."""
+        if isinstance(self.driver, Hmr2300):
+            self.driver.set_binary(True)
+            rate = min(
+                (r for r in (10, 20, 25, 30, 40, 50, 60, 100, 123, 154) if r >= self.rate_hz),
+                default=154,
+            )
+            self.driver.set_rate(rate)
+            self.rate_hz = rate
+            self.driver.start_stream()
+        self._thread.start()
+
+    def _publish(self, t: float, xyz: tuple[float, float, float]) -> None:
+        self.sink(t, self.name, xyz)
+        with self._cond:
+            self.count += 1
+            self.latest = (t, xyz)
+            self._recent.append((self.count, t, xyz))
+            self._cond.notify_all()
+
+    def _run(self) -> None:
+        period = 1.0 / self.rate_hz
+        next_t = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                if isinstance(self.driver, Hmr2300):
+                    frames = self.driver.read_stream(0.2)
+                    t_now = time.monotonic()
+                    for i, xyz in enumerate(frames):
+                        self._publish(t_now - (len(frames) - 1 - i) / self.rate_hz, xyz)
+                    continue
+                if hasattr(self.driver, "port"):  # a streaming line sensor paces itself
+                    xyz = self.driver.read()
+                    self._publish(time.monotonic(), xyz)
+                    continue
+                next_t += period
+                xyz = self.driver.read()
+                self._publish(time.monotonic(), xyz)
+                self._stop.wait(max(0.0, next_t - time.monotonic()))
+        except (DeviceError, OSError) as exc:
+            self.error = exc
+            with self._cond:
+                self._cond.notify_all()
+
+    def wait_next(
+        self, after: int, timeout_s: float = 2.0
+    ) -> tuple[int, float, tuple[float, float, float]]:
+        """The first sample with sequence number > ``after``."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                if self.error is not None:
+                    raise DeviceError(f"{self.name}: sampling stopped: {self.error}")
+                for seq, t, xyz in self._recent:
+                    if seq > after:
+                        return seq, t, xyz
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DeviceError(
+                        f"{self.name}: no sample for {timeout_s:g} s; is it still connected?"
+                    )
+                self._cond.wait(remaining)
+
+    def stop(self) -> None:
+        """Stop the thread (the driver stays open)."""
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        if isinstance(self.driver, Hmr2300) and self.driver.streaming:
+            with contextlib.suppress(DeviceError, OSError):
+                self.driver.stop_stream()
+
+
+class BufferedSensor:
+    """A sensor view for other consumers: ``read()`` returns the sampler's next sample."""
+
+    def __init__(self, sampler: SensorSampler) -> None:
+        self.sampler = sampler
+        self._seen = 0
+
+    def flush(self) -> None:
+        """Ignore everything sampled so far."""
+        self._seen = self.sampler.count
+
+    def read(self) -> tuple[float, float, float]:
+        """The next sample after the last one handed out."""
+        seq, _, xyz = self.sampler.wait_next(self._seen)
+        self._seen = seq
+        return xyz

@@ -1,0 +1,246 @@
+"""Compile a procedure into a plan: per step, a timeline of small commands.
+
+A plan is data, so it can be dry-run (:func:`dry_run`): duration, peak currents and fields, and
+limit violations are known before any hardware is touched.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from rig.procedure.language import FIELD_STEPS, Procedure, ProcedureError, Step
+
+Array = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Command:
+    """One thing to do at ``t_s`` seconds after its step starts."""
+
+    t_s: float
+    kind: str  # field, load, prompt, calibrate, check, report, trim
+    payload: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class StepPlan:
+    """A step's commands, time-ordered, and its nominal duration (s)."""
+
+    step: Step
+    duration_s: float
+    commands: tuple[Command, ...]
+
+
+def fibonacci_directions(n: int) -> Array:
+    """``n`` nearly uniform unit vectors (Fibonacci sphere)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    r = np.sqrt(1.0 - z**2)
+    phi = math.pi * (1.0 + math.sqrt(5.0)) * k
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+def field_sequence(step: Step) -> list[tuple[float, Array]]:
+    """(time offset, field) pairs of a field step."""
+    p = step.params
+    if step.kind == "null_field":
+        return [(0.0, np.zeros(3))]
+    if step.kind == "set_field":
+        return [(0.0, np.array(p["field_ut"]))]
+    if step.kind == "hold":
+        return []
+    if step.kind == "sphere_sweep":
+        dirs = fibonacci_directions(p["directions"])
+        rng = np.random.default_rng(p["seed"])
+        dirs = dirs[rng.permutation(len(dirs))]
+        lo, hi = p["magnitude_ut"]
+        mags = np.linspace(lo, hi, len(dirs)) if hi > lo else np.full(len(dirs), lo)
+        mags = mags[rng.permutation(len(mags))]
+        return [(i * p["dwell_s"], dirs[i] * mags[i]) for i in range(len(dirs))]
+    if step.kind == "axis_sweep":
+        axis_index = "xyz".index(p["axis"])
+        out = []
+        for i, v in enumerate(np.linspace(p["from_ut"], p["to_ut"], p["points"])):
+            f = np.zeros(3)
+            f[axis_index] = v
+            out.append((i * p["dwell_s"], f))
+        return out
+    if step.kind == "rotate":
+        spin = np.array(p["axis"], float)
+        norm = float(np.linalg.norm(spin))
+        if norm == 0:
+            raise ProcedureError(
+                f"{step.where}: step {step.index + 1} (rotate): axis must not be zero"
+            )
+        spin /= norm
+        helper = np.array([1.0, 0, 0]) if abs(spin[0]) < 0.9 else np.array([0, 1.0, 0])
+        u = np.cross(spin, helper)
+        u /= np.linalg.norm(u)
+        v = np.cross(spin, u)
+        angles = np.linspace(0, 2 * math.pi, p["points"], endpoint=False)
+        return [
+            (i * p["dwell_s"], p["magnitude_ut"] * (math.cos(a) * u + math.sin(a) * v))
+            for i, a in enumerate(angles)
+        ]
+    raise AssertionError(step.kind)
+
+
+def step_duration(step: Step) -> float:
+    """Nominal duration of a field step (s); 0 for instantaneous steps."""
+    p = step.params
+    if step.kind in ("null_field", "set_field", "hold"):
+        return float(p["hold_s"])
+    if step.kind in ("sphere_sweep", "axis_sweep", "rotate"):
+        return len(field_sequence(step)) * float(p["dwell_s"])
+    return 0.0
+
+
+def load_profile(
+    kind: str, p: dict[str, Any], duration_s: float, base: Path
+) -> list[tuple[float, float]]:
+    """(time offset, current A) set-points of a load profile over ``duration_s``."""
+    if kind == "constant":
+        return [(0.0, p["current_a"])]
+    if kind == "steps":
+        levels, dwell = p["levels_a"], p["dwell_s"]
+        n = max(1, math.ceil(duration_s / dwell))
+        return [(i * dwell, levels[i % len(levels)]) for i in range(n)]
+    if kind == "square":
+        out: list[tuple[float, float]] = []
+        t = 0.0
+        while t < duration_s:
+            out += [(t, p["high_a"]), (t + p["duty"] * p["period_s"], p["low_a"])]
+            t += p["period_s"]
+        return [x for x in out if x[0] < duration_s]
+    if kind == "ramp":
+        n = max(1, int(duration_s / p["step_s"]))
+        return [
+            (i * p["step_s"], p["from_a"] + (p["to_a"] - p["from_a"]) * i / max(n - 1, 1))
+            for i in range(n)
+        ]
+    if kind == "beacon":
+        out = [(0.0, p["base_a"])]
+        t = 0.0
+        while t < duration_s:
+            out += [(t, p["pulse_a"]), (t + p["width_s"], p["base_a"])]
+            t += p["period_s"]
+        return sorted(x for x in out if x[0] < duration_s)
+    if kind == "csv":
+        path = (base / p["file"]) if not Path(p["file"]).is_absolute() else Path(p["file"])
+        try:
+            with path.open(newline="") as fh:
+                rows = list(csv.DictReader(fh))
+            return [
+                (float(r["t_s"]), float(r[p["column"]]))
+                for r in rows
+                if float(r["t_s"]) < duration_s
+            ]
+        except FileNotFoundError:
+            raise ProcedureError(f"load profile file {path} not found") from None
+        except (KeyError, ValueError) as exc:
+            raise ProcedureError(
+                f"{path}: needs numeric columns 't_s' and '{p['column']}' ({exc})"
+            ) from None
+    raise AssertionError(kind)
+
+
+def compile_step(step: Step, base: Path) -> StepPlan:
+    """The commands of one step."""
+    cmds: list[Command] = []
+    if step.kind in FIELD_STEPS:
+        duration = step_duration(step)
+        for t, f in field_sequence(step):
+            cmds.append(
+                Command(
+                    t,
+                    "field",
+                    {"field_ut": [float(v) for v in f], "trim": step.params.get("trim") == "yes"},
+                )
+            )
+        for ch, (kind, params) in step.loads.items():
+            for t, amps in load_profile(kind, params, duration, base):
+                cmds.append(Command(t, "load", {"channel": ch, "current_a": float(amps)}))
+            cmds.append(Command(duration, "load", {"channel": ch, "current_a": 0.0}))
+        cmds.append(Command(duration, "end", {}))
+    else:
+        duration = 0.0
+        cmds.append(Command(0.0, step.kind, dict(step.params)))
+    cmds.sort(key=lambda c: (c.t_s, c.kind != "field"))
+    return StepPlan(step, duration, tuple(cmds))
+
+
+def compile_plan(proc: Procedure) -> Iterator[StepPlan]:
+    """The plan: a generator of step plans (so a run can start before all are compiled)."""
+    for step in proc.steps:
+        yield compile_step(step, proc.path.parent)
+
+
+@dataclass
+class DryRun:
+    """What a procedure will do: duration, peaks and limit violations."""
+
+    duration_s: float = 0.0
+    peak_field_ut: float = 0.0
+    peak_current_a: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    peak_load_a: dict[str, float] = field(default_factory=dict)
+    violations: list[str] = field(default_factory=list)
+    timeline: list[tuple[float, str, str]] = field(default_factory=list)  # start, step, summary
+
+
+def dry_run(
+    proc: Procedure,
+    k_ut_per_a: Array | None = None,
+    b0_ut: Array | None = None,
+    max_current_a: tuple[float, float, float] | None = None,
+    max_field_ut: float | None = None,
+    load_max_a: dict[str, float] | None = None,
+) -> DryRun:
+    """Check a procedure without hardware; currents need the cage model (``k_ut_per_a``, ``b0_ut``)."""
+    out = DryRun()
+    t = 0.0
+    for plan in compile_plan(proc):
+        s = plan.step
+        fields = [np.array(c.payload["field_ut"]) for c in plan.commands if c.kind == "field"]
+        summary = (
+            f"{s.kind}"
+            + (f", {len(fields)} fields" if fields else "")
+            + (f", loads {', '.join(s.loads)}" if s.loads else "")
+        )
+        out.timeline.append((t, s.name, summary))
+        for f in fields:
+            mag = float(np.linalg.norm(f))
+            out.peak_field_ut = max(out.peak_field_ut, mag)
+            if max_field_ut is not None and mag > max_field_ut + 1e-9:
+                out.violations.append(
+                    f"{s.where}: step {s.index + 1} ({s.name}): |B| = {mag:.1f} uT exceeds the {max_field_ut:g} uT limit"
+                )
+            if k_ut_per_a is not None:
+                currents = np.linalg.solve(k_ut_per_a, f - (b0_ut if b0_ut is not None else 0.0))
+                for ax in range(3):
+                    out.peak_current_a[ax] = max(out.peak_current_a[ax], abs(float(currents[ax])))
+                    if max_current_a is not None and abs(currents[ax]) > max_current_a[ax] + 1e-9:
+                        out.violations.append(
+                            f"{s.where}: step {s.index + 1} ({s.name}): field {np.round(f, 1).tolist()} uT needs {currents[ax]:+.2f} A on axis {'xyz'[ax]}, beyond {max_current_a[ax]:g} A"
+                        )
+        for c in plan.commands:
+            if c.kind == "load":
+                ch, amps = c.payload["channel"], abs(c.payload["current_a"])
+                out.peak_load_a[ch] = max(out.peak_load_a.get(ch, 0.0), amps)
+                limit = (load_max_a or {}).get(ch)
+                if limit is not None and amps > limit + 1e-9:
+                    out.violations.append(
+                        f"{s.where}: step {s.index + 1} ({s.name}): load {ch} {amps:g} A exceeds {limit:g} A"
+                    )
+        t += plan.duration_s
+    out.duration_s = t
+    # keep each violation once (sweeps repeat the same message per point)
+    out.violations = list(dict.fromkeys(out.violations))
+    return out
