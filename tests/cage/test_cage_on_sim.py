@@ -123,7 +123,7 @@ def test_polarity_flips_at_zero_and_limits_refuse(
     sent = len(controller.sent)
     with pytest.raises(CageLimitError, match="field limit"):
         controller.set_field([100.0, 100.0, 0.0])
-    with pytest.raises(CageLimitError, match=r"beyond the 1\.5 A limit"):
+    with pytest.raises(CageLimitError, match=r"beyond the 2\.5 A limit"):
         controller.set_currents([0.0, 0.0, 3.0])
     assert len(controller.sent) == sent
 
