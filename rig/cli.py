@@ -58,12 +58,17 @@ def build_parser() -> argparse.ArgumentParser:
             " field unit works; results are labelled uT."
         ),
     )
-    cal.add_argument("data", type=Path, metavar="DATA.csv", help="CSV file with a header row")
     cal.add_argument(
-        "--measured", required=True, type=_columns, metavar="COLX,COLY,COLZ",
+        "data",
+        type=Path,
+        metavar="DATA.csv|RUN",
+        help="CSV file with a header row, or a run folder",
+    )
+    cal.add_argument(
+        "--measured", type=_columns, metavar="COLX,COLY,COLZ",
         help="raw DUT reading columns",
     )  # fmt: skip
-    ref = cal.add_mutually_exclusive_group(required=True)
+    ref = cal.add_mutually_exclusive_group()
     ref.add_argument(
         "--field", type=_columns, metavar="COLX,COLY,COLZ",
         help="reference field vector columns (vector calibration)",
@@ -115,6 +120,53 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sim.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     sim.set_defaults(func=_cmd_sim)
+
+    runp = sub.add_parser("run", parents=[common], help="run a procedure on the rig")
+    runp.add_argument(
+        "procedure", metavar="PROCEDURE", help="a .yaml file or a shipped procedure name"
+    )
+    runp.add_argument(
+        "--rig", type=Path, required=True, metavar="CONFIG.toml", help="rig configuration"
+    )
+    runp.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE", help="set a procedure parameter"
+    )
+    runp.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    runp.add_argument(
+        "--yes", action="store_true", help="confirm operator prompts automatically (recorded)"
+    )
+    runp.set_defaults(func=_cmd_run)
+    chk = sub.add_parser(
+        "check", parents=[common], help="dry-run a procedure: timeline, duration, limits"
+    )
+    chk.add_argument("procedure", metavar="PROCEDURE")
+    chk.add_argument(
+        "--rig",
+        type=Path,
+        metavar="CONFIG.toml",
+        help="check currents and fields against its limits",
+    )
+    chk.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    chk.set_defaults(func=_cmd_check)
+    demo = sub.add_parser(
+        "demo", parents=[common], help="the acceptance procedure on the simulated cage"
+    )
+    demo.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    demo.add_argument("--procedure", default="dut-acceptance", metavar="PROCEDURE")
+    demo.set_defaults(func=_cmd_demo)
+    runs = sub.add_parser("runs", parents=[common], help="list recorded runs")
+    runs.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    runs.set_defaults(func=_cmd_runs)
+    show = sub.add_parser("show", parents=[common], help="show one run")
+    show.add_argument("run", metavar="RUN")
+    show.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    show.set_defaults(func=_cmd_show)
+    exp = sub.add_parser("export", parents=[common], help="export a run to CSV or HDF5")
+    exp.add_argument("run", metavar="RUN")
+    exp.add_argument("--format", choices=("csv", "hdf5"), default="csv")
+    exp.add_argument("--out", type=Path, metavar="PATH")
+    exp.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    exp.set_defaults(func=_cmd_export)
 
     cage = sub.add_parser(
         "cage",
@@ -169,6 +221,14 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from rig.calibration import Samples, calibrate
     from rig.io.csv_table import read_columns
 
+    if args.data.is_dir():
+        return _calibrate_run(args)
+    if args.measured is None:
+        raise UserInputError("--measured COLX,COLY,COLZ is required for a CSV file")
+    if args.field is None and args.field_magnitude is None:
+        raise UserInputError(
+            "give --field COLX,COLY,COLZ (vector) or --field-magnitude COL (scalar)"
+        )
     if len(args.measured) != 3:
         raise UserInputError(f"--measured needs three columns X,Y,Z, got {len(args.measured)}")
     if args.field is not None and len(args.field) != 3:
@@ -212,6 +272,35 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _calibrate_run(args: argparse.Namespace) -> int:
+    """Re-fit the DUT from a stored run (its procedure's magnetometers and loads by default)."""
+    from rig.calibration import calibrate
+    from rig.calibration.export_c import c_header
+    from rig.engine.analysis import calibration_samples
+    from rig.report.tables import calibration_table
+    from rig.store import RunReader
+
+    reader = RunReader(args.data)
+    try:
+        meta = reader.meta()
+        mags = meta.get("magnetometers", {"dut": "dut", "reference": "reference"})
+        telemetry = list(args.telemetry) if args.telemetry else list(meta.get("loads", []))
+        samples = calibration_samples(reader, mags.get("dut", "dut"), mags.get("reference", "reference"),
+                                      telemetry, [], 0.25, meta.get("reference_correction"))  # fmt: skip
+    finally:
+        reader.close()
+    if args.field_magnitude is not None:
+        samples = samples.as_scalar()
+    result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust)
+    if args.out is not None:
+        _write(args.out, json.dumps(result.to_dict(), indent=2) + "\n")
+    if args.c_header is not None:
+        _write(args.c_header, c_header(result, prefix=args.c_header.stem, source=str(args.data)))
+    if not args.quiet:
+        print(calibration_table(result, source=str(args.data), verbose=args.verbose))
+    return EXIT_OK
+
+
 def _write(path: Path, text: str) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -224,6 +313,42 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     from rig.sim_command import run_sim
 
     return run_sim(args.config, args.endpoints_json, args.rig_config, args.duration, args.quiet)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from rig.run_commands import run_procedure
+
+    return run_procedure(args.procedure, args.rig, args.set, args.runs_dir, args.yes, args.quiet)
+
+
+def _cmd_check(args: argparse.Namespace) -> int:
+    from rig.run_commands import run_check
+
+    return run_check(args.procedure, args.rig, args.set, args.quiet)
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from rig.run_commands import run_demo
+
+    return run_demo(args.runs_dir, args.procedure, args.quiet)
+
+
+def _cmd_runs(args: argparse.Namespace) -> int:
+    from rig.run_commands import list_runs_cmd
+
+    return list_runs_cmd(args.runs_dir, args.quiet)
+
+
+def _cmd_show(args: argparse.Namespace) -> int:
+    from rig.run_commands import show_run
+
+    return show_run(args.run, args.runs_dir)
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from rig.run_commands import export_run
+
+    return export_run(args.run, args.runs_dir, args.format, args.out)
 
 
 def _cmd_cage_characterize(args: argparse.Namespace) -> int:

@@ -291,6 +291,8 @@ class Runner:
             if cmd.kind in ("field", "load"):
                 self.lateness_s.append(now - (t0 + cmd.t_s))
             self._command(step.index, cmd.kind, cmd.payload, now)
+            if cmd.kind == "field" and step.kind in ("null_field", "set_field"):
+                t0 = time.monotonic() - cmd.t_s  # the hold starts once the field is there
         w.set_step(step.index, step.name, step.kind, self.current_step[2], time.monotonic())
         if step.kind == "null_field":
             w.flush()
