@@ -1,0 +1,153 @@
+"""End to end on the simulated cage: the demo recovers the hidden DUT, and every way a run can end
+leaves all supplies off with the data readable."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+
+from rig.cli import main
+from rig.config import load_rig_config
+from rig.engine.runner import Runner
+from rig.procedure.language import parse_procedure
+from rig.run_commands import find_procedure
+from rig.sim_command import sim_rig_config
+from rig.store import RunReader
+from sim.cage import SimulatedCage
+from sim.config import load_config
+
+
+@pytest.mark.slow
+def test_demo_recovers_the_hidden_dut_within_3_sigma(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["demo", "--runs-dir", str(tmp_path)]) == 0  # the README's main command
+    out = capsys.readouterr().out
+    assert "VERDICT: PASS" in out and "report:" in out
+    folder = next(p for p in tmp_path.iterdir() if (p / "run.sqlite").exists())
+    reader = RunReader(folder)
+    res, meta = reader.results(), reader.meta()
+    reader.close()
+    assert meta["status"] == "complete" and (folder / "report.txt").exists()
+    vec = res["vector calibration"]
+    truth = load_config().magnetometer("dut")
+    expected = {
+        "a": truth.scale[0], "b": truth.scale[1], "c": truth.scale[2],
+        "x0_ut": truth.offset_ut[0], "y0_ut": truth.offset_ut[1], "z0_ut": truth.offset_ut[2],
+        "rho_deg": truth.nonorth_deg[0], "phi_deg": truth.nonorth_deg[1], "lambda_deg": truth.nonorth_deg[2],
+    }  # fmt: skip
+    z = {k: (vec["springmann"][k] - v) / vec["sigma"]["springmann"][k] for k, v in expected.items()}
+    for ch, k_true in truth.k_ut_per_a.items():
+        for ax in range(3):
+            z[f"k[{ch}].{ax}"] = (vec["correction"]["k_ut_per_unit"][ch][ax] - k_true[ax]) / vec[
+                "sigma"
+            ]["k_ut_per_unit"][ch][ax]
+    for ax in range(3):  # the mounting, as a small rotation vector
+        z[f"mount.{ax}"] = (
+            vec["mounting"]["rotation_vector_deg"][ax] - truth.mounting_deg[ax]
+        ) / vec["sigma"]["mounting_deg"][ax]
+    worst = max(z, key=lambda k: abs(z[k]))
+    assert abs(z[worst]) < 3.0, f"{worst} is {z[worst]:+.2f} sigma from the truth"
+    scalar = res["scalar calibration"]
+    for key in ("a", "b", "c"):
+        zz = (scalar["springmann"][key] - expected[key]) / scalar["sigma"]["springmann"][key]
+        assert abs(zz) < 3.0, (key, zz)
+
+
+@pytest.fixture(scope="module")
+def sim_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, dict[str, Any]]]:
+    tmp = tmp_path_factory.mktemp("sim")
+    rig_toml, ep = tmp / "rig.toml", tmp / "ep.json"
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "-q", "sim", "--rig-config", str(rig_toml),
+                             "--endpoints-json", str(ep)])  # fmt: skip
+    deadline = time.monotonic() + 20
+    while not (rig_toml.exists() and ep.exists()):
+        assert proc.poll() is None and time.monotonic() < deadline
+        time.sleep(0.05)
+    yield rig_toml, json.loads(ep.read_text())["devices"]
+    proc.send_signal(signal.SIGINT)
+    proc.wait(timeout=15)
+
+
+def outputs(devices: dict[str, Any]) -> dict[str, int]:
+    """Output-enable registers of every supply and load, read over their own wires."""
+    out = {}
+    for name, d in devices.items():
+        if d["kind"] not in ("riden-rd60xx", "regmap-eload"):
+            continue
+        reg = 18 if d["kind"] == "riden-rd60xx" else 0x0A10
+        if d["protocol"] == "modbus-tcp":
+            client: Any = ModbusTcpClient(d["host"], port=d["port"], timeout=2)
+        else:
+            client = ModbusSerialClient(d["path"], baudrate=d["baudrate"], timeout=2)
+        with client:
+            out[name] = client.read_holding_registers(
+                reg, count=1, device_id=d["device_id"]
+            ).registers[0]
+    return out
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_interrupted_run_leaves_supplies_off_and_data_readable(
+    sim_process: tuple[Path, dict[str, Any]], tmp_path: Path, sig: int
+) -> None:
+    rig_toml, devices = sim_process
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "-q", "run", "dut-acceptance", "--rig", str(rig_toml),
+                             "--yes", "--runs-dir", str(tmp_path)], stderr=subprocess.PIPE, text=True)  # fmt: skip
+    deadline = time.monotonic() + 30
+    while True:  # wait until the sweep with currents is running
+        folders = [p for p in tmp_path.iterdir() if (p / "run.sqlite").exists()]
+        if folders:
+            r = RunReader(folders[0])
+            steps = r.steps()
+            r.close()
+            if any(name == "sweep with currents" for _, name, _, _, _ in steps):
+                break
+        assert proc.poll() is None and time.monotonic() < deadline, "run did not reach the sweep"
+        time.sleep(0.2)
+    time.sleep(2.0)
+    t_signal = time.monotonic()
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=30)
+    t_exit = time.monotonic()
+    assert proc.returncode == 130, err
+    assert all(v == 0 for v in outputs(devices).values()), outputs(devices)
+    reader = RunReader(folders[0])
+    meta = reader.meta()
+    assert meta["status"] == "aborted" and reader.count("samples") > 100
+    assert len(reader.samples("dut")) > 20 and reader.channel("load_bus")
+    reader.close()
+    assert t_exit - t_signal < 10.0
+
+
+def test_a_device_that_stops_answering_ends_the_run_safely(tmp_path: Path) -> None:
+    cfg = load_config()
+    with SimulatedCage(cfg) as cage:
+        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+        rc = load_rig_config(tmp_path / "rig.toml")
+        proc = parse_procedure(find_procedure("smoke"))
+        threading.Timer(4.0, lambda: setattr(cage.faults["coil_x"], "silent", True)).start()
+        outcome = Runner(
+            proc, rc, tmp_path / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False
+        ).run()
+        cage.faults["coil_x"].silent = False
+        time.sleep(0.3)  # > 10 L/R: the coil currents of the switched-off supplies have decayed
+        assert outcome.status == "error" and "coil_x" in outcome.reason, outcome.reason
+        for name, s in cage.physics.supplies.items():
+            if name != "coil_x":  # the dead one kept its last state, as real hardware would
+                assert not s.output, name
+                assert math.isclose(s.output_current(), 0.0, abs_tol=1e-3), name
+        reader = RunReader(outcome.folder)
+        assert reader.meta()["status"] == "error" and reader.count("samples") > 20
+        reader.close()
