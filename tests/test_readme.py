@@ -27,11 +27,21 @@ def test_readme_has_exactly_two_commands() -> None:
     assert "pytest" in _block("test-command")
 
 
-def test_main_command_rig_steps(
+def test_main_command_is_the_demo() -> None:
+    """The main command runs `rig demo`; tests/engine/test_runs_e2e.py runs the demo itself."""
+    steps = [s.strip() for s in _block("main-command").split("&&")]
+    rig_steps = [shlex.split(s)[1:] for s in steps if s.startswith(".venv/bin/rig ")]
+    assert rig_steps == [["demo"]]
+    from rig.cli import build_parser
+
+    assert build_parser().parse_args(rig_steps[0]).func.__name__ == "_cmd_demo"
+
+
+def test_csv_example_rig_steps(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     monkeypatch.chdir(tmp_path)
-    steps = [s.strip() for s in _block("main-command").split("&&")]
+    steps = [s.strip() for s in _block("csv-example").split("&&")]
     rig_steps = [shlex.split(s)[1:] for s in steps if s.startswith(".venv/bin/rig ")]
     assert len(rig_steps) == 2
     for argv in rig_steps:
