@@ -141,26 +141,41 @@ def run_procedure(
 
 
 def run_demo(runs_dir: Path, procedure: str, quiet: bool) -> int:
-    """``rig demo``: the simulated cage in-process, the acceptance procedure, no prompts."""
+    """``rig demo``: start ``rig sim`` as a child process, run a shipped procedure on it without
+    prompts, stop the simulator. A separate process gives the simulator its own core, as real
+    instruments have their own electronics."""
+    import signal
+    import subprocess
+    import sys
+
     from rig.engine.runner import Runner
-    from rig.sim_command import sim_rig_config
-    from sim.cage import SimulatedCage
-    from sim.config import load_config
 
     t0 = time.monotonic()
-    sim_cfg = load_config()
     proc: Procedure = parse_procedure(find_procedure(procedure))
     runs_dir.mkdir(parents=True, exist_ok=True)
-    with SimulatedCage(sim_cfg) as cage:
-        rig_toml = runs_dir / "sim-rig.toml"
-        rig_toml.write_text(sim_rig_config(cage.endpoints_document(), sim_cfg), encoding="utf-8")
+    rig_toml = runs_dir / "sim-rig.toml"
+    rig_toml.unlink(missing_ok=True)
+    child = subprocess.Popen(
+        [sys.executable, "-m", "rig.cli", "-q", "sim", "--rig-config", str(rig_toml)]
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while not rig_toml.exists():
+            if child.poll() is not None or time.monotonic() > deadline:
+                raise UserInputError("the simulated cage did not start; run 'rig sim' to see why")
+            time.sleep(0.05)
         cfg = load_rig_config(rig_toml)
         if not quiet:
-            print(f"simulated cage running; procedure '{proc.title}' ({proc.path.name})")
-        runner = Runner(
-            proc, cfg, runs_dir, i2c_bus=cage.i2c_bus, confirm=_confirm_all, quiet=quiet
-        )
-        outcome = runner.run()
+            print(
+                f"simulated cage running (pid {child.pid}); procedure '{proc.title}' ({proc.path.name})"
+            )
+        outcome = Runner(proc, cfg, runs_dir, confirm=_confirm_all, quiet=quiet).run()
+    finally:
+        child.send_signal(signal.SIGINT)
+        try:
+            child.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            child.kill()
     summarize(outcome, quiet)
     if not quiet:
         print(f"demo took {time.monotonic() - t0:.0f} s")

@@ -95,6 +95,7 @@ class CageController:
         self.currents = np.zeros(3)
         self.signs = [1, 1, 1]
         self.sent: list[Array] = []  # every set-point vector sent, for audit and tests
+        self.last_send_s: float | None = None
         self.enabled = False
 
     # --- outputs --------------------------------------------------------------------------------
@@ -125,6 +126,7 @@ class CageController:
             drive.supply.set_current(abs(value))
         self.currents = point.copy()
         self.sent.append(point.copy())
+        self.last_send_s = time.monotonic()
 
     def _flip(self, axis: int, sign: int) -> None:
         """Break before make: wait for the coil current to decay, then switch the relay."""
@@ -162,6 +164,33 @@ class CageController:
         self.limits.check_field(field, "set_field")
         currents = self.model.currents_a(field)
         self.limits.check_currents(currents, f"field {np.round(field, 2).tolist()} uT")
+        return self.set_currents(currents)
+
+    def track(self, field_ut: npt.ArrayLike) -> Array:
+        """Follow a slowly changing field (orbit replay): one set-point, no ramp, when the change
+        fits within the slew limit for the time since the last set-point; otherwise a ramp. An
+        axis changing sign behind relays always ramps through zero (break before make)."""
+        field = np.asarray(field_ut, float)
+        self.limits.check_field(field, "track")
+        currents = self.model.currents_a(field)
+        self.limits.check_currents(currents, f"field {np.round(field, 2).tolist()} uT")
+        if not self.enabled:
+            self.enable()
+        elapsed = (
+            self.limits.step_s if self.last_send_s is None else time.monotonic() - self.last_send_s
+        )
+        allowed = self.limits.max_slew_a_per_s * elapsed
+        flips = [
+            ax for ax, d in enumerate(self.axes)
+            if not d.bipolar and currents[ax] != 0 and (1 if currents[ax] > 0 else -1) != self.signs[ax]
+            and self.currents[ax] != 0
+        ]  # fmt: skip
+        change = float(np.max(np.abs(currents - self.currents)))
+        if not flips and change <= self.limits.max_step_a:
+            if change > allowed:  # too soon after the last set-point: wait the slew out
+                self.sleep((change - allowed) / self.limits.max_slew_a_per_s)
+            self._send(currents)
+            return self.currents.copy()
         return self.set_currents(currents)
 
     def null_field(self) -> Array:

@@ -121,8 +121,10 @@ class Runner:
                 w.set_meta(**{f"samples_{name}": s.count})
             if self.lateness_s:
                 lat = np.array(self.lateness_s)
-                w.set_meta(command_lateness_p99_ms=float(1000 * np.percentile(lat, 99)),
-                           command_lateness_max_ms=float(1000 * lat.max()))  # fmt: skip
+                w.set_meta(command_lateness_p50_ms=float(1000 * np.percentile(lat, 50)),
+                           command_lateness_p99_ms=float(1000 * np.percentile(lat, 99)),
+                           command_lateness_max_ms=float(1000 * lat.max()),
+                           commands_scheduled=int(lat.size))  # fmt: skip
             w.close(status, reason)
             self._restore_signals(old)
         return RunOutcome(status, reason, w.folder, self.results)
@@ -317,7 +319,9 @@ class Runner:
         assert w is not None
         if kind == "field":
             target = np.array(payload["field_ut"])
-            if payload.get("trim"):
+            if payload.get("track"):
+                self.controller.track(target)
+            elif payload.get("trim"):
                 result = self.controller.trim(target)
                 if not result.settled:
                     self._event("warning", f"trim did not settle: {result.error_nt:.1f} nT")

@@ -114,6 +114,16 @@ FIELD_STEPS: dict[str, dict[str, Param]] = {
         "points": Param("int", 11, 2, 10000),
         "dwell_s": Param("float", 0.5, 0.05, 3600.0),
     },
+    "orbit_replay": {
+        "tle": Param("list_str", required=True),
+        "start": Param("str", required=True),
+        "duration_s": Param("float", required=True, minimum=0.1, maximum=86400.0),
+        "time_scale": Param("float", 1.0, 0.01, 10000.0),
+        "rate_hz": Param("float", 10.0, 0.1, 200.0),
+        "attitude": Param("str", "nadir", choices=("inertial", "nadir", "tumbling")),
+        "tumble_deg_s": Param("float", 2.0, 0.0, 360.0),
+        "panels": Param("list_dict", []),
+    },
     "rotate": {
         "magnitude_ut": Param("float", 40.0, 0.0, 1000.0),
         "axis": Param("vec3", [0.0, 0.0, 1.0]),
@@ -182,6 +192,7 @@ class Step:
     params: dict[str, Any]
     loads: dict[str, tuple[str, dict[str, Any]]]
     where: Where
+    loads_allowed: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -415,7 +426,13 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
         name = str(raw.get("name") or params.get("name") or f"{kind} {i + 1}")
         steps.append(
             Step(
-                i, kind, _substitute(name, names, where), params, step_loads, Where(str(path), line)
+                i,
+                kind,
+                _substitute(name, names, where),
+                params,
+                step_loads,
+                Where(str(path), line),
+                tuple(loads),
             )
         )
     return Procedure(

@@ -93,9 +93,53 @@ def field_sequence(step: Step) -> list[tuple[float, Array]]:
     raise AssertionError(step.kind)
 
 
+def orbit_commands(step: Step) -> tuple[list[Command], float]:
+    """Field commands at ``rate_hz`` (tracked, no ramps) and panel-current commands of an orbit."""
+    from rig.procedure.orbit import FACES, orbit_track, panel_current, parse_start
+
+    p = step.params
+    where = f"{step.where}: step {step.index + 1} (orbit_replay)"
+    if len(p["tle"]) != 2:
+        raise ProcedureError(f"{where}: 'tle' must be the two TLE lines")
+    try:
+        start = parse_start(p["start"])
+    except ValueError as exc:
+        raise ProcedureError(f"{where}: {exc}") from None
+    t_wall = np.arange(0.0, p["duration_s"], 1.0 / p["rate_hz"])
+    try:
+        track = orbit_track(
+            p["tle"][0],
+            p["tle"][1],
+            start,
+            t_wall * p["time_scale"],
+            p["attitude"],
+            p["tumble_deg_s"],
+        )
+    except ValueError as exc:
+        raise ProcedureError(f"{where}: {exc}") from None
+    cmds = [Command(float(t), "field", {"field_ut": [float(v) for v in f], "track": True})
+            for t, f in zip(t_wall, track.field_body_ut, strict=True)]  # fmt: skip
+    for panel in p["panels"]:
+        ch, face, max_a = panel.get("channel"), panel.get("face"), panel.get("max_a")
+        if ch not in step.loads_allowed or face not in FACES or not isinstance(max_a, int | float):
+            raise ProcedureError(
+                f"{where}: a panel needs channel (one of the procedure's loads), face ({', '.join(FACES)}) and max_a"
+            )
+        amps = np.round(panel_current(track, face, float(max_a)), 3)  # 1 mA resolution
+        last = None
+        for t, a in zip(t_wall, amps, strict=True):
+            if last is None or abs(a - last) >= 0.002 or (a == 0.0 and last != 0.0):
+                cmds.append(Command(float(t), "load", {"channel": ch, "current_a": float(a)}))
+                last = a
+        cmds.append(Command(p["duration_s"], "load", {"channel": ch, "current_a": 0.0}))
+    return cmds, float(p["duration_s"])
+
+
 def step_duration(step: Step) -> float:
     """Nominal duration of a field step (s); 0 for instantaneous steps."""
     p = step.params
+    if step.kind == "orbit_replay":
+        return float(p["duration_s"])
     if step.kind in ("null_field", "set_field", "hold"):
         return float(p["hold_s"])
     if step.kind in ("sphere_sweep", "axis_sweep", "rotate"):
@@ -155,7 +199,10 @@ def load_profile(
 def compile_step(step: Step, base: Path) -> StepPlan:
     """The commands of one step."""
     cmds: list[Command] = []
-    if step.kind in FIELD_STEPS:
+    if step.kind == "orbit_replay":
+        cmds, duration = orbit_commands(step)
+        cmds.append(Command(duration, "end", {}))
+    elif step.kind in FIELD_STEPS:
         duration = step_duration(step)
         for t, f in field_sequence(step):
             cmds.append(
