@@ -166,13 +166,12 @@ class Runner:
         for role, dev_name in mags.items():
             if dev_name not in self.cfg.devices:
                 raise RigError(
-                    f"{self.proc.path}: magnetometer role '{role}' names '{dev_name}', which is not in {self.cfg.path}"
+                    f"{self.proc.path}: magnetometer role '{role}' names '{dev_name}',"
+                    f" which is not in {self.cfg.path}"
                 )
-            if (
-                role == "reference"
-                and self.cfg.cage is not None
-                and self.cfg.cage.reference == dev_name
-            ):
+        cage_reference = self.cfg.cage.reference if self.cfg.cage is not None else None
+        for dev_name in dict.fromkeys(mags.values()):  # one sampler per device, whatever its roles
+            if dev_name == cage_reference:
                 driver = self.controller.reference
             else:
                 driver = open_device(self.cfg.devices[dev_name], self.i2c_bus)
@@ -180,17 +179,13 @@ class Runner:
             with contextlib.suppress(Exception):
                 if not hasattr(driver, "fmt"):
                     ident = driver.identify()
-                    instruments[role] = f"{ident.model} {ident.serial}".strip()
-            sampler = SensorSampler(
-                dev_name,
-                driver,
-                w.add_sample,
-                float(self.cfg.devices[dev_name].get("rate_hz", 20.0)),
-            )
+                    instruments[dev_name] = f"{ident.model} {ident.serial}".strip()
+            rate = float(self.cfg.devices[dev_name].get("rate_hz", 20.0))
+            sampler = SensorSampler(dev_name, driver, w.add_sample, rate)
             sampler.start()
             stack.callback(sampler.stop)
             self.samplers[dev_name] = sampler
-            if role == "reference":
+            if dev_name == cage_reference:
                 self.controller.reference = BufferedSensor(sampler)
         for name in self.proc.loads:
             if name not in self.cfg.devices:
@@ -234,6 +229,9 @@ class Runner:
         if self.live_enabled:
             self.live = LiveView(self)
             self.live.start()
+        # Registered last so it runs first on the way out: the coils are ramped down and their
+        # supplies switched off before anything else is stopped (safe() is idempotent).
+        stack.callback(self.controller.safe)
 
     def _safe_load(self, name: str, load: Any) -> None:
         try:

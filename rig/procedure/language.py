@@ -218,6 +218,11 @@ def _coerce(value: Any, p: Param, key: str, where: str) -> Any:
         return ProcedureError(f"{where}: '{key}' {what}")
 
     if p.kind in ("float", "int"):
+        if isinstance(value, str):  # a "{parameter}" substituted from --set or a default
+            try:
+                value = float(value)
+            except ValueError:
+                raise bad(f"must be a number, got {value!r}") from None
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise bad(f"must be a number, got {value!r}")
         if p.kind == "int" and not float(value).is_integer():

@@ -88,11 +88,16 @@ def attitude_matrices(kind: str, r: Array, v: Array, t_s: Array, tumble_deg_s: f
         x = np.cross(y, z)
         return np.stack([x, y, z], axis=1)
     if kind == "tumbling":
-        axis = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
-        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-        ang = np.radians(tumble_deg_s) * t_s
-        s, c = np.sin(ang)[:, None, None], np.cos(ang)[:, None, None]
-        rot = np.eye(3) + s * k + (1 - c) * (k @ k)
+        # A spin about one body axis while that axis precesses (as a tumbling, slightly
+        # asymmetric body does): the body sees the field from every direction within minutes.
+        def spin(axis: Array, ang: Array) -> Array:
+            axis = axis / np.linalg.norm(axis)
+            k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+            s_, c_ = np.sin(ang)[:, None, None], np.cos(ang)[:, None, None]
+            return np.asarray(np.eye(3) + s_ * k + (1 - c_) * (k @ k), dtype=np.float64)
+
+        w = np.radians(tumble_deg_s) * t_s
+        rot = spin(np.array([0.0, 0.0, 1.0]), 0.37 * w) @ spin(np.array([0.3, 0.5, 0.8]), w)
         return np.transpose(rot, (0, 2, 1))
     raise ValueError(f"unknown attitude {kind!r}: use inertial, nadir or tumbling")
 
