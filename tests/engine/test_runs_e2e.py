@@ -203,3 +203,27 @@ def test_shipped_procedures_run_on_the_simulator(sim_process: tuple[Path, dict[s
     )
     reader.close()
     assert all(v == 0 for v in outputs(devices).values())
+
+
+def test_pause_and_resume_with_sigusr1(tmp_path: Path) -> None:
+    import os
+
+    cfg = load_config()
+    with SimulatedCage(cfg) as cage:
+        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+        rc = load_rig_config(tmp_path / "rig.toml")
+        proc = parse_procedure(find_procedure("smoke"))
+        pid = os.getpid()
+        threading.Timer(3.0, os.kill, (pid, signal.SIGUSR1)).start()
+        threading.Timer(5.0, os.kill, (pid, signal.SIGUSR1)).start()
+        t0 = time.monotonic()
+        outcome = Runner(
+            proc, rc, tmp_path / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False
+        ).run()
+        took = time.monotonic() - t0
+    assert outcome.status == "complete", outcome.reason
+    reader = RunReader(outcome.folder)
+    messages = [m for _, level, m in reader.events() if level == "operator"]
+    reader.close()
+    assert "paused" in messages and "resumed" in messages
+    assert took > 8.5  # the smoke procedure's ~7 s plus the 2 s pause
