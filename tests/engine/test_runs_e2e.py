@@ -126,6 +126,7 @@ def test_interrupted_run_leaves_supplies_off_and_data_readable(
     while any(v == 1 for v in outputs(devices, tcp_only=True).values()):  # poll over their wires
         assert time.monotonic() - t_signal < 5.0
     t_safe = time.monotonic() - t_signal
+    print(f"time to safe after {signal.Signals(sig).name}: {t_safe * 1000:.0f} ms")
     _, err = proc.communicate(timeout=30)
     t_exit = time.monotonic()
     assert proc.returncode == 130, err
