@@ -11,6 +11,7 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from drivers.errors import DeviceError
 from rig import __version__
@@ -218,7 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from rig.calibration import Samples, calibrate
+    from rig.calibration import Samples
     from rig.io.csv_table import read_columns
 
     if args.data.is_dir():
@@ -255,16 +256,21 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             telemetry=telemetry,
             channels=tuple(args.telemetry),
         )
+    return _fit_and_emit(samples, args)
+
+
+def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:
+    """Fit, write the result file and C header if asked, print the table."""
+    from rig.calibration import calibrate
+    from rig.calibration.export_c import c_header
+    from rig.report.tables import calibration_table
+
     result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust)
     if args.out is not None:
         _write(args.out, json.dumps(result.to_dict(), indent=2) + "\n")
     if args.c_header is not None:
-        from rig.calibration.export_c import c_header
-
         _write(args.c_header, c_header(result, prefix=args.c_header.stem, source=str(args.data)))
     if not args.quiet:
-        from rig.report.tables import calibration_table
-
         print(calibration_table(result, source=str(args.data), verbose=args.verbose))
         for path in (args.out, args.c_header):
             if path is not None:
@@ -273,11 +279,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _calibrate_run(args: argparse.Namespace) -> int:
-    """Re-fit the DUT from a stored run (its procedure's magnetometers and loads by default)."""
-    from rig.calibration import calibrate
-    from rig.calibration.export_c import c_header
+    """Re-fit the DUT from a stored run (its procedure's magnetometers and loads by default);
+    ``--method ml`` (or another scalar method) fits attitude-independently from the same data."""
     from rig.engine.analysis import calibration_samples
-    from rig.report.tables import calibration_table
     from rig.store import RunReader
 
     reader = RunReader(args.data)
@@ -289,16 +293,7 @@ def _calibrate_run(args: argparse.Namespace) -> int:
                                       telemetry, [], 0.25, meta.get("reference_correction"))  # fmt: skip
     finally:
         reader.close()
-    if args.field_magnitude is not None:
-        samples = samples.as_scalar()
-    result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust)
-    if args.out is not None:
-        _write(args.out, json.dumps(result.to_dict(), indent=2) + "\n")
-    if args.c_header is not None:
-        _write(args.c_header, c_header(result, prefix=args.c_header.stem, source=str(args.data)))
-    if not args.quiet:
-        print(calibration_table(result, source=str(args.data), verbose=args.verbose))
-    return EXIT_OK
+    return _fit_and_emit(samples, args)
 
 
 def _write(path: Path, text: str) -> None:
