@@ -3,30 +3,21 @@
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from pymodbus.client import ModbusTcpClient
 
+from tests.simproc import sim_process
+
 
 @pytest.fixture(scope="module")
 def sim_rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, dict]]:  # type: ignore[type-arg]
-    tmp = tmp_path_factory.mktemp("simrig")
-    rig_toml, ep = tmp / "rig.toml", tmp / "endpoints.json"
-    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "-q", "sim", "--rig-config", str(rig_toml),
-                             "--endpoints-json", str(ep)])  # fmt: skip
-    deadline = time.monotonic() + 20
-    while not (rig_toml.exists() and ep.exists()):
-        assert proc.poll() is None and time.monotonic() < deadline
-        time.sleep(0.05)
-    yield rig_toml, json.loads(ep.read_text())["devices"]
-    proc.send_signal(signal.SIGINT)
-    proc.wait(timeout=15)
+    with sim_process(tmp_path_factory.mktemp("simrig")) as sim:
+        yield sim
 
 
 def rig(*args: str) -> subprocess.CompletedProcess[str]:

@@ -3,7 +3,6 @@ leaves all supplies off with the data readable."""
 
 from __future__ import annotations
 
-import json
 import math
 import signal
 import subprocess
@@ -26,6 +25,7 @@ from rig.sim_command import sim_rig_config
 from rig.store import RunReader
 from sim.cage import SimulatedCage
 from sim.config import load_config
+from tests.simproc import sim_process as start_sim
 
 
 @pytest.mark.slow
@@ -67,23 +67,15 @@ def test_demo_recovers_the_hidden_dut_within_3_sigma(
 
 @pytest.fixture(scope="module")
 def sim_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, dict[str, Any]]]:
-    tmp = tmp_path_factory.mktemp("sim")
-    rig_toml, ep = tmp / "rig.toml", tmp / "ep.json"
-    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "-q", "sim", "--rig-config", str(rig_toml),
-                             "--endpoints-json", str(ep)])  # fmt: skip
-    deadline = time.monotonic() + 20
-    while not (rig_toml.exists() and ep.exists()):
-        assert proc.poll() is None and time.monotonic() < deadline
-        time.sleep(0.05)
-    yield rig_toml, json.loads(ep.read_text())["devices"]
-    proc.send_signal(signal.SIGINT)
-    proc.wait(timeout=15)
+    with start_sim(tmp_path_factory.mktemp("sim")) as sim:
+        yield sim
 
 
-def outputs(devices: dict[str, Any], tcp_only: bool = False) -> dict[str, int]:
-    """Output-enable registers of every supply and load, read over their own wires (RTU ports are
-    exclusive: only ``tcp_only`` ones can be read while a run holds them)."""
-    out = {}
+def output_registers(
+    devices: dict[str, Any], tcp_only: bool = False
+) -> Iterator[tuple[str, Any, int, int]]:
+    """(name, connected client, output-enable register, device id) of every supply and load, on
+    their own wires (RTU ports are exclusive: only ``tcp_only`` ones while a run holds them)."""
     for name, d in devices.items():
         if d["kind"] not in ("riden-rd60xx", "regmap-eload"):
             continue
@@ -95,10 +87,15 @@ def outputs(devices: dict[str, Any], tcp_only: bool = False) -> dict[str, int]:
         else:
             client = ModbusSerialClient(d["path"], baudrate=d["baudrate"], timeout=2)
         with client:
-            out[name] = client.read_holding_registers(
-                reg, count=1, device_id=d["device_id"]
-            ).registers[0]
-    return out
+            yield name, client, reg, d["device_id"]
+
+
+def outputs(devices: dict[str, Any], tcp_only: bool = False) -> dict[str, int]:
+    """Output-enable state of every supply and load."""
+    return {
+        name: client.read_holding_registers(reg, count=1, device_id=dev_id).registers[0]
+        for name, client, reg, dev_id in output_registers(devices, tcp_only)
+    }
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
@@ -188,17 +185,9 @@ def test_sigkill_mid_run_loses_at_most_half_a_second(
 
 
 def switch_off(devices: dict[str, Any]) -> None:
-    """Output enable off on every supply and load, over their own wires."""
-    for d in devices.values():
-        if d["kind"] not in ("riden-rd60xx", "regmap-eload"):
-            continue
-        reg = 18 if d["kind"] == "riden-rd60xx" else 0x0A10
-        if d["protocol"] == "modbus-tcp":
-            client: Any = ModbusTcpClient(d["host"], port=d["port"], timeout=2)
-        else:
-            client = ModbusSerialClient(d["path"], baudrate=d["baudrate"], timeout=2)
-        with client:
-            client.write_register(reg, 0, device_id=d["device_id"])
+    """Output enable off on every supply and load."""
+    for _, client, reg, dev_id in output_registers(devices):
+        client.write_register(reg, 0, device_id=dev_id)
 
 
 @pytest.mark.slow
