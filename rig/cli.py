@@ -162,6 +162,10 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("run", metavar="RUN")
     show.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
     show.set_defaults(func=_cmd_show)
+    rep = sub.add_parser("report", parents=[common], help="(re)build a run's HTML and PDF report")
+    rep.add_argument("run", metavar="RUN")
+    rep.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    rep.set_defaults(func=_cmd_report)
     exp = sub.add_parser("export", parents=[common], help="export a run to CSV or HDF5")
     exp.add_argument("run", metavar="RUN")
     exp.add_argument("--format", choices=("csv", "hdf5"), default="csv")
@@ -338,6 +342,12 @@ def _cmd_show(args: argparse.Namespace) -> int:
     from rig.run_commands import show_run
 
     return show_run(args.run, args.runs_dir)
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from rig.run_commands import report_run
+
+    return report_run(args.run, args.runs_dir, args.quiet)
 
 
 def _cmd_export(args: argparse.Namespace) -> int:

@@ -120,9 +120,9 @@ def summarize(outcome: Any, quiet: bool) -> None:
             value = f"{row['value']:.4g}" if "value" in row else row.get("reason", "")
             print(f"  {row['verdict']:<4} {row['name']:<28} {value}")
         print(f"VERDICT: {verdict['overall']}")
-    report = outcome.folder / "report.txt"
-    if report.exists():
-        print(f"report: {report}")
+    for name in ("report.html", "report.pdf"):
+        if (outcome.folder / name).exists():
+            print(f"report: {outcome.folder / name}")
     print(f"data:   {outcome.folder / 'run.sqlite'}")
 
 
@@ -233,6 +233,16 @@ def show_run(run: str, runs_dir: Path) -> int:
             print(f"verdict: {results['verdict']['overall']}")
     finally:
         reader.close()
+    return 0
+
+
+def report_run(run: str, runs_dir: Path, quiet: bool) -> int:
+    """``rig report``: (re)build the HTML and PDF report of a run."""
+    from rig.report.acceptance import build_report
+
+    html_path, pdf_path = build_report(resolve_run(run, runs_dir))
+    if not quiet:
+        print(f"wrote {html_path}\nwrote {pdf_path}")
     return 0
 
 

@@ -102,6 +102,19 @@ def calibration_samples(
     correction: dict[str, Any] | None,
 ) -> Samples:
     """DUT readings with the reference field (cage frame) and load currents at the same times."""
+    return calibration_data(reader, dut, reference, telemetry, steps, settle_s, correction)[0]
+
+
+def calibration_data(
+    reader: RunReader,
+    dut: str,
+    reference: str,
+    telemetry: list[str],
+    steps: list[str],
+    settle_s: float,
+    correction: dict[str, Any] | None,
+) -> tuple[Samples, Array]:
+    """:func:`calibration_samples` and the monotonic time of each sample (s)."""
     rows = np.array(reader.samples(dut), float).reshape(-1, 4)
     ref = np.array(reader.samples(reference), float).reshape(-1, 4)
     if rows.shape[0] == 0 or ref.shape[0] < 2:
@@ -119,7 +132,7 @@ def calibration_samples(
     field = np.column_stack([np.interp(t, ref[:, 0], ref[:, 1 + i]) for i in range(3)])
     field = to_cage_frame(field, correction)
     u = np.column_stack([hold_values(reader, ch, t) for ch in telemetry]) if telemetry else None
-    return Samples.build(rows[keep, 1:], field_ut=field, telemetry=u, channels=tuple(telemetry))
+    return Samples.build(rows[keep, 1:], field_ut=field, telemetry=u, channels=tuple(telemetry)), t
 
 
 def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict[str, str],

@@ -383,9 +383,9 @@ class Runner:
                 )
         elif kind == "report":
             w.flush()
-            from rig.report.text_report import write_text_report
+            from rig.report.acceptance import build_report
 
-            write_text_report(w.folder)
+            build_report(w.folder)
         elif kind == "end":
             pass
         else:

@@ -1,0 +1,113 @@
+"""Acceptance reports: verdict logic, self-contained HTML, a PDF that renders, aborted runs flagged."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.calibration.synthetic import cage_like
+from rig.engine.analysis import calibrate_run, evaluate_criteria
+from rig.report.acceptance import build_report
+from rig.store import RunReader, new_run
+
+CRITERIA = [
+    {"result": "cal", "value": "residual_rms_nt", "max": 60.0, "name": "fit residual"},
+    {"result": "cal", "value": "springmann.a", "min": 0.9, "max": 1.1, "name": "scale x"},
+]
+
+
+def test_verdict_pass_fail_borderline_and_missing() -> None:
+    results = {"cal": {"residual_rms_nt": 60.0, "springmann": {"a": 1.02}}}
+    v = evaluate_criteria(results, CRITERIA)
+    assert v["overall"] == "PASS" and v["criteria"][0]["margin"] == 0.0  # on the limit passes
+    v = evaluate_criteria(
+        {"cal": {"residual_rms_nt": 60.0001, "springmann": {"a": 1.02}}}, CRITERIA
+    )
+    assert (
+        v["overall"] == "FAIL"
+        and v["criteria"][0]["verdict"] == "FAIL"
+        and v["criteria"][1]["verdict"] == "PASS"
+    )
+    v = evaluate_criteria({"cal": {"residual_rms_nt": 1.0, "springmann": {"a": 0.89}}}, CRITERIA)
+    assert v["criteria"][1]["verdict"] == "FAIL" and v["criteria"][1]["margin"] == pytest.approx(
+        -0.01
+    )
+    v = evaluate_criteria({}, CRITERIA)
+    assert v["overall"] == "FAIL" and "no result 'cal'" in v["criteria"][0]["reason"]
+    assert evaluate_criteria({}, [])["overall"] == "FAIL"  # nothing checked is not a pass
+
+
+def synthetic_run(runs: Path, status: str = "complete") -> Path:
+    """A stored run with a cage sweep: reference and DUT samples, two load channels, a calibration."""
+    case = cage_like(400, seed=5, noise_ut=0.02, channels=2)
+    s = case.samples
+    w = new_run(runs, "SN-TEST", procedure="synthetic", dut_serial="SN-TEST", operator="test",
+                magnetometers={"dut": "dut", "reference": "reference"}, loads=list(s.channels),
+                software_version="test", instruments={"dut": "HMR2300 0001"})  # fmt: skip
+    t = 100.0 + np.arange(s.n) * 0.05
+    w.set_step(0, "sweep", "sphere_sweep", float(t[0]) - 1.0, float(t[-1]) + 1.0)
+    for i in range(s.n):
+        w.add_sample(float(t[i]), "dut", tuple(s.measured_ut[i]))
+        w.add_sample(float(t[i]), "reference", tuple(case.field_ut[i]))  # same instant as the DUT
+        for j, ch in enumerate(s.channels):
+            w.add_channel(
+                float(t[i]) - 0.001, ch, float(s.telemetry[i, j]), float(s.telemetry[i, j])
+            )
+    w.add_event(float(t[0]), "operator", "prompt 'mount the DUT': confirmed")
+    w.flush()
+    reader = RunReader(w.folder)
+    params = {"model": "vector", "method": "", "magnetometer": "dut", "telemetry": list(s.channels),
+              "steps": [], "noise_nt": 20.0, "settle_s": 0.0}  # fmt: skip
+    cal = calibrate_run(reader, params, {"dut": "dut", "reference": "reference"}, None)
+    reader.close()
+    w.set_result("cal", cal)
+    w.set_result("verdict", evaluate_criteria({"cal": cal}, CRITERIA))
+    w.close(status, "synthetic" if status == "complete" else "interrupted by the operator (Ctrl-C)")
+    return w.folder
+
+
+def test_html_is_self_contained_and_has_every_section(tmp_path: Path) -> None:
+    folder = synthetic_run(tmp_path)
+    html_path, pdf_path = build_report(folder)
+    text = html_path.read_text()
+    assert "VERDICT: PASS" in text and "SN-TEST" in text and "Data SHA-256" in text
+    for needle in (
+        "x0_ut",
+        "k x",
+        "sigma / CRLB",
+        "without telemetry",
+        "angular uncertainty",
+        "Crassidis form",
+    ):
+        assert needle in text, needle
+    assert text.count("<img") >= 4 and "prompt" in text
+    refs = re.findall(r"""(?:src|href)\s*=\s*['"]([^'"]+)""", text)
+    assert refs and all(r.startswith("data:") for r in refs), [
+        r[:40] for r in refs if not r.startswith("data:")
+    ]
+    assert "http://" not in text and "https://" not in text and "@import" not in text
+    assert pdf_path.stat().st_size > 10_000
+
+
+def test_pdf_renders_with_pdftoppm(tmp_path: Path) -> None:
+    if shutil.which("pdftoppm") is None:
+        pytest.skip("pdftoppm not installed (.ci/run installs poppler-utils)")
+    _, pdf_path = build_report(synthetic_run(tmp_path))
+    subprocess.run(
+        ["pdftoppm", "-r", "40", "-png", str(pdf_path), str(tmp_path / "page")], check=True
+    )
+    pages = sorted(tmp_path.glob("page-*.png"))
+    assert len(pages) >= 5  # summary page and the plots
+    assert all(p.stat().st_size > 2000 for p in pages)
+
+
+def test_aborted_run_says_so_at_the_top(tmp_path: Path) -> None:
+    html_path, _ = build_report(synthetic_run(tmp_path, status="aborted"))
+    text = html_path.read_text()
+    top = text[: text.index("Acceptance criteria")]
+    assert "ABORTED RUN - NOT A VALID ACCEPTANCE" in top
