@@ -205,10 +205,9 @@ def test_shipped_procedures_run_on_the_simulator(sim_process: tuple[Path, dict[s
     code = main(args)
     folder = next(p for p in tmp_path.iterdir() if (p / "run.sqlite").exists())
     reader = RunReader(folder)
-    assert code == 0, reader.meta().get("reason")
-    assert (
-        reader.meta()["status"] == "complete" and reader.results()["verdict"]["overall"] == "PASS"
-    )
+    meta, results = reader.meta(), reader.results()
+    assert code == 0, (meta.get("reason"), results.get("verdict"))
+    assert meta["status"] == "complete" and results["verdict"]["overall"] == "PASS"
     reader.close()
     assert all(v == 0 for v in outputs(devices).values())
 
