@@ -124,6 +124,7 @@ def make_figures(reader: RunReader, meta: dict[str, Any], results: dict[str, Any
         figs.append(_figure("Residual histogram", fig))
 
         f = series["field"]
+        f = f[np.linalg.norm(f, axis=1) > 2.0]  # a null field has no direction
         d = f / np.maximum(np.linalg.norm(f, axis=1), 1e-12)[:, None]
         fig = plt.figure(figsize=(7, 3.6))
         ax = fig.add_subplot(111, projection="mollweide")
