@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
@@ -59,8 +60,14 @@ def test_demo_recovers_the_hidden_dut_within_3_sigma(
         z[f"mount.{ax}"] = (
             vec["mounting"]["rotation_vector_deg"][ax] - truth.mounting_deg[ax]
         ) / vec["sigma"]["mounting_deg"][ax]
+    # 21 parameters: with honest sigmas one of them lands beyond 3 sigma in 5 % of runs, two in
+    # 0.15 %; so: at most one beyond 3 sigma, none beyond 4, and the mean z^2 near 1.
+    zs = np.array(list(z.values()))
     worst = max(z, key=lambda k: abs(z[k]))
-    assert abs(z[worst]) < 3.0, f"{worst} is {z[worst]:+.2f} sigma from the truth"
+    assert np.sum(np.abs(zs) > 3.0) <= 1 and abs(z[worst]) < 4.0, (
+        f"{worst} is {z[worst]:+.2f} sigma from the truth"
+    )
+    assert np.mean(zs**2) < 2.5, {k: round(v, 2) for k, v in z.items()}
     scalar = res["scalar calibration"]
     for key in ("a", "b", "c"):
         zz = (scalar["springmann"][key] - expected[key]) / scalar["sigma"]["springmann"][key]
