@@ -285,16 +285,13 @@ def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:
 def _calibrate_run(args: argparse.Namespace) -> int:
     """Re-fit the DUT from a stored run (its procedure's magnetometers and loads by default);
     ``--method ml`` (or another scalar method) fits attitude-independently from the same data."""
-    from rig.engine.analysis import calibration_samples
+    from rig.engine.analysis import stored_run_data
     from rig.store import RunReader
 
     reader = RunReader(args.data)
     try:
-        meta = reader.meta()
-        mags = meta.get("magnetometers", {"dut": "dut", "reference": "reference"})
-        telemetry = list(args.telemetry) if args.telemetry else list(meta.get("loads", []))
-        samples = calibration_samples(reader, mags.get("dut", "dut"), mags.get("reference", "reference"),
-                                      telemetry, [], 0.25, meta.get("reference_correction"))  # fmt: skip
+        telemetry = list(args.telemetry) if args.telemetry else list(reader.meta().get("loads", []))
+        samples, _ = stored_run_data(reader, telemetry)
     finally:
         reader.close()
     return _fit_and_emit(samples, args)

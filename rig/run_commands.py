@@ -192,9 +192,8 @@ def list_runs_cmd(runs_dir: Path, quiet: bool) -> int:
         return 0
     for r in runs:
         m = r.meta
-        verdict = ""
         print(
-            f"{r.run_id:<36} {r.status:<10} {m.get('procedure', ''):<24} DUT {m.get('dut_serial', '')} {verdict}"
+            f"{r.run_id:<36} {r.status:<10} {m.get('procedure', ''):<24} DUT {m.get('dut_serial', '')}"
         )
     return 0
 

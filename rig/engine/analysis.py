@@ -135,6 +135,17 @@ def calibration_data(
     return Samples.build(rows[keep, 1:], field_ut=field, telemetry=u, channels=tuple(telemetry)), t
 
 
+def stored_run_data(
+    reader: RunReader, telemetry: list[str], settle_s: float = 0.25
+) -> tuple[Samples, Array]:
+    """:func:`calibration_data` for a finished run, with the DUT, reference and reference
+    certificate its metadata recorded."""
+    meta = reader.meta()
+    mags = meta.get("magnetometers", {"dut": "dut", "reference": "reference"})
+    return calibration_data(reader, mags.get("dut", "dut"), mags.get("reference", "reference"), telemetry,
+                            [], settle_s, meta.get("reference_correction"))  # fmt: skip
+
+
 def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict[str, str],
                   correction: dict[str, Any] | None) -> dict[str, Any]:  # fmt: skip
     """The ``calibrate`` step: fit the DUT from the run so far; returns the result file content."""

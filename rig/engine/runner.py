@@ -8,7 +8,6 @@ every supply and load off before the links close; the run is then closed with it
 from __future__ import annotations
 
 import contextlib
-import json
 import shutil
 import signal
 import sys
@@ -390,8 +389,3 @@ class Runner:
             pass
         else:
             raise AssertionError(kind)
-
-
-def json_dumps(value: Any) -> str:
-    """JSON for the terminal summary."""
-    return json.dumps(value, indent=2, default=float)

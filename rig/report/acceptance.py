@@ -46,14 +46,12 @@ def _calibration_series(
     reader: RunReader, meta: dict[str, Any], res: dict[str, Any]
 ) -> dict[str, Array] | None:
     """Time series for the plots: DUT raw and corrected magnitude, reference magnitude, residual."""
-    from rig.engine.analysis import calibration_data
+    from rig.engine.analysis import stored_run_data
     from rig.errors import RigError
 
-    mags = meta.get("magnetometers", {"dut": "dut", "reference": "reference"})
     channels = list(res["channels"])
     try:
-        s, t = calibration_data(reader, mags.get("dut", "dut"), mags.get("reference", "reference"), channels, [],
-                                0.25, meta.get("reference_correction"))  # fmt: skip
+        s, t = stored_run_data(reader, channels)
     except RigError:
         return None
     w = np.array(res["correction"]["matrix"])
@@ -161,20 +159,16 @@ def make_figures(reader: RunReader, meta: dict[str, Any], results: dict[str, Any
     return figs
 
 
-def without_telemetry(
-    reader: RunReader, meta: dict[str, Any], res: dict[str, Any]
-) -> dict[str, Any] | None:
+def without_telemetry(reader: RunReader, res: dict[str, Any]) -> dict[str, Any] | None:
     """The same calibration re-fitted without the current channels (the Springmann comparison)."""
     from rig.calibration import calibrate
-    from rig.engine.analysis import calibration_samples
+    from rig.engine.analysis import stored_run_data
     from rig.errors import RigError
 
     if not res["channels"]:
         return None
-    mags = meta.get("magnetometers", {"dut": "dut", "reference": "reference"})
     try:
-        s = calibration_samples(reader, mags.get("dut", "dut"), mags.get("reference", "reference"), [], [],
-                                0.25, meta.get("reference_correction"))  # fmt: skip
+        s, _ = stored_run_data(reader, [])
         if res["model"] == "scalar":
             s = s.as_scalar()
         return calibrate(s, res["method"]).to_dict()
@@ -208,7 +202,7 @@ def build_report(folder: Path) -> tuple[Path, Path]:
         steps = reader.steps()
         figs = make_figures(reader, meta, results)
         cals = {n: r for n, r in results.items() if isinstance(r, dict) and "springmann" in r}
-        plain = {n: without_telemetry(reader, meta, r) for n, r in cals.items()}
+        plain = {n: without_telemetry(reader, r) for n, r in cals.items()}
     finally:
         reader.close()
     status = meta.get("status", "incomplete")
