@@ -13,6 +13,20 @@ from rig.errors import CalibrationError
 
 
 @dataclass(frozen=True)
+class FilterHistory:
+    """A sequential filter's path: recorded sample indices with the state ``theta`` (R, n) and its
+    covariance (R, n, n), the NIS of every update (N,, NaN before the first estimate), and the
+    final state and covariance."""
+
+    index: Array
+    theta: Array
+    covariance: Array
+    nis: Array
+    final_theta: Array
+    final_covariance: Array
+
+
+@dataclass(frozen=True)
 class Estimate:
     """Parameters ``p`` (see :func:`rig.calibration.residuals.parameter_names`) with covariance.
 
@@ -27,6 +41,7 @@ class Estimate:
     sample_weights: Array | None = None
     iterations: int = 0
     notes: tuple[str, ...] = field(default=())
+    history: FilterHistory | None = None
 
 
 def delta_method(

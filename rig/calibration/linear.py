@@ -90,7 +90,11 @@ def independent_columns(x: Array, rel_tol: float = 1e-9) -> Array:
     Greedy Gram-Schmidt on the (small) Gram matrix: a column is kept when its part orthogonal to
     the kept ones carries more than ``rel_tol`` of its own norm squared.
     """
-    gram = x.T @ x
+    return independent_from_gram(x.T @ x, rel_tol)
+
+
+def independent_from_gram(gram: Array, rel_tol: float = 1e-9) -> Array:
+    """:func:`independent_columns` given the Gram (information) matrix ``X^T X`` itself."""
     keep: list[int] = []
     for i in range(gram.shape[0]):
         own = gram[i, i]

@@ -8,7 +8,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from rig.calibration.estimate import Estimate
+from rig.calibration.estimate import Estimate, FilterHistory, delta_method
 from rig.calibration.params import Array, Calibration
 from rig.calibration.residuals import (
     AXES,
@@ -21,6 +21,7 @@ from rig.calibration.residuals import (
     vector_residuals,
 )
 from rig.calibration.solver import covariance_from_jacobian
+from rig.errors import CalibrationError
 
 ModelKind = Literal["scalar", "vector"]
 ANGLE_KEYS = frozenset({"rho", "phi", "lambda", "rot_x", "rot_y", "rot_z"})
@@ -68,6 +69,7 @@ class CalibrationResult:
     chi2: ChiSquareTest
     warnings: tuple[str, ...]
     iterations: int
+    history: FilterHistory | None = None
 
     @property
     def sigma(self) -> Array:
@@ -149,7 +151,12 @@ class CalibrationResult:
                 SPRINGMANN_JSON[k]: float(math.degrees(v) if k in ANGLE_KEYS else v)
                 for k, v in spv.items()
             },
-            "crassidis": {"b_ut": cr.b_ut.tolist(), "D": cr.d_matrix.tolist()},
+            "crassidis": {
+                "b_ut": cr.b_ut.tolist(),
+                "D": cr.d_matrix.tolist(),
+                **self._crassidis_sigma(),
+            },
+            "covariance": {"names": list(self.names), "matrix": self.covariance.tolist()},
             "mounting": self._mounting(),
             "sigma": self._by_group(self.sigma),
             "crlb_sigma": self._by_group(self.crlb_sigma),
@@ -174,7 +181,30 @@ class CalibrationResult:
             "warnings": list(self.warnings),
             "iterations": self.iterations,
         }
+        if self.history is not None:
+            nis = self.history.nis[np.isfinite(self.history.nis)]
+            out["filter"] = {
+                "updates": int(nis.size),
+                "mean_nis": float(np.mean(nis)) if nis.size else None,
+                "recorded_rows": int(self.history.index.size),
+            }
         return out
+
+    def _crassidis_sigma(self) -> dict[str, Any]:
+        """1-sigma of the Crassidis ``b`` (uT) and ``D`` (eq. 11), by the delta method."""
+        if self.model != "scalar":
+            return {}
+
+        def to_bd(p: Array) -> Array:
+            cr = calibration_from_p(p, self.calibration.channels).crassidis
+            return np.concatenate([cr.b_ut, cr.d_matrix.reshape(-1)])
+
+        try:
+            _, cov = delta_method(to_bd, self.p, self.covariance, self.method)
+        except CalibrationError:  # an invalid ellipsoid has no sigma to report
+            return {}
+        sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return {"b_sigma_ut": sig[:3].tolist(), "D_sigma": sig[3:].reshape(3, 3).tolist()}
 
     def _mounting(self) -> dict[str, Any]:
         if self.model == "scalar":
@@ -264,6 +294,7 @@ def summarize(
         chi2=chi,
         warnings=(),
         iterations=est.iterations,
+        history=est.history,
     )
     warnings = list(extra_warnings) + list(est.notes)
     warnings += _warnings(result, s, est, noise_nt)

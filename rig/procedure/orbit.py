@@ -105,9 +105,7 @@ def attitude_matrices(kind: str, r: Array, v: Array, t_s: Array, tumble_deg_s: f
 def orbit_track(tle1: str, tle2: str, start: dt.datetime, t_orbit_s: Array, attitude: str,
                 tumble_deg_s: float = 2.0) -> OrbitTrack:  # fmt: skip
     """Field and sun in the body frame along the orbit at ``start + t_orbit_s``."""
-    import ppigrf
     from sgp4.api import Satrec, jday
-    from sgp4.propagation import gstime
 
     sat = Satrec.twoline2rv(tle1.strip(), tle2.strip())
     jd0, fr0 = jday(
@@ -125,6 +123,42 @@ def orbit_track(tle1: str, tle2: str, start: dt.datetime, t_orbit_s: Array, atti
         raise ValueError(
             f"sgp4 could not propagate the TLE (error code {int(err[err != 0][0])}): check the TLE and epoch"
         )
+    return _track_from_states(r, v, jd, fr, start, t_orbit_s, attitude, tumble_deg_s)
+
+
+def circular_orbit_track(altitude_km: float, inclination_deg: float, start: dt.datetime,
+                         t_orbit_s: Array, attitude: str = "nadir",
+                         raan_deg: float = 0.0) -> OrbitTrack:  # fmt: skip
+    """Like :func:`orbit_track` for an ideal circular orbit (two-body, no TLE needed).
+
+    ``nadir`` attitude is Earth pointing: body z to nadir, y along the negative orbit normal, so
+    the body turns about y once per orbit.
+    """
+    from sgp4.api import jday
+
+    mu_km3_s2 = 398600.4418
+    a_km = R_EARTH_KM + altitude_km
+    n_rad_s = math.sqrt(mu_km3_s2 / a_km**3)
+    inc, raan = math.radians(inclination_deg), math.radians(raan_deg)
+    arg = n_rad_s * t_orbit_s
+    p_hat = np.array([math.cos(raan), math.sin(raan), 0.0])
+    q_hat = np.array(
+        [-math.sin(raan) * math.cos(inc), math.cos(raan) * math.cos(inc), math.sin(inc)]
+    )
+    r = a_km * (np.cos(arg)[:, None] * p_hat + np.sin(arg)[:, None] * q_hat)
+    v = a_km * n_rad_s * (-np.sin(arg)[:, None] * p_hat + np.cos(arg)[:, None] * q_hat)
+    jd0, fr0 = jday(start.year, start.month, start.day, start.hour, start.minute,
+                    start.second + start.microsecond / 1e6)  # fmt: skip
+    jd = np.full(t_orbit_s.shape, jd0)
+    return _track_from_states(r, v, jd, fr0 + t_orbit_s / 86400.0, start, t_orbit_s, attitude, 2.0)
+
+
+def _track_from_states(r: Array, v: Array, jd: Array, fr: Array, start: dt.datetime,
+                       t_orbit_s: Array, attitude: str, tumble_deg_s: float) -> OrbitTrack:  # fmt: skip
+    """Field and sun in the body frame from inertial (TEME) positions and velocities (km, km/s)."""
+    import ppigrf
+    from sgp4.propagation import gstime
+
     gmst = np.array([gstime(a + b) for a, b in zip(jd, fr, strict=True)])
     r_ecef = np.einsum("nij,nj->ni", np.transpose(_rz(gmst), (0, 2, 1)), r)
     lat, lon, h = geodetic(r_ecef)
