@@ -82,8 +82,27 @@ def build_parser() -> argparse.ArgumentParser:
         help="telemetry channels (currents) whose bias to fit",
     )  # fmt: skip
     cal.add_argument(
-        "--method", choices=("ml", "twostep", "centered", "ellipsoid", "vector"),
-        help="estimator (default: vector with --field, ml with --field-magnitude)",
+        "--method",
+        choices=("ml", "twostep", "centered", "ellipsoid", "vector", "centered-seq", "ekf", "ukf"),
+        help="estimator (default: vector with --field, ml with --field-magnitude); centered-seq,"
+        " ekf and ukf are the sequential (real-time) filters, run over the rows in file order",
+    )
+    cal.add_argument(
+        "--filter-variant",
+        choices=("energy", "paper", "paper-augmented"),
+        default="energy",
+        help="ekf/ukf form: energy (default, converges from a zero start), paper (Crassidis et al."
+        " as published), paper-augmented (12-state UKF)",
+    )
+    cal.add_argument(
+        "--backend",
+        choices=("numpy", "filterpy"),
+        default="numpy",
+        help="filter implementation (filterpy runs the paper variants)",
+    )
+    cal.add_argument(
+        "--history", type=Path, metavar="HISTORY.csv",
+        help="write the filter's estimate and 1-sigma per parameter as it converges (CSV)",
     )  # fmt: skip
     cal.add_argument(
         "--noise-nt", type=float, metavar="SIGMA",
@@ -267,19 +286,45 @@ def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:
     """Fit, write the result file and C header if asked, print the table."""
     from rig.calibration import calibrate
     from rig.calibration.export_c import c_header
+    from rig.calibration.realtime import FilterOptions
     from rig.report.tables import calibration_table
 
-    result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust)
+    filter_methods = ("centered-seq", "ekf", "ukf")
+    if args.history is not None and args.method not in filter_methods:
+        raise UserInputError("--history needs a filter: add --method centered-seq, ekf or ukf")
+    opts = None
+    if args.method in filter_methods:
+        opts = FilterOptions(args.method, args.filter_variant, args.backend)
+    result = calibrate(
+        samples, args.method, noise_nt=args.noise_nt, robust=args.robust, filter_options=opts
+    )
+    if args.history is not None and result.history is not None:
+        _write(args.history, _history_csv(result))
     if args.out is not None:
         _write(args.out, json.dumps(result.to_dict(), indent=2) + "\n")
     if args.c_header is not None:
         _write(args.c_header, c_header(result, prefix=args.c_header.stem, source=str(args.data)))
     if not args.quiet:
         print(calibration_table(result, source=str(args.data), verbose=args.verbose))
-        for path in (args.out, args.c_header):
+        for path in (args.out, args.c_header, args.history):
             if path is not None:
                 print(f"wrote {path}")
     return EXIT_OK
+
+
+def _history_csv(result: Any) -> str:
+    """The filter history as CSV: sample number, every parameter, then every 1-sigma."""
+    import io
+
+    import numpy as np
+
+    from rig.calibration.realtime import history_table
+
+    header, body = history_table(result.history, result.names)
+    buf = io.StringIO()
+    buf.write(",".join(header) + "\n")
+    np.savetxt(buf, body, delimiter=",", fmt="%.9g")
+    return buf.getvalue()
 
 
 def _calibrate_run(args: argparse.Namespace) -> int:

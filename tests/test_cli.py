@@ -228,3 +228,22 @@ def test_help_and_version() -> None:
 def test_quiet_prints_nothing(rax_csv: Path) -> None:
     proc = rig("-q", "calibrate", str(rax_csv), *RAX_ARGS)
     assert proc.returncode == 0 and proc.stdout == ""
+
+
+def test_filter_method_result_and_history(rax_csv: Path, tmp_path: Path) -> None:
+    """--method ekf: the batch result-file contract plus a filter block; --history converges."""
+    out, hist = tmp_path / "ekf.json", tmp_path / "hist.csv"
+    proc = rig("calibrate", str(rax_csv), *RAX_ARGS, "--noise-nt", "100", "--method", "ekf",
+               "--out", str(out), "--history", str(hist))  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(out.read_text())
+    assert res["method"] == "ekf" and set(res["springmann"]) == SPRINGMANN_KEYS
+    assert {"b_ut", "D", "b_sigma_ut", "D_sigma"} <= set(res["crassidis"])
+    assert 0.8 < res["filter"]["mean_nis"] < 1.3
+    sp, sig = res["springmann"], res["sigma"]["springmann"]
+    assert abs(sp["y0_ut"] - RAX_TRUTH.y0) < 4 * sig["y0_ut"]
+    rows = np.genfromtxt(hist, delimiter=",", names=True)
+    assert rows["sample"][-1] == 3000 and rows.size > 100
+    assert rows["sigma_a"][-1] < 0.1 * rows["sigma_a"][len(rows) // 10]  # sigma shrinks
+    proc = rig("calibrate", str(rax_csv), *RAX_ARGS, "--history", str(hist))
+    _one_line_error(proc, "--history needs a filter")

@@ -94,7 +94,7 @@ class ZModel:
         self.n = n_states(n_channels)
         self.noise_ut = float(noise_ut)
         self.noise_var = self.noise_ut**2
-        self.mean_noise = -3.0 * self.noise_var  # eq. 5a, tr(Sigma)
+        self.mean_noise = -3.0 * self.noise_var  # eq. 5a, -tr(Sigma), as TWOSTEP uses it
         self.noise_floor_var = 6.0 * self.noise_var**2  # 2 tr(Sigma^2)
         self.noise_frame = noise_frame
 
