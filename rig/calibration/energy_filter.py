@@ -30,8 +30,7 @@ import numpy as np
 from rig.calibration.filters import UpdateInfo
 from rig.calibration.linear import independent_from_gram
 from rig.calibration.params import Array
-from rig.calibration.residuals import E_INDEX
-from rig.calibration.zmodel import ZModel, ZSample, metric
+from rig.calibration.zmodel import E_UNITS, ZModel, ZSample, metric
 
 Projection = Literal["jacobian", "unscented"]
 MAX_PROJECTION_STEPS = 30
@@ -58,16 +57,6 @@ def energy_terms(telemetry: Array) -> Array:
     n_ch = u.size
     prods = [u[i] * u[j] for i in range(n_ch) for j in range(i, n_ch)]
     return np.concatenate([[1.0], u, np.asarray(prods, dtype=float)])
-
-
-def _units() -> Array:
-    out = np.zeros((6, 3, 3))
-    for i, (a, b) in enumerate(E_INDEX):
-        out[i, a, b] = out[i, b, a] = 1.0
-    return out
-
-
-UNITS = _units()
 
 
 class EnergyModel:
@@ -108,7 +97,7 @@ class EnergyModel:
             sl_b = slice(0, 3) if b == 0 else slice(9 + 3 * (b - 1), 12 + 3 * (b - 1))
             jac[row, sl_a] += f * y[:, b]
             jac[row, sl_b] += f * y[:, a]
-            jac[row, 3:9] = -f * np.einsum("k,ikl,l->i", y[:, a], UNITS, y[:, b])
+            jac[row, 3:9] = -f * np.einsum("k,ikl,l->i", y[:, a], E_UNITS, y[:, b])
         return phi, jac
 
 

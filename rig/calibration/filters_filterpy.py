@@ -118,15 +118,3 @@ class FilterpyFilter:
         self.updates += 1
         self.nis_sum += info.nis
         return info
-
-
-def filterpy_filter(
-    model: ZModel,
-    x0: Array,
-    P0: Array,
-    method: Literal["centered-seq", "ekf", "ukf"],
-    augmented: bool,
-    process_noise: Array | None,
-) -> FilterpyFilter:
-    """Build the filterpy form of the paper's ``method``."""
-    return FilterpyFilter(model, x0, P0, method, augmented, process_noise)

@@ -93,9 +93,9 @@ def make_filter(opts: FilterOptions, n_channels: int, noise_ut: float) -> Sequen
             "paper-augmented is a UKF form: use --method ukf or --filter-variant paper"
         )
     if opts.backend == "filterpy":
-        from rig.calibration.filters_filterpy import filterpy_filter
+        from rig.calibration.filters_filterpy import FilterpyFilter
 
-        return filterpy_filter(model, x0, p0, opts.method, opts.variant == "paper-augmented", q)
+        return FilterpyFilter(model, x0, p0, opts.method, opts.variant == "paper-augmented", q)
     if opts.method == "ekf":
         return ExtendedKalman(model, x0, p0, order=1, process_noise=q)
     return UnscentedKalman(

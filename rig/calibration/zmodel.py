@@ -26,6 +26,10 @@ M_FROM_E = np.array([0, 3, 4, 3, 1, 5, 4, 5, 2])
 """Flat 3x3 index -> position in ``[E11, E22, E33, E12, E13, E23]``."""
 E_MULTIPLICITY = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
 """How often each E entry appears in the symmetric matrix (d/dE of a quadratic form)."""
+E_UNITS = np.zeros((6, 3, 3))
+"""``dM/dE_i`` for the six entries of E (unit symmetric matrices), shape (6, 3, 3)."""
+for _i, (_a, _b) in enumerate(E_INDEX):
+    E_UNITS[_i, _a, _b] = E_UNITS[_i, _b, _a] = 1.0
 
 
 @dataclass(frozen=True)
@@ -122,8 +126,7 @@ class ZModel:
         # c = G theta_c with G = [I, u_1 I, ...]; the c-rows of the state are 0:3 and 9:.
         c_idx = np.r_[0:3, 9 : 9 + 3 * n_ch]
         g = np.hstack([np.eye(3)] + [uj * np.eye(3) for uj in s.telemetry])
-        units = _unit_matrices()
-        ay = units @ y  # (6, 3): A_i y
+        ay = E_UNITS @ y  # (6, 3): A_i y
         hq = np.zeros((self.n, self.n))
         hq[np.ix_(c_idx, c_idx)] = g.T @ (2.0 * minv) @ g
         hq[3:9, 3:9] = 2.0 * ay @ minv @ ay.T
@@ -159,14 +162,6 @@ class ZModel:
     def reference_variance(self, s: ZSample) -> float:
         """Measurement variance with ``|g|`` replaced by the reference ``|h|`` (state independent)."""
         return 4.0 * self.noise_var * s.field_magnitude_ut**2 + self.noise_floor_var
-
-
-def _unit_matrices() -> Array:
-    """``dM/dE_i`` for the six entries of E, shape (6, 3, 3)."""
-    out = np.zeros((6, 3, 3))
-    for i, (a, b) in enumerate(E_INDEX):
-        out[i, a, b] = out[i, b, a] = 1.0
-    return out
 
 
 def symmetric_root(theta: Array) -> Array:
