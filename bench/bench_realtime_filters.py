@@ -142,7 +142,10 @@ def main() -> int:
         zs = [z_sample(m[k], float(mag[k]), np.zeros(0)) for k in range(t.size)]
         for name, factory in FILTERS.items():
             x, p, per = run_filter(factory, zs)
-            results[name].append(b_and_d(x))
+            try:
+                results[name].append(b_and_d(x))
+            except np.linalg.LinAlgError:  # a diverged paper filter: no ellipsoid to report
+                results[name].append(np.full(9, np.nan))
             err = x - truth
             nees[name].append(float(err @ np.linalg.solve(p, err)))
             cost[name].append(per)
@@ -153,7 +156,7 @@ def main() -> int:
         )
     print()
     cols = ["TWOSTEP", "centered", *FILTERS]
-    stats = {c: (np.mean(results[c], axis=0), np.max(np.abs(results[c] - np.mean(results[c], axis=0)), axis=0)) for c in cols}  # fmt: skip
+    stats = {c: (np.nanmean(results[c], axis=0), np.nanmax(np.abs(results[c] - np.nanmean(results[c], axis=0)), axis=0)) for c in cols}  # fmt: skip
     print("\nTable 1 - ours (mean +- max deviation over the runs); paper in brackets")
     paper_of = {
         "TWOSTEP": "TWOSTEP",
@@ -162,7 +165,8 @@ def main() -> int:
         "UKF (paper)": "UF",
     }
     for c in cols:
-        print(f"\n{c}")
+        diverged = int(np.sum(np.isnan(np.asarray(results[c])[:, 0])))
+        print(f"\n{c}" + (f"  ({diverged} runs diverged, left out)" if diverged else ""))
         for i, row in enumerate(ROWS):
             mean, dev = stats[c][0][i], stats[c][1][i]
             unit = " mG" if i < 3 else ""

@@ -446,10 +446,24 @@ def _cmd_example_data(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _stoppable() -> None:
+    """Ctrl-C (SIGINT) always stops the rig, even when a non-interactive shell started it in the
+    background with SIGINT ignored (the shell's convention): a run that cannot be interrupted is
+    worse than a script that has to say so."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``rig`` command; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    _stoppable()
     try:
         code: int = args.func(args)
         return code

@@ -22,6 +22,7 @@ Every error names the file and the key and says what to write instead.
 
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +40,13 @@ DEVICE_KINDS = {
     "rm3100": ("i2c",),
     "lis3mdl": ("i2c",),
 }
+PARAM_TYPES: dict[str, tuple[type, ...]] = {
+    "host": (str,), "path": (str,), "port": (int,), "baudrate": (int,), "device_id": (int,),
+    "address": (int,), "regmap": (str,), "parity": (str,), "delimiter": (str,),
+    "max_current_a": (int, float), "timeout_s": (int, float), "rate_hz": (int, float),
+    "compliance_v": (int, float), "scale_to_ut": (int, float),
+}  # fmt: skip
+"""Types of the device parameters the drivers read (others are passed through)."""
 REQUIRED = {
     "modbus-tcp": ("host", "port"),
     "modbus-rtu": ("path",),
@@ -95,14 +103,14 @@ def _numbers(path: Path, where: str, value: Any, n: int) -> tuple[float, ...]:
     if (
         not isinstance(value, list)
         or len(value) != n
-        or not all(isinstance(v, int | float) for v in value)
+        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
     ):
         raise _err(path, where, f"must be a list of {n} numbers")
     return tuple(float(v) for v in value)
 
 
 def _positive(path: Path, where: str, value: Any) -> float:
-    if not isinstance(value, int | float) or value <= 0:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf:
         raise _err(path, where, "must be a positive number")
     return float(value)
 
@@ -119,15 +127,18 @@ def load_rig_config(path: str | Path) -> RigConfig:
     except tomllib.TOMLDecodeError as exc:
         raise UserInputError(f"{path}: not valid TOML ({exc}); fix the syntax") from None
     devices: dict[str, DeviceConfig] = {}
-    for name, spec in raw.get("devices", {}).items():
+    table = raw.get("devices", {})
+    if not isinstance(table, dict):
+        raise _err(path, "[devices]", "must be a table of [devices.NAME] tables")
+    for name, spec in table.items():
         where = f"[devices.{name}]"
         if not isinstance(spec, dict):
             raise _err(path, where, "must be a table")
         kind = spec.get("kind")
-        if kind not in DEVICE_KINDS:
+        if not isinstance(kind, str) or kind not in DEVICE_KINDS:
             raise _err(path, f"{where}.kind", f"{kind!r} is not one of {', '.join(DEVICE_KINDS)}")
         protocol = spec.get("protocol")
-        if protocol not in DEVICE_KINDS[kind]:
+        if not isinstance(protocol, str) or protocol not in DEVICE_KINDS[kind]:
             raise _err(
                 path,
                 f"{where}.protocol",
@@ -138,6 +149,17 @@ def load_rig_config(path: str | Path) -> RigConfig:
                 raise _err(path, where, f"needs '{key}' for {protocol}")
         if kind.startswith("regmap") and "regmap" not in spec:
             raise _err(path, where, "needs 'regmap' (a register-map file or a shipped map name)")
+        for key, types in PARAM_TYPES.items():
+            value = spec.get(key)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, types)):
+                wanted = (
+                    "text"
+                    if types == (str,)
+                    else "a whole number"
+                    if types == (int,)
+                    else "a number"
+                )
+                raise _err(path, f"{where}.{key}", f"must be {wanted}, got {value!r}")
         params = {k: v for k, v in spec.items() if k not in ("kind", "protocol")}
         devices[name] = DeviceConfig(name, kind, protocol, params)
     cage = _cage(path, raw.get("cage"), devices) if "cage" in raw else None
@@ -155,22 +177,31 @@ def _cage(path: Path, c: Any, devices: dict[str, DeviceConfig]) -> CageConfig:
             'must name a supply for x, y and z: axes = { x = "...", y = "...", z = "..." }',
         )
     for ax, name in axes.items():
-        if name not in devices or devices[name].kind not in ("riden-rd60xx", "regmap-supply"):
+        if (
+            not isinstance(name, str)
+            or name not in devices
+            or devices[name].kind not in ("riden-rd60xx", "regmap-supply")
+        ):
             raise _err(path, f"[cage].axes.{ax}", f"'{name}' is not a supply in [devices]")
     polarity = c.get("polarity")
     if polarity is not None and (
-        polarity not in devices or devices[polarity].kind != "regmap-relay"
+        not isinstance(polarity, str)
+        or polarity not in devices
+        or devices[polarity].kind != "regmap-relay"
     ):
         raise _err(
             path, "[cage].polarity", f"'{polarity}' is not a regmap-relay device in [devices]"
         )
     reference = c.get("reference")
     if reference is not None and (
-        reference not in devices
+        not isinstance(reference, str)
+        or reference not in devices
         or devices[reference].kind not in ("hmr2300", "ascii-mag", "rm3100", "lis3mdl")
     ):
         raise _err(path, "[cage].reference", f"'{reference}' is not a magnetometer in [devices]")
     calibration = c.get("calibration")
+    if calibration is not None and not isinstance(calibration, str):
+        raise _err(path, "[cage].calibration", 'must be a file name, e.g. "cage.json"')
     nominal = c.get("nominal_k_ut_per_a")
     if nominal is not None:
         if not isinstance(nominal, list) or len(nominal) != 3:

@@ -7,6 +7,7 @@ indices, a scale to uT, an optional poll command and lines to skip (headers).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from drivers.errors import DeviceProtocolError, DeviceTimeoutError
@@ -32,6 +33,8 @@ class LineFormat:
             x, y, z = (float(cells[i]) * self.scale_to_ut for i in self.columns)
         except (IndexError, ValueError):
             raise DeviceProtocolError(f"unreadable magnetometer line {text[:60]!r}") from None
+        if not all(math.isfinite(v) for v in (x, y, z)):
+            raise DeviceProtocolError(f"non-finite value in magnetometer line {text[:60]!r}")
         return x, y, z
 
 

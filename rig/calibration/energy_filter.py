@@ -227,10 +227,12 @@ class EnergyFilter:
         psi = np.concatenate([theta, self.energy.phi(theta)])
         return float(psi @ self.info @ psi - 2.0 * self.info_vec @ psi)
 
-    def _linearize(self, theta: Array) -> tuple[Array, Array]:
-        """``phi`` at ``theta`` (or its sigma-point mean) and the slope used for the step."""
+    def _linearize(self, theta: Array) -> tuple[Array, Array, Array | None]:
+        """``phi`` at ``theta`` (or its sigma-point mean), the slope used for the step and, for the
+        statistical linearization, a root ``R`` of its error covariance (``R R^T = Omega``)."""
         if self.projection == "jacobian":
-            return self.energy.phi_jacobian(theta)
+            phi, jac = self.energy.phi_jacobian(theta)
+            return phi, jac, None
         n = self.model.n
         root = np.linalg.cholesky(self.P) * self._gamma
         pts = np.vstack([theta, theta + root.T, theta - root.T])
@@ -243,7 +245,10 @@ class EnergyFilter:
         dx = pts - theta
         cross = (w_c[:, None] * (phis - phi_bar)).T @ dx  # P_phi_theta
         slope = np.linalg.solve(self.P, cross.T).T  # the sigma points' own covariance is P
-        return phi_bar, slope
+        dphi = phis - phi_bar
+        omega = (w_c[:, None] * dphi).T @ dphi - slope @ cross.T
+        vals, vecs = np.linalg.eigh(0.5 * (omega + omega.T))
+        return phi_bar, slope, vecs * np.sqrt(np.clip(vals, 0.0, None))
 
     def _project(self) -> None:
         n = self.model.n
@@ -253,21 +258,35 @@ class EnergyFilter:
         r_t, r_p = self.info_vec[:n], self.info_vec[n:]
         iterations = 0
         for iterations in range(1, MAX_PROJECTION_STEPS + 1):  # noqa: B007 - reported below
-            phi, slope = self._linearize(theta)
-            # psi(theta + d) ~ [theta + d, phi + S d]; minimize the quadratic in d
+            phi, slope, root = self._linearize(theta)
+            # psi(theta + d) ~ [theta + d, phi + S d + R eps], eps ~ N(0, I) the linearization
+            # error (none for the Jacobian); minimize the quadratic in (d, eps)
             resid_t = c_tt @ theta + c_tp @ phi - r_t
             resid_p = c_tp.T @ theta + c_pp @ phi - r_p
             grad = resid_t + slope.T @ resid_p
             hess = c_tt + c_tp @ slope + slope.T @ c_tp.T + slope.T @ c_pp @ slope
             try:
-                step = -np.linalg.solve(hess, grad)
+                if root is None:
+                    step = -np.linalg.solve(hess, grad)
+                    cov = _sym_inverse(hess)
+                    decrement = float(-grad @ step)
+                else:
+                    side = (c_tp + slope.T @ c_pp) @ root
+                    full = np.block(
+                        [[hess, side], [side.T, root.T @ c_pp @ root + np.eye(len(phi))]]
+                    )
+                    full_grad = np.concatenate([grad, root.T @ resid_p])
+                    full_step = -np.linalg.solve(full, full_grad)
+                    step = full_step[:n]
+                    cov = _sym_inverse(full)[:n, :n]
+                    decrement = float(-full_grad @ full_step)
             except np.linalg.LinAlgError:
                 break
-            decrement = float(-grad @ step)  # twice the predicted cost reduction (chi-square units)
+            # decrement: twice the predicted cost reduction (chi-square units)
             if decrement < SMALL_STEP and _positive(theta + step):
                 # well inside the quadratic region: take the Gauss-Newton step as it is
                 theta = theta + step
-                self.P = _sym_inverse(hess)
+                self.P = cov
                 break
             accepted = False
             for _ in range(12):
@@ -280,7 +299,7 @@ class EnergyFilter:
                     theta, cost, accepted = trial, trial_cost, True
                     break
                 step *= 0.5
-            self.P = _sym_inverse(hess)
+            self.P = cov
             if not accepted:
                 break
         self.x = theta

@@ -169,19 +169,43 @@ def run_filter(
             f"{opts.method}: the data never made the calibration observable (the field magnitude"
             " must vary for centered-seq): cover more directions and magnitudes"
         )
-    n_theta = 9 + 3 * s.n_channels
+    est = filter_estimate(f, s.n_channels, opts, noise_ut, nis, (idx, xs, covs))
+    assert est.history is not None
+    return est, est.history
+
+
+def filter_estimate(
+    f: SequentialFilter,
+    n_channels: int,
+    opts: FilterOptions,
+    noise_ut: float,
+    nis: Array,
+    recorded: tuple[list[int], list[Array], list[Array]],
+) -> Estimate:
+    """The physical estimate of a filter that has seen every sample, with its history.
+
+    ``nis`` holds one entry per sample (NaN where there was no update); ``recorded`` is the
+    (sample index, theta, covariance) rows kept along the way.
+    """
+    n_theta = 9 + 3 * n_channels
     theta = np.asarray(f.x[:n_theta], float)
     cov_theta = np.asarray(f.P[:n_theta, :n_theta], float)
     p, cov = delta_method(p_from_theta, theta, cov_theta, opts.method)
     mean_nis = float(np.nanmean(nis)) if np.any(np.isfinite(nis)) else float("nan")
     note = (
-        f"{opts.method} ({opts.variant}, {opts.backend}) over {s.n} samples at"
+        f"{opts.method} ({opts.variant}, {opts.backend}) over {nis.size} samples at"
         f" {1000 * noise_ut:.3g} nT raw noise; mean NIS {mean_nis:.2f} (1 when consistent)",
     )
+    idx, xs, covs = recorded
     history = FilterHistory(
-        np.asarray(idx, int), np.asarray(xs), np.asarray(covs), nis, theta, cov_theta
+        np.asarray(idx, int),
+        np.asarray(xs).reshape(-1, n_theta),
+        np.asarray(covs).reshape(-1, n_theta, n_theta),
+        nis,
+        theta,
+        cov_theta,
     )
-    return Estimate(opts.method, p, cov, notes=note, history=history), history
+    return Estimate(opts.method, p, cov, notes=note, history=history)
 
 
 def history_table(history: FilterHistory, names: tuple[str, ...]) -> tuple[list[str], Array]:

@@ -8,6 +8,7 @@ every supply and load off before the links close; the run is then closed with it
 from __future__ import annotations
 
 import contextlib
+import math
 import shutil
 import signal
 import sys
@@ -27,7 +28,9 @@ from rig import __version__
 from rig.config import RigConfig
 from rig.devices import build_cage, open_device
 from rig.engine.analysis import calibrate_run, evaluate_criteria, noise_floor
+from rig.engine.guardian import Guardian
 from rig.engine.live import LiveView
+from rig.engine.live_calibration import LiveCalibration
 from rig.engine.sampling import BufferedSensor, SensorSampler
 from rig.errors import RigError
 from rig.procedure.language import Procedure
@@ -60,7 +63,8 @@ class Runner:
     """Runs one procedure on one rig."""
 
     def __init__(self, proc: Procedure, cfg: RigConfig, runs_dir: Path, *, i2c_bus: Any | None = None,
-                 confirm: Confirm | None = None, quiet: bool = False, live: bool = True) -> None:  # fmt: skip
+                 confirm: Confirm | None = None, quiet: bool = False, live: bool = True,
+                 guardian: bool = True) -> None:  # fmt: skip
         self.proc = proc
         self.cfg = cfg
         self.runs_dir = runs_dir
@@ -68,6 +72,7 @@ class Runner:
         self.confirm = confirm
         self.quiet = quiet
         self.live_enabled = live and not quiet
+        self.use_guardian = guardian
         self.results: dict[str, Any] = {}
         self.paused = threading.Event()
         self.abort = threading.Event()
@@ -75,6 +80,8 @@ class Runner:
         self.writer: RunWriter | None = None
         self.loads: dict[str, Any] = {}
         self.commanded_loads: dict[str, float] = {}
+        self.measured_loads: dict[str, tuple[float, float]] = {}  # name -> (time, A)
+        self.live_cal: LiveCalibration | None = None
         self.samplers: dict[str, SensorSampler] = {}
         self.controller: Any = None
         self.live: LiveView | None = None
@@ -93,6 +100,7 @@ class Runner:
         )  # fmt: skip
         (w.folder / "procedure.yaml").write_text(self.proc.text, encoding="utf-8")
         shutil.copy(self.cfg.path, w.folder / "rig.toml")
+        guardian = Guardian(self.cfg.path, w.folder) if self.use_guardian else None
         old = self._install_signals()
         status, reason = "error", "unknown"
         try:
@@ -125,6 +133,8 @@ class Runner:
                            command_lateness_max_ms=float(1000 * lat.max()),
                            commands_scheduled=int(lat.size))  # fmt: skip
             w.close(status, reason)
+            if guardian is not None:
+                guardian.release()
             self._restore_signals(old)
         return RunOutcome(status, reason, w.folder, self.results)
 
@@ -230,13 +240,22 @@ class Runner:
             self.live.start()
         # Registered last so it runs first on the way out: the coils are ramped down and their
         # supplies switched off before anything else is stopped (safe() is idempotent).
-        stack.callback(self.controller.safe)
+        stack.callback(self._safe_cage)
+
+    def _safe_cage(self) -> None:
+        for problem in self.controller.safe():
+            self._unsafe(f"cage did not go fully safe: {problem}")
 
     def _safe_load(self, name: str, load: Any) -> None:
         try:
             load.safe()
         except (DeviceError, OSError) as exc:
-            self._event("error", f"load {name} did not go safe: {exc}")
+            self._unsafe(f"load {name} did not go safe: {exc}")
+
+    def _unsafe(self, message: str) -> None:
+        """An output that may still be on: recorded, and told to the operator whatever -q says."""
+        self._event("error", message)
+        print(f"rig: WARNING: {message}; switch it off by hand", file=sys.stderr)
 
     def _monitor(self, stop: threading.Event) -> None:
         """Read back load and coil currents at about 5 Hz."""
@@ -245,22 +264,22 @@ class Runner:
         while not stop.wait(0.2):
             for name, load in list(self.loads.items()):
                 try:
-                    w.add_channel(
-                        time.monotonic(),
-                        name,
-                        self.commanded_loads.get(name),
-                        float(load.read().i_out_a),
-                    )
+                    amps = float(load.read().i_out_a)
+                    t_read = time.monotonic()
+                    self.measured_loads[name] = (t_read, amps)
+                    w.add_channel(t_read, name, self.commanded_loads.get(name), amps)
                 except (DeviceError, OSError) as exc:
                     self._event("warning", f"reading {name}: {exc}")
 
     # --- steps ----------------------------------------------------------------------------------
 
-    def _wait_until(self, t_target: float) -> float:
-        """Sleep until ``t_target`` (monotonic), honouring pause and abort; returns the time shift
-        added by pauses."""
+    def _wait_until(self, t_target: float, stop: threading.Event | None = None) -> float:
+        """Sleep until ``t_target`` (monotonic) or until ``stop`` is set, honouring pause and
+        abort; returns the time shift added by pauses."""
         shift = 0.0
         while True:
+            if stop is not None and stop.is_set():
+                return shift
             if self.abort.is_set():
                 raise RunAborted("aborted")
             if self.paused.is_set():
@@ -284,15 +303,23 @@ class Runner:
         self.current_step = (step.index, step.name, t0, plan.duration_s)
         w.set_step(step.index, step.name, step.kind, t0, None)
         self._event("info", f"step {step.index + 1}/{len(self.proc.steps)}: {step.name}")
+        live = self._start_live(step.params, t0) if step.kind == "live_calibrate" else None
+        stop = live.done if live is not None else None
         for cmd in plan.commands:
-            t0 += self._wait_until(t0 + cmd.t_s)
+            t0 += self._wait_until(t0 + cmd.t_s, stop)
+            if stop is not None and stop.is_set():
+                break
             now = time.monotonic()
             if cmd.kind in ("field", "load"):
                 self.lateness_s.append(now - (t0 + cmd.t_s))
             self._command(step.index, cmd.kind, cmd.payload, now)
             if cmd.kind == "field" and step.kind in ("null_field", "set_field"):
                 t0 = time.monotonic() - cmd.t_s  # the hold starts once the field is there
+        if live is not None:
+            self._end_live(live, plan)
         w.set_step(step.index, step.name, step.kind, self.current_step[2], time.monotonic())
+        if live is not None:
+            self._finish_live(live, step.name)
         if step.kind == "null_field":
             w.flush()
             reader = RunReader(w.folder)
@@ -306,12 +333,93 @@ class Runner:
             result = {f"{role}_noise_nt": noise[dev] for role, dev in mags.items() if dev in noise}
             self._result(step.name, result)
 
+    def _start_live(self, params: dict[str, Any], t0: float) -> LiveCalibration:
+        """Set up the filter of a ``live_calibrate`` step and connect it to the samplers."""
+        mags = self.proc.magnetometers
+        dut = mags.get(params["magnetometer"], params["magnetometer"])
+        ref = mags.get("reference")
+        if ref is None or dut not in self.samplers:
+            raise RigError(
+                f"{self.proc.path}: live_calibrate needs the '{params['magnetometer']}' and"
+                " 'reference' magnetometers under 'magnetometers'"
+            )
+        noise_nt = params["noise_nt"] or self._noise_nt(params["magnetometer"])
+        channels = list(params["telemetry"])
+        live = LiveCalibration(
+            params,
+            noise_nt / 1000.0,
+            t0,
+            lambda t: self._loads_now(channels, live),
+            self.correction,
+        )
+        self.samplers[ref].listeners.append(live.on_reference)
+        self.samplers[dut].listeners.append(live.on_dut)
+        live.start()
+        self.live_cal = live
+        self._event("info", f"live calibration: {params['method']} at {noise_nt:.3g} nT noise,"
+                            f" targets {params['targets'] or 'none'}")  # fmt: skip
+        return live
+
+    def _noise_nt(self, role: str) -> float:
+        """The newest noise floor of ``role`` combined with the reference's (nT, root sum square):
+        the filter pairs each DUT sample with one reference sample, so both noises count."""
+        for result in reversed(list(self.results.values())):
+            if isinstance(result, dict) and f"{role}_noise_nt" in result:
+                ref_nt = float(result.get("reference_noise_nt", 0.0))
+                return float(math.hypot(result[f"{role}_noise_nt"], ref_nt))
+        raise RigError(
+            f"{self.proc.path}: live_calibrate needs the noise: put a null_field step before it,"
+            " or give noise_nt"
+        )
+
+    def _loads_now(self, channels: list[str], live: LiveCalibration) -> np.ndarray:
+        """Load currents (A) for the filter: the read-back once it is newer than the last change's
+        settling, the commanded value before that."""
+        out = []
+        for ch in channels:
+            meas = self.measured_loads.get(ch)
+            fresh = meas is not None and meas[0] >= live.quiet_after
+            out.append(meas[1] if fresh and meas is not None else self.commanded_loads[ch])
+        return np.array(out, float)
+
+    def _end_live(self, live: LiveCalibration, plan: StepPlan) -> None:
+        """Disconnect the filter; after an early stop, switch the step's loads back to zero."""
+        for sampler in self.samplers.values():
+            for fn in (live.on_dut, live.on_reference):
+                if fn in sampler.listeners:
+                    sampler.listeners.remove(fn)
+        if live.done.is_set():
+            for ch in plan.step.loads:
+                self._command(plan.step.index, "load", {"channel": ch, "current_a": 0.0},
+                              time.monotonic())  # fmt: skip
+
+    def _finish_live(self, live: LiveCalibration, name: str) -> None:
+        assert self.writer is not None
+        self.writer.flush()
+        try:
+            result = live.finish(self.writer.folder, name, time.monotonic())
+        finally:
+            self.live_cal = None
+        self._result(name, result)
+        self._event("info", f"live calibration '{name}' stopped: {result['live']['stopped']}")
+
     def _result(self, name: str, value: Any) -> None:
         assert self.writer is not None
         self.results[name] = value
         self.writer.set_result(name, value)
 
     def _command(self, step_idx: int, kind: str, payload: dict[str, Any], now: float) -> None:
+        """Carry out one command; a live calibration ignores samples while a change is on."""
+        live = self.live_cal
+        if live is not None and kind in ("field", "load"):
+            live.change_started(now)
+        try:
+            self._apply(step_idx, kind, payload, now)
+        finally:
+            if live is not None and kind in ("field", "load"):
+                live.change_ended(time.monotonic())
+
+    def _apply(self, step_idx: int, kind: str, payload: dict[str, Any], now: float) -> None:
         w = self.writer
         assert w is not None
         if kind == "field":

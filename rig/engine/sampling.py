@@ -17,6 +17,7 @@ from drivers.errors import DeviceError
 from drivers.mag.hmr2300 import Hmr2300
 
 Sink = Callable[[float, str, tuple[float, float, float]], None]
+Listener = Callable[[float, tuple[float, float, float]], None]
 
 
 class SensorSampler:
@@ -32,6 +33,7 @@ class SensorSampler:
         self.latest: tuple[float, tuple[float, float, float]] | None = None
         self._cond = threading.Condition()
         self._recent: deque[tuple[int, float, tuple[float, float, float]]] = deque(maxlen=1000)
+        self.listeners: list[Listener] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sampler-{name}", daemon=True)
 
@@ -50,6 +52,8 @@ class SensorSampler:
 
     def _publish(self, t: float, xyz: tuple[float, float, float]) -> None:
         self.sink(t, self.name, xyz)
+        for listener in list(self.listeners):
+            listener(t, xyz)
         with self._cond:
             self.count += 1
             self.latest = (t, xyz)

@@ -124,6 +124,20 @@ FIELD_STEPS: dict[str, dict[str, Param]] = {
         "tumble_deg_s": Param("float", 2.0, 0.0, 360.0),
         "panels": Param("list_dict", []),
     },
+    "live_calibrate": {
+        "method": Param("str", "ukf", choices=("centered-seq", "ekf", "ukf")),
+        "telemetry": Param("list_str", []),
+        "targets": Param("dict", {}),
+        "stop_on_target": Param("str", "yes", choices=("yes", "no")),
+        "min_s": Param("float", 5.0, 0.0, 86400.0),
+        "max_s": Param("float", 60.0, 1.0, 86400.0),
+        "magnitude_ut": Param("range2", [20.0, 50.0], 0.0, 1000.0),
+        "dwell_s": Param("float", 0.8, 0.05, 3600.0),
+        "seed": Param("int", 1, 0, 2**31),
+        "noise_nt": Param("float", 0.0, 0.0, 1e6),
+        "settle_s": Param("float", 0.25, 0.0, 60.0),
+        "magnetometer": Param("str", "dut"),
+    },
     "rotate": {
         "magnitude_ut": Param("float", 40.0, 0.0, 1000.0),
         "axis": Param("vec3", [0.0, 0.0, 1.0]),
@@ -264,6 +278,10 @@ def _coerce(value: Any, p: Param, key: str, where: str) -> Any:
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
             raise bad(f"must be a list of names, got {value!r}")
         return list(value)
+    if p.kind == "dict":
+        if not isinstance(value, dict):
+            raise bad(f"must be a mapping of name: value, got {value!r}")
+        return {k: v for k, v in value.items() if k != "__line__"}
     if p.kind == "list_dict":
         if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
             raise bad("must be a list of mappings")
@@ -315,6 +333,36 @@ def _substitute(value: Any, names: dict[str, str], where: str) -> Any:
     if isinstance(value, dict):
         return {k: _substitute(v, names, where) for k, v in value.items()}
     return value
+
+
+def _check_live(params: dict[str, Any], loads: list[str], where: str) -> None:
+    """``live_calibrate``: telemetry among the loads, targets known and positive."""
+    from rig.calibration.targets import SIGMA_TARGETS
+
+    for ch in params["telemetry"]:
+        if ch not in loads:
+            raise ProcedureError(
+                f"{where}: telemetry '{ch}' is not in the procedure's 'loads' list{_suggest(ch, loads)}"
+            )
+    targets = params["targets"]
+    for key, value in targets.items():
+        if key not in SIGMA_TARGETS:
+            raise ProcedureError(
+                f"{where}: unknown target '{key}'{_suggest(key, SIGMA_TARGETS)}; targets are: {', '.join(SIGMA_TARGETS)}"
+            )
+        if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+            raise ProcedureError(
+                f"{where}: target '{key}' must be a positive 1-sigma, got {value!r}"
+            )
+        targets[key] = float(value)
+    if "k_ut_per_a" in targets and not params["telemetry"]:
+        raise ProcedureError(f"{where}: target 'k_ut_per_a' needs 'telemetry' channels")
+    if params["stop_on_target"] == "yes" and not targets:
+        raise ProcedureError(
+            f"{where}: stop_on_target needs 'targets', e.g. {{bias_nt: 30, scale: 0.002}}; or set stop_on_target: no"
+        )
+    if params["min_s"] > params["max_s"]:
+        raise ProcedureError(f"{where}: min_s must not exceed max_s")
 
 
 def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -> Procedure:
@@ -428,6 +476,8 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
                     raise ProcedureError(
                         f"{path}:{c.get('__line__', line)}: step {i + 1} (check): a criterion needs result, value and min and/or max{f'; unknown {sorted(bad)}' if bad else ''}"
                     )
+        if kind == "live_calibrate":
+            _check_live(params, loads, f"{where} (live_calibrate)")
         name = str(raw.get("name") or params.get("name") or f"{kind} {i + 1}")
         steps.append(
             Step(

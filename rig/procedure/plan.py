@@ -57,8 +57,11 @@ def field_sequence(step: Step) -> list[tuple[float, Array]]:
         return [(0.0, np.array(p["field_ut"]))]
     if step.kind == "hold":
         return []
-    if step.kind == "sphere_sweep":
-        dirs = fibonacci_directions(p["directions"])
+    if step.kind in ("sphere_sweep", "live_calibrate"):
+        n_dirs = (
+            p["directions"] if step.kind == "sphere_sweep" else math.ceil(p["max_s"] / p["dwell_s"])
+        )
+        dirs = fibonacci_directions(n_dirs)
         rng = np.random.default_rng(p["seed"])
         dirs = dirs[rng.permutation(len(dirs))]
         lo, hi = p["magnitude_ut"]
@@ -142,7 +145,7 @@ def step_duration(step: Step) -> float:
         return float(p["duration_s"])
     if step.kind in ("null_field", "set_field", "hold"):
         return float(p["hold_s"])
-    if step.kind in ("sphere_sweep", "axis_sweep", "rotate"):
+    if step.kind in ("sphere_sweep", "axis_sweep", "rotate", "live_calibrate"):
         return len(field_sequence(step)) * float(p["dwell_s"])
     return 0.0
 

@@ -134,6 +134,11 @@ def make_figures(reader: RunReader, meta: dict[str, Any], results: dict[str, Any
         fig.colorbar(sc, ax=ax, label="|B| (uT)", shrink=0.8)
         ax.set_title("applied field directions (cage frame, longitude = atan2(By, Bx))", fontsize=9)
         figs.append(_figure("Coverage of applied field directions", fig))
+    for name, res in results.items():
+        if isinstance(res, dict) and isinstance(res.get("live"), dict):
+            fig = _convergence_figure(reader.folder, res["live"], plt)
+            if fig is not None:
+                figs.append(_figure(f"Live calibration '{name}': 1-sigma converging", fig))
     noise_step = next(
         (st for st in reader.steps() if st[2] == "null_field" and st[4] is not None), None
     )
@@ -157,6 +162,50 @@ def make_figures(reader: RunReader, meta: dict[str, Any], results: dict[str, Any
             ax.grid(alpha=0.3)
             figs.append(_figure(f"Noise floor at null field ('{noise_step[1]}')", fig))
     return figs
+
+
+def read_history(path: Path) -> tuple[list[str], Array] | None:
+    """A live calibration's history CSV: header and rows (elapsed s, samples, p..., sigma...)."""
+    import csv
+
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+        return rows[0], np.array(rows[1:], float).reshape(len(rows) - 1, len(rows[0]))
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _convergence_figure(folder: Path, live: dict[str, Any], plt: Any) -> Any:
+    """One panel per target group: each parameter's 1-sigma against time, the target dashed, the
+    stop marked."""
+    from rig.calibration.targets import SIGMA_TARGETS, group_of
+
+    table = read_history(folder / str(live.get("history_file", "")))
+    if table is None or table[1].shape[0] == 0:
+        return None
+    header, rows = table
+    sigma_cols = [(i, h[len("sigma_") :]) for i, h in enumerate(header) if h.startswith("sigma_")]
+    groups = [g for g in SIGMA_TARGETS if any(group_of(n)[0] == g for _, n in sigma_cols)]
+    fig, axes = plt.subplots(1, len(groups), figsize=(3.0 * len(groups), 3.2), squeeze=False)
+    t = rows[:, 0]
+    for ax, group in zip(axes[0], groups, strict=True):
+        for i, name in sigma_cols:
+            g, factor = group_of(name)
+            if g == group:
+                ax.semilogy(t, factor * rows[:, i], lw=1.0, label=name)
+        target = live.get("targets", {}).get(group)
+        if target:
+            ax.axhline(target, color="k", ls="--", lw=1.0, label="target")
+        ax.axvline(float(live.get("elapsed_s", t[-1])), color="tab:red", lw=0.8, alpha=0.7)
+        ax.set_title(SIGMA_TARGETS[group], fontsize=8)
+        ax.set_xlabel("time in step (s)")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=6, loc="upper right")
+    axes[0][0].set_ylabel("1-sigma")
+    fig.suptitle(str(live.get("stopped", "")), fontsize=9)
+    fig.tight_layout()
+    return fig
 
 
 def without_telemetry(reader: RunReader, res: dict[str, Any]) -> dict[str, Any] | None:
@@ -299,6 +348,19 @@ def build_report(folder: Path) -> tuple[Path, Path]:
                 + ", ".join(f"{v:+.3f}" for v in res["mounting"]["rotation_vector_deg"])
                 + " deg</p>"
             )
+        live = res.get("live")
+        if isinstance(live, dict):
+            parts.append(
+                f"<p>Live calibration: stopped because {_esc(live['stopped'])}; {live['updates']} samples"
+                f" used over {live['elapsed_s']:.1f} s at {live['noise_nt']:.1f} nT noise.</p>"
+                "<table><tr><th>target</th><th>1-sigma at stop</th><th>target 1-sigma</th><th>met</th></tr>"
+            )
+            for key, sigma in live["sigma_at_stop"].items():
+                limit = live["targets"].get(key)
+                met = "-" if limit is None else ("PASS" if sigma <= limit else "FAIL")
+                parts.append(f"<tr><td>{_esc(key)}</td><td>{sigma:.3g}</td><td>{'-' if limit is None else f'{limit:g}'}</td>"
+                             f"<td class='{met}'>{met}</td></tr>")  # fmt: skip
+            parts.append("</table>")
         for w in res.get("warnings", []):
             parts.append(f"<p><i>{_esc(w)}</i></p>")
     parts.append("<h2>Plots</h2>")
@@ -393,6 +455,11 @@ def build_report(folder: Path) -> tuple[Path, Path]:
                 fontsize=8,
             )
             y -= 0.02
+            if isinstance(res.get("live"), dict):
+                page.text(
+                    0.08, y, f"live calibration stopped: {res['live']['stopped']}", fontsize=8
+                )
+                y -= 0.02
             if y < 0.1:
                 break
         pdf.savefig(page)

@@ -54,6 +54,21 @@ HEAD = "procedure: T\nparameters:\n  dut_serial: {default: A1}\nloads: [bus]\nst
             r"a criterion needs result, value and min and/or max",
         ),
         ("  - hold: {hold_s: 1\n", r"p.yaml:\d+: YAML syntax"),
+        (
+            "  - live_calibrate: {targets: {bias_ut: 30}}\n",
+            r"p.yaml:6: step 1 \(live_calibrate\): unknown target 'bias_ut' \(did you mean 'bias_nt'\?\)",
+        ),
+        ("  - live_calibrate: {targets: {scale: -1}}\n", r"target 'scale' must be a positive"),
+        ("  - live_calibrate: {targets: {k_ut_per_a: 0.1}}\n", r"'k_ut_per_a' needs 'telemetry'"),
+        ("  - live_calibrate: {}\n", r"stop_on_target needs 'targets'"),
+        (
+            "  - live_calibrate: {telemetry: [buss], stop_on_target: no}\n",
+            r"telemetry 'buss' is not in the procedure's 'loads' list \(did you mean 'bus'\?\)",
+        ),
+        (
+            "  - live_calibrate: {targets: {scale: 1}, min_s: 9, max_s: 5}\n",
+            r"min_s must not exceed max_s",
+        ),
     ],
 )
 def test_errors_name_file_line_step_and_fix(tmp_path: Path, body: str, message: str) -> None:

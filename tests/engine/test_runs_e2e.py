@@ -112,8 +112,11 @@ def test_interrupted_run_leaves_supplies_off_and_data_readable(
     sim_process: tuple[Path, dict[str, Any]], tmp_path: Path, sig: int
 ) -> None:
     rig_toml, devices = sim_process
-    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "-q", "run", "dut-acceptance", "--rig", str(rig_toml),
-                             "--yes", "--runs-dir", str(tmp_path)], stderr=subprocess.PIPE, text=True)  # fmt: skip
+    # started as a script's background job would be: SIGINT ignored; Ctrl-C must still stop it
+    proc = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "rig.cli", "-q", "run", "dut-acceptance",
+                             "--rig", str(rig_toml), "--yes", "--runs-dir", str(tmp_path)],
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))  # fmt: skip
     deadline = time.monotonic() + 30
     while True:  # wait until the sweep with currents is running
         folders = [p for p in tmp_path.iterdir() if (p / "run.sqlite").exists()]
@@ -130,7 +133,11 @@ def test_interrupted_run_leaves_supplies_off_and_data_readable(
     t_signal = time.monotonic()
     proc.send_signal(sig)
     while any(v == 1 for v in outputs(devices, tcp_only=True).values()):  # poll over their wires
-        assert time.monotonic() - t_signal < 5.0
+        if time.monotonic() - t_signal > 5.0:  # wedged: show where every thread is
+            proc.send_signal(signal.SIGABRT)
+            raise AssertionError(
+                "outputs still on 5 s after the signal:\n" + proc.communicate(timeout=10)[1]
+            )
     t_safe = time.monotonic() - t_signal
     print(f"time to safe after {signal.Signals(sig).name}: {t_safe * 1000:.0f} ms")
     _, err = proc.communicate(timeout=30)
@@ -179,18 +186,33 @@ def test_sigkill_mid_run_loses_at_most_half_a_second(
         assert time.monotonic() < deadline
         time.sleep(0.1)
     time.sleep(4.0)
+    assert any(v == 1 for v in outputs(devices, tcp_only=True).values())  # RTU ports are the rig's
     t_kill = time.monotonic()
     proc.kill()
     proc.wait()
+    # nothing in the killed process can act: the guardian it started switches everything off
     folder = next(p for p in tmp_path.iterdir() if (p / "run.sqlite").exists())
-    reader = RunReader(folder)
+    while any(v == 1 for v in outputs(devices, tcp_only=True).values()):
+        if time.monotonic() - t_kill > 5.0:
+            switch_off(devices)  # leave a safe rig for the following tests
+            raise AssertionError("outputs still on 5 s after SIGKILL: the guardian did not act")
+        time.sleep(0.01)
+    t_safe = time.monotonic() - t_kill
+    print(f"TCP outputs off {1000 * t_safe:.0f} ms after SIGKILL")
+    assert t_safe < 2.0
+    deadline = time.monotonic() + 10.0
+    while True:  # the guardian records what it did once every output, RTU ones too, is off
+        reader = RunReader(folder)
+        events = [m for _, _, m in reader.events() if m.startswith("guardian")]
+        if events or time.monotonic() > deadline:
+            break
+        reader.close()
+    assert events and "switched off coil_x, coil_y, coil_z" in events[0], events
     assert reader.meta()["status"] == "incomplete"
     last = max(reader.samples(dev)[-1][0] for dev in reader.devices())
     reader.close()
+    assert all(v == 0 for v in outputs(devices).values())
     assert t_kill - last <= 0.5, f"{t_kill - last:.3f} s of samples lost"
-    # Nothing in a killed process can switch outputs off (issue 8 adds a recovery on the next
-    # start); the operator does it here so the following tests start from a safe rig.
-    switch_off(devices)
 
 
 def switch_off(devices: dict[str, Any]) -> None:
@@ -216,6 +238,47 @@ def test_shipped_procedures_run_on_the_simulator(sim_process: tuple[Path, dict[s
     assert code == 0, (meta.get("reason"), results.get("verdict"))
     assert meta["status"] == "complete" and results["verdict"]["overall"] == "PASS"
     reader.close()
+    assert all(v == 0 for v in outputs(devices).values())
+
+
+@pytest.mark.slow
+def test_live_calibration_stops_on_target_and_reports_convergence(
+    sim_process: tuple[Path, dict[str, Any]], tmp_path: Path
+) -> None:
+    rig_toml, devices = sim_process
+    code = main(["run", "live-calibration", "--rig", str(rig_toml), "--yes", "--runs-dir", str(tmp_path), "-q"])  # fmt: skip
+    folder = next(p for p in tmp_path.iterdir() if (p / "run.sqlite").exists())
+    reader = RunReader(folder)
+    meta, results, events = reader.meta(), reader.results(), reader.events()
+    steps = {name: (t0, t1) for _, name, _, t0, t1 in reader.steps()}
+    reader.close()
+    assert code == 0 and meta["status"] == "complete", (meta.get("reason"), results.get("verdict"))
+    live = results["live calibration"]
+    info = live["live"]
+    # stopped by the targets, well before max_s (60 s), and the step ended when it said so
+    assert info["targets_met"] and info["stopped"].startswith("targets met after"), info
+    t0, t1 = steps["live calibration"]
+    assert info["elapsed_s"] < 45.0 and abs((t1 - t0) - info["elapsed_s"]) < 1.5
+    assert any(f"stopped: {info['stopped']}" in m for _, _, m in events)
+    assert all(info["sigma_at_stop"][k] <= v for k, v in info["targets"].items())
+    truth = load_config().magnetometer("dut")
+    for i, key in enumerate(("a", "b", "c")):
+        z = (live["springmann"][key] - truth.scale[i]) / live["sigma"]["springmann"][key]
+        assert abs(z) < 4.0, (key, live["springmann"][key], truth.scale[i])
+    for ch, k_true in truth.k_ut_per_a.items():
+        k, s = live["correction"]["k_ut_per_unit"][ch], live["sigma"]["k_ut_per_unit"][ch]
+        assert all(abs(k[i] - k_true[i]) < 4.0 * s[i] for i in range(3)), (ch, k, k_true, s)
+    assert 0.5 < live["filter"]["mean_nis"] < 2.0
+    # the batch fit of the same step agrees with the filter within the filter's sigmas
+    batch = results["batch vector fit"]
+    for key in ("a", "b", "c", "x0_ut", "y0_ut", "z0_ut"):
+        diff = batch["springmann"][key] - live["springmann"][key]
+        assert abs(diff) < 3.0 * live["sigma"]["springmann"][key], key
+    history = (folder / info["history_file"]).read_text().splitlines()
+    assert len(history) > 10 and history[0].startswith("elapsed_s,samples,a,b,c")
+    html = (folder / "report.html").read_text()
+    assert "Live calibration &#x27;live calibration&#x27;: 1-sigma converging" in html
+    assert "targets met after" in html
     assert all(v == 0 for v in outputs(devices).values())
 
 

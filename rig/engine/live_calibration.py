@@ -1,0 +1,252 @@
+"""The ``live_calibrate`` step: a sequential filter fed by the samplers while the cage sweeps.
+
+Every settled DUT sample (outside each field or load change and ``settle_s`` after it) is paired
+with the newest settled reference sample and the load currents, and updates the filter on a worker
+thread of its own (the samplers never wait for it). Twice a second of sample time the physical
+1-sigma of each target group is worked out; once every target is met (and ``min_s`` has passed)
+the step is told to stop. The history of estimates and sigmas goes to a CSV in the run folder for
+the report's convergence plot.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import queue
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rig.calibration import Samples
+from rig.calibration.estimate import delta_method
+from rig.calibration.params import Array
+from rig.calibration.realtime import FilterOptions, filter_estimate, make_filter
+from rig.calibration.residuals import p_from_theta, parameter_names
+from rig.calibration.result import summarize
+from rig.calibration.targets import group_sigmas, unmet_targets
+from rig.calibration.zmodel import z_sample
+from rig.engine.analysis import to_cage_frame
+from rig.errors import CalibrationError
+
+Telemetry = Callable[[float], Array]
+CHECK_EVERY_S = 0.5
+"""Sample time between two sigma evaluations (and history rows)."""
+MAX_PAIRING_S = 0.5
+"""Largest time between a DUT sample and the reference sample it is paired with (s)."""
+
+
+@dataclass
+class LiveSnapshot:
+    """The latest evaluation: elapsed time (s), updates so far and the sigma of every group."""
+
+    elapsed_s: float = 0.0
+    updates: int = 0
+    sigmas: dict[str, float] = field(default_factory=dict)
+
+
+class LiveCalibration:
+    """Runs one filter on incoming samples; ``done`` is set when the targets are met."""
+
+    def __init__(
+        self,
+        params: dict[str, Any],
+        noise_ut: float,
+        t0: float,
+        telemetry: Telemetry,
+        correction: dict[str, Any] | None,
+    ) -> None:
+        self.params = params
+        self.channels = tuple(params["telemetry"])
+        self.targets: dict[str, float] = dict(params["targets"])
+        self.noise_ut = noise_ut
+        self.t0 = t0
+        self.telemetry = telemetry
+        self.correction = correction
+        self.names = parameter_names(self.channels, vector=False)
+        self.opts = FilterOptions(method=params["method"])
+        self.filter = make_filter(self.opts, len(self.channels), noise_ut)
+        self.done = threading.Event()
+        self.reason = ""
+        self.error: Exception | None = None
+        self.snapshot = LiveSnapshot()
+        self.history: list[list[float]] = []
+        self.rejected = 0
+        self._queue: queue.SimpleQueue[tuple[float, Array, Array, Array] | None] = (
+            queue.SimpleQueue()
+        )
+        self._lock = threading.Lock()
+        self._open_change: float | None = None
+        self.quiet_after = t0 + float(params["settle_s"])
+        self._reference: tuple[float, Array] | None = None
+        self._rows: list[tuple[Array, float, Array, float]] = []
+        self._nis: list[float] = []
+        self._recorded: tuple[list[int], list[Array], list[Array]] = ([], [], [])
+        self._next_check = t0 + CHECK_EVERY_S
+        self._thread = threading.Thread(target=self._run, name="live-calibration", daemon=True)
+
+    # --- feeds (called from the sampler threads and the runner) ---------------------------------
+
+    def start(self) -> None:
+        """Start the worker."""
+        self._thread.start()
+
+    def on_dut(self, t: float, xyz: tuple[float, float, float]) -> None:
+        """A DUT sample (sampler thread): paired with the reference and the load currents as it
+        arrives (so a backlog cannot pair it with a later field), then queued; never blocks."""
+        with self._lock:
+            settled = self._open_change is None and t >= self.quiet_after
+            ref = self._reference
+        if not settled or ref is None or abs(ref[0] - t) > MAX_PAIRING_S:
+            self.rejected += 1
+            return
+        self._queue.put((t, np.asarray(xyz, float), ref[1], self.telemetry(t)))
+
+    def on_reference(self, t: float, xyz: tuple[float, float, float]) -> None:
+        """A reference sample (sampler thread): kept when settled."""
+        if self._settled(t):
+            with self._lock:
+                self._reference = (t, np.asarray(xyz, float))
+
+    def change_started(self, t: float) -> None:
+        """A field or load change begins at ``t`` (monotonic s)."""
+        with self._lock:
+            self._open_change = t
+            self._reference = None
+
+    def change_ended(self, t: float) -> None:
+        """The change is complete at ``t``; samples count again ``settle_s`` later."""
+        with self._lock:
+            self._open_change = None
+            self.quiet_after = t + float(self.params["settle_s"])
+            self._reference = None
+
+    def _settled(self, t: float) -> bool:
+        with self._lock:
+            return self._open_change is None and t >= self.quiet_after
+
+    # --- the worker -----------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            if self.error is not None:
+                continue
+            try:
+                self._update(*item)
+            except (CalibrationError, np.linalg.LinAlgError, ValueError) as exc:
+                self.error = exc
+
+    def _update(self, t: float, m: Array, ref: Array, u: Array) -> None:
+        h_mag = float(np.linalg.norm(to_cage_frame(ref[None, :], self.correction)[0]))
+        info = self.filter.update(z_sample(m, h_mag, u), 0.0)
+        self._rows.append((m, h_mag, u, t))
+        self._nis.append(info.nis if info is not None else math.nan)
+        if t >= self._next_check:
+            self._next_check = t + CHECK_EVERY_S
+            self._evaluate(t)
+
+    def _evaluate(self, t: float) -> None:
+        if not self.filter.ready:
+            return
+        n_theta = 9 + 3 * len(self.channels)
+        theta = np.asarray(self.filter.x[:n_theta], float)
+        cov_theta = np.asarray(self.filter.P[:n_theta, :n_theta], float)
+        try:
+            p, cov = delta_method(p_from_theta, theta, cov_theta, self.opts.method)
+        except CalibrationError:
+            return  # not an ellipsoid yet: the next evaluation will tell
+        sigma = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        sigmas = group_sigmas(sigma, self.names)
+        elapsed = t - self.t0
+        self.snapshot = LiveSnapshot(elapsed, len(self._rows), sigmas)
+        self.history.append([elapsed, float(len(self._rows)), *p, *sigma])
+        idx, xs, covs = self._recorded
+        idx.append(len(self._rows) - 1)
+        xs.append(theta)
+        covs.append(cov_theta)
+        if (
+            self.params["stop_on_target"] == "yes"
+            and elapsed >= float(self.params["min_s"])
+            and not unmet_targets(sigmas, self.targets)
+        ):
+            self.reason = f"targets met after {elapsed:.1f} s ({len(self._rows)} samples)"
+            self.done.set()
+
+    # --- the end --------------------------------------------------------------------------------
+
+    def status(self) -> str:
+        """One line for the live view: updates and each group's sigma against its target."""
+        snap = self.snapshot
+        if snap.updates == 0:
+            return f"cal waiting ({self.rejected} samples settling)"
+        parts = [f"cal {snap.updates} smp"]
+        for key, sigma in snap.sigmas.items():
+            limit = self.targets.get(key)
+            mark = "" if limit is None else ("ok" if sigma <= limit else f"/{limit:.3g}")
+            parts.append(f"{key} {sigma:.3g}{mark}")
+        return " ".join(parts)
+
+    def finish(self, folder: Path, step_name: str, t_end: float) -> dict[str, Any]:
+        """Stop the worker, fit the result and write the history CSV; returns the result file
+        content with a ``live`` block saying why the step stopped."""
+        self._queue.put(None)
+        self._thread.join(timeout=10.0)
+        if self.error is not None:
+            raise CalibrationError(
+                f"live calibration '{step_name}' failed: {self.error}; the samples are recorded,"
+                " run 'rig calibrate RUN' on them"
+            )
+        if self._rows:
+            self._evaluate(self._rows[-1][3])
+        if not self.filter.ready or not self.history:
+            raise CalibrationError(
+                f"live calibration '{step_name}': the filter never became observable"
+                f" ({len(self._rows)} settled samples): lengthen max_s or the dwell"
+            )
+        m = np.array([r[0] for r in self._rows])
+        h_mag = np.array([r[1] for r in self._rows])
+        u = np.array([r[2] for r in self._rows]).reshape(len(self._rows), -1)
+        data = Samples.build(
+            m, field_magnitude_ut=h_mag, telemetry=u if self.channels else None,
+            channels=self.channels,
+        )  # fmt: skip
+        est = filter_estimate(
+            self.filter, len(self.channels), self.opts, self.noise_ut, np.array(self._nis),
+            self._recorded,
+        )  # fmt: skip
+        result = summarize(est, data, 1000.0 * self.noise_ut).to_dict()
+        history_file = f"live-{_slug(step_name)}.csv"
+        with (folder / history_file).open("w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(["elapsed_s", "samples", *self.names, *(f"sigma_{n}" for n in self.names)])
+            w.writerows([f"{v:.9g}" for v in row] for row in self.history)
+        unmet = unmet_targets(self.snapshot.sigmas, self.targets)
+        if not self.reason:
+            self.reason = (
+                f"max_s ({self.params['max_s']:g} s) reached"
+                + (f"; targets not met: {', '.join(unmet)}" if unmet else "; targets met")
+                if self.params["stop_on_target"] == "yes"
+                else f"ran the full {self.params['max_s']:g} s (stop_on_target: no)"
+            )
+        result["live"] = {
+            "stopped": self.reason,
+            "targets_met": not unmet,
+            "elapsed_s": t_end - self.t0,
+            "updates": len(self._rows),
+            "rejected_samples": self.rejected,
+            "targets": self.targets,
+            "sigma_at_stop": self.snapshot.sigmas,
+            "noise_nt": 1000.0 * self.noise_ut,
+            "history_file": history_file,
+        }
+        return result
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in name.lower()).strip("-") or "step"
