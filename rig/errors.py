@@ -15,3 +15,7 @@ class UserInputError(RigError):
 
 class CalibrationError(RigError):
     """The data cannot support the requested calibration (singular, rank deficient, diverged)."""
+
+
+class StoreWriteError(RigError):
+    """The run's database cannot be written (disk full, I/O error); what was committed stays."""

@@ -55,6 +55,7 @@ class ModbusLink:
         self.retries = retries
         self.where = f"{host}:{port}" if host is not None else f"{path}"
         self._lock = threading.RLock()
+        self.failed = False  # the last request went unanswered: try once, not retries + 1 times
         self._client: Any
         if host is not None:
             self._client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0)
@@ -91,12 +92,13 @@ class ModbusLink:
 
     def _call_locked(self, what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
         last: Exception | None = None
-        for attempt in range(self.retries + 1):
+        attempts = 1 if self.failed else self.retries + 1
+        for attempt in range(attempts):
             try:
                 if not self._client.connected:
                     self.connect()
                 rr = fn(*args, device_id=self.device_id, **kwargs)
-            except ConnectionException as exc:
+            except (ConnectionException, OSError) as exc:  # refused, reset, broken pipe, pty gone
                 last = exc
                 self._client.close()
                 continue
@@ -113,19 +115,21 @@ class ModbusLink:
                     f"{self.name} at {self.where} refused {what}: Modbus exception {code}"
                     f" ({EXCEPTION_NAMES.get(code, 'unknown')})"
                 )
+            self.failed = False
             return rr
-        if isinstance(last, ConnectionException | DeviceNotFoundError):
+        self.failed = True
+        if isinstance(last, ConnectionException | DeviceNotFoundError | OSError):
             raise DeviceNotFoundError(
                 f"{self.name} at {self.where}: connection lost during {what} ({last});"
                 " check power and cable"
             )
         if isinstance(last, ModbusIOException):
             raise DeviceTimeoutError(
-                f"{self.name} at {self.where}: no reply to {what} after {self.retries + 1}"
+                f"{self.name} at {self.where}: no reply to {what} after {attempts}"
                 " attempts; check power, cable, baud rate and device id"
             )
         raise DeviceProtocolError(
-            f"{self.name} at {self.where}: malformed reply to {what} after {self.retries + 1}"
+            f"{self.name} at {self.where}: malformed reply to {what} after {attempts}"
             f" attempts ({last}); check for noise on the line or a wrong framing"
         )
 

@@ -6,6 +6,7 @@ current limit and the slew limit hold for every command; the drivers check their
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -18,6 +19,9 @@ import numpy.typing as npt
 from rig.cage.limits import CageLimitError, CageLimits, plan_ramp
 from rig.cage.model import CageModel
 from rig.errors import RigError
+
+SAFE_TIMEOUT_S = 5.0
+"""Longest wait for one supply to confirm it is off (a dead link gives up sooner)."""
 
 Array = npt.NDArray[np.float64]
 
@@ -200,16 +204,26 @@ class CageController:
     def safe(self) -> list[str]:
         """Ramp to zero if possible, then every output off; never raises. Returns problems seen."""
         problems: list[str] = []
-        if self.enabled:
+        dead = any(getattr(getattr(d.supply, "link", None), "failed", False) for d in self.axes)
+        if self.enabled and not dead:  # with a supply not answering, switch off at once
             try:
                 self.set_currents(np.zeros(3))
             except Exception as exc:  # a dead link must not stop the others going safe
                 problems.append(f"ramp to zero failed: {exc}")
-        for axis, drive in enumerate(self.axes):
+
+        def off(axis: int, drive: AxisDrive) -> None:
             try:
                 drive.supply.safe()
             except Exception as exc:
                 problems.append(f"axis {'xyz'[axis]} supply: {exc}")
+
+        # in parallel: a supply that does not answer must not delay the others
+        threads = [threading.Thread(target=off, args=(i, d), name=f"safe-{'xyz'[i]}")
+                   for i, d in enumerate(self.axes)]  # fmt: skip
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(SAFE_TIMEOUT_S)
         self.enabled = False
         self.currents = np.zeros(3)
         return problems

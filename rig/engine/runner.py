@@ -38,6 +38,14 @@ from rig.procedure.plan import StepPlan, compile_plan
 from rig.store.run_store import RunReader, RunWriter, new_run
 
 Confirm = Callable[[str], bool]
+MONITOR_PERIOD_S = 0.2
+STALL_S = 1.5
+"""A sensor that sends nothing for this long (or 5 of its periods) has stalled."""
+STUCK_AFTER = 60
+"""This many identical readings in a row (3 s at 20 Hz) mean a frozen sensor: real noise varies.
+A device's ``stuck_after`` in the rig configuration overrides it (0 = never)."""
+COIL_CHECK_S = 1.0
+"""How often the coil supplies' protection flags are read."""
 
 
 class RunAborted(RigError):  # noqa: N818 - an outcome, not a fault
@@ -82,6 +90,9 @@ class Runner:
         self.commanded_loads: dict[str, float] = {}
         self.measured_loads: dict[str, tuple[float, float]] = {}  # name -> (time, A)
         self.live_cal: LiveCalibration | None = None
+        self.fault: str | None = None
+        self.fault_t: float | None = None
+        self._coil_checked = 0.0
         self.samplers: dict[str, SensorSampler] = {}
         self.controller: Any = None
         self.live: LiveView | None = None
@@ -132,7 +143,11 @@ class Runner:
                            command_lateness_p99_ms=float(1000 * np.percentile(lat, 99)),
                            command_lateness_max_ms=float(1000 * lat.max()),
                            commands_scheduled=int(lat.size))  # fmt: skip
-            w.close(status, reason)
+            for problem in w.close(status, reason):
+                print(
+                    f"rig: WARNING: {problem}; the data committed before it is kept",
+                    file=sys.stderr,
+                )
             if guardian is not None:
                 guardian.release()
             self._restore_signals(old)
@@ -258,18 +273,60 @@ class Runner:
         print(f"rig: WARNING: {message}; switch it off by hand", file=sys.stderr)
 
     def _monitor(self, stop: threading.Event) -> None:
-        """Read back load and coil currents at about 5 Hz."""
+        """Read back load currents and watch the rig's health at about 5 Hz: a tripped supply, a
+        stalled or frozen sensor or a store that cannot write ends the run (see ``fault``)."""
         w = self.writer
         assert w is not None
-        while not stop.wait(0.2):
+        while not stop.wait(MONITOR_PERIOD_S):
             for name, load in list(self.loads.items()):
                 try:
-                    amps = float(load.read().i_out_a)
+                    reading = load.read()
                     t_read = time.monotonic()
-                    self.measured_loads[name] = (t_read, amps)
-                    w.add_channel(t_read, name, self.commanded_loads.get(name), amps)
+                    self.measured_loads[name] = (t_read, float(reading.i_out_a))
+                    w.add_channel(
+                        t_read, name, self.commanded_loads.get(name), float(reading.i_out_a)
+                    )
+                    if reading.protection:
+                        self._fail(f"{name}: the output tripped ({reading.protection}) and is off;"
+                                   " check the wiring and the load before running again")  # fmt: skip
                 except (DeviceError, OSError) as exc:
                     self._event("warning", f"reading {name}: {exc}")
+            self._check_health(w)
+
+    def _check_health(self, w: RunWriter) -> None:
+        if w.error is not None:
+            self._fail(f"cannot write the run data ({w.error}): is the disk full? Free space under"
+                       f" {w.folder.parent}; what was recorded before is kept")  # fmt: skip
+        now = time.monotonic()
+        for name, sampler in list(self.samplers.items()):
+            stall_s = max(STALL_S, 5.0 / sampler.rate_hz)
+            stuck_after = int(self.cfg.devices[name].get("stuck_after", STUCK_AFTER)) or 10**9
+            problem = sampler.health(now, stall_s, stuck_after)
+            if problem is not None:
+                self._fail(problem)
+        ctl = self.controller
+        if ctl is not None and ctl.enabled and self._coil_check_due(now):
+            for axis, drive in enumerate(ctl.axes):
+                try:
+                    protection = drive.supply.read().protection
+                except (DeviceError, OSError) as exc:
+                    self._event("warning", f"reading the {'xyz'[axis]} coil supply: {exc}")
+                    continue
+                if protection:
+                    self._fail(f"coil {'xyz'[axis]} supply tripped ({protection}) and is off;"
+                               " check the coil wiring, then run again")  # fmt: skip
+
+    def _coil_check_due(self, now: float) -> bool:
+        if now - self._coil_checked < COIL_CHECK_S:
+            return False
+        self._coil_checked = now
+        return True
+
+    def _fail(self, message: str) -> None:
+        """A fault found off the main thread: the main thread raises it at its next wait."""
+        if self.fault is None:
+            self.fault = message
+            self.fault_t = time.monotonic()
 
     # --- steps ----------------------------------------------------------------------------------
 
@@ -278,6 +335,8 @@ class Runner:
         abort; returns the time shift added by pauses."""
         shift = 0.0
         while True:
+            if self.fault is not None:
+                raise RigError(self.fault)
             if stop is not None and stop.is_set():
                 return shift
             if self.abort.is_set():

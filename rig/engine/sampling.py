@@ -34,6 +34,8 @@ class SensorSampler:
         self._cond = threading.Condition()
         self._recent: deque[tuple[int, float, tuple[float, float, float]]] = deque(maxlen=1000)
         self.listeners: list[Listener] = []
+        self.started_t = time.monotonic()
+        self.repeats = 0  # consecutive readings identical to the one before
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sampler-{name}", daemon=True)
 
@@ -48,6 +50,7 @@ class SensorSampler:
             self.driver.set_rate(rate)
             self.rate_hz = rate
             self.driver.start_stream()
+        self.started_t = time.monotonic()
         self._thread.start()
 
     def _publish(self, t: float, xyz: tuple[float, float, float]) -> None:
@@ -56,6 +59,9 @@ class SensorSampler:
             listener(t, xyz)
         with self._cond:
             self.count += 1
+            self.repeats = (
+                self.repeats + 1 if self.latest is not None and self.latest[1] == xyz else 0
+            )
             self.latest = (t, xyz)
             self._recent.append((self.count, t, xyz))
             self._cond.notify_all()
@@ -83,6 +89,19 @@ class SensorSampler:
             self.error = exc
             with self._cond:
                 self._cond.notify_all()
+
+    def health(self, now: float, stall_s: float, stuck_after: int) -> str | None:
+        """What is wrong with this sensor's data, if anything: stopped, stalled or frozen."""
+        if self.error is not None:
+            return f"{self.name}: sampling stopped: {self.error}"
+        last = self.latest[0] if self.latest is not None else self.started_t
+        if now - last > stall_s:
+            return (f"{self.name}: no data for {now - last:.1f} s (stream stalled or sensor"
+                    " disconnected); check its cable and power")  # fmt: skip
+        if self.repeats >= stuck_after:
+            return (f"{self.name}: the last {self.repeats + 1} readings are identical (sensor"
+                    " frozen); power-cycle it")  # fmt: skip
+        return None
 
     def wait_next(
         self, after: int, timeout_s: float = 2.0

@@ -7,17 +7,19 @@ still ``running`` when it is next opened was killed: it is marked ``incomplete``
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import json
 import queue
 import sqlite3
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rig.errors import UserInputError
+from rig.errors import StoreWriteError, UserInputError
 
 COMMIT_INTERVAL_S = 0.2
 """At most this much data (plus one commit's duration) is at risk if the process is killed."""
@@ -69,6 +71,7 @@ class RunWriter:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self.rows_written = 0
+        self.error: sqlite3.Error | None = None
         self._thread = threading.Thread(target=self._run, name="run-store", daemon=True)
         self._thread.start()
 
@@ -94,9 +97,22 @@ class RunWriter:
 
     # --- immediate writes -----------------------------------------------------------------------
 
+    @contextlib.contextmanager
+    def _writing(self) -> Iterator[None]:
+        """Hold the lock; a database error becomes a one-line :class:`StoreWriteError`."""
+        with self._lock:
+            try:
+                yield
+            except sqlite3.Error as exc:
+                self.error = exc
+                raise StoreWriteError(
+                    f"cannot write the run data to {self.path} ({exc}): is the disk full? Free"
+                    f" space under {self.folder.parent}; what was recorded before is kept"
+                ) from None
+
     def set_meta(self, **values: Any) -> None:
         """Metadata, written and committed at once."""
-        with self._lock:
+        with self._writing():
             self._con.executemany(
                 "INSERT OR REPLACE INTO meta VALUES (?, ?)",
                 [(k, json.dumps(v)) for k, v in values.items()],
@@ -105,7 +121,7 @@ class RunWriter:
 
     def set_step(self, idx: int, name: str, kind: str, t_start: float, t_end: float | None) -> None:
         """Start (and later end) of a procedure step."""
-        with self._lock:
+        with self._writing():
             self._con.execute(
                 "INSERT OR REPLACE INTO steps VALUES (?, ?, ?, ?, ?)",
                 (idx, name, kind, t_start, t_end),
@@ -114,7 +130,7 @@ class RunWriter:
 
     def set_result(self, name: str, value: Any) -> None:
         """A named result (calibration, check verdict), JSON-serializable."""
-        with self._lock:
+        with self._writing():
             self._con.execute(
                 "INSERT OR REPLACE INTO results VALUES (?, ?)", (name, json.dumps(value))
             )
@@ -148,21 +164,37 @@ class RunWriter:
 
     def _run(self) -> None:
         while not self._stop.wait(COMMIT_INTERVAL_S):
-            self._drain()
+            try:
+                self._drain()
+            except sqlite3.Error as exc:  # disk full, I/O error: what is committed stays
+                self.error = exc
+                return
 
     def flush(self) -> None:
         """Commit everything queued so far."""
         self._drain()
 
-    def close(self, status: str, reason: str) -> None:
-        """Commit the rest, record the exit status and reason, close the database."""
+    def close(self, status: str, reason: str) -> list[str]:
+        """Commit the rest, record the exit status and reason, close the database. Never raises
+        on a database error (a full disk): returns what could not be written."""
         self._stop.set()
         self._thread.join(timeout=2.0)
-        self._drain()
-        self.set_meta(status=status, reason=reason, end_time=now_iso())
+        problems = []
+        for what, action in (
+            ("the last rows", self._drain),
+            (
+                "the run's status",
+                lambda: self.set_meta(status=status, reason=reason, end_time=now_iso()),
+            ),
+            ("the checkpoint", lambda: self._con.execute("PRAGMA wal_checkpoint(TRUNCATE)")),
+        ):
+            try:
+                action()
+            except (sqlite3.Error, StoreWriteError) as exc:
+                problems.append(f"could not write {what} to {self.path} ({exc})")
         with self._lock:
-            self._con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
             self._con.close()
+        return problems
 
 
 @dataclass(frozen=True)

@@ -111,3 +111,19 @@ def test_aborted_run_says_so_at_the_top(tmp_path: Path) -> None:
     text = html_path.read_text()
     top = text[: text.index("Acceptance criteria")]
     assert "ABORTED RUN - NOT A VALID ACCEPTANCE" in top
+
+
+def test_every_user_supplied_string_is_escaped(tmp_path: Path) -> None:
+    """Serial, operator, procedure title, step names, log messages, criterion names: all text."""
+    hostile = "<script>alert(1)</script>"
+    w = new_run(tmp_path, "x", procedure=f"P {hostile}", dut_serial=f"SN{hostile}",
+                operator="O'Brien & <b>co</b>", magnetometers={"dut": "dut"},
+                instruments={"dut": "<img src=x onerror=alert(2)>"})  # fmt: skip
+    w.set_step(0, f"step {hostile}", "hold", 1.0, 2.0)
+    w.add_event(1.5, "operator", f"prompt '{hostile}': declined")
+    w.set_result("verdict", {"overall": "FAIL", "criteria": [
+        {"name": f"crit {hostile}", "verdict": "FAIL", "reason": f"no result '{hostile}'"}]})  # fmt: skip
+    w.close("aborted", f"the operator declined: {hostile}")
+    text = build_report(w.folder)[0].read_text()
+    assert "<script" not in text and "<img src=x" not in text and "<b>co</b>" not in text
+    assert text.count("&lt;script&gt;alert(1)&lt;/script&gt;") >= 5
