@@ -156,6 +156,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--yes", action="store_true", help="confirm operator prompts automatically (recorded)"
     )
     runp.set_defaults(func=_cmd_run)
+    safe = sub.add_parser(
+        "safe", parents=[common], help="switch every supply, load and relay of the rig off now"
+    )
+    safe.add_argument(
+        "--rig", type=Path, required=True, metavar="CONFIG.toml", help="rig configuration"
+    )
+    safe.set_defaults(func=_cmd_safe)
     chk = sub.add_parser(
         "check", parents=[common], help="dry-run a procedure: timeline, duration, limits"
     )
@@ -372,6 +379,17 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from rig.run_commands import run_demo
 
     return run_demo(args.runs_dir, args.procedure, args.quiet)
+
+
+def _cmd_safe(args: argparse.Namespace) -> int:
+    from rig.engine.guardian import safe_outputs
+
+    done, problems = safe_outputs(args.rig)
+    if not args.quiet:
+        print(f"switched off: {', '.join(done) or 'nothing'}")
+    for p in problems:
+        print(f"rig: error: could not switch off {p}; switch it off by hand", file=sys.stderr)
+    return EXIT_INPUT if problems else EXIT_OK
 
 
 def _cmd_runs(args: argparse.Namespace) -> int:

@@ -304,3 +304,16 @@ def test_pause_and_resume_with_sigusr1(tmp_path: Path) -> None:
     reader.close()
     assert "paused" in messages and "resumed" in messages
     assert took > 8.5  # the smoke procedure's ~7 s plus the 2 s pause
+
+
+def test_rig_safe_switches_everything_off(tmp_path: Path) -> None:
+    cfg = load_config()
+    with SimulatedCage(cfg) as cage:
+        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+        for s in cage.physics.supplies.values():
+            s.set_current(0.5)
+            s.set_output(True)
+        assert main(["safe", "--rig", str(tmp_path / "rig.toml")]) == 0
+        assert not any(s.output for s in cage.physics.supplies.values())
+        cage.faults["load_panel"].silent = True  # one that does not answer: named, exit 2
+        assert main(["safe", "--rig", str(tmp_path / "rig.toml"), "-q"]) == 2
