@@ -158,7 +158,7 @@ class Runner:
             return {}
 
         def on_term(signum: int, frame: FrameType | None) -> None:
-            raise RunAborted("stopped by SIGTERM")
+            raise RunAborted(f"stopped by {signal.Signals(signum).name}")
 
         def on_usr1(signum: int, frame: FrameType | None) -> None:
             if self.paused.is_set():
@@ -168,6 +168,7 @@ class Runner:
 
         return {
             signal.SIGTERM: signal.signal(signal.SIGTERM, on_term),
+            signal.SIGHUP: signal.signal(signal.SIGHUP, on_term),  # the terminal went away
             signal.SIGUSR1: signal.signal(signal.SIGUSR1, on_usr1),
         }
 

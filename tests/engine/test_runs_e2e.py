@@ -107,7 +107,9 @@ def outputs(devices: dict[str, Any], tcp_only: bool = False) -> dict[str, int]:
     }
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+@pytest.mark.parametrize(
+    "sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["ctrl-c", "sigterm", "sighup"]
+)
 def test_interrupted_run_leaves_supplies_off_and_data_readable(
     sim_process: tuple[Path, dict[str, Any]], tmp_path: Path, sig: int
 ) -> None:
