@@ -192,11 +192,16 @@ class LiveCalibration:
             parts.append(f"{key} {sigma:.3g}{mark}")
         return " ".join(parts)
 
+    def stop(self) -> None:
+        """Let the worker finish what is queued and end (idempotent)."""
+        self._queue.put(None)
+        if self._thread.is_alive():
+            self._thread.join(timeout=10.0)
+
     def finish(self, folder: Path, step_name: str, t_end: float) -> dict[str, Any]:
         """Stop the worker, fit the result and write the history CSV; returns the result file
         content with a ``live`` block saying why the step stopped."""
-        self._queue.put(None)
-        self._thread.join(timeout=10.0)
+        self.stop()
         if self.error is not None:
             raise CalibrationError(
                 f"live calibration '{step_name}' failed: {self.error}; the samples are recorded,"

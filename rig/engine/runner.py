@@ -91,7 +91,6 @@ class Runner:
         self.measured_loads: dict[str, tuple[float, float]] = {}  # name -> (time, A)
         self.live_cal: LiveCalibration | None = None
         self.fault: str | None = None
-        self.fault_t: float | None = None
         self._coil_checked = 0.0
         self.samplers: dict[str, SensorSampler] = {}
         self.controller: Any = None
@@ -327,7 +326,6 @@ class Runner:
         """A fault found off the main thread: the main thread raises it at its next wait."""
         if self.fault is None:
             self.fault = message
-            self.fault_t = time.monotonic()
 
     # --- steps ----------------------------------------------------------------------------------
 
@@ -365,16 +363,23 @@ class Runner:
         self._event("info", f"step {step.index + 1}/{len(self.proc.steps)}: {step.name}")
         live = self._start_live(step.params, t0) if step.kind == "live_calibrate" else None
         stop = live.done if live is not None else None
-        for cmd in plan.commands:
-            t0 += self._wait_until(t0 + cmd.t_s, stop)
-            if stop is not None and stop.is_set():
-                break
-            now = time.monotonic()
-            if cmd.kind in ("field", "load"):
-                self.lateness_s.append(now - (t0 + cmd.t_s))
-            self._command(step.index, cmd.kind, cmd.payload, now)
-            if cmd.kind == "field" and step.kind in ("null_field", "set_field"):
-                t0 = time.monotonic() - cmd.t_s  # the hold starts once the field is there
+        try:
+            for cmd in plan.commands:
+                t0 += self._wait_until(t0 + cmd.t_s, stop)
+                if stop is not None and stop.is_set():
+                    break
+                now = time.monotonic()
+                if cmd.kind in ("field", "load"):
+                    self.lateness_s.append(now - (t0 + cmd.t_s))
+                self._command(step.index, cmd.kind, cmd.payload, now)
+                if cmd.kind == "field" and step.kind in ("null_field", "set_field"):
+                    t0 = time.monotonic() - cmd.t_s  # the hold starts once the field is there
+        except BaseException:
+            if live is not None:  # the run is ending: let go of the samplers and the worker
+                self._detach_live(live)
+                live.stop()
+                self.live_cal = None
+            raise
         if live is not None:
             self._end_live(live, plan)
         w.set_step(step.index, step.name, step.kind, self.current_step[2], time.monotonic())
@@ -442,12 +447,15 @@ class Runner:
             out.append(meas[1] if fresh and meas is not None else self.commanded_loads[ch])
         return np.array(out, float)
 
-    def _end_live(self, live: LiveCalibration, plan: StepPlan) -> None:
-        """Disconnect the filter; after an early stop, switch the step's loads back to zero."""
+    def _detach_live(self, live: LiveCalibration) -> None:
         for sampler in self.samplers.values():
             for fn in (live.on_dut, live.on_reference):
                 if fn in sampler.listeners:
                     sampler.listeners.remove(fn)
+
+    def _end_live(self, live: LiveCalibration, plan: StepPlan) -> None:
+        """Disconnect the filter; after an early stop, switch the step's loads back to zero."""
+        self._detach_live(live)
         if live.done.is_set():
             for ch in plan.step.loads:
                 self._command(plan.step.index, "load", {"channel": ch, "current_a": 0.0},
