@@ -77,8 +77,11 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
         loads_max,
     )
     if not quiet:
+        live = any(s.kind == "live_calibrate" for s in proc.steps)
+        how_long = "at most" if live else "about"
         print(
-            f"{proc.title} ({proc.path}): {len(proc.steps)} steps, about {dr.duration_s:.0f} s of field time"
+            f"{proc.title} ({proc.path}): {len(proc.steps)} steps, {how_long} {dr.duration_s:.0f} s of field time"
+            + (" (live_calibrate steps may stop earlier)" if live else "")
         )
         for t, name, summary in dr.timeline:
             print(f"  {t:7.1f} s  {name:<28} {summary}")
