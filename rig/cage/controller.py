@@ -20,6 +20,8 @@ from rig.cage.limits import CageLimitError, CageLimits, plan_ramp
 from rig.cage.model import CageModel
 from rig.errors import RigError
 
+SENT_KEPT = 10_000
+"""How many of the latest set-point vectors the controller keeps in memory."""
 SAFE_TIMEOUT_S = 5.0
 """Longest wait for one supply to confirm it is off (a dead link gives up sooner)."""
 
@@ -98,7 +100,9 @@ class CageController:
         self.zero_threshold_a = zero_threshold_a
         self.currents = np.zeros(3)
         self.signs = [1, 1, 1]
-        self.sent: list[Array] = []  # every set-point vector sent, for audit and tests
+        # the latest set-point vectors sent, for audit and tests; bounded, as an orbit replay sends
+        # 72 000 an hour (the store keeps every one as coil channel rows)
+        self.sent: deque[Array] = deque(maxlen=SENT_KEPT)
         self.last_send_s: float | None = None
         self.enabled = False
 
