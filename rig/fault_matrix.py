@@ -254,10 +254,8 @@ def _child(fault: Fault, cage: SimulatedCage, workdir: Path, proc_path: Path) ->
                               str(workdir / "rig.toml"), "--yes", "--runs-dir", str(runs)],
                              stderr=subprocess.PIPE, text=True, preexec_fn=limits)  # fmt: skip
     watch = _Watch(cage, ())
-    folder: Path | None = None
 
     def step_of() -> str | None:
-        nonlocal folder
         folder = next((p for p in runs.iterdir() if (p / "run.sqlite").exists()), None)
         if folder is None:
             return None

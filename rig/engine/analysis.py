@@ -93,19 +93,6 @@ def noise_floor(
     return out
 
 
-def calibration_samples(
-    reader: RunReader,
-    dut: str,
-    reference: str,
-    telemetry: list[str],
-    steps: list[str],
-    settle_s: float,
-    correction: dict[str, Any] | None,
-) -> Samples:
-    """DUT readings with the reference field (cage frame) and load currents at the same times."""
-    return calibration_data(reader, dut, reference, telemetry, steps, settle_s, correction)[0]
-
-
 def calibration_data(
     reader: RunReader,
     dut: str,
@@ -115,7 +102,8 @@ def calibration_data(
     settle_s: float,
     correction: dict[str, Any] | None,
 ) -> tuple[Samples, Array]:
-    """:func:`calibration_samples` and the monotonic time of each sample (s)."""
+    """DUT readings with the reference field (cage frame) and load currents at the same times,
+    and the monotonic time of each sample (s)."""
     rows = np.array(reader.samples(dut), float).reshape(-1, 4)
     ref = np.array(reader.samples(reference), float).reshape(-1, 4)
     if rows.shape[0] == 0 or ref.shape[0] < 2:
@@ -157,7 +145,7 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
                   correction: dict[str, Any] | None) -> dict[str, Any]:  # fmt: skip
     """The ``calibrate`` step: fit the DUT from the run so far; returns the result file content."""
     dut = magnetometers.get(params["magnetometer"], params["magnetometer"])
-    samples = calibration_samples(reader, dut, magnetometers.get("reference", "reference"),
+    samples, _ = calibration_data(reader, dut, magnetometers.get("reference", "reference"),
                                   params["telemetry"], params["steps"], params["settle_s"], correction)  # fmt: skip
     method = params["method"] or ("vector" if params["model"] == "vector" else "ml")
     if params["model"] == "scalar" and method == "vector":

@@ -97,9 +97,7 @@ class LiveCalibration:
     def on_dut(self, t: float, xyz: tuple[float, float, float]) -> None:
         """A DUT sample (sampler thread): paired with the reference and the load currents as it
         arrives (so a backlog cannot pair it with a later field), then queued; never blocks."""
-        with self._lock:
-            settled = self._open_change is None and t >= self.quiet_after
-            ref = self._reference
+        settled, ref = self._state(t)
         if not settled or ref is None or abs(ref[0] - t) > MAX_PAIRING_S:
             self.rejected += 1
             return
@@ -107,7 +105,7 @@ class LiveCalibration:
 
     def on_reference(self, t: float, xyz: tuple[float, float, float]) -> None:
         """A reference sample (sampler thread): kept when settled."""
-        if self._settled(t):
+        if self._state(t)[0]:
             with self._lock:
                 self._reference = (t, np.asarray(xyz, float))
 
@@ -124,9 +122,10 @@ class LiveCalibration:
             self.quiet_after = t + float(self.params["settle_s"])
             self._reference = None
 
-    def _settled(self, t: float) -> bool:
+    def _state(self, t: float) -> tuple[bool, tuple[float, Array] | None]:
+        """Whether a sample at ``t`` is settled, and the reference sample kept for it."""
         with self._lock:
-            return self._open_change is None and t >= self.quiet_after
+            return self._open_change is None and t >= self.quiet_after, self._reference
 
     # --- the worker -----------------------------------------------------------------------------
 
