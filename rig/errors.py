@@ -6,7 +6,16 @@ and the fix; the CLI prints it and exits with code 2, never with a traceback.
 
 
 class RigError(Exception):
-    """Root of all errors raised deliberately by the rig."""
+    """Root of all errors raised deliberately by the rig. The message stays one line: line breaks
+    that come in with user input (a YAML key, a CSV cell) are shown escaped."""
+
+    def __init__(self, *args: object) -> None:
+        super().__init__(
+            *(
+                a.replace("\r", "\\r").replace("\n", "\\n") if isinstance(a, str) else a
+                for a in args
+            )
+        )
 
 
 class UserInputError(RigError):

@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 import yaml
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from drivers.errors import DeviceProtocolError
@@ -157,6 +157,7 @@ def _procedure(steps: list[Any], extra: dict[str, Any]) -> dict[str, Any]:
         st.sampled_from(["parameters", "magnetometers", "loads", "junk"]), yaml_values, max_size=2
     ),
 )
+@example(steps=[{"hold": {"\n": None}}], extra={})  # a key with a line break: still one line
 def test_procedure_files_load_or_fail_with_a_clear_error(
     tmp_path: Path, steps: list[Any], extra: dict[str, Any]
 ) -> None:
@@ -171,6 +172,7 @@ def test_procedure_files_load_or_fail_with_a_clear_error(
 
 @FUZZ
 @given(st.text(max_size=200))
+@example("?")  # a null key (once a TypeError in the spelling suggestion)
 def test_procedure_text_of_any_kind_fails_clearly(tmp_path: Path, text: str) -> None:
     path = tmp_path / "p.yaml"
     path.write_text(text, encoding="utf-8")

@@ -222,8 +222,9 @@ class Procedure:
     text: str = field(default="", repr=False)
 
 
-def _suggest(word: str, options: list[str] | set[str] | dict[str, Any]) -> str:
-    close = difflib.get_close_matches(word, list(options), n=1)
+def _suggest(word: object, options: list[str] | set[str] | dict[str, Any]) -> str:
+    # YAML keys need not be text ("? " makes a null key, "1:" a number)
+    close = difflib.get_close_matches(str(word), [str(o) for o in options], n=1)
     return f" (did you mean '{close[0]}'?)" if close else ""
 
 
