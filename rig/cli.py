@@ -63,7 +63,14 @@ def build_parser() -> argparse.ArgumentParser:
         "data",
         type=Path,
         metavar="DATA.csv|RUN",
-        help="CSV file with a header row, or a run folder",
+        help="CSV file with a header row, a run folder, or a run id under --runs-dir",
+    )
+    cal.add_argument(
+        "--runs-dir",
+        type=Path,
+        default=Path("runs"),
+        metavar="DIR",
+        help="where to look for a run id (default: runs)",
     )
     cal.add_argument(
         "--measured", type=_columns, metavar="COLX,COLY,COLZ",
@@ -184,9 +191,14 @@ def build_parser() -> argparse.ArgumentParser:
     runs = sub.add_parser("runs", parents=[common], help="list recorded runs")
     runs.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
     runs.set_defaults(func=_cmd_runs)
-    show = sub.add_parser("show", parents=[common], help="show one run")
+    show = sub.add_parser("show", parents=[common], help="summarize one run (--json: all of it)")
     show.add_argument("run", metavar="RUN")
     show.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    show.add_argument(
+        "--json",
+        action="store_true",
+        help="print everything stored (meta, samples, steps, results) as one JSON document",
+    )
     show.set_defaults(func=_cmd_show)
     rep = sub.add_parser("report", parents=[common], help="(re)build a run's HTML and PDF report")
     rep.add_argument("run", metavar="RUN")
@@ -254,6 +266,16 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
     if args.data.is_dir():
         return _calibrate_run(args)
+    if not args.data.exists():
+        run_folder = args.runs_dir / args.data
+        if (run_folder / "run.sqlite").exists():
+            args.data = run_folder
+            return _calibrate_run(args)
+        if args.data.suffix.lower() != ".csv":
+            raise UserInputError(
+                f"no CSV file or run '{args.data}' (looked at {args.data} and {run_folder}):"
+                " give a CSV file, a run folder, or a run id listed by 'rig runs' (--runs-dir DIR)"
+            )
     if args.measured is None:
         raise UserInputError("--measured COLX,COLY,COLZ is required for a CSV file")
     if args.field is None and args.field_magnitude is None:
@@ -401,7 +423,7 @@ def _cmd_runs(args: argparse.Namespace) -> int:
 def _cmd_show(args: argparse.Namespace) -> int:
     from rig.run_commands import show_run
 
-    return show_run(args.run, args.runs_dir)
+    return show_run(args.run, args.runs_dir, args.json)
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
@@ -477,29 +499,67 @@ def _stoppable() -> None:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
 
 
+EXIT_CLOSED_PIPE = 128 + 13
+"""Like a tool killed by SIGPIPE: the reader of our output (``| head``) has gone."""
+
+
+def _stdout_closed() -> bool:
+    """True when standard output is a pipe whose reader has gone."""
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # replaced by a test's capture, or closed
+        return False
+    poll = select.poll()
+    poll.register(fd, select.POLLOUT)
+    return any(ev & select.POLLERR for _, ev in poll.poll(0))
+
+
+def _quiet_exit_on_closed_pipe() -> int:
+    """Point stdout at /dev/null so that the interpreter's final flush cannot fail again, and
+    exit without a word (the reader chose to stop reading)."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return EXIT_CLOSED_PIPE
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``rig`` command; returns the exit code."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(argv)  # --help on a closed pipe: argparse drops the text itself
     _stoppable()
     try:
         code: int = args.func(args)
+        sys.stdout.flush()  # inside the try: a closed pipe shows up here for short outputs
         return code
+    except BrokenPipeError as exc:
+        if _stdout_closed():
+            return _quiet_exit_on_closed_pipe()
+        return _internal_error(exc, args.verbose)
     except (RigError, DeviceError) as exc:
         print(f"rig: error: {exc}", file=sys.stderr)
         return EXIT_INPUT
     except KeyboardInterrupt:
         print("rig: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except Exception as exc:  # a bug: one line unless the user asked for the traceback
-        if args.verbose:
-            raise
-        print(
-            f"rig: internal error: {type(exc).__name__}: {exc} (rerun with -v for the traceback"
-            " and report it)",
-            file=sys.stderr,
-        )
-        return EXIT_INTERNAL
+    except Exception as exc:
+        return _internal_error(exc, args.verbose)
+
+
+def _internal_error(exc: Exception, verbose: bool) -> int:
+    """A bug: one line unless the user asked for the traceback."""
+    if verbose:
+        raise exc
+    print(
+        f"rig: internal error: {type(exc).__name__}: {exc} (rerun with -v for the traceback"
+        " and report it)",
+        file=sys.stderr,
+    )
+    return EXIT_INTERNAL
 
 
 if __name__ == "__main__":

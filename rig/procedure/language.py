@@ -3,6 +3,7 @@
     procedure: DUT acceptance
     parameters:
       dut_serial: {default: SN-0001, description: serial number on the DUT label}
+      note: {default: "", allow_empty: yes}   # --set note= is refused unless allow_empty
     magnetometers: {dut: dut, reference: reference}   # roles -> rig device names
     loads: [load_bus, load_panel]
     steps:
@@ -389,15 +390,27 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
     if not isinstance(declared, dict):
         raise ProcedureError(f"{top}: 'parameters' must be a mapping of name: {{default: ...}}")
     names: dict[str, str] = {}
+    may_be_empty: set[str] = set()
     for name, spec in declared.items():
         if name == "__line__":
             continue
         default = spec.get("default") if isinstance(spec, dict) else spec
         names[name] = "" if default is None else str(default)
+        if isinstance(spec, dict) and spec.get("allow_empty") in (True, "yes"):
+            may_be_empty.add(name)
     for name, value in (overrides or {}).items():
         if name not in names:
             raise ProcedureError(
                 f"{path}: --set {name}=...: the procedure has no parameter '{name}'{_suggest(name, names)}"
+            )
+        if not value.strip() and name not in may_be_empty:
+            default = (
+                f", or leave out --set {name} to use the default {names[name]!r}"
+                if names[name]
+                else ""
+            )
+            raise ProcedureError(
+                f"{path}: --set {name}= is empty: give a value, e.g. --set {name}=VALUE{default}"
             )
         names[name] = value
     mags = data.get("magnetometers") or {"dut": "dut", "reference": "reference"}

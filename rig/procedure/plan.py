@@ -11,12 +11,15 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
 
 from rig.procedure.language import FIELD_STEPS, Procedure, ProcedureError, Step
+
+if TYPE_CHECKING:
+    from rig.config import RigConfig
 
 Array = npt.NDArray[np.float64]
 
@@ -138,9 +141,62 @@ def orbit_commands(step: Step) -> tuple[list[Command], float]:
     return cmds, float(p["duration_s"])
 
 
-def step_duration(step: Step) -> float:
-    """Nominal duration of a field step (s); 0 for instantaneous steps."""
+@dataclass(frozen=True)
+class RigTiming:
+    """What the duration of a cage characterization depends on besides its parameters: the coil
+    current slew limit and set-point interval (``[cage]`` of the rig configuration) and the
+    reference magnetometer's sample rate. The defaults are those of the simulated cage."""
+
+    max_slew_a_per_s: float = 10.0
+    step_s: float = 0.05
+    reference_rate_hz: float = 20.0
+
+
+def rig_timing(cfg: RigConfig | None) -> RigTiming | None:
+    """The timing of a rig configuration's cage (None without one: the defaults apply)."""
+    if cfg is None or cfg.cage is None:
+        return None
+    rate = RigTiming().reference_rate_hz
+    ref = cfg.devices.get(cfg.cage.reference or "")
+    given = ref.get("rate_hz") if ref is not None else None
+    if isinstance(given, int | float) and not isinstance(given, bool) and given > 0:
+        rate = float(given)
+    return RigTiming(cfg.cage.max_slew_a_per_s, cfg.cage.step_s, rate)
+
+
+CHARACTERIZE_TRANSIENT_S = 0.2
+"""Wait after each sweep point's ramp (``rig.cage.characterize.characterize``'s ``transient_s``)."""
+
+
+def characterization_duration_s(
+    amplitude_a: float, samples: int, repeats: int, timing: RigTiming | None = None
+) -> float:
+    """Estimated wall time of ``characterize_cage`` (s): per sweep point the ramp (one set-point per
+    ``step_s``, within the slew limit, through zero where the polarity flips), the transient wait
+    and ``samples`` fresh reference readings (plus on average half a period until the first); then
+    the ramp back to zero. Within 5 % of the measured time on the simulated cage (docs/procedures.md)."""
+    from rig.cage.characterize import sweep_points  # the sweep pattern itself, not a copy
+    from rig.cage.limits import CageLimits, plan_ramp
+
+    t = timing or RigTiming()
+    big = 1e6  # the planner checks current limits; the dry run checks them elsewhere
+    limits = CageLimits((big, big, big), big, t.max_slew_a_per_s, t.step_s)
+    points = np.tile(sweep_points(amplitude_a), (repeats, 1))
+    here = np.zeros(3)
+    setpoints = 0
+    for target in [*points, np.zeros(3)]:
+        setpoints += len(plan_ramp(here, target, limits))
+        here = target
+    per_point = CHARACTERIZE_TRANSIENT_S + (samples + 0.5) / t.reference_rate_hz
+    return setpoints * t.step_s + len(points) * per_point
+
+
+def step_duration(step: Step, timing: RigTiming | None = None) -> float:
+    """Nominal duration of a step (s): field steps from their parameters, a cage characterization
+    from its sweep (:func:`characterization_duration_s`); 0 for instantaneous steps."""
     p = step.params
+    if step.kind == "characterize_cage":
+        return characterization_duration_s(p["amplitude_a"], p["samples"], p["repeats"], timing)
     if step.kind == "orbit_replay":
         return float(p["duration_s"])
     if step.kind in ("null_field", "set_field", "hold"):
@@ -199,7 +255,7 @@ def load_profile(
     raise AssertionError(kind)
 
 
-def compile_step(step: Step, base: Path) -> StepPlan:
+def compile_step(step: Step, base: Path, timing: RigTiming | None = None) -> StepPlan:
     """The commands of one step."""
     cmds: list[Command] = []
     if step.kind == "orbit_replay":
@@ -220,17 +276,17 @@ def compile_step(step: Step, base: Path) -> StepPlan:
                 cmds.append(Command(t, "load", {"channel": ch, "current_a": float(amps)}))
             cmds.append(Command(duration, "load", {"channel": ch, "current_a": 0.0}))
         cmds.append(Command(duration, "end", {}))
-    else:
-        duration = 0.0
+    else:  # one command; a characterization takes its time inside it (no wait is planned)
+        duration = step_duration(step, timing)
         cmds.append(Command(0.0, step.kind, dict(step.params)))
     cmds.sort(key=lambda c: (c.t_s, c.kind != "field"))
     return StepPlan(step, duration, tuple(cmds))
 
 
-def compile_plan(proc: Procedure) -> Iterator[StepPlan]:
+def compile_plan(proc: Procedure, timing: RigTiming | None = None) -> Iterator[StepPlan]:
     """The plan: a generator of step plans (so a run can start before all are compiled)."""
     for step in proc.steps:
-        yield compile_step(step, proc.path.parent)
+        yield compile_step(step, proc.path.parent, timing)
 
 
 @dataclass
@@ -245,6 +301,11 @@ class DryRun:
     timeline: list[tuple[float, str, str]] = field(default_factory=list)  # start, step, summary
 
 
+ABSOLUTE_MAX_FIELD_UT = 1000.0
+"""Checked with or without a rig configuration: no cage this software drives makes 1 mT (the
+language bounds sweep magnitudes to the same value); a field beyond it is a typo (nT written as uT)."""
+
+
 def dry_run(
     proc: Procedure,
     k_ut_per_a: Array | None = None,
@@ -252,11 +313,13 @@ def dry_run(
     max_current_a: tuple[float, float, float] | None = None,
     max_field_ut: float | None = None,
     load_max_a: dict[str, float] | None = None,
+    timing: RigTiming | None = None,
 ) -> DryRun:
-    """Check a procedure without hardware; currents need the cage model (``k_ut_per_a``, ``b0_ut``)."""
+    """Check a procedure without hardware; currents need the cage model (``k_ut_per_a``, ``b0_ut``).
+    Fields beyond :data:`ABSOLUTE_MAX_FIELD_UT` are violations even without the rig's limits."""
     out = DryRun()
     t = 0.0
-    for plan in compile_plan(proc):
+    for plan in compile_plan(proc, timing):
         s = plan.step
         fields = [np.array(c.payload["field_ut"]) for c in plan.commands if c.kind == "field"]
         summary = (
@@ -272,6 +335,10 @@ def dry_run(
                 out.violations.append(
                     f"{s.where}: step {s.index + 1} ({s.name}): |B| = {mag:.1f} uT exceeds the {max_field_ut:g} uT limit"
                 )
+            elif mag > ABSOLUTE_MAX_FIELD_UT + 1e-9:
+                out.violations.append(
+                    f"{s.where}: step {s.index + 1} ({s.name}): |B| = {mag:.1f} uT exceeds {ABSOLUTE_MAX_FIELD_UT:g} uT, more than any cage makes: fields are in uT (nT by mistake?)"
+                )
             if k_ut_per_a is not None:
                 currents = np.linalg.solve(k_ut_per_a, f - (b0_ut if b0_ut is not None else 0.0))
                 for ax in range(3):
@@ -281,6 +348,14 @@ def dry_run(
                             f"{s.where}: step {s.index + 1} ({s.name}): field {np.round(f, 1).tolist()} uT needs {currents[ax]:+.2f} A on axis {'xyz'[ax]}, beyond {max_current_a[ax]:g} A"
                         )
         for c in plan.commands:
+            if c.kind == "characterize_cage":  # +-amplitude on every axis
+                amps = float(c.payload["amplitude_a"])
+                for ax in range(3):
+                    out.peak_current_a[ax] = max(out.peak_current_a[ax], amps)
+                    if max_current_a is not None and amps > max_current_a[ax] + 1e-9:
+                        out.violations.append(
+                            f"{s.where}: step {s.index + 1} ({s.name}): amplitude {amps:g} A on axis {'xyz'[ax]} is beyond {max_current_a[ax]:g} A"
+                        )
             if c.kind == "load":
                 ch, amps = c.payload["channel"], abs(c.payload["current_a"])
                 out.peak_load_a[ch] = max(out.peak_load_a.get(ch, 0.0), amps)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from rig.procedure.language import ProcedureError, parse_procedure
-from rig.procedure.plan import compile_plan, dry_run, fibonacci_directions
+from rig.procedure.plan import RigTiming, compile_plan, dry_run, fibonacci_directions
 from rig.run_commands import PROCEDURES_DIR
 
 
@@ -132,3 +132,34 @@ def test_dry_run_reports_violations_with_line(tmp_path: Path) -> None:
         and "p.yaml:6: step 1" in dr.violations[0]
         and "beyond 2.5 A" in dr.violations[0]
     )
+
+
+def test_empty_set_values_are_refused_unless_the_parameter_allows_empty(tmp_path: Path) -> None:
+    head = (
+        "procedure: T\nparameters:\n  dut_serial: {default: A1}\n"
+        "  note: {default: '', allow_empty: yes}\n  label: {}\nsteps:\n"
+        "  - prompt: 'mount {dut_serial} {note} {label}'\n"
+    )
+    p = write(tmp_path, head)
+    with pytest.raises(
+        ProcedureError,
+        match=r"--set dut_serial= is empty: give a value, e.g. --set dut_serial=VALUE, or leave out --set dut_serial to use the default 'A1'$",
+    ):
+        parse_procedure(p, {"dut_serial": " "})
+    with pytest.raises(
+        ProcedureError, match=r"--set label= is empty: give a value, e\.g\. --set label=VALUE$"
+    ):
+        parse_procedure(p, {"label": ""})
+    assert parse_procedure(p, {"note": ""}).steps[0].params["text"] == "mount A1  "
+
+
+def test_dry_run_counts_a_cage_characterization_and_checks_its_amplitude(tmp_path: Path) -> None:
+    p = write(
+        tmp_path, HEAD + "  - characterize_cage: {amplitude_a: 3.0, samples: 4, repeats: 1}\n"
+    )
+    proc = parse_procedure(p)
+    quick, slow = dry_run(proc), dry_run(proc, timing=RigTiming(max_slew_a_per_s=1.0))
+    assert 14 * (0.2 + 4.5 / 20) < quick.duration_s < slow.duration_s
+    assert quick.peak_current_a == [3.0, 3.0, 3.0] and quick.violations == []
+    dr = dry_run(proc, np.eye(3) * 40, np.zeros(3), (2.5, 2.5, 2.5), 120.0)
+    assert len(dr.violations) == 3 and "amplitude 3 A on axis x is beyond 2.5 A" in dr.violations[0]
