@@ -204,6 +204,18 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("run", metavar="RUN")
     rep.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
     rep.set_defaults(func=_cmd_report)
+    ver = sub.add_parser(
+        "verify",
+        parents=[common],
+        help="check that a run folder is as it was sealed (data, configuration, reports)",
+        description="Recompute the run's data SHA-256 and compare it with the seal written when"
+        " the run closed, the sealed procedure and rig configuration copies, and the digest every"
+        " report states. Exit 0 when intact, 1 when anything changed or the run is not sealed.",
+    )
+    ver.add_argument("run", metavar="RUN", help="run folder or run id")
+    ver.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR",
+                     help="where run ids are looked up (default: runs)")  # fmt: skip
+    ver.set_defaults(func=_cmd_verify)
     exp = sub.add_parser("export", parents=[common], help="export a run to CSV or HDF5")
     exp.add_argument("run", metavar="RUN")
     exp.add_argument("--format", choices=("csv", "hdf5"), default="csv")
@@ -430,6 +442,13 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from rig.run_commands import report_run
 
     return report_run(args.run, args.runs_dir, args.quiet)
+
+
+def _cmd_verify(args: argparse.Namespace) -> int:
+    from rig.run_commands import resolve_run
+    from rig.verify_command import verify
+
+    return verify(resolve_run(args.run, args.runs_dir), args.quiet)
 
 
 def _cmd_export(args: argparse.Namespace) -> int:

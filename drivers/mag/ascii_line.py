@@ -75,6 +75,23 @@ class AsciiLineMagnetometer:
             " check the baud rate and the line format"
         )
 
+    def read_burst(self) -> list[tuple[float, float, float]]:
+        """The next line and every further complete line already received, oldest first (uT).
+
+        A streaming sensor keeps sending while the reader is busy; the lines that piled up are
+        older than the moment they are read, and the caller can date them by the sensor's rate.
+        """
+        out = [self.read()]
+        if self.fmt.poll_command:
+            return out
+        while self.port.has_complete(self.fmt.terminator):
+            line = self.port.read_until(self.fmt.terminator)
+            try:
+                out.append(self.fmt.parse(line))
+            except DeviceProtocolError:
+                self.bad_lines += 1
+        return out
+
     def close(self) -> None:
         """Close the port."""
         self.port.close()

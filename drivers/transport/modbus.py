@@ -28,6 +28,30 @@ EXCEPTION_NAMES = {
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # errors reach the user through ours
 
 
+class PatientSerialClient(ModbusSerialClient):
+    """pymodbus' serial client whose timeout measures the device, not this process.
+
+    pymodbus 3.16 polls the receive buffer while a wall-clock window is open and gives up when the
+    window has closed, without looking again: a reply that arrived while this process was
+    descheduled (a busy computer, a thread waiting for the interpreter lock) was thrown away as
+    a timeout and the request sent again. Here the buffer is always looked at after the time is
+    up, and a reply counts as complete once no byte arrived for one poll interval.
+    (Overrides the private ``_wait_for_data`` of the pinned minor version.)
+    """
+
+    def _wait_for_data(self) -> int:
+        deadline = time.monotonic() + float(self.comm_params.timeout_connect)
+        size = 0
+        while True:
+            available = int(self.socket.in_waiting) if self.socket is not None else 0
+            if available and available == size:
+                return size  # quiet for one interval after the last byte: the frame is in
+            size = available
+            if time.monotonic() >= deadline:
+                return size
+            time.sleep(self._recv_interval)
+
+
 class ModbusLink:
     """A Modbus device on TCP (``host``/``port``) or RTU (``path``: a device or pyserial URL).
 
@@ -61,7 +85,7 @@ class ModbusLink:
             self._client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0)
         else:
             assert path is not None
-            self._client = ModbusSerialClient(
+            self._client = PatientSerialClient(
                 path,
                 framer=FramerType.RTU,
                 baudrate=baudrate,

@@ -18,6 +18,7 @@ class SerialPort:
         self.url = url
         self.name = name
         self.timeout_s = timeout_s
+        self._rx = bytearray()  # received, not yet handed out
         try:
             self._port = serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s)
         except (serial.SerialException, OSError, ValueError) as exc:
@@ -44,65 +45,103 @@ class SerialPort:
                 f"{self.name} on {self.url}: write failed ({exc}); is it still connected?"
             ) from None
 
+    def _fill(self, timeout_s: float) -> None:
+        """Move what has arrived into the receive buffer, waiting up to ``timeout_s`` (>= 0) for
+        the first byte. One system call per chunk, not per byte: a thread that waits for the
+        interpreter lock between reads must not turn a complete reply into a timeout."""
+        try:
+            waiting = self._port.in_waiting
+            if waiting:
+                self._rx += self._port.read(waiting)
+                return
+            if timeout_s <= 0:
+                return
+            self._port.timeout = timeout_s
+            first = self._port.read(1)
+            if first:
+                self._rx += first
+                waiting = self._port.in_waiting
+                if waiting:
+                    self._rx += self._port.read(waiting)
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceNotFoundError(
+                f"{self.name} on {self.url}: read failed ({exc}); is it still connected?"
+            ) from None
+
+    def _take(self, n: int) -> bytes:
+        out = bytes(self._rx[:n])
+        del self._rx[:n]
+        return out
+
     def read_exact(self, n: int, timeout_s: float | None = None) -> bytes:
-        """Exactly ``n`` bytes or :class:`DeviceTimeoutError`."""
-        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
-        buf = bytearray()
-        while len(buf) < n:
+        """Exactly ``n`` bytes or :class:`DeviceTimeoutError`.
+
+        The timeout measures the instrument: when it expires, whatever arrived meanwhile (while
+        this process was descheduled, say) is still taken before the reply is declared missing.
+        """
+        limit_s = self.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + limit_s
+        while len(self._rx) < n:
             remaining = deadline - time.monotonic()
+            self._fill(max(remaining, 0.0))
             if remaining <= 0:
                 break
-            self._port.timeout = remaining
-            try:
-                chunk = self._port.read(n - len(buf))
-            except (serial.SerialException, OSError) as exc:
-                raise DeviceNotFoundError(
-                    f"{self.name} on {self.url}: read failed ({exc}); is it still connected?"
-                ) from None
-            buf += chunk
-        if len(buf) < n:
+        if len(self._rx) < n:
             raise DeviceTimeoutError(
-                f"{self.name} on {self.url}: got {len(buf)} of {n} bytes within"
-                f" {self.timeout_s if timeout_s is None else timeout_s:g} s; check power, cable and baud rate"
+                f"{self.name} on {self.url}: got {len(self._rx)} of {n} bytes within"
+                f" {limit_s:g} s; check power, cable and baud rate"
             )
-        return bytes(buf)
+        return self._take(n)
 
     def read_until(
         self, terminator: bytes = b"\r", max_bytes: int = 256, timeout_s: float | None = None
     ) -> bytes:
-        """Bytes up to and including ``terminator`` or :class:`DeviceTimeoutError`."""
-        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
-        buf = bytearray()
-        while not buf.endswith(terminator) and len(buf) < max_bytes:
+        """Bytes up to and including ``terminator`` (or ``max_bytes`` without it), else
+        :class:`DeviceTimeoutError`. Bytes after the terminator stay for the next read; like
+        :meth:`read_exact`, a reply that is already there when the time is up is taken."""
+        limit_s = self.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + limit_s
+        while True:
+            end = self._rx.find(terminator)
+            if 0 <= end < max_bytes:
+                return self._take(end + len(terminator))
+            if len(self._rx) >= max_bytes:
+                return self._take(max_bytes)
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            before = len(self._rx)
+            self._fill(max(remaining, 0.0))
+            if remaining <= 0 and len(self._rx) == before:
+                partial = bytes(self._rx[:max_bytes])
                 raise DeviceTimeoutError(
-                    f"{self.name} on {self.url}: no complete reply (got {bytes(buf)!r});"
-                    " check power, cable and baud rate"
+                    f"{self.name} on {self.url}: no complete reply within {limit_s:g} s (got"
+                    f" {partial!r}); check power, cable and baud rate"
                 )
-            self._port.timeout = remaining
-            try:
-                buf += self._port.read(1)
-            except (serial.SerialException, OSError) as exc:
-                raise DeviceNotFoundError(
-                    f"{self.name} on {self.url}: read failed ({exc})"
-                ) from None
-        return bytes(buf)
+
+    def has_complete(self, terminator: bytes) -> bool:
+        """A whole ``terminator``-ended reply has already arrived (does not wait)."""
+        self._fill(0.0)
+        return terminator in self._rx
 
     def in_waiting(self) -> int:
         """Bytes already received."""
-        return int(self._port.in_waiting)
+        return len(self._rx) + int(self._port.in_waiting)
 
     def read_available(self) -> bytes:
         """Whatever has arrived, without waiting."""
-        n = self._port.in_waiting
-        return bytes(self._port.read(n)) if n else b""
+        self._fill(0.0)
+        return self._take(len(self._rx))
 
     def drain_input(self, quiet_s: float = 0.05) -> None:
         """Discard input until the line has been quiet for ``quiet_s``."""
+        self._rx.clear()
         self._port.timeout = quiet_s
-        while self._port.read(4096):
-            pass
+        try:
+            while self._port.read(4096):
+                pass
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceNotFoundError(
+                f"{self.name} on {self.url}: read failed ({exc}); is it still connected?"
+            ) from None
 
     def close(self) -> None:
         """Close the port."""

@@ -168,8 +168,24 @@ def lookup(results: dict[str, Any], result: str, path: str) -> float:
     return float(value)
 
 
+UNIT_SUFFIXES = (("_nt", "nT"), ("_ut", "uT"), ("_deg", "deg"), ("_ma", "mA"), ("_a", "A"),
+                 ("_v", "V"), ("_s", "s"), ("_hz", "Hz"), ("_ut_per_a", "uT/A"))  # fmt: skip
+
+
+def value_unit(path: str) -> str:
+    """The unit of a result value from its dotted path, by the project's naming rule (units in
+    names): ``residual_rms_nt`` -> nT, ``angular_uncertainty_deg.50_ut`` -> deg (the value is an
+    angle; its key names the field it is for), ``springmann.a`` -> "" (a ratio)."""
+    parts = path.split(".")
+    for part in parts:  # the outermost named unit wins: a dict named *_deg holds angles
+        for suffix, unit in sorted(UNIT_SUFFIXES, key=lambda su: -len(su[0])):
+            if part.endswith(suffix) and part != suffix.lstrip("_"):
+                return unit
+    return ""
+
+
 def evaluate_criteria(results: dict[str, Any], criteria: list[dict[str, Any]]) -> dict[str, Any]:
-    """PASS/FAIL per criterion with value, limits and margin; the overall verdict."""
+    """PASS/FAIL per criterion with value, unit, limits and margin; the overall verdict."""
     rows = []
     for c in criteria:
         name = c.get("name") or f"{c['result']}.{c['value']}"
@@ -182,7 +198,7 @@ def evaluate_criteria(results: dict[str, Any], criteria: list[dict[str, Any]]) -
         ok = (lo is None or value >= lo) and (hi is None or value <= hi)
         margins = [value - lo] if lo is not None else []
         margins += [hi - value] if hi is not None else []
-        rows.append({"name": name, "value": value, "min": lo, "max": hi, "margin": min(margins),
-                     "verdict": "PASS" if ok else "FAIL"})  # fmt: skip
+        rows.append({"name": name, "value": value, "unit": value_unit(str(c["value"])), "min": lo,
+                     "max": hi, "margin": min(margins), "verdict": "PASS" if ok else "FAIL"})  # fmt: skip
     overall = "PASS" if rows and all(r["verdict"] == "PASS" for r in rows) else "FAIL"
     return {"criteria": rows, "overall": overall}

@@ -99,6 +99,9 @@ def _record(folder: Path, t_died: float, done: list[str], problems: list[str]) -
         con.commit()
     finally:
         con.close()
+    from rig.store.seal import seal_run
+
+    seal_run(folder)  # the run is closed now: its data never change again
 
 
 def watch(pipe: IO[bytes], rig_config: Path, folder: Path) -> int:

@@ -45,6 +45,8 @@ STALL_S = 1.5
 STUCK_AFTER = 60
 """This many identical readings in a row (3 s at 20 Hz) mean a frozen sensor: real noise varies.
 A device's ``stuck_after`` in the rig configuration overrides it (0 = never)."""
+OWN_STALL_S = 0.3
+"""The monitor woke this much later than its period: our own process was descheduled."""
 COIL_CHECK_S = 1.0
 """How often the coil supplies' protection flags are read."""
 
@@ -91,6 +93,8 @@ class Runner:
         self.commanded_loads: dict[str, float] = {}
         self.measured_loads: dict[str, tuple[float, float]] = {}  # name -> (time, A)
         self.live_cal: LiveCalibration | None = None
+        self.report_requested = False
+        self._own_stall = False
         self.fault: str | None = None
         self._coil_checked = 0.0
         self.samplers: dict[str, SensorSampler] = {}
@@ -136,7 +140,7 @@ class Runner:
             if self.live is not None:
                 self.live.stop()
             for name, s in self.samplers.items():
-                w.set_meta(**{f"samples_{name}": s.count})
+                w.set_meta(**{f"samples_{name}": s.count, f"retried_{name}": s.retried})
             if self.lateness_s:
                 lat = np.frombuffer(self.lateness_s, dtype=float)
                 w.set_meta(command_lateness_p50_ms=float(1000 * np.percentile(lat, 50)),
@@ -151,7 +155,21 @@ class Runner:
             if guardian is not None:
                 guardian.release()
             self._restore_signals(old)
+        if self.report_requested:
+            self._write_report(w.folder)
         return RunOutcome(status, reason, w.folder, self.results)
+
+    def _write_report(self, folder: Path) -> None:
+        """The acceptance report of the closed run; a failure leaves the run as recorded."""
+        from rig.report.acceptance import build_report
+
+        if not self.quiet:
+            print("rig: writing the report ...", file=sys.stderr)
+        try:
+            build_report(folder)
+        except Exception as exc:  # the run and its data stand; the report can be rebuilt
+            print(f"rig: WARNING: the report could not be written ({type(exc).__name__}: {exc});"
+                  f" rebuild it with 'rig report {folder}'", file=sys.stderr)  # fmt: skip
 
     def _install_signals(self) -> dict[int, Any]:
         if threading.current_thread() is not threading.main_thread():
@@ -206,7 +224,8 @@ class Runner:
                     ident = driver.identify()
                     instruments[dev_name] = f"{ident.model} {ident.serial}".strip()
             rate = float(self.cfg.devices[dev_name].get("rate_hz", 20.0))
-            sampler = SensorSampler(dev_name, driver, w.add_sample, rate)
+            sampler = SensorSampler(dev_name, driver, w.add_sample, rate,
+                                    on_warning=lambda m: self._event("warning", m))  # fmt: skip
             sampler.start()
             stack.callback(sampler.stop)
             self.samplers[dev_name] = sampler
@@ -278,7 +297,14 @@ class Runner:
         stalled or frozen sensor or a store that cannot write ends the run (see ``fault``)."""
         w = self.writer
         assert w is not None
+        last = time.monotonic()
         while not stop.wait(MONITOR_PERIOD_S):
+            now = time.monotonic()
+            # This thread woke late: the whole process was descheduled (a busy computer). The
+            # samplers were too and need a moment to hand over what their sensors sent meanwhile,
+            # so their freshness is judged on the next round, not now.
+            self._own_stall = now - last > MONITOR_PERIOD_S + OWN_STALL_S
+            last = now
             for name, load in list(self.loads.items()):
                 try:
                     reading = load.read()
@@ -300,6 +326,8 @@ class Runner:
                        f" {w.folder.parent}; what was recorded before is kept")  # fmt: skip
         now = time.monotonic()
         for name, sampler in list(self.samplers.items()):
+            if self._own_stall:
+                break
             stall_s = max(STALL_S, 5.0 / sampler.rate_hz)
             stuck_after = int(self.cfg.devices[name].get("stuck_after", STUCK_AFTER)) or 10**9
             problem = sampler.health(now, stall_s, stuck_after)
@@ -309,10 +337,15 @@ class Runner:
         if ctl is not None and ctl.enabled and self._coil_check_due(now):
             for axis, drive in enumerate(ctl.axes):
                 try:
-                    protection = drive.supply.read().protection
+                    reading = drive.supply.read()
                 except (DeviceError, OSError) as exc:
                     self._event("warning", f"reading the {'xyz'[axis]} coil supply: {exc}")
                     continue
+                protection = reading.protection
+                # the supply reads an unsigned current; a polarity relay gives it its sign
+                sign = 1 if drive.bipolar else ctl.signs[axis]
+                w.add_channel(time.monotonic(), f"coil_{'xyz'[axis]}", None,
+                              sign * float(reading.i_out_a))  # fmt: skip
                 if protection:
                     self._fail(f"coil {'xyz'[axis]} supply tripped ({protection}) and is off;"
                                " check the coil wiring, then run again")  # fmt: skip
@@ -558,10 +591,10 @@ class Runner:
                     f"check {row['name']}: {row['verdict']}",
                 )
         elif kind == "report":
-            w.flush()
-            from rig.report.acceptance import build_report
-
-            build_report(w.folder)
+            # Written once the run is closed and sealed, so it shows the final status and verdict
+            # and the digest of the data as they will stay.
+            self.report_requested = True
+            self._event("info", "the report is written when the run closes")
         elif kind == "end":
             pass
         else:

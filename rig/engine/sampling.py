@@ -13,18 +13,23 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from drivers.errors import DeviceError
+from drivers.errors import DeviceError, DeviceProtocolError, DeviceTimeoutError
 from drivers.mag.hmr2300 import Hmr2300
 
 Sink = Callable[[float, str, tuple[float, float, float]], None]
 Listener = Callable[[float, tuple[float, float, float]], None]
+RETRIES = 1
+"""Late or unreadable replies retried in a row before a sensor is declared failed."""
 
 
 class SensorSampler:
     """Reads ``driver`` continuously in a thread; every sample goes to ``sink`` and to subscribers."""
 
-    def __init__(self, name: str, driver: Any, sink: Sink, rate_hz: float = 20.0) -> None:
+    def __init__(self, name: str, driver: Any, sink: Sink, rate_hz: float = 20.0,
+                 on_warning: Callable[[str], None] | None = None) -> None:  # fmt: skip
         self.name = name
+        self.on_warning = on_warning
+        self.retried = 0  # replies retried over the whole run
         self.driver = driver
         self.sink = sink
         self.rate_hz = rate_hz
@@ -69,22 +74,40 @@ class SensorSampler:
     def _run(self) -> None:
         period = 1.0 / self.rate_hz
         next_t = time.monotonic()
+        failures = 0  # consecutive late or unreadable replies
         try:
             while not self._stop.is_set():
-                if isinstance(self.driver, Hmr2300):
-                    frames = self.driver.read_stream(0.2)
-                    t_now = time.monotonic()
-                    for i, xyz in enumerate(frames):
-                        self._publish(t_now - (len(frames) - 1 - i) / self.rate_hz, xyz)
-                    continue
-                if hasattr(self.driver, "port"):  # a streaming line sensor paces itself
+                try:
+                    if isinstance(self.driver, Hmr2300):
+                        frames = self.driver.read_stream(0.2)
+                        t_now = time.monotonic()
+                        for i, xyz in enumerate(frames):
+                            self._publish(t_now - (len(frames) - 1 - i) / self.rate_hz, xyz)
+                        failures = 0 if frames else failures
+                        continue
+                    if hasattr(self.driver, "read_burst"):  # a streaming line sensor
+                        lines = self.driver.read_burst()
+                        t_now = time.monotonic()
+                        # lines that waited in the buffer were sent one period apart
+                        for i, xyz in enumerate(lines):
+                            self._publish(t_now - (len(lines) - 1 - i) / self.rate_hz, xyz)
+                        failures = 0
+                        continue
+                    next_t += period
                     xyz = self.driver.read()
                     self._publish(time.monotonic(), xyz)
-                    continue
-                next_t += period
-                xyz = self.driver.read()
-                self._publish(time.monotonic(), xyz)
-                self._stop.wait(max(0.0, next_t - time.monotonic()))
+                    failures = 0
+                    self._stop.wait(max(0.0, next_t - time.monotonic()))
+                except (DeviceTimeoutError, DeviceProtocolError) as exc:
+                    # One late or garbled reply is retried: a busy line or a busy computer is
+                    # not a dead sensor. The second in a row ends sampling (and the run).
+                    failures += 1
+                    if failures > RETRIES:
+                        raise
+                    self.retried += 1
+                    if self.on_warning is not None:
+                        self.on_warning(f"{self.name}: {exc}; retrying")
+                    next_t = time.monotonic()
         except (DeviceError, OSError) as exc:
             self.error = exc
             with self._cond:

@@ -19,7 +19,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from rig.report.text_report import data_hash, write_text_report
+from rig.report.text_report import (
+    criterion_line,
+    data_hash,
+    limit_text,
+    overall_verdict,
+    seal_note,
+    write_text_report,
+)
 from rig.store.run_store import RunReader
 
 Array = npt.NDArray[np.float64]
@@ -256,9 +263,7 @@ def build_report(folder: Path) -> tuple[Path, Path]:
         reader.close()
     status = meta.get("status", "incomplete")
     verdict = results.get("verdict")
-    overall = verdict["overall"] if verdict else "NO VERDICT"
-    if status not in ("complete", "failed"):
-        overall = f"{status.upper()} RUN - NOT A VALID ACCEPTANCE"
+    overall = overall_verdict(meta, results)
     digest = data_hash(folder)
     header = [
         ("Procedure", meta.get("procedure", "")), ("Run", meta.get("run_id", "")),
@@ -268,7 +273,7 @@ def build_report(folder: Path) -> tuple[Path, Path]:
         ("Rig configuration", meta.get("rig_config", "")),
         ("Cage calibration", meta.get("cage_model", {}).get("date", "nominal (not characterized)")),
         ("Instruments", "; ".join(f"{k}: {v}" for k, v in meta.get("instruments", {}).items())),
-        ("Data SHA-256", digest),
+        ("Data SHA-256", f"data sha256 {digest} ({seal_note(folder, digest)})"),
     ]  # fmt: skip
 
     # ---- HTML ----
@@ -291,16 +296,16 @@ def build_report(folder: Path) -> tuple[Path, Path]:
     ]
     if verdict:
         parts.append(
-            "<table><tr><th>criterion</th><th>measured</th><th>min</th><th>max</th><th>margin</th><th>verdict</th></tr>"
+            "<table><tr><th>criterion</th><th>measured</th><th>limits</th><th>margin</th><th>verdict</th></tr>"
         )
         for row in verdict["criteria"]:
             if "value" in row:
-                parts.append(f"<tr><td>{_esc(row['name'])}</td><td>{row['value']:.4g}</td><td>{_esc(row['min'] if row['min'] is not None else '-')}</td>"
-                             f"<td>{_esc(row['max'] if row['max'] is not None else '-')}</td><td>{row['margin']:.3g}</td>"
-                             f"<td class='{row['verdict']}'>{row['verdict']}</td></tr>")  # fmt: skip
+                value, limits, margin = limit_text(row)
+                parts.append(f"<tr><td>{_esc(row['name'])}</td><td>{_esc(value)}</td><td>{_esc(limits)}</td>"
+                             f"<td>{_esc(margin)}</td><td class='{row['verdict']}'>{row['verdict']}</td></tr>")  # fmt: skip
             else:
                 parts.append(
-                    f"<tr><td>{_esc(row['name'])}</td><td colspan='4'>{_esc(row['reason'])}</td><td class='FAIL'>FAIL</td></tr>"
+                    f"<tr><td>{_esc(row['name'])}</td><td colspan='3'>{_esc(row['reason'])}</td><td class='FAIL'>FAIL</td></tr>"
                 )
         parts.append("</table>")
     else:
@@ -390,7 +395,9 @@ def build_report(folder: Path) -> tuple[Path, Path]:
 
     # ---- PDF ----
     pdf_path = folder / "report.pdf"
-    with PdfPages(pdf_path) as pdf:
+    pdf_info = {"Title": f"Acceptance report {meta.get('run_id', '')}",
+                "Subject": f"VERDICT: {overall}; data sha256 {digest}"}  # fmt: skip
+    with PdfPages(pdf_path, metadata=pdf_info) as pdf:
         page = plt.figure(figsize=(8.27, 11.69))  # A4 portrait
         y = 0.95
         page.text(0.06, y, "Pre-flight acceptance report", fontsize=16, weight="bold")
@@ -407,10 +414,7 @@ def build_report(folder: Path) -> tuple[Path, Path]:
             page.text(0.06, y, "Acceptance criteria", fontsize=11, weight="bold")
             y -= 0.025
             for row in verdict["criteria"]:
-                lo = "-" if row.get("min") is None else f"{row['min']:g}"
-                hi = "-" if row.get("max") is None else f"{row['max']:g}"
-                line = (f"{row['verdict']:<4}  {row['name']}: {row['value']:.4g} (min {lo}, max {hi}, margin {row['margin']:.3g})"
-                        if "value" in row else f"FAIL  {row['name']}: {row['reason']}")  # fmt: skip
+                line = criterion_line(row)
                 page.text(
                     0.06,
                     y,

@@ -2,20 +2,57 @@
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 from typing import Any
 
 from rig.store.run_store import RunReader
+from rig.store.seal import data_digest, read_seal
 
 
 def data_hash(folder: Path) -> str:
-    """SHA-256 of the run database (identifies the recorded data)."""
-    h = hashlib.sha256()
-    with (folder / "run.sqlite").open("rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    """The run's data digest (SHA-256 of its rows, see :mod:`rig.store.seal`), recomputed."""
+    return data_digest(folder / "run.sqlite")[0]
+
+
+def seal_note(folder: Path, digest: str) -> str:
+    """How ``digest`` compares with the run's seal, for the report header."""
+    seal = read_seal(folder)
+    if seal is None:
+        return "not sealed (the run was still running, or recorded before runs were sealed)"
+    if seal.get("data_sha256") != digest:
+        return f"DATA CHANGED SINCE THE RUN WAS SEALED (sealed {seal.get('data_sha256')})"
+    return f"matches the seal of {seal.get('sealed_at')}"
+
+
+def overall_verdict(meta: dict[str, Any], results: dict[str, Any]) -> str:
+    """PASS, FAIL or NO VERDICT for a closed run; a run that did not finish is never an acceptance."""
+    status = meta.get("status", "incomplete")
+    if status not in ("complete", "failed"):
+        return f"{str(status).upper()} RUN - NOT A VALID ACCEPTANCE"
+    verdict = results.get("verdict")
+    return str(verdict["overall"]) if verdict else "NO VERDICT"
+
+
+def limit_text(row: dict[str, Any]) -> tuple[str, str, str]:
+    """(value, limits, margin) of one criterion row, with its unit."""
+    unit = row.get("unit")
+    if unit is None:  # recorded before rows carried their unit
+        from rig.engine.analysis import value_unit
+
+        unit = value_unit(str(row.get("name", "")))
+    u = f" {unit}" if unit else ""
+    lo, hi = row.get("min"), row.get("max")
+    bounds = [f"{what} {v:g}{u}" for what, v in (("min", lo), ("max", hi)) if v is not None]
+    limits = ", ".join(bounds) or "no limit"
+    return f"{row['value']:.4g}{u}", limits, f"{row['margin']:.3g}{u}"
+
+
+def criterion_line(row: dict[str, Any]) -> str:
+    """One criterion as a line: verdict, name, value with unit, limits, margin."""
+    if "value" not in row:
+        return f"{row['verdict']:<4}  {row['name']}: {row['reason']}"
+    value, limits, margin = limit_text(row)
+    return f"{row['verdict']:<4}  {row['name']}: {value} ({limits}; margin {margin})"
 
 
 def _calibration_lines(name: str, res: dict[str, Any]) -> list[str]:
@@ -51,13 +88,15 @@ def write_text_report(folder: Path) -> Path:
         steps = reader.steps()
     finally:
         reader.close()
+    digest = data_hash(folder)
     lines = [
         f"ACCEPTANCE REPORT - {meta.get('procedure', '')}",
-        f"run {meta.get('run_id')}  status {meta.get('status')}",
+        f"VERDICT: {overall_verdict(meta, results)}",
+        f"run {meta.get('run_id')}  status {meta.get('status')} ({meta.get('reason', '')})",
         f"DUT serial {meta.get('dut_serial', '')}  operator {meta.get('operator', '')}",
         f"started {meta.get('start_time')}  software rig {meta.get('software_version')}",
         f"instruments: {meta.get('instruments', {})}",
-        f"data sha256 {data_hash(folder)}",
+        f"data sha256 {digest} ({seal_note(folder, digest)})",
         "",
         "Steps:",
         *(
@@ -74,14 +113,8 @@ def write_text_report(folder: Path) -> Path:
     verdict = results.get("verdict")
     if verdict:
         lines += ["", "Acceptance criteria:"]
-        for row in verdict["criteria"]:
-            if "value" in row:
-                lines.append(
-                    f"  {row['verdict']}  {row['name']}: {row['value']:.4g} (min {row['min']}, max {row['max']}, margin {row['margin']:.3g})"
-                )
-            else:
-                lines.append(f"  {row['verdict']}  {row['name']}: {row['reason']}")
-        lines.append(f"VERDICT: {verdict['overall']}")
+        lines += [f"  {criterion_line(row)}" for row in verdict["criteria"]]
+    lines.append(f"VERDICT: {overall_verdict(meta, results)}")
     path = folder / "report.txt"
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path

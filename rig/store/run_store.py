@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from rig.errors import StoreWriteError, UserInputError
+from rig.store.seal import seal_run
 
 COMMIT_INTERVAL_S = 0.2
 """At most this much data (plus one commit's duration) is at risk if the process is killed."""
@@ -194,6 +195,10 @@ class RunWriter:
                 problems.append(f"could not write {what} to {self.path} ({exc})")
         with self._lock:
             self._con.close()
+        try:
+            seal_run(self.folder)
+        except (sqlite3.Error, OSError) as exc:
+            problems.append(f"could not seal the run in {self.folder} ({exc})")
         return problems
 
 
@@ -232,6 +237,8 @@ class RunReader:
                 ),
             )
             self._con.commit()
+            with contextlib.suppress(sqlite3.Error, OSError):
+                seal_run(folder)  # closed now: nobody will write to it again
 
     def meta(self) -> dict[str, Any]:
         """All metadata."""
@@ -325,10 +332,20 @@ def new_run(runs_dir: Path, label: str, **meta: Any) -> RunWriter:
         raise UserInputError(
             f"cannot create the run folder {folder}: {exc.strerror}; check --runs-dir"
         ) from None
-    writer = RunWriter(folder)
-    writer.set_meta(run_id=folder.name, status="running", pid=os.getpid(), start_time=now_iso(),
-                    start_monotonic=time.monotonic(), **meta)  # fmt: skip
-    return writer
+    # Built under another name and renamed: a reader never sees a run.sqlite without its tables.
+    tmp = folder / ".run.sqlite.new"
+    con = _connect(tmp)
+    try:
+        con.executescript(SCHEMA)
+        con.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", [
+            (k, json.dumps(v)) for k, v in dict(
+                run_id=folder.name, status="running", pid=os.getpid(), start_time=now_iso(),
+                start_monotonic=time.monotonic(), **meta).items()])  # fmt: skip
+        con.commit()
+    finally:
+        con.close()
+    os.replace(tmp, folder / "run.sqlite")
+    return RunWriter(folder)
 
 
 def list_runs(runs_dir: Path) -> list[RunInfo]:

@@ -128,7 +128,9 @@ def test_interrupted_run_leaves_supplies_off_and_data_readable(
             r.close()
             if any(name == "sweep with currents" for _, name, _, _, _ in steps):
                 break
-        assert proc.poll() is None and time.monotonic() < deadline, "run did not reach the sweep"
+        if proc.poll() is not None:
+            raise AssertionError(f"the run ended before the sweep: {proc.communicate()[1]}")
+        assert time.monotonic() < deadline, "run did not reach the sweep"
         time.sleep(0.2)
     time.sleep(2.0)
     assert any(v == 1 for v in outputs(devices, tcp_only=True).values())
