@@ -18,6 +18,7 @@ from drivers.errors import (
     DeviceRefusedError,
     DeviceTimeoutError,
 )
+from drivers.transport.serial_port import own_stall_s
 
 EXCEPTION_NAMES = {
     1: "illegal function", 2: "illegal data address", 3: "illegal data value",
@@ -35,7 +36,8 @@ class PatientSerialClient(ModbusSerialClient):
     window has closed, without looking again: a reply that arrived while this process was
     descheduled (a busy computer, a thread waiting for the interpreter lock) was thrown away as
     a timeout and the request sent again. Here the buffer is always looked at after the time is
-    up, and a reply counts as complete once no byte arrived for one poll interval.
+    up, time this process spent descheduled (a poll that overslept) extends the deadline, and a
+    reply counts as complete once no byte arrived for one poll interval.
     (Overrides the private ``_wait_for_data`` of the pinned minor version.)
     """
 
@@ -49,7 +51,9 @@ class PatientSerialClient(ModbusSerialClient):
             size = available
             if time.monotonic() >= deadline:
                 return size
+            t_sleep = time.monotonic()
             time.sleep(self._recv_interval)
+            deadline += own_stall_s(time.monotonic() - t_sleep, self._recv_interval)
 
 
 class ModbusLink:
@@ -148,9 +152,10 @@ class ModbusLink:
                 " check power and cable"
             )
         if isinstance(last, ModbusIOException):
+            detail = str(last).split(", continue")[0].removeprefix("Modbus Error: ")
             raise DeviceTimeoutError(
                 f"{self.name} at {self.where}: no reply to {what} after {attempts}"
-                " attempts; check power, cable, baud rate and device id"
+                f" attempts ({detail}); check power, cable, baud rate and device id"
             )
         raise DeviceProtocolError(
             f"{self.name} at {self.where}: malformed reply to {what} after {attempts}"

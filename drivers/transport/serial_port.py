@@ -8,6 +8,17 @@ import serial
 
 from drivers.errors import DeviceNotFoundError, DeviceTimeoutError
 
+OWN_STALL_TOLERANCE_S = 0.05
+"""A wait that ends this much later than asked was this process being descheduled."""
+
+
+def own_stall_s(elapsed_s: float, asked_s: float) -> float:
+    """How much of a wait (s) was this process not running: the overshoot beyond ``asked_s``
+    when it exceeds :data:`OWN_STALL_TOLERANCE_S`, else 0. Deadlines are extended by it, so a
+    timeout measures the instrument, not the computer it shares."""
+    over = elapsed_s - asked_s
+    return over if over > OWN_STALL_TOLERANCE_S else 0.0
+
 
 class SerialPort:
     """Byte-level access with timeouts that raise :class:`DeviceTimeoutError` naming the port."""
@@ -45,17 +56,18 @@ class SerialPort:
                 f"{self.name} on {self.url}: write failed ({exc}); is it still connected?"
             ) from None
 
-    def _fill(self, timeout_s: float) -> None:
+    def _fill(self, timeout_s: float) -> float:
         """Move what has arrived into the receive buffer, waiting up to ``timeout_s`` (>= 0) for
         the first byte. One system call per chunk, not per byte: a thread that waits for the
         interpreter lock between reads must not turn a complete reply into a timeout."""
+        t0 = time.monotonic()
         try:
             waiting = self._port.in_waiting
             if waiting:
                 self._rx += self._port.read(waiting)
-                return
+                return 0.0
             if timeout_s <= 0:
-                return
+                return 0.0
             self._port.timeout = timeout_s
             first = self._port.read(1)
             if first:
@@ -67,6 +79,7 @@ class SerialPort:
             raise DeviceNotFoundError(
                 f"{self.name} on {self.url}: read failed ({exc}); is it still connected?"
             ) from None
+        return own_stall_s(time.monotonic() - t0, timeout_s)
 
     def _take(self, n: int) -> bytes:
         out = bytes(self._rx[:n])
@@ -83,7 +96,7 @@ class SerialPort:
         deadline = time.monotonic() + limit_s
         while len(self._rx) < n:
             remaining = deadline - time.monotonic()
-            self._fill(max(remaining, 0.0))
+            deadline += self._fill(max(remaining, 0.0))
             if remaining <= 0:
                 break
         if len(self._rx) < n:
@@ -109,7 +122,7 @@ class SerialPort:
                 return self._take(max_bytes)
             remaining = deadline - time.monotonic()
             before = len(self._rx)
-            self._fill(max(remaining, 0.0))
+            deadline += self._fill(max(remaining, 0.0))
             if remaining <= 0 and len(self._rx) == before:
                 partial = bytes(self._rx[:max_bytes])
                 raise DeviceTimeoutError(

@@ -15,6 +15,7 @@ from typing import Any
 
 from drivers.errors import DeviceError, DeviceProtocolError, DeviceTimeoutError
 from drivers.mag.hmr2300 import Hmr2300
+from drivers.transport.serial_port import own_stall_s
 
 Sink = Callable[[float, str, tuple[float, float, float]], None]
 Listener = Callable[[float, tuple[float, float, float]], None]
@@ -143,7 +144,9 @@ class SensorSampler:
                     raise DeviceError(
                         f"{self.name}: no sample for {timeout_s:g} s; is it still connected?"
                     )
+                t_wait = time.monotonic()
                 self._cond.wait(remaining)
+                deadline += own_stall_s(time.monotonic() - t_wait, remaining)
 
     def stop(self) -> None:
         """Stop the thread (the driver stays open)."""

@@ -1,0 +1,110 @@
+"""Timeouts measure the instrument, not our scheduler: a reader that was stopped (SIGSTOP stands in
+for a busy computer) past its deadline while the reply arrived must take the reply, not time out
+and throw it away. Real ptys, real processes, real wire bytes."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+import tty
+
+import pytest
+
+READER = r"""
+import sys, time
+from drivers.transport.serial_port import SerialPort
+port = SerialPort(sys.argv[1], 9600, timeout_s=0.3, name="probe")
+print("ready", flush=True)
+print(port.read_until(b"\r").decode().strip(), flush=True)
+"""
+
+MODBUS = r"""
+import sys
+from drivers.transport.modbus import ModbusLink
+link = ModbusLink(name="psu", path=sys.argv[1], baudrate=115200, device_id=1, timeout_s=0.3)
+print("ready", flush=True)
+print(link.read_registers(8, 2), flush=True)
+"""
+
+
+def _crc16(frame: bytes) -> bytes:
+    crc = 0xFFFF
+    for byte in frame:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc.to_bytes(2, "little")
+
+
+@pytest.fixture
+def pty_pair() -> tuple[int, str]:
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    yield master, path
+    os.close(master)
+    os.close(slave)
+
+
+def _start(code: str, path: str) -> subprocess.Popen[str]:
+    proc = subprocess.Popen([sys.executable, "-c", code, path], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    assert proc.stdout.readline().strip() == "ready"
+    return proc
+
+
+def _read_request(master: int, n: int, timeout_s: float = 10.0) -> bytes:
+    buf = b""
+    deadline = time.monotonic() + timeout_s
+    while len(buf) < n and time.monotonic() < deadline:
+        try:
+            buf += os.read(master, 256)
+        except BlockingIOError:
+            time.sleep(0.01)
+    return buf
+
+
+def test_a_serial_reply_that_came_while_we_were_stopped_is_taken(
+    pty_pair: tuple[int, str],
+) -> None:
+    master, path = pty_pair
+    proc = _start(READER, path)
+    time.sleep(0.05)  # the reader is in its 0.3 s wait
+    proc.send_signal(signal.SIGSTOP)
+    time.sleep(0.6)  # the reader's deadline passes while it cannot run
+    os.write(master, b"SER# 0123\r")  # the instrument answered meanwhile
+    proc.send_signal(signal.SIGCONT)
+    out, _ = proc.communicate(timeout=10)
+    assert proc.returncode == 0 and out.strip() == "SER# 0123"
+
+
+def test_a_real_timeout_is_still_a_timeout(pty_pair: tuple[int, str]) -> None:
+    _, path = pty_pair
+    proc = subprocess.run([sys.executable, "-c", READER, path], capture_output=True, text=True,
+                          timeout=20)  # fmt: skip
+    assert proc.returncode != 0
+    assert "no complete reply within 0.3 s" in proc.stderr
+
+
+def test_a_modbus_rtu_reply_that_came_while_we_were_stopped_is_taken(
+    pty_pair: tuple[int, str],
+) -> None:
+    master, path = pty_pair
+    os.set_blocking(master, False)
+    proc = _start(MODBUS, path)
+    request = _read_request(master, 8)
+    assert request[:6] == bytes([1, 3, 0, 8, 0, 2]), request.hex()
+    proc.send_signal(signal.SIGSTOP)  # the client is waiting for the reply
+    time.sleep(0.8)  # longer than its 0.3 s timeout
+    body = bytes([1, 3, 4, 0x12, 0x34, 0x56, 0x78])
+    os.write(master, body + _crc16(body))
+    proc.send_signal(signal.SIGCONT)
+    out, _ = proc.communicate(timeout=10)
+    assert proc.returncode == 0, out
+    assert out.strip() == str([0x1234, 0x5678])
+    # one request only: the reply was not discarded and the request sent again
+    assert _read_request(master, 1, timeout_s=0.3) == b""
