@@ -44,6 +44,26 @@ steps:
 """
 
 
+def sample_gaps(
+    reader: RunReader, whole_run: bool = False
+) -> dict[str, tuple[int, float, float, int]]:
+    """Per magnetometer during the first step (or from its first to its last sample): (samples,
+    expected from the median rate, rate Hz, gaps longer than 1.5 sample periods)."""
+    out = {}
+    steps = reader.steps()
+    for dev in reader.devices():
+        t = np.array([row[0] for row in reader.samples(dev)])
+        if t.size < 3:
+            out[dev] = (int(t.size), 0.0, 0.0, 0)
+            continue
+        rate = 1.0 / np.median(np.diff(t))
+        t0, t1 = (t[0], t[-1]) if whole_run else (steps[0][3], steps[0][4] or t[-1])
+        inside = t[(t >= t0) & (t <= t1)]
+        gaps = int(np.sum(np.diff(inside) > 1.5 / rate))
+        out[dev] = (int(inside.size), (t1 - t0) * rate, float(rate), gaps)
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--seconds", type=float, default=300.0)
@@ -75,16 +95,9 @@ def main() -> int:
           f" max {meta['command_lateness_max_ms']:.1f} ms; p99 = {meta['command_lateness_p99_ms'] / period_ms:.3f}"
           f" of the {period_ms:.0f} ms period (target p99 <= 2 ms)")  # fmt: skip
     lost_total = 0
-    for dev in reader.devices():
-        t = np.array([row[0] for row in reader.samples(dev)])
-        rate = 1.0 / np.median(np.diff(t))
-        steps = reader.steps()
-        t0, t1 = steps[0][3], steps[0][4] or t[-1]
-        inside = t[(t >= t0) & (t <= t1)]
-        expected = (t1 - t0) * rate
-        gaps = int(np.sum(np.diff(inside) > 1.5 / rate))
+    for dev, (received, expected, rate, gaps) in sample_gaps(reader).items():
         lost_total += gaps
-        print(f"{dev}: {inside.size} samples during the replay, {expected:.0f} expected at {rate:.1f} Hz,"
+        print(f"{dev}: {received} samples during the replay, {expected:.0f} expected at {rate:.1f} Hz,"
               f" {gaps} gaps longer than 1.5 periods")  # fmt: skip
     reader.close()
     ok = meta["command_lateness_p99_ms"] <= 2.0 and lost_total == 0 and outcome.status == "complete"

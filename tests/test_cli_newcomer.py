@@ -8,7 +8,6 @@ from __future__ import annotations
 import contextlib
 import csv
 import datetime as dt
-import inspect
 import io
 import json
 import math
@@ -27,7 +26,6 @@ from rig.cli import EXIT_CLOSED_PIPE, main
 from rig.config import load_rig_config
 from rig.procedure.language import parse_procedure
 from rig.procedure.plan import (
-    CHARACTERIZE_TRANSIENT_S,
     characterization_duration_s,
     compile_plan,
     dry_run,
@@ -202,14 +200,6 @@ def test_characterization_counts_its_sweep_in_the_dry_run(tmp_path: Path) -> Non
     assert characterization_duration_s(1.0, 10, 4) > 1.9 * characterization_duration_s(1.0, 10, 2)
     shipped = dry_run(parse_procedure(find_procedure("cage-characterization")))
     assert shipped.timeline[2][0] > 20.0  # the null check starts after the ~25 s sweep
-
-
-def test_estimate_uses_the_same_transient_as_the_characterization() -> None:
-    from rig.cage.characterize import characterize
-
-    assert inspect.signature(characterize).parameters["transient_s"].default == (
-        CHARACTERIZE_TRANSIENT_S
-    )
 
 
 @pytest.mark.slow

@@ -58,13 +58,17 @@ def fit_cage(
     return k, b0, k_sigma, b0_sigma, float(np.sqrt(np.mean(resid**2))), drift
 
 
+TRANSIENT_S = 0.2
+"""Wait after each sweep point's ramp before the reference is read (s): coil L/R settling."""
+
+
 def characterize(
     controller: CageController,
     amplitude_a: float,
     *,
     samples: int = 20,
     repeats: int = 1,
-    transient_s: float = 0.2,
+    transient_s: float = TRANSIENT_S,
     instruments: dict[str, Any] | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> CageModel:

@@ -25,9 +25,9 @@ class LiveView:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
         durations = []
-        from rig.procedure.plan import compile_plan
+        from rig.procedure.plan import compile_plan, rig_timing
 
-        for plan in compile_plan(runner.proc):
+        for plan in compile_plan(runner.proc, rig_timing(runner.cfg)):
             durations.append(plan.duration_s)
         self.durations = durations
         self.total_s = sum(durations)

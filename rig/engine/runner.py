@@ -35,7 +35,7 @@ from rig.engine.live_calibration import LiveCalibration
 from rig.engine.sampling import BufferedSensor, SensorSampler
 from rig.errors import RigError
 from rig.procedure.language import Procedure
-from rig.procedure.plan import StepPlan, compile_plan
+from rig.procedure.plan import StepPlan, compile_plan, rig_timing
 from rig.store.run_store import RunReader, RunWriter, new_run
 
 Confirm = Callable[[str], bool]
@@ -121,7 +121,7 @@ class Runner:
         try:
             with ExitStack() as stack:
                 self._open(stack)
-                for plan in compile_plan(self.proc):
+                for plan in compile_plan(self.proc, rig_timing(self.cfg)):
                     self._execute(plan)
             verdict = self.results.get("verdict", {}).get("overall")
             status, reason = (

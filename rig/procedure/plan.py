@@ -164,10 +164,6 @@ def rig_timing(cfg: RigConfig | None) -> RigTiming | None:
     return RigTiming(cfg.cage.max_slew_a_per_s, cfg.cage.step_s, rate)
 
 
-CHARACTERIZE_TRANSIENT_S = 0.2
-"""Wait after each sweep point's ramp (``rig.cage.characterize.characterize``'s ``transient_s``)."""
-
-
 def characterization_duration_s(
     amplitude_a: float, samples: int, repeats: int, timing: RigTiming | None = None
 ) -> float:
@@ -175,7 +171,7 @@ def characterization_duration_s(
     ``step_s``, within the slew limit, through zero where the polarity flips), the transient wait
     and ``samples`` fresh reference readings (plus on average half a period until the first); then
     the ramp back to zero. Within 5 % of the measured time on the simulated cage (docs/procedures.md)."""
-    from rig.cage.characterize import sweep_points  # the sweep pattern itself, not a copy
+    from rig.cage.characterize import TRANSIENT_S, sweep_points  # the sweep itself, not a copy
     from rig.cage.limits import CageLimits, plan_ramp
 
     t = timing or RigTiming()
@@ -187,7 +183,7 @@ def characterization_duration_s(
     for target in [*points, np.zeros(3)]:
         setpoints += len(plan_ramp(here, target, limits))
         here = target
-    per_point = CHARACTERIZE_TRANSIENT_S + (samples + 0.5) / t.reference_rate_hz
+    per_point = TRANSIENT_S + (samples + 0.5) / t.reference_rate_hz
     return setpoints * t.step_s + len(points) * per_point
 
 

@@ -1,11 +1,12 @@
 """Exports of a stored run (the store stays the source of truth): CSV files or one HDF5 file.
 
 Time base: the store timestamps everything with the rig's monotonic clock (``t_s``, seconds since
-the computer booted). The run's meta holds ``start_time`` (UTC, ISO 8601, whole seconds) and
-``start_monotonic`` (the monotonic clock at that moment), so
+the computer booted). The run's meta holds ``start_time`` (UTC, ISO 8601, milliseconds; whole
+seconds in runs recorded before 2026-11-23) and ``start_monotonic`` (the monotonic clock at the same
+moment), so
 
     t_run_s = t_s - start_monotonic                  (exact: seconds since the run started)
-    t_utc   = start_time + (t_s - start_monotonic)    (ISO 8601; as good as start_time, +-1 s)
+    t_utc   = start_time + (t_s - start_monotonic)    (ISO 8601; as good as the computer's clock)
 
 ``samples_aligned.csv`` (``/aligned`` in HDF5) puts the DUT and every other magnetometer on the DUT's
 timestamps (linear interpolation, empty across gaps), with the load currents in force at each.
@@ -71,7 +72,7 @@ class TimeBase:
             "start_monotonic_s": self.start_monotonic,
             "start_time_utc": self.start_utc.isoformat() if self.start_utc else None,
             "t_run_s": "t_s - start_monotonic_s: seconds since the run started",
-            "t_utc": "start_time_utc + t_run_s, ISO 8601; start_time_utc has whole seconds",
+            "t_utc": "start_time_utc + t_run_s, ISO 8601",
         }
 
 

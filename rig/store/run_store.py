@@ -339,7 +339,9 @@ def new_run(runs_dir: Path, label: str, **meta: Any) -> RunWriter:
         con.executescript(SCHEMA)
         con.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", [
             (k, json.dumps(v)) for k, v in dict(
-                run_id=folder.name, status="running", pid=os.getpid(), start_time=now_iso(),
+                run_id=folder.name, status="running", pid=os.getpid(),
+                # the same instant on both clocks: exports convert sample times to UTC with it
+                start_time=dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds"),
                 start_monotonic=time.monotonic(), **meta).items()])  # fmt: skip
         con.commit()
     finally:
