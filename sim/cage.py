@@ -160,7 +160,7 @@ class SimulatedCage:
             return {"protocol": "modbus-tcp", "host": "127.0.0.1", "port": port,
                     "device_id": device_id}  # fmt: skip
         if transport == "modbus-rtu":
-            modem = PtyNullModem(faults, device_id=device_id, seed=self.cfg.seed)
+            modem = PtyNullModem(faults, self._loop, device_id=device_id, seed=self.cfg.seed)
             self._modems.append(modem)
 
             async def start_rtu() -> ModbusSerialServer:
@@ -196,6 +196,8 @@ class SimulatedCage:
             for server in self._servers:
                 with contextlib.suppress(Exception):
                     self._run(server.shutdown())
+            for modem in self._modems:  # detached from the loop while it runs
+                modem.close()
             self._loop.call_soon_threadsafe(self._loop.stop)
             self._thread.join(timeout=5.0)
         for modem in self._modems:

@@ -1,7 +1,7 @@
 """Real transports for the simulated devices: pseudo-terminals and loopback TCP, with link faults.
 
 * :func:`open_pty` - one raw pty pair: the device holds the master, the client opens the path.
-* :class:`PtyNullModem` - two pty pairs joined by a relay thread, for servers that must open a
+* :class:`PtyNullModem` - two pty pairs joined on an asyncio loop, for servers that must open a
   path themselves (pymodbus' serial server); it can drop, corrupt or delay what the device sends
   and ignores requests to other bus addresses (an RS-485 bus stays silent).
 * :class:`TcpProxy` - a loopback TCP front for a server, with the same faults and disconnects.
@@ -13,7 +13,6 @@ import asyncio
 import contextlib
 import os
 import random
-import select
 import threading
 import tty
 from dataclasses import dataclass
@@ -60,19 +59,33 @@ def damage(data: bytes, faults: Faults, rng: random.Random) -> bytes:
 class PtyNullModem:
     """Two ptys cross-connected: ``device_path`` for the server, ``client_path`` for the client.
 
+    The relay runs as reader callbacks on ``loop`` - the asyncio loop the Modbus servers run on -
+    so a request, the server's answer and the reply cross no thread boundary inside the
+    simulator: a relay thread needed the interpreter lock twice per transaction and, on a busy
+    computer, made the simulated device answer hundreds of milliseconds late.
+
     ``device_id`` (Modbus RTU) makes the modem drop requests addressed to other ids and to
     nobody, so the client sees a silent bus as on real RS-485.
     """
 
-    def __init__(self, faults: Faults, device_id: int | None = None, seed: int = 0) -> None:
+    def __init__(self, faults: Faults, loop: asyncio.AbstractEventLoop, device_id: int | None = None,
+                 seed: int = 0) -> None:  # fmt: skip
         self.device_side = open_pty()
         self.client_side = open_pty()
         self.faults = faults
         self.device_id = device_id
+        self._loop = loop
         self._rng = random.Random(seed)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="pty-null-modem", daemon=True)
-        self._thread.start()
+        self._closed = False
+        attached = threading.Event()
+
+        def attach() -> None:
+            loop.add_reader(self.client_side.master, self._from_client)
+            loop.add_reader(self.device_side.master, self._from_device)
+            attached.set()
+
+        loop.call_soon_threadsafe(attach)
+        attached.wait(5.0)
 
     @property
     def device_path(self) -> str:
@@ -84,39 +97,53 @@ class PtyNullModem:
         """Path a client (driver, mbpoll) opens."""
         return self.client_side.path
 
-    def _run(self) -> None:
-        dev, cli = self.device_side.master, self.client_side.master
-        while not self._stop.is_set():
-            try:
-                ready, _, _ = select.select([dev, cli], [], [], 0.05)
-            except (OSError, ValueError):
-                return
-            for fd in ready:
-                try:
-                    data = os.read(fd, 4096)
-                except OSError:
-                    continue
-                if fd == cli:
-                    if self.faults.disconnect or self.faults.silent:
-                        continue
-                    if self.device_id is not None and data and data[0] != self.device_id:
-                        continue  # another station's request: the bus stays silent
-                    with contextlib.suppress(OSError):
-                        os.write(dev, data)
-                else:
-                    if self.faults.disconnect or self.faults.silent:
-                        continue
-                    if self.faults.reply_delay_s > 0:
-                        self._stop.wait(self.faults.reply_delay_s)
-                    out = damage(data, self.faults, self._rng)
-                    if out:
-                        with contextlib.suppress(OSError):
-                            os.write(cli, out)
+    def _from_client(self) -> None:
+        try:
+            data = os.read(self.client_side.master, 4096)
+        except OSError:
+            return
+        if self.faults.disconnect or self.faults.silent:
+            return
+        if self.device_id is not None and data and data[0] != self.device_id:
+            return  # another station's request: the bus stays silent
+        with contextlib.suppress(OSError):
+            os.write(self.device_side.master, data)
+
+    def _from_device(self) -> None:
+        try:
+            data = os.read(self.device_side.master, 4096)
+        except OSError:
+            return
+        if self.faults.disconnect or self.faults.silent:
+            return
+        out = damage(data, self.faults, self._rng)
+        if not out:
+            return
+        if self.faults.reply_delay_s > 0:
+            self._loop.call_later(self.faults.reply_delay_s, self._to_client, out)
+        else:
+            self._to_client(out)
+
+    def _to_client(self, data: bytes) -> None:
+        with contextlib.suppress(OSError):
+            os.write(self.client_side.master, data)
 
     def close(self) -> None:
-        """Stop relaying and close the ptys."""
-        self._stop.set()
-        self._thread.join(timeout=1.0)
+        """Stop relaying and close the ptys (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        detached = threading.Event()
+
+        def detach() -> None:
+            for fd in (self.client_side.master, self.device_side.master):
+                with contextlib.suppress(ValueError, OSError):
+                    self._loop.remove_reader(fd)
+            detached.set()
+
+        if not self._loop.is_closed() and self._loop.is_running():
+            self._loop.call_soon_threadsafe(detach)
+            detached.wait(2.0)
         self.device_side.close()
         self.client_side.close()
 

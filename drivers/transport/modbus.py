@@ -29,31 +29,64 @@ EXCEPTION_NAMES = {
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # errors reach the user through ours
 
 
-class PatientSerialClient(ModbusSerialClient):
-    """pymodbus' serial client whose timeout measures the device, not this process.
+def rtu_reply_length(frame: bytes) -> int | None:
+    """Length (bytes, CRC included) of the Modbus RTU reply that ``frame`` starts, once its header
+    tells it; None while unknown (fewer than 3 bytes, or a function code without a fixed form)."""
+    if len(frame) < 2:
+        return None
+    fc = frame[1]
+    if fc & 0x80:
+        return 5  # id, fc | 0x80, exception code, CRC
+    if fc in (1, 2, 3, 4):
+        return 5 + frame[2] if len(frame) >= 3 else None  # id, fc, byte count, data, CRC
+    if fc in (5, 6, 15, 16):
+        return 8  # the echo of address and value / quantity
+    return None
 
-    pymodbus 3.16 polls the receive buffer while a wall-clock window is open and gives up when the
-    window has closed, without looking again: a reply that arrived while this process was
-    descheduled (a busy computer, a thread waiting for the interpreter lock) was thrown away as
-    a timeout and the request sent again. Here the buffer is always looked at after the time is
-    up, time this process spent descheduled (a poll that overslept) extends the deadline, and a
-    reply counts as complete once no byte arrived for one poll interval.
-    (Overrides the private ``_wait_for_data`` of the pinned minor version.)
+
+class PatientSerialClient(ModbusSerialClient):
+    """pymodbus' serial client whose timeout measures the device, not this computer.
+
+    pymodbus 3.16 polls the receive buffer while a wall-clock window is open, gives up without
+    looking again when it has closed, and takes a reply as complete after one quiet poll interval
+    (1 ms). On a busy computer a reply can reach the port in pieces with a longer pause between
+    them (the kernel hands pty and USB-serial data over in a worker thread), and this process can
+    be descheduled past the deadline while the reply arrives: both became timeouts, and the late
+    bytes were thrown away before the request was sent again. Here a reply is read until its RTU
+    header says it is whole, the buffer is always looked at once more when the time is up, and
+    time this process spent descheduled (a poll that overslept) extends the deadline.
+    (Overrides ``recv`` of the pinned minor version.)
     """
 
-    def _wait_for_data(self) -> int:
+    def recv(self, size: int | None) -> bytes:
+        if not self.socket:
+            raise ConnectionException(str(self))
         deadline = time.monotonic() + float(self.comm_params.timeout_connect)
-        size = 0
-        while True:
-            available = int(self.socket.in_waiting) if self.socket is not None else 0
-            if available and available == size:
-                return size  # quiet for one interval after the last byte: the frame is in
-            size = available
-            if time.monotonic() >= deadline:
-                return size
-            t_sleep = time.monotonic()
-            time.sleep(self._recv_interval)
-            deadline += own_stall_s(time.monotonic() - t_sleep, self._recv_interval)
+        buf = b""
+        quiet_since = time.monotonic()
+        try:
+            while True:
+                waiting = int(self.socket.in_waiting)
+                if waiting:
+                    buf += self.socket.read(waiting)
+                    quiet_since = time.monotonic()
+                need = size if size is not None else rtu_reply_length(buf)
+                if buf and need is not None and len(buf) >= need:
+                    return buf
+                if buf and need is None and time.monotonic() - quiet_since > QUIET_UNKNOWN_S:
+                    return buf  # a reply of no known form, quiet for a while: let pymodbus judge
+                if time.monotonic() >= deadline:
+                    return buf
+                t_sleep = time.monotonic()
+                time.sleep(self._recv_interval)
+                deadline += own_stall_s(time.monotonic() - t_sleep, self._recv_interval)
+        except OSError:
+            self.close()  # type: ignore[no-untyped-call]
+            raise ConnectionException(str(self)) from None
+
+
+QUIET_UNKNOWN_S = 0.05
+"""A reply whose length its header does not give is complete after this long without a byte (s)."""
 
 
 class ModbusLink:

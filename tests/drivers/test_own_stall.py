@@ -108,3 +108,35 @@ def test_a_modbus_rtu_reply_that_came_while_we_were_stopped_is_taken(
     assert out.strip() == str([0x1234, 0x5678])
     # one request only: the reply was not discarded and the request sent again
     assert _read_request(master, 1, timeout_s=0.3) == b""
+
+
+def test_a_modbus_rtu_reply_in_pieces_with_a_stall_between_is_taken(
+    pty_pair: tuple[int, str],
+) -> None:
+    master, path = pty_pair
+    os.set_blocking(master, False)
+    proc = _start(MODBUS, path)
+    assert _read_request(master, 8)[:2] == bytes([1, 3])
+    body = bytes([1, 3, 4, 0x12, 0x34, 0x56, 0x78])
+    frame = body + _crc16(body)
+    os.write(master, frame[:4])  # the first piece; the kernel delivers the rest later
+    time.sleep(0.1)
+    proc.send_signal(signal.SIGSTOP)
+    time.sleep(0.6)
+    os.write(master, frame[4:])
+    proc.send_signal(signal.SIGCONT)
+    out, _ = proc.communicate(timeout=10)
+    assert proc.returncode == 0, out
+    assert out.strip() == str([0x1234, 0x5678])
+    assert _read_request(master, 1, timeout_s=0.3) == b""  # asked once
+
+
+def test_rtu_reply_lengths() -> None:
+    from drivers.transport.modbus import rtu_reply_length
+
+    assert rtu_reply_length(b"\x01") is None
+    assert rtu_reply_length(bytes([1, 3])) is None  # byte count not yet there
+    assert rtu_reply_length(bytes([1, 3, 4])) == 9
+    assert rtu_reply_length(bytes([1, 6])) == 8 and rtu_reply_length(bytes([1, 16])) == 8
+    assert rtu_reply_length(bytes([1, 0x83])) == 5
+    assert rtu_reply_length(bytes([1, 43])) is None
