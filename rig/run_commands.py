@@ -189,10 +189,9 @@ def run_procedure(
 def run_demo(runs_dir: Path, procedure: str, quiet: bool) -> int:
     """``rig demo``: start ``rig sim`` as a child process, run a shipped procedure on it without
     prompts, stop the simulator. A separate process gives the simulator its own core, as real
-    instruments have their own electronics."""
-    import signal
-    import subprocess
-
+    instruments have their own electronics. The child dies with this process (Linux: the kernel
+    sends it SIGTERM; see rig.child_process), so a killed demo leaves no simulator behind."""
+    from rig.child_process import start_child, stop_child
     from rig.engine.runner import Runner
 
     t0 = time.monotonic()
@@ -200,7 +199,8 @@ def run_demo(runs_dir: Path, procedure: str, quiet: bool) -> int:
     runs_dir.mkdir(parents=True, exist_ok=True)
     rig_toml = runs_dir / "sim-rig.toml"
     rig_toml.unlink(missing_ok=True)
-    child = subprocess.Popen(
+    # Started from the thread that also stops it: the death signal follows the starting thread.
+    child = start_child(
         [sys.executable, "-m", "rig.cli", "-q", "sim", "--rig-config", str(rig_toml)]
     )
     try:
@@ -217,11 +217,7 @@ def run_demo(runs_dir: Path, procedure: str, quiet: bool) -> int:
         confirm = _confirm_all_quietly if quiet else _confirm_all
         outcome = Runner(proc, cfg, runs_dir, confirm=confirm, quiet=quiet).run()
     finally:
-        child.send_signal(signal.SIGINT)
-        try:
-            child.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            child.kill()
+        stop_child(child, wait_s=15.0)  # SIGINT, then SIGKILL after 15 s
     summarize(outcome, quiet)
     if not quiet:
         print(f"demo took {time.monotonic() - t0:.0f} s")
