@@ -5,6 +5,16 @@ Commands are ``*ddCMD<CR>`` (``dd`` the two-digit ID, 99 = everyone); write-prot
 frames are ``XH XL YH YL ZH ZL CR`` (two's complement, big-endian); ASCII samples are 28 bytes.
 The line is paced at 10 bits per byte at the configured baud rate, so the achievable sample rate
 is what the datasheet table gives (binary: 154 sps at 19200 baud; ASCII: 50 sps).
+
+Timing model: the device keeps its own sample clock (slot ``k`` is due at ``t0 + k / rate``, s,
+``time.monotonic``) and its own UART timeline (each byte occupies the line for ``10 / baud`` s).
+Both are computed, not slept: the device thread never waits for the line, and when it wakes late
+(our process was descheduled, or another thread held the interpreter lock) it sends every frame
+that fell due meanwhile back to back, as the UART would already have delivered them. So the sample
+clock never slips, and nothing leaves faster than the line carries (at most 274 binary frames/s at
+19200 baud). A sample that falls due while the transmitter already holds a frame waiting behind the
+one on the wire is not output (``samples_skipped``): a rate above the line's capacity gives the
+line's capacity.
 """
 
 from __future__ import annotations
@@ -16,6 +26,7 @@ import struct
 import termios
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -54,7 +65,9 @@ def ascii_frame(counts: tuple[int, int, int]) -> bytes:
 
 
 class Hmr2300:
-    """The device. ``read_ut`` returns the sensor's field (uT) at the moment of sampling."""
+    """The device. ``read_ut`` returns the sensor's field (uT) at the moment of sampling; frames
+    sent back to back after our thread was late are all read at the moment it runs, not at their
+    slot times (``read_ut`` takes no time argument)."""
 
     def __init__(self, read_ut: Callable[[], np.ndarray], faults: Faults, *, device_id: int = 0,
                  baudrate: int = 9600, serial_number: str = "0123", seed: int = 0) -> None:  # fmt: skip
@@ -74,12 +87,21 @@ class Hmr2300:
         self.write_enabled = False
         self._avg: np.ndarray | None = None
         self._invalid_after_pulse = 0
-        self.samples_sent = 0
+        self.samples_sent = 0  # every sample output, polled and streamed (silent/disconnect: lost)
+        self.samples_skipped = 0  # stream slots not output because the transmitter was full
+        self.bytes_overrun = 0  # bytes the client's side refused (its buffer was full): lost
+        # (samples_sent, device time s of that sample's slot), replaced as one tuple per streamed
+        # sample so that another thread reads a consistent pair.
+        self.stream_clock: tuple[int, float] = (0, 0.0)
         self.pty = open_pty()
         self._set_line_speed(baudrate)
         self._rng = random.Random(seed)
         self._stop = threading.Event()
-        self._line_free_at = 0.0
+        self._line_free_at = 0.0  # device time s when the UART has sent everything queued
+        self._out: deque[tuple[float, bytes]] = deque()  # (line start time s, bytes), in order
+        self._last_start = 0.0  # device time s when the last queued bytes start on the line
+        self._clock_t0 = 0.0  # device time s of slot 0 of the stream
+        self._slot = 0  # next stream slot
         self._thread = threading.Thread(target=self._run, name="hmr2300", daemon=True)
         self._thread.start()
 
@@ -87,6 +109,11 @@ class Hmr2300:
     def path(self) -> str:
         """The serial port path a client opens."""
         return self.pty.path
+
+    @property
+    def stream_start_s(self) -> float:
+        """Device time (s, ``time.monotonic``) of slot 0 of the current or last stream."""
+        return self._clock_t0
 
     def _set_line_speed(self, baud: int) -> None:
         attrs = termios.tcgetattr(self.pty.master)
@@ -104,21 +131,29 @@ class Hmr2300:
 
     # --- output ---------------------------------------------------------------------------------
 
-    def _send(self, data: bytes) -> None:
-        """Write at the line rate: 10 bits per byte."""
+    def _send(self, data: bytes, at_s: float | None = None) -> None:
+        """Queue bytes for the UART: they start when the line is free, not before ``at_s`` (device
+        time s, default now), and occupy it for 10 bits per byte."""
         if self.faults.silent or self.faults.disconnect:
             return
         data = damage(data, self.faults, self._rng)
-        now = time.monotonic()
-        start = max(now, self._line_free_at)
+        start = max(time.monotonic() if at_s is None else at_s, self._line_free_at)
         self._line_free_at = start + len(data) * 10.0 / self.baudrate
-        try:
-            os.write(self.pty.master, data)
-        except OSError:
-            return
-        delay = self._line_free_at - time.monotonic()
-        if delay > 0:
-            self._stop.wait(delay)
+        self._last_start = start
+        self._out.append((start, data))
+
+    def _flush(self, now: float) -> None:
+        """Hand the client every queued byte whose transmission has started by ``now`` (s)."""
+        while self._out and self._out[0][0] <= now:
+            _, data = self._out.popleft()
+            try:
+                written = os.write(self.pty.master, data)
+            except BlockingIOError:
+                written = 0
+            except OSError:
+                self._out.clear()
+                return
+            self.bytes_overrun += len(data) - written
 
     def _reply(self, text: str) -> None:
         self._send(text.encode("ascii") + b"\r")
@@ -166,7 +201,9 @@ class Hmr2300:
         elif cmd == "P":
             self._send(self._sample())
         elif cmd == "C":
-            self.streaming = True
+            if not self.streaming:
+                self.streaming = True
+                self._restart_clock()
         elif cmd == "ID=":
             self._reply(f"ID= {self.device_id:02d}")
         elif cmd in ("]S", "]R", "]"):
@@ -208,6 +245,7 @@ class Hmr2300:
                 self._reenter()
                 return
             self.rate_sps = rate
+            self._restart_clock()
             self._reply("OK")
         elif cmd.startswith("ID="):
             try:
@@ -244,6 +282,7 @@ class Hmr2300:
             self._reply("OK")
         elif cmd in ("D", "RST"):
             self.binary, self.rate_sps, self.set_reset = False, 20, True
+            self._restart_clock()
             self.zero_on = self.average = False
             self.reenter_reply = True
             self._reply("OK")
@@ -253,15 +292,39 @@ class Hmr2300:
 
     # --- loop -----------------------------------------------------------------------------------
 
+    def _restart_clock(self) -> None:
+        """The sample clock starts now: slot 0 is due immediately."""
+        self._clock_t0 = time.monotonic()
+        self._slot = 0
+
+    def _slot_due(self) -> float:
+        """Device time (s) of the next stream slot."""
+        return self._clock_t0 + self._slot / self.rate_sps
+
+    def _emit_due(self, now: float) -> None:
+        """Output the sample of every stream slot due by ``now`` (s), each at its slot time."""
+        while self.streaming and (due := self._slot_due()) <= now:
+            self._slot += 1
+            if self._last_start > due:
+                self.samples_skipped += 1  # a frame is already waiting behind the one on the wire
+                continue
+            self._send(self._sample(), at_s=due)
+            self.stream_clock = (self.samples_sent, due)
+
     def _run(self) -> None:
         buf = bytearray()
-        next_sample = time.monotonic()
         while not self._stop.is_set():
-            timeout = max(0.0, next_sample - time.monotonic()) if self.streaming else 0.05
+            now = time.monotonic()
+            wake = now + 0.05
+            if self.streaming:
+                wake = min(wake, self._slot_due())
+            if self._out:
+                wake = min(wake, self._out[0][0])
             try:
-                ready, _, _ = select.select([self.pty.master], [], [], timeout)
+                ready, _, _ = select.select([self.pty.master], [], [], max(0.0, wake - now))
             except (OSError, ValueError):
                 return
+            self._emit_due(time.monotonic())  # they fell due before we looked at the input
             if ready:
                 try:
                     data = os.read(self.pty.master, 1024)
@@ -277,12 +340,10 @@ class Hmr2300:
                         line = buf.decode("ascii", errors="replace").strip()
                         buf.clear()
                         self.handle(line)
-                        next_sample = time.monotonic()
                     elif byte != 0x0A:
                         buf.append(byte)
-            if self.streaming and time.monotonic() >= next_sample:
-                next_sample = max(next_sample + 1.0 / self.rate_sps, time.monotonic() - 1.0)
-                self._send(self._sample())
+                self._emit_due(time.monotonic())
+            self._flush(time.monotonic())
 
     def close(self) -> None:
         """Stop the device thread and close the pty."""

@@ -12,6 +12,7 @@ import pytest
 import serial
 
 from sim.cage import SimulatedCage
+from sim.hmr2300 import Hmr2300
 
 
 def decode_binary(frame: bytes) -> np.ndarray:
@@ -50,9 +51,23 @@ def port(devices: dict[str, Any], cage: SimulatedCage) -> Iterator[serial.Serial
     s.close()
 
 
+def read_exactly(s: serial.Serial, n: int, deadline_s: float = 30.0) -> bytes:
+    """``n`` bytes, or fewer if ``deadline_s`` (s, generous: a loaded machine) passes first."""
+    data = b""
+    deadline = time.monotonic() + deadline_s
+    while len(data) < n and time.monotonic() < deadline:
+        data += s.read(n - len(data))
+    return data
+
+
 def cmd(s: serial.Serial, text: str) -> bytes:
+    """Send a command, return its reply line (waits up to 30 s: a loaded machine is slow)."""
     s.write(text.encode() + b"\r")
-    return bytes(s.read_until(b"\r"))
+    reply = b""
+    deadline = time.monotonic() + 30.0
+    while not reply.endswith(b"\r") and time.monotonic() < deadline:
+        reply += s.read_until(b"\r")
+    return bytes(reply)
 
 
 def test_identity_and_write_protection(port: serial.Serial) -> None:
@@ -100,23 +115,29 @@ def test_binary_frames_including_0x0d(port: serial.Serial, cage: SimulatedCage) 
     )
 
 
-def test_continuous_stream_rate_and_escape(port: serial.Serial) -> None:
+def test_continuous_stream_rate_and_escape(port: serial.Serial, cage: SimulatedCage) -> None:
+    device = cage.serial_devices["dut"]
+    assert isinstance(device, Hmr2300)
     assert cmd(port, "*00WE") == b"OK\r"
     assert cmd(port, "*00B") == b"BINARY ON\r"
     assert cmd(port, "*00WE") == b"OK\r"
     assert cmd(port, "*00R=100") == b"OK\r"
+    sent_a = device.samples_sent
     port.write(b"*00C\r")
-    t0 = time.monotonic()
-    data = port.read(7 * 50)
-    elapsed = time.monotonic() - t0
+    data = read_exactly(port, 7 * 50)
     port.write(b"\x1b")
-    time.sleep(0.1)
-    port.reset_input_buffer()
-    assert len(data) == 350
-    frames = [data[i : i + 7] for i in range(0, 350, 7)]
+    deadline = time.monotonic() + 30
+    while device.streaming and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert not device.streaming  # ESC stopped the stream
+    sent_b, due_b = device.stream_clock
+    assert sent_b == device.samples_sent and sent_b - sent_a >= 50
+    data += read_exactly(port, 7 * (sent_b - sent_a) - len(data))  # every frame sent arrives
+    assert port.read(1) == b""  # and nothing after the last one
+    frames = [data[i : i + 7] for i in range(0, len(data), 7)]
     assert all(f[6] == 0x0D for f in frames)
-    assert 0.35 < elapsed < 0.75  # 50 frames at 100 sps
-    assert port.read(1) == b""  # ESC stopped the stream
+    # The rate on the device's own sample clock (a descheduled reader cannot change it).
+    assert (sent_b - sent_a - 1) / (due_b - device.stream_start_s) == pytest.approx(100, rel=0.01)
     assert cmd(port, "*00WE") == b"OK\r"
     assert cmd(port, "*00R=77") == b"Re-enter\r"  # not a datasheet rate
 
