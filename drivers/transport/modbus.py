@@ -61,9 +61,10 @@ class PatientSerialClient(ModbusSerialClient):
     def recv(self, size: int | None) -> bytes:
         if not self.socket:
             raise ConnectionException(str(self))
-        deadline = time.monotonic() + float(self.comm_params.timeout_connect)
+        last = time.monotonic()
+        deadline = last + float(self.comm_params.timeout_connect)
         buf = b""
-        quiet_since = time.monotonic()
+        quiet_since = last
         try:
             while True:
                 waiting = int(self.socket.in_waiting)
@@ -73,13 +74,16 @@ class PatientSerialClient(ModbusSerialClient):
                 need = size if size is not None else rtu_reply_length(buf)
                 if buf and need is not None and len(buf) >= need:
                     return buf
-                if buf and need is None and time.monotonic() - quiet_since > QUIET_UNKNOWN_S:
+                now = time.monotonic()
+                if buf and need is None and now - quiet_since > QUIET_UNKNOWN_S:
                     return buf  # a reply of no known form, quiet for a while: let pymodbus judge
-                if time.monotonic() >= deadline:
+                # whatever kept this loop from looking for longer than one poll was us, not the
+                # device (descheduled, stopped, waiting for the interpreter lock)
+                deadline += own_stall_s(now - last, self._recv_interval)
+                last = now
+                if now >= deadline:
                     return buf
-                t_sleep = time.monotonic()
                 time.sleep(self._recv_interval)
-                deadline += own_stall_s(time.monotonic() - t_sleep, self._recv_interval)
         except OSError:
             self.close()  # type: ignore[no-untyped-call]
             raise ConnectionException(str(self)) from None
@@ -117,6 +121,7 @@ class ModbusLink:
         self.where = f"{host}:{port}" if host is not None else f"{path}"
         self._lock = threading.RLock()
         self.failed = False  # the last request went unanswered: try once, not retries + 1 times
+        self.stale_replies = 0  # replies to an earlier request, recognized by their size
         self._client: Any
         if host is not None:
             self._client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0)
@@ -197,14 +202,19 @@ class ModbusLink:
 
     def read_registers(self, address: int, count: int = 1) -> list[int]:
         """Holding registers (function 3)."""
-        rr = self._call(f"reading {count} register(s) at {address}", self._client.read_holding_registers,
-                        address, count=count)  # fmt: skip
-        regs = list(rr.registers)
-        if len(regs) != count:
-            raise DeviceProtocolError(
-                f"{self.name} at {self.where}: asked for {count} registers at {address}, got {len(regs)}"
-            )
-        return regs
+        what = f"reading {count} register(s) at {address}"
+        for _ in range(2):
+            rr = self._call(what, self._client.read_holding_registers, address, count=count)
+            regs = list(rr.registers)
+            if len(regs) == count:
+                return regs
+            # RTU replies carry no transaction id: a reply of another size is a late answer to an
+            # earlier request. Ask again (the next request first clears what is waiting).
+            self.stale_replies += 1
+        raise DeviceProtocolError(
+            f"{self.name} at {self.where}: asked for {count} registers at {address}, got"
+            f" {len(regs)} twice; check that nothing else talks on this bus"
+        )
 
     def write_register(self, address: int, value: int) -> None:
         """One holding register (function 6)."""

@@ -140,3 +140,29 @@ def test_rtu_reply_lengths() -> None:
     assert rtu_reply_length(bytes([1, 6])) == 8 and rtu_reply_length(bytes([1, 16])) == 8
     assert rtu_reply_length(bytes([1, 0x83])) == 5
     assert rtu_reply_length(bytes([1, 43])) is None
+
+
+STALE = r"""
+import sys
+from drivers.transport.modbus import ModbusLink
+link = ModbusLink(name="psu", path=sys.argv[1], baudrate=115200, device_id=1, timeout_s=0.5)
+print("ready", flush=True)
+print(link.read_registers(8, 2), link.stale_replies, flush=True)
+"""
+
+
+def test_a_late_reply_to_an_earlier_request_is_recognized_and_the_request_repeated(
+    pty_pair: tuple[int, str],
+) -> None:
+    master, path = pty_pair
+    os.set_blocking(master, False)
+    proc = _start(STALE, path)
+    assert _read_request(master, 8)[:6] == bytes([1, 3, 0, 8, 0, 2])
+    stale = bytes([1, 3, 2, 0x00, 0x07])  # one register: the answer to some earlier read
+    os.write(master, stale + _crc16(stale))
+    assert _read_request(master, 8)[:6] == bytes([1, 3, 0, 8, 0, 2])  # asked again
+    body = bytes([1, 3, 4, 0x12, 0x34, 0x56, 0x78])
+    os.write(master, body + _crc16(body))
+    out, _ = proc.communicate(timeout=10)
+    assert proc.returncode == 0, out
+    assert out.strip() == f"{[0x1234, 0x5678]} 1"
