@@ -168,8 +168,9 @@ def lookup(results: dict[str, Any], result: str, path: str) -> float:
     return float(value)
 
 
-UNIT_SUFFIXES = (("_nt", "nT"), ("_ut", "uT"), ("_deg", "deg"), ("_ma", "mA"), ("_a", "A"),
-                 ("_v", "V"), ("_s", "s"), ("_hz", "Hz"), ("_ut_per_a", "uT/A"))  # fmt: skip
+UNIT_SUFFIXES = (("_ut_per_a", "uT/A"), ("_deg", "deg"), ("_nt", "nT"), ("_ut", "uT"),
+                 ("_ma", "mA"), ("_hz", "Hz"), ("_a", "A"), ("_v", "V"), ("_s", "s"))  # fmt: skip
+"""Name endings and their units, longest first (``_ut_per_a`` before ``_a``)."""
 
 
 def value_unit(path: str) -> str:
@@ -178,7 +179,7 @@ def value_unit(path: str) -> str:
     angle; its key names the field it is for), ``springmann.a`` -> "" (a ratio)."""
     parts = path.split(".")
     for part in parts:  # the outermost named unit wins: a dict named *_deg holds angles
-        for suffix, unit in sorted(UNIT_SUFFIXES, key=lambda su: -len(su[0])):
+        for suffix, unit in UNIT_SUFFIXES:
             if part.endswith(suffix) and part != suffix.lstrip("_"):
                 return unit
     return ""

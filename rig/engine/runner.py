@@ -94,7 +94,6 @@ class Runner:
         self.measured_loads: dict[str, tuple[float, float]] = {}  # name -> (time, A)
         self.live_cal: LiveCalibration | None = None
         self.report_requested = False
-        self._own_stall = False
         self.fault: str | None = None
         self._coil_checked = 0.0
         self.samplers: dict[str, SensorSampler] = {}
@@ -303,7 +302,7 @@ class Runner:
             # This thread woke late: the whole process was descheduled (a busy computer). The
             # samplers were too and need a moment to hand over what their sensors sent meanwhile,
             # so their freshness is judged on the next round, not now.
-            self._own_stall = now - last > MONITOR_PERIOD_S + OWN_STALL_S
+            own_stall = now - last > MONITOR_PERIOD_S + OWN_STALL_S
             last = now
             for name, load in list(self.loads.items()):
                 try:
@@ -318,16 +317,14 @@ class Runner:
                                    " check the wiring and the load before running again")  # fmt: skip
                 except (DeviceError, OSError) as exc:
                     self._event("warning", f"reading {name}: {exc}")
-            self._check_health(w)
+            self._check_health(w, judge_sensors=not own_stall)
 
-    def _check_health(self, w: RunWriter) -> None:
+    def _check_health(self, w: RunWriter, judge_sensors: bool = True) -> None:
         if w.error is not None:
             self._fail(f"cannot write the run data ({w.error}): is the disk full? Free space under"
                        f" {w.folder.parent}; what was recorded before is kept")  # fmt: skip
         now = time.monotonic()
-        for name, sampler in list(self.samplers.items()):
-            if self._own_stall:
-                break
+        for name, sampler in list(self.samplers.items()) if judge_sensors else []:
             stall_s = max(STALL_S, 5.0 / sampler.rate_hz)
             stuck_after = int(self.cfg.devices[name].get("stuck_after", STUCK_AFTER)) or 10**9
             problem = sampler.health(now, stall_s, stuck_after)
