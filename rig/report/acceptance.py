@@ -251,7 +251,8 @@ def build_report(folder: Path) -> tuple[Path, Path]:
     import matplotlib.pyplot as plt
     from matplotlib.backends.backend_pdf import PdfPages
 
-    write_text_report(folder)
+    digest = data_hash(folder)  # one pass over every row, shared by the three files
+    write_text_report(folder, digest)
     reader = RunReader(folder)
     try:
         meta, results, events = reader.meta(), reader.results(), reader.events()
@@ -264,7 +265,6 @@ def build_report(folder: Path) -> tuple[Path, Path]:
     status = meta.get("status", "incomplete")
     verdict = results.get("verdict")
     overall = overall_verdict(meta, results)
-    digest = data_hash(folder)
     header = [
         ("Procedure", meta.get("procedure", "")), ("Run", meta.get("run_id", "")),
         ("DUT serial", meta.get("dut_serial", "")), ("DUT model", meta.get("instruments", {}).get(meta.get("magnetometers", {}).get("dut", "dut"), "")),

@@ -80,15 +80,16 @@ def _calibration_lines(name: str, res: dict[str, Any]) -> list[str]:
     return lines
 
 
-def write_text_report(folder: Path) -> Path:
-    """Write ``report.txt`` for a run folder; returns its path."""
+def write_text_report(folder: Path, digest: str | None = None) -> Path:
+    """Write ``report.txt`` for a run folder (``digest``: its data digest when the caller has
+    already computed it); returns its path."""
     reader = RunReader(folder)
     try:
         meta, results = reader.meta(), reader.results()
         steps = reader.steps()
     finally:
         reader.close()
-    digest = data_hash(folder)
+    digest = digest or data_hash(folder)
     lines = [
         f"ACCEPTANCE REPORT - {meta.get('procedure', '')}",
         f"VERDICT: {overall_verdict(meta, results)}",

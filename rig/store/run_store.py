@@ -45,6 +45,14 @@ TABLE_COLUMNS = {
 }
 
 
+META_UPSERT = "INSERT OR REPLACE INTO meta VALUES (?, ?)"
+
+
+def _meta_rows(values: dict[str, Any]) -> list[tuple[str, str]]:
+    """Metadata as (key, JSON value) rows."""
+    return [(k, json.dumps(v)) for k, v in values.items()]
+
+
 def now_iso() -> str:
     """UTC time, seconds resolution."""
     return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
@@ -114,10 +122,7 @@ class RunWriter:
     def set_meta(self, **values: Any) -> None:
         """Metadata, written and committed at once."""
         with self._writing():
-            self._con.executemany(
-                "INSERT OR REPLACE INTO meta VALUES (?, ?)",
-                [(k, json.dumps(v)) for k, v in values.items()],
-            )
+            self._con.executemany(META_UPSERT, _meta_rows(values))
             self._con.commit()
 
     def set_step(self, idx: int, name: str, kind: str, t_start: float, t_end: float | None) -> None:
@@ -337,12 +342,11 @@ def new_run(runs_dir: Path, label: str, **meta: Any) -> RunWriter:
     con = _connect(tmp)
     try:
         con.executescript(SCHEMA)
-        con.executemany("INSERT OR REPLACE INTO meta VALUES (?, ?)", [
-            (k, json.dumps(v)) for k, v in dict(
-                run_id=folder.name, status="running", pid=os.getpid(),
-                # the same instant on both clocks: exports convert sample times to UTC with it
-                start_time=dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds"),
-                start_monotonic=time.monotonic(), **meta).items()])  # fmt: skip
+        con.executemany(META_UPSERT, _meta_rows(dict(
+            run_id=folder.name, status="running", pid=os.getpid(),
+            # the same instant on both clocks: exports convert sample times to UTC with it
+            start_time=dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds"),
+            start_monotonic=time.monotonic(), **meta)))  # fmt: skip
         con.commit()
     finally:
         con.close()
