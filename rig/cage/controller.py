@@ -174,10 +174,11 @@ class CageController:
         self.limits.check_currents(currents, f"field {np.round(field, 2).tolist()} uT")
         return self.set_currents(currents)
 
-    def track(self, field_ut: npt.ArrayLike) -> Array:
+    def track(self, field_ut: npt.ArrayLike) -> bool:
         """Follow a slowly changing field (orbit replay): one set-point, no ramp, when the change
         fits within the slew limit for the time since the last set-point; otherwise a ramp. An
-        axis changing sign behind relays always ramps through zero (break before make)."""
+        axis changing sign behind relays always ramps through zero (break before make). Returns
+        whether it ramped (the field then passed through values that were not asked for)."""
         field = np.asarray(field_ut, float)
         self.limits.check_field(field, "track")
         currents = self.model.currents_a(field)
@@ -198,8 +199,9 @@ class CageController:
             if change > allowed:  # too soon after the last set-point: wait the slew out
                 self.sleep((change - allowed) / self.limits.max_slew_a_per_s)
             self._send(currents)
-            return self.currents.copy()
-        return self.set_currents(currents)
+            return False
+        self.set_currents(currents)
+        return True
 
     def null_field(self) -> Array:
         """Cancel the ambient field (target 0 uT)."""

@@ -523,8 +523,12 @@ class Runner:
         assert w is not None
         if kind == "field":
             target = np.array(payload["field_ut"])
+            issued = now
             if payload.get("track"):
-                self.controller.track(target)
+                # One tracked set-point moves the field by a slew-limited step that the reference
+                # follows (interpolated): no interval to leave out. A ramp through zero is one.
+                if not self.controller.track(target):
+                    issued = time.monotonic()
             elif payload.get("trim"):
                 result = self.controller.trim(target)
                 if not result.settled:
@@ -532,7 +536,8 @@ class Runner:
             else:
                 self.controller.set_field(target)
             # Logged when the ramp has finished: analysis counts settling from here.
-            w.add_command(time.monotonic(), step_idx, kind, payload | {"t_issued": now})
+            done = time.monotonic()
+            w.add_command(done, step_idx, kind, payload | {"t_issued": min(issued, done)})
             for ax, amps in enumerate(self.controller.currents):
                 w.add_channel(time.monotonic(), f"coil_{'xyz'[ax]}", float(amps), None)
         elif kind == "load":
