@@ -8,6 +8,7 @@ Format (shared with the simulator's models of the same devices)::
     v_max = 20.0            # V, supplies and loads
     i_max = 5.0             # A
     bipolar = false         # signed current set-point
+    baudrate = 9600         # factory default on Modbus RTU (optional; 115200 when absent)
 
     [[registers]]
     name = "i_set"
@@ -17,6 +18,8 @@ Format (shared with the simulator's models of the same devices)::
     access = "ro" | "rw"
     role = "v_set" | "i_set" | "v_out" | "i_out" | "output" | "mode" | "protection"
          | "polarity_x" | "polarity_y" | "polarity_z" | "constant" | "none"
+    value = 5005            # role "constant" only: what the register always reads (a model
+                            # number): identify() and `rig devices scan` check it
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ class Register:
     access: str
     role: str
     scale: float = 1.0
+    value: float | None = None  # role "constant": the value it always reads
 
     @property
     def width(self) -> int:
@@ -88,6 +92,16 @@ class RegisterMap:
     i_max: float
     bipolar: bool
     source: str
+    baudrate: int | None = None
+
+    @property
+    def name(self) -> str:
+        """The map's file name without ``.toml`` (what ``regmap = "..."`` names)."""
+        return Path(self.source).stem
+
+    def constants(self) -> tuple[Register, ...]:
+        """Registers that always read a stated value (the model number): the device's identity."""
+        return tuple(r for r in self.registers if r.role == "constant" and r.value is not None)
 
     def role(self, role: str) -> Register | None:
         """The register with ``role``, if the map has one."""
@@ -134,9 +148,19 @@ def load_map(name_or_path: str) -> RegisterMap:
             raise RegisterMapError(f"{where}: needs a name and an address")
         regs.append(Register(str(r["name"]), int(r["address"]), str(r["type"]),
                              str(r.get("access", "ro")), str(r.get("role", "none")),
-                             float(r.get("scale", 1.0))))  # fmt: skip
+                             float(r.get("scale", 1.0)),
+                             None if r.get("value") is None else float(r["value"])))  # fmt: skip
     kind = str(dev.get("kind", ""))
     if kind not in ("supply", "eload", "relay"):
         raise RegisterMapError(f"{p}: [device] kind must be supply, eload or relay")
+    baudrate = dev.get("baudrate")
+    if baudrate is not None and (isinstance(baudrate, bool) or not isinstance(baudrate, int)):
+        raise RegisterMapError(f"{p}: [device] baudrate must be a whole number, e.g. 9600")
     return RegisterMap(kind, str(dev.get("model", p.stem)), tuple(regs), float(dev.get("v_max", 0.0)),
-                       float(dev.get("i_max", 0.0)), bool(dev.get("bipolar", False)), str(p))  # fmt: skip
+                       float(dev.get("i_max", 0.0)), bool(dev.get("bipolar", False)), str(p),
+                       baudrate)  # fmt: skip
+
+
+def shipped_maps() -> list[RegisterMap]:
+    """Every map in ``drivers/regmaps`` (sorted by name)."""
+    return [load_map(str(f)) for f in sorted(MAP_DIR.glob("*.toml"))]

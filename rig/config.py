@@ -11,7 +11,7 @@
     compliance_v = 20.0
 
     [devices.coil_x]
-    kind = "riden-rd60xx"            # see DEVICE_KINDS
+    kind = "riden-rd60xx"            # see drivers/registry.py (rig devices scan)
     protocol = "modbus-tcp"          # or modbus-rtu, serial, i2c
     host = "127.0.0.1"
     port = 5020
@@ -28,31 +28,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from drivers.registry import KINDS, TRANSPORTS, all_params, kinds_with_role
 from rig.errors import UserInputError
 
-DEVICE_KINDS = {
-    "riden-rd60xx": ("modbus-tcp", "modbus-rtu"),
-    "regmap-supply": ("modbus-tcp", "modbus-rtu"),
-    "regmap-eload": ("modbus-tcp", "modbus-rtu"),
-    "regmap-relay": ("modbus-tcp", "modbus-rtu"),
-    "hmr2300": ("serial",),
-    "ascii-mag": ("serial",),
-    "rm3100": ("i2c",),
-    "lis3mdl": ("i2c",),
-}
-PARAM_TYPES: dict[str, tuple[type, ...]] = {
-    "host": (str,), "path": (str,), "port": (int,), "baudrate": (int,), "device_id": (int,),
-    "address": (int,), "regmap": (str,), "parity": (str,), "delimiter": (str,),
-    "max_current_a": (int, float), "timeout_s": (int, float), "rate_hz": (int, float),
-    "compliance_v": (int, float), "scale_to_ut": (int, float),
-}  # fmt: skip
+DEVICE_KINDS: dict[str, tuple[str, ...]] = {name: k.transports for name, k in KINDS.items()}
+"""Kind name -> transports it accepts (derived from :mod:`drivers.registry`)."""
+PARAM_TYPES: dict[str, tuple[type, ...]] = {name: p.types for name, p in all_params().items()}
 """Types of the device parameters the drivers read (others are passed through)."""
-REQUIRED = {
-    "modbus-tcp": ("host", "port"),
-    "modbus-rtu": ("path",),
-    "serial": ("path",),
-    "i2c": ("address",),
+REQUIRED: dict[str, tuple[str, ...]] = {
+    protocol: tuple(p.name for p in params if p.required) for protocol, params in TRANSPORTS.items()
 }
+"""Parameters each transport needs."""
 
 
 @dataclass(frozen=True)
@@ -135,31 +121,27 @@ def load_rig_config(path: str | Path) -> RigConfig:
         if not isinstance(spec, dict):
             raise _err(path, where, "must be a table")
         kind = spec.get("kind")
-        if not isinstance(kind, str) or kind not in DEVICE_KINDS:
-            raise _err(path, f"{where}.kind", f"{kind!r} is not one of {', '.join(DEVICE_KINDS)}")
+        if not isinstance(kind, str) or kind not in KINDS:
+            raise _err(path, f"{where}.kind", f"{kind!r} is not one of {', '.join(KINDS)}")
+        entry = KINDS[kind]
         protocol = spec.get("protocol")
-        if not isinstance(protocol, str) or protocol not in DEVICE_KINDS[kind]:
+        if not isinstance(protocol, str) or protocol not in entry.transports:
             raise _err(
                 path,
                 f"{where}.protocol",
-                f"{protocol!r} does not suit {kind}; use {' or '.join(DEVICE_KINDS[kind])}",
+                f"{protocol!r} does not suit {kind}; use {' or '.join(entry.transports)}",
             )
-        for key in REQUIRED[protocol]:
-            if key not in spec:
-                raise _err(path, where, f"needs '{key}' for {protocol}")
-        if kind.startswith("regmap") and "regmap" not in spec:
-            raise _err(path, where, "needs 'regmap' (a register-map file or a shipped map name)")
-        for key, types in PARAM_TYPES.items():
-            value = spec.get(key)
-            if value is not None and (isinstance(value, bool) or not isinstance(value, types)):
-                wanted = (
-                    "text"
-                    if types == (str,)
-                    else "a whole number"
-                    if types == (int,)
-                    else "a number"
-                )
-                raise _err(path, f"{where}.{key}", f"must be {wanted}, got {value!r}")
+        for param in TRANSPORTS[protocol]:
+            if param.required and param.name not in spec:
+                raise _err(path, where, f"needs '{param.name}' for {protocol} ({param.help})")
+        for param in entry.params:
+            if param.required and param.name not in spec:
+                raise _err(path, where, f"needs '{param.name}' ({param.help})")
+        known = all_params()
+        for key, value in spec.items():
+            spec_of = known.get(key)
+            if spec_of is not None and not spec_of.accepts(value):
+                raise _err(path, f"{where}.{key}", f"must be {spec_of.wanted}, got {value!r}")
         params = {k: v for k, v in spec.items() if k not in ("kind", "protocol")}
         devices[name] = DeviceConfig(name, kind, protocol, params)
     cage = _cage(path, raw.get("cage"), devices) if "cage" in raw else None
@@ -180,25 +162,36 @@ def _cage(path: Path, c: Any, devices: dict[str, DeviceConfig]) -> CageConfig:
         if (
             not isinstance(name, str)
             or name not in devices
-            or devices[name].kind not in ("riden-rd60xx", "regmap-supply")
+            or devices[name].kind not in kinds_with_role("supply")
         ):
-            raise _err(path, f"[cage].axes.{ax}", f"'{name}' is not a supply in [devices]")
+            raise _err(
+                path,
+                f"[cage].axes.{ax}",
+                f"'{name}' is not a supply in [devices] (kinds: {', '.join(kinds_with_role('supply'))})",
+            )
     polarity = c.get("polarity")
     if polarity is not None and (
         not isinstance(polarity, str)
         or polarity not in devices
-        or devices[polarity].kind != "regmap-relay"
+        or devices[polarity].kind not in kinds_with_role("relay")
     ):
         raise _err(
-            path, "[cage].polarity", f"'{polarity}' is not a regmap-relay device in [devices]"
+            path,
+            "[cage].polarity",
+            f"'{polarity}' is not a relay device in [devices] (kinds: {', '.join(kinds_with_role('relay'))})",
         )
     reference = c.get("reference")
     if reference is not None and (
         not isinstance(reference, str)
         or reference not in devices
-        or devices[reference].kind not in ("hmr2300", "ascii-mag", "rm3100", "lis3mdl")
+        or devices[reference].kind not in kinds_with_role("magnetometer")
     ):
-        raise _err(path, "[cage].reference", f"'{reference}' is not a magnetometer in [devices]")
+        raise _err(
+            path,
+            "[cage].reference",
+            f"'{reference}' is not a magnetometer in [devices]"
+            f" (kinds: {', '.join(kinds_with_role('magnetometer'))})",
+        )
     calibration = c.get("calibration")
     if calibration is not None and not isinstance(calibration, str):
         raise _err(path, "[cage].calibration", 'must be a file name, e.g. "cage.json"')

@@ -2,19 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 from contextlib import ExitStack
 from typing import Any
 
 import numpy as np
 
-from drivers.mag.ascii_line import AsciiLineMagnetometer, LineFormat
-from drivers.mag.hmr2300 import Hmr2300
-from drivers.mag.lis3mdl import Lis3mdl
-from drivers.mag.rm3100 import Rm3100
-from drivers.psu.regmap_device import MappedSupply, PolarityRelay
-from drivers.psu.riden import RidenSupply
-from drivers.regmap import RegisterMapError, load_map
-from drivers.transport.modbus import ModbusLink
+from drivers.protocols import Load, Magnetometer, Relay, Supply
+from drivers.registry import KINDS, OpenSpec, Role
+from drivers.regmap import RegisterMapError
 from rig.cage.controller import AxisDrive, CageController
 from rig.cage.limits import CageLimits
 from rig.cage.model import CageModel
@@ -22,45 +18,74 @@ from rig.config import DeviceConfig, RigConfig
 from rig.errors import UserInputError
 
 
-def _link(dev: DeviceConfig) -> ModbusLink:
-    if dev.protocol == "modbus-tcp":
-        return ModbusLink(name=dev.name, host=str(dev.get("host")), port=int(dev.get("port")),
-                          device_id=int(dev.get("device_id", 1)), timeout_s=float(dev.get("timeout_s", 0.5)))  # fmt: skip
-    return ModbusLink(name=dev.name, path=str(dev.get("path")), baudrate=int(dev.get("baudrate", 115200)),
-                      parity=str(dev.get("parity", "N")), device_id=int(dev.get("device_id", 1)),
-                      timeout_s=float(dev.get("timeout_s", 0.5)))  # fmt: skip
-
-
 def open_device(dev: DeviceConfig, i2c_bus: Any | None = None) -> Any:
-    """A driver for ``dev``. ``i2c_bus`` stands in for ``bus = "sim"`` (the simulator's bus)."""
+    """A driver for ``dev``, opened by its kind's entry in :mod:`drivers.registry`.
+
+    ``i2c_bus`` stands in for ``bus = "sim"`` (the simulator's bus). Prefer the typed openers
+    (:func:`open_supply`, :func:`open_load`, :func:`open_relay`, :func:`open_magnetometer`).
+    """
+    kind = KINDS.get(dev.kind)
+    if kind is None:  # a DeviceConfig made by hand, not by load_rig_config
+        raise UserInputError(
+            f"device '{dev.name}': kind '{dev.kind}' is not one of {', '.join(KINDS)}"
+        )
+    bus = None
+    if dev.protocol == "i2c" and dev.get("bus", 1) == "sim":
+        if i2c_bus is None:
+            raise UserInputError(
+                f"device '{dev.name}' is on the simulator's in-process I2C bus; run it in the same process"
+            )
+        bus = i2c_bus
     try:
-        if dev.kind == "riden-rd60xx":
-            return RidenSupply(_link(dev), name=dev.name, max_current_a=dev.get("max_current_a"))
-        if dev.kind in ("regmap-supply", "regmap-eload"):
-            return MappedSupply(_link(dev), load_map(str(dev.get("regmap"))), name=dev.name,
-                                max_current_a=dev.get("max_current_a"))  # fmt: skip
-        if dev.kind == "regmap-relay":
-            return PolarityRelay(_link(dev), load_map(str(dev.get("regmap"))), name=dev.name)
-        if dev.kind == "hmr2300":
-            return Hmr2300(str(dev.get("path")), baudrate=int(dev.get("baudrate", 9600)),
-                           device_id=dev.get("device_id"), name=dev.name)  # fmt: skip
-        if dev.kind == "ascii-mag":
-            fmt = LineFormat(delimiter=dev.get("delimiter"), columns=tuple(dev.get("columns", (0, 1, 2))),
-                             scale_to_ut=float(dev.get("scale_to_ut", 1.0)))  # fmt: skip
-            return AsciiLineMagnetometer(str(dev.get("path")), baudrate=int(dev.get("baudrate", 115200)),
-                                         fmt=fmt, name=dev.name)  # fmt: skip
-        bus = dev.get("bus", 1)
-        if bus == "sim":
-            if i2c_bus is None:
-                raise UserInputError(
-                    f"device '{dev.name}' is on the simulator's in-process I2C bus; run it in the same process"
-                )
-            bus = i2c_bus
-        if dev.kind == "rm3100":
-            return Rm3100(bus, int(dev.get("address")), name=dev.name)
-        return Lis3mdl(bus, int(dev.get("address")), name=dev.name)
-    except RegisterMapError as exc:
-        raise UserInputError(str(exc)) from None
+        return kind.open(OpenSpec(dev.name, dev.protocol, dev.params, bus))
+    except (RegisterMapError, ValueError) as exc:
+        raise UserInputError(f"device '{dev.name}': {exc}") from None
+
+
+def _check_role(dev: DeviceConfig, role: Role) -> None:
+    kind = KINDS.get(dev.kind)
+    if kind is not None and role not in kind.roles:
+        raise UserInputError(
+            f"device '{dev.name}' ({dev.kind}) cannot be used as a {role}; kinds that can: "
+            + ", ".join(k for k, v in KINDS.items() if role in v.roles)
+        )
+
+
+def open_supply(dev: DeviceConfig, i2c_bus: Any | None = None) -> Supply:
+    """A coil supply (a kind with the ``supply`` role)."""
+    _check_role(dev, "supply")
+    supply: Supply = open_device(dev, i2c_bus)
+    return supply
+
+
+def open_relay(dev: DeviceConfig, i2c_bus: Any | None = None) -> Relay:
+    """A polarity relay board (a kind with the ``relay`` role)."""
+    _check_role(dev, "relay")
+    relay: Relay = open_device(dev, i2c_bus)
+    return relay
+
+
+def open_magnetometer(dev: DeviceConfig, i2c_bus: Any | None = None) -> Magnetometer:
+    """A magnetometer (a kind with the ``magnetometer`` role)."""
+    _check_role(dev, "magnetometer")
+    mag: Magnetometer = open_device(dev, i2c_bus)
+    return mag
+
+
+def open_load(dev: DeviceConfig, i2c_bus: Any | None = None) -> Load:
+    """A load-current channel, ready to drive: current 0, its voltage set-point at the device's
+    ``compliance_v`` (12 V when not given) where it has one, output on. If preparing fails the
+    output is made safe and the link closed before the error propagates."""
+    _check_role(dev, "load")
+    load: Load = open_device(dev, i2c_bus)
+    try:
+        load.enable_as_load(float(dev.get("compliance_v", 12.0)))
+    except BaseException:
+        with contextlib.suppress(Exception):
+            load.safe()
+        load.close()
+        raise
+    return load
 
 
 def build_cage(cfg: RigConfig, stack: ExitStack, i2c_bus: Any | None = None) -> CageController:
@@ -74,11 +99,11 @@ def build_cage(cfg: RigConfig, stack: ExitStack, i2c_bus: Any | None = None) -> 
     c = cfg.cage
     drives = []
     for name in c.axes:
-        supply = open_device(cfg.devices[name], i2c_bus)
+        supply = open_supply(cfg.devices[name], i2c_bus)
         stack.callback(supply.close)
-        bipolar = bool(getattr(supply, "bipolar", False))
+        bipolar = supply.bipolar
 
-        def current(s: Any = supply) -> float:
+        def current(s: Supply = supply) -> float:
             return abs(float(s.read().i_out_a))
 
         drives.append(
@@ -86,15 +111,14 @@ def build_cage(cfg: RigConfig, stack: ExitStack, i2c_bus: Any | None = None) -> 
         )
     relays = None
     if c.polarity is not None:
-        relays = open_device(cfg.devices[c.polarity], i2c_bus)
+        relays = open_relay(cfg.devices[c.polarity], i2c_bus)
         stack.callback(relays.close)
     reference = None
     reference_to_cage = None
     if c.reference is not None:
         ref_cfg = cfg.devices[c.reference]
-        reference = open_device(ref_cfg, i2c_bus)
-        if hasattr(reference, "close"):
-            stack.callback(reference.close)
+        reference = open_magnetometer(ref_cfg, i2c_bus)
+        stack.callback(reference.close)
         reference_to_cage = _reference_correction(cfg, ref_cfg)
     if c.calibration is not None and c.calibration.exists():
         model = CageModel.load(c.calibration)

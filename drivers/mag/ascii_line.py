@@ -92,6 +92,23 @@ class AsciiLineMagnetometer:
                 self.bad_lines += 1
         return out
 
+    @property
+    def self_timed(self) -> bool:
+        """A streaming sensor sends at its own rate; one with a poll command answers each poll."""
+        return not self.fmt.poll_command
+
+    def start_sampling(self, rate_hz: float) -> float:
+        """Nothing to configure: the sensor's rate is set on the sensor (``rate_hz`` in the rig
+        configuration says what it is)."""
+        return rate_hz
+
+    def read_samples(self, max_wait_s: float) -> list[tuple[float, float, float]]:
+        """The lines received so far (:meth:`read_burst`; the port's timeout bounds the wait)."""
+        return self.read_burst()
+
+    def stop_sampling(self) -> None:
+        """Nothing to stop."""
+
     def close(self) -> None:
         """Close the port."""
         self.port.close()

@@ -143,6 +143,29 @@ class Hmr2300:
         for _ in range(3):
             self.read()
 
+    # --- sampling (the Magnetometer protocol) ---------------------------------------------------
+
+    self_timed = True
+    """Streams at its own clock once :meth:`start_sampling` has run."""
+
+    def start_sampling(self, rate_hz: float) -> float:
+        """Binary stream at the lowest datasheet rate at or above ``rate_hz`` (154 sps at most):
+        binary because ASCII cannot carry more than 50 sps at 19200 baud. Returns the rate (sps)."""
+        self.set_binary(True)
+        rate = min((r for r in RATES_SPS if r >= rate_hz), default=RATES_SPS[-1])
+        self.set_rate(rate)
+        self.start_stream()
+        return float(rate)
+
+    def read_samples(self, max_wait_s: float) -> list[tuple[float, float, float]]:
+        """The streamed samples received so far (uT, oldest first)."""
+        return self.read_stream(max_wait_s)
+
+    def stop_sampling(self) -> None:
+        """Stop the stream (ESC)."""
+        if self.streaming:
+            self.stop_stream()
+
     # --- data -----------------------------------------------------------------------------------
 
     def read(self) -> tuple[float, float, float]:

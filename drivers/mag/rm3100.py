@@ -74,6 +74,20 @@ class Rm3100:
         self.continuous = True
         return TMRC_HZ[tmrc]
 
+    self_timed = False
+    """Polled: the caller paces :meth:`read_samples`."""
+
+    def start_sampling(self, rate_hz: float) -> float:
+        """Polled measurements: nothing to configure; the caller reads at ``rate_hz``."""
+        return rate_hz
+
+    def read_samples(self, max_wait_s: float) -> list[tuple[float, float, float]]:
+        """One fresh measurement (uT)."""
+        return [self.read(max_wait_s)]
+
+    def stop_sampling(self) -> None:
+        """Nothing to stop."""
+
     def close(self) -> None:
         """Nothing to release: the bus belongs to whoever opened it."""
 

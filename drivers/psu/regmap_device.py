@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from drivers.errors import DeviceProtocolError, LimitError
+from drivers.errors import DeviceNotFoundError, DeviceProtocolError, LimitError
 from drivers.identity import Identity
 from drivers.psu.riden import SupplyReading
 from drivers.regmap import Register, RegisterMap, RegisterMapError
@@ -33,8 +33,22 @@ class MappedDevice:
         """Close the Modbus link."""
         self.link.close()
 
+    def check_model(self) -> None:
+        """Read every ``constant`` register that states its value (the model register, say) and
+        raise :class:`DeviceNotFoundError` if one differs: the device is not what the map says."""
+        for reg in self.map.constants():
+            got = self._read(reg)
+            if got != reg.value:
+                raise DeviceNotFoundError(
+                    f"{self.name} at {self.link.where}: register '{reg.name}' ({reg.address:#06x})"
+                    f" reads {got:g}, {self.map.source} expects {reg.value:g}; is this a"
+                    f" {self.map.model}? Check the regmap and the device id"
+                )
+
     def identify(self) -> Identity:
-        """The map's model name (maps carry no serial-number registers unless given)."""
+        """The map's model name, checked against the device's constant registers (the model
+        register) where the map has them."""
+        self.check_model()
         serial_reg = self.map.role("serial")
         serial = str(int(self._read(serial_reg))) if serial_reg else ""
         return Identity(self.map.model, serial, "")
@@ -98,6 +112,14 @@ class MappedSupply(MappedDevice):
             output_on=bool(get("output")), constant_current=bool(get("mode")),
             protection={0: "", 1: "OVP", 2: "OCP"}.get(prot, f"code {prot}"),
         )  # fmt: skip
+
+    def enable_as_load(self, compliance_v: float) -> None:
+        """Drive a load harness: current 0, the voltage set-point (if the map has one) to the
+        compliance voltage (capped at the device's range), output (or load input) on."""
+        self.set_current(0.0)
+        if self.map.role("v_set") is not None:
+            self.set_voltage(min(compliance_v, self.max_voltage_v))
+        self.set_output(True)
 
     def safe(self) -> None:
         """Output off, current set-point to zero."""

@@ -43,6 +43,9 @@ class RidenSupply:
     Set-points are rounded to the model's resolution; the value actually set is returned.
     """
 
+    bipolar = False
+    """Riden supplies are unipolar: polarity comes from relays."""
+
     def __init__(self, link: ModbusLink, *, name: str = "riden", max_voltage_v: float | None = None,
                  max_current_a: float | None = None) -> None:  # fmt: skip
         self.link = link
@@ -100,6 +103,12 @@ class RidenSupply:
             constant_current=bool(r[REG_CVCC - 8]),
             protection=protection,
         )
+
+    def enable_as_load(self, compliance_v: float) -> None:
+        """Drive a load harness: current 0, voltage to the compliance (capped), output on."""
+        self.set_current(0.0)
+        self.set_voltage(min(compliance_v, self.max_voltage_v))
+        self.set_output(True)
 
     def safe(self) -> None:
         """Output off, then both set-points to zero (so a later enable cannot surprise anyone)."""

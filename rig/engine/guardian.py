@@ -22,7 +22,10 @@ import time
 from pathlib import Path
 from typing import IO
 
-OUTPUT_KINDS = ("riden-rd60xx", "regmap-supply", "regmap-eload", "regmap-relay")
+from drivers.registry import output_kinds
+
+OUTPUT_KINDS = output_kinds()
+"""Kinds the guardian switches off: every registered supply, load and relay (drivers.registry)."""
 DONE = b"done\n"
 ATTEMPTS = 3
 

@@ -11,22 +11,23 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Any
 
 from drivers.errors import DeviceError, DeviceProtocolError, DeviceTimeoutError
-from drivers.mag.hmr2300 import Hmr2300
+from drivers.protocols import Magnetometer
 from drivers.transport.serial_port import own_stall_s
 
 Sink = Callable[[float, str, tuple[float, float, float]], None]
 Listener = Callable[[float, tuple[float, float, float]], None]
 RETRIES = 1
 """Late or unreadable replies retried in a row before a sensor is declared failed."""
+WAIT_S = 0.2
+"""Longest wait for a self-timed sensor's samples in one call (s): bounds how late a stop is seen."""
 
 
 class SensorSampler:
     """Reads ``driver`` continuously in a thread; every sample goes to ``sink`` and to subscribers."""
 
-    def __init__(self, name: str, driver: Any, sink: Sink, rate_hz: float = 20.0,
+    def __init__(self, name: str, driver: Magnetometer, sink: Sink, rate_hz: float = 20.0,
                  on_warning: Callable[[str], None] | None = None) -> None:  # fmt: skip
         self.name = name
         self.on_warning = on_warning
@@ -46,16 +47,9 @@ class SensorSampler:
         self._thread = threading.Thread(target=self._run, name=f"sampler-{name}", daemon=True)
 
     def start(self) -> None:
-        """Configure streaming where the sensor streams, then start the thread."""
-        if isinstance(self.driver, Hmr2300):
-            self.driver.set_binary(True)
-            rate = min(
-                (r for r in (10, 20, 25, 30, 40, 50, 60, 100, 123, 154) if r >= self.rate_hz),
-                default=154,
-            )
-            self.driver.set_rate(rate)
-            self.rate_hz = rate
-            self.driver.start_stream()
+        """Let the driver set the sensor up for the rate (it picks its mode and the nearest rate it
+        can do), then start the thread."""
+        self.rate_hz = self.driver.start_sampling(self.rate_hz)
         self.started_t = time.monotonic()
         self._thread.start()
 
@@ -79,24 +73,17 @@ class SensorSampler:
         try:
             while not self._stop.is_set():
                 try:
-                    if isinstance(self.driver, Hmr2300):
-                        frames = self.driver.read_stream(0.2)
+                    if self.driver.self_timed:  # the sensor sends at its own rate
+                        samples = self.driver.read_samples(WAIT_S)
                         t_now = time.monotonic()
-                        for i, xyz in enumerate(frames):
-                            self._publish(t_now - (len(frames) - 1 - i) / self.rate_hz, xyz)
-                        failures = 0 if frames else failures
-                        continue
-                    if hasattr(self.driver, "read_burst"):  # a streaming line sensor
-                        lines = self.driver.read_burst()
-                        t_now = time.monotonic()
-                        # lines that waited in the buffer were sent one period apart
-                        for i, xyz in enumerate(lines):
-                            self._publish(t_now - (len(lines) - 1 - i) / self.rate_hz, xyz)
-                        failures = 0
+                        # samples that waited in the buffer were sent one period apart
+                        for i, xyz in enumerate(samples):
+                            self._publish(t_now - (len(samples) - 1 - i) / self.rate_hz, xyz)
+                        failures = 0 if samples else failures
                         continue
                     next_t += period
-                    xyz = self.driver.read()
-                    self._publish(time.monotonic(), xyz)
+                    for xyz in self.driver.read_samples(WAIT_S):
+                        self._publish(time.monotonic(), xyz)
                     failures = 0
                     self._stop.wait(max(0.0, next_t - time.monotonic()))
                 except (DeviceTimeoutError, DeviceProtocolError) as exc:
@@ -152,9 +139,8 @@ class SensorSampler:
         """Stop the thread (the driver stays open)."""
         self._stop.set()
         self._thread.join(timeout=2.0)
-        if isinstance(self.driver, Hmr2300) and self.driver.streaming:
-            with contextlib.suppress(DeviceError, OSError):
-                self.driver.stop_stream()
+        with contextlib.suppress(DeviceError, OSError):
+            self.driver.stop_sampling()
 
 
 class BufferedSensor:

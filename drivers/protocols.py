@@ -1,0 +1,78 @@
+"""What the rig may ask of each role of device: coil supply, load-current channel, polarity relay
+and magnetometer. Every driver satisfies one or more of these Protocols (checked by mypy where the
+registry opens it, see :mod:`drivers.registry`); the rig never asks a driver for its class.
+
+Units are in the names: V, A, uT, Hz, s.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from drivers.identity import Identity
+from drivers.psu.riden import SupplyReading
+
+Vector = tuple[float, float, float]
+
+
+class Output(Protocol):
+    """Anything that can drive current: it identifies itself, goes safe and closes."""
+
+    name: str
+
+    def identify(self) -> Identity: ...
+    def safe(self) -> None: ...
+    def close(self) -> None: ...
+
+
+class Load(Output, Protocol):
+    """A load-current channel: a supply into a harness, or an electronic load (current source)."""
+
+    @property
+    def max_current_a(self) -> float: ...
+    def set_current(self, amps: float) -> float: ...
+    def set_output(self, on: bool) -> None: ...
+    def read(self) -> SupplyReading: ...
+    def enable_as_load(self, compliance_v: float) -> None:
+        """Current set-point 0, the voltage set-point to ``compliance_v`` (capped at the device's
+        range) where the device has one, then the output (or load input) on."""
+        ...
+
+
+class Supply(Load, Protocol):
+    """A coil supply: voltage and current set-points, signed current if ``bipolar``."""
+
+    @property
+    def max_voltage_v(self) -> float: ...
+    @property
+    def bipolar(self) -> bool: ...
+    def set_voltage(self, volts: float) -> float: ...
+
+
+class Relay(Output, Protocol):
+    """Polarity relays (one H-bridge per coil axis)."""
+
+    def polarity(self, axis: int) -> int: ...
+    def set_polarity(self, axis: int, sign: int) -> None: ...
+
+
+class Magnetometer(Protocol):
+    """A three-axis magnetometer returning uT.
+
+    Sampling: :meth:`start_sampling` sets the sensor up for a rate (the driver picks the nearest
+    rate the sensor can do, and its mode: streaming or polled) and returns the rate it runs at.
+    When ``self_timed`` is true the sensor sends at its own pace and :meth:`read_samples` returns
+    whatever arrived (oldest first, one sensor period apart); otherwise the caller paces the calls
+    and each returns one fresh sample.
+    """
+
+    name: str
+
+    @property
+    def self_timed(self) -> bool: ...
+    def identify(self) -> Identity: ...
+    def read(self) -> Vector: ...
+    def start_sampling(self, rate_hz: float) -> float: ...
+    def read_samples(self, max_wait_s: float) -> list[Vector]: ...
+    def stop_sampling(self) -> None: ...
+    def close(self) -> None: ...

@@ -1,0 +1,496 @@
+"""The one list of device kinds: for each, its driver, the transports it accepts, its configuration
+parameters (types, which are required), its roles and how ``rig devices scan`` recognizes it.
+
+The rig derives everything from here: configuration checking (``rig.config``), opening devices
+(``rig.devices``), the guardian's list of outputs and bring-up (``rig.bringup``). Adding a device:
+
+* a Modbus supply, load or relay board whose registers are plain numbers: one register-map TOML in
+  ``drivers/regmaps/`` (used as ``kind = "regmap-supply"`` / ``"regmap-eload"`` /
+  ``"regmap-relay"`` with ``regmap = "<file name>"``): no entry here;
+* anything else: one driver module satisfying a Protocol of :mod:`drivers.protocols`, plus one
+  :func:`register` call at the end of this file.
+
+See ``docs/devices.md``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal
+
+from drivers.errors import DeviceError
+from drivers.identity import Identity
+from drivers.mag.ascii_line import AsciiLineMagnetometer, LineFormat
+from drivers.mag.hmr2300 import Hmr2300
+from drivers.mag.lis3mdl import WHO_AM_I, WHO_AM_I_VALUE, Lis3mdl
+from drivers.mag.rm3100 import REVID, REVID_VALUE, Rm3100
+from drivers.protocols import Load, Magnetometer, Relay, Supply
+from drivers.psu.regmap_device import MappedSupply, PolarityRelay
+from drivers.psu.riden import MODELS as RIDEN_MODELS
+from drivers.psu.riden import RidenSupply
+from drivers.regmap import RegisterMap, load_map, shipped_maps
+from drivers.transport.i2c import I2CDevice
+from drivers.transport.modbus import ModbusLink
+from drivers.transport.serial_port import SerialPort
+
+Role = Literal["supply", "load", "relay", "magnetometer"]
+OUTPUT_ROLES: frozenset[Role] = frozenset({"supply", "load", "relay"})
+
+TEXT: tuple[type, ...] = (str,)
+WHOLE: tuple[type, ...] = (int,)
+NUMBER: tuple[type, ...] = (int, float)
+LIST: tuple[type, ...] = (list,)
+WHOLE_OR_TEXT: tuple[type, ...] = (int, str)
+WANTED = {TEXT: "text", WHOLE: "a whole number", NUMBER: "a number", LIST: "a list",
+          WHOLE_OR_TEXT: "a whole number (or \"sim\")"}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Param:
+    """One configuration key of a device: its accepted types, whether it must be given, and a
+    short help text (shown in errors and in ``docs/devices.md``)."""
+
+    name: str
+    types: tuple[type, ...]
+    required: bool = False
+    default: Any = None
+    help: str = ""
+
+    @property
+    def wanted(self) -> str:
+        """How to describe the accepted type to a user ("a whole number")."""
+        return WANTED.get(self.types, " or ".join(t.__name__ for t in self.types))
+
+    def accepts(self, value: Any) -> bool:
+        """True when ``value`` has an accepted type (booleans are not numbers)."""
+        return not isinstance(value, bool) and isinstance(value, self.types)
+
+
+TRANSPORTS: dict[str, tuple[Param, ...]] = {
+    "modbus-tcp": (
+        Param("host", TEXT, True, help="IP address or host name"),
+        Param("port", WHOLE, True, 502, "TCP port"),
+        Param("device_id", WHOLE, False, 1, "Modbus device (slave) id"),
+        Param("timeout_s", NUMBER, False, 0.5, "reply timeout (s)"),
+    ),
+    "modbus-rtu": (
+        Param("path", TEXT, True, help="serial port, e.g. /dev/ttyUSB0 (or a pyserial URL)"),
+        Param("baudrate", WHOLE, False, 115200, "baud rate"),
+        Param("parity", TEXT, False, "N", "N, E or O"),
+        Param("device_id", WHOLE, False, 1, "Modbus device (slave) id"),
+        Param("timeout_s", NUMBER, False, 0.5, "reply timeout (s)"),
+    ),
+    "serial": (
+        Param("path", TEXT, True, help="serial port, e.g. /dev/ttyUSB0 (or a pyserial URL)"),
+        Param("baudrate", WHOLE, False, None, "baud rate"),
+    ),
+    "i2c": (
+        Param("address", WHOLE, True, help="7-bit I2C address, e.g. 0x20"),
+        Param("bus", WHOLE_OR_TEXT, False, 1, "bus number N of /dev/i2c-N"),
+    ),
+}
+"""Each transport's connection parameters."""
+
+
+@dataclass(frozen=True)
+class OpenSpec:
+    """What a kind's ``open`` gets: the device's name, transport and parameters (defaults not yet
+    applied), and for I2C the bus (a number or an smbus2-compatible object)."""
+
+    name: str
+    protocol: str
+    params: Mapping[str, Any]
+    i2c_bus: Any = None
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """A parameter, or ``default``."""
+        value = self.params.get(key)
+        return default if value is None else value
+
+
+@dataclass(frozen=True)
+class ProbeTarget:
+    """One place ``rig devices scan`` looks: a transport and its connection parameters (``path``
+    and ``baudrate``, ``host`` and ``port``, or ``bus``), for I2C the open bus object."""
+
+    protocol: str
+    params: Mapping[str, Any]
+    timeout_s: float = 0.2
+    i2c_bus: Any = None
+
+    @property
+    def where(self) -> str:
+        """Human-readable place (port, host:port or bus)."""
+        p = self.params
+        if "host" in p:
+            return f"{p['host']}:{p['port']}"
+        if "path" in p:
+            return str(p["path"])
+        return f"i2c bus {p.get('bus')}"
+
+
+@dataclass(frozen=True)
+class Found:
+    """A device that answered a kind's identify exchange: what to write in ``[devices.NAME]``."""
+
+    kind: str
+    protocol: str
+    model: str
+    serial: str
+    params: dict[str, Any]
+    where: str
+
+
+Opener = Callable[[OpenSpec], Any]
+Prober = Callable[[ProbeTarget], list[Found]]
+
+
+@dataclass(frozen=True)
+class DeviceKind:
+    """A registered kind of device.
+
+    ``open`` builds the driver; ``probe`` (optional) recognizes the device on a bring-up target of
+    one of ``transports`` at each of ``probe_baudrates`` (serial lines only); ``probe_first``
+    kinds are tried before the others on a serial port (a passive listen before any request).
+    """
+
+    name: str
+    roles: frozenset[Role]
+    transports: tuple[str, ...]
+    params: tuple[Param, ...]
+    open: Opener
+    description: str
+    probe: Prober | None = None
+    probe_baudrates: tuple[int, ...] = ()
+    probe_first: bool = False
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def is_output(self) -> bool:
+        """Supplies, loads and relays: the guardian switches them off if the rig dies."""
+        return bool(self.roles & OUTPUT_ROLES)
+
+    def param_specs(self, protocol: str) -> tuple[Param, ...]:
+        """The transport's parameters followed by the kind's own."""
+        return TRANSPORTS[protocol] + self.params
+
+
+KINDS: dict[str, DeviceKind] = {}
+
+
+def register(kind: DeviceKind) -> DeviceKind:
+    """Add a kind (its name must be new; its transports must be known)."""
+    if kind.name in KINDS:
+        raise ValueError(f"device kind '{kind.name}' is registered twice")
+    unknown = set(kind.transports) - set(TRANSPORTS)
+    if unknown:
+        raise ValueError(f"device kind '{kind.name}': unknown transports {sorted(unknown)}")
+    KINDS[kind.name] = kind
+    return kind
+
+
+def get_kind(name: str) -> DeviceKind:
+    """A registered kind by name (KeyError if there is none)."""
+    return KINDS[name]
+
+
+def kinds_with_role(role: Role) -> list[str]:
+    """Names of the kinds that can play ``role``."""
+    return [k.name for k in KINDS.values() if role in k.roles]
+
+
+def output_kinds() -> tuple[str, ...]:
+    """Names of the kinds the guardian switches off (supplies, loads, relays)."""
+    return tuple(k.name for k in KINDS.values() if k.is_output)
+
+
+def all_params() -> dict[str, Param]:
+    """Every parameter any transport or kind declares, by name (one type per name)."""
+    out: dict[str, Param] = {}
+    for params in [*TRANSPORTS.values(), *(k.params for k in KINDS.values())]:
+        for p in params:
+            out.setdefault(p.name, p)
+    return out
+
+
+# --- helpers the openers share -------------------------------------------------------------------
+
+
+def modbus_link(spec: OpenSpec, *, baudrate: int = 115200, timeout_s: float = 0.5,
+                retries: int = 2) -> ModbusLink:  # fmt: skip
+    """The Modbus link of a ``modbus-tcp`` or ``modbus-rtu`` device."""
+    timeout = float(spec.get("timeout_s", timeout_s))
+    device_id = int(spec.get("device_id", 1))
+    if spec.protocol == "modbus-tcp":
+        return ModbusLink(name=spec.name, host=str(spec.get("host")), port=int(spec.get("port", 502)),
+                          device_id=device_id, timeout_s=timeout, retries=retries)  # fmt: skip
+    return ModbusLink(name=spec.name, path=str(spec.get("path")), baudrate=int(spec.get("baudrate", baudrate)),
+                      parity=str(spec.get("parity", "N")), device_id=device_id, timeout_s=timeout,
+                      retries=retries)  # fmt: skip
+
+
+def _float_or_none(value: Any) -> float | None:
+    return None if value is None else float(value)
+
+
+# --- Riden RD60xx -------------------------------------------------------------------------------
+
+
+def _open_riden(spec: OpenSpec) -> RidenSupply:
+    return RidenSupply(modbus_link(spec), name=spec.name,
+                       max_voltage_v=_float_or_none(spec.get("max_voltage_v")),
+                       max_current_a=_float_or_none(spec.get("max_current_a")))  # fmt: skip
+
+
+def _probe_link(target: ProbeTarget, name: str, baudrate: int | None = None) -> ModbusLink:
+    params = dict(target.params)
+    if baudrate is not None:
+        params["baudrate"] = baudrate
+    spec = OpenSpec(f"scan:{name}", target.protocol, params)
+    return modbus_link(spec, timeout_s=target.timeout_s, retries=0)
+
+
+def _connection(target: ProbeTarget) -> dict[str, Any]:
+    keys = ("host", "port", "device_id") if target.protocol == "modbus-tcp" else (
+        "path", "baudrate", "device_id")  # fmt: skip
+    return {k: target.params[k] for k in keys if k in target.params}
+
+
+def _probe_riden(target: ProbeTarget) -> list[Found]:
+    try:
+        link = _probe_link(target, "riden-rd60xx")
+    except DeviceError:
+        return []
+    try:
+        regs = link.read_registers(0, 4)
+    except DeviceError:
+        return []
+    finally:
+        link.close()
+    model = next((m[1] for m in RIDEN_MODELS if regs[0] in m[0]), None)
+    if model is None:
+        return []
+    return [Found("riden-rd60xx", target.protocol, model, str((regs[1] << 16) | regs[2]),
+                  _connection(target), target.where)]  # fmt: skip
+
+
+# --- register-map devices -----------------------------------------------------------------------
+
+
+def _open_mapped_supply(spec: OpenSpec) -> MappedSupply:
+    regmap = load_map(str(spec.get("regmap")))
+    return MappedSupply(modbus_link(spec, baudrate=regmap.baudrate or 115200), regmap,
+                        name=spec.name, max_voltage_v=_float_or_none(spec.get("max_voltage_v")),
+                        max_current_a=_float_or_none(spec.get("max_current_a")))  # fmt: skip
+
+
+def _open_relay(spec: OpenSpec) -> PolarityRelay:
+    regmap = load_map(str(spec.get("regmap")))
+    return PolarityRelay(modbus_link(spec, baudrate=regmap.baudrate or 115200), regmap,
+                         name=spec.name)  # fmt: skip
+
+
+def _identifiable_maps(map_kind: str) -> list[RegisterMap]:
+    return [m for m in shipped_maps() if m.kind == map_kind and m.constants()]
+
+
+def _probe_maps(kind_name: str, map_kind: str) -> Prober:
+    """Recognize a device by the constant registers (model number) of a shipped map."""
+
+    def probe(target: ProbeTarget) -> list[Found]:
+        baud = target.params.get("baudrate")
+        for regmap in _identifiable_maps(map_kind):
+            if target.protocol == "modbus-rtu" and (regmap.baudrate or 115200) != baud:
+                continue
+            try:
+                link = _probe_link(target, kind_name)
+            except DeviceError:
+                return []
+            try:
+                ok = all(
+                    reg.decode(link.read_registers(reg.address, reg.width)) == reg.value
+                    for reg in regmap.constants()
+                )
+            except DeviceError:
+                ok = False
+            finally:
+                link.close()
+            if ok:
+                params = _connection(target) | {"regmap": regmap.name}
+                return [Found(kind_name, target.protocol, regmap.model, "", params, target.where)]
+        return []
+
+    return probe
+
+
+def _map_bauds(map_kind: str) -> tuple[int, ...]:
+    return tuple(sorted({m.baudrate or 115200 for m in _identifiable_maps(map_kind)}))
+
+
+# --- magnetometers ------------------------------------------------------------------------------
+
+
+def _open_hmr2300(spec: OpenSpec) -> Hmr2300:
+    device_id = spec.get("device_id")
+    return Hmr2300(str(spec.get("path")), baudrate=int(spec.get("baudrate", 9600)),
+                   device_id=None if device_id is None else int(device_id), name=spec.name)  # fmt: skip
+
+
+def _probe_hmr2300(target: ProbeTarget) -> list[Found]:
+    baud = int(target.params["baudrate"])
+    try:
+        mag = Hmr2300(str(target.params["path"]), baudrate=baud, timeout_s=target.timeout_s,
+                      retries=0, name="scan:hmr2300")  # fmt: skip
+    except DeviceError:
+        return []
+    try:
+        ident = mag.identify()
+    except DeviceError:
+        ident = Identity("HMR2300", "", "")
+    finally:
+        mag.close()
+    params = {"path": target.params["path"], "baudrate": baud, "device_id": mag.device_id}
+    return [Found("hmr2300", "serial", ident.model, ident.serial, params, target.where)]
+
+
+def _open_ascii(spec: OpenSpec) -> AsciiLineMagnetometer:
+    columns = tuple(int(c) for c in spec.get("columns", (0, 1, 2)))
+    if len(columns) != 3:
+        raise ValueError(f"device '{spec.name}': columns must name 3 columns, e.g. [0, 1, 2]")
+    fmt = LineFormat(delimiter=spec.get("delimiter"), columns=(columns[0], columns[1], columns[2]),
+                     scale_to_ut=float(spec.get("scale_to_ut", 1.0)))  # fmt: skip
+    return AsciiLineMagnetometer(str(spec.get("path")), baudrate=int(spec.get("baudrate", 115200)),
+                                 fmt=fmt, name=spec.name)  # fmt: skip
+
+
+def _probe_ascii(target: ProbeTarget) -> list[Found]:
+    """Listen (send nothing): two consecutive lines of three or more numbers."""
+    baud = int(target.params["baudrate"])
+    try:
+        port = SerialPort(str(target.params["path"]), baud, timeout_s=max(target.timeout_s, 0.3),
+                          name="scan:ascii-mag")  # fmt: skip
+    except DeviceError:
+        return []
+    fmt = LineFormat()
+    try:
+        port.drain_input(quiet_s=0.0)
+        port.read_until(b"\n")  # the partial line in flight
+        for _ in range(2):
+            fmt.parse(port.read_until(b"\n"))
+    except DeviceError:
+        return []
+    finally:
+        port.close()
+    params = {"path": target.params["path"], "baudrate": baud}
+    return [Found("ascii-mag", "serial", "ASCII line magnetometer", "", params, target.where)]
+
+
+def _i2c_bus(spec: OpenSpec) -> Any:
+    bus = spec.get("bus", 1)
+    return spec.i2c_bus if spec.i2c_bus is not None else int(bus)
+
+
+def _probe_i2c(kind_name: str, model: str, addresses: tuple[int, ...], register: int,
+               value: int) -> Prober:  # fmt: skip
+    """Recognize a chip by an identity register (REVID, WHO_AM_I) at its possible addresses."""
+
+    def probe(target: ProbeTarget) -> list[Found]:
+        bus = target.i2c_bus if target.i2c_bus is not None else target.params.get("bus")
+        found = []
+        for address in addresses:
+            try:
+                dev = I2CDevice(bus, address, name=f"scan:{kind_name}", retries=0)
+                if dev.read(register, 1)[0] != value:
+                    continue
+            except (DeviceError, OSError):
+                continue
+            params = {"bus": target.params.get("bus"), "address": address}
+            found.append(
+                Found(kind_name, "i2c", model, "", params, f"{target.where} {address:#04x}")
+            )
+        return found
+
+    return probe
+
+
+def _iter_registered() -> Iterator[DeviceKind]:
+    supply_params = (
+        Param("max_current_a", NUMBER, help="current limit (A), below the device's own"),
+        Param("max_voltage_v", NUMBER, help="voltage limit (V), below the device's own"),
+        Param("compliance_v", NUMBER, False, 12.0, "voltage set-point when used as a load (V)"),
+    )
+    regmap = Param("regmap", TEXT, True,
+                   help="a register-map file or a shipped map name, e.g. \"maynuo-m97\"")  # fmt: skip
+    mag_params = (
+        Param("rate_hz", NUMBER, False, 20.0, "sample rate (Hz)"),
+        Param("correction_matrix", LIST, help="calibration certificate: 3x3 matrix"),
+        Param("correction_offset_ut", LIST, help="calibration certificate: offset (uT)"),
+    )
+    yield DeviceKind(
+        "riden-rd60xx", frozenset({"supply", "load"}), ("modbus-tcp", "modbus-rtu"),
+        supply_params, _open_riden, "Riden RD6006/RD6006P/RD6012/RD6018 bench supply",
+        _probe_riden, (115200, 9600),
+    )  # fmt: skip
+    yield DeviceKind(
+        "regmap-supply", frozenset({"supply", "load"}), ("modbus-tcp", "modbus-rtu"),
+        (regmap, *supply_params), _open_mapped_supply,
+        "Modbus supply described by a register map (drivers/regmaps)",
+        _probe_maps("regmap-supply", "supply"), _map_bauds("supply"),
+    )  # fmt: skip
+    yield DeviceKind(
+        "regmap-eload", frozenset({"load"}), ("modbus-tcp", "modbus-rtu"),
+        (regmap, *supply_params), _open_mapped_supply,
+        "Modbus electronic load described by a register map (drivers/regmaps)",
+        _probe_maps("regmap-eload", "eload"), _map_bauds("eload"),
+    )  # fmt: skip
+    yield DeviceKind(
+        "regmap-relay", frozenset({"relay"}), ("modbus-tcp", "modbus-rtu"), (regmap,),
+        _open_relay, "Modbus polarity relay board described by a register map",
+        _probe_maps("regmap-relay", "relay"), _map_bauds("relay"),
+    )  # fmt: skip
+    yield DeviceKind(
+        "hmr2300", frozenset({"magnetometer"}), ("serial",),
+        (Param("device_id", WHOLE, help="HMR2300 ID 00-98 (asked with *99ID= when absent)"),
+         *mag_params),
+        _open_hmr2300, "Honeywell HMR2300 smart magnetometer (RS-232/RS-485)",
+        _probe_hmr2300, (9600, 19200),
+    )  # fmt: skip
+    yield DeviceKind(
+        "ascii-mag", frozenset({"magnetometer"}), ("serial",),
+        (Param("delimiter", TEXT, help="column separator (whitespace when absent)"),
+         Param("columns", LIST, False, [0, 1, 2], "x, y, z column numbers"),
+         Param("scale_to_ut", NUMBER, False, 1.0, "multiplier from the line's unit to uT"),
+         *mag_params),
+        _open_ascii, "magnetometer sending one text line per sample (x y z)",
+        _probe_ascii, (115200,), probe_first=True,
+    )  # fmt: skip
+    yield DeviceKind(
+        "rm3100", frozenset({"magnetometer"}), ("i2c",), mag_params,
+        lambda s: Rm3100(_i2c_bus(s), int(s.get("address", 0x20)), name=s.name),
+        "PNI RM3100 on I2C", _probe_i2c("rm3100", "RM3100", (0x20, 0x21, 0x22, 0x23), REVID,
+                                        REVID_VALUE),
+    )  # fmt: skip
+    yield DeviceKind(
+        "lis3mdl", frozenset({"magnetometer"}), ("i2c",), mag_params,
+        lambda s: Lis3mdl(_i2c_bus(s), int(s.get("address", 0x1C)), name=s.name),
+        "ST LIS3MDL on I2C", _probe_i2c("lis3mdl", "LIS3MDL", (0x1C, 0x1E), WHO_AM_I,
+                                        WHO_AM_I_VALUE),
+    )  # fmt: skip
+
+
+for _kind in _iter_registered():
+    register(_kind)
+
+
+if TYPE_CHECKING:  # mypy checks that every driver satisfies the Protocols of its roles
+
+    def _satisfies(
+        riden: RidenSupply, mapped: MappedSupply, relay: PolarityRelay, hmr: Hmr2300,
+        ascii_mag: AsciiLineMagnetometer, rm3100: Rm3100, lis3mdl: Lis3mdl,
+    ) -> None:  # fmt: skip
+        supplies: list[Supply] = [riden, mapped]
+        loads: list[Load] = [riden, mapped]
+        relays: list[Relay] = [relay]
+        mags: list[Magnetometer] = [hmr, ascii_mag, rm3100, lis3mdl]
+        del supplies, loads, relays, mags
