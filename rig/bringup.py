@@ -1,0 +1,332 @@
+"""``rig devices scan``: find what is connected to a new bench and write a rig configuration for it.
+
+Looks at every serial port pyserial lists (plus ``--port PATH``), every I2C bus ``/dev/i2c-N``
+(plus ``--i2c-bus N``) and every ``--tcp HOST:PORT`` given, and tries each registered device kind's
+identify exchange there (``drivers.registry``: the Riden model id register, a register map's model
+register, the HMR2300's ``*99ID=``, the RM3100's revision id, a text line of three numbers, ...),
+with short timeouts. It prints a table of what answered and, with ``--write FILE``, a rig
+configuration skeleton (TOML) for it: the devices are complete, the cage section is for the user
+to check and fill in.
+
+    rig devices scan --port /dev/ttyUSB0 --tcp 192.168.1.50:502 --write rig.toml
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import re
+import sys
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from drivers.errors import DeviceError, DeviceRefusedError
+from drivers.registry import KINDS, DeviceKind, Found, ProbeTarget
+from drivers.transport.modbus import ModbusLink
+from rig.config import load_rig_config
+from rig.errors import UserInputError
+
+MODBUS = ("modbus-rtu", "modbus-tcp")
+NAME_PREFIX = {"supply": "psu", "load": "load", "relay": "polarity", "magnetometer": "mag"}
+
+
+@dataclass(frozen=True)
+class Unknown:
+    """A place where a Modbus device answered but no registered kind recognized it."""
+
+    protocol: str
+    params: dict[str, Any]
+    where: str
+
+
+def serial_ports(extra: Iterable[str] = (), *, listed: bool = True) -> list[str]:
+    """Serial ports pyserial lists (when ``listed``) and the ``extra`` ones, each once."""
+    ports: list[str] = []
+    if listed:
+        from serial.tools import list_ports
+
+        ports = [p.device for p in list_ports.comports()]
+    out: list[str] = []
+    seen: set[str] = set()
+    for port in [*extra, *ports]:
+        key = os.path.realpath(port) if "://" not in port else port
+        if key not in seen:
+            seen.add(key)
+            out.append(port)
+    return out
+
+
+def i2c_buses(extra: Iterable[int] = (), *, listed: bool = True) -> list[int]:
+    """Bus numbers of ``/dev/i2c-N`` (when ``listed``) and the ``extra`` ones, each once."""
+    found = []
+    if listed:
+        for path in glob.glob("/dev/i2c-*"):
+            m = re.fullmatch(r"/dev/i2c-(\d+)", path)
+            if m:
+                found.append(int(m.group(1)))
+    return sorted(set(found) | set(extra))
+
+
+def parse_tcp(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` to (host, port); a user error names the fix."""
+    host, _, port = text.rpartition(":")
+    if not host or not port.isdigit():
+        raise UserInputError(f"--tcp {text}: write HOST:PORT, e.g. --tcp 192.168.1.50:502")
+    return host, int(port)
+
+
+def _serial_order(kind: DeviceKind) -> int:
+    """Passive listening first, then Modbus requests (devices resynchronize on silence), then
+    text commands."""
+    if kind.probe_first:
+        return 0
+    return 1 if any(t in MODBUS for t in kind.transports) else 2
+
+
+def _targets_for_port(path: str, timeout_s: float) -> list[tuple[DeviceKind, ProbeTarget]]:
+    out = []
+    for kind in sorted(KINDS.values(), key=_serial_order):
+        if kind.probe is None:
+            continue
+        protocol = "modbus-rtu" if "modbus-rtu" in kind.transports else "serial"
+        if protocol not in kind.transports:
+            continue
+        for baud in kind.probe_baudrates:
+            params: dict[str, Any] = {"path": path, "baudrate": baud}
+            if protocol == "modbus-rtu":
+                params["device_id"] = 1
+            out.append((kind, ProbeTarget(protocol, params, timeout_s)))
+    return out
+
+
+def _modbus_answers(protocol: str, params: dict[str, Any], timeout_s: float) -> bool:
+    """Does anything answer a Modbus read of holding register 0 (a value or an exception)?"""
+    try:
+        if protocol == "modbus-tcp":
+            link = ModbusLink(name="scan", host=params["host"], port=params["port"],
+                              timeout_s=timeout_s, retries=0)  # fmt: skip
+        else:
+            link = ModbusLink(name="scan", path=params["path"], baudrate=params["baudrate"],
+                              timeout_s=timeout_s, retries=0)  # fmt: skip
+    except DeviceError:
+        return False
+    try:
+        link.read_registers(0, 1)
+        return True
+    except DeviceRefusedError:
+        return True
+    except DeviceError:
+        return False
+    finally:
+        link.close()
+
+
+def scan(
+    ports: Iterable[str] = (),
+    buses: Iterable[int | str] = (),
+    tcp: Iterable[tuple[str, int]] = (),
+    *,
+    timeout_s: float = 0.2,
+    i2c_objects: dict[str, Any] | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[list[Found], list[Unknown]]:
+    """Probe every place; returns what answered and the Modbus devices nobody recognized.
+
+    ``buses`` are bus numbers, or names of ``i2c_objects`` (an smbus2-compatible object, such as
+    the simulator's in-process bus under ``"sim"``).
+    """
+    found: list[Found] = []
+    unknown: list[Unknown] = []
+    say = progress or (lambda _m: None)
+    for path in ports:
+        say(f"serial port {path}")
+        hit: list[Found] = []
+        for kind, target in _targets_for_port(path, timeout_s):
+            assert kind.probe is not None
+            hit = kind.probe(target)
+            if hit:
+                break
+        found += hit
+        if not hit:
+            for baud in sorted({b for k in KINDS.values() if "modbus-rtu" in k.transports
+                                for b in k.probe_baudrates}):  # fmt: skip
+                params = {"path": path, "baudrate": baud, "device_id": 1}
+                if _modbus_answers("modbus-rtu", params, timeout_s):
+                    unknown.append(Unknown("modbus-rtu", params, path))
+                    break
+    for host, port in tcp:
+        where = f"{host}:{port}"
+        say(f"Modbus TCP {where}")
+        params = {"host": host, "port": port, "device_id": 1}
+        hit = []
+        for kind in KINDS.values():
+            if kind.probe is not None and "modbus-tcp" in kind.transports:
+                hit = kind.probe(ProbeTarget("modbus-tcp", params, timeout_s))
+                if hit:
+                    break
+        found += hit
+        if not hit and _modbus_answers("modbus-tcp", params, timeout_s):
+            unknown.append(Unknown("modbus-tcp", params, where))
+    for bus in buses:
+        say(f"I2C bus {bus}")
+        obj = (i2c_objects or {}).get(str(bus))
+        for kind in KINDS.values():
+            if kind.probe is not None and "i2c" in kind.transports:
+                found += kind.probe(ProbeTarget("i2c", {"bus": bus}, timeout_s, obj))
+    return found, unknown
+
+
+def table(found: list[Found], unknown: list[Unknown]) -> str:
+    """What answered, one row per device: port, kind, model, serial."""
+    rows = [("port", "kind", "model", "serial")]
+    rows += [(f.where, f.kind, f.model, f.serial or "-") for f in found]
+    rows += [(u.where, "?", "a Modbus device of no known model", "-") for u in unknown]
+    widths = [max(len(r[i]) for r in rows) for i in range(4)]
+    return "\n".join(
+        "  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip()
+        for row in rows
+    )
+
+
+def _value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    return json.dumps(str(value))
+
+
+def device_names(found: list[Found]) -> list[str]:
+    """``psu1``, ``psu2``, ``load1``, ``mag1`` ...: by the kind's first role, numbered."""
+    counts: dict[str, int] = {}
+    names = []
+    for f in found:
+        roles = KINDS[f.kind].roles
+        role = next(r for r in ("supply", "load", "relay", "magnetometer") if r in roles)
+        prefix = NAME_PREFIX[role]
+        counts[prefix] = counts.get(prefix, 0) + 1
+        names.append(f"{prefix}{counts[prefix]}")
+    return names
+
+
+def skeleton(found: list[Found], unknown: Iterable[Unknown] = ()) -> str:
+    """A rig configuration (TOML) for what answered; it loads as is, and the cage section says
+    what the user must check and fill in."""
+    names = device_names(found)
+    supplies = [n for n, f in zip(names, found, strict=True) if "supply" in KINDS[f.kind].roles]
+    relays = [n for n, f in zip(names, found, strict=True) if "relay" in KINDS[f.kind].roles]
+    mags = [n for n, f in zip(names, found, strict=True) if "magnetometer" in KINDS[f.kind].roles]
+    stamp = time.strftime("%Y-%m-%d %H:%M")
+    lines = [
+        f"# Rig configuration written by `rig devices scan` on {stamp}.",
+        "# The devices below answered; check the names and which one does what.",
+        "",
+    ]
+    cage = [
+        "[cage]",
+        "# FILL IN: which supply drives which coil axis (supplies found: "
+        + (", ".join(supplies) or "none")
+        + ").",
+        "axes = { "
+        + ", ".join(f'{ax} = "{s}"' for ax, s in zip("xyz", supplies, strict=False))
+        + " }",
+        "# FILL IN: the polarity relay board (omit it when the supplies are bipolar)",
+        f'polarity = "{relays[0]}"' if relays else '# polarity = "polarity1"',
+        "# FILL IN: the reference magnetometer (a calibrated one, not the DUT)",
+        f'reference = "{mags[0]}"' if mags else '# reference = "mag1"',
+        'calibration = "cage-calibration.json"   # written by `rig cage characterize`',
+        "# FILL IN: the limits of your coils and supplies (these are conservative placeholders)",
+        "max_current_a = [1.0, 1.0, 1.0]",
+        "max_field_ut = 100.0",
+        "max_slew_a_per_s = 1.0",
+        "compliance_v = 12.0",
+        "# FILL IN: the coils' nameplate constants (uT/A) until the cage is characterized",
+        "nominal_k_ut_per_a = [[40.0, 0.0, 0.0], [0.0, 40.0, 0.0], [0.0, 0.0, 40.0]]",
+        "",
+    ]
+    if len(supplies) >= 3:
+        lines += cage
+    else:
+        lines += ["# No cage section: fewer than three supplies answered. When the coil supplies are",
+                  "# connected, scan again or write it by hand:"]  # fmt: skip
+        lines += [f"# {ln}" if ln and not ln.startswith("#") else ln for ln in cage]
+    for name, f in zip(names, found, strict=True):
+        lines.append(
+            f"[devices.{name}]   # {f.model}"
+            + (f", serial {f.serial}" if f.serial else "")
+            + f" at {f.where}"
+        )
+        lines.append(f'kind = "{f.kind}"')
+        lines.append(f'protocol = "{f.protocol}"')
+        for key, value in f.params.items():
+            if key == "address":
+                lines.append(f"address = 0x{int(value):02X}")
+            else:
+                lines.append(f"{key} = {_value(value)}")
+        if KINDS[f.kind].is_output and "max_current_a" in {p.name for p in KINDS[f.kind].params}:
+            lines.append(
+                "# max_current_a = 2.0   # FILL IN: the current limit of what it drives (A)"
+            )
+        if "magnetometer" in KINDS[f.kind].roles:
+            lines.append("# rate_hz = 20.0        # the rate to sample it at (Hz)")
+        lines.append("")
+    for i, u in enumerate(unknown, 1):
+        lines.append(f"# A Modbus device answered at {u.where} but no register map recognized it")
+        lines.append(
+            "# (a relay board has no model register). FILL IN its kind and map, then uncomment:"
+        )
+        lines.append(f"# [devices.modbus{i}]")
+        lines.append('# kind = "regmap-relay"          # or regmap-supply / regmap-eload')
+        lines.append('# regmap = "relay-h-bridge"      # a shipped map name or a file')
+        lines.append(f'# protocol = "{u.protocol}"')
+        lines += [f"# {k} = {_value(v)}" for k, v in u.params.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``rig devices scan``."""
+    parser.add_argument("--port", action="append", default=[], metavar="PATH",
+                        help="a serial port to probe besides the listed ones (repeatable)")  # fmt: skip
+    parser.add_argument("--i2c-bus", action="append", type=int, default=[], metavar="N",
+                        help="an I2C bus /dev/i2c-N to probe besides the listed ones (repeatable)")  # fmt: skip
+    parser.add_argument("--tcp", action="append", default=[], metavar="HOST:PORT",
+                        help="a Modbus TCP device (or serial gateway) to probe (repeatable)")  # fmt: skip
+    parser.add_argument("--only-given", action="store_true",
+                        help="probe only the ports and buses given, not every one the system lists")  # fmt: skip
+    parser.add_argument("--timeout", type=float, default=0.2, metavar="S",
+                        help="reply timeout per probe (s, default 0.2)")  # fmt: skip
+    parser.add_argument("--write", type=Path, metavar="FILE",
+                        help="write a rig configuration skeleton (TOML) for what answered")  # fmt: skip
+
+
+def run(args: argparse.Namespace) -> int:
+    """Scan, print the table, optionally write the skeleton. 0 when something answered."""
+    listed = not args.only_given
+    tcp = [parse_tcp(t) for t in args.tcp]
+    ports = serial_ports(args.port, listed=listed)
+    buses: list[int | str] = list(i2c_buses(args.i2c_bus, listed=listed))
+    if not (ports or buses or tcp):
+        print("rig devices scan: no serial port, I2C bus or TCP address to probe; give --port,"
+              " --i2c-bus or --tcp", file=sys.stderr)  # fmt: skip
+        return 1
+
+    def progress(message: str) -> None:
+        print(f"probing {message} ...", file=sys.stderr)
+
+    found, unknown = scan(ports, buses, tcp, timeout_s=args.timeout, progress=progress)
+    print(table(found, unknown))
+    if args.write is not None:
+        if args.write.exists():
+            raise UserInputError(
+                f"{args.write}: exists; choose a new file name (it is not overwritten)"
+            )
+        args.write.write_text(skeleton(found, unknown) + "\n", encoding="utf-8")
+        load_rig_config(args.write)  # what we write must load
+        print(f"wrote {args.write}: check every line marked FILL IN")
+    return 0 if found else 1
