@@ -28,3 +28,7 @@ class CalibrationError(RigError):
 
 class StoreWriteError(RigError):
     """The run's database cannot be written (disk full, I/O error); what was committed stays."""
+
+
+class RunAborted(RigError):  # noqa: N818 - an outcome, not a fault
+    """The operator (Ctrl-C, SIGTERM, a declined prompt) stopped the run."""

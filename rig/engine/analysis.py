@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from typing import Any
 
 import numpy as np
@@ -33,10 +34,11 @@ def settled(times: Array, changes: Array, settle_s: float) -> npt.NDArray[np.boo
     return ok
 
 
-def step_windows(reader: RunReader, names: list[str] | None) -> list[tuple[float, float]]:
-    """(start, end) of the named steps, or of every field step when ``names`` is empty."""
-    field_kinds = {"null_field", "set_field", "hold", "sphere_sweep", "axis_sweep", "rotate",
-                   "live_calibrate"}  # fmt: skip
+def step_windows(
+    reader: RunReader, names: list[str] | None, field_kinds: Collection[str]
+) -> list[tuple[float, float]]:
+    """(start, end) of the named steps, or of every step of ``field_kinds`` when ``names`` is
+    empty (``rig.steps.field_kinds()``: the kinds that set fields)."""
     out = []
     for _, name, kind, t0, t1 in reader.steps():
         if t1 is None:
@@ -101,6 +103,7 @@ def calibration_data(
     steps: list[str],
     settle_s: float,
     correction: dict[str, Any] | None,
+    field_kinds: Collection[str] = (),
 ) -> tuple[Samples, Array]:
     """DUT readings with the reference field (cage frame) and load currents at the same times,
     and the monotonic time of each sample (s)."""
@@ -117,7 +120,7 @@ def calibration_data(
     changes = change_times(reader)
     if settle_s > 0:
         changes[:, 0] -= 1.5 * float(np.median(np.diff(ref[:, 0])))
-    keep = _in_windows(t, step_windows(reader, steps)) & settled(t, changes, settle_s)
+    keep = _in_windows(t, step_windows(reader, steps, field_kinds)) & settled(t, changes, settle_s)
     keep &= (t >= ref[0, 0]) & (t <= ref[-1, 0])
     if keep.sum() == 0:
         raise CalibrationError(
@@ -131,22 +134,31 @@ def calibration_data(
 
 
 def stored_run_data(
-    reader: RunReader, telemetry: list[str], settle_s: float = 0.25
+    reader: RunReader,
+    telemetry: list[str],
+    settle_s: float = 0.25,
+    field_kinds: Collection[str] | None = None,
 ) -> tuple[Samples, Array]:
-    """:func:`calibration_data` for a finished run, with the DUT, reference and reference
-    certificate its metadata recorded."""
+    """:func:`calibration_data` of every field step (``field_kinds``: rig.steps.field_kinds())
+    of a finished run, with the DUT, reference and reference certificate its metadata recorded."""
+    if field_kinds is None:
+        from rig.steps import field_kinds as registered
+
+        field_kinds = registered()
     meta = reader.meta()
     mags = meta.get("magnetometers", {"dut": "dut", "reference": "reference"})
     return calibration_data(reader, mags.get("dut", "dut"), mags.get("reference", "reference"), telemetry,
-                            [], settle_s, meta.get("reference_correction"))  # fmt: skip
+                            [], settle_s, meta.get("reference_correction"), field_kinds)  # fmt: skip
 
 
 def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict[str, str],
-                  correction: dict[str, Any] | None) -> dict[str, Any]:  # fmt: skip
-    """The ``calibrate`` step: fit the DUT from the run so far; returns the result file content."""
+                  correction: dict[str, Any] | None, field_kinds: Collection[str]) -> dict[str, Any]:  # fmt: skip
+    """The ``calibrate`` step: fit the DUT from the run so far (the named steps, or every step of
+    ``field_kinds``); returns the result file content."""
     dut = magnetometers.get(params["magnetometer"], params["magnetometer"])
     samples, _ = calibration_data(reader, dut, magnetometers.get("reference", "reference"),
-                                  params["telemetry"], params["steps"], params["settle_s"], correction)  # fmt: skip
+                                  params["telemetry"], params["steps"], params["settle_s"], correction,
+                                  field_kinds)  # fmt: skip
     method = params["method"] or ("vector" if params["model"] == "vector" else "ml")
     if params["model"] == "scalar" and method == "vector":
         raise CalibrationError("a scalar calibration cannot use method 'vector'")

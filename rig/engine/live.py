@@ -62,9 +62,8 @@ class LiveView:
             parts.append("I " + " ".join(f"{v:+.3f}" for v in ctl.currents) + " A")
         if r.commanded_loads:
             parts.append("loads " + " ".join(f"{k} {v:.2f}A" for k, v in r.commanded_loads.items()))
-        live_cal = getattr(r, "live_cal", None)
-        if live_cal is not None:
-            parts.append(live_cal.status())
+        for status in list(r.status_sources):  # what the running step has to say
+            parts.append(status())
         if r.paused.is_set():
             parts.append("PAUSED (kill -USR1 to resume)")
         return "  ".join(parts)

@@ -8,7 +8,6 @@ every supply and load off before the links close; the run is then closed with it
 from __future__ import annotations
 
 import contextlib
-import math
 import shutil
 import signal
 import sys
@@ -28,14 +27,14 @@ from drivers.errors import DeviceError
 from rig import __version__
 from rig.config import RigConfig
 from rig.devices import build_cage, open_device
-from rig.engine.analysis import calibrate_run, evaluate_criteria, noise_floor
 from rig.engine.guardian import Guardian
 from rig.engine.live import LiveView
-from rig.engine.live_calibration import LiveCalibration
 from rig.engine.sampling import BufferedSensor, SensorSampler
-from rig.errors import RigError
+from rig.errors import RigError, RunAborted
 from rig.procedure.language import Procedure
 from rig.procedure.plan import StepPlan, compile_plan, rig_timing
+from rig.steps import KINDS
+from rig.steps.base import ChangeListener
 from rig.store.run_store import RunReader, RunWriter, new_run
 
 Confirm = Callable[[str], bool]
@@ -49,10 +48,6 @@ OWN_STALL_S = 0.3
 """The monitor woke this much later than its period: our own process was descheduled."""
 COIL_CHECK_S = 1.0
 """How often the coil supplies' protection flags are read."""
-
-
-class RunAborted(RigError):  # noqa: N818 - an outcome, not a fault
-    """The operator (Ctrl-C, SIGTERM, a declined prompt) stopped the run."""
 
 
 @dataclass
@@ -92,7 +87,9 @@ class Runner:
         self.loads: dict[str, Any] = {}
         self.commanded_loads: dict[str, float] = {}
         self.measured_loads: dict[str, tuple[float, float]] = {}  # name -> (time, A)
-        self.live_cal: LiveCalibration | None = None
+        self.change_listeners: list[ChangeListener] = []
+        self.status_sources: list[Callable[[], str]] = []
+        self.correction: dict[str, Any] | None = None
         self.report_requested = False
         self.fault: str | None = None
         self._coil_checked = 0.0
@@ -385,15 +382,18 @@ class Runner:
             time.sleep(min(remaining, 0.05))
 
     def _execute(self, plan: StepPlan) -> None:
+        """Carry out one step: its field and load set-points on time, its own action through its
+        kind (rig.steps), which also decides what happens before and after."""
         w = self.writer
         assert w is not None
         step = plan.step
+        kind = KINDS[step.kind]
         t0 = time.monotonic()
         self.current_step = (step.index, step.name, t0, plan.duration_s)
         w.set_step(step.index, step.name, step.kind, t0, None)
         self._event("info", f"step {step.index + 1}/{len(self.proc.steps)}: {step.name}")
-        live = self._start_live(step.params, t0) if step.kind == "live_calibrate" else None
-        stop = live.done if live is not None else None
+        execution = kind.execution(self, step)
+        stop = execution.stop
         try:
             for cmd in plan.commands:
                 t0 += self._wait_until(t0 + cmd.t_s, stop)
@@ -402,202 +402,106 @@ class Runner:
                 now = time.monotonic()
                 if cmd.kind in ("field", "load"):
                     self.lateness_s.append(now - (t0 + cmd.t_s))
-                self._command(step.index, cmd.kind, cmd.payload, now)
-                if cmd.kind == "field" and step.kind in ("null_field", "set_field"):
-                    t0 = time.monotonic() - cmd.t_s  # the hold starts once the field is there
+                    self.command(step.index, cmd.kind, cmd.payload, now)
+                    if cmd.kind == "field" and kind.hold_from_field:
+                        t0 = time.monotonic() - cmd.t_s  # the hold starts once the field is there
+                elif cmd.kind != "end":
+                    execution.run(cmd.payload)
+            execution.wind_down()
         except BaseException:
-            if live is not None:  # the run is ending: let go of the samplers and the worker
-                self._detach_live(live)
-                live.stop()
-                self.live_cal = None
+            execution.abort()
             raise
-        if live is not None:
-            self._end_live(live, plan)
-        w.set_step(step.index, step.name, step.kind, self.current_step[2], time.monotonic())
-        if live is not None:
-            self._finish_live(live, step.name)
-        if step.kind == "null_field":
-            w.flush()
-            reader = RunReader(w.folder)
-            try:
-                noise = noise_floor(
-                    reader, (self.current_step[2], time.monotonic()), list(self.samplers), 0.3
-                )
-            finally:
-                reader.close()
-            mags = self.proc.magnetometers
-            result = {f"{role}_noise_nt": noise[dev] for role, dev in mags.items() if dev in noise}
-            self._result(step.name, result)
+        t_end = time.monotonic()
+        w.set_step(step.index, step.name, step.kind, self.current_step[2], t_end)
+        execution.finish(self.current_step[2], t_end)
 
-    def _start_live(self, params: dict[str, Any], t0: float) -> LiveCalibration:
-        """Set up the filter of a ``live_calibrate`` step and connect it to the samplers."""
-        mags = self.proc.magnetometers
-        dut = mags.get(params["magnetometer"], params["magnetometer"])
-        ref = mags.get("reference")
-        if ref is None or dut not in self.samplers:
-            raise RigError(
-                f"{self.proc.path}: live_calibrate needs the '{params['magnetometer']}' and"
-                " 'reference' magnetometers under 'magnetometers'"
-            )
-        noise_nt = params["noise_nt"] or self._noise_nt(params["magnetometer"])
-        channels = list(params["telemetry"])
-        live = LiveCalibration(
-            params,
-            noise_nt / 1000.0,
-            t0,
-            lambda t: self._loads_now(channels, live),
-            self.correction,
-        )
-        self.samplers[ref].listeners.append(live.on_reference)
-        self.samplers[dut].listeners.append(live.on_dut)
-        live.start()
-        self.live_cal = live
-        self._event("info", f"live calibration: {params['method']} at {noise_nt:.3g} nT noise,"
-                            f" targets {params['targets'] or 'none'}")  # fmt: skip
-        return live
+    # --- what a step may use (rig.steps.base.RunContext) ------------------------------------------
 
-    def _noise_nt(self, role: str) -> float:
-        """The newest noise floor of ``role`` combined with the reference's (nT, root sum square):
-        the filter pairs each DUT sample with one reference sample, so both noises count."""
-        for result in reversed(list(self.results.values())):
-            if isinstance(result, dict) and f"{role}_noise_nt" in result:
-                ref_nt = float(result.get("reference_noise_nt", 0.0))
-                return float(math.hypot(result[f"{role}_noise_nt"], ref_nt))
-        raise RigError(
-            f"{self.proc.path}: live_calibrate needs the noise: put a null_field step before it,"
-            " or give noise_nt"
-        )
-
-    def _loads_now(self, channels: list[str], live: LiveCalibration) -> np.ndarray:
-        """Load currents (A) for the filter: the read-back once it is newer than the last change's
-        settling, the commanded value before that."""
-        out = []
-        for ch in channels:
-            meas = self.measured_loads.get(ch)
-            fresh = meas is not None and meas[0] >= live.quiet_after
-            out.append(meas[1] if fresh and meas is not None else self.commanded_loads[ch])
-        return np.array(out, float)
-
-    def _detach_live(self, live: LiveCalibration) -> None:
-        for sampler in self.samplers.values():
-            for fn in (live.on_dut, live.on_reference):
-                if fn in sampler.listeners:
-                    sampler.listeners.remove(fn)
-
-    def _end_live(self, live: LiveCalibration, plan: StepPlan) -> None:
-        """Disconnect the filter; after an early stop, switch the step's loads back to zero."""
-        self._detach_live(live)
-        if live.done.is_set():
-            for ch in plan.step.loads:
-                self._command(plan.step.index, "load", {"channel": ch, "current_a": 0.0},
-                              time.monotonic())  # fmt: skip
-
-    def _finish_live(self, live: LiveCalibration, name: str) -> None:
+    @property
+    def folder(self) -> Path:
+        """The run folder."""
         assert self.writer is not None
-        self.writer.flush()
-        try:
-            result = live.finish(self.writer.folder, name, time.monotonic())
-        finally:
-            self.live_cal = None
-        self._result(name, result)
-        self._event("info", f"live calibration '{name}' stopped: {result['live']['stopped']}")
+        return self.writer.folder
 
-    def _result(self, name: str, value: Any) -> None:
+    def event(self, level: str, message: str) -> None:
+        """Record an event (info, warning, error, operator)."""
+        self._event(level, message)
+
+    def record_result(self, name: str, value: Any) -> None:
+        """Keep a result for later steps and store it."""
         assert self.writer is not None
         self.results[name] = value
         self.writer.set_result(name, value)
 
-    def _command(self, step_idx: int, kind: str, payload: dict[str, Any], now: float) -> None:
-        """Carry out one command; a live calibration ignores samples while a change is on."""
-        live = self.live_cal
-        if live is not None and kind in ("field", "load"):
-            live.change_started(now)
-        try:
-            self._apply(step_idx, kind, payload, now)
-        finally:
-            if live is not None and kind in ("field", "load"):
-                live.change_ended(time.monotonic())
+    def open_reader(self) -> RunReader:
+        """The store as recorded so far (flushed first); the caller closes it."""
+        assert self.writer is not None
+        self.writer.flush()
+        return RunReader(self.writer.folder)
 
-    def _apply(self, step_idx: int, kind: str, payload: dict[str, Any], now: float) -> None:
+    def set_meta(self, **values: Any) -> None:
+        """Store run metadata."""
+        assert self.writer is not None
+        self.writer.set_meta(**values)
+
+    def ask_operator(self, text: str) -> bool:
+        """A yes/no question: ``confirm`` (``--yes``, tests) or the terminal."""
+        if self.confirm is not None:
+            return self.confirm(text)
+        if not sys.stdin.isatty():
+            raise RigError(
+                f"the procedure asks the operator: {text!r}; run in a terminal, or pass --yes"
+            )
+        return input(f"\n{text} [y/N] ").strip().lower() in ("y", "yes")
+
+    def request_report(self) -> None:
+        """Write the acceptance report once the run is closed and sealed."""
+        self.report_requested = True
+
+    def command(self, step_idx: int, kind: str, payload: dict[str, Any], now: float) -> None:
+        """Carry out a ``field`` or ``load`` command; change listeners (a live calibration) are
+        told when it starts and ends."""
+        listeners = list(self.change_listeners)
+        for listener in listeners:
+            listener.change_started(now)
+        try:
+            if kind == "field":
+                self._set_field(step_idx, payload, now)
+            elif kind == "load":
+                self._set_load(step_idx, payload, now)
+            else:
+                raise AssertionError(kind)
+        finally:
+            for listener in listeners:
+                listener.change_ended(time.monotonic())
+
+    def _set_field(self, step_idx: int, payload: dict[str, Any], now: float) -> None:
         w = self.writer
         assert w is not None
-        if kind == "field":
-            target = np.array(payload["field_ut"])
-            issued = now
-            if payload.get("track"):
-                # One tracked set-point moves the field by a slew-limited step that the reference
-                # follows (interpolated): no interval to leave out. A ramp through zero is one.
-                if not self.controller.track(target):
-                    issued = time.monotonic()
-            elif payload.get("trim"):
-                result = self.controller.trim(target)
-                if not result.settled:
-                    self._event("warning", f"trim did not settle: {result.error_nt:.1f} nT")
-            else:
-                self.controller.set_field(target)
-            # Logged when the ramp has finished: analysis counts settling from here.
-            done = time.monotonic()
-            w.add_command(done, step_idx, kind, payload | {"t_issued": min(issued, done)})
-            for ax, amps in enumerate(self.controller.currents):
-                w.add_channel(time.monotonic(), f"coil_{'xyz'[ax]}", float(amps), None)
-        elif kind == "load":
-            w.add_command(now, step_idx, kind, payload)
-            name, amps = payload["channel"], float(payload["current_a"])
-            self.loads[name].set_current(amps)
-            self.commanded_loads[name] = amps
-            w.add_channel(time.monotonic(), name, amps, None)
-        elif kind == "prompt":
-            text = payload["text"]
-            if self.confirm is None:
-                if not sys.stdin.isatty():
-                    raise RigError(
-                        f"the procedure asks the operator: {text!r}; run in a terminal, or pass --yes"
-                    )
-                ok = input(f"\n{text} [y/N] ").strip().lower() in ("y", "yes")
-            else:
-                ok = self.confirm(text)
-            self._event("operator", f"prompt {text!r}: {'confirmed' if ok else 'declined'}")
-            if not ok:
-                raise RunAborted(f"the operator declined: {text}")
-        elif kind == "calibrate":
-            w.flush()
-            reader = RunReader(w.folder)
-            try:
-                result = calibrate_run(reader, payload, self.proc.magnetometers, self.correction)
-            finally:
-                reader.close()
-            name = self.proc.steps[step_idx].name
-            self._result(name, result)
-        elif kind == "characterize_cage":
-            from rig.cage.characterize import characterize
-
-            model = characterize(self.controller, payload["amplitude_a"], samples=payload["samples"],
-                                 repeats=payload["repeats"])  # fmt: skip
-            self.controller.model = model
-            if self.cfg.cage is not None and self.cfg.cage.calibration is not None:
-                version = model.save(self.cfg.cage.calibration)
-                model.meta["file"] = str(version)
-            w.set_meta(cage_model=model.to_dict())
-            self._result(self.proc.steps[step_idx].name, {
-                "k_ut_per_a": model.k_ut_per_a.tolist(), "b0_ut": model.b0_ut.tolist(),
-                "k_sigma_ut_per_a": model.k_sigma.tolist(), "b0_sigma_ut": model.b0_sigma_ut.tolist(),
-                "residual_rms_nt": model.meta["residual_rms_nt"],
-                "condition_number": model.meta["condition_number"],
-            })  # fmt: skip
-        elif kind == "check":
-            verdict = evaluate_criteria(self.results, payload["criteria"])
-            self._result("verdict", verdict)
-            for row in verdict["criteria"]:
-                self._event(
-                    "info" if row["verdict"] == "PASS" else "warning",
-                    f"check {row['name']}: {row['verdict']}",
-                )
-        elif kind == "report":
-            # Written once the run is closed and sealed, so it shows the final status and verdict
-            # and the digest of the data as they will stay.
-            self.report_requested = True
-            self._event("info", "the report is written when the run closes")
-        elif kind == "end":
-            pass
+        target = np.array(payload["field_ut"])
+        issued = now
+        if payload.get("track"):
+            # One tracked set-point moves the field by a slew-limited step that the reference
+            # follows (interpolated): no interval to leave out. A ramp through zero is one.
+            if not self.controller.track(target):
+                issued = time.monotonic()
+        elif payload.get("trim"):
+            result = self.controller.trim(target)
+            if not result.settled:
+                self._event("warning", f"trim did not settle: {result.error_nt:.1f} nT")
         else:
-            raise AssertionError(kind)
+            self.controller.set_field(target)
+        # Logged when the ramp has finished: analysis counts settling from here.
+        done = time.monotonic()
+        w.add_command(done, step_idx, "field", payload | {"t_issued": min(issued, done)})
+        for ax, amps in enumerate(self.controller.currents):
+            w.add_channel(time.monotonic(), f"coil_{'xyz'[ax]}", float(amps), None)
+
+    def _set_load(self, step_idx: int, payload: dict[str, Any], now: float) -> None:
+        w = self.writer
+        assert w is not None
+        w.add_command(now, step_idx, "load", payload)
+        name, amps = payload["channel"], float(payload["current_a"])
+        self.loads[name].set_current(amps)
+        self.commanded_loads[name] = amps
+        w.add_channel(time.monotonic(), name, amps, None)

@@ -13,6 +13,7 @@ import pytest
 from rig.calibration.synthetic import cage_like
 from rig.engine.analysis import calibrate_run, evaluate_criteria
 from rig.report.acceptance import build_report
+from rig.steps import field_kinds
 from rig.store import RunReader, new_run
 
 CRITERIA = [
@@ -63,7 +64,9 @@ def synthetic_run(runs: Path, status: str = "complete") -> Path:
     reader = RunReader(w.folder)
     params = {"model": "vector", "method": "", "magnetometer": "dut", "telemetry": list(s.channels),
               "steps": [], "noise_nt": 20.0, "settle_s": 0.0}  # fmt: skip
-    cal = calibrate_run(reader, params, {"dut": "dut", "reference": "reference"}, None)
+    cal = calibrate_run(
+        reader, params, {"dut": "dut", "reference": "reference"}, None, field_kinds()
+    )
     reader.close()
     w.set_result("cal", cal)
     w.set_result("verdict", evaluate_criteria({"cal": cal}, CRITERIA))

@@ -1,0 +1,194 @@
+"""The procedure vocabulary's data: where a thing is in a file, step parameters and their checks,
+a validated step and procedure, and the commands a step compiles to.
+
+Below both the language (which parses files into these) and the step kinds (which declare their
+parameters with :class:`Param` and compile to :class:`Command` lists).
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rig.errors import UserInputError
+
+
+class ProcedureError(UserInputError):
+    """A procedure file is malformed."""
+
+
+@dataclass(frozen=True)
+class Where:
+    """A place in a procedure file."""
+
+    path: str
+    line: int
+
+    def __str__(self) -> str:
+        return f"{self.path}:{self.line}"
+
+
+@dataclass(frozen=True)
+class Param:
+    """One named parameter of a step: type, default (None = required), bounds."""
+
+    kind: str  # "float", "int", "str", "vec3", "range2", "list_str", "list_float", "dict", "list_dict"
+    default: Any = None
+    minimum: float | None = None
+    maximum: float | None = None
+    choices: tuple[str, ...] = ()
+    required: bool = False
+
+
+@dataclass(frozen=True)
+class Step:
+    """A validated step."""
+
+    index: int
+    kind: str
+    name: str
+    params: dict[str, Any]
+    loads: dict[str, tuple[str, dict[str, Any]]]
+    where: Where
+    loads_allowed: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Procedure:
+    """A validated procedure with its parameters bound."""
+
+    title: str
+    path: Path
+    parameters: dict[str, str]
+    magnetometers: dict[str, str]
+    loads: tuple[str, ...]
+    steps: tuple[Step, ...]
+    text: str = field(default="", repr=False)
+
+
+@dataclass(frozen=True)
+class Command:
+    """One thing to do at ``t_s`` seconds after its step starts: ``field`` and ``load`` set-points,
+    ``end`` (the step's last instant), or the step kind's own action (its name)."""
+
+    t_s: float
+    kind: str
+    payload: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class StepPlan:
+    """A step's commands, time-ordered, and its nominal duration (s)."""
+
+    step: Step
+    duration_s: float
+    commands: tuple[Command, ...]
+
+
+@dataclass(frozen=True)
+class RigTiming:
+    """What a plan needs to know about the rig besides the procedure: the coil current slew limit
+    and set-point interval (``[cage]``), the reference magnetometer's sample rate (these three set
+    the duration of a cage characterization) and the cage's field limit (uT; None: not known, the
+    steps that sweep to it use :data:`DEFAULT_FIELD_LIMIT_UT`). The defaults are those of the
+    simulated cage."""
+
+    max_slew_a_per_s: float = 10.0
+    step_s: float = 0.05
+    reference_rate_hz: float = 20.0
+    max_field_ut: float | None = None
+
+
+DEFAULT_FIELD_LIMIT_UT = 100.0
+"""The field limit assumed when a plan is made without a rig configuration (uT)."""
+
+
+def suggest(word: object, options: list[str] | set[str] | dict[str, Any]) -> str:
+    # YAML keys need not be text ("? " makes a null key, "1:" a number)
+    close = difflib.get_close_matches(str(word), [str(o) for o in options], n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def coerce(value: Any, p: Param, key: str, where: str) -> Any:
+    def bad(what: str) -> ProcedureError:
+        return ProcedureError(f"{where}: '{key}' {what}")
+
+    if p.kind in ("float", "int"):
+        if isinstance(value, str):  # a "{parameter}" substituted from --set or a default
+            try:
+                value = float(value)
+            except ValueError:
+                raise bad(f"must be a number, got {value!r}") from None
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise bad(f"must be a number, got {value!r}")
+        if p.kind == "int" and not float(value).is_integer():
+            raise bad(f"must be a whole number, got {value!r}")
+        v = int(value) if p.kind == "int" else float(value)
+        if (p.minimum is not None and v < p.minimum) or (p.maximum is not None and v > p.maximum):
+            raise bad(f"must be within {p.minimum:g}..{p.maximum:g}, got {v:g}")
+        return v
+    if p.kind == "str":
+        if isinstance(value, bool):
+            value = "yes" if value else "no"
+        if not isinstance(value, str | int | float):
+            raise bad(f"must be text, got {value!r}")
+        value = str(value)
+        if p.choices and value not in p.choices:
+            options = ", ".join(c or "''" for c in p.choices)
+            raise bad(f"must be one of {options}, got {value!r}{suggest(value, set(p.choices))}")
+        return value
+    if p.kind in ("vec3", "range2", "list_float"):
+        n = {"vec3": 3, "range2": 2}.get(p.kind)
+        if (
+            not isinstance(value, list)
+            or (n is not None and len(value) != n)
+            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+        ):
+            raise bad(f"must be a list of {n or 'some'} numbers, got {value!r}")
+        vals = [float(v) for v in value]
+        if p.kind == "range2":
+            if vals[0] > vals[1]:
+                raise bad(f"must be [low, high], got {value!r}")
+            if (p.minimum is not None and vals[0] < p.minimum) or (
+                p.maximum is not None and vals[1] > p.maximum
+            ):
+                raise bad(f"must be within {p.minimum:g}..{p.maximum:g}")
+        if p.kind == "list_float" and not vals:
+            raise bad("must not be empty")
+        return vals
+    if p.kind == "list_str":
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise bad(f"must be a list of names, got {value!r}")
+        return list(value)
+    if p.kind == "dict":
+        if not isinstance(value, dict):
+            raise bad(f"must be a mapping of name: value, got {value!r}")
+        return {k: v for k, v in value.items() if k != "__line__"}
+    if p.kind == "list_dict":
+        if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+            raise bad("must be a list of mappings")
+        return value
+    raise AssertionError(p.kind)
+
+
+def bind_params(
+    spec: dict[str, Param], given: dict[str, Any], where: str, what: str
+) -> dict[str, Any]:
+    out = {}
+    for key in given:
+        if key == "__line__":
+            continue
+        if key not in spec:
+            raise ProcedureError(
+                f"{where}: {what} has no parameter '{key}'{suggest(key, spec)}; allowed: {', '.join(spec) or 'none'}"
+            )
+    for key, p in spec.items():
+        if key in given:
+            out[key] = coerce(given[key], p, key, where)
+        elif p.required:
+            raise ProcedureError(f"{where}: {what} needs '{key}'")
+        else:
+            out[key] = p.default
+    return out

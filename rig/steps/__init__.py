@@ -1,0 +1,48 @@
+"""Every kind of procedure step, by name: the one place a new kind is registered.
+
+To add a kind, write one module here with a :class:`rig.steps.base.StepKind` subclass and a
+``KIND`` instance, and add the module to the tuple below (docs/architecture.md).
+"""
+
+from __future__ import annotations
+
+from rig.steps import (
+    axis_sweep,
+    calibrate,
+    characterize_cage,
+    check,
+    hold,
+    live_calibrate,
+    null_field,
+    orbit_replay,
+    prompt,
+    report,
+    rotate,
+    set_field,
+    sphere_sweep,
+)
+from rig.steps.base import StepKind
+
+KINDS: dict[str, StepKind] = {
+    m.KIND.name: m.KIND
+    for m in (
+        prompt,
+        null_field,
+        set_field,
+        hold,
+        sphere_sweep,
+        axis_sweep,
+        rotate,
+        orbit_replay,
+        live_calibrate,
+        characterize_cage,
+        calibrate,
+        check,
+        report,
+    )
+}
+
+
+def field_kinds() -> frozenset[str]:
+    """Kinds that set fields with load profiles running: their samples are 'every field step'."""
+    return frozenset(name for name, k in KINDS.items() if k.takes_loads)

@@ -1,0 +1,34 @@
+"""``axis_sweep``: evenly spaced fields along one cage axis, each held ``dwell_s``."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from rig.procedure.model import Param, RigTiming, Step
+from rig.steps.base import Array, FieldStepKind
+
+
+class AxisSweep(FieldStepKind):
+    name = "axis_sweep"
+    summary = "evenly spaced fields along one axis"
+    params: ClassVar[dict[str, Param]] = {
+        "axis": Param("str", "x", choices=("x", "y", "z")),
+        "from_ut": Param("float", -50.0),
+        "to_ut": Param("float", 50.0),
+        "points": Param("int", 11, 2, 10000),
+        "dwell_s": Param("float", 0.5, 0.05, 3600.0),
+    }
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        p = step.params
+        out = []
+        for i, v in enumerate(np.linspace(p["from_ut"], p["to_ut"], p["points"])):
+            f = np.zeros(3)
+            f["xyz".index(p["axis"])] = v
+            out.append((i * p["dwell_s"], f))
+        return out
+
+
+KIND = AxisSweep()

@@ -1,0 +1,181 @@
+"""What a step kind is: its parameters and checks, how it compiles to commands, how long it takes,
+how the engine carries it out, and what it adds to the report.
+
+A kind is one module under ``rig/steps/`` defining a :class:`StepKind` subclass, registered in
+``rig/steps/__init__.py``. The language, the planner, ``rig check``, the runner, the analysis and
+the report find every kind there; none of them names a kind.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from rig.procedure.loads import load_profile
+from rig.procedure.model import Command, Param, RigTiming, Step
+
+if TYPE_CHECKING:
+    from rig.config import RigConfig
+    from rig.procedure.model import Procedure
+    from rig.store.run_store import RunReader
+
+Array = npt.NDArray[np.float64]
+
+
+class ChangeListener(Protocol):
+    """Told when a field or load change begins and ends (monotonic s)."""
+
+    def change_started(self, t: float) -> None: ...
+
+    def change_ended(self, t: float) -> None: ...
+
+
+class RunContext(Protocol):
+    """What a step may use of the run carrying it out (the engine's runner provides it)."""
+
+    proc: Procedure
+    cfg: RigConfig
+    controller: Any  # rig.cage.controller.CageController once the devices are open
+    results: dict[str, Any]
+    correction: dict[str, Any] | None  # the reference magnetometer's certificate
+    samplers: dict[str, Any]  # rig.engine.sampling.SensorSampler per sampled device
+    commanded_loads: dict[str, float]  # A
+    measured_loads: dict[str, tuple[float, float]]  # device -> (monotonic s, A)
+    change_listeners: list[ChangeListener]
+    status_sources: list[Any]  # callables returning a short text for the live view
+
+    @property
+    def folder(self) -> Path:
+        """The run folder."""
+        ...
+
+    def event(self, level: str, message: str) -> None: ...
+
+    def record_result(self, name: str, value: Any) -> None: ...
+
+    def open_reader(self) -> RunReader:
+        """The run's store as recorded so far (flushed); the caller closes it."""
+        ...
+
+    def set_meta(self, **values: Any) -> None: ...
+
+    def ask_operator(self, text: str) -> bool: ...
+
+    def command(self, step_index: int, kind: str, payload: dict[str, Any], now: float) -> None:
+        """Carry out a ``field`` or ``load`` command now."""
+        ...
+
+    def request_report(self) -> None: ...
+
+
+class StepExecution:
+    """One step being carried out; the runner calls, in order: :meth:`run` for each of the step's
+    own commands (between its field and load set-points), :meth:`wind_down` when the commands are
+    done or :attr:`stop` was set, then (the step recorded as ended) :meth:`finish`. On any
+    exception :meth:`abort` instead. The base class does nothing."""
+
+    stop: threading.Event | None = None
+    """Set to end the step's timeline early (a live calibration that met its targets)."""
+
+    def __init__(self, ctx: RunContext, step: Step) -> None:
+        self.ctx = ctx
+        self.step = step
+
+    def run(self, payload: dict[str, Any]) -> None:
+        """The step's own command (kind = the step's kind)."""
+
+    def wind_down(self) -> None:
+        """The timeline is over; the step is still open."""
+
+    def finish(self, t_start: float, t_end: float) -> None:
+        """The step has ended (monotonic s of its start and end)."""
+
+    def abort(self) -> None:
+        """The run is ending with an exception inside this step."""
+
+
+class StepKind:
+    """A kind of procedure step. Subclasses set :attr:`name` and :attr:`params` and override what
+    differs from the defaults: one command at time 0 carrying the parameters, no duration."""
+
+    name: ClassVar[str]
+    params: ClassVar[dict[str, Param]]
+    summary: ClassVar[str] = ""
+    takes_loads: ClassVar[bool] = False
+    """Load profiles may run during it; its samples are in 'every field step' of a calibration."""
+    hold_from_field: ClassVar[bool] = False
+    """Its timeline restarts once its first field is reached (a hold counts from there)."""
+
+    def shorthand(self, body: Any) -> Any:
+        """The step's body as written (``- prompt: "text"``) to its parameter mapping."""
+        return body
+
+    def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
+        """Checks across parameters; raise ProcedureError naming ``where`` and the fix."""
+
+    def duration_s(self, step: Step, timing: RigTiming) -> float:
+        """Nominal duration (s)."""
+        return 0.0
+
+    def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
+        """The step's commands (any order; the planner sorts them) and its duration (s)."""
+        return [Command(0.0, self.name, dict(step.params))], self.duration_s(step, timing)
+
+    def peak_coil_current_a(self, step: Step) -> float | None:
+        """Coil current (A, every axis) the step drives outside its field commands, if any."""
+        return None
+
+    def execution(self, ctx: RunContext, step: Step) -> StepExecution:
+        """A fresh :class:`StepExecution` for ``step`` in the run ``ctx``."""
+        return StepExecution(ctx, step)
+
+    def figures(self, reader: RunReader, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
+        """(title, matplotlib figure) for the report, from the step's result and recorded data."""
+        return []
+
+    def report_html(self, name: str, result: Any) -> str:
+        """An HTML fragment for the report's results section (escaped by the kind)."""
+        return ""
+
+
+class FieldStepKind(StepKind):
+    """A step that sets fields at planned times, with load profiles running meanwhile."""
+
+    takes_loads = True
+    trim_param: ClassVar[str | None] = None
+    """A yes/no parameter asking for each field to be trimmed on the reference magnetometer."""
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        """(time offset s, field uT in the cage frame) pairs."""
+        raise NotImplementedError
+
+    def duration_s(self, step: Step, timing: RigTiming) -> float:
+        return len(self.fields(step, timing)) * float(step.params["dwell_s"])
+
+    def field_payload(self, step: Step, field_ut: Array) -> dict[str, Any]:
+        """A ``field`` command's payload."""
+        trim = self.trim_param is not None and step.params.get(self.trim_param) == "yes"
+        return {"field_ut": [float(v) for v in field_ut], "trim": trim}
+
+    def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
+        duration = self.duration_s(step, timing)
+        cmds = [
+            Command(t, "field", self.field_payload(step, f)) for t, f in self.fields(step, timing)
+        ]
+        cmds += load_commands(step, duration, base)
+        cmds.append(Command(duration, "end", {}))
+        return cmds, duration
+
+
+def load_commands(step: Step, duration_s: float, base: Path) -> list[Command]:
+    """The set-points of the step's load profiles, each channel back to 0 A at the end."""
+    cmds = []
+    for ch, (kind, params) in step.loads.items():
+        for t, amps in load_profile(kind, params, duration_s, base):
+            cmds.append(Command(t, "load", {"channel": ch, "current_a": float(amps)}))
+        cmds.append(Command(duration_s, "load", {"channel": ch, "current_a": 0.0}))
+    return cmds

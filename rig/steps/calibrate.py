@@ -1,0 +1,44 @@
+"""``calibrate``: fit the DUT (batch estimator) from the named steps' settled samples."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+from rig.engine.analysis import calibrate_run
+from rig.procedure.model import Param
+from rig.steps.base import StepExecution, StepKind
+
+
+class Calibrate(StepKind):
+    name = "calibrate"
+    summary = "fit the DUT from the recorded steps (batch)"
+    params: ClassVar[dict[str, Param]] = {
+        "model": Param("str", "vector", choices=("vector", "scalar")),
+        "method": Param(
+            "str", "", choices=("", "ml", "twostep", "centered", "ellipsoid", "vector")
+        ),
+        "magnetometer": Param("str", "dut"),
+        "telemetry": Param("list_str", []),
+        "steps": Param("list_str", []),
+        "noise_nt": Param("float", 0.0, 0.0, 1e6),
+        "settle_s": Param("float", 0.25, 0.0, 60.0),
+    }
+
+    def execution(self, ctx: Any, step: Any) -> StepExecution:
+        return Fit(ctx, step)
+
+
+class Fit(StepExecution):
+    def run(self, payload: dict[str, Any]) -> None:
+        from rig.steps import field_kinds
+
+        reader = self.ctx.open_reader()
+        try:
+            result = calibrate_run(reader, payload, self.ctx.proc.magnetometers,
+                                   self.ctx.correction, field_kinds())  # fmt: skip
+        finally:
+            reader.close()
+        self.ctx.record_result(self.step.name, result)
+
+
+KIND = Calibrate()

@@ -1,0 +1,46 @@
+"""``check``: acceptance criteria on the results so far; the run's verdict."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+from rig.engine.analysis import evaluate_criteria
+from rig.procedure.model import Param, ProcedureError
+from rig.steps.base import StepExecution, StepKind
+
+CRITERION_KEYS = {"result", "value", "min", "max", "name", "__line__"}
+
+
+class Check(StepKind):
+    name = "check"
+    summary = "acceptance criteria on the results: PASS/FAIL with margins"
+    params: ClassVar[dict[str, Param]] = {"criteria": Param("list_dict", required=True)}
+
+    def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
+        path = where.split(":", 1)[0]
+        for c in params["criteria"]:
+            bad = set(c) - CRITERION_KEYS
+            if bad or "result" not in c or "value" not in c or ("min" not in c and "max" not in c):
+                at = (
+                    f"{path}:{c['__line__']}: {where.split(': ', 1)[1]}"
+                    if "__line__" in c
+                    else where
+                )
+                raise ProcedureError(
+                    f"{at}: a criterion needs result, value and min and/or max{f'; unknown {sorted(bad)}' if bad else ''}"
+                )
+
+    def execution(self, ctx: Any, step: Any) -> StepExecution:
+        return Judge(ctx, step)
+
+
+class Judge(StepExecution):
+    def run(self, payload: dict[str, Any]) -> None:
+        verdict = evaluate_criteria(self.ctx.results, payload["criteria"])
+        self.ctx.record_result("verdict", verdict)
+        for row in verdict["criteria"]:
+            level = "info" if row["verdict"] == "PASS" else "warning"
+            self.ctx.event(level, f"check {row['name']}: {row['verdict']}")
+
+
+KIND = Check()

@@ -1,0 +1,25 @@
+"""``hold``: keep the present field for ``hold_s`` (load profiles may run meanwhile)."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from rig.procedure.model import Param, RigTiming, Step
+from rig.steps.base import Array, FieldStepKind
+
+
+class Hold(FieldStepKind):
+    name = "hold"
+    summary = "keep the present field"
+    params: ClassVar[dict[str, Param]] = {
+        "hold_s": Param("float", required=True, minimum=0.0, maximum=86400.0)
+    }
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        return []
+
+    def duration_s(self, step: Step, timing: RigTiming) -> float:
+        return float(step.params["hold_s"])
+
+
+KIND = Hold()

@@ -1,0 +1,159 @@
+"""``live_calibrate``: sweep random fields while a sequential filter calibrates the DUT from every
+settled sample; stop as soon as each target 1-sigma is met (see rig.steps.live_calibration)."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, ClassVar
+
+import numpy as np
+
+from rig.errors import RigError
+from rig.procedure.model import Param, ProcedureError, RigTiming, Step, suggest
+from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+from rig.steps.geometry import sphere_fields
+from rig.steps.live_calibration import LiveCalibration
+
+
+class LiveCalibrate(FieldStepKind):
+    name = "live_calibrate"
+    summary = "sweep while a sequential filter calibrates; stop when the target sigmas are met"
+    params: ClassVar[dict[str, Param]] = {
+        "method": Param("str", "ukf", choices=("centered-seq", "ekf", "ukf")),
+        "telemetry": Param("list_str", []),
+        "targets": Param("dict", {}),
+        "stop_on_target": Param("str", "yes", choices=("yes", "no")),
+        "min_s": Param("float", 5.0, 0.0, 86400.0),
+        "max_s": Param("float", 60.0, 1.0, 86400.0),
+        "magnitude_ut": Param("range2", [20.0, 50.0], 0.0, 1000.0),
+        "dwell_s": Param("float", 0.8, 0.05, 3600.0),
+        "seed": Param("int", 1, 0, 2**31),
+        "noise_nt": Param("float", 0.0, 0.0, 1e6),
+        "settle_s": Param("float", 0.25, 0.0, 60.0),
+        "magnetometer": Param("str", "dut"),
+    }
+
+    def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
+        """Telemetry among the loads, targets known and positive, a consistent stop rule."""
+        from rig.calibration.targets import SIGMA_TARGETS
+
+        for ch in params["telemetry"]:
+            if ch not in loads:
+                raise ProcedureError(
+                    f"{where}: telemetry '{ch}' is not in the procedure's 'loads' list{suggest(ch, list(loads))}"
+                )
+        targets = params["targets"]
+        for key, value in targets.items():
+            if key not in SIGMA_TARGETS:
+                raise ProcedureError(
+                    f"{where}: unknown target '{key}'{suggest(key, SIGMA_TARGETS)}; targets are: {', '.join(SIGMA_TARGETS)}"
+                )
+            if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+                raise ProcedureError(
+                    f"{where}: target '{key}' must be a positive 1-sigma, got {value!r}"
+                )
+            targets[key] = float(value)
+        if "k_ut_per_a" in targets and not params["telemetry"]:
+            raise ProcedureError(f"{where}: target 'k_ut_per_a' needs 'telemetry' channels")
+        if params["stop_on_target"] == "yes" and not targets:
+            raise ProcedureError(
+                f"{where}: stop_on_target needs 'targets', e.g. {{bias_nt: 30, scale: 0.002}}; or set stop_on_target: no"
+            )
+        if params["min_s"] > params["max_s"]:
+            raise ProcedureError(f"{where}: min_s must not exceed max_s")
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        p = step.params
+        n = math.ceil(p["max_s"] / p["dwell_s"])
+        return [
+            (i * p["dwell_s"], f)
+            for i, f in enumerate(sphere_fields(n, p["magnitude_ut"], p["seed"]))
+        ]
+
+    def execution(self, ctx: RunContext, step: Step) -> StepExecution:
+        return LiveStep(ctx, step)
+
+
+class LiveStep(StepExecution):
+    """Connects the filter to the samplers and the field/load changes for the step's time."""
+
+    def __init__(self, ctx: RunContext, step: Step) -> None:
+        super().__init__(ctx, step)
+        params = step.params
+        mags = ctx.proc.magnetometers
+        dut = mags.get(params["magnetometer"], params["magnetometer"])
+        ref = mags.get("reference")
+        if ref is None or dut not in ctx.samplers:
+            raise RigError(
+                f"{ctx.proc.path}: live_calibrate needs the '{params['magnetometer']}' and"
+                " 'reference' magnetometers under 'magnetometers'"
+            )
+        noise_nt = params["noise_nt"] or self._noise_nt(params["magnetometer"])
+        self.channels = list(params["telemetry"])
+        self.live = LiveCalibration(params, noise_nt / 1000.0, time.monotonic(), self._loads_now,
+                                    ctx.correction)  # fmt: skip
+        self.ref, self.dut = ref, dut
+        ctx.samplers[ref].listeners.append(self.live.on_reference)
+        ctx.samplers[dut].listeners.append(self.live.on_dut)
+        ctx.change_listeners.append(self.live)
+        ctx.status_sources.append(self.live.status)
+        self.live.start()
+        self.stop = self.live.done
+        ctx.event("info", f"live calibration: {params['method']} at {noise_nt:.3g} nT noise,"
+                          f" targets {params['targets'] or 'none'}")  # fmt: skip
+
+    def _noise_nt(self, role: str) -> float:
+        """The newest noise floor of ``role`` combined with the reference's (nT, root sum square):
+        the filter pairs each DUT sample with one reference sample, so both noises count."""
+        for result in reversed(list(self.ctx.results.values())):
+            if isinstance(result, dict) and f"{role}_noise_nt" in result:
+                ref_nt = float(result.get("reference_noise_nt", 0.0))
+                return float(math.hypot(result[f"{role}_noise_nt"], ref_nt))
+        raise RigError(
+            f"{self.ctx.proc.path}: live_calibrate needs the noise: put a null_field step before it,"
+            " or give noise_nt"
+        )
+
+    def _loads_now(self, t: float) -> np.ndarray:
+        """Load currents (A) for the filter: the read-back once it is newer than the last change's
+        settling, the commanded value before that."""
+        out = []
+        for ch in self.channels:
+            meas = self.ctx.measured_loads.get(ch)
+            fresh = meas is not None and meas[0] >= self.live.quiet_after
+            out.append(meas[1] if fresh and meas is not None else self.ctx.commanded_loads[ch])
+        return np.array(out, float)
+
+    def _detach(self) -> None:
+        for fn, dev in ((self.live.on_reference, self.ref), (self.live.on_dut, self.dut)):
+            listeners = self.ctx.samplers[dev].listeners
+            if fn in listeners:
+                listeners.remove(fn)
+        if self.live in self.ctx.change_listeners:
+            self.ctx.change_listeners.remove(self.live)
+        if self.live.status in self.ctx.status_sources:
+            self.ctx.status_sources.remove(self.live.status)
+
+    def wind_down(self) -> None:
+        """Disconnect the filter; after an early stop, switch the step's loads back to zero."""
+        self._detach()
+        if self.live.done.is_set():
+            for ch in self.step.loads:
+                self.ctx.command(self.step.index, "load", {"channel": ch, "current_a": 0.0},
+                                 time.monotonic())  # fmt: skip
+
+    def finish(self, t_start: float, t_end: float) -> None:
+        result = self.live.finish(self.ctx.folder, self.step.name, time.monotonic())
+        self.ctx.record_result(self.step.name, result)
+        self.ctx.event(
+            "info", f"live calibration '{self.step.name}' stopped: {result['live']['stopped']}"
+        )
+
+    def abort(self) -> None:
+        """The run is ending: let go of the samplers and the worker."""
+        self._detach()
+        self.live.stop()
+
+
+KIND = LiveCalibrate()

@@ -1,0 +1,54 @@
+"""``null_field``: cancel the ambient field and hold; the noise floor of every sampled
+magnetometer over the hold is the step's result (``<role>_noise_nt``)."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+
+from rig.engine.analysis import noise_floor
+from rig.procedure.model import Param, RigTiming, Step
+from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+
+NOISE_SETTLE_S = 0.3
+"""Samples this long after a change are left out of the noise floor (s)."""
+
+
+class NullField(FieldStepKind):
+    name = "null_field"
+    summary = "cancel the ambient field, hold, measure every magnetometer's noise floor"
+    params: ClassVar[dict[str, Param]] = {
+        "hold_s": Param("float", 2.0, 0.0, 86400.0),
+        "trim": Param("str", "no", choices=("yes", "no")),
+    }
+    trim_param = "trim"
+    hold_from_field = True
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        return [(0.0, np.zeros(3))]
+
+    def duration_s(self, step: Step, timing: RigTiming) -> float:
+        return float(step.params["hold_s"])
+
+    def execution(self, ctx: RunContext, step: Step) -> StepExecution:
+        return NoiseFloor(ctx, step)
+
+
+class NoiseFloor(StepExecution):
+    """After the hold: each magnetometer's noise floor (nT) as the step's result."""
+
+    def finish(self, t_start: float, t_end: float) -> None:
+        reader = self.ctx.open_reader()
+        try:
+            noise = noise_floor(reader, (t_start, t_end), list(self.ctx.samplers), NOISE_SETTLE_S)
+        finally:
+            reader.close()
+        mags = self.ctx.proc.magnetometers
+        result: dict[str, Any] = {
+            f"{role}_noise_nt": noise[dev] for role, dev in mags.items() if dev in noise
+        }
+        self.ctx.record_result(self.step.name, result)
+
+
+KIND = NullField()

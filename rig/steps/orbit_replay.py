@@ -1,0 +1,79 @@
+"""``orbit_replay``: the field an orbiting spacecraft sees (sgp4 from a TLE, IGRF, an attitude),
+tracked set-point by set-point at ``rate_hz``, with solar-panel currents on the loads."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from rig.procedure.model import Command, Param, ProcedureError, RigTiming, Step
+from rig.steps.base import FieldStepKind, load_commands
+
+
+class OrbitReplay(FieldStepKind):
+    name = "orbit_replay"
+    summary = "replay an orbit's field (TLE + IGRF) with panel currents"
+    params: ClassVar[dict[str, Param]] = {
+        "tle": Param("list_str", required=True),
+        "start": Param("str", required=True),
+        "duration_s": Param("float", required=True, minimum=0.1, maximum=86400.0),
+        "time_scale": Param("float", 1.0, 0.01, 10000.0),
+        "rate_hz": Param("float", 10.0, 0.1, 200.0),
+        "attitude": Param("str", "nadir", choices=("inertial", "nadir", "tumbling")),
+        "tumble_deg_s": Param("float", 2.0, 0.0, 360.0),
+        "panels": Param("list_dict", []),
+    }
+
+    def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
+        from rig.procedure.orbit import FACES, parse_start
+
+        if len(params["tle"]) != 2:
+            raise ProcedureError(f"{where}: 'tle' must be the two TLE lines")
+        try:
+            parse_start(params["start"])
+        except ValueError as exc:
+            raise ProcedureError(f"{where}: {exc}") from None
+        for panel in params["panels"]:
+            ch, face, max_a = panel.get("channel"), panel.get("face"), panel.get("max_a")
+            if ch not in loads or face not in FACES or not isinstance(max_a, int | float):
+                raise ProcedureError(
+                    f"{where}: a panel needs channel (one of the procedure's loads), face ({', '.join(FACES)}) and max_a"
+                )
+
+    def duration_s(self, step: Step, timing: RigTiming) -> float:
+        return float(step.params["duration_s"])
+
+    def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
+        """Field commands at ``rate_hz`` (tracked, no ramps), the panels' currents (1 mA
+        resolution, sent when they change by 2 mA or go to zero) and any load profiles."""
+        from rig.procedure.orbit import orbit_track, panel_current, parse_start
+
+        p = step.params
+        t_wall = np.arange(0.0, p["duration_s"], 1.0 / p["rate_hz"])
+        try:
+            track = orbit_track(p["tle"][0], p["tle"][1], parse_start(p["start"]),
+                                t_wall * p["time_scale"], p["attitude"], p["tumble_deg_s"])  # fmt: skip
+        except ValueError as exc:
+            raise ProcedureError(
+                f"{step.where}: step {step.index + 1} (orbit_replay): {exc}"
+            ) from None
+        cmds = [Command(float(t), "field", {"field_ut": [float(v) for v in f], "track": True})
+                for t, f in zip(t_wall, track.field_body_ut, strict=True)]  # fmt: skip
+        duration = float(p["duration_s"])
+        for panel in p["panels"]:
+            ch = panel["channel"]
+            amps = np.round(panel_current(track, panel["face"], float(panel["max_a"])), 3)
+            last = None
+            for t, a in zip(t_wall, amps, strict=True):
+                if last is None or abs(a - last) >= 0.002 or (a == 0.0 and last != 0.0):
+                    cmds.append(Command(float(t), "load", {"channel": ch, "current_a": float(a)}))
+                    last = a
+            cmds.append(Command(duration, "load", {"channel": ch, "current_a": 0.0}))
+        cmds += load_commands(step, duration, base)
+        cmds.append(Command(duration, "end", {}))
+        return cmds, duration
+
+
+KIND = OrbitReplay()

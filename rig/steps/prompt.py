@@ -1,0 +1,33 @@
+"""``prompt``: ask the operator; a "no" aborts the run."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+from rig.errors import RunAborted
+from rig.procedure.model import Param
+from rig.steps.base import StepExecution, StepKind
+
+
+class Prompt(StepKind):
+    name = "prompt"
+    summary = "ask the operator to confirm (a 'no' aborts the run)"
+    params: ClassVar[dict[str, Param]] = {"text": Param("str", required=True)}
+
+    def shorthand(self, body: Any) -> Any:
+        return {"text": body} if isinstance(body, str) else body
+
+    def execution(self, ctx: Any, step: Any) -> StepExecution:
+        return Ask(ctx, step)
+
+
+class Ask(StepExecution):
+    def run(self, payload: dict[str, Any]) -> None:
+        text = payload["text"]
+        ok = self.ctx.ask_operator(text)
+        self.ctx.event("operator", f"prompt {text!r}: {'confirmed' if ok else 'declined'}")
+        if not ok:
+            raise RunAborted(f"the operator declined: {text}")
+
+
+KIND = Prompt()

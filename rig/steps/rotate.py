@@ -1,0 +1,43 @@
+"""``rotate``: a field of fixed magnitude turning about an axis in ``points`` steps."""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+
+from rig.procedure.model import Param, ProcedureError, RigTiming, Step
+from rig.steps.base import Array, FieldStepKind
+
+
+class Rotate(FieldStepKind):
+    name = "rotate"
+    summary = "a field turning about an axis"
+    params: ClassVar[dict[str, Param]] = {
+        "magnitude_ut": Param("float", 40.0, 0.0, 1000.0),
+        "axis": Param("vec3", [0.0, 0.0, 1.0]),
+        "points": Param("int", 36, 3, 10000),
+        "dwell_s": Param("float", 0.3, 0.02, 3600.0),
+    }
+
+    def validate(self, params: dict[str, object], loads: tuple[str, ...], where: str) -> None:
+        if not any(float(v) for v in params["axis"]):  # type: ignore[attr-defined]
+            raise ProcedureError(f"{where}: axis must not be zero, e.g. [0, 0, 1]")
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        p = step.params
+        spin = np.array(p["axis"], float)
+        spin /= np.linalg.norm(spin)
+        helper = np.array([1.0, 0, 0]) if abs(spin[0]) < 0.9 else np.array([0, 1.0, 0])
+        u = np.cross(spin, helper)
+        u /= np.linalg.norm(u)
+        v = np.cross(spin, u)
+        angles = np.linspace(0, 2 * math.pi, p["points"], endpoint=False)
+        return [
+            (i * p["dwell_s"], p["magnitude_ut"] * (math.cos(a) * u + math.sin(a) * v))
+            for i, a in enumerate(angles)
+        ]
+
+
+KIND = Rotate()

@@ -1,0 +1,31 @@
+"""``set_field``: ramp to one field (uT, cage frame) and hold it."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from rig.procedure.model import Param, RigTiming, Step
+from rig.steps.base import Array, FieldStepKind
+
+
+class SetField(FieldStepKind):
+    name = "set_field"
+    summary = "ramp to one field and hold it"
+    params: ClassVar[dict[str, Param]] = {
+        "field_ut": Param("vec3", required=True),
+        "hold_s": Param("float", 2.0, 0.0, 86400.0),
+        "trim": Param("str", "no", choices=("yes", "no")),
+    }
+    trim_param = "trim"
+    hold_from_field = True
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        return [(0.0, np.array(step.params["field_ut"], float))]
+
+    def duration_s(self, step: Step, timing: RigTiming) -> float:
+        return float(step.params["hold_s"])
+
+
+KIND = SetField()
