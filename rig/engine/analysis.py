@@ -79,6 +79,16 @@ def hold_values(reader: RunReader, channel: str, t: Array) -> Array:
     return np.asarray(vs[idx])
 
 
+def settled_samples(
+    reader: RunReader, device: str, window: tuple[float, float], settle_s: float
+) -> Array:
+    """Rows (t s, x, y, z uT) of ``device`` inside ``window`` and outside every field or load
+    change extended by ``settle_s`` (s)."""
+    rows = np.array(reader.samples(device), float).reshape(-1, 4)
+    keep = _in_windows(rows[:, 0], [window]) & settled(rows[:, 0], change_times(reader), settle_s)
+    return rows[keep]
+
+
 def noise_floor(
     reader: RunReader, window: tuple[float, float], devices: list[str], settle_s: float
 ) -> dict[str, float]:
@@ -180,8 +190,9 @@ def lookup(results: dict[str, Any], result: str, path: str) -> float:
     return float(value)
 
 
-UNIT_SUFFIXES = (("_ut_per_a", "uT/A"), ("_deg", "deg"), ("_nt", "nT"), ("_ut", "uT"),
-                 ("_ma", "mA"), ("_hz", "Hz"), ("_a", "A"), ("_v", "V"), ("_s", "s"))  # fmt: skip
+UNIT_SUFFIXES = (("_nt_per_rthz", "nT/rtHz"), ("_ut_per_a", "uT/A"), ("_deg", "deg"),
+                 ("_ppm", "ppm"), ("_nt", "nT"), ("_ut", "uT"), ("_ma", "mA"), ("_hz", "Hz"),
+                 ("_a", "A"), ("_v", "V"), ("_s", "s"))  # fmt: skip
 """Name endings and their units, longest first (``_ut_per_a`` before ``_a``)."""
 
 
