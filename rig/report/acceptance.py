@@ -27,6 +27,7 @@ from rig.report.text_report import (
     seal_note,
     write_text_report,
 )
+from rig.steps import KINDS
 from rig.store.run_store import RunReader
 
 Array = npt.NDArray[np.float64]
@@ -146,6 +147,11 @@ def make_figures(reader: RunReader, meta: dict[str, Any], results: dict[str, Any
             fig = _convergence_figure(reader.folder, res["live"], plt)
             if fig is not None:
                 figs.append(_figure(f"Live calibration '{name}': 1-sigma converging", fig))
+    for _, name, kind, _, t1 in reader.steps():  # what each step's kind draws (rig.steps)
+        step_kind = KINDS.get(kind)
+        if step_kind is not None and t1 is not None and name in results:
+            for title, fig in step_kind.figures(reader, name, results[name], plt):
+                figs.append(_figure(title, fig))
     noise_step = next(
         (st for st in reader.steps() if st[2] == "null_field" and st[4] is not None), None
     )
@@ -310,6 +316,13 @@ def build_report(folder: Path) -> tuple[Path, Path]:
         parts.append("</table>")
     else:
         parts.append("<p>No acceptance criteria were evaluated in this run.</p>")
+    step_parts = [
+        KINDS[kind].report_html(name, results[name])
+        for _, name, kind, _, _ in steps
+        if kind in KINDS and name in results
+    ]
+    if any(step_parts):
+        parts.append("<h2>Step results</h2>" + "".join(step_parts))
     for name, res in cals.items():
         sp, sig = res["springmann"], res["sigma"]["springmann"]
         ratio = res["crlb_ratio"]["springmann"]
