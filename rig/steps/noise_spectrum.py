@@ -1,0 +1,141 @@
+"""``noise_spectrum``: null the field, hold, and measure the DUT's noise spectral density
+(nT/sqrt(Hz), one-sided) at 1 Hz and averaged over a band: the standard magnetometer noise figure.
+
+The samples are put on a uniform time grid (the sampler's timestamps jitter by a few ms), each axis
+is detrended and its density estimated by Welch's method (Hann window, 50 % overlap).
+"""
+
+from __future__ import annotations
+
+import html
+from typing import Any, ClassVar
+
+import numpy as np
+
+from rig.engine.analysis import settled_samples
+from rig.errors import RigError
+from rig.procedure.model import Param, ProcedureError, RigTiming, Step
+from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+
+AROUND_1HZ = (0.8, 1.25)
+"""The density 'at 1 Hz' is the mean over this band (Hz): one Welch bin is too noisy a figure."""
+MIN_SAMPLES = 64
+
+
+def amplitude_density(t_s: Array, xyz: Array) -> tuple[Array, Array, float]:
+    """(frequencies Hz, amplitude spectral density per axis in input units / sqrt(Hz), shape
+    (n_f, 3), sample rate Hz) of samples at times ``t_s`` (s), resampled to their median rate."""
+    from scipy.signal import welch
+
+    rate_hz = 1.0 / float(np.median(np.diff(t_s)))
+    grid = np.arange(t_s[0], t_s[-1], 1.0 / rate_hz)
+    uniform = np.column_stack([np.interp(grid, t_s, xyz[:, i]) for i in range(3)])
+    nperseg = min(len(grid), max(MIN_SAMPLES, int(2 ** np.ceil(np.log2(5.0 * rate_hz)))))
+    f, psd = welch(uniform, fs=rate_hz, window="hann", nperseg=nperseg, detrend="linear", axis=0)
+    return f, np.sqrt(psd), rate_hz
+
+
+def band_mean(f: Array, asd: Array, band: tuple[float, float]) -> Array:
+    """Per axis, the RMS of the density over ``band`` (Hz): power averaged, then its root."""
+    sel = (f >= band[0]) & (f <= band[1])
+    return np.asarray(np.sqrt(np.mean(asd[sel] ** 2, axis=0)))
+
+
+class NoiseSpectrum(FieldStepKind):
+    name = "noise_spectrum"
+    summary = "DUT noise spectral density in a nulled field (nT/rtHz at 1 Hz and over a band)"
+    params: ClassVar[dict[str, Param]] = {
+        "hold_s": Param("float", 20.0, 5.0, 86400.0),
+        "band_hz": Param("range2", [0.1, 5.0], 0.001, 10000.0),
+        "trim": Param("str", "no", choices=("yes", "no")),
+        "settle_s": Param("float", 0.5, 0.0, 60.0),
+        "magnetometer": Param("str", "dut"),
+    }
+    trim_param = "trim"
+    hold_from_field = True
+
+    def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
+        lo, hi = params["band_hz"]
+        if not lo < hi:
+            raise ProcedureError(f"{where}: band_hz must be [low, high] with low < high")
+        if params["hold_s"] < 4.0 / lo:
+            raise ProcedureError(
+                f"{where}: hold_s must cover 4 periods of the band's low edge ({4.0 / lo:g} s for {lo:g} Hz)"
+            )
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        return [(0.0, np.zeros(3))]
+
+    def duration_s(self, step: Step, timing: RigTiming) -> float:
+        return float(step.params["hold_s"])
+
+    def execution(self, ctx: RunContext, step: Step) -> StepExecution:
+        return MeasureSpectrum(ctx, step)
+
+    def figures(self, reader: Any, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
+        window = next(((t0, t1) for _, n, _, t0, t1 in reader.steps() if n == name and t1), None)
+        if window is None or not isinstance(result, dict) or "device" not in result:
+            return []
+        rows = settled_samples(reader, result["device"], window, float(result["settle_s"]))
+        if len(rows) < MIN_SAMPLES:
+            return []
+        f, asd, _ = amplitude_density(rows[:, 0], rows[:, 1:])
+        fig, ax = plt.subplots(figsize=(7.0, 3.6))
+        for i, axis in enumerate("xyz"):
+            ax.loglog(f[1:], 1000.0 * asd[1:, i], lw=0.9, label=axis)
+        lo, hi = result["band_hz"]
+        ax.axvspan(lo, hi, color="0.9", zorder=0, label="band")
+        ax.axhline(result["band_density_nt_per_rthz"], color="k", ls="--", lw=0.8,
+                   label=f"band mean {result['band_density_nt_per_rthz']:.3g} nT/rtHz")  # fmt: skip
+        ax.set_xlabel("frequency (Hz)")
+        ax.set_ylabel("noise density (nT/rtHz)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        return [(f"Noise spectrum '{name}'", fig)]
+
+    def report_html(self, name: str, result: Any) -> str:
+        if not isinstance(result, dict) or "density_1hz_nt_per_rthz" not in result:
+            return ""
+        lo, hi = result["band_hz"]
+        return (
+            f"<p>Noise spectrum {html.escape(name)}: {result['density_1hz_nt_per_rthz']:.3g} nT/rtHz"
+            f" at 1 Hz, {result['band_density_nt_per_rthz']:.3g} nT/rtHz over {lo:g}-{hi:g} Hz"
+            f" ({result['samples']} samples at {result['rate_hz']:.1f} Hz, worst axis).</p>"
+        )
+
+
+class MeasureSpectrum(StepExecution):
+    def finish(self, t_start: float, t_end: float) -> None:
+        p = self.step.params
+        device = self.ctx.proc.magnetometers.get(p["magnetometer"], p["magnetometer"])
+        reader = self.ctx.open_reader()
+        try:
+            rows = settled_samples(reader, device, (t_start, t_end), p["settle_s"])
+        finally:
+            reader.close()
+        if len(rows) < MIN_SAMPLES:
+            raise RigError(
+                f"noise_spectrum '{self.step.name}': only {len(rows)} settled samples of '{device}'"
+                f" (at least {MIN_SAMPLES}): lengthen hold_s"
+            )
+        f, asd, rate_hz = amplitude_density(rows[:, 0], rows[:, 1:])
+        lo, hi = p["band_hz"]
+        if hi > rate_hz / 2:
+            raise RigError(
+                f"noise_spectrum '{self.step.name}': band_hz reaches {hi:g} Hz, above half the"
+                f" {rate_hz:.1f} Hz sample rate: lower the band's high edge"
+            )
+        at_1hz = 1000.0 * band_mean(f, asd, AROUND_1HZ)
+        band = 1000.0 * band_mean(f, asd, (lo, hi))
+        self.ctx.record_result(self.step.name, {
+            "density_1hz_nt_per_rthz": float(at_1hz.max()),
+            "band_density_nt_per_rthz": float(band.max()),
+            "axis_density_1hz_nt_per_rthz": at_1hz.tolist(),
+            "axis_band_density_nt_per_rthz": band.tolist(),
+            "band_hz": [lo, hi], "rate_hz": rate_hz, "samples": len(rows),
+            "device": device, "settle_s": p["settle_s"],
+        })  # fmt: skip
+
+
+KIND = NoiseSpectrum()
