@@ -1,0 +1,138 @@
+"""``linearity``: sweep the field along each cage axis from -max to +max (by default the rig's field
+limit) and measure how far the DUT's reading departs from a straight line against the reference:
+the largest deviation in ppm of full scale (max_ut), per axis and overall.
+
+Each point's DUT and reference readings are averaged over its settled dwell; per axis the DUT's
+component along that axis is fitted as offset + gain x reference component (least squares), and the
+residuals are the non-linearity.
+"""
+
+from __future__ import annotations
+
+import html
+from typing import Any, ClassVar
+
+import numpy as np
+
+from rig.engine.analysis import settled_samples, to_cage_frame
+from rig.errors import RigError
+from rig.procedure.model import DEFAULT_FIELD_LIMIT_UT, Param, RigTiming, Step
+from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+
+MIN_PER_POINT = 3
+"""Settled samples a point needs from each magnetometer."""
+
+
+def full_scale_ut(step: Step, timing: RigTiming) -> float:
+    """The sweep's largest field (uT): ``max_ut``, else the rig's field limit."""
+    given = float(step.params["max_ut"])
+    return given or timing.max_field_ut or DEFAULT_FIELD_LIMIT_UT
+
+
+def nonlinearity(applied_ut: Array, reading_ut: Array) -> tuple[Array, float, float]:
+    """Residuals (uT) of ``reading = offset + gain * applied`` (least squares), and the gain and
+    offset (uT)."""
+    design = np.column_stack([np.ones_like(applied_ut), applied_ut])
+    coef, *_ = np.linalg.lstsq(design, reading_ut, rcond=None)
+    return reading_ut - design @ coef, float(coef[1]), float(coef[0])
+
+
+class Linearity(FieldStepKind):
+    name = "linearity"
+    summary = "sweep each axis to the field limit; deviation from linear in ppm of full scale"
+    params: ClassVar[dict[str, Param]] = {
+        "max_ut": Param("float", 0.0, 0.0, 1000.0),
+        "points": Param("int", 9, 5, 1001),
+        "dwell_s": Param("float", 0.6, 0.1, 3600.0),
+        "settle_s": Param("float", 0.25, 0.0, 60.0),
+        "magnetometer": Param("str", "dut"),
+    }
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        p = step.params
+        out = []
+        for axis in range(3):
+            for v in np.linspace(
+                -full_scale_ut(step, timing), full_scale_ut(step, timing), p["points"]
+            ):
+                f = np.zeros(3)
+                f[axis] = v
+                out.append((len(out) * p["dwell_s"], f))
+        return out
+
+    def execution(self, ctx: RunContext, step: Step) -> StepExecution:
+        return MeasureLinearity(ctx, step)
+
+    def figures(self, reader: Any, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
+        if not isinstance(result, dict) or "points" not in result:
+            return []
+        fig, ax = plt.subplots(figsize=(7.0, 3.6))
+        for axis, pts in result["points"].items():
+            applied = np.array(pts["applied_ut"])
+            ax.plot(applied, 1000.0 * np.array(pts["residual_ut"]), "o-", ms=3, lw=0.8,
+                    label=f"{axis}: {result['axis_nonlinearity_ppm'][axis]:.0f} ppm")  # fmt: skip
+        ax.axhline(0.0, color="k", lw=0.6)
+        ax.set_xlabel("applied field along the axis (uT, reference)")
+        ax.set_ylabel("DUT minus straight line (nT)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        return [(f"Linearity '{name}' (full scale {result['full_scale_ut']:g} uT)", fig)]
+
+    def report_html(self, name: str, result: Any) -> str:
+        if not isinstance(result, dict) or "nonlinearity_ppm" not in result:
+            return ""
+        axes = ", ".join(f"{a} {v:.0f}" for a, v in result["axis_nonlinearity_ppm"].items())
+        return (
+            f"<p>Linearity {html.escape(name)}: {result['nonlinearity_ppm']:.0f} ppm of"
+            f" {result['full_scale_ut']:g} uT full scale (worst axis; per axis {axes} ppm).</p>"
+        )
+
+
+class MeasureLinearity(StepExecution):
+    def finish(self, t_start: float, t_end: float) -> None:
+        ctx, p = self.ctx, self.step.params
+        mags = ctx.proc.magnetometers
+        dut = mags.get(p["magnetometer"], p["magnetometer"])
+        ref = mags.get("reference")
+        if ref is None:
+            raise RigError(f"{ctx.proc.path}: linearity needs a 'reference' under 'magnetometers'")
+        reader = ctx.open_reader()
+        try:
+            fields = [(t, pl) for t, _, kind, pl in reader.commands()
+                      if kind == "field" and t_start <= t <= t_end]  # fmt: skip
+            bounds = [t for t, _ in fields[1:]] + [t_end]
+            dut_rows = settled_samples(reader, dut, (t_start, t_end), p["settle_s"])
+            ref_rows = settled_samples(reader, ref, (t_start, t_end), p["settle_s"])
+        finally:
+            reader.close()
+        points: dict[str, dict[str, list[float]]] = {}
+        ppm: dict[str, float] = {}
+        scale = float(max(abs(v) for _, pl in fields for v in pl["field_ut"])) if fields else 0.0
+        for axis, name in enumerate("xyz"):
+            applied, reading = [], []
+            for i, ((t0, _), t1) in enumerate(zip(fields, bounds, strict=True)):
+                if i // p["points"] != axis:  # the sweeps go x, y, z in turn
+                    continue
+                d = dut_rows[(dut_rows[:, 0] >= t0) & (dut_rows[:, 0] < t1)]
+                r = ref_rows[(ref_rows[:, 0] >= t0) & (ref_rows[:, 0] < t1)]
+                if len(d) < MIN_PER_POINT or len(r) < MIN_PER_POINT:
+                    continue
+                applied.append(float(to_cage_frame(r[:, 1:], ctx.correction).mean(axis=0)[axis]))
+                reading.append(float(d[:, 1 + axis].mean()))
+            if len(applied) < 5:
+                raise RigError(
+                    f"linearity '{self.step.name}': only {len(applied)} settled points on axis {name}"
+                    " (at least 5): lengthen dwell_s or shorten settle_s"
+                )
+            residual, gain, offset = nonlinearity(np.array(applied), np.array(reading))
+            ppm[name] = float(1e6 * np.max(np.abs(residual)) / scale)
+            points[name] = {"applied_ut": applied, "residual_ut": residual.tolist(),
+                            "gain": [gain], "offset_ut": [offset]}  # fmt: skip
+        ctx.record_result(self.step.name, {
+            "nonlinearity_ppm": max(ppm.values()), "axis_nonlinearity_ppm": ppm,
+            "full_scale_ut": scale, "points": points,
+        })  # fmt: skip
+
+
+KIND = Linearity()

@@ -1,0 +1,68 @@
+"""The linearity step: its figure against synthetic truth, and a run on the simulated cage."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.config import load_rig_config
+from rig.engine.runner import Runner
+from rig.procedure.language import parse_procedure
+from rig.procedure.model import RigTiming
+from rig.procedure.plan import compile_plan, dry_run
+from rig.sim_command import sim_rig_config
+from rig.steps.linearity import nonlinearity
+from sim.cage import SimulatedCage
+from sim.config import load_config
+
+
+def test_a_known_quadratic_term_is_found_in_ppm() -> None:
+    """reading = 2 + 1.001 h + q h^2 over +-60 uT: h^2 is even, so the fitted line takes only its
+    mean; the worst residual is at the ends, q (60^2 - mean(h^2)); gain and offset come back."""
+    h = np.linspace(-60.0, 60.0, 13)
+    q = 1e-5  # 1/uT
+    residual, gain, offset = nonlinearity(h, 2.0 + 1.001 * h + q * h**2)
+    worst = np.max(np.abs(residual))
+    assert worst == pytest.approx(q * (60.0**2 - np.mean(h**2)), rel=1e-9)
+    assert gain == pytest.approx(1.001, abs=1e-9) and offset == pytest.approx(
+        2.0 + q * np.mean(h**2)
+    )
+    assert np.max(np.abs(nonlinearity(h, 1.0 + 0.99 * h)[0])) < 1e-9
+
+
+def test_the_sweep_goes_to_the_rig_field_limit_unless_given(tmp_path: Path) -> None:
+    path = tmp_path / "p.yaml"
+    path.write_text("procedure: lin\nsteps:\n  - linearity: {points: 5, dwell_s: 0.5}\n")
+    plan = next(compile_plan(parse_procedure(path), RigTiming(max_field_ut=80.0)))
+    fields = np.array([c.payload["field_ut"] for c in plan.commands if c.kind == "field"])
+    assert fields.shape == (15, 3) and np.abs(fields).max() == 80.0
+    assert np.count_nonzero(fields[:5, 1:]) == 0 and fields[0, 0] == -80.0
+    report = dry_run(parse_procedure(path), max_field_ut=60.0, timing=RigTiming(max_field_ut=80.0))
+    assert report.violations  # a limit of 80 uT on a 60 uT cage is caught before any hardware
+
+
+@pytest.mark.slow
+def test_on_the_simulated_cage(tmp_path: Path) -> None:
+    (tmp_path / "p.yaml").write_text(
+        "procedure: lin\nmagnetometers: {dut: dut, reference: reference}\nsteps:\n"
+        "  - linearity: {max_ut: 30, points: 7, dwell_s: 0.6}\n    name: linearity\n  - report: {}\n"
+    )
+    cfg = load_config()
+    with SimulatedCage(cfg) as cage:
+        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+        outcome = Runner(parse_procedure(tmp_path / "p.yaml"), load_rig_config(tmp_path / "rig.toml"),
+                         tmp_path / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True,
+                         live=False).run()  # fmt: skip
+    assert outcome.status == "complete", outcome.reason
+    res = outcome.results["linearity"]
+    assert res["full_scale_ut"] == 30.0 and set(res["axis_nonlinearity_ppm"]) == {"x", "y", "z"}
+    assert all(len(p["applied_ut"]) == 7 for p in res["points"].values())
+    # the simulated DUT is linear: what is left is the noise of a 7-sample mean (~10 nT of 30 uT)
+    assert 0 < res["nonlinearity_ppm"] < 1500, res["axis_nonlinearity_ppm"]
+    truth = load_config().magnetometer("dut")
+    for i, axis in enumerate("xyz"):  # the gain along each axis is the DUT's scale factor
+        assert res["points"][axis]["gain"][0] == pytest.approx(truth.scale[i], abs=0.01)
+    html = (outcome.folder / "report.html").read_text()
+    assert "Linearity &#x27;linearity&#x27;" in html and "ppm of" in html
