@@ -50,7 +50,7 @@ class Linearity(FieldStepKind):
 
     def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
         p = step.params
-        out = []
+        out: list[tuple[float, Array]] = []
         for axis in range(3):
             for v in np.linspace(
                 -full_scale_ut(step, timing), full_scale_ut(step, timing), p["points"]
