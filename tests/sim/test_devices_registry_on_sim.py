@@ -14,6 +14,7 @@ from rig.devices import open_load, open_magnetometer, open_supply
 from rig.engine.sampling import SensorSampler
 from rig.errors import UserInputError
 from sim.cage import SimulatedCage
+from tests.sim.rig_toml import rig_toml
 
 
 def device(devices: dict[str, Any], name: str) -> DeviceConfig:
@@ -80,10 +81,11 @@ def test_the_driver_picks_its_sampling_mode(
     assert times == sorted(times)
 
 
-def test_sim_rig_configuration_still_loads(tmp_path: Path, devices: dict[str, Any]) -> None:
-    from rig.sim_command import rig_config_toml
-
+def test_sim_rig_configuration_still_loads(
+    tmp_path: Path, devices: dict[str, Any], cage: SimulatedCage
+) -> None:
     path = tmp_path / "rig.toml"
-    path.write_text(rig_config_toml({"devices": devices}, "default"), encoding="utf-8")
+    nominal = [list(r) for r in cage.cfg.cage.coil_matrix_ut_per_a]
+    path.write_text(rig_toml({"devices": devices}, nominal), encoding="utf-8")
     cfg = load_rig_config(path)
     assert set(cfg.devices) == set(devices)

@@ -19,9 +19,9 @@ import pytest
 from drivers.regmap import shipped_maps
 from rig.config import load_rig_config
 from rig.devices import build_cage, open_load
-from rig.sim_command import rig_config_toml
 from sim.cage import SimulatedCage
 from sim.config import REGMAP_DIR, load_config
+from tests.sim.rig_toml import rig_toml
 
 SUPPLY_MAPS = sorted(
     m.name
@@ -58,7 +58,7 @@ def sim_with_map(
                 dev["regmap"] = Path(dev["regmap"]).stem
         nominal = [list(r) for r in cfg.cage.coil_matrix_ut_per_a]
         rig_path = tmp / "rig.toml"
-        rig_path.write_text(rig_config_toml(doc, cfg.source, nominal), encoding="utf-8")
+        rig_path.write_text(rig_toml(doc, nominal), encoding="utf-8")
         yield cage, rig_path, regmap
 
 
