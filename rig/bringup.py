@@ -321,6 +321,9 @@ def run(args: argparse.Namespace) -> int:
 
     found, unknown = scan(ports, buses, tcp, timeout_s=args.timeout, progress=progress)
     print(table(found, unknown))
+    if not (found or unknown):
+        print("rig devices scan: nothing answered; check power and cables, and give --port or"
+              " --tcp for ports this computer does not list", file=sys.stderr)  # fmt: skip
     if args.write is not None:
         if args.write.exists():
             raise UserInputError(

@@ -136,3 +136,16 @@ def test_a_new_supply_is_found_by_its_map(tmp_path: Path) -> None:
     assert [(f.kind, f.model, f.params["regmap"]) for f in found] == [
         ("regmap-supply", "Hanmatek HM310P", "hm310p")
     ]
+
+
+def test_nothing_answering_says_what_to_check(capsys: pytest.CaptureFixture[str]) -> None:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    try:
+        assert run(parser.parse_args(["--only-given", "--port", os.ttyname(slave)])) == 1
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert "nothing answered; check power and cables" in capsys.readouterr().err
