@@ -16,7 +16,7 @@ See ``docs/devices.md``.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
 from drivers.errors import DeviceError
@@ -164,7 +164,6 @@ class DeviceKind:
     probe: Prober | None = None
     probe_baudrates: tuple[int, ...] = ()
     probe_first: bool = False
-    extra: dict[str, Any] = field(default_factory=dict)
 
     @property
     def is_output(self) -> bool:
