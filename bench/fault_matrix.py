@@ -16,8 +16,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from faultlab import FAULTS, markdown, run_fault
+
 from rig import __version__
-from rig.fault_matrix import FAULTS, markdown, run_fault
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "reliability.md"
 SOAK_MARK = "<!-- soak -->"

@@ -31,7 +31,7 @@ from rig.procedure.plan import (
     dry_run,
     rig_timing,
 )
-from rig.run_commands import find_procedure
+from rig.procedure_files import find_procedure
 from rig.store import RunReader
 from rig.store.export import export_csv, export_hdf5
 from rig.store.run_store import new_run

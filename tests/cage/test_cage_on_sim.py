@@ -16,7 +16,7 @@ from rig.cage.limits import CageLimitError
 from rig.cage.model import CageModel
 from rig.config import load_rig_config
 from rig.devices import build_cage
-from rig.sim_command import rig_config_toml
+from rig.sim_rig import rig_config_toml
 from sim.cage import SimulatedCage
 from sim.config import SimConfig, load_config
 from sim.physics import springmann_matrix

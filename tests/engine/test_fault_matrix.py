@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from rig.fault_matrix import FAULTS, Fault, run_fault
+from bench.faultlab import FAULTS, Fault, run_fault
 
 
 @pytest.mark.parametrize("fault", FAULTS, ids=[f.key for f in FAULTS])

@@ -12,7 +12,7 @@ from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
 from rig.procedure.model import RigTiming
 from rig.procedure.plan import compile_plan, dry_run
-from rig.sim_command import sim_rig_config
+from rig.sim_rig import sim_rig_config
 from rig.steps.linearity import nonlinearity
 from sim.cage import SimulatedCage
 from sim.config import load_config

@@ -11,7 +11,7 @@ import pytest
 from rig.config import load_rig_config
 from rig.engine.runner import Runner
 from rig.procedure.language import ProcedureError, parse_procedure
-from rig.sim_command import sim_rig_config
+from rig.sim_rig import sim_rig_config
 from rig.steps.noise_spectrum import AROUND_1HZ, amplitude_density, band_mean
 from sim.cage import SimulatedCage
 from sim.config import load_config

@@ -15,8 +15,8 @@ from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
 from rig.procedure.orbit import geodetic, orbit_track, panel_current, sun_direction_eci
 from rig.procedure.plan import compile_plan
-from rig.run_commands import find_procedure
-from rig.sim_command import sim_rig_config
+from rig.procedure_files import find_procedure
+from rig.sim_rig import sim_rig_config
 from rig.store import RunReader
 from sim.cage import SimulatedCage
 from sim.config import load_config

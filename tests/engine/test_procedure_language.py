@@ -9,7 +9,7 @@ import pytest
 
 from rig.procedure.language import ProcedureError, parse_procedure
 from rig.procedure.plan import RigTiming, compile_plan, dry_run, fibonacci_directions
-from rig.run_commands import PROCEDURES_DIR
+from rig.procedure_files import PROCEDURES_DIR
 
 
 def write(tmp_path: Path, text: str) -> Path:

@@ -21,8 +21,8 @@ from rig.cli import main
 from rig.config import load_rig_config
 from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
-from rig.run_commands import find_procedure
-from rig.sim_command import sim_rig_config
+from rig.procedure_files import find_procedure
+from rig.sim_rig import sim_rig_config
 from rig.store import RunReader
 from sim.cage import SimulatedCage
 from sim.config import load_config

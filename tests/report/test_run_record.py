@@ -16,7 +16,7 @@ from rig.config import load_rig_config
 from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
 from rig.report.acceptance import build_report
-from rig.sim_command import sim_rig_config
+from rig.sim_rig import sim_rig_config
 from rig.store.seal import SEAL_FILE, data_digest, verify_run
 from sim.cage import SimulatedCage
 from sim.config import load_config

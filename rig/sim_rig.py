@@ -1,19 +1,14 @@
-"""``rig sim``: run the simulated cage as a standalone process until Ctrl-C or SIGTERM."""
+"""The rig configuration for a simulated cage: its devices, the reference's certificate and the
+coil constants as nameplate values (``rig sim --rig-config``, tests, benchmarks)."""
 
 from __future__ import annotations
 
 import json
 import math
-import signal
-import threading
-import time
-from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import numpy as np
 
-from rig.errors import UserInputError
 from sim.config import MagnetometerConfig, SimConfig
 
 
@@ -95,66 +90,3 @@ def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig) -> str:
             devices[mag.name]["rate_hz"] = mag.rate_hz
     nominal = [[float(v) for v in row] for row in cfg.cage.coil_matrix_ut_per_a]
     return rig_config_toml({"devices": devices}, cfg.source, nominal)
-
-
-def run_sim(
-    config_path: str | None,
-    endpoints_json: Path | None,
-    rig_config: Path | None,
-    duration_s: float | None,
-    quiet: bool,
-) -> int:
-    """Start the cage, publish its endpoints, wait for a stop request, stop cleanly."""
-    from sim.cage import SimulatedCage
-    from sim.config import DEFAULT_CONFIG, SimConfigError, load_config
-
-    try:
-        cfg = load_config(config_path or DEFAULT_CONFIG)
-    except SimConfigError as exc:
-        raise UserInputError(f"{exc}: fix the file or omit --config for the default cage") from None
-    stop = threading.Event()
-    received: list[int] = []
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        received.append(signum)
-        stop.set()
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    cage = SimulatedCage(cfg)
-    try:
-        endpoints = cage.start()
-        text = json.dumps(endpoints, indent=2) + "\n"
-        for path, content in (
-            (endpoints_json, text),
-            (rig_config, sim_rig_config(endpoints, cfg)),
-        ):
-            if path is not None:
-                try:
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    tmp = path.with_suffix(path.suffix + ".tmp")
-                    tmp.write_text(content, encoding="utf-8")
-                    tmp.replace(path)  # readers never see a half-written file
-                except OSError as exc:
-                    raise UserInputError(f"cannot write {path}: {exc.strerror}") from None
-        if not quiet:
-            print(f"simulated cage running ({cfg.source}); loopback only. Devices:")
-            for name, dev in endpoints["devices"].items():
-                where = dev.get("path") or f"{dev.get('host', '')}:{dev.get('port', '')}"
-                if dev.get("protocol") == "i2c":
-                    where = f"in-process bus, address 0x{dev['address']:02x}"
-                print(f"  {name:<12} {dev['kind']:<14} {dev['protocol']:<11} {where}")
-            for path in (endpoints_json, rig_config):
-                if path is not None:
-                    print(f"wrote {path}")
-            print("press Ctrl-C to stop", flush=True)
-        deadline = None if duration_s is None else time.monotonic() + duration_s
-        while not stop.wait(0.2):
-            if deadline is not None and time.monotonic() >= deadline:
-                break
-    finally:
-        cage.stop()
-        for s, handler in old.items():
-            signal.signal(s, handler)
-    if not quiet:
-        print("simulated cage stopped; all outputs off", flush=True)
-    return 0

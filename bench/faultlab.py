@@ -5,6 +5,10 @@ state), and what a run actually did: its status and exit code, the time from the
 output being off (polled in the simulator's physics every 2 ms), the samples the rig received but
 did not store, and the reason it gave. ``bench/fault_matrix.py`` runs all of them and writes
 ``docs/reliability.md``; ``tests/engine/test_fault_matrix.py`` runs the fast ones in CI.
+
+A test harness, not part of the product: it lives beside the benchmark that runs it. The script
+imports it as ``faultlab`` (a script's folder is on ``sys.path``), the tests as ``bench.faultlab``
+(``python -m pytest`` runs from the project root, as for ``tests.simproc``).
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from typing import Any
 from rig.config import load_rig_config
 from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
-from rig.sim_command import sim_rig_config
+from rig.sim_rig import sim_rig_config
 from rig.store import RunReader
 from sim.cage import SimulatedCage
 from sim.config import load_config

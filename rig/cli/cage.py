@@ -1,0 +1,157 @@
+"""``rig cage``: characterize the cage, set or null a field, with the safe state on every exit."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+from contextlib import ExitStack
+from pathlib import Path
+
+from rig.cli.common import Parser, Subparsers
+
+
+def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
+    cage = sub.add_parser(
+        "cage",
+        parents=parents,
+        help="drive the cage: characterize it, set or null a field",
+        description="Cage operations on the devices of a rig configuration (rig sim --rig-config writes one).",
+    )
+    cage_sub = cage.add_subparsers(dest="cage_command", required=True, parser_class=Parser)
+    ch = cage_sub.add_parser(
+        "characterize", parents=parents, help="fit B = K I + B0 from a current sweep"
+    )
+    ch.add_argument("--rig-config", type=Path, required=True, metavar="FILE.toml")
+    ch.add_argument("--amplitude", type=float, default=1.0, metavar="A", help="sweep current (A)")
+    ch.add_argument(
+        "--samples", type=int, default=20, metavar="N", help="reference samples per point"
+    )
+    ch.add_argument("--repeats", type=int, default=2, metavar="R", help="times through the sweep")
+    ch.set_defaults(func=_cmd_cage_characterize)
+    sf = cage_sub.add_parser("set-field", parents=parents, help="ramp to a field and hold it")
+    sf.add_argument(
+        "field", type=float, nargs=3, metavar=("BX", "BY", "BZ"), help="field in uT, cage frame"
+    )
+    sf.add_argument("--rig-config", type=Path, required=True, metavar="FILE.toml")
+    sf.add_argument(
+        "--trim", action="store_true", help="close the loop on the reference magnetometer"
+    )
+    sf.add_argument("--tolerance-nt", type=float, default=10.0, metavar="NT")
+    sf.add_argument(
+        "--hold", type=float, metavar="S", help="hold for S seconds (default: until Ctrl-C)"
+    )
+    sf.set_defaults(func=_cmd_cage_set_field)
+
+
+def _cmd_cage_characterize(args: argparse.Namespace) -> int:
+    return run_characterize(args.rig_config, args.amplitude, args.samples, args.repeats, args.quiet)
+
+
+def _cmd_cage_set_field(args: argparse.Namespace) -> int:
+    return run_set_field(
+        args.rig_config, args.field, args.trim, args.tolerance_nt, args.hold, args.quiet
+    )
+
+
+def _progress(done: int, total: int) -> None:
+    width = 30
+    filled = int(width * done / total)
+    sys.stderr.write(f"\r  [{'#' * filled}{'.' * (width - filled)}] {done}/{total} points")
+    if done == total:
+        sys.stderr.write("\n")
+    sys.stderr.flush()
+
+
+def run_characterize(
+    rig_config: Path, amplitude_a: float, samples: int, repeats: int, quiet: bool
+) -> int:
+    """Sweep, fit ``B = K I + B0``, print it, save a new versioned calibration file."""
+    from rig.cage.characterize import characterize
+    from rig.cli.signals import stop_on_signals
+    from rig.config import load_rig_config
+    from rig.devices import build_cage
+    from rig.errors import UserInputError
+
+    cfg = load_rig_config(rig_config)
+    if cfg.cage is None or cfg.cage.calibration is None:
+        raise UserInputError(
+            f"{rig_config}: [cage] needs 'calibration = \"FILE.json\"' to save the result"
+        )
+    if not 0 < amplitude_a <= min(cfg.cage.max_current_a):
+        raise UserInputError(
+            f"--amplitude {amplitude_a:g} A must be positive and within the {min(cfg.cage.max_current_a):g} A limit"
+        )
+    stop = threading.Event()
+    with stop_on_signals(stop, interrupt=True), ExitStack() as stack:
+        controller = build_cage(cfg, stack)
+        if not quiet:
+            print(f"characterizing the cage: +-{amplitude_a:g} A, {samples} samples per point")
+        model = characterize(controller, amplitude_a, samples=samples, repeats=repeats,
+                             progress=None if quiet else _progress)  # fmt: skip
+        version = model.save(cfg.cage.calibration)
+    if not quiet:
+        print("K (uT/A, +- 1 sigma):")
+        for row, sig in zip(model.k_ut_per_a, model.k_sigma, strict=True):
+            print("  " + "  ".join(f"{v:+9.4f} +-{s:.4f}" for v, s in zip(row, sig, strict=True)))
+        print(
+            "B0 (uT): "
+            + "  ".join(
+                f"{v:+8.3f} +-{s:.4f}" for v, s in zip(model.b0_ut, model.b0_sigma_ut, strict=True)
+            )
+        )
+        print(
+            f"residual rms {model.meta['residual_rms_nt']:.1f} nT; condition number {model.meta['condition_number']:.2f}"
+        )
+        print(f"wrote {version} (and {cfg.cage.calibration})")
+    return 0
+
+
+def run_set_field(rig_config: Path, field_ut: list[float], trim: bool, tolerance_nt: float, hold_s: float | None,
+                  quiet: bool) -> int:  # fmt: skip
+    """Ramp to a field (optionally trimmed on the reference), hold it, then go safe."""
+    import numpy as np
+
+    from drivers.errors import DeviceError
+    from rig.cli.signals import stop_on_signals
+    from rig.config import load_rig_config
+    from rig.devices import build_cage
+    from rig.errors import RigError
+
+    cfg = load_rig_config(rig_config)
+    stop = threading.Event()
+    with stop_on_signals(stop, interrupt=True):
+        try:
+            with ExitStack() as stack:
+                controller = build_cage(cfg, stack)
+                target = np.array(field_ut, float)
+                if trim:
+                    result = controller.trim(target, tolerance_nt=tolerance_nt)
+                    if not quiet:
+                        state = "settled" if result.settled else "NOT settled"
+                        print(
+                            f"trimmed in {result.iterations} iterations: error {result.error_nt:.1f} nT ({state})"
+                        )
+                    if not result.settled:
+                        raise RigError(
+                            f"the field did not settle within {tolerance_nt:g} nT; check the reference and the cage calibration"
+                        )
+                else:
+                    currents = controller.set_field(target)
+                    if not quiet:
+                        print("currents " + ", ".join(f"{c:+.4f} A" for c in currents))
+                if not quiet:
+                    print(
+                        f"holding {np.round(target, 3).tolist()} uT "
+                        + ("until Ctrl-C" if hold_s is None else f"for {hold_s:g} s")
+                    )
+                stop.wait(hold_s)
+        except KeyboardInterrupt:
+            if not quiet:
+                print("interrupted: outputs ramped down and off")
+            return 130
+        except DeviceError as exc:
+            raise RigError(f"{exc} (outputs were sent to their safe state)") from None
+    if not quiet:
+        print("done: outputs ramped down and off")
+    return 0

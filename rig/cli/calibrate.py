@@ -1,0 +1,201 @@
+"""``rig calibrate``: fit the measurement model to a CSV file or a stored run."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from rig.cli.common import EXIT_OK, Parser, Subparsers, columns, write_text
+from rig.errors import UserInputError
+
+
+def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
+    cal = sub.add_parser(
+        "calibrate",
+        parents=parents,
+        help="fit scale, offset, misalignment and current-to-bias to a CSV file",
+        description=(
+            "Fit m = T h + o + sum_j k_j u_j to recorded data. --field gives a vector (cage)"
+            " calibration, --field-magnitude an attitude-independent (scalar) one. Any consistent"
+            " field unit works; results are labelled uT."
+        ),
+    )
+    cal.add_argument(
+        "data",
+        type=Path,
+        metavar="DATA.csv|RUN",
+        help="CSV file with a header row, a run folder, or a run id under --runs-dir",
+    )
+    cal.add_argument(
+        "--runs-dir",
+        type=Path,
+        default=Path("runs"),
+        metavar="DIR",
+        help="where to look for a run id (default: runs)",
+    )
+    cal.add_argument(
+        "--measured", type=columns, metavar="COLX,COLY,COLZ",
+        help="raw DUT reading columns",
+    )  # fmt: skip
+    ref = cal.add_mutually_exclusive_group()
+    ref.add_argument(
+        "--field", type=columns, metavar="COLX,COLY,COLZ",
+        help="reference field vector columns (vector calibration)",
+    )  # fmt: skip
+    ref.add_argument(
+        "--field-magnitude", metavar="COL", help="reference field magnitude column (scalar)"
+    )
+    cal.add_argument(
+        "--telemetry", type=columns, default=[], metavar="COL1,COL2,...",
+        help="telemetry channels (currents) whose bias to fit",
+    )  # fmt: skip
+    cal.add_argument(
+        "--method",
+        choices=("ml", "twostep", "centered", "ellipsoid", "vector", "centered-seq", "ekf", "ukf"),
+        help="estimator (default: vector with --field, ml with --field-magnitude); centered-seq,"
+        " ekf and ukf are the sequential (real-time) filters, run over the rows in file order",
+    )
+    cal.add_argument(
+        "--filter-variant",
+        choices=("energy", "paper", "paper-augmented"),
+        default="energy",
+        help="ekf/ukf form: energy (default, converges from a zero start), paper (Crassidis et al."
+        " as published), paper-augmented (12-state UKF)",
+    )
+    cal.add_argument(
+        "--backend",
+        choices=("numpy", "filterpy"),
+        default="numpy",
+        help="filter implementation (filterpy runs the paper variants)",
+    )
+    cal.add_argument(
+        "--history", type=Path, metavar="HISTORY.csv",
+        help="write the filter's estimate and 1-sigma per parameter as it converges (CSV)",
+    )  # fmt: skip
+    cal.add_argument(
+        "--noise-nt", type=float, metavar="SIGMA",
+        help="raw noise per axis, 1-sigma in nT: the chi-square test and Cramer-Rao bound use it",
+    )  # fmt: skip
+    cal.add_argument(
+        "--robust", choices=("huber", "bisquare"), help="reweight against outliers (ml, vector)"
+    )
+    cal.add_argument("--out", type=Path, metavar="RESULT.json", help="write the result file")
+    cal.add_argument(
+        "--c-header", type=Path, metavar="FILE.h", help="write a C header for flight software"
+    )
+    cal.set_defaults(func=_cmd_calibrate)
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from rig.calibration import Samples
+    from rig.io.csv_table import read_columns
+
+    if args.data.is_dir():
+        return _calibrate_run(args)
+    if not args.data.exists():
+        run_folder = args.runs_dir / args.data
+        if (run_folder / "run.sqlite").exists():
+            args.data = run_folder
+            return _calibrate_run(args)
+        if args.data.suffix.lower() != ".csv":
+            raise UserInputError(
+                f"no CSV file or run '{args.data}' (looked at {args.data} and {run_folder}):"
+                " give a CSV file, a run folder, or a run id listed by 'rig runs' (--runs-dir DIR)"
+            )
+    if args.measured is None:
+        raise UserInputError("--measured COLX,COLY,COLZ is required for a CSV file")
+    if args.field is None and args.field_magnitude is None:
+        raise UserInputError(
+            "give --field COLX,COLY,COLZ (vector) or --field-magnitude COL (scalar)"
+        )
+    if len(args.measured) != 3:
+        raise UserInputError(f"--measured needs three columns X,Y,Z, got {len(args.measured)}")
+    if args.field is not None and len(args.field) != 3:
+        raise UserInputError(f"--field needs three columns X,Y,Z, got {len(args.field)}")
+    if len(set(args.telemetry)) != len(args.telemetry):
+        raise UserInputError("--telemetry names a column twice: list each channel once")
+    wanted = list(args.measured) + (args.field or [args.field_magnitude]) + list(args.telemetry)
+    cols = read_columns(args.data, list(dict.fromkeys(wanted)))
+    import numpy as np
+
+    measured = np.column_stack([cols[c] for c in args.measured])
+    telemetry = np.column_stack([cols[c] for c in args.telemetry]) if args.telemetry else None
+    if args.field is not None:
+        samples = Samples.build(
+            measured,
+            field_ut=np.column_stack([cols[c] for c in args.field]),
+            telemetry=telemetry,
+            channels=tuple(args.telemetry),
+        )
+    else:
+        samples = Samples.build(
+            measured,
+            field_magnitude_ut=cols[args.field_magnitude],
+            telemetry=telemetry,
+            channels=tuple(args.telemetry),
+        )
+    return _fit_and_emit(samples, args)
+
+
+def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:
+    """Fit, write the result file and C header if asked, print the table."""
+    from rig.calibration import calibrate
+    from rig.calibration.export_c import c_header
+    from rig.calibration.realtime import FilterOptions
+    from rig.report.tables import calibration_table
+
+    filter_methods = ("centered-seq", "ekf", "ukf")
+    if args.history is not None and args.method not in filter_methods:
+        raise UserInputError("--history needs a filter: add --method centered-seq, ekf or ukf")
+    opts = None
+    if args.method in filter_methods:
+        opts = FilterOptions(args.method, args.filter_variant, args.backend)
+    result = calibrate(
+        samples, args.method, noise_nt=args.noise_nt, robust=args.robust, filter_options=opts
+    )
+    if args.history is not None and result.history is not None:
+        write_text(args.history, _history_csv(result))
+    if args.out is not None:
+        write_text(args.out, json.dumps(result.to_dict(), indent=2) + "\n")
+    if args.c_header is not None:
+        write_text(
+            args.c_header, c_header(result, prefix=args.c_header.stem, source=str(args.data))
+        )
+    if not args.quiet:
+        print(calibration_table(result, source=str(args.data), verbose=args.verbose))
+        for path in (args.out, args.c_header, args.history):
+            if path is not None:
+                print(f"wrote {path}")
+    return EXIT_OK
+
+
+def _history_csv(result: Any) -> str:
+    """The filter history as CSV: sample number, every parameter, then every 1-sigma."""
+    import io
+
+    import numpy as np
+
+    from rig.calibration.realtime import history_table
+
+    header, body = history_table(result.history, result.names)
+    buf = io.StringIO()
+    buf.write(",".join(header) + "\n")
+    np.savetxt(buf, body, delimiter=",", fmt="%.9g")
+    return buf.getvalue()
+
+
+def _calibrate_run(args: argparse.Namespace) -> int:
+    """Re-fit the DUT from a stored run (its procedure's magnetometers and loads by default);
+    ``--method ml`` (or another scalar method) fits attitude-independently from the same data."""
+    from rig.engine.analysis import stored_run_data
+    from rig.store import RunReader
+
+    reader = RunReader(args.data)
+    try:
+        telemetry = list(args.telemetry) if args.telemetry else list(reader.meta().get("loads", []))
+        samples, _ = stored_run_data(reader, telemetry)
+    finally:
+        reader.close()
+    return _fit_and_emit(samples, args)

@@ -1,0 +1,131 @@
+"""``rig check``: dry-run a procedure (timeline, duration, peaks against the rig's limits)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from rig.cli.common import Parser, Subparsers, parse_sets
+
+if TYPE_CHECKING:
+    from rig.config import RigConfig
+
+
+def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
+    chk = sub.add_parser(
+        "check", parents=parents, help="dry-run a procedure: timeline, duration, limits"
+    )
+    chk.add_argument("procedure", metavar="PROCEDURE")
+    chk.add_argument(
+        "--rig",
+        type=Path,
+        metavar="CONFIG.toml",
+        help="check currents and fields against its limits",
+    )
+    chk.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    chk.set_defaults(func=_cmd_check)
+
+
+def _cmd_check(args: argparse.Namespace) -> int:
+    return run_check(args.procedure, args.rig, args.set, args.quiet)
+
+
+def cage_model_arrays(cfg: RigConfig | None) -> tuple[Any, Any]:
+    """The cage model for a dry run: the calibration file if there is one, else the nominal K."""
+    if cfg is None or cfg.cage is None:
+        return None, None
+    import numpy as np
+
+    from rig.cage.model import CageModel
+
+    if cfg.cage.calibration is not None and cfg.cage.calibration.exists():
+        m = CageModel.load(cfg.cage.calibration)
+        return m.k_ut_per_a, m.b0_ut
+    if cfg.cage.nominal_k_ut_per_a is not None:
+        return np.array(cfg.cage.nominal_k_ut_per_a), np.zeros(3)
+    return None, None
+
+
+def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: bool) -> int:
+    """Dry run: timeline, duration, peaks against limits. Exit 0 only when every limit was checked
+    and holds; 1 on a violation or when limits could not be checked (no ``--rig``, no cage model)."""
+    from rig.config import load_rig_config
+    from rig.errors import UserInputError
+    from rig.procedure.language import FIELD_STEPS, parse_procedure
+    from rig.procedure.plan import ABSOLUTE_MAX_FIELD_UT, dry_run, rig_timing
+    from rig.procedure_files import find_procedure
+
+    proc = parse_procedure(find_procedure(procedure), parse_sets(sets))
+    cfg = load_rig_config(rig_config) if rig_config else None
+    k, b0 = cage_model_arrays(cfg)
+    loads_max = {}
+    unchecked: list[str] = []
+    if cfg is not None:
+        for name in proc.loads:
+            if name not in cfg.devices:
+                raise UserInputError(f"{proc.path}: load '{name}' is not a device in {cfg.path}")
+            limit = cfg.devices[name].get("max_current_a")
+            if limit is not None:
+                loads_max[name] = float(limit)
+    cage = cfg.cage if cfg is not None else None
+    dr = dry_run(
+        proc,
+        k,
+        b0,
+        cage.max_current_a if cage else None,
+        cage.max_field_ut if cage else None,
+        loads_max,
+        rig_timing(cfg),
+    )
+    if cfg is None:
+        unchecked.append(
+            "no rig configuration given (--rig CONFIG.toml); the rig's field, coil current and"
+            f" load current limits were not checked (only |B| <= {ABSOLUTE_MAX_FIELD_UT:g} uT)"
+        )
+    elif cage is None:
+        unchecked.append(
+            f"{cfg.path} has no [cage] section; field and coil current limits were not checked"
+        )
+    elif k is None and any(s.kind in FIELD_STEPS for s in proc.steps):
+        unchecked.append(
+            f"{cfg.path} has no cage model ([cage].calibration file or nominal_k_ut_per_a); coil"
+            " currents were not checked: run cage-characterization or add nominal_k_ut_per_a"
+        )
+    no_limit = [ch for ch in dr.peak_load_a if ch not in loads_max] if cfg is not None else []
+    if not quiet:
+        live = any(s.kind == "live_calibrate" for s in proc.steps)
+        how_long = "at most" if live else "about"
+        print(
+            f"{proc.title} ({proc.path}): {len(proc.steps)} steps, {how_long} {dr.duration_s:.0f} s"
+            + (" (live_calibrate steps may stop earlier)" if live else "")
+        )
+        for t, name, summary in dr.timeline:
+            print(f"  {t:7.1f} s  {name:<28} {summary}")
+        print(
+            f"peak |B| {dr.peak_field_ut:.1f} uT"
+            + (f" (limit {cage.max_field_ut:g})" if cage else "")
+        )
+        if k is not None:
+            print("peak coil currents " + ", ".join(f"{'xyz'[i]} {a:.3f} A" for i, a in enumerate(dr.peak_current_a))
+                  + (f" (limits {', '.join(f'{x:g}' for x in cage.max_current_a)} A)" if cage else ""))  # fmt: skip
+        for ch, amps in dr.peak_load_a.items():
+            limit_text = f" (limit {loads_max[ch]:g})" if ch in loads_max else ""
+            print(f"peak load {ch} {amps:.3f} A{limit_text}")
+        if no_limit and cfg is not None:
+            print(
+                f"note: {', '.join(no_limit)} {'has' if len(no_limit) == 1 else 'have'} no"
+                f" max_current_a in {cfg.path}: only the instrument limits the current"
+            )
+    for v in dr.violations:
+        print(f"LIMIT: {v}")
+    for u in unchecked:
+        print(f"NOT CHECKED: {u}")
+    if not quiet:
+        if dr.violations:
+            print(f"{len(dr.violations)} limit violation(s): fix the procedure")
+        elif unchecked:
+            print("limits NOT CHECKED (see above): not known to be safe on the rig")
+        else:
+            print(f"OK: within the limits of {cfg.path if cfg else '?'}")
+    return 0 if not dr.violations and not unchecked else 1

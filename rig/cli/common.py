@@ -1,0 +1,75 @@
+"""What the command modules share: the parser class, exit codes and small argument helpers.
+
+Nothing here imports numpy or the engine: every ``rig`` invocation imports every command module to
+build the parser, so heavy imports belong inside the handlers.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any, TypeAlias
+
+from rig.errors import UserInputError
+
+EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+Subparsers: TypeAlias = "argparse._SubParsersAction[Parser]"
+"""What ``add_subparsers`` returns: a command module's ``add_parser`` adds its sub-command to it."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with the project's one-line error and exit code 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(EXIT_INPUT, f"rig: {message} (see '{self.prog} --help')\n")
+
+
+def columns(text: str) -> list[str]:
+    """``A,B,C`` as a list of column names (blanks dropped)."""
+    return [c.strip() for c in text.split(",") if c.strip()]
+
+
+def write_text(path: Path, text: str) -> None:
+    """Write a user-named output file; a failure is a one-line input error."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise UserInputError(f"cannot write {path}: {exc.strerror}: choose another path") from None
+
+
+def parse_sets(items: list[str]) -> dict[str, str]:
+    """``--set name=value`` pairs."""
+    out = {}
+    for item in items:
+        if "=" not in item:
+            raise UserInputError(f"--set {item!r}: write --set name=value")
+        k, v = item.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+def resolve_run(run: str, runs_dir: Path) -> Path:
+    """A run folder by path or id."""
+    p = Path(run)
+    if (p / "run.sqlite").exists():
+        return p
+    q = runs_dir / run
+    if (q / "run.sqlite").exists():
+        return q
+    raise UserInputError(f"no run '{run}' (looked at {p} and {q}); list runs with 'rig runs'")
+
+
+def criterion_value(row: dict[str, Any]) -> str:
+    """A verdict row's value with its unit and limits, or why it has none."""
+    if "value" not in row:
+        return str(row.get("reason", ""))
+    unit = f" {row['unit']}" if row.get("unit") else ""
+    lo, hi = row.get("min"), row.get("max")
+    limits = (
+        f"{lo:g}..{hi:g}"
+        if lo is not None and hi is not None
+        else (f"max {hi:g}" if hi is not None else (f"min {lo:g}" if lo is not None else ""))
+    )
+    return f"{row['value']:.4g}{unit}" + (f"  ({limits})" if limits else "")

@@ -1,0 +1,40 @@
+"""``rig export``: a run as CSV files or one HDF5 file."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from rig.cli.common import Parser, Subparsers, resolve_run
+
+
+def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
+    exp = sub.add_parser("export", parents=parents, help="export a run to CSV or HDF5")
+    exp.add_argument("run", metavar="RUN")
+    exp.add_argument("--format", choices=("csv", "hdf5"), default="csv")
+    exp.add_argument("--out", type=Path, metavar="PATH")
+    exp.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    exp.set_defaults(func=_cmd_export)
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    return export_run(args.run, args.runs_dir, args.format, args.out)
+
+
+def export_run(run: str, runs_dir: Path, fmt: str, out: Path | None) -> int:
+    """``rig export``."""
+    from rig.store import RunReader
+    from rig.store.export import export_csv, export_hdf5
+
+    folder = resolve_run(run, runs_dir)
+    reader = RunReader(folder)
+    try:
+        if fmt == "csv":
+            files = export_csv(reader, out or folder / "csv")
+            print(f"wrote {len(files)} files to {files[0].parent}")
+        else:
+            path = export_hdf5(reader, out or folder / "run.h5")
+            print(f"wrote {path}")
+    finally:
+        reader.close()
+    return 0

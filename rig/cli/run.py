@@ -1,0 +1,93 @@
+"""``rig run``: execute a procedure on the rig a configuration names; the run summary."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from rig.cli.common import Parser, Subparsers, criterion_value, parse_sets
+
+
+def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
+    runp = sub.add_parser("run", parents=parents, help="run a procedure on the rig")
+    runp.add_argument(
+        "procedure", metavar="PROCEDURE", help="a .yaml file or a shipped procedure name"
+    )
+    runp.add_argument(
+        "--rig", type=Path, required=True, metavar="CONFIG.toml", help="rig configuration"
+    )
+    runp.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE", help="set a procedure parameter"
+    )
+    runp.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    runp.add_argument(
+        "--yes", action="store_true", help="confirm operator prompts automatically (recorded)"
+    )
+    runp.set_defaults(func=_cmd_run)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    return run_procedure(args.procedure, args.rig, args.set, args.runs_dir, args.yes, args.quiet)
+
+
+def confirm_all(text: str) -> bool:
+    print(f"[auto-confirmed] {text}")
+    return True
+
+
+def confirm_all_quietly(text: str) -> bool:
+    return True  # the run records every prompt and that it was confirmed
+
+
+def auto_confirm(quiet: bool) -> Callable[[str], bool]:
+    """The operator-prompt answer of ``--yes`` (and ``rig demo``): yes, said aloud unless quiet."""
+    return confirm_all_quietly if quiet else confirm_all
+
+
+def summarize(outcome: Any, quiet: bool) -> None:
+    """A short terminal summary of a finished run. With ``quiet`` only a run that did not complete
+    says so: one line on stderr with its status and reason (``-q`` means errors only, not nothing)."""
+    verdict = outcome.results.get("verdict")
+    if quiet:
+        if outcome.status != "complete":
+            failed = [
+                r["name"] for r in (verdict or {}).get("criteria", []) if r["verdict"] != "PASS"
+            ]
+            what = f" ({', '.join(failed)})" if outcome.status == "failed" and failed else ""
+            prefix = "error: " if outcome.status == "error" else ""
+            print(
+                f"rig: {prefix}run {outcome.folder.name} ended with status {outcome.status}:"
+                f" {outcome.reason}{what}; data in {outcome.folder}",
+                file=sys.stderr,
+            )
+        return
+    print(f"run {outcome.folder.name}: {outcome.status} ({outcome.reason})")
+    if verdict:
+        for row in verdict["criteria"]:
+            print(f"  {row['verdict']:<4} {row['name']:<28} {criterion_value(row)}")
+        print(f"VERDICT: {verdict['overall']}")
+    for name in ("report.html", "report.pdf"):
+        if (outcome.folder / name).exists():
+            print(f"report: {outcome.folder / name}")
+    print(f"data:   {outcome.folder / 'run.sqlite'}")
+
+
+def run_procedure(
+    procedure: str, rig_config: Path, sets: list[str], runs_dir: Path, yes: bool, quiet: bool
+) -> int:
+    """``rig run``: execute on the rig named by the configuration."""
+    from rig.config import load_rig_config
+    from rig.engine.runner import Runner
+    from rig.procedure.language import parse_procedure
+    from rig.procedure_files import find_procedure
+
+    proc = parse_procedure(find_procedure(procedure), parse_sets(sets))
+    cfg = load_rig_config(rig_config)
+    confirm = auto_confirm(quiet) if yes else None
+    runner = Runner(proc, cfg, runs_dir, confirm=confirm, quiet=quiet)
+    outcome = runner.run()
+    summarize(outcome, quiet)
+    return outcome.exit_code

@@ -1,0 +1,49 @@
+"""``rig runs``: the recorded runs, newest first, with status and verdict."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from rig.cli.common import Parser, Subparsers
+
+
+def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
+    runs = sub.add_parser("runs", parents=parents, help="list recorded runs")
+    runs.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    runs.set_defaults(func=_cmd_runs)
+
+
+def _cmd_runs(args: argparse.Namespace) -> int:
+    return list_runs_cmd(args.runs_dir, args.quiet)
+
+
+def run_verdict(folder: Path) -> str | None:
+    """The overall verdict (PASS/FAIL) stored by a run's check step, None without one."""
+    from rig.store import RunReader
+
+    reader = RunReader(folder)
+    try:
+        verdict = reader.results().get("verdict")
+    finally:
+        reader.close()
+    return str(verdict["overall"]) if isinstance(verdict, dict) and "overall" in verdict else None
+
+
+def list_runs_cmd(runs_dir: Path, quiet: bool) -> int:
+    """``rig runs``: one line per run, newest first, with its status and verdict."""
+    from rig.store import list_runs
+
+    runs = list_runs(runs_dir)
+    if not runs:
+        print(f"no runs in {runs_dir}")
+        return 0
+    width = max(len("RUN"), *(len(r.run_id) for r in runs))
+    print(f"{'RUN':<{width}} {'STATUS':<10} {'VERDICT':<7} {'PROCEDURE':<24} DUT")
+    for r in runs:
+        m = r.meta
+        print(
+            f"{r.run_id:<{width}} {r.status:<10} {run_verdict(r.folder) or '-':<7}"
+            f" {m.get('procedure', ''):<24} {m.get('dut_serial', '') or '-'}"
+        )
+    return 0
