@@ -247,3 +247,15 @@ def test_filter_method_result_and_history(rax_csv: Path, tmp_path: Path) -> None
     assert rows["sigma_a"][-1] < 0.1 * rows["sigma_a"][len(rows) // 10]  # sigma shrinks
     proc = rig("calibrate", str(rax_csv), *RAX_ARGS, "--history", str(hist))
     _one_line_error(proc, "--history needs a filter")
+
+
+def test_method_choices_come_from_the_estimator_table() -> None:
+    import argparse
+
+    from rig.calibration.estimators import method_names
+    from rig.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    method = next(a for a in sub.choices["calibrate"]._actions if a.dest == "method")
+    assert tuple(method.choices or ()) == method_names()
+    assert "centered-seq, ekf and ukf are the sequential" in (method.help or "")

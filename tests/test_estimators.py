@@ -175,3 +175,49 @@ def test_apply_corrects_raw_data(rax_case: SyntheticCase) -> None:
     assert abs(np.sqrt(np.mean(err_nt**2)) - result.residual_rms_nt) < 1e-6
     with pytest.raises(ValueError, match="needs telemetry"):
         result.calibration.apply(s.measured_ut)
+
+
+def test_estimator_table_is_the_one_list_of_names() -> None:
+    """Every row is named in the Method type and the filters' own type names the sequential rows;
+    the table tells batch from sequential and scalar from vector."""
+    from typing import get_args
+
+    from rig.calibration import METHODS
+    from rig.calibration.estimators import ESTIMATORS, Method, estimator, method_names
+    from rig.calibration.realtime import FilterMethod
+
+    assert tuple(e.name for e in ESTIMATORS) == get_args(Method) == method_names() == METHODS
+    assert method_names(kind="sequential") == get_args(FilterMethod)
+    assert method_names(kind="batch") == ("ml", "twostep", "centered", "ellipsoid", "vector")
+    assert method_names(model="vector") == ("vector",)
+    assert method_names(robust=True) == ("ml", "vector")
+    assert all(e.description and estimator(e.name) is e for e in ESTIMATORS)
+    with pytest.raises(CalibrationError, match="unknown method 'lsq': use one of ml, twostep"):
+        calibrate(Samples.build(np.ones((20, 3)), field_magnitude_ut=np.ones(20)), "lsq")  # type: ignore[arg-type]
+
+
+def test_every_estimator_in_the_table_runs(
+    rax_case: SyntheticCase, cage_case: SyntheticCase
+) -> None:
+    from rig.calibration.estimators import ESTIMATORS
+
+    for e in ESTIMATORS:
+        case = cage_case if e.model == "vector" else rax_case
+        samples = case.samples if e.kind == "batch" else _first(case.samples, 600)
+        result = calibrate(samples, e.name, noise_nt=100.0)
+        assert result.method == e.name and result.model == e.model
+
+
+def _first(s: Samples, n: int) -> Samples:
+    tel = s.telemetry[:n] if s.n_channels else None
+    return Samples.build(s.measured_ut[:n], field_magnitude_ut=s.field_magnitude_ut[:n],
+                         telemetry=tel, channels=s.channels)  # fmt: skip
+
+
+def test_the_table_loads_without_numpy() -> None:
+    """The CLI builds its parser from the table at every start; numpy waits for a fit."""
+    import subprocess
+    import sys
+
+    code = "import sys, rig.calibration.estimators, rig.cli; sys.exit('numpy' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0

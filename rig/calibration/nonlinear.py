@@ -1,4 +1,4 @@
-"""Iterative estimators: scalar maximum likelihood and TWOSTEP (Alonso-Shuster)."""
+"""Iterative estimators: scalar maximum likelihood, TWOSTEP (Alonso-Shuster), robust vector fit."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 
 from rig.calibration.diagnostics import is_constant_field, require_varying_field
 from rig.calibration.estimate import Estimate, delta_method
-from rig.calibration.linear import centered_fit, ellipsoid_fit
+from rig.calibration.linear import centered_fit, ellipsoid_fit, vector_fit
 from rig.calibration.params import Array
 from rig.calibration.residuals import (
     Samples,
@@ -15,9 +15,10 @@ from rig.calibration.residuals import (
     scalar_residuals,
     scalar_residuals_only,
     theta_from_p,
+    vector_residuals,
     z_residuals,
 )
-from rig.calibration.robust import RobustLoss, robust_weights
+from rig.calibration.robust import RobustLoss, robust_scale, robust_weights
 from rig.calibration.solver import covariance_from_jacobian, levenberg_marquardt
 from rig.errors import CalibrationError
 
@@ -107,3 +108,21 @@ def twostep_fit(s: Samples, noise_ut: float | None = None) -> Estimate:
     cov_theta = covariance_from_jacobian(sol.jacobian, sol.cost / dof)
     p, cov = delta_method(p_from_theta, sol.x, cov_theta, "TWOSTEP")
     return Estimate("twostep", p, cov, iterations=sol.iterations)
+
+
+def robust_vector_fit(s: Samples, loss: RobustLoss) -> Estimate:
+    """IRLS around the cage linear least squares, one weight per sample from its residual norm."""
+    est = vector_fit(s)
+    weights = np.ones(s.n)
+    for _ in range(MAX_IRLS_PASSES):
+        assert est.rotation_ref is not None
+        r, _ = vector_residuals(est.p, s, est.rotation_ref)
+        per_axis = r.reshape(-1, 3)
+        size = np.linalg.norm(per_axis, axis=1) / np.sqrt(3.0)
+        new_w = robust_weights(size, loss, scale=robust_scale(per_axis.reshape(-1)))
+        change = float(np.max(np.abs(new_w - weights)))
+        weights = new_w
+        est = vector_fit(s, weights)
+        if change < 1e-3:
+            break
+    return est

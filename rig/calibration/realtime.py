@@ -22,8 +22,9 @@ from rig.calibration.residuals import Samples, p_from_theta
 from rig.calibration.zmodel import ZModel, ZSample, z_sample
 from rig.errors import CalibrationError
 
-FilterMethod = Literal["centered-seq", "ekf", "ukf"]
-FILTER_METHODS: tuple[FilterMethod, ...] = ("centered-seq", "ekf", "ukf")
+FilterMethod = Literal[
+    "centered-seq", "ekf", "ukf"
+]  # the sequential rows of rig.calibration.estimators
 Variant = Literal["energy", "paper", "paper-augmented"]
 VARIANTS: tuple[Variant, ...] = ("energy", "paper", "paper-augmented")
 Backend = Literal["numpy", "filterpy"]

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from rig.calibration.estimators import DEFAULT_METHOD, method_names, spoken
 from rig.cli.common import EXIT_OK, Parser, Subparsers, columns, write_text
 from rig.errors import UserInputError
 
@@ -53,9 +54,11 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     )  # fmt: skip
     cal.add_argument(
         "--method",
-        choices=("ml", "twostep", "centered", "ellipsoid", "vector", "centered-seq", "ekf", "ukf"),
-        help="estimator (default: vector with --field, ml with --field-magnitude); centered-seq,"
-        " ekf and ukf are the sequential (real-time) filters, run over the rows in file order",
+        choices=method_names(),
+        help=f"estimator (default: {DEFAULT_METHOD['vector']} with --field,"
+        f" {DEFAULT_METHOD['scalar']} with --field-magnitude);"
+        f" {spoken(method_names(kind='sequential'), 'and')} are the sequential (real-time)"
+        " filters, run over the rows in file order",
     )
     cal.add_argument(
         "--filter-variant",
@@ -79,7 +82,9 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
         help="raw noise per axis, 1-sigma in nT: the chi-square test and Cramer-Rao bound use it",
     )  # fmt: skip
     cal.add_argument(
-        "--robust", choices=("huber", "bisquare"), help="reweight against outliers (ml, vector)"
+        "--robust",
+        choices=("huber", "bisquare"),
+        help=f"reweight against outliers ({', '.join(method_names(robust=True))})",
     )
     cal.add_argument("--out", type=Path, metavar="RESULT.json", help="write the result file")
     cal.add_argument(
@@ -146,9 +151,9 @@ def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:
     from rig.calibration.realtime import FilterOptions
     from rig.report.tables import calibration_table
 
-    filter_methods = ("centered-seq", "ekf", "ukf")
+    filter_methods = method_names(kind="sequential")
     if args.history is not None and args.method not in filter_methods:
-        raise UserInputError("--history needs a filter: add --method centered-seq, ekf or ukf")
+        raise UserInputError(f"--history needs a filter: add --method {spoken(filter_methods)}")
     opts = None
     if args.method in filter_methods:
         opts = FilterOptions(args.method, args.filter_variant, args.backend)
