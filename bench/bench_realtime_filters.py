@@ -20,13 +20,13 @@ from collections.abc import Callable
 import numpy as np
 from scipy.stats import chi2
 
-from rig.calibration.energy_filter import EnergyFilter
-from rig.calibration.filters import ExtendedKalman, UnscentedKalman
-from rig.calibration.filters_filterpy import FilterpyFilter
-from rig.calibration.linear import centered_fit
-from rig.calibration.nonlinear import twostep_fit
+from rig.calibration.batch.linear import centered_fit
+from rig.calibration.batch.nonlinear import twostep_fit
 from rig.calibration.residuals import Samples, theta_from_p
-from rig.calibration.zmodel import ZModel, ZSample, symmetric_root, z_sample
+from rig.calibration.sequential.energy_filter import EnergyFilter
+from rig.calibration.sequential.filters import ExtendedKalman, UnscentedKalman
+from rig.calibration.sequential.filters_filterpy import FilterpyFilter
+from rig.calibration.sequential.zmodel import ZModel, ZSample, symmetric_root, z_sample
 from rig.procedure.orbit import circular_orbit_track
 
 MG_PER_UT = 10.0

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
-from rig.calibration.nonlinear import ml_fit, scalar_start
+from rig.calibration.batch.nonlinear import ml_fit, scalar_start
 from rig.calibration.residuals import scalar_noise_gain, scalar_residuals, scalar_residuals_only
 from rig.calibration.synthetic import rax_like
 from rig.io.csv_table import write_columns

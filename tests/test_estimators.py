@@ -184,7 +184,7 @@ def test_estimator_table_is_the_one_list_of_names() -> None:
 
     from rig.calibration import METHODS
     from rig.calibration.estimators import ESTIMATORS, Method, estimator, method_names
-    from rig.calibration.realtime import FilterMethod
+    from rig.calibration.sequential.realtime import FilterMethod
 
     assert tuple(e.name for e in ESTIMATORS) == get_args(Method) == method_names() == METHODS
     assert method_names(kind="sequential") == get_args(FilterMethod)

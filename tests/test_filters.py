@@ -8,18 +8,18 @@ import pytest
 from scipy.stats import chi2
 
 from rig.calibration import calibrate
-from rig.calibration.energy_filter import EnergyFilter, EnergyModel
-from rig.calibration.filters import ExtendedKalman, UnscentedKalman, initial_covariance
-from rig.calibration.linear import centered_fit
-from rig.calibration.realtime import (
+from rig.calibration.batch.linear import centered_fit
+from rig.calibration.residuals import numeric_jacobian, p_from_theta, theta_from_p, z_residuals
+from rig.calibration.sequential.energy_filter import EnergyFilter, EnergyModel
+from rig.calibration.sequential.filters import ExtendedKalman, UnscentedKalman, initial_covariance
+from rig.calibration.sequential.realtime import (
     FilterOptions,
     make_filter,
     noise_from_second_differences,
     run_filter,
 )
-from rig.calibration.residuals import numeric_jacobian, p_from_theta, theta_from_p, z_residuals
+from rig.calibration.sequential.zmodel import ZModel, z_sample
 from rig.calibration.synthetic import cage_like, rax_like
-from rig.calibration.zmodel import ZModel, z_sample
 from rig.errors import CalibrationError
 
 

@@ -23,9 +23,9 @@ from rig.errors import CalibrationError
 if TYPE_CHECKING:
     from rig.calibration.estimate import Estimate
     from rig.calibration.params import Array
-    from rig.calibration.realtime import FilterOptions
     from rig.calibration.residuals import Samples
     from rig.calibration.robust import RobustLoss
+    from rig.calibration.sequential.realtime import FilterOptions
 
 Kind = Literal["batch", "sequential"]
 Model = Literal["scalar", "vector"]
@@ -64,32 +64,32 @@ class Estimator:
 
 
 def _vector(s: Samples, r: FitRequest) -> Estimate:
-    from rig.calibration.linear import vector_fit
-    from rig.calibration.nonlinear import robust_vector_fit
+    from rig.calibration.batch.linear import vector_fit
+    from rig.calibration.batch.nonlinear import robust_vector_fit
 
     return vector_fit(s) if r.robust is None else robust_vector_fit(s, r.robust)
 
 
 def _ml(s: Samples, r: FitRequest) -> Estimate:
-    from rig.calibration.nonlinear import ml_fit
+    from rig.calibration.batch.nonlinear import ml_fit
 
     return ml_fit(s, robust=r.robust)
 
 
 def _twostep(s: Samples, r: FitRequest) -> Estimate:
-    from rig.calibration.nonlinear import twostep_fit
+    from rig.calibration.batch.nonlinear import twostep_fit
 
     return twostep_fit(s, r.noise_ut)
 
 
 def _centered(s: Samples, r: FitRequest) -> Estimate:
-    from rig.calibration.linear import centered_fit
+    from rig.calibration.batch.linear import centered_fit
 
     return centered_fit(s)
 
 
 def _ellipsoid(s: Samples, r: FitRequest) -> Estimate:
-    from rig.calibration.linear import ellipsoid_fit
+    from rig.calibration.batch.linear import ellipsoid_fit
 
     return ellipsoid_fit(s)
 
@@ -98,7 +98,7 @@ def _filter(s: Samples, r: FitRequest) -> Estimate:
     """Any sequential method: the filter the options describe, run over the samples in order."""
     from dataclasses import replace
 
-    from rig.calibration.realtime import FilterMethod, FilterOptions, run_filter
+    from rig.calibration.sequential.realtime import FilterMethod, FilterOptions, run_filter
 
     opts = r.filter_options or FilterOptions()
     if opts.method != r.method:

@@ -1,9 +1,10 @@
-"""One entry point: pick an estimator from the table, run it, return a :class:`CalibrationResult`."""
+"""One entry point: pick an estimator from the table, run it, return a CalibrationResult."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from rig.calibration.batch.nonlinear import ml_fit
 from rig.calibration.diagnostics import check_samples
 from rig.calibration.estimators import (
     DEFAULT_METHOD,
@@ -13,12 +14,11 @@ from rig.calibration.estimators import (
     method_names,
     spoken,
 )
-from rig.calibration.nonlinear import ml_fit
 from rig.calibration.params import Array
-from rig.calibration.realtime import FilterOptions
 from rig.calibration.residuals import Samples, scalar_noise_gain, scalar_residuals_only
 from rig.calibration.result import CalibrationResult, summarize
 from rig.calibration.robust import RobustLoss
+from rig.calibration.sequential.realtime import FilterOptions
 from rig.errors import CalibrationError
 
 METHODS: tuple[Method, ...] = method_names()

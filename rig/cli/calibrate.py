@@ -148,7 +148,7 @@ def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:
     """Fit, write the result file and C header if asked, print the table."""
     from rig.calibration import calibrate
     from rig.calibration.export_c import c_header
-    from rig.calibration.realtime import FilterOptions
+    from rig.calibration.sequential.realtime import FilterOptions
     from rig.report.tables import calibration_table
 
     filter_methods = method_names(kind="sequential")
@@ -182,7 +182,7 @@ def _history_csv(result: Any) -> str:
 
     import numpy as np
 
-    from rig.calibration.realtime import history_table
+    from rig.calibration.sequential.realtime import history_table
 
     header, body = history_table(result.history, result.names)
     buf = io.StringIO()

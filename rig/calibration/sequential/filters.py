@@ -3,9 +3,9 @@
 Crassidis, Lai and Harman: sequential centered least squares (eqs. 19-22), the extended Kalman
 filter (eqs. 23-27) and the Unscented filter (eqs. 28-47, the 9-state form with the state-dependent
 measurement variance and the augmented form with the raw noise in the state), every one extended
-with current-to-bias states (:mod:`rig.calibration.zmodel`). The parameters are constant, so there
-is no propagation step; optional process noise (a random walk per state) lets slowly varying
-parameters be tracked.
+with current-to-bias states (:mod:`rig.calibration.sequential.zmodel`). The parameters are
+constant, so there is no propagation step; optional process noise (a random walk per state) lets
+slowly varying parameters be tracked.
 
 The EKF has two modes. ``order=1`` is the paper's filter, which from a zero start with large bias
 errors drops the ``E[c^T (I+E)^-1 c] = c^T (I+E)^-1 c + tr(...P...)`` part of the predicted
@@ -26,7 +26,7 @@ import numpy as np
 
 from rig.calibration.params import Array
 from rig.calibration.residuals import sym_from_e
-from rig.calibration.zmodel import M_FROM_E, ZModel, ZSample, bias_energy, symmetric_root
+from rig.calibration.sequential.zmodel import M_FROM_E, ZModel, ZSample, bias_energy, symmetric_root
 
 FilterKind = Literal["centered-seq", "ekf", "ukf"]
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from rig.calibration.batch.linear import centered_fit, ellipsoid_fit, vector_fit
 from rig.calibration.diagnostics import is_constant_field, require_varying_field
 from rig.calibration.estimate import Estimate, delta_method
-from rig.calibration.linear import centered_fit, ellipsoid_fit, vector_fit
 from rig.calibration.params import Array
 from rig.calibration.residuals import (
     Samples,

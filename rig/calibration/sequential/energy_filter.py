@@ -27,10 +27,10 @@ from typing import Literal
 
 import numpy as np
 
-from rig.calibration.filters import UpdateInfo
-from rig.calibration.linear import independent_from_gram
+from rig.calibration.batch.linear import independent_from_gram
 from rig.calibration.params import Array
-from rig.calibration.zmodel import E_UNITS, ZModel, ZSample, metric
+from rig.calibration.sequential.filters import UpdateInfo
+from rig.calibration.sequential.zmodel import E_UNITS, ZModel, ZSample, metric
 
 Projection = Literal["jacobian", "unscented"]
 MAX_PROJECTION_STEPS = 30

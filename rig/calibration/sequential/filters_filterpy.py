@@ -1,10 +1,10 @@
 """The paper's EKF and UKF through filterpy (the project's reference backend).
 
-Same model, start and tuning as :mod:`rig.calibration.filters`; the tests hold the two backends to
-the same answer to numerical precision. filterpy predicts with ``fx = identity`` (constant
-parameters), which with ``Q = 0`` returns the state and covariance unchanged, as the paper's eqs.
-40-41 note. The augmented (12-state) UKF keeps the raw noise in the last three states and resets
-them to zero mean and covariance ``Sigma`` before every update (eq. 47).
+Same model, start and tuning as :mod:`rig.calibration.sequential.filters`; the tests hold the two
+backends to the same answer to numerical precision. filterpy predicts with ``fx = identity``
+(constant parameters), which with ``Q = 0`` returns the state and covariance unchanged, as the
+paper's eqs. 40-41 note. The augmented (12-state) UKF keeps the raw noise in the last three
+states and resets them to zero mean and covariance ``Sigma`` before every update (eq. 47).
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from rig.calibration.filters import UpdateInfo
 from rig.calibration.params import Array
-from rig.calibration.zmodel import ZModel, ZSample, bias_energy
+from rig.calibration.sequential.filters import UpdateInfo
+from rig.calibration.sequential.zmodel import ZModel, ZSample, bias_energy
 
 
 class FilterpyFilter:

@@ -1,0 +1,233 @@
+"""Real-time calibration: build a sequential filter, run it over samples, report its estimate.
+
+Methods (``rig calibrate --method``, the sequential rows of :mod:`rig.calibration.estimators`):
+``centered-seq`` (sequential centered, eqs. 19-22), ``ekf`` and ``ukf``. Variants: ``energy``
+(default; :mod:`rig.calibration.sequential.energy_filter`, converges from a zero start), ``paper``
+(the paper's filters as published: EKF eqs. 25-27, 9-state UKF) and ``paper-augmented`` (12-state
+UKF, eq. 47). Backends: ``numpy`` (in-house) and ``filterpy`` (the paper variants, through
+filterpy's ``ExtendedKalmanFilter`` and ``UnscentedKalmanFilter``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol
+
+import numpy as np
+
+from rig.calibration.estimate import Estimate, FilterHistory, delta_method
+from rig.calibration.params import Array
+from rig.calibration.residuals import Samples, p_from_theta
+from rig.calibration.sequential.energy_filter import EnergyFilter
+from rig.calibration.sequential.filters import (
+    ExtendedKalman,
+    UnscentedKalman,
+    UpdateInfo,
+    initial_covariance,
+)
+from rig.calibration.sequential.zmodel import ZModel, ZSample, z_sample
+from rig.errors import CalibrationError
+
+FilterMethod = Literal[
+    "centered-seq", "ekf", "ukf"
+]  # the sequential rows of rig.calibration.estimators
+Variant = Literal["energy", "paper", "paper-augmented"]
+VARIANTS: tuple[Variant, ...] = ("energy", "paper", "paper-augmented")
+Backend = Literal["numpy", "filterpy"]
+
+
+class SequentialFilter(Protocol):
+    """What the run loop and the live view need from a filter."""
+
+    ready: bool
+
+    @property
+    def x(self) -> Array: ...
+
+    @property
+    def P(self) -> Array: ...  # noqa: N802 - the covariance is P in every filter
+
+    @property
+    def mean_nis(self) -> float: ...
+
+    def update(self, s: ZSample, dt_s: float = 0.0) -> UpdateInfo | None: ...
+
+
+@dataclass(frozen=True)
+class FilterOptions:
+    """How to build a filter. Sigmas are the 1-sigma of the zero start (uT, 1, uT per unit).
+
+    ``forgetting_time_s`` (energy and centered) and ``process_noise`` (paper variants, variance
+    per second for every state) let slowly varying parameters be tracked; both off by default.
+    """
+
+    method: FilterMethod = "ukf"
+    variant: Variant = "energy"
+    backend: Backend = "numpy"
+    bias_sigma_ut: float = 20.0
+    e_sigma: float = 0.0316
+    k_sigma_ut_per_unit: float = 2.0
+    forgetting_time_s: float | None = None
+    process_noise: float | None = None
+
+
+def make_filter(opts: FilterOptions, n_channels: int, noise_ut: float) -> SequentialFilter:
+    """A filter for ``n_channels`` telemetry channels and raw noise ``noise_ut`` (uT, 1-sigma)."""
+    model = ZModel(n_channels, noise_ut)
+    p0 = initial_covariance(n_channels, opts.bias_sigma_ut, opts.e_sigma, opts.k_sigma_ut_per_unit)
+    x0 = np.zeros(model.n)
+    if opts.method == "centered-seq":
+        if opts.variant != "energy" or opts.backend != "numpy":
+            raise CalibrationError(
+                "centered-seq has one form and runs on the numpy backend: drop --filter-variant"
+                " and --backend"
+            )
+        return EnergyFilter(model, projection=None, forgetting_time_s=opts.forgetting_time_s)
+    if opts.variant == "energy":
+        if opts.backend != "numpy":
+            raise CalibrationError(
+                "the filterpy backend runs the paper's filters: add --filter-variant paper"
+            )
+        projection: Literal["jacobian", "unscented"] = (
+            "jacobian" if opts.method == "ekf" else "unscented"
+        )
+        return EnergyFilter(
+            model, x0, p0, projection=projection, forgetting_time_s=opts.forgetting_time_s
+        )
+    q = None if opts.process_noise is None else np.full(model.n, opts.process_noise)
+    if opts.method == "ekf" and opts.variant == "paper-augmented":
+        raise CalibrationError(
+            "paper-augmented is a UKF form: use --method ukf or --filter-variant paper"
+        )
+    if opts.backend == "filterpy":
+        from rig.calibration.sequential.filters_filterpy import FilterpyFilter
+
+        return FilterpyFilter(model, x0, p0, opts.method, opts.variant == "paper-augmented", q)
+    if opts.method == "ekf":
+        return ExtendedKalman(model, x0, p0, order=1, process_noise=q)
+    return UnscentedKalman(
+        model, x0, p0, augmented=opts.variant == "paper-augmented", process_noise=q
+    )
+
+
+def noise_from_second_differences(measured_ut: Array) -> float:
+    """Raw noise 1-sigma (uT) from the median absolute second difference of the readings.
+
+    Second differences cancel a smoothly changing field and the median ignores the few samples at
+    each step of a cage sequence; white noise of sigma gives a second difference of sigma sqrt(6).
+    """
+    m = np.asarray(measured_ut, float)
+    if m.shape[0] < 5:
+        raise CalibrationError("too few samples to estimate the noise: give --noise-nt")
+    d2 = np.diff(m, n=2, axis=0).reshape(-1)
+    mad = float(np.median(np.abs(d2)))
+    sigma = mad / 0.6744897501960817 / np.sqrt(6.0)
+    if not sigma > 0:
+        raise CalibrationError(
+            "the readings do not change at all (no noise to estimate): give --noise-nt"
+        )
+    return float(sigma)
+
+
+def run_filter(
+    s: Samples,
+    opts: FilterOptions,
+    noise_ut: float,
+    *,
+    times_s: Array | None = None,
+    history_rows: int = 400,
+    progress: Any = None,
+) -> tuple[Estimate, FilterHistory]:
+    """Run the filter over every sample in order; return the final estimate and its history.
+
+    ``history_rows`` bounds the recorded rows (the last sample is always recorded); ``progress``
+    is called with the sample index every 1000 samples.
+    """
+    f = make_filter(opts, s.n_channels, noise_ut)
+    every = max(1, s.n // max(history_rows, 1))
+    idx: list[int] = []
+    xs: list[Array] = []
+    covs: list[Array] = []
+    nis = np.full(s.n, np.nan)
+    t_prev = None
+    for k in range(s.n):
+        u = s.telemetry[k] if s.n_channels else np.zeros(0)
+        dt = 0.0
+        if times_s is not None:
+            dt = 0.0 if t_prev is None else float(times_s[k] - t_prev)
+            t_prev = float(times_s[k])
+        try:
+            info = f.update(z_sample(s.measured_ut[k], float(s.field_magnitude_ut[k]), u), dt)
+        except np.linalg.LinAlgError as exc:
+            raise CalibrationError(
+                f"the {opts.method} filter lost positive definiteness at sample {k + 1}: start with"
+                " --filter-variant energy, or give a realistic --noise-nt"
+            ) from exc
+        if info is not None:
+            nis[k] = info.nis
+        if f.ready and ((k + 1) % every == 0 or k == s.n - 1):
+            idx.append(k)
+            xs.append(f.x[: 9 + 3 * s.n_channels].copy())
+            covs.append(f.P[: 9 + 3 * s.n_channels, : 9 + 3 * s.n_channels].copy())
+        if progress is not None and k % 1000 == 0:
+            progress(k)
+    if not f.ready:
+        raise CalibrationError(
+            f"{opts.method}: the data never made the calibration observable (the field magnitude"
+            " must vary for centered-seq): cover more directions and magnitudes"
+        )
+    est = filter_estimate(f, s.n_channels, opts, noise_ut, nis, (idx, xs, covs))
+    assert est.history is not None
+    return est, est.history
+
+
+def filter_estimate(
+    f: SequentialFilter,
+    n_channels: int,
+    opts: FilterOptions,
+    noise_ut: float,
+    nis: Array,
+    recorded: tuple[list[int], list[Array], list[Array]],
+) -> Estimate:
+    """The physical estimate of a filter that has seen every sample, with its history.
+
+    ``nis`` holds one entry per sample (NaN where there was no update); ``recorded`` is the
+    (sample index, theta, covariance) rows kept along the way.
+    """
+    n_theta = 9 + 3 * n_channels
+    theta = np.asarray(f.x[:n_theta], float)
+    cov_theta = np.asarray(f.P[:n_theta, :n_theta], float)
+    p, cov = delta_method(p_from_theta, theta, cov_theta, opts.method)
+    mean_nis = float(np.nanmean(nis)) if np.any(np.isfinite(nis)) else float("nan")
+    note = (
+        f"{opts.method} ({opts.variant}, {opts.backend}) over {nis.size} samples at"
+        f" {1000 * noise_ut:.3g} nT raw noise; mean NIS {mean_nis:.2f} (1 when consistent)",
+    )
+    idx, xs, covs = recorded
+    history = FilterHistory(
+        np.asarray(idx, int),
+        np.asarray(xs).reshape(-1, n_theta),
+        np.asarray(covs).reshape(-1, n_theta, n_theta),
+        nis,
+        theta,
+        cov_theta,
+    )
+    return Estimate(opts.method, p, cov, notes=note, history=history)
+
+
+def history_table(history: FilterHistory, names: tuple[str, ...]) -> tuple[list[str], Array]:
+    """Physical parameters and 1-sigma per recorded row: header and (R, 1 + 2 P) array."""
+    rows = []
+    for theta, cov_theta in zip(history.theta, history.covariance, strict=True):
+        try:
+            p, cov = delta_method(p_from_theta, theta, cov_theta, "filter")
+            rows.append(np.concatenate([p, np.sqrt(np.clip(np.diag(cov), 0, None))]))
+        except CalibrationError:
+            rows.append(np.full(2 * len(names), np.nan))
+    header = ["sample"] + list(names) + [f"sigma_{n}" for n in names]
+    body = (
+        np.column_stack([history.index + 1, np.asarray(rows)])
+        if rows
+        else np.zeros((0, len(header)))
+    )
+    return header, body
