@@ -183,11 +183,18 @@ def test_estimator_table_is_the_one_list_of_names() -> None:
     from typing import get_args
 
     from rig.calibration import METHODS
-    from rig.calibration.estimators import ESTIMATORS, Method, estimator, method_names
-    from rig.calibration.sequential.realtime import FilterMethod
+    from rig.calibration.estimators import (
+        ESTIMATORS,
+        BatchMethod,
+        Method,
+        SequentialMethod,
+        estimator,
+        method_names,
+    )
 
     assert tuple(e.name for e in ESTIMATORS) == get_args(Method) == method_names() == METHODS
-    assert method_names(kind="sequential") == get_args(FilterMethod)
+    assert method_names(kind="sequential") == get_args(SequentialMethod)
+    assert method_names(kind="batch") == get_args(BatchMethod)
     assert method_names(kind="batch") == ("ml", "twostep", "centered", "ellipsoid", "vector")
     assert method_names(model="vector") == ("vector",)
     assert method_names(robust=True) == ("ml", "vector")

@@ -29,9 +29,11 @@ if TYPE_CHECKING:
 
 Kind = Literal["batch", "sequential"]
 Model = Literal["scalar", "vector"]
-Method = Literal["ml", "twostep", "centered", "ellipsoid", "vector", "centered-seq", "ekf", "ukf"]
-"""The names of the rows below, as a type (mypy checks each row's name against it; a test checks
-that it names every row)."""
+BatchMethod = Literal["ml", "twostep", "centered", "ellipsoid", "vector"]
+SequentialMethod = Literal["centered-seq", "ekf", "ukf"]
+Method = Literal[BatchMethod, SequentialMethod]
+"""The names of the rows below, as types (mypy checks each row's name against them; a test checks
+that they name every row and in which kind)."""
 
 
 @dataclass(frozen=True)
@@ -98,11 +100,11 @@ def _filter(s: Samples, r: FitRequest) -> Estimate:
     """Any sequential method: the filter the options describe, run over the samples in order."""
     from dataclasses import replace
 
-    from rig.calibration.sequential.realtime import FilterMethod, FilterOptions, run_filter
+    from rig.calibration.sequential.realtime import FilterOptions, run_filter
 
     opts = r.filter_options or FilterOptions()
     if opts.method != r.method:
-        opts = replace(opts, method=cast("FilterMethod", r.method))
+        opts = replace(opts, method=cast("SequentialMethod", r.method))
     if r.noise_ut is None:
         raise CalibrationError(f"{r.method} needs the raw noise: give --noise-nt")
     est, _ = run_filter(s, opts, r.noise_ut, times_s=r.times_s)

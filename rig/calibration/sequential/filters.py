@@ -28,8 +28,6 @@ from rig.calibration.params import Array
 from rig.calibration.residuals import sym_from_e
 from rig.calibration.sequential.zmodel import M_FROM_E, ZModel, ZSample, bias_energy, symmetric_root
 
-FilterKind = Literal["centered-seq", "ekf", "ukf"]
-
 
 @dataclass(frozen=True)
 class UpdateInfo:

@@ -16,6 +16,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
+from rig.calibration.estimators import SequentialMethod
 from rig.calibration.params import Array
 from rig.calibration.residuals import Samples, p_from_theta
 from rig.calibration.sequential.energy_filter import EnergyFilter
@@ -28,9 +29,7 @@ from rig.calibration.sequential.filters import (
 from rig.calibration.sequential.zmodel import ZModel, ZSample, z_sample
 from rig.errors import CalibrationError
 
-FilterMethod = Literal[
-    "centered-seq", "ekf", "ukf"
-]  # the sequential rows of rig.calibration.estimators
+FilterMethod = SequentialMethod
 Variant = Literal["energy", "paper", "paper-augmented"]
 VARIANTS: tuple[Variant, ...] = ("energy", "paper", "paper-augmented")
 Backend = Literal["numpy", "filterpy"]
