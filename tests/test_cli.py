@@ -259,3 +259,11 @@ def test_method_choices_come_from_the_estimator_table() -> None:
     method = next(a for a in sub.choices["calibrate"]._actions if a.dest == "method")
     assert tuple(method.choices or ()) == method_names()
     assert "centered-seq, ekf and ukf are the sequential" in (method.help or "")
+
+
+def test_cage_set_field_help_and_usage_error() -> None:
+    """set-field's three field components: its help and usage errors are text, not a traceback."""
+    proc = rig("cage", "set-field", "--help")
+    assert proc.returncode == 0 and "BX BY BZ" in proc.stdout and "field z in uT" in proc.stdout
+    proc = rig("cage", "set-field", "1", "2")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "BZ" in proc.stderr

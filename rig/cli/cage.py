@@ -30,9 +30,11 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     ch.add_argument("--repeats", type=int, default=2, metavar="R", help="times through the sweep")
     ch.set_defaults(func=_cmd_cage_characterize)
     sf = cage_sub.add_parser("set-field", parents=parents, help="ramp to a field and hold it")
-    sf.add_argument(
-        "field", type=float, nargs=3, metavar=("BX", "BY", "BZ"), help="field in uT, cage frame"
-    )
+    # Three positionals rather than nargs=3 with a tuple metavar, which argparse (3.11) cannot
+    # format: --help and every usage error of set-field used to end in a traceback.
+    for axis in "xyz":
+        sf.add_argument(f"b{axis}", type=float, metavar=f"B{axis.upper()}",
+                        help=f"field {axis} in uT, cage frame")  # fmt: skip
     sf.add_argument("--rig-config", type=Path, required=True, metavar="FILE.toml")
     sf.add_argument(
         "--trim", action="store_true", help="close the loop on the reference magnetometer"
@@ -49,8 +51,9 @@ def _cmd_cage_characterize(args: argparse.Namespace) -> int:
 
 
 def _cmd_cage_set_field(args: argparse.Namespace) -> int:
+    field = [args.bx, args.by, args.bz]
     return run_set_field(
-        args.rig_config, args.field, args.trim, args.tolerance_nt, args.hold, args.quiet
+        args.rig_config, field, args.trim, args.tolerance_nt, args.hold, args.quiet
     )
 
 
