@@ -267,3 +267,16 @@ def test_cage_set_field_help_and_usage_error() -> None:
     assert proc.returncode == 0 and "BX BY BZ" in proc.stdout and "field z in uT" in proc.stdout
     proc = rig("cage", "set-field", "1", "2")
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "BZ" in proc.stderr
+
+
+def test_devices_scan_is_registered_and_loaded_only_when_used() -> None:
+    proc = rig("devices", "scan", "--help")
+    assert proc.returncode == 0 and "--port PATH" in proc.stdout and "--write FILE" in proc.stdout
+    assert "devices" in rig("--help").stdout
+    proc = rig("devices", "scan", "--bogus")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+    code = (
+        "import sys; from rig.cli import build_parser; build_parser().parse_args(['runs']);"
+        " sys.exit(bool({'rig.bringup', 'numpy', 'pymodbus'} & set(sys.modules)))"
+    )
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
