@@ -8,6 +8,7 @@ every supply and load off before the links close; the run is then closed with it
 from __future__ import annotations
 
 import contextlib
+import math
 import shutil
 import signal
 import sys
@@ -24,9 +25,10 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import DeviceError
+from drivers.protocols import Load
 from rig import __version__
 from rig.config import RigConfig
-from rig.devices import build_cage, open_device
+from rig.devices import build_cage, open_device, open_load
 from rig.engine.guardian import Guardian
 from rig.engine.live import LiveView
 from rig.engine.sampling import BufferedSensor, SensorSampler
@@ -84,8 +86,9 @@ class Runner:
         self.abort = threading.Event()
         self.lateness_s = array("d")  # 8 bytes per command: a 10 h run at 50 Hz keeps 14 MB
         self.writer: RunWriter | None = None
-        self.loads: dict[str, Any] = {}
+        self.loads: dict[str, Load] = {}
         self.commanded_loads: dict[str, float] = {}
+        self._load_change: dict[str, tuple[float, float]] = {}  # last change: (start, end) s
         self.measured_loads: dict[str, tuple[float, float]] = {}  # name -> (time, A)
         self.change_listeners: list[ChangeListener] = []
         self.status_sources: list[Callable[[], str]] = []
@@ -232,13 +235,9 @@ class Runner:
                 raise RigError(
                     f"{self.proc.path}: load '{name}' is not a device in {self.cfg.path}"
                 )
-            load = open_device(self.cfg.devices[name], self.i2c_bus)
+            load = open_load(self.cfg.devices[name], self.i2c_bus)  # at 0 A, output on
             stack.callback(load.close)
             stack.callback(self._safe_load, name, load)
-            load.set_current(0.0)
-            if self.cfg.devices[name].kind == "riden-rd60xx":
-                load.set_voltage(float(self.cfg.devices[name].get("compliance_v", 12.0)))
-            load.set_output(True)
             self.loads[name] = load
             self.commanded_loads[name] = 0.0
             with contextlib.suppress(Exception):
@@ -277,7 +276,7 @@ class Runner:
         for problem in self.controller.safe():
             self._unsafe(f"cage did not go fully safe: {problem}")
 
-    def _safe_load(self, name: str, load: Any) -> None:
+    def _safe_load(self, name: str, load: Load) -> None:
         try:
             load.safe()
         except (DeviceError, OSError) as exc:
@@ -303,11 +302,17 @@ class Runner:
             last = now
             for name, load in list(self.loads.items()):
                 try:
+                    # On a slow link a read can overlap a change of the same channel (seen: 2.5 A
+                    # read back 40 ms after the 0 A command, taken as the current for 0.5 s):
+                    # such a reading is dropped; any other holds from when it was asked.
+                    t_asked = time.monotonic()
                     reading = load.read()
-                    t_read = time.monotonic()
-                    self.measured_loads[name] = (t_read, float(reading.i_out_a))
+                    started, ended = self._load_change.get(name, (math.inf, math.inf))
+                    if started <= time.monotonic() and ended >= t_asked:
+                        continue  # the current changed while it was read: which one is it?
+                    self.measured_loads[name] = (t_asked, float(reading.i_out_a))
                     w.add_channel(
-                        t_read, name, self.commanded_loads.get(name), float(reading.i_out_a)
+                        t_asked, name, self.commanded_loads.get(name), float(reading.i_out_a)
                     )
                     if reading.protection:
                         self._fail(f"{name}: the output tripped ({reading.protection}) and is off;"
@@ -330,6 +335,7 @@ class Runner:
         ctl = self.controller
         if ctl is not None and ctl.enabled and self._coil_check_due(now):
             for axis, drive in enumerate(ctl.axes):
+                t_asked = time.monotonic()  # as for the loads: the reading is from after this
                 try:
                     reading = drive.supply.read()
                 except (DeviceError, OSError) as exc:
@@ -338,8 +344,7 @@ class Runner:
                 protection = reading.protection
                 # the supply reads an unsigned current; a polarity relay gives it its sign
                 sign = 1 if drive.bipolar else ctl.signs[axis]
-                w.add_channel(time.monotonic(), f"coil_{'xyz'[axis]}", None,
-                              sign * float(reading.i_out_a))  # fmt: skip
+                w.add_channel(t_asked, f"coil_{'xyz'[axis]}", None, sign * float(reading.i_out_a))
                 if protection:
                     self._fail(f"coil {'xyz'[axis]} supply tripped ({protection}) and is off;"
                                " check the coil wiring, then run again")  # fmt: skip
@@ -404,7 +409,7 @@ class Runner:
                     self.lateness_s.append(now - (t0 + cmd.t_s))
                     self.command(step.index, cmd.kind, cmd.payload, now)
                     if cmd.kind == "field" and kind.hold_from_field:
-                        t0 = time.monotonic() - cmd.t_s  # the hold starts once the field is there
+                        t0 = time.monotonic() - cmd.t_s  # its dwell starts once the field is there
                 elif cmd.kind != "end":
                     execution.run(cmd.payload)
             execution.wind_down()
@@ -500,8 +505,13 @@ class Runner:
     def _set_load(self, step_idx: int, payload: dict[str, Any], now: float) -> None:
         w = self.writer
         assert w is not None
-        w.add_command(now, step_idx, "load", payload)
         name, amps = payload["channel"], float(payload["current_a"])
-        self.loads[name].set_current(amps)
+        self._load_change[name] = (now, math.inf)
+        try:
+            self.loads[name].set_current(amps)
+        finally:
+            done = time.monotonic()  # logged once written, like a field: settling counts from here
+            self._load_change[name] = (now, done)
         self.commanded_loads[name] = amps
-        w.add_channel(time.monotonic(), name, amps, None)
+        w.add_command(done, step_idx, "load", payload | {"t_issued": min(now, done)})
+        w.add_channel(done, name, amps, None)

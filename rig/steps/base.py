@@ -108,7 +108,8 @@ class StepKind:
     takes_loads: ClassVar[bool] = False
     """Load profiles may run during it; its samples are in 'every field step' of a calibration."""
     hold_from_field: ClassVar[bool] = False
-    """Its timeline restarts once its first field is reached (a hold counts from there)."""
+    """Each field is held for its planned time from when it is reached: the timeline after a field
+    command shifts by the time the ramp took (a slow link lengthens the step, never the dwell)."""
 
     def shorthand(self, body: Any) -> Any:
         """The step's body as written (``- prompt: "text"``) to its parameter mapping."""
@@ -146,6 +147,7 @@ class FieldStepKind(StepKind):
     """A step that sets fields at planned times, with load profiles running meanwhile."""
 
     takes_loads = True
+    hold_from_field = True
     trim_param: ClassVar[str | None] = None
     """A yes/no parameter asking for each field to be trimmed on the reference magnetometer."""
 

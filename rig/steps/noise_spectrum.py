@@ -52,7 +52,6 @@ class NoiseSpectrum(FieldStepKind):
         "magnetometer": Param("str", "dut"),
     }
     trim_param = "trim"
-    hold_from_field = True
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
         lo, hi = params["band_hz"]

@@ -23,7 +23,6 @@ class NullField(FieldStepKind):
         "trim": Param("str", "no", choices=("yes", "no")),
     }
     trim_param = "trim"
-    hold_from_field = True
 
     def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
         return [(0.0, np.zeros(3))]

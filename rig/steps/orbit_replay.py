@@ -15,6 +15,7 @@ from rig.steps.base import FieldStepKind, load_commands
 class OrbitReplay(FieldStepKind):
     name = "orbit_replay"
     summary = "replay an orbit's field (TLE + IGRF) with panel currents"
+    hold_from_field = False  # the replay keeps its schedule; a late set-point is not waited for
     params: ClassVar[dict[str, Param]] = {
         "tle": Param("list_str", required=True),
         "start": Param("str", required=True),

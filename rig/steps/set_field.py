@@ -19,7 +19,6 @@ class SetField(FieldStepKind):
         "trim": Param("str", "no", choices=("yes", "no")),
     }
     trim_param = "trim"
-    hold_from_field = True
 
     def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
         return [(0.0, np.array(step.params["field_ut"], float))]
