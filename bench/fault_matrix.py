@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/fault_matrix.py [--out docs/reliability.md]
 
-Each fault is injected 1.5 s into a sphere sweep with two load channels (see rig/fault_matrix.py);
+Each fault is injected 1.5 s into a sphere sweep with two load channels (see bench/faultlab.py);
 the figures are this machine's. The soak figure comes from bench/soak.py and is kept from the
 previous document unless --soak gives a new line.
 """

@@ -9,6 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 from rig.calibration import Samples, calibrate
+from rig.calibration.estimators import DEFAULT_METHOD, estimator
 from rig.errors import CalibrationError
 from rig.store.run_store import RunReader
 
@@ -169,10 +170,10 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
     samples, _ = calibration_data(reader, dut, magnetometers.get("reference", "reference"),
                                   params["telemetry"], params["steps"], params["settle_s"], correction,
                                   field_kinds)  # fmt: skip
-    method = params["method"] or ("vector" if params["model"] == "vector" else "ml")
-    if params["model"] == "scalar" and method == "vector":
-        raise CalibrationError("a scalar calibration cannot use method 'vector'")
-    result = calibrate(samples, method, noise_nt=params["noise_nt"] or None)  # type: ignore[arg-type]
+    method = params["method"] or DEFAULT_METHOD[params["model"]]
+    if params["model"] == "scalar" and estimator(method).model == "vector":
+        raise CalibrationError(f"a scalar calibration cannot use method '{method}'")
+    result = calibrate(samples, method, noise_nt=params["noise_nt"] or None)
     return result.to_dict()
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
+from rig.calibration.estimators import method_names
 from rig.engine.analysis import calibrate_run
 from rig.procedure.model import Param
 from rig.steps.base import StepExecution, StepKind
@@ -14,9 +15,7 @@ class Calibrate(StepKind):
     summary = "fit the DUT from the recorded steps (batch)"
     params: ClassVar[dict[str, Param]] = {
         "model": Param("str", "vector", choices=("vector", "scalar")),
-        "method": Param(
-            "str", "", choices=("", "ml", "twostep", "centered", "ellipsoid", "vector")
-        ),
+        "method": Param("str", "", choices=("", *method_names(kind="batch"))),
         "magnetometer": Param("str", "dut"),
         "telemetry": Param("list_str", []),
         "steps": Param("list_str", []),

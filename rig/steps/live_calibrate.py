@@ -9,6 +9,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from rig.calibration.estimators import method_names
 from rig.errors import RigError
 from rig.procedure.model import Param, ProcedureError, RigTiming, Step, suggest
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
@@ -20,7 +21,7 @@ class LiveCalibrate(FieldStepKind):
     name = "live_calibrate"
     summary = "sweep while a sequential filter calibrates; stop when the target sigmas are met"
     params: ClassVar[dict[str, Param]] = {
-        "method": Param("str", "ukf", choices=("centered-seq", "ekf", "ukf")),
+        "method": Param("str", "ukf", choices=method_names(kind="sequential")),
         "telemetry": Param("list_str", []),
         "targets": Param("dict", {}),
         "stop_on_target": Param("str", "yes", choices=("yes", "no")),

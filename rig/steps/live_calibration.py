@@ -24,11 +24,11 @@ import numpy as np
 from rig.calibration import Samples
 from rig.calibration.estimate import delta_method
 from rig.calibration.params import Array
-from rig.calibration.realtime import FilterOptions, filter_estimate, make_filter
 from rig.calibration.residuals import p_from_theta, parameter_names
 from rig.calibration.result import summarize
+from rig.calibration.sequential.realtime import FilterOptions, filter_estimate, make_filter
+from rig.calibration.sequential.zmodel import z_sample
 from rig.calibration.targets import group_sigmas, unmet_targets
-from rig.calibration.zmodel import z_sample
 from rig.engine.analysis import to_cage_frame
 from rig.errors import CalibrationError
 
