@@ -27,7 +27,7 @@ from rig.calibration.sequential.energy_filter import EnergyFilter
 from rig.calibration.sequential.filters import ExtendedKalman, UnscentedKalman
 from rig.calibration.sequential.filters_filterpy import FilterpyFilter
 from rig.calibration.sequential.zmodel import ZModel, ZSample, symmetric_root, z_sample
-from rig.procedure.orbit import circular_orbit_track
+from rig.steps.orbit import circular_orbit_track
 
 MG_PER_UT = 10.0
 B_TRUE_UT = np.array([5.0, 3.0, 6.0])

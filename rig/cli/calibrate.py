@@ -194,13 +194,14 @@ def _history_csv(result: Any) -> str:
 def _calibrate_run(args: argparse.Namespace) -> int:
     """Re-fit the DUT from a stored run (its procedure's magnetometers and loads by default);
     ``--method ml`` (or another scalar method) fits attitude-independently from the same data."""
-    from rig.engine.analysis import stored_run_data
+    from rig.analysis import stored_run_data
+    from rig.steps import field_kinds
     from rig.store import RunReader
 
     reader = RunReader(args.data)
     try:
         telemetry = list(args.telemetry) if args.telemetry else list(reader.meta().get("loads", []))
-        samples, _ = stored_run_data(reader, telemetry)
+        samples, _ = stored_run_data(reader, telemetry, field_kinds=field_kinds())
     finally:
         reader.close()
     return _fit_and_emit(samples, args)

@@ -27,8 +27,9 @@ from typing import Any
 
 import yaml
 
-from rig.procedure.loads import LOAD_PROFILES
-from rig.procedure.model import (
+from rig.steps import KINDS
+from rig.steps.load_profiles import LOAD_PROFILES
+from rig.steps.vocabulary import (
     Param,
     Procedure,
     ProcedureError,
@@ -37,7 +38,6 @@ from rig.procedure.model import (
     bind_params,
     suggest,
 )
-from rig.steps import KINDS
 
 __all__ = ["Param", "Procedure", "ProcedureError", "Step", "Where", "parse_procedure"]
 
@@ -71,7 +71,7 @@ def load_yaml(path: Path) -> dict[str, Any]:
     return data
 
 
-# --- the vocabulary: step kinds (rig.steps), load profiles (rig.procedure.loads) ---------------
+# --- the vocabulary: step kinds (rig.steps), load profiles (rig.steps.load_profiles) ---------------
 
 COMMON_KEYS = {"name", "loads"}
 

@@ -14,10 +14,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from rig.procedure.model import Command, Procedure, RigTiming, Step, StepPlan
 from rig.steps import KINDS
 from rig.steps.characterize_cage import characterization_duration_s
 from rig.steps.geometry import fibonacci_directions
+from rig.steps.vocabulary import Command, Procedure, RigTiming, Step, StepPlan
 
 if TYPE_CHECKING:
     from rig.config import RigConfig

@@ -27,7 +27,7 @@ from rig.report.text_report import (
     seal_note,
     write_text_report,
 )
-from rig.steps import KINDS
+from rig.steps import KINDS, field_kinds
 from rig.store.run_store import RunReader
 
 Array = npt.NDArray[np.float64]
@@ -54,12 +54,12 @@ def _calibration_series(
     reader: RunReader, meta: dict[str, Any], res: dict[str, Any]
 ) -> dict[str, Array] | None:
     """Time series for the plots: DUT raw and corrected magnitude, reference magnitude, residual."""
-    from rig.engine.analysis import stored_run_data
+    from rig.analysis import stored_run_data
     from rig.errors import RigError
 
     channels = list(res["channels"])
     try:
-        s, t = stored_run_data(reader, channels)
+        s, t = stored_run_data(reader, channels, field_kinds=field_kinds())
     except RigError:
         return None
     w = np.array(res["correction"]["matrix"])
@@ -223,14 +223,14 @@ def _convergence_figure(folder: Path, live: dict[str, Any], plt: Any) -> Any:
 
 def without_telemetry(reader: RunReader, res: dict[str, Any]) -> dict[str, Any] | None:
     """The same calibration re-fitted without the current channels (the Springmann comparison)."""
+    from rig.analysis import stored_run_data
     from rig.calibration import calibrate
-    from rig.engine.analysis import stored_run_data
     from rig.errors import RigError
 
     if not res["channels"]:
         return None
     try:
-        s, _ = stored_run_data(reader, [])
+        s, _ = stored_run_data(reader, [], field_kinds=field_kinds())
         if res["model"] == "scalar":
             s = s.as_scalar()
         return calibrate(s, res["method"]).to_dict()

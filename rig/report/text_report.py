@@ -37,7 +37,7 @@ def limit_text(row: dict[str, Any]) -> tuple[str, str, str]:
     """(value, limits, margin) of one criterion row, with its unit."""
     unit = row.get("unit")
     if unit is None:  # recorded before rows carried their unit
-        from rig.engine.analysis import value_unit
+        from rig.analysis import value_unit
 
         unit = value_unit(str(row.get("name", "")))
     u = f" {unit}" if unit else ""

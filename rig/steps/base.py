@@ -15,12 +15,12 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from rig.procedure.loads import load_profile
-from rig.procedure.model import Command, Param, RigTiming, Step
+from rig.steps.load_profiles import load_profile
+from rig.steps.vocabulary import Command, Param, RigTiming, Step
 
 if TYPE_CHECKING:
     from rig.config import RigConfig
-    from rig.procedure.model import Procedure
+    from rig.steps.vocabulary import Procedure
     from rig.store.run_store import RunReader
 
 Array = npt.NDArray[np.float64]

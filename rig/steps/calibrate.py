@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
+from rig.analysis import calibrate_run
 from rig.calibration.estimators import method_names
-from rig.engine.analysis import calibrate_run
-from rig.procedure.model import Param
 from rig.steps.base import StepExecution, StepKind
+from rig.steps.vocabulary import Param
 
 
 class Calibrate(StepKind):

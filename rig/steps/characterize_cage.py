@@ -7,8 +7,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.procedure.model import Param, RigTiming, Step
 from rig.steps.base import StepExecution, StepKind
+from rig.steps.vocabulary import Param, RigTiming, Step
 
 
 def characterization_duration_s(

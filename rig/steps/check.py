@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
-from rig.engine.analysis import evaluate_criteria
-from rig.procedure.model import Param, ProcedureError
+from rig.analysis import evaluate_criteria
 from rig.steps.base import StepExecution, StepKind
+from rig.steps.vocabulary import Param, ProcedureError
 
 CRITERION_KEYS = {"result", "value", "min", "max", "name", "__line__"}
 

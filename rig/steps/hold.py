@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-from rig.procedure.model import Param, RigTiming, Step
 from rig.steps.base import Array, FieldStepKind
+from rig.steps.vocabulary import Param, RigTiming, Step
 
 
 class Hold(FieldStepKind):

@@ -14,10 +14,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.engine.analysis import settled_samples, to_cage_frame
+from rig.analysis import settled_samples, to_cage_frame
 from rig.errors import RigError
-from rig.procedure.model import DEFAULT_FIELD_LIMIT_UT, Param, RigTiming, Step
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+from rig.steps.vocabulary import DEFAULT_FIELD_LIMIT_UT, Param, RigTiming, Step
 
 MIN_PER_POINT = 3
 """Settled samples a point needs from each magnetometer."""

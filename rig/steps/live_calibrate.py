@@ -11,10 +11,10 @@ import numpy as np
 
 from rig.calibration.estimators import method_names
 from rig.errors import RigError
-from rig.procedure.model import Param, ProcedureError, RigTiming, Step, suggest
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.geometry import sphere_fields
 from rig.steps.live_calibration import LiveCalibration
+from rig.steps.vocabulary import Param, ProcedureError, RigTiming, Step, suggest
 
 
 class LiveCalibrate(FieldStepKind):

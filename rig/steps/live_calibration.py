@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from rig.analysis import to_cage_frame
 from rig.calibration import Samples
 from rig.calibration.estimate import delta_method
 from rig.calibration.params import Array
@@ -29,7 +30,6 @@ from rig.calibration.result import summarize
 from rig.calibration.sequential.realtime import FilterOptions, filter_estimate, make_filter
 from rig.calibration.sequential.zmodel import z_sample
 from rig.calibration.targets import group_sigmas, unmet_targets
-from rig.engine.analysis import to_cage_frame
 from rig.errors import CalibrationError
 
 Telemetry = Callable[[float], Array]

@@ -12,10 +12,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.engine.analysis import settled_samples
+from rig.analysis import settled_samples
 from rig.errors import RigError
-from rig.procedure.model import Param, ProcedureError, RigTiming, Step
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+from rig.steps.vocabulary import Param, ProcedureError, RigTiming, Step
 
 AROUND_1HZ = (0.8, 1.25)
 """The density 'at 1 Hz' is the mean over this band (Hz): one Welch bin is too noisy a figure."""

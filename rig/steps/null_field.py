@@ -7,9 +7,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.engine.analysis import noise_floor
-from rig.procedure.model import Param, RigTiming, Step
+from rig.analysis import noise_floor
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+from rig.steps.vocabulary import Param, RigTiming, Step
 
 NOISE_SETTLE_S = 0.3
 """Samples this long after a change are left out of the noise floor (s)."""

@@ -8,8 +8,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.procedure.model import Command, Param, ProcedureError, RigTiming, Step
 from rig.steps.base import FieldStepKind, load_commands
+from rig.steps.vocabulary import Command, Param, ProcedureError, RigTiming, Step
 
 
 class OrbitReplay(FieldStepKind):
@@ -28,7 +28,7 @@ class OrbitReplay(FieldStepKind):
     }
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
-        from rig.procedure.orbit import FACES, parse_start
+        from rig.steps.orbit import FACES, parse_start
 
         if len(params["tle"]) != 2:
             raise ProcedureError(f"{where}: 'tle' must be the two TLE lines")
@@ -49,7 +49,7 @@ class OrbitReplay(FieldStepKind):
     def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
         """Field commands at ``rate_hz`` (tracked, no ramps), the panels' currents (1 mA
         resolution, sent when they change by 2 mA or go to zero) and any load profiles."""
-        from rig.procedure.orbit import orbit_track, panel_current, parse_start
+        from rig.steps.orbit import orbit_track, panel_current, parse_start
 
         p = step.params
         t_wall = np.arange(0.0, p["duration_s"], 1.0 / p["rate_hz"])

@@ -5,8 +5,8 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 from rig.errors import RunAborted
-from rig.procedure.model import Param
 from rig.steps.base import StepExecution, StepKind
+from rig.steps.vocabulary import Param
 
 
 class Prompt(StepKind):

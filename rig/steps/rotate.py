@@ -7,8 +7,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from rig.procedure.model import Param, ProcedureError, RigTiming, Step
 from rig.steps.base import Array, FieldStepKind
+from rig.steps.vocabulary import Param, ProcedureError, RigTiming, Step
 
 
 class Rotate(FieldStepKind):

@@ -6,8 +6,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from rig.procedure.model import Param, RigTiming, Step
 from rig.steps.base import Array, FieldStepKind
+from rig.steps.vocabulary import Param, RigTiming, Step
 
 
 class SetField(FieldStepKind):

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from typing import ClassVar
 
-from rig.procedure.model import Param, RigTiming, Step
 from rig.steps.base import Array, FieldStepKind
 from rig.steps.geometry import sphere_fields
+from rig.steps.vocabulary import Param, RigTiming, Step
 
 
 class SphereSweep(FieldStepKind):

@@ -10,10 +10,10 @@ import pytest
 from rig.config import load_rig_config
 from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
-from rig.procedure.model import RigTiming
 from rig.procedure.plan import compile_plan, dry_run
 from rig.sim_rig import sim_rig_config
 from rig.steps.linearity import nonlinearity
+from rig.steps.vocabulary import RigTiming
 from sim.cage import SimulatedCage
 from sim.config import load_config
 

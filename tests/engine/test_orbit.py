@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rig.analysis import calibration_data
 from rig.config import load_rig_config
-from rig.engine.analysis import calibration_data
 from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
-from rig.procedure.orbit import geodetic, orbit_track, panel_current, sun_direction_eci
 from rig.procedure.plan import compile_plan
 from rig.procedure_files import find_procedure
 from rig.sim_rig import sim_rig_config
+from rig.steps.orbit import geodetic, orbit_track, panel_current, sun_direction_eci
 from rig.store import RunReader
 from sim.cage import SimulatedCage
 from sim.config import load_config

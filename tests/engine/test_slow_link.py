@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rig.analysis import calibration_data
 from rig.config import load_rig_config
-from rig.engine.analysis import calibration_data
 from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
 from rig.sim_rig import sim_rig_config

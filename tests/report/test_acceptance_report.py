@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from rig.analysis import calibrate_run, evaluate_criteria
 from rig.calibration.synthetic import cage_like
-from rig.engine.analysis import calibrate_run, evaluate_criteria
 from rig.report.acceptance import build_report
 from rig.steps import field_kinds
 from rig.store import RunReader, new_run

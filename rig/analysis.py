@@ -148,14 +148,11 @@ def stored_run_data(
     reader: RunReader,
     telemetry: list[str],
     settle_s: float = 0.25,
-    field_kinds: Collection[str] | None = None,
+    *,
+    field_kinds: Collection[str],
 ) -> tuple[Samples, Array]:
     """:func:`calibration_data` of every field step (``field_kinds``: rig.steps.field_kinds())
     of a finished run, with the DUT, reference and reference certificate its metadata recorded."""
-    if field_kinds is None:
-        from rig.steps import field_kinds as registered
-
-        field_kinds = registered()
     meta = reader.meta()
     mags = meta.get("magnetometers", {"dut": "dut", "reference": "reference"})
     return calibration_data(reader, mags.get("dut", "dut"), mags.get("reference", "reference"), telemetry,

@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from rig.procedure.model import Param, ProcedureError
+from rig.steps.vocabulary import Param, ProcedureError
 
 LOAD_PROFILES: dict[str, dict[str, Param]] = {
     "constant": {"current_a": Param("float", required=True, minimum=-1000.0, maximum=1000.0)},

@@ -1,0 +1,1 @@
+"""The procedure language (YAML to validated steps) and the planner (steps to timed commands)."""
