@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
-from contextlib import ExitStack
 from pathlib import Path
 
 from rig.cli.common import Parser, Subparsers
@@ -73,7 +72,7 @@ def run_characterize(
     from rig.cage.characterize import characterize
     from rig.cli.signals import stop_on_signals
     from rig.config import load_rig_config
-    from rig.devices import build_cage
+    from rig.engine.session import RigSession
     from rig.errors import UserInputError
 
     cfg = load_rig_config(rig_config)
@@ -86,8 +85,8 @@ def run_characterize(
             f"--amplitude {amplitude_a:g} A must be positive and within the {min(cfg.cage.max_current_a):g} A limit"
         )
     stop = threading.Event()
-    with stop_on_signals(stop, interrupt=True), ExitStack() as stack:
-        controller = build_cage(cfg, stack)
+    with stop_on_signals(stop, interrupt=True), RigSession(cfg) as rig:
+        controller = rig.cage()
         if not quiet:
             print(f"characterizing the cage: +-{amplitude_a:g} A, {samples} samples per point")
         model = characterize(controller, amplitude_a, samples=samples, repeats=repeats,
@@ -118,15 +117,15 @@ def run_set_field(rig_config: Path, field_ut: list[float], trim: bool, tolerance
     from drivers.errors import DeviceError
     from rig.cli.signals import stop_on_signals
     from rig.config import load_rig_config
-    from rig.devices import build_cage
+    from rig.engine.session import RigSession
     from rig.errors import RigError
 
     cfg = load_rig_config(rig_config)
     stop = threading.Event()
     with stop_on_signals(stop, interrupt=True):
         try:
-            with ExitStack() as stack:
-                controller = build_cage(cfg, stack)
+            with RigSession(cfg) as rig:
+                controller = rig.cage()
                 target = np.array(field_ut, float)
                 if trim:
                     result = controller.trim(target, tolerance_nt=tolerance_nt)

@@ -27,7 +27,6 @@ from drivers.registry import output_kinds
 OUTPUT_KINDS = output_kinds()
 """Kinds the guardian switches off: every registered supply, load and relay (drivers.registry)."""
 DONE = b"done\n"
-ATTEMPTS = 3
 
 
 class Guardian:
@@ -53,31 +52,11 @@ class Guardian:
 
 
 def safe_outputs(rig_config: Path) -> tuple[list[str], list[str]]:
-    """Switch off every Modbus output of ``rig_config``: (devices safed, problems)."""
+    """Switch off every supply, load and relay board of ``rig_config``: (devices, problems)."""
     from rig.config import load_rig_config
-    from rig.devices import open_device
+    from rig.engine.session import switch_off_every_output
 
-    cfg = load_rig_config(rig_config)
-    done: list[str] = []
-    problems: list[str] = []
-    for name, dev in cfg.devices.items():
-        if dev.kind not in OUTPUT_KINDS:
-            continue
-        for attempt in range(ATTEMPTS):
-            try:
-                driver = open_device(dev)
-                try:
-                    driver.safe()
-                finally:
-                    driver.close()
-                done.append(name)
-                break
-            except Exception as exc:  # one dead link must not stop the others going safe
-                if attempt == ATTEMPTS - 1:
-                    problems.append(f"{name}: {exc}")
-                else:
-                    time.sleep(0.3)  # a port still held by someone else
-    return done, problems
+    return switch_off_every_output(load_rig_config(rig_config))
 
 
 def _record(folder: Path, t_died: float, done: list[str], problems: list[str]) -> None:
@@ -131,7 +110,7 @@ def main(argv: list[str]) -> int:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # only the pipe ends the guardian
-    import rig.devices  # noqa: F401 - imported now, so acting after a death takes no import time
+    import rig.engine.session  # noqa: F401 - imported now, so acting after a death takes no import time
 
     return watch(sys.stdin.buffer, Path(argv[0]), Path(argv[1]))
 

@@ -28,10 +28,10 @@ from drivers.errors import DeviceError
 from drivers.protocols import Load
 from rig import __version__
 from rig.config import RigConfig
-from rig.devices import build_cage, open_device, open_load
 from rig.engine.guardian import Guardian
 from rig.engine.live import LiveView
 from rig.engine.sampling import BufferedSensor, SensorSampler
+from rig.engine.session import RigSession
 from rig.errors import RigError, RunAborted
 from rig.procedure.language import Procedure
 from rig.procedure.plan import StepPlan, compile_plan, rig_timing
@@ -202,7 +202,10 @@ class Runner:
         """Open every device; register safe states and closes on ``stack`` (LIFO)."""
         w = self.writer
         assert w is not None
-        self.controller = build_cage(self.cfg, stack, self.i2c_bus)
+        self.rig = rig = stack.enter_context(
+            RigSession(self.cfg, i2c_bus=self.i2c_bus, on_unsafe=self._unsafe)
+        )
+        self.controller = rig.cage()
         instruments = dict(self.controller.instruments())
         mags = self.proc.magnetometers
         for role, dev_name in mags.items():
@@ -213,11 +216,7 @@ class Runner:
                 )
         cage_reference = self.cfg.cage.reference if self.cfg.cage is not None else None
         for dev_name in dict.fromkeys(mags.values()):  # one sampler per device, whatever its roles
-            if dev_name == cage_reference:
-                driver = self.controller.reference
-            else:
-                driver = open_device(self.cfg.devices[dev_name], self.i2c_bus)
-                stack.callback(driver.close)
+            driver = rig.magnetometer(dev_name)
             with contextlib.suppress(Exception):
                 if not hasattr(driver, "fmt"):
                     ident = driver.identify()
@@ -235,9 +234,7 @@ class Runner:
                 raise RigError(
                     f"{self.proc.path}: load '{name}' is not a device in {self.cfg.path}"
                 )
-            load = open_load(self.cfg.devices[name], self.i2c_bus)  # at 0 A, output on
-            stack.callback(load.close)
-            stack.callback(self._safe_load, name, load)
+            load = rig.load(name)  # at 0 A, output on; off when the session ends
             self.loads[name] = load
             self.commanded_loads[name] = 0.0
             with contextlib.suppress(Exception):
@@ -268,19 +265,9 @@ class Runner:
         if self.live_enabled:
             self.live = LiveView(self)
             self.live.start()
-        # Registered last so it runs first on the way out: the coils are ramped down and their
-        # supplies switched off before anything else is stopped (safe() is idempotent).
-        stack.callback(self._safe_cage)
-
-    def _safe_cage(self) -> None:
-        for problem in self.controller.safe():
-            self._unsafe(f"cage did not go fully safe: {problem}")
-
-    def _safe_load(self, name: str, load: Load) -> None:
-        try:
-            load.safe()
-        except (DeviceError, OSError) as exc:
-            self._unsafe(f"load {name} did not go safe: {exc}")
+        # Registered last so it runs first on the way out: the coils are ramped down and every
+        # output switched off before anything else is stopped (safe() is idempotent).
+        stack.callback(rig.safe)
 
     def _unsafe(self, message: str) -> None:
         """An output that may still be on: recorded, and told to the operator whatever -q says."""

@@ -1,0 +1,62 @@
+"""The rig session: devices opened together, every output safe on every way out."""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.config import load_rig_config
+from rig.engine.session import RigSession, switch_off_every_output
+from rig.errors import UserInputError
+from rig.sim_rig import sim_rig_config
+from sim.cage import SimulatedCage
+from sim.config import load_config
+
+
+@pytest.mark.parametrize("ending", ["normal", "error", "ctrl-c"])
+def test_every_output_is_off_however_the_session_ends(tmp_path: Path, ending: str) -> None:
+    cfg = load_config()
+    with SimulatedCage(cfg) as cage:
+        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+        rc = load_rig_config(tmp_path / "rig.toml")
+        supplies = cage.physics.supplies
+        expect = (
+            pytest.raises((RuntimeError, KeyboardInterrupt))
+            if ending != "normal"
+            else nullcontext()
+        )
+        with expect, RigSession(rc, i2c_bus=cage.i2c_bus) as rig:
+            rig.cage().set_field(np.array([20.0, -10.0, 30.0]))
+            rig.load("load_bus").set_current(1.0)
+            assert rig.magnetometer("reference") is rig.controller.reference  # type: ignore[union-attr]
+            assert rig.magnetometer("dut").read() is not None
+            assert sum(s.output for s in supplies.values()) >= 4  # three coils and the load
+            if ending == "error":
+                raise RuntimeError("a step failed")
+            if ending == "ctrl-c":
+                raise KeyboardInterrupt
+        assert not any(s.output for s in supplies.values())
+
+
+def test_an_unknown_device_is_one_line_naming_the_file(tmp_path: Path) -> None:
+    cfg = load_config()
+    with SimulatedCage(cfg) as cage:
+        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+        rc = load_rig_config(tmp_path / "rig.toml")
+        with (
+            RigSession(rc) as rig,
+            pytest.raises(UserInputError, match=r"rig.toml: no device 'load_bsu' for the load"),
+        ):
+            rig.load("load_bsu")
+        for s in cage.physics.supplies.values():
+            s.set_current(0.5)
+            s.set_output(True)
+        cage.faults[
+            "load_panel"
+        ].silent = True  # one that does not answer is named, the rest go off
+        done, problems = switch_off_every_output(rc)
+        assert "load_panel" not in done and problems and problems[0].startswith("load_panel")
+        assert not any(s.output for n, s in cage.physics.supplies.items() if n != "load_panel")
