@@ -8,6 +8,7 @@ embedded as data URIs; the HTML loads nothing from outside.
 from __future__ import annotations
 
 import base64
+import csv
 import datetime as dt
 import html
 import io
@@ -19,6 +20,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from rig.analysis import stored_run_data
+from rig.calibration import calibrate
+from rig.calibration.targets import SIGMA_TARGETS, group_of
+from rig.errors import RigError
 from rig.report.text_report import (
     criterion_line,
     data_hash,
@@ -54,8 +59,6 @@ def _calibration_series(
     reader: RunReader, meta: dict[str, Any], res: dict[str, Any]
 ) -> dict[str, Array] | None:
     """Time series for the plots: DUT raw and corrected magnitude, reference magnitude, residual."""
-    from rig.analysis import stored_run_data
-    from rig.errors import RigError
 
     channels = list(res["channels"])
     try:
@@ -179,7 +182,6 @@ def make_figures(reader: RunReader, meta: dict[str, Any], results: dict[str, Any
 
 def read_history(path: Path) -> tuple[list[str], Array] | None:
     """A live calibration's history CSV: header and rows (elapsed s, samples, p..., sigma...)."""
-    import csv
 
     try:
         with path.open(newline="", encoding="utf-8") as fh:
@@ -192,7 +194,6 @@ def read_history(path: Path) -> tuple[list[str], Array] | None:
 def _convergence_figure(folder: Path, live: dict[str, Any], plt: Any) -> Any:
     """One panel per target group: each parameter's 1-sigma against time, the target dashed, the
     stop marked."""
-    from rig.calibration.targets import SIGMA_TARGETS, group_of
 
     table = read_history(folder / str(live.get("history_file", "")))
     if table is None or table[1].shape[0] == 0:
@@ -223,9 +224,6 @@ def _convergence_figure(folder: Path, live: dict[str, Any], plt: Any) -> Any:
 
 def without_telemetry(reader: RunReader, res: dict[str, Any]) -> dict[str, Any] | None:
     """The same calibration re-fitted without the current channels (the Springmann comparison)."""
-    from rig.analysis import stored_run_data
-    from rig.calibration import calibrate
-    from rig.errors import RigError
 
     if not res["channels"]:
         return None

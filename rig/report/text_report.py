@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from rig.analysis import value_unit
 from rig.store.run_store import RunReader
 from rig.store.seal import data_digest, read_seal
 
@@ -37,8 +38,6 @@ def limit_text(row: dict[str, Any]) -> tuple[str, str, str]:
     """(value, limits, margin) of one criterion row, with its unit."""
     unit = row.get("unit")
     if unit is None:  # recorded before rows carried their unit
-        from rig.analysis import value_unit
-
         unit = value_unit(str(row.get("name", "")))
     u = f" {unit}" if unit else ""
     lo, hi = row.get("min"), row.get("max")
