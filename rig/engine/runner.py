@@ -217,10 +217,9 @@ class Runner:
         cage_reference = self.cfg.cage.reference if self.cfg.cage is not None else None
         for dev_name in dict.fromkeys(mags.values()):  # one sampler per device, whatever its roles
             driver = rig.magnetometer(dev_name)
-            with contextlib.suppress(Exception):
-                if not hasattr(driver, "fmt"):
-                    ident = driver.identify()
-                    instruments[dev_name] = f"{ident.model} {ident.serial}".strip()
+            with contextlib.suppress(Exception):  # an identity is for the record only
+                ident = driver.identify()
+                instruments[dev_name] = f"{ident.model} {ident.serial}".strip()
             rate = float(self.cfg.devices[dev_name].get("rate_hz", 20.0))
             sampler = SensorSampler(dev_name, driver, w.add_sample, rate,
                                     on_warning=lambda m: self._event("warning", m))  # fmt: skip
