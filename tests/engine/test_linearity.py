@@ -7,15 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.config import load_rig_config
-from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
 from rig.procedure.plan import compile_plan, dry_run
-from rig.sim_rig import sim_rig_config
 from rig.steps.linearity import nonlinearity
 from rig.steps.vocabulary import RigTiming
-from sim.cage import SimulatedCage
 from sim.config import load_config
+from tests.simrun import run_on_sim
 
 
 def test_a_known_quadratic_term_is_found_in_ppm() -> None:
@@ -45,16 +42,11 @@ def test_the_sweep_goes_to_the_rig_field_limit_unless_given(tmp_path: Path) -> N
 
 @pytest.mark.slow
 def test_on_the_simulated_cage(tmp_path: Path) -> None:
-    (tmp_path / "p.yaml").write_text(
+    outcome = run_on_sim(
+        tmp_path,
         "procedure: lin\nmagnetometers: {dut: dut, reference: reference}\nsteps:\n"
-        "  - linearity: {max_ut: 30, points: 7, dwell_s: 0.6}\n    name: linearity\n  - report: {}\n"
+        "  - linearity: {max_ut: 30, points: 7, dwell_s: 0.6}\n    name: linearity\n  - report: {}\n",
     )
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
-        outcome = Runner(parse_procedure(tmp_path / "p.yaml"), load_rig_config(tmp_path / "rig.toml"),
-                         tmp_path / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True,
-                         live=False).run()  # fmt: skip
     assert outcome.status == "complete", outcome.reason
     res = outcome.results["linearity"]
     assert res["full_scale_ut"] == 30.0 and set(res["axis_nonlinearity_ppm"]) == {"x", "y", "z"}

@@ -8,13 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.config import load_rig_config
-from rig.engine.runner import Runner
 from rig.procedure.language import ProcedureError, parse_procedure
-from rig.sim_rig import sim_rig_config
 from rig.steps.noise_spectrum import AROUND_1HZ, amplitude_density, band_mean
-from sim.cage import SimulatedCage
-from sim.config import load_config
+from tests.simrun import run_on_sim
 
 
 def test_white_noise_density_matches_its_variance_and_a_tone_shows_at_its_frequency() -> None:
@@ -54,17 +50,12 @@ def test_a_band_the_hold_cannot_resolve_is_refused(tmp_path: Path) -> None:
 def test_on_the_simulated_cage_the_density_agrees_with_the_noise_floor(tmp_path: Path) -> None:
     """The same nulled DUT: its spectrum's band density and its time-domain standard deviation
     (null_field) describe the same (white) noise: density = std * sqrt(2 / rate) within 30 %."""
-    (tmp_path / "p.yaml").write_text(
+    outcome = run_on_sim(
+        tmp_path,
         "procedure: noise\nsteps:\n  - null_field: {hold_s: 3}\n    name: floor\n"
         "  - noise_spectrum: {hold_s: 16, band_hz: [0.25, 5]}\n    name: spectrum\n"
-        "  - report: {}\n"
+        "  - report: {}\n",
     )
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
-        outcome = Runner(parse_procedure(tmp_path / "p.yaml"), load_rig_config(tmp_path / "rig.toml"),
-                         tmp_path / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True,
-                         live=False).run()  # fmt: skip
     assert outcome.status == "complete", outcome.reason
     spec, floor = outcome.results["spectrum"], outcome.results["floor"]
     assert spec["samples"] > 250 and 15.0 < spec["rate_hz"] < 25.0

@@ -10,16 +10,12 @@ import numpy as np
 import pytest
 
 from rig.analysis import calibration_data
-from rig.config import load_rig_config
-from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
 from rig.procedure.plan import compile_plan
 from rig.procedure_files import find_procedure
-from rig.sim_rig import sim_rig_config
 from rig.steps.orbit import geodetic, orbit_track, panel_current, sun_direction_eci
 from rig.store import RunReader
-from sim.cage import SimulatedCage
-from sim.config import load_config
+from tests.simrun import run_on_sim
 
 ISS = (
     "1 25544U 98067A   19343.69339541  .00001764  00000-0  38792-4 0  9991",
@@ -105,14 +101,7 @@ def test_a_slow_supply_link_does_not_cost_the_tracked_samples(tmp_path: Path) ->
     """Each tracked set-point takes longer than the 50 ms between set-points (a 60 ms reply delay
     on coil_x): the field is still the one the reference follows, so the calibration keeps the DUT
     samples taken while set-points were being written (CI lost 98 % of them this way)."""
-    cfg = load_config()
-    (tmp_path / "orbit.yaml").write_text(ORBIT_ONLY)
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
-        cage.faults["coil_x"].reply_delay_s = 0.06
-        outcome = Runner(parse_procedure(tmp_path / "orbit.yaml"), load_rig_config(tmp_path / "rig.toml"),
-                         tmp_path / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True,
-                         live=False).run()  # fmt: skip
+    outcome = run_on_sim(tmp_path, ORBIT_ONLY, reply_delay_s={"coil_x": 0.06})
     assert outcome.status == "complete", outcome.reason
     reader = RunReader(outcome.folder)
     try:

@@ -9,14 +9,9 @@ import numpy as np
 import pytest
 
 from rig.analysis import calibration_data
-from rig.config import load_rig_config
-from rig.engine.runner import Runner
-from rig.procedure.language import parse_procedure
-from rig.sim_rig import sim_rig_config
 from rig.steps import field_kinds
 from rig.store import RunReader
-from sim.cage import SimulatedCage
-from sim.config import load_config
+from tests.simrun import run_on_sim
 
 PROCEDURE = """
 procedure: load steps over a slow link
@@ -36,14 +31,7 @@ def test_load_telemetry_of_every_settled_sample_is_the_current_then_set(tmp_path
     """0.1 s per reply on the load: the monitor's read-backs overlap every change. Each settled
     sample's telemetry must be the level the load was set to (before: the old level for up to
     0.3 s after a change, 1.1 uT errors in the fit)."""
-    (tmp_path / "p.yaml").write_text(PROCEDURE)
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
-        cage.faults["load_panel"].reply_delay_s = 0.1
-        outcome = Runner(parse_procedure(tmp_path / "p.yaml"), load_rig_config(tmp_path / "rig.toml"),
-                         tmp_path / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True,
-                         live=False).run()  # fmt: skip
+    outcome = run_on_sim(tmp_path, PROCEDURE, reply_delay_s={"load_panel": 0.1})
     assert outcome.status == "complete", outcome.reason
     reader = RunReader(outcome.folder)
     try:

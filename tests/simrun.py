@@ -1,0 +1,28 @@
+"""Run a procedure text on an in-process simulated cage (for tests of steps and the engine)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from rig.config import load_rig_config
+from rig.engine.runner import Runner, RunOutcome
+from rig.procedure.language import parse_procedure
+from rig.sim_rig import sim_rig_config
+from sim.cage import SimulatedCage
+from sim.config import load_config
+
+
+def run_on_sim(
+    folder: Path, procedure: str, reply_delay_s: dict[str, float] | None = None
+) -> RunOutcome:
+    """Write ``procedure`` (YAML text) to ``folder``, run it on a fresh simulated cage with every
+    prompt confirmed and no live view, and return the outcome. ``reply_delay_s`` slows devices'
+    replies (device name -> seconds), as a slow link would."""
+    (folder / "procedure.yaml").write_text(procedure)
+    cfg = load_config()
+    with SimulatedCage(cfg) as cage:
+        (folder / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+        for name, delay in (reply_delay_s or {}).items():
+            cage.faults[name].reply_delay_s = delay
+        return Runner(parse_procedure(folder / "procedure.yaml"), load_rig_config(folder / "rig.toml"),
+                      folder / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False).run()  # fmt: skip
