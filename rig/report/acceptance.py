@@ -7,12 +7,9 @@ embedded as data URIs; the HTML loads nothing from outside.
 
 from __future__ import annotations
 
-import base64
 import csv
 import datetime as dt
-import html
 import io
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,20 +21,21 @@ from rig.analysis import stored_run_data
 from rig.calibration import calibrate
 from rig.calibration.targets import SIGMA_TARGETS, group_of
 from rig.errors import RigError
-from rig.report.text_report import (
-    criterion_line,
-    data_hash,
-    limit_text,
-    overall_verdict,
-    seal_note,
-    write_text_report,
+from rig.report.sections import (
+    PdfLine,
+    calibration_section,
+    criteria_section,
+    esc,
+    log_section,
+    plots_section,
+    step_results_section,
+    steps_section,
 )
+from rig.report.text_report import data_hash, overall_verdict, seal_note, write_text_report
 from rig.steps import KINDS, field_kinds
 from rig.store.run_store import RunReader
 
 Array = npt.NDArray[np.float64]
-SPRINGMANN_UNITS = {"a": "", "b": "", "c": "", "x0_ut": "uT", "y0_ut": "uT", "z0_ut": "uT",
-                    "rho_deg": "deg", "phi_deg": "deg", "lambda_deg": "deg"}  # fmt: skip
 
 
 @dataclass
@@ -236,17 +234,6 @@ def without_telemetry(reader: RunReader, res: dict[str, Any]) -> dict[str, Any] 
         return None
 
 
-def _esc(x: Any) -> str:
-    return html.escape(str(x))
-
-
-def _num(v: float, sig: float | None = None) -> str:
-    if sig is None or not math.isfinite(sig) or sig <= 0:
-        return f"{v:.6g}"
-    digits = max(0, min(8, 1 - math.floor(math.log10(sig))))
-    return f"{v:.{digits}f} &plusmn; {sig:.{digits}f}"
-
-
 def build_report(folder: Path) -> tuple[Path, Path]:
     """Write ``report.html`` and ``report.pdf`` (and ``report.txt``) for a run folder."""
     import matplotlib
@@ -280,131 +267,39 @@ def build_report(folder: Path) -> tuple[Path, Path]:
         ("Data SHA-256", f"data sha256 {digest} ({seal_note(folder, digest)})"),
     ]  # fmt: skip
 
-    # ---- HTML ----
     colour = "#1a7f37" if overall == "PASS" else "#b42318"
+    t_start = float(meta.get("start_monotonic", events[0][0] if events else 0.0))
+    sections = [
+        criteria_section(verdict),
+        step_results_section(steps, results),
+        *(calibration_section(name, res, plain.get(name)) for name, res in cals.items()),
+        plots_section(figs),
+        steps_section(steps),
+        log_section(events, t_start),
+    ]
+
+    # ---- HTML ----
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'>",
-        f"<title>Acceptance report {_esc(meta.get('dut_serial', ''))}</title><style>",
+        f"<title>Acceptance report {esc(meta.get('dut_serial', ''))}</title><style>",
         "body{font-family:Helvetica,Arial,sans-serif;max-width:980px;margin:24px auto;color:#111;font-size:14px}",
         "table{border-collapse:collapse;margin:8px 0 18px}td,th{border:1px solid #bbb;padding:3px 8px;text-align:left}",
         "th{background:#eee}.verdict{font-size:26px;font-weight:bold;padding:10px;color:#fff}",
         ".PASS{color:#1a7f37;font-weight:bold}.FAIL{color:#b42318;font-weight:bold}img{max-width:100%}",
         "h2{border-bottom:2px solid #333;margin-top:28px}@media print{h2{page-break-before:auto}}",
         "</style></head><body>",
-        f"<h1>Pre-flight acceptance report: {_esc(meta.get('procedure', ''))}</h1>",
-        f"<div class='verdict' style='background:{colour}'>VERDICT: {_esc(overall)}</div>",
+        f"<h1>Pre-flight acceptance report: {esc(meta.get('procedure', ''))}</h1>",
+        f"<div class='verdict' style='background:{colour}'>VERDICT: {esc(overall)}</div>",
         "<table>"
-        + "".join(f"<tr><th>{_esc(k)}</th><td>{_esc(v)}</td></tr>" for k, v in header)
+        + "".join(f"<tr><th>{esc(k)}</th><td>{esc(v)}</td></tr>" for k, v in header)
         + "</table>",
-        "<h2>Acceptance criteria</h2>",
-    ]
-    if verdict:
-        parts.append(
-            "<table><tr><th>criterion</th><th>measured</th><th>limits</th><th>margin</th><th>verdict</th></tr>"
-        )
-        for row in verdict["criteria"]:
-            if "value" in row:
-                value, limits, margin = limit_text(row)
-                parts.append(f"<tr><td>{_esc(row['name'])}</td><td>{_esc(value)}</td><td>{_esc(limits)}</td>"
-                             f"<td>{_esc(margin)}</td><td class='{row['verdict']}'>{row['verdict']}</td></tr>")  # fmt: skip
-            else:
-                parts.append(
-                    f"<tr><td>{_esc(row['name'])}</td><td colspan='3'>{_esc(row['reason'])}</td><td class='FAIL'>FAIL</td></tr>"
-                )
-        parts.append("</table>")
-    else:
-        parts.append("<p>No acceptance criteria were evaluated in this run.</p>")
-    step_parts = [
-        KINDS[kind].report_html(name, results[name])
-        for _, name, kind, _, _ in steps
-        if kind in KINDS and name in results
-    ]
-    if any(step_parts):
-        parts.append("<h2>Step results</h2>" + "".join(step_parts))
-    for name, res in cals.items():
-        sp, sig = res["springmann"], res["sigma"]["springmann"]
-        ratio = res["crlb_ratio"]["springmann"]
-        parts.append(
-            f"<h2>Calibration '{_esc(name)}': {res['model']} model, method {res['method']}, {res['samples']} samples</h2>"
-        )
-        alt = plain.get(name)
-        parts.append("<table><tr><th>parameter</th><th>with telemetry</th><th>unit</th><th>sigma / CRLB</th>"
-                     + ("<th>without telemetry</th>" if alt else "") + "</tr>")  # fmt: skip
-        for key, unit in SPRINGMANN_UNITS.items():
-            cells = f"<td>{_esc(key)}</td><td>{_num(sp[key], sig[key])}</td><td>{unit}</td><td>{ratio[key]:.2f}</td>"
-            if alt:
-                cells += f"<td>{_num(alt['springmann'][key], alt['sigma']['springmann'][key])}</td>"
-            parts.append(f"<tr>{cells}</tr>")
-        rms_row = (
-            f"<tr><th>residual rms</th><td>{res['residual_rms_nt']:.1f}</td><td>nT</td><td></td>"
-        )
-        rms_row += f"<td>{alt['residual_rms_nt']:.1f}</td>" if alt else ""
-        parts.append(rms_row + "</tr></table>")
-        parts.append(
-            "<table><tr><th>channel</th><th>k x</th><th>k y</th><th>k z</th><th>unit</th></tr>"
-        )
-        for ch, k in res["correction"]["k_ut_per_unit"].items():
-            s = res["sigma"]["k_ut_per_unit"][ch]
-            parts.append(
-                f"<tr><td>{_esc(ch)}</td>"
-                + "".join(f"<td>{_num(v, e)}</td>" for v, e in zip(k, s, strict=True))
-                + "<td>uT/A</td></tr>"
-            )
-        parts.append("</table>")
-        cr = res["crassidis"]
-        parts.append("<p>Crassidis form: b = (" + ", ".join(f"{v:.4f}" for v in cr["b_ut"]) + ") uT, D = "
-                     + _esc(np.round(np.array(cr["D"]), 6).tolist()) + "</p>")  # fmt: skip
-        au = res["angular_uncertainty_deg"]
-        parts.append(f"<p>Residual rms {res['residual_rms_nt']:.1f} nT, mean {res['residual_mean_nt']:.1f} nT, max {res['residual_max_nt']:.1f} nT; "
-                     f"chi-square {res['chi2']['reduced']:.2f} per dof ({_esc(res['chi2']['verdict'])}); angular uncertainty "
-                     f"{au['20_ut']:.3f} deg at 20 uT, {au['50_ut']:.3f} deg at 50 uT.</p>")  # fmt: skip
-        if res.get("mounting", {}).get("observable"):
-            parts.append(
-                "<p>DUT mounting rotation (rotation vector): "
-                + ", ".join(f"{v:+.3f}" for v in res["mounting"]["rotation_vector_deg"])
-                + " deg</p>"
-            )
-        live = res.get("live")
-        if isinstance(live, dict):
-            parts.append(
-                f"<p>Live calibration: stopped because {_esc(live['stopped'])}; {live['updates']} samples"
-                f" used over {live['elapsed_s']:.1f} s at {live['noise_nt']:.1f} nT noise.</p>"
-                "<table><tr><th>target</th><th>1-sigma at stop</th><th>target 1-sigma</th><th>met</th></tr>"
-            )
-            for key, sigma in live["sigma_at_stop"].items():
-                limit = live["targets"].get(key)
-                met = "-" if limit is None else ("PASS" if sigma <= limit else "FAIL")
-                parts.append(f"<tr><td>{_esc(key)}</td><td>{sigma:.3g}</td><td>{'-' if limit is None else f'{limit:g}'}</td>"
-                             f"<td class='{met}'>{met}</td></tr>")  # fmt: skip
-            parts.append("</table>")
-        for w in res.get("warnings", []):
-            parts.append(f"<p><i>{_esc(w)}</i></p>")
-    parts.append("<h2>Plots</h2>")
-    for f in figs:
-        parts.append(
-            f"<h3>{_esc(f.title)}</h3><img alt='{_esc(f.title)}' src='data:image/png;base64,{base64.b64encode(f.png).decode()}'>"
-        )
-    parts.append(
-        "<h2>Steps</h2><table><tr><th>#</th><th>step</th><th>kind</th><th>duration</th></tr>"
-    )
-    for idx, name, kind, t0, t1 in steps:
-        parts.append(
-            f"<tr><td>{idx + 1}</td><td>{_esc(name)}</td><td>{_esc(kind)}</td><td>{('%.1f s' % (t1 - t0)) if t1 else 'not finished'}</td></tr>"
-        )
-    parts.append("</table><h2>Log</h2><table><tr><th>t (s)</th><th>level</th><th>message</th></tr>")
-    t_start = float(meta.get("start_monotonic", events[0][0] if events else 0.0))
-    for t, level, message in events:
-        if level in ("operator", "warning", "error") or "limit" in message:
-            parts.append(
-                f"<tr><td>{t - t_start:.1f}</td><td>{_esc(level)}</td><td>{_esc(message)}</td></tr>"
-            )
-    parts.append(
-        f"</table><p>Generated {dt.datetime.now(dt.UTC).isoformat(timespec='seconds')} by rig {meta.get('software_version', '')}.</p></body></html>"
-    )
+        *(sec.html for sec in sections if sec.html),
+        f"<p>Generated {dt.datetime.now(dt.UTC).isoformat(timespec='seconds')} by rig {meta.get('software_version', '')}.</p></body></html>",
+    ]  # fmt: skip
     html_path = folder / "report.html"
     html_path.write_text("\n".join(parts), encoding="utf-8")
 
-    # ---- PDF ----
+    # ---- PDF: a summary page from the same sections, then one page per figure ----
     pdf_path = folder / "report.pdf"
     pdf_info = {"Title": f"Acceptance report {meta.get('run_id', '')}",
                 "Subject": f"VERDICT: {overall}; data sha256 {digest}"}  # fmt: skip
@@ -420,63 +315,11 @@ def build_report(folder: Path) -> tuple[Path, Path]:
             page.text(0.06, y, f"{k}:", fontsize=8, weight="bold")
             page.text(0.28, y, text if len(text) < 95 else text[:92] + "...", fontsize=8)
             y -= 0.02
-        y -= 0.015
-        if verdict:
-            page.text(0.06, y, "Acceptance criteria", fontsize=11, weight="bold")
-            y -= 0.025
-            for row in verdict["criteria"]:
-                line = criterion_line(row)
-                page.text(
-                    0.06,
-                    y,
-                    line,
-                    fontsize=8,
-                    family="monospace",
-                    color="#1a7f37" if row["verdict"] == "PASS" else "#b42318",
-                )
-                y -= 0.018
-        for name, res in cals.items():
-            y -= 0.015
-            page.text(
-                0.06,
-                y,
-                f"Calibration '{name}' ({res['model']}, {res['method']}, {res['samples']} samples)",
-                fontsize=11,
-                weight="bold",
-            )
-            y -= 0.022
-            for key, unit in SPRINGMANN_UNITS.items():
-                page.text(
-                    0.08,
-                    y,
-                    f"{key:<11} {res['springmann'][key]:+.6f} +- {res['sigma']['springmann'][key]:.6f} {unit}",
-                    fontsize=8,
-                    family="monospace",
-                )
-                y -= 0.016
-            for ch, k in res["correction"]["k_ut_per_unit"].items():
-                page.text(
-                    0.08,
-                    y,
-                    f"k[{ch}] " + "  ".join(f"{v:+.4f}" for v in k) + " uT/A",
-                    fontsize=8,
-                    family="monospace",
-                )
-                y -= 0.016
-            page.text(
-                0.08,
-                y,
-                f"residual rms {res['residual_rms_nt']:.1f} nT; angular uncertainty {res['angular_uncertainty_deg']['50_ut']:.3f} deg at 50 uT",
-                fontsize=8,
-            )
-            y -= 0.02
-            if isinstance(res.get("live"), dict):
-                page.text(
-                    0.08, y, f"live calibration stopped: {res['live']['stopped']}", fontsize=8
-                )
-                y -= 0.02
-            if y < 0.1:
+        for line in (line for sec in sections for line in sec.pdf):
+            if y < 0.06:
+                page.text(0.06, y, "(more in report.html)", fontsize=8, style="italic")
                 break
+            y = _pdf_line(page, line, y)
         pdf.savefig(page)
         plt.close(page)
         for f in figs:
@@ -484,3 +327,18 @@ def build_report(folder: Path) -> tuple[Path, Path]:
             pdf.savefig(f.fig, bbox_inches="tight")
             plt.close(f.fig)
     return html_path, pdf_path
+
+
+PDF_COLOURS = {"PASS": "#1a7f37", "FAIL": "#b42318"}
+
+
+def _pdf_line(page: Any, line: PdfLine, y: float) -> float:
+    """Draw one summary line at height ``y`` (figure fraction); returns the next line's height."""
+    if line.style == "heading":
+        y -= 0.015
+        page.text(0.06, y, line.text, fontsize=11, weight="bold")
+        return y - 0.025
+    mono = line.style != "text"
+    page.text(0.08 if line.style == "mono" or not mono else 0.06, y, line.text, fontsize=8,
+              family="monospace" if mono else None, color=PDF_COLOURS.get(line.style, "#111111"))  # fmt: skip
+    return y - 0.018
