@@ -90,6 +90,25 @@ def settled_samples(
     return rows[keep]
 
 
+def paired_noise(
+    reader: RunReader, window: tuple[float, float], device: str, reference: str, settle_s: float
+) -> float | None:
+    """RMS over axes of the standard deviation (nT) of ``device`` minus the newest ``reference``
+    sample before it, in a settled window: the noise of the pairs a sequential calibration sees.
+    Field noise both magnetometers see at the same moment cancels here; the root sum square of
+    the two noise floors counts it twice. None with fewer than 5 pairs."""
+    dut = settled_samples(reader, device, window, settle_s)
+    ref = settled_samples(reader, reference, window, settle_s)
+    if len(ref) == 0:
+        return None
+    idx = np.searchsorted(ref[:, 0], dut[:, 0], side="right") - 1
+    ok = idx >= 0
+    if ok.sum() < 5:
+        return None
+    diff = dut[ok, 1:] - ref[idx[ok], 1:]
+    return float(1000.0 * np.sqrt(np.mean(np.var(diff, axis=0, ddof=1))))
+
+
 def noise_floor(
     reader: RunReader, window: tuple[float, float], devices: list[str], settle_s: float
 ) -> dict[str, float]:
