@@ -10,6 +10,7 @@ from typing import Any
 
 from drivers.errors import DeviceNotFoundError
 from drivers.identity import Identity
+from drivers.mag.polled import PolledSampling
 from drivers.transport.i2c import I2CDevice
 
 WHO_AM_I, CTRL_REG1, CTRL_REG2, CTRL_REG3, CTRL_REG4, STATUS, OUT_X_L = (
@@ -20,7 +21,7 @@ AUTO_INCREMENT = 0x80
 LSB_PER_GAUSS = {4: 6842.0, 8: 3421.0, 12: 2281.0, 16: 1711.0}
 
 
-class Lis3mdl:
+class Lis3mdl(PolledSampling):
     """Ultra-high-performance mode, 80 Hz, continuous conversion."""
 
     def __init__(self, bus: int | Any, address: int = 0x1C, *, full_scale_gauss: int = 4,
@@ -55,20 +56,6 @@ class Lis3mdl:
             for i in (0, 2, 4)
         )
         return x, y, z
-
-    self_timed = False
-    """Polled: the caller paces :meth:`read_samples`."""
-
-    def start_sampling(self, rate_hz: float) -> float:
-        """Polled measurements: nothing to configure; the caller reads at ``rate_hz``."""
-        return rate_hz
-
-    def read_samples(self, max_wait_s: float) -> list[tuple[float, float, float]]:
-        """One fresh measurement (uT)."""
-        return [self.read(max_wait_s)]
-
-    def stop_sampling(self) -> None:
-        """Nothing to stop."""
 
     def close(self) -> None:
         """Nothing to release: the bus belongs to whoever opened it."""

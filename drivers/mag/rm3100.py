@@ -10,6 +10,7 @@ from typing import Any
 
 from drivers.errors import DeviceNotFoundError
 from drivers.identity import Identity
+from drivers.mag.polled import PolledSampling
 from drivers.transport.i2c import I2CDevice
 
 POLL, CMM, CCX, TMRC, MX, STATUS, REVID = 0x00, 0x01, 0x04, 0x0B, 0x24, 0x34, 0x36
@@ -30,7 +31,7 @@ def decode_results(raw: bytes, cycle_count: int) -> tuple[float, float, float]:
     return x, y, z
 
 
-class Rm3100:
+class Rm3100(PolledSampling):
     """An RM3100 at ``address`` (0x20-0x23) on ``bus`` (bus number or smbus2-compatible object)."""
 
     def __init__(self, bus: int | Any, address: int = 0x20, *, cycle_count: int = 200,
@@ -73,20 +74,6 @@ class Rm3100:
         self.dev.write(CMM, [0x71])
         self.continuous = True
         return TMRC_HZ[tmrc]
-
-    self_timed = False
-    """Polled: the caller paces :meth:`read_samples`."""
-
-    def start_sampling(self, rate_hz: float) -> float:
-        """Polled measurements: nothing to configure; the caller reads at ``rate_hz``."""
-        return rate_hz
-
-    def read_samples(self, max_wait_s: float) -> list[tuple[float, float, float]]:
-        """One fresh measurement (uT)."""
-        return [self.read(max_wait_s)]
-
-    def stop_sampling(self) -> None:
-        """Nothing to stop."""
 
     def close(self) -> None:
         """Nothing to release: the bus belongs to whoever opened it."""
