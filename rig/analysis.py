@@ -80,13 +80,24 @@ def hold_values(reader: RunReader, channel: str, t: Array) -> Array:
     return np.asarray(vs[idx])
 
 
+def spread_nt(xyz_ut: Array) -> float:
+    """RMS over the three axes of the sample standard deviation: uT rows in, nT out."""
+    return float(1000.0 * np.sqrt(np.mean(np.var(xyz_ut, axis=0, ddof=1))))
+
+
 def settled_samples(
-    reader: RunReader, device: str, window: tuple[float, float], settle_s: float
+    reader: RunReader,
+    device: str,
+    window: tuple[float, float],
+    settle_s: float,
+    changes: Array | None = None,
 ) -> Array:
     """Rows (t s, x, y, z uT) of ``device`` inside ``window`` and outside every field or load
-    change extended by ``settle_s`` (s)."""
+    change extended by ``settle_s`` (s); ``changes`` (from :func:`change_times`) when the caller
+    already has them."""
+    changes = change_times(reader) if changes is None else changes
     rows = np.array(reader.samples(device), float).reshape(-1, 4)
-    keep = _in_windows(rows[:, 0], [window]) & settled(rows[:, 0], change_times(reader), settle_s)
+    keep = _in_windows(rows[:, 0], [window]) & settled(rows[:, 0], changes, settle_s)
     return rows[keep]
 
 
@@ -97,16 +108,16 @@ def paired_noise(
     sample before it, in a settled window: the noise of the pairs a sequential calibration sees.
     Field noise both magnetometers see at the same moment cancels here; the root sum square of
     the two noise floors counts it twice. None with fewer than 5 pairs."""
-    dut = settled_samples(reader, device, window, settle_s)
-    ref = settled_samples(reader, reference, window, settle_s)
+    changes = change_times(reader)
+    dut = settled_samples(reader, device, window, settle_s, changes)
+    ref = settled_samples(reader, reference, window, settle_s, changes)
     if len(ref) == 0:
         return None
     idx = np.searchsorted(ref[:, 0], dut[:, 0], side="right") - 1
     ok = idx >= 0
     if ok.sum() < 5:
         return None
-    diff = dut[ok, 1:] - ref[idx[ok], 1:]
-    return float(1000.0 * np.sqrt(np.mean(np.var(diff, axis=0, ddof=1))))
+    return spread_nt(dut[ok, 1:] - ref[idx[ok], 1:])
 
 
 def noise_floor(
@@ -116,12 +127,9 @@ def noise_floor(
     changes = change_times(reader)
     out = {}
     for dev in devices:
-        rows = np.array(reader.samples(dev), float).reshape(-1, 4)
-        if rows.size == 0:
-            continue
-        keep = _in_windows(rows[:, 0], [window]) & settled(rows[:, 0], changes, settle_s)
-        if keep.sum() >= 5:
-            out[dev] = float(1000.0 * np.sqrt(np.mean(np.var(rows[keep, 1:], axis=0, ddof=1))))
+        rows = settled_samples(reader, dev, window, settle_s, changes)
+        if len(rows) >= 5:
+            out[dev] = spread_nt(rows[:, 1:])
     return out
 
 

@@ -14,7 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.analysis import settled_samples, to_cage_frame
+from rig.analysis import change_times, settled_samples, to_cage_frame
 from rig.errors import RigError
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.vocabulary import DEFAULT_FIELD_LIMIT_UT, Param, RigTiming, Step
@@ -102,8 +102,9 @@ class MeasureLinearity(StepExecution):
             fields = [(t, pl) for t, _, kind, pl in reader.commands()
                       if kind == "field" and t_start <= t <= t_end]  # fmt: skip
             bounds = [t for t, _ in fields[1:]] + [t_end]
-            dut_rows = settled_samples(reader, dut, (t_start, t_end), p["settle_s"])
-            ref_rows = settled_samples(reader, ref, (t_start, t_end), p["settle_s"])
+            changes = change_times(reader)
+            dut_rows = settled_samples(reader, dut, (t_start, t_end), p["settle_s"], changes)
+            ref_rows = settled_samples(reader, ref, (t_start, t_end), p["settle_s"], changes)
         finally:
             reader.close()
         points: dict[str, dict[str, list[float]]] = {}
