@@ -25,5 +25,10 @@ class DeviceNotFoundError(DeviceError):
     """The port or bus cannot be opened, or the device does not identify as expected."""
 
 
+class DeviceAbsentError(DeviceRefusedError):
+    """A Modbus gateway answered for the device: nothing answers at the unit id asked (Modbus
+    exception 10, gateway path unavailable, or 11, gateway target device failed to respond)."""
+
+
 class LimitError(DeviceError):
     """A set-point outside the device's range or the configured limit was refused before sending."""

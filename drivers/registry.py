@@ -15,8 +15,9 @@ See ``docs/devices.md``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 from drivers.errors import DeviceError
@@ -46,51 +47,158 @@ WANTED = {TEXT: "text", WHOLE: "a whole number", NUMBER: "a number", LIST: "a li
           WHOLE_OR_TEXT: "a whole number (or \"sim\")"}  # fmt: skip
 
 
+STANDARD_BAUDRATES: tuple[int, ...] = (
+    300, 600, 1200, 2400, 4800, 9600, 14400, 19200, 28800, 38400, 57600, 76800, 115200, 128000,
+    230400, 250000, 256000, 460800, 500000, 921600, 1000000, 1500000, 2000000,
+)  # fmt: skip
+"""Baud rates a serial port or USB adapter offers; anything else is a typing mistake."""
+
+
 @dataclass(frozen=True)
 class Param:
-    """One configuration key of a device: its accepted types, whether it must be given, and a
-    short help text (shown in errors and in ``docs/devices.md``)."""
+    """One configuration key of a device: its accepted types, whether it must be given, a short
+    help text (shown in errors and in ``docs/devices.md``), and the values it accepts.
+
+    The accepted values are stated here and nowhere else: ``low``/``high`` (inclusive bounds),
+    ``above`` (an exclusive lower bound, e.g. 0 for a timeout), ``choices`` (a list of the
+    accepted values) and ``nonempty`` (text). Every number must be finite. ``why`` explains a
+    range in an error, ``fix`` says what to write instead.
+    """
 
     name: str
     types: tuple[type, ...]
     required: bool = False
     default: Any = None
     help: str = ""
+    low: float | None = None
+    high: float | None = None
+    above: float | None = None
+    choices: tuple[Any, ...] = ()
+    nonempty: bool = False
+    why: str = ""
+    fix: str = ""
 
     @property
     def wanted(self) -> str:
         """How to describe the accepted type to a user ("a whole number")."""
         return WANTED.get(self.types, " or ".join(t.__name__ for t in self.types))
 
+    @property
+    def accepted(self) -> str:
+        """The accepted values in words ("1-65535", "N, E or O", "more than 0"), "" if any."""
+        if self.choices:
+            words = [str(c) for c in self.choices]
+            return words[0] if len(words) == 1 else f"{', '.join(words[:-1])} or {words[-1]}"
+        if self.low is not None and self.high is not None:
+            return f"{_num(self.low)}-{_num(self.high)}"
+        if self.above is not None:
+            return f"more than {_num(self.above)}"
+        if self.low is not None:
+            return f"at least {_num(self.low)}"
+        if self.high is not None:
+            return f"at most {_num(self.high)}"
+        return ""
+
     def accepts(self, value: Any) -> bool:
         """True when ``value`` has an accepted type (booleans are not numbers)."""
         return not isinstance(value, bool) and isinstance(value, self.types)
 
+    def problem(self, value: Any) -> str | None:
+        """What is wrong with ``value`` in one clause that ends with the fix; None when it is
+        fine. For example ``"70000 is outside 1-65535 (a TCP port); write the port ..."``."""
+        if not self.accepts(value):
+            return f"must be {self.wanted}, got {value!r}"
+        fix = f"; {self.fix}" if self.fix else ""
+        why = f" ({self.why})" if self.why else ""
+        if isinstance(value, str):
+            if self.nonempty and not value.strip():
+                return f"must not be empty{fix}"
+            if self.choices and value not in self.choices:
+                return f"{value!r} is not {self.why or 'one of'}: {self.accepted}{fix}"
+            return None
+        if not isinstance(value, int | float):
+            return None
+        if not math.isfinite(value):
+            return f"{value} is not a finite number{fix or '; write a number'}"
+        if self.choices and value not in self.choices:
+            near = _nearest(value, self.choices)
+            return f"{_num(value)} is not {self.why or 'one of'}{near}: {self.accepted}{fix}"
+        if (self.low is not None and value < self.low) or (
+            self.high is not None and value > self.high
+        ):
+            return f"{_num(value)} is outside {self.accepted}{why}{fix}"
+        if self.above is not None and value <= self.above:
+            return f"must be {self.accepted}, got {_num(value)}{why}{fix}"
+        return None
+
+
+def _num(value: float) -> str:
+    return str(int(value)) if float(value).is_integer() else str(value)
+
+
+def _nearest(value: float, choices: tuple[Any, ...]) -> str:
+    """A hint like ``" (did you mean 115200?)"`` for a digit too many or too few, or a value
+    within 5 % of one of ``choices``; "" otherwise."""
+    numbers = [c for c in choices if isinstance(c, int | float) and c > 0]
+    for c in numbers:
+        if value > 0 and (value * 10 == c or value == c * 10 or abs(value / c - 1) <= 0.05):
+            return f" (did you mean {_num(c)}?)"
+    return ""
+
+
+PATH = Param("path", TEXT, True, help="serial port, e.g. /dev/ttyUSB0 (or a pyserial URL)",
+             nonempty=True, fix='write the port, e.g. path = "/dev/ttyUSB0"')  # fmt: skip
+BAUDRATE = Param("baudrate", WHOLE, False, 115200, "baud rate", choices=STANDARD_BAUDRATES,
+                 why="a standard baud rate",
+                 fix="write the rate set on the device (its menu or manual shows it),"
+                     " e.g. baudrate = 9600")  # fmt: skip
+MODBUS_ID_FIX = (
+    "write the Modbus address set on the device (its menu or DIP switches show it),"
+    " e.g. device_id = 1"
+)
+TIMEOUT = Param("timeout_s", NUMBER, False, 0.5, "reply timeout (s)", above=0.0,
+                fix="write the seconds to wait for a reply, e.g. timeout_s = 0.5")  # fmt: skip
 
 TRANSPORTS: dict[str, tuple[Param, ...]] = {
     "modbus-tcp": (
-        Param("host", TEXT, True, help="IP address or host name"),
-        Param("port", WHOLE, True, 502, "TCP port"),
-        Param("device_id", WHOLE, False, 1, "Modbus device (slave) id"),
-        Param("timeout_s", NUMBER, False, 0.5, "reply timeout (s)"),
+        Param("host", TEXT, True, help="IP address or host name", nonempty=True,
+              fix='write the device\'s or gateway\'s address, e.g. host = "192.168.1.50"'),
+        Param("port", WHOLE, True, 502, "TCP port", low=1, high=65535, why="a TCP port",
+              fix="write the port the device listens on, e.g. port = 502 (Modbus TCP's own)"),
+        Param("device_id", WHOLE, False, 1, "Modbus unit id", low=0, high=255,
+              why="a Modbus TCP unit id: 1-247 picks a serial device behind a gateway; a device"
+                  " on the network itself usually answers 255 or 0, or ignores the id",
+              fix=MODBUS_ID_FIX),
+        TIMEOUT,
     ),
     "modbus-rtu": (
-        Param("path", TEXT, True, help="serial port, e.g. /dev/ttyUSB0 (or a pyserial URL)"),
-        Param("baudrate", WHOLE, False, 115200, "baud rate"),
-        Param("parity", TEXT, False, "N", "N, E or O"),
-        Param("device_id", WHOLE, False, 1, "Modbus device (slave) id"),
-        Param("timeout_s", NUMBER, False, 0.5, "reply timeout (s)"),
+        PATH,
+        BAUDRATE,
+        Param("parity", TEXT, False, "N", "N, E or O", choices=("N", "E", "O"),
+              why="a parity (none, even, odd)", fix='write the parity set on the device, e.g. parity = "N"'),
+        Param("device_id", WHOLE, False, 1, "Modbus device (slave) id", low=1, high=247,
+              why="a Modbus RTU address: 0 is the broadcast address, which no device answers;"
+                  " 248-255 are reserved",
+              fix=MODBUS_ID_FIX),
+        TIMEOUT,
     ),
     "serial": (
-        Param("path", TEXT, True, help="serial port, e.g. /dev/ttyUSB0 (or a pyserial URL)"),
-        Param("baudrate", WHOLE, False, None, "baud rate"),
+        PATH,
+        replace(BAUDRATE, default=None),  # the driver's own default
     ),
     "i2c": (
-        Param("address", WHOLE, True, help="7-bit I2C address, e.g. 0x20"),
+        Param("address", WHOLE, True, help="7-bit I2C address, e.g. 0x20", low=0x08, high=0x77,
+              why="7-bit I2C addresses 0x08-0x77; 0x00-0x07 and 0x78-0x7F are reserved",
+              fix="write the chip's address from its datasheet, e.g. address = 0x20"),
         Param("bus", WHOLE_OR_TEXT, False, 1, "bus number N of /dev/i2c-N"),
     ),
-}
+}  # fmt: skip
 """Each transport's connection parameters."""
+
+
+def transport_param(protocol: str, name: str) -> Param:
+    """One connection parameter of a transport, e.g. ``transport_param("modbus-tcp", "port")``."""
+    return next(p for p in TRANSPORTS[protocol] if p.name == name)
 
 
 @dataclass(frozen=True)
@@ -237,9 +345,14 @@ def _float_or_none(value: Any) -> float | None:
 
 
 def _open_riden(spec: OpenSpec) -> RidenSupply:
-    return RidenSupply(modbus_link(spec), name=spec.name,
-                       max_voltage_v=_float_or_none(spec.get("max_voltage_v")),
-                       max_current_a=_float_or_none(spec.get("max_current_a")))  # fmt: skip
+    link = modbus_link(spec)
+    try:  # the driver asks the model at once: a wrong id or model must not leave the port open
+        return RidenSupply(link, name=spec.name,
+                           max_voltage_v=_float_or_none(spec.get("max_voltage_v")),
+                           max_current_a=_float_or_none(spec.get("max_current_a")))  # fmt: skip
+    except BaseException:
+        link.close()
+        raise
 
 
 def _probe_link(target: ProbeTarget, name: str, baudrate: int | None = None) -> ModbusLink:
@@ -415,17 +528,21 @@ def _probe_i2c(kind_name: str, model: str, addresses: tuple[int, ...], register:
 
 def _iter_registered() -> Iterator[DeviceKind]:
     supply_params = (
-        Param("max_current_a", NUMBER, help="current limit (A), below the device's own"),
-        Param("max_voltage_v", NUMBER, help="voltage limit (V), below the device's own"),
-        Param("compliance_v", NUMBER, False, 12.0, "voltage set-point when used as a load (V)"),
-    )
+        Param("max_current_a", NUMBER, help="current limit (A), below the device's own",
+              above=0.0, fix="write the largest current this rig may ask for, e.g. max_current_a = 2.0"),
+        Param("max_voltage_v", NUMBER, help="voltage limit (V), below the device's own",
+              above=0.0, fix="write the largest voltage this rig may ask for, e.g. max_voltage_v = 24.0"),
+        Param("compliance_v", NUMBER, False, 12.0, "voltage set-point when used as a load (V)",
+              above=0.0, fix="write the voltage set-point for use as a load, e.g. compliance_v = 12.0"),
+    )  # fmt: skip
     regmap = Param("regmap", TEXT, True,
                    help="a register-map file or a shipped map name, e.g. \"maynuo-m97\"")  # fmt: skip
     mag_params = (
-        Param("rate_hz", NUMBER, False, 20.0, "sample rate (Hz)"),
+        Param("rate_hz", NUMBER, False, 20.0, "sample rate (Hz)", above=0.0,
+              fix="write the samples per second, e.g. rate_hz = 20"),
         Param("correction_matrix", LIST, help="calibration certificate: 3x3 matrix"),
         Param("correction_offset_ut", LIST, help="calibration certificate: offset (uT)"),
-    )
+    )  # fmt: skip
     yield DeviceKind(
         "riden-rd60xx", frozenset({"supply", "load"}), ("modbus-tcp", "modbus-rtu"),
         supply_params, _open_riden, "Riden RD6006/RD6006P/RD6012/RD6018 bench supply",
@@ -450,7 +567,9 @@ def _iter_registered() -> Iterator[DeviceKind]:
     )  # fmt: skip
     yield DeviceKind(
         "hmr2300", frozenset({"magnetometer"}), ("serial",),
-        (Param("device_id", WHOLE, help="HMR2300 ID 00-98 (asked with *99ID= when absent)"),
+        (Param("device_id", WHOLE, help="HMR2300 ID 00-98 (asked with *99ID= when absent)",
+               low=0, high=98, why="HMR2300 ids; 99 is its broadcast id",
+               fix="write the id the sensor answers *99ID= with, or leave device_id out"),
          *mag_params),
         _open_hmr2300, "Honeywell HMR2300 smart magnetometer (RS-232/RS-485)",
         _probe_hmr2300, (9600, 19200),

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers.errors import DeviceError, DeviceRefusedError
-from drivers.registry import KINDS, DeviceKind, Found, ProbeTarget
+from drivers.registry import KINDS, DeviceKind, Found, ProbeTarget, transport_param
 from drivers.transport.modbus import ModbusLink
 from rig.config import load_rig_config
 from rig.errors import UserInputError
@@ -77,6 +77,12 @@ def parse_tcp(text: str) -> tuple[str, int]:
     host, _, port = text.rpartition(":")
     if not host or not port.isdigit():
         raise UserInputError(f"--tcp {text}: write HOST:PORT, e.g. --tcp 192.168.1.50:502")
+    rule = transport_param("modbus-tcp", "port")
+    if rule.problem(int(port)) is not None:
+        raise UserInputError(
+            f"--tcp {text}: port {int(port)} is outside {rule.accepted} (a TCP port); write the"
+            " port the device listens on, e.g. --tcp 192.168.1.50:502"
+        )
     return host, int(port)
 
 

@@ -17,7 +17,9 @@
     port = 5020
     device_id = 1
 
-Every error names the file and the key and says what to write instead.
+Every error names the file and the key and says what to write instead. The values each device
+key accepts (a TCP port 1-65535, a Modbus RTU address 1-247, a standard baud rate, ...) are stated
+once, in the key's :class:`drivers.registry.Param`.
 """
 
 from __future__ import annotations
@@ -137,11 +139,17 @@ def load_rig_config(path: str | Path) -> RigConfig:
         for param in entry.params:
             if param.required and param.name not in spec:
                 raise _err(path, where, f"needs '{param.name}' ({param.help})")
+        own = {p.name: p for p in entry.param_specs(protocol)}
         known = all_params()
         for key, value in spec.items():
-            spec_of = known.get(key)
-            if spec_of is not None and not spec_of.accepts(value):
-                raise _err(path, f"{where}.{key}", f"must be {spec_of.wanted}, got {value!r}")
+            if key in own:  # this transport's and kind's keys: type and accepted values
+                problem = own[key].problem(value)
+            elif key in known and not known[key].accepts(value):  # another kind's key: its type
+                problem = f"must be {known[key].wanted}, got {value!r}"
+            else:
+                problem = None
+            if problem is not None:
+                raise _err(path, f"{where}.{key}", problem)
         params = {k: v for k, v in spec.items() if k not in ("kind", "protocol")}
         devices[name] = DeviceConfig(name, kind, protocol, params)
     cage = _cage(path, raw.get("cage"), devices) if "cage" in raw else None

@@ -27,7 +27,7 @@ from sim.ascii_mag import AsciiMagnetometer
 from sim.config import SimConfig
 from sim.hmr2300 import Hmr2300
 from sim.links import PtyNullModem, TcpProxy
-from sim.modbus_devices import regmap_device, riden_device
+from sim.modbus_devices import regmap_device, riden_device, unserved_ids
 from sim.physics import CagePhysics, Faults
 from sim.regmap import load_regmap
 from sim.rm3100 import Rm3100, SimI2CBus
@@ -145,9 +145,12 @@ class SimulatedCage:
     def _serve_modbus(self, name: str, device: SimDevice, transport: str, device_id: int,
                       baudrate: int, faults: Faults) -> dict[str, Any]:  # fmt: skip
         if transport == "modbus-tcp":
+            # unit ids other than the device's get exception 11, as from a gateway (id 0: the
+            # device itself is pymodbus' catch-all and answers every id, as some devices do)
+            devices = [device] if device_id == 0 else [device, unserved_ids()]
 
             async def start_tcp() -> ModbusTcpServer:
-                srv = ModbusTcpServer(device, address=("127.0.0.1", 0))
+                srv = ModbusTcpServer(devices, address=("127.0.0.1", 0))
                 await srv.serve_forever(background=True)
                 return srv
 

@@ -2,6 +2,7 @@
 
 The action runs on every access before pymodbus answers: reads refresh the live registers from
 the physics; writes are checked and applied to the physics (or refused with a Modbus exception).
+A Modbus TCP endpoint also answers for the unit ids it does not serve (:func:`unserved_ids`).
 """
 
 from __future__ import annotations
@@ -201,3 +202,22 @@ def regmap_device(
         for r in sorted(spec.registers, key=lambda r: r.address)
     ]
     return SimDevice(id=device_id, simdata=blocks, action=action)
+
+
+def unserved_ids() -> SimDevice:
+    """pymodbus' catch-all device (id 0) for a Modbus TCP endpoint: a request for any unit id the
+    endpoint does not serve is answered with exception 11, gateway target device failed to
+    respond, as a Modbus TCP gateway does when nothing on its serial side answers that id
+    (Modbus Application Protocol V1.1b3, section 7). Without it pymodbus 3.16 answers exception
+    4, server device failure: its ``SimCore`` raises ``KeyError`` for an unknown id, and the
+    server reports any error in the datastore as a device failure.
+
+    Not for Modbus RTU: there a request for another id never reaches the server
+    (:class:`sim.links.PtyNullModem` keeps the bus silent, as a real RS-485 device does)."""
+
+    async def action(fc: int, start_address: int, address: int, count: int,
+                     regs: list[int], values: Any) -> ExcCodes | None:  # fmt: skip
+        return ExcCodes.GATEWAY_NO_RESPONSE
+
+    every_address = SimData(address=0, count=65536, datatype=DataType.REGISTERS)
+    return SimDevice(id=0, simdata=[every_address], action=action)

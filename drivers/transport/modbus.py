@@ -13,6 +13,7 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
 from drivers.errors import (
+    DeviceAbsentError,
     DeviceNotFoundError,
     DeviceProtocolError,
     DeviceRefusedError,
@@ -20,11 +21,44 @@ from drivers.errors import (
 )
 from drivers.transport.serial_port import own_stall_s
 
-EXCEPTION_NAMES = {
-    1: "illegal function", 2: "illegal data address", 3: "illegal data value",
-    4: "device failure", 5: "acknowledge", 6: "device busy", 8: "memory parity error",
-    10: "gateway path unavailable", 11: "gateway target failed to respond",
+EXCEPTIONS: dict[int, tuple[str, str]] = {
+    1: ("illegal function", "the device does not offer this request; check that kind (and regmap)"
+        " match the device's model"),
+    2: ("illegal data address", "the device has no such register, or it is read-only; check that"
+        " kind (and regmap) match the device's model"),
+    3: ("illegal data value", "the device refused the value; check it is within the device's own"
+        " range and the register map's scale"),
+    4: ("server device failure", "the device failed while handling the request; look at its"
+        " display for a fault, then switch it off and on"),
+    5: ("acknowledge", "the device accepted the request but needs long to carry it out; wait,"
+        " then ask again"),
+    6: ("server device busy", "the device is busy with a long operation (or its front panel"
+        " holds it); close any menu on it and try again"),
+    8: ("memory parity error", "the device's memory failed its check; switch it off and on, and"
+        " have it serviced if this repeats"),
+    10: ("gateway path unavailable", "the gateway has no route for this unit id; check its unit id"
+         " mapping and device_id in the rig configuration"),
+    11: ("gateway target device failed to respond", "nothing answered the gateway at this unit id;"
+         " check device_id in the rig configuration, and the device's power and its cable to the"
+         " gateway"),
 }  # fmt: skip
+"""Modbus exception codes (Modbus Application Protocol V1.1b3, section 7): name and what to check."""
+EXCEPTION_NAMES = {code: name for code, (name, _) in EXCEPTIONS.items()}
+GATEWAY_CODES = (10, 11)
+"""Exceptions a gateway sends for the device behind it: the device itself did not answer."""
+ID_FIX = (
+    "check the device's Modbus address in the rig configuration (device_id = {id}) against the"
+    " one set on the device (its menu or DIP switches show it)"
+)
+
+
+def exception_text(code: int) -> str:
+    """``"Modbus exception 3 (illegal data value); the device refused the value; ..."``."""
+    name, hint = EXCEPTIONS.get(
+        code, ("not a standard code", "see the device's manual for what it means")
+    )
+    return f"Modbus exception {code} ({name}); {hint}"
+
 
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # errors reach the user through ours
 
@@ -119,6 +153,9 @@ class ModbusLink:
         self.device_id = device_id
         self.retries = retries
         self.where = f"{host}:{port}" if host is not None else f"{path}"
+        self.tcp = host is not None
+        self.line = f"baud rate {baudrate}, parity {parity}"
+        self.answered = False  # the device has answered since this link was made: its id is right
         self._lock = threading.RLock()
         self.failed = False  # the last request went unanswered: try once, not retries + 1 times
         self.stale_replies = 0  # replies to an earlier request, recognized by their size
@@ -175,13 +212,16 @@ class ModbusLink:
                 last = exc
                 time.sleep(0.05 * (attempt + 1))  # let a garbled line settle before retrying
                 continue
-            if rr.isError():
-                code = getattr(rr, "exception_code", 0)
-                raise DeviceRefusedError(
-                    f"{self.name} at {self.where} refused {what}: Modbus exception {code}"
-                    f" ({EXCEPTION_NAMES.get(code, 'unknown')})"
-                )
             self.failed = False
+            if rr.isError():
+                code = int(getattr(rr, "exception_code", 0))
+                if code in GATEWAY_CODES:
+                    raise self._gateway_error(what, code)
+                self.answered = True
+                raise DeviceRefusedError(
+                    f"{self.name} at {self.where} refused {what}: {exception_text(code)}"
+                )
+            self.answered = True
             return rr
         self.failed = True
         if isinstance(last, ConnectionException | DeviceNotFoundError | OSError):
@@ -191,13 +231,47 @@ class ModbusLink:
             )
         if isinstance(last, ModbusIOException):
             detail = str(last).split(", continue")[0].removeprefix("Modbus Error: ")
-            raise DeviceTimeoutError(
-                f"{self.name} at {self.where}: no reply to {what} after {attempts}"
-                f" attempts ({detail}); check power, cable, baud rate and device id"
-            )
+            raise DeviceTimeoutError(self._silence(what, attempts, detail))
         raise DeviceProtocolError(
             f"{self.name} at {self.where}: malformed reply to {what} after {attempts}"
             f" attempts ({last}); check for noise on the line or a wrong framing"
+        )
+
+    def _gateway_error(self, what: str, code: int) -> DeviceAbsentError:
+        """Exception 10 or 11: a gateway speaks for a device that did not answer."""
+        name = EXCEPTION_NAMES[code]
+        uid = self.device_id
+        if code == 11 and self.answered:
+            return DeviceAbsentError(
+                f"{self.name} at {self.where}: the device with unit id {uid} stopped answering"
+                f" behind the gateway (Modbus exception 11, {name}, to {what}); check its power"
+                " and its cable to the gateway"
+            )
+        return DeviceAbsentError(
+            f"{self.name} at {self.where}: no device with unit id {uid} answers (the gateway"
+            f" replied Modbus exception {code}, {name}, to {what}); {ID_FIX.format(id=uid)}"
+            + (", and the gateway's unit id mapping" if code == 10 else
+               ", then the device's power and its cable to the gateway")
+        )  # fmt: skip
+
+    def _silence(self, what: str, attempts: int, detail: str) -> str:
+        """The message for no reply: on a link that has never had one, name the device id."""
+        head = f"{self.name} at {self.where}"
+        tried = f"no reply to {what} after {attempts} attempt{'s' if attempts > 1 else ''}"
+        if "No response received" not in detail:  # pymodbus' words for silence add nothing
+            tried += f" ({detail.removeprefix('[Input/Output] ')})"
+        if self.answered:
+            return f"{head}: {tried}; it answered before: check its power and cable"
+        uid = self.device_id
+        if self.tcp:
+            return (
+                f"{head}: {tried}; a device or gateway may ignore a request for a unit id it does"
+                f" not serve: {ID_FIX.format(id=uid)}, then power and network"
+            )
+        return (
+            f"{head}: no device with unit id {uid} answers ({tried}; an RS-485 device stays"
+            f" silent when the id is not its own); {ID_FIX.format(id=uid)}, then {self.line},"
+            " power and cable"
         )
 
     def read_registers(self, address: int, count: int = 1) -> list[int]:
