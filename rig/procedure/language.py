@@ -16,49 +16,194 @@
       - check: {criteria: [{result: vector, value: residual_rms_nt, max: 100}]}
 
 Strings may use ``{parameter}``; nothing is evaluated. Every error names the file, the line, the
-step and the fix.
+step and the fix. A file is input from anyone: its size, its YAML (nesting, aliases, values with
+aliases expanded), its steps, its duration and its load set-points are bounded by the limits in
+rig.steps.vocabulary, each checked before the work it bounds, and no nan or inf gets through.
 """
 
 from __future__ import annotations
 
+import contextlib
 import string
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import yaml
+from yaml.composer import Composer
+from yaml.constructor import SafeConstructor
+from yaml.events import AliasEvent
+from yaml.nodes import Node, ScalarNode
+from yaml.resolver import Resolver
 
 from rig.steps import KINDS
-from rig.steps.load_profiles import LOAD_PROFILES
+from rig.steps.load_profiles import LOAD_PROFILES, profile_setpoints
 from rig.steps.vocabulary import (
+    MAX_LOAD_SETPOINTS_PER_STEP,
+    MAX_PROCEDURE_FILE_BYTES,
+    MAX_STEPS,
+    MAX_TOTAL_DURATION_S,
+    MAX_YAML_ALIASES,
+    MAX_YAML_DEPTH,
+    MAX_YAML_NODES,
+    NOT_FINITE_FIX,
+    NotFiniteError,
     Param,
     Procedure,
     ProcedureError,
+    RigTiming,
     Step,
     Where,
     bind_params,
+    finite_number,
     suggest,
 )
 
-__all__ = ["Param", "Procedure", "ProcedureError", "Step", "Where", "parse_procedure"]
+__all__ = [
+    "NotFiniteError",
+    "Param",
+    "Procedure",
+    "ProcedureError",
+    "Step",
+    "Where",
+    "parse_procedure",
+]
+
+if yaml.__with_libyaml__:  # libyaml makes the events (no recursion, fast); Python composes them
+    from yaml._yaml import CParser as _Events
+else:  # pragma: no cover - PyYAML without libyaml
+    from yaml.parser import Parser
+    from yaml.reader import Reader
+    from yaml.scanner import Scanner
+
+    class _Events(Reader, Scanner, Parser):  # type: ignore[no-redef]
+        def __init__(self, text: str) -> None:
+            Reader.__init__(self, text)
+            Scanner.__init__(self)
+            Parser.__init__(self)
 
 
-class _LineLoader(yaml.SafeLoader):
-    """safe_load that records each mapping's line number under ``__line__``."""
+class _Loader(Composer, _Events, SafeConstructor, Resolver):
+    """safe_load with bounds and line numbers. Composing, it refuses (with file:line) nesting
+    deeper than :data:`MAX_YAML_DEPTH`, more than :data:`MAX_YAML_ALIASES` aliases, more than
+    :data:`MAX_YAML_NODES` values with aliases expanded, an alias inside its own anchor and more
+    than :data:`MAX_STEPS` items in the top-level ``steps`` list, each before reading further.
+    Constructing, it records each mapping's line under ``__line__`` and each key's line in
+    :attr:`key_lines` (by the mapping's ``id``)."""
 
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-        mapping: dict[Any, Any] = dict(super().construct_mapping(node, deep=deep))
-        mapping["__line__"] = node.start_mark.line + 1
-        return mapping
+    def __init__(self, text: str, path: str) -> None:
+        _Events.__init__(self, text)
+        Composer.__init__(self)
+        SafeConstructor.__init__(self)
+        Resolver.__init__(self)
+        self.path = path
+        self.key_lines: dict[int, dict[Any, int]] = {}
+        self._depth = self._aliases = self._values = 0
+        self._expanded: dict[int, int] = {}  # id(anchored node) -> its values, aliases expanded
+        self._in_steps = False
+
+    def _refuse(self, node_line: int, what: str) -> ProcedureError:
+        return ProcedureError(f"{self.path}:{node_line}: {what}")
+
+    def _count(self, n: int, line: int) -> None:
+        self._values += n
+        if self._values > MAX_YAML_NODES:
+            raise self._refuse(
+                line,
+                f"more than {MAX_YAML_NODES} values with YAML aliases expanded (MAX_YAML_NODES;"
+                " an alias bomb?): write the values out or use fewer aliases",
+            )
+
+    def compose_node(self, parent: Node | None, index: Any) -> Node | None:
+        event = self.peek_event()
+        if event is None or event.start_mark is None:  # pragma: no cover - the parser gives both
+            return super().compose_node(parent, index)
+        line = event.start_mark.line + 1
+        if isinstance(event, AliasEvent):
+            self._aliases += 1
+            if self._aliases > MAX_YAML_ALIASES:
+                raise self._refuse(
+                    line, f"more than {MAX_YAML_ALIASES} YAML aliases (MAX_YAML_ALIASES)"
+                )
+            node = super().compose_node(parent, index)
+            size = self._expanded.get(id(node))
+            if size is None:
+                raise self._refuse(
+                    line, f"alias *{event.anchor} is inside the anchor it names (a loop)"
+                )
+            self._count(size, line)
+            return node
+        self._depth += 1
+        if self._depth > MAX_YAML_DEPTH:
+            raise self._refuse(
+                line, f"nested more than {MAX_YAML_DEPTH} levels deep (MAX_YAML_DEPTH)"
+            )
+        if self._in_steps and self._depth == 3 and isinstance(index, int) and index >= MAX_STEPS:
+            raise self._refuse(
+                line,
+                f"step {index + 1}: a procedure has at most {MAX_STEPS} steps (MAX_STEPS);"
+                " split it into several procedures",
+            )
+        steps = self._depth == 2 and isinstance(index, ScalarNode) and index.value == "steps"
+        self._in_steps |= steps
+        before = self._values
+        self._count(1, line)
+        node = super().compose_node(parent, index)
+        if steps:
+            self._in_steps = False
+        if getattr(event, "anchor", None) is not None:
+            self._expanded[id(node)] = self._values - before
+        self._depth -= 1
+        return node
+
+    def construct_object(self, node: Node, deep: bool = False) -> Any:
+        try:
+            return super().construct_object(node, deep=deep)
+        except (ValueError, OverflowError) as exc:  # !!int of 5000 digits, a 30 February
+            text = node.value if isinstance(node, ScalarNode) else node.tag
+            raise self._refuse(
+                node.start_mark.line + 1,
+                f"YAML value {str(text)[:40]!r}: {str(exc).split('; use sys', 1)[0]}",
+            ) from None
+
+    def construct_line_map(self, node: yaml.MappingNode) -> Iterator[dict[Any, Any]]:
+        data: dict[Any, Any] = {}
+        yield data
+        data.update(self.construct_mapping(node))
+        lines: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            with contextlib.suppress(TypeError):  # unhashable: construct_mapping refused it
+                lines[self.construct_object(key_node)] = key_node.start_mark.line + 1
+        data["__line__"] = node.start_mark.line + 1
+        self.key_lines[id(data)] = lines
 
 
-def load_yaml(path: Path) -> dict[str, Any]:
-    """Parse with line numbers; YAML syntax errors cite the line."""
+_Loader.add_constructor("tag:yaml.org,2002:map", _Loader.construct_line_map)  # type: ignore[type-var]
+
+
+def _read_yaml(path: Path) -> tuple[str, dict[str, Any], dict[int, dict[Any, int]]]:
+    """The text, the data and the key lines of a procedure file, within the limits."""
     try:
-        text = path.read_text(encoding="utf-8")
+        with path.open("rb") as fh:
+            raw = fh.read(MAX_PROCEDURE_FILE_BYTES + 1)  # never more, whatever the file is
     except FileNotFoundError:
         raise ProcedureError(f"{path}: no such procedure; see the procedures/ folder") from None
+    except OSError as exc:
+        raise ProcedureError(f"{path}: cannot read it ({exc.strerror})") from None
+    if len(raw) > MAX_PROCEDURE_FILE_BYTES:
+        raise ProcedureError(
+            f"{path}: larger than {MAX_PROCEDURE_FILE_BYTES} bytes (MAX_PROCEDURE_FILE_BYTES):"
+            " a procedure is a short text; split it into several procedures"
+        )
     try:
-        data = yaml.load(text, Loader=_LineLoader)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ProcedureError(
+            f"{path}: not UTF-8 text (byte {exc.start}): save it as UTF-8"
+        ) from None
+    loader = _Loader(text, str(path))
+    try:
+        data = loader.get_single_data()
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = f":{mark.line + 1}" if mark is not None else ""
@@ -66,9 +211,57 @@ def load_yaml(path: Path) -> dict[str, Any]:
         raise ProcedureError(
             f"{path}{line}: YAML syntax: {problem}; check indentation and quoting"
         ) from None
+    finally:
+        loader.dispose()
     if not isinstance(data, dict):
         raise ProcedureError(f"{path}:1: a procedure is a mapping with 'procedure' and 'steps'")
-    return data
+    return text, data, loader.key_lines
+
+
+def load_yaml(path: Path) -> dict[str, Any]:
+    """Parse with line numbers, within the limits; YAML syntax errors cite the line."""
+    return _read_yaml(path)[1]
+
+
+def _label(keys: list[Any]) -> str:
+    """Where a value sits, as the guide names it: ``step 2 (hold): 'hold_s'``."""
+
+    def dotted(ks: list[Any]) -> str:
+        return "".join(f"[{k}]" if isinstance(k, int) else f".{k}" for k in ks).lstrip(".")
+
+    if len(keys) >= 2 and keys[0] == "steps" and isinstance(keys[1], int):
+        head, rest = f"step {keys[1] + 1}", keys[2:]
+        if rest and isinstance(rest[0], str) and rest[0] in KINDS:
+            head, rest = f"{head} ({rest[0]})", rest[1:]
+        return f"{head}: '{dotted(rest)}'" if rest else head
+    if len(keys) >= 2 and keys[0] == "parameters":
+        return f"parameter '{keys[1]}'" + (f": '{dotted(keys[2:])}'" if keys[2:] else "")
+    return f"'{dotted(keys)}'"
+
+
+def _refuse_non_finite(
+    value: Any, keys: list[Any], line: int, path: Path, key_lines: dict[int, dict[Any, int]]
+) -> None:
+    """A :class:`NotFiniteError` naming the line and the place of the first nan, inf or number
+    beyond a float's range anywhere in the file's data (keys included)."""
+    if isinstance(value, float | int) and not isinstance(value, bool):
+        if finite_number(value) is None:
+            digits = str(value)
+            shown = (
+                repr(value)
+                if isinstance(value, float)
+                else f"{digits[:8]}... ({len(digits)} digits)"
+            )
+            raise NotFiniteError(f"{path}:{line}: {_label(keys)} is {shown}; {NOT_FINITE_FIX}")
+    elif isinstance(value, dict):
+        lines = key_lines.get(id(value), {})
+        for k, v in value.items():
+            if k != "__line__":
+                _refuse_non_finite(k, [*keys, k], lines.get(k, line), path, key_lines)
+                _refuse_non_finite(v, [*keys, k], lines.get(k, line), path, key_lines)
+    elif isinstance(value, list | tuple | set | frozenset):
+        for i, v in enumerate(value):
+            _refuse_non_finite(v, [*keys, i], line, path, key_lines)
 
 
 # --- the vocabulary: step kinds (rig.steps), load profiles (rig.steps.load_profiles) ---------------
@@ -77,8 +270,18 @@ COMMON_KEYS = {"name", "loads"}
 
 
 class _Strict(string.Formatter):
+    """``{name}`` and nothing else: no attributes, indexes or format specs (a ``{x:>999999999}``
+    would build a gigabyte of text)."""
+
     def __init__(self, names: dict[str, str], where: str) -> None:
         self.names, self.where = names, where
+
+    def get_field(self, field_name: str, args: Any, kwargs: Any) -> Any:
+        if "." in field_name or "[" in field_name:
+            raise ProcedureError(
+                f"{self.where}: '{{{field_name}}}': a placeholder is a parameter's name, nothing more"
+            )
+        return super().get_field(field_name, args, kwargs)
 
     def get_value(self, key: Any, args: Any, kwargs: Any) -> Any:
         if key not in self.names:
@@ -86,6 +289,13 @@ class _Strict(string.Formatter):
                 f"{self.where}: unknown parameter '{{{key}}}'{suggest(str(key), self.names)}; declare it under 'parameters'"
             )
         return self.names[key]
+
+    def format_field(self, value: Any, format_spec: str) -> Any:
+        if format_spec:
+            raise ProcedureError(
+                f"{self.where}: format '{{...:{format_spec}}}' not allowed: write {{name}} alone"
+            )
+        return super().format_field(value, format_spec)
 
 
 def _substitute(value: Any, names: dict[str, str], where: str) -> Any:
@@ -103,10 +313,47 @@ def _substitute(value: Any, names: dict[str, str], where: str) -> Any:
     return value
 
 
+def _placeholders(value: Any) -> set[str]:
+    """The ``{name}`` placeholders in the text anywhere in ``value``."""
+    if isinstance(value, str):
+        try:
+            return {f for _, f, _, _ in string.Formatter().parse(value) if f}
+        except ValueError:
+            return set()
+    if isinstance(value, list):
+        return set().union(*(_placeholders(v) for v in value))
+    if isinstance(value, dict):
+        return set().union(*(_placeholders(v) for v in value.values()))
+    return set()
+
+
+def _with_origin(
+    exc: NotFiniteError, raw: Any, names: dict[str, str], origin: dict[str, str]
+) -> NotFiniteError:
+    """``exc`` naming the parameters behind it: those the step uses whose value is not finite."""
+    culprits = []
+    for name in sorted(_placeholders(raw) & set(names)):
+        try:
+            number = float(names[name])
+        except ValueError:
+            continue
+        if finite_number(number) is None:
+            culprits.append(f"'{{{name}}}' is {origin[name]}")
+    if not culprits:
+        return exc
+    head, sep, tail = str(exc).partition(f"; {NOT_FINITE_FIX}")
+    return NotFiniteError(f"{head} ({', '.join(culprits)}){sep}{tail}")
+
+
 def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -> Procedure:
-    """Read, validate and bind a procedure. ``overrides`` set parameters (``--set name=value``)."""
+    """Read, validate and bind a procedure. ``overrides`` set parameters (``--set name=value``).
+
+    Within the limits of rig.steps.vocabulary (docs/procedures.md, "Limits"): the file's size and
+    YAML structure as it is read, then no nan or inf anywhere, then per step its parameters, its
+    load profiles' set-points and files, and the procedure's duration so far."""
     path = Path(path)
-    data = load_yaml(path)
+    text, data, key_lines = _read_yaml(path)
+    _refuse_non_finite(data, [], data.get("__line__", 1), path, key_lines)
     top = Where(str(path), data.get("__line__", 1))
     allowed = {
         "procedure",
@@ -126,12 +373,15 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
     if not isinstance(declared, dict):
         raise ProcedureError(f"{top}: 'parameters' must be a mapping of name: {{default: ...}}")
     names: dict[str, str] = {}
+    origin: dict[str, str] = {}  # where each parameter's value comes from, for error messages
     may_be_empty: set[str] = set()
     for name, spec in declared.items():
         if name == "__line__":
             continue
         default = spec.get("default") if isinstance(spec, dict) else spec
         names[name] = "" if default is None else str(default)
+        line = key_lines.get(id(declared), {}).get(name, top.line)
+        origin[name] = f"the default of parameter '{name}' ({path}:{line})"
         if isinstance(spec, dict) and spec.get("allow_empty") in (True, "yes"):
             may_be_empty.add(name)
     for name, value in (overrides or {}).items():
@@ -149,6 +399,7 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
                 f"{path}: --set {name}= is empty: give a value, e.g. --set {name}=VALUE{default}"
             )
         names[name] = value
+        origin[name] = f"--set {name}={value}"
     mags = data.get("magnetometers") or {"dut": "dut", "reference": "reference"}
     if not isinstance(mags, dict) or "dut" not in mags:
         raise ProcedureError(f"{top}: 'magnetometers' must map roles to devices and include 'dut'")
@@ -159,79 +410,112 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
     raw_steps = data.get("steps")
     if not isinstance(raw_steps, list) or not raw_steps:
         raise ProcedureError(f"{top}: needs a non-empty 'steps' list")
-    steps = []
-    for i, raw in enumerate(raw_steps):
-        line = raw.get("__line__", top.line) if isinstance(raw, dict) else top.line
-        where = f"{path}:{line}: step {i + 1}"
-        if not isinstance(raw, dict):
-            raise ProcedureError(f"{where}: a step is a mapping like '- hold: {{hold_s: 5}}'")
-        kinds = [k for k in raw if k in KINDS]
-        unknown = [k for k in raw if k not in KINDS and k not in COMMON_KEYS and k != "__line__"]
-        if unknown:
-            raise ProcedureError(
-                f"{where}: unknown step or key '{unknown[0]}'{suggest(unknown[0], list(KINDS) + list(COMMON_KEYS))}; steps are: {', '.join(KINDS)}"
-            )
-        if len(kinds) != 1:
-            raise ProcedureError(
-                f"{where}: exactly one step kind per list item, found {kinds or 'none'}"
-            )
-        kind = kinds[0]
-        step_kind = KINDS[kind]
-        body = step_kind.shorthand(raw[kind])
-        if body is None:
-            body = {}
-        if not isinstance(body, dict):
-            raise ProcedureError(
-                f"{where} ({kind}): parameters must be a mapping, e.g. '{kind}: {{...}}'"
-            )
-        body = _substitute(body, names, where)
-        params = bind_params(step_kind.params, body, f"{where} ({kind})", kind)
-        step_loads: dict[str, tuple[str, dict[str, Any]]] = {}
-        for ch, prof in (raw.get("loads") or {}).items():
-            if ch == "__line__":
-                continue
-            if ch not in loads:
-                raise ProcedureError(
-                    f"{where}: load '{ch}' is not in the procedure's 'loads' list{suggest(ch, loads)}"
-                )
-            if not step_kind.takes_loads:
-                raise ProcedureError(
-                    f"{where}: load profiles run during field steps, not during '{kind}'"
-                )
-            if not isinstance(prof, dict) or len([k for k in prof if k != "__line__"]) != 1:
-                raise ProcedureError(
-                    f"{where}: load '{ch}' needs exactly one profile: {', '.join(LOAD_PROFILES)}"
-                )
-            pkind = next(k for k in prof if k != "__line__")
-            if pkind not in LOAD_PROFILES:
-                raise ProcedureError(
-                    f"{where}: load '{ch}': unknown profile '{pkind}'{suggest(pkind, LOAD_PROFILES)}"
-                )
-            step_loads[ch] = (
-                pkind,
-                bind_params(LOAD_PROFILES[pkind], prof[pkind] or {}, f"{where} load '{ch}'", pkind),
-            )
-        step_kind.validate(params, tuple(loads), f"{where} ({kind})")
-        name = str(raw.get("name") or params.get("name") or f"{kind} {i + 1}")
-        steps.append(
-            Step(
-                i,
-                kind,
-                _substitute(name, names, where),
-                params,
-                step_loads,
-                Where(str(path), line),
-                tuple(loads),
-            )
+    if len(raw_steps) > MAX_STEPS:  # the reader stops at the first step beyond; this is a backstop
+        raise ProcedureError(
+            f"{top}: {len(raw_steps)} steps: a procedure has at most {MAX_STEPS} steps (MAX_STEPS)"
         )
-    return Procedure(
-        str(data["procedure"]),
-        path,
-        names,
-        mags,
-        tuple(loads),
-        tuple(steps),
-        path.read_text(encoding="utf-8"),
+    steps = []
+    total_s = 0.0
+    for i, raw in enumerate(raw_steps):
+        try:
+            step = _parse_step(i, raw, path, top, names, tuple(loads))
+        except NotFiniteError as exc:
+            raise _with_origin(exc, raw, names, origin) from None
+        where = f"{step.where}: step {i + 1} ({step.kind})"
+        duration_s = KINDS[step.kind].duration_s(step, RigTiming())
+        total_s += duration_s
+        if total_s > MAX_TOTAL_DURATION_S:
+            raise ProcedureError(
+                f"{where}: the procedure's duration reaches {total_s / 86400:.2f} days here,"
+                f" beyond the {MAX_TOTAL_DURATION_S / 86400:g}-day limit (MAX_TOTAL_DURATION_S):"
+                " shorten it or split it into several procedures"
+            )
+        setpoints = 0
+        for ch, (pkind, pparams) in step.loads.items():
+            try:
+                setpoints += profile_setpoints(pkind, pparams, duration_s, path.parent)
+            except ProcedureError as exc:
+                raise type(exc)(f"{where}: load '{ch}': {exc}") from None
+            if setpoints > MAX_LOAD_SETPOINTS_PER_STEP:
+                raise ProcedureError(
+                    f"{where}: load '{ch}': the step's load profiles make more than"
+                    f" {MAX_LOAD_SETPOINTS_PER_STEP} set-points over {duration_s:g} s"
+                    " (MAX_LOAD_SETPOINTS_PER_STEP): lengthen their dwell, period or step_s"
+                )
+        steps.append(step)
+    return Procedure(str(data["procedure"]), path, names, mags, tuple(loads), tuple(steps), text)
+
+
+def _parse_step(
+    i: int, raw: Any, path: Path, top: Where, names: dict[str, str], loads: tuple[str, ...]
+) -> Step:
+    """Step ``i`` bound and validated (its duration and load set-points are checked after)."""
+    line = raw.get("__line__", top.line) if isinstance(raw, dict) else top.line
+    where = f"{path}:{line}: step {i + 1}"
+    if not isinstance(raw, dict):
+        raise ProcedureError(f"{where}: a step is a mapping like '- hold: {{hold_s: 5}}'")
+    kinds = [k for k in raw if k in KINDS]
+    unknown = [k for k in raw if k not in KINDS and k not in COMMON_KEYS and k != "__line__"]
+    if unknown:
+        raise ProcedureError(
+            f"{where}: unknown step or key '{unknown[0]}'{suggest(unknown[0], list(KINDS) + list(COMMON_KEYS))}; steps are: {', '.join(KINDS)}"
+        )
+    if len(kinds) != 1:
+        raise ProcedureError(
+            f"{where}: exactly one step kind per list item, found {kinds or 'none'}"
+        )
+    kind = kinds[0]
+    step_kind = KINDS[kind]
+    body = step_kind.shorthand(raw[kind])
+    if body is None:
+        body = {}
+    if not isinstance(body, dict):
+        raise ProcedureError(
+            f"{where} ({kind}): parameters must be a mapping, e.g. '{kind}: {{...}}'"
+        )
+    body = _substitute(body, names, where)
+    params = bind_params(step_kind.params, body, f"{where} ({kind})", kind)
+    step_loads: dict[str, tuple[str, dict[str, Any]]] = {}
+    raw_loads = raw.get("loads") or {}
+    if not isinstance(raw_loads, dict):
+        raise ProcedureError(
+            f"{where}: 'loads' of a step maps load channels to profiles, e.g."
+            " 'loads: {bus: {constant: {current_a: 1}}}'"
+        )
+    for ch, prof in raw_loads.items():
+        if ch == "__line__":
+            continue
+        if ch not in loads:
+            raise ProcedureError(
+                f"{where}: load '{ch}' is not in the procedure's 'loads' list{suggest(ch, list(loads))}"
+            )
+        if not step_kind.takes_loads:
+            raise ProcedureError(
+                f"{where}: load profiles run during field steps, not during '{kind}'"
+            )
+        if not isinstance(prof, dict) or len([k for k in prof if k != "__line__"]) != 1:
+            raise ProcedureError(
+                f"{where}: load '{ch}' needs exactly one profile: {', '.join(LOAD_PROFILES)}"
+            )
+        pkind = next(k for k in prof if k != "__line__")
+        if pkind not in LOAD_PROFILES:
+            raise ProcedureError(
+                f"{where}: load '{ch}': unknown profile '{pkind}'{suggest(pkind, LOAD_PROFILES)}"
+            )
+        given = prof[pkind] or {}
+        if not isinstance(given, dict):
+            raise ProcedureError(
+                f"{where}: load '{ch}': the {pkind} profile's parameters must be a mapping, e.g."
+                f" '{pkind}: {{...}}'"
+            )
+        step_loads[ch] = (
+            pkind,
+            bind_params(LOAD_PROFILES[pkind], given, f"{where} load '{ch}'", pkind),
+        )
+    step_kind.validate(params, loads, f"{where} ({kind})")
+    name = str(raw.get("name") or params.get("name") or f"{kind} {i + 1}")
+    return Step(
+        i, kind, _substitute(name, names, where), params, step_loads, Where(str(path), line), loads
     )
 
 

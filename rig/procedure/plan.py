@@ -17,7 +17,14 @@ import numpy.typing as npt
 from rig.steps import KINDS
 from rig.steps.characterize_cage import characterization_duration_s
 from rig.steps.geometry import fibonacci_directions
-from rig.steps.vocabulary import Command, Procedure, RigTiming, Step, StepPlan
+from rig.steps.vocabulary import (
+    MAX_TOTAL_DURATION_S,
+    Command,
+    Procedure,
+    RigTiming,
+    Step,
+    StepPlan,
+)
 
 if TYPE_CHECKING:
     from rig.config import RigConfig
@@ -133,6 +140,14 @@ def dry_run(
                         f"{s.where}: step {s.index + 1} ({s.name}): load {ch} {amps:g} A exceeds {limit:g} A"
                     )
         t += plan.duration_s
+        if t > MAX_TOTAL_DURATION_S and not any(
+            "MAX_TOTAL_DURATION_S" in v for v in out.violations
+        ):
+            out.violations.append(  # parse_procedure checked it with the default timing
+                f"{s.where}: step {s.index + 1} ({s.name}): the procedure's duration reaches"
+                f" {t / 86400:.2f} days here with this rig's timing, beyond the"
+                f" {MAX_TOTAL_DURATION_S / 86400:g}-day limit (MAX_TOTAL_DURATION_S)"
+            )
     out.duration_s = t
     # keep each violation once (sweeps repeat the same message per point)
     out.violations = list(dict.fromkeys(out.violations))

@@ -6,7 +6,13 @@ from typing import Any, ClassVar
 
 from rig.analysis import evaluate_criteria
 from rig.steps.base import StepExecution, StepKind
-from rig.steps.vocabulary import Param, ProcedureError
+from rig.steps.vocabulary import (
+    NOT_FINITE_FIX,
+    NotFiniteError,
+    Param,
+    ProcedureError,
+    finite_number,
+)
 
 CRITERION_KEYS = {"result", "value", "min", "max", "name", "__line__"}
 
@@ -20,18 +26,34 @@ class Check(StepKind):
         path = where.split(":", 1)[0]
         for c in params["criteria"]:
             bad = set(c) - CRITERION_KEYS
+            at = f"{path}:{c['__line__']}: {where.split(': ', 1)[1]}" if "__line__" in c else where
             if bad or "result" not in c or "value" not in c or ("min" not in c and "max" not in c):
-                at = (
-                    f"{path}:{c['__line__']}: {where.split(': ', 1)[1]}"
-                    if "__line__" in c
-                    else where
-                )
                 raise ProcedureError(
                     f"{at}: a criterion needs result, value and min and/or max{f'; unknown {sorted(bad)}' if bad else ''}"
                 )
+            for key in ("min", "max"):
+                if c.get(key) is not None:
+                    c[key] = _limit(c[key], key, at)
 
     def execution(self, ctx: Any, step: Any) -> StepExecution:
         return Judge(ctx, step)
+
+
+def _limit(value: Any, key: str, at: str) -> int | float:
+    """A criterion's ``min`` or ``max``: a finite number (text from a ``{parameter}`` converted)."""
+    number = value
+    if isinstance(value, str):
+        try:
+            number = float(value)
+        except ValueError:
+            number = None
+    if isinstance(number, bool) or not isinstance(number, int | float):
+        raise ProcedureError(f"{at}: a criterion's '{key}' must be a number, got {value!r}")
+    if finite_number(number) is None:
+        raise NotFiniteError(
+            f"{at}: a criterion's '{key}' must be a finite number, got {value!r}; {NOT_FINITE_FIX}"
+        )
+    return number
 
 
 class Judge(StepExecution):

@@ -8,15 +8,75 @@ parameters with :class:`Param` and compile to :class:`Command` lists).
 from __future__ import annotations
 
 import difflib
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from rig.errors import UserInputError
 
+# --- limits: what a procedure may ask for (docs/procedures.md, "Limits") ----------------------------
+# Each is checked before the work it bounds, and its error names the file, the line and the limit.
+
+MAX_PROCEDURE_FILE_BYTES = 1024 * 1024
+"""Largest procedure file (bytes; 1 MiB). The shipped procedures are under 3 KiB; a larger file is
+refused before it is parsed."""
+MAX_YAML_DEPTH = 32
+"""Deepest nesting of mappings and lists in a procedure file (levels; the language uses 8)."""
+MAX_YAML_ALIASES = 100
+"""YAML aliases (``*name``) a procedure file may use."""
+MAX_YAML_NODES = 500_000
+"""Values (scalars, lists and mappings) a procedure file may hold, counted with every alias
+expanded: a YAML alias bomb ("billion laughs") is refused while it is being read."""
+MAX_STEPS = 10_000
+"""Steps in one procedure; the file is refused as soon as its step list grows past it."""
+MAX_TOTAL_DURATION_S = 7 * 86400.0
+"""Longest procedure (s; 7 days), its steps' nominal durations summed (ramps left out)."""
+MAX_LOAD_SETPOINTS_PER_STEP = 1_000_000
+"""Load-current set-points the load profiles of one step may make, all channels together."""
+MAX_CSV_PROFILE_BYTES = 1024 * 1024
+"""Largest CSV load profile file (bytes; 1 MiB)."""
+MAX_CSV_PROFILE_ROWS = 100_000
+"""Data rows of a CSV load profile."""
+
 
 class ProcedureError(UserInputError):
     """A procedure file is malformed."""
+
+
+class NotFiniteError(ProcedureError):
+    """A number in a procedure is nan, infinite, or too large to be a number (beyond 1.8e308)."""
+
+
+NOT_FINITE_FIX = (
+    "nan, inf and numbers beyond 1.8e308 are refused anywhere in a procedure: write a finite number"
+)
+
+
+def finite_number(value: int | float) -> float | None:
+    """``value`` as a float, None if it is nan, infinite or too large for a float."""
+    try:
+        v = float(value)
+    except OverflowError:  # an int beyond 1.8e308
+        return None
+    return v if math.isfinite(v) else None
+
+
+def inside_folder(folder: Path, name: str) -> Path:
+    """The file ``name`` (relative to ``folder`` or absolute) that a procedure in ``folder`` names,
+    resolved (links and ``..`` followed); a :class:`ProcedureError` unless it lies inside
+    ``folder`` (itself resolved)."""
+    root = folder.resolve()
+    try:
+        target = (root / name).resolve()
+    except (OSError, RuntimeError, ValueError) as exc:  # a link loop, a NUL byte
+        raise ProcedureError(f"file {name!r}: cannot be resolved ({exc})") from None
+    if not target.is_relative_to(root):
+        raise ProcedureError(
+            f"file {name!r} resolves to {target}, outside {root}: files a procedure names must be"
+            " in the procedure's folder (links and '..' are followed); copy the file there"
+        )
+    return target
 
 
 @dataclass(frozen=True)
@@ -115,19 +175,29 @@ def coerce(value: Any, p: Param, key: str, where: str) -> Any:
     def bad(what: str) -> ProcedureError:
         return ProcedureError(f"{where}: '{key}' {what}")
 
+    def not_finite(got: Any) -> NotFiniteError:
+        return NotFiniteError(
+            f"{where}: '{key}' must be a finite number, got {got!r}; {NOT_FINITE_FIX}"
+        )
+
     if p.kind in ("float", "int"):
         if isinstance(value, str):  # a "{parameter}" substituted from --set or a default
             try:
-                value = float(value)
+                number: int | float = float(value)
             except ValueError:
                 raise bad(f"must be a number, got {value!r}") from None
-        if isinstance(value, bool) or not isinstance(value, int | float):
+        elif isinstance(value, bool) or not isinstance(value, int | float):
             raise bad(f"must be a number, got {value!r}")
-        if p.kind == "int" and not float(value).is_integer():
+        else:
+            number = value
+        fv = finite_number(number)
+        if fv is None:
+            raise not_finite(value)
+        if p.kind == "int" and not fv.is_integer():
             raise bad(f"must be a whole number, got {value!r}")
-        v = int(value) if p.kind == "int" else float(value)
+        v = int(number) if p.kind == "int" else fv  # an int stays exact
         if (p.minimum is not None and v < p.minimum) or (p.maximum is not None and v > p.maximum):
-            raise bad(f"must be within {p.minimum:g}..{p.maximum:g}, got {v:g}")
+            raise bad(f"must be {_bounds(p)}, got {v:g}")
         return v
     if p.kind == "str":
         if isinstance(value, bool):
@@ -147,14 +217,17 @@ def coerce(value: Any, p: Param, key: str, where: str) -> Any:
             or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
         ):
             raise bad(f"must be a list of {n or 'some'} numbers, got {value!r}")
-        vals = [float(v) for v in value]
+        finite = [finite_number(v) for v in value]
+        vals = [v for v in finite if v is not None]
+        if len(vals) != len(finite):
+            raise not_finite(value)
         if p.kind == "range2":
             if vals[0] > vals[1]:
                 raise bad(f"must be [low, high], got {value!r}")
             if (p.minimum is not None and vals[0] < p.minimum) or (
                 p.maximum is not None and vals[1] > p.maximum
             ):
-                raise bad(f"must be within {p.minimum:g}..{p.maximum:g}")
+                raise bad(f"must be {_bounds(p)}")
         if p.kind == "list_float" and not vals:
             raise bad("must not be empty")
         return vals
@@ -171,6 +244,12 @@ def coerce(value: Any, p: Param, key: str, where: str) -> Any:
             raise bad("must be a list of mappings")
         return value
     raise AssertionError(p.kind)
+
+
+def _bounds(p: Param) -> str:
+    if p.minimum is not None and p.maximum is not None:
+        return f"within {p.minimum:g}..{p.maximum:g}"
+    return f"at least {p.minimum:g}" if p.minimum is not None else f"at most {p.maximum:g}"
 
 
 def bind_params(
