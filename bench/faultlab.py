@@ -13,7 +13,9 @@ imports it as ``faultlab`` (a script's folder is on ``sys.path``), the tests as 
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -32,7 +34,7 @@ from rig.store import RunReader
 from sim.cage import SimulatedCage
 from sim.config import load_config
 
-PROCEDURE = """procedure: Fault matrix
+PREAMBLE = """procedure: Fault matrix ({kind})
 parameters:
   dut_serial: {{default: FAULTS}}
 magnetometers: {{dut: {dut}, reference: reference}}
@@ -40,17 +42,54 @@ loads: [load_bus, load_panel]
 steps:
   - null_field: {{hold_s: 1}}
     name: noise floor
-  - sphere_sweep: {{directions: 12, magnitude_ut: [20, 40], dwell_s: 0.5}}
-    name: sweep
-    loads:
-      load_bus: {{steps: {{levels_a: [0.0, 1.0], dwell_s: 1.0}}}}
-      load_panel: {{constant: {{current_a: 1.5}}}}
-  - check:
-      criteria:
-        - {{result: noise floor, value: dut_noise_nt, max: 1000, name: DUT answers}}
 """
+LOADS = """    loads:
+      load_bus: {steps: {levels_a: [0.0, 1.0], dwell_s: 1.0}}
+      load_panel: {constant: {current_a: 1.5}}
+"""
+CHECK = """  - check:
+      criteria:
+        - {result: noise floor, value: dut_noise_nt, max: 1000, name: DUT answers}
+"""
+TLE = (
+    '["1 25544U 98067A   19343.69339541  .00001764  00000-0  38792-4 0  9991",'
+    ' "2 25544  51.6439 211.2001 0007417  17.6667  85.6398 15.50103472202482"]'
+)
+TARGETS: dict[str, str] = {
+    "null_field": "null_field: {hold_s: 9}",
+    "set_field": "set_field: {field_ut: [20, -15, 10], hold_s: 9}",
+    "hold": "hold: {hold_s: 9}",
+    "sphere_sweep": "sphere_sweep: {directions: 8, magnitude_ut: [20, 40], dwell_s: 0.5}",
+    "axis_sweep": "axis_sweep: {axis: x, from_ut: -40, to_ut: 40, points: 13, dwell_s: 0.6}",
+    "rotate": "rotate: {magnitude_ut: 40, points: 24, dwell_s: 0.35}",
+    "orbit_replay": f"orbit_replay: {{tle: {TLE}, start: '2019-12-09T12:00:00Z', duration_s: 90,"
+                    " time_scale: 10, rate_hz: 20, attitude: tumbling}",
+    "live_calibrate": "live_calibrate: {method: ukf, telemetry: [load_bus, load_panel],"
+                      " stop_on_target: 'no', min_s: 9, max_s: 9, magnitude_ut: [15, 45], dwell_s: 0.8}",
+    "noise_spectrum": "noise_spectrum: {hold_s: 9, band_hz: [0.5, 5.0]}",
+    "linearity": "linearity: {max_ut: 50, points: 5, dwell_s: 0.6}",
+    "characterize_cage": "characterize_cage: {amplitude_a: 1.0, samples: 10, repeats: 1}",
+}  # fmt: skip
+"""The step each column of the matrix injects its faults into (named ``target``, about 9 s): every
+step kind that drives outputs."""
+STEP_KINDS = tuple(TARGETS)
 INJECT_AFTER_S = 1.5
-"""Seconds into the sweep when the fault is injected."""
+"""Seconds into the target step when the fault is injected."""
+
+
+def procedure(kind: str, dut: str = "dut") -> str:
+    """The fault procedure for step kind ``kind``: a noise floor, the target step (with load
+    profiles where the kind takes them), a check."""
+    from rig.steps import KINDS
+
+    text = PREAMBLE.format(kind=kind, dut=dut)
+    if kind == "hold":
+        text += "  - set_field: {field_ut: [20, -15, 10], hold_s: 0.2}\n    name: setup\n"
+    text += f"  - {TARGETS[kind]}\n    name: target\n"
+    if KINDS[kind].takes_loads:
+        text += LOADS
+    return text + CHECK
+
 
 Inject = Callable[[SimulatedCage], None]
 
@@ -66,9 +105,15 @@ class Fault:
     inject: Inject | None = None
     dead: tuple[str, ...] = ()  # outputs that cannot be switched off (the faulty device itself)
     dut: str = "dut"
-    mode: str = "in-process"  # in-process, sigkill, full-disk
+    mode: str = "in-process"  # in-process, sigkill, sigstop, full-disk
     mentions: str = ""  # what the reason must name
-    safe_within_ms: float = 0.0  # the bound the tests hold it to (0: the run completes)
+    detect_within_ms: float = 0.0  # the stated detection bound (0: the run completes)
+
+
+SAFE_AFTER_DETECTION_MS = 1000.0
+"""Every output off within this long of the rig knowing of the fault, in every cell."""
+LOST_DATA_MS = 500.0
+"""At most this much recorded data (before the fault) may be missing from the store."""
 
 
 def _set(device: str, **faults: Any) -> Inject:
@@ -90,54 +135,68 @@ def _trip(device: str) -> Inject:
 FAULTS: tuple[Fault, ...] = (
     Fault("modbus-timeout", "coil_x supply stops answering (Modbus TCP, no reply)",
           "retries, then aborts to the safe state naming coil_x; every other output off",
-          "error", _set("coil_x", silent=True), dead=("coil_x",), mentions="coil_x", safe_within_ms=5000),
+          "error", _set("coil_x", silent=True), dead=("coil_x",), mentions="coil_x", detect_within_ms=5000),
     Fault("modbus-exception", "load_bus answers every request with exception 4 (device failure)",
           "aborts to the safe state naming load_bus and the exception", "error",
-          _set("load_bus", exception_code=4), dead=("load_bus",), mentions="load_bus", safe_within_ms=2500),
+          _set("load_bus", exception_code=4), dead=("load_bus",), mentions="load_bus", detect_within_ms=1000),
     Fault("tcp-disconnect", "the TCP connection of coil_z is closed once",
-          "reconnects and carries on; the run completes", "complete", _drop("coil_z"), mentions="", safe_within_ms=0),
+          "reconnects and carries on; the run completes", "complete", _drop("coil_z"), mentions="", detect_within_ms=0),
     Fault("tcp-down", "coil_z closes every connection from now on",
           "aborts to the safe state naming coil_z", "error", _set("coil_z", disconnect=True),
-          dead=("coil_z",), mentions="coil_z", safe_within_ms=1500),
+          dead=("coil_z",), mentions="coil_z", detect_within_ms=2500),
     Fault("rtu-bad-crc", "10 % of coil_y's RTU replies have a flipped bit (bad CRC)",
           "retries the damaged transactions; the run completes", "complete",
-          _set("coil_y", corrupt_rate=0.1), mentions="", safe_within_ms=0),
+          _set("coil_y", corrupt_rate=0.1), mentions="", detect_within_ms=0),
     Fault("serial-garbage", "20 % of HMR2300 frames damaged, 10 % cut short",
           "resynchronises on the frame stride; the run completes with the good frames",
-          "complete", _set("dut", corrupt_rate=0.2, drop_rate=0.1), mentions="", safe_within_ms=0),
+          "complete", _set("dut", corrupt_rate=0.2, drop_rate=0.1), mentions="", detect_within_ms=0),
     Fault("hmr2300-stall", "the HMR2300 stream stops", "detects the stall within 1.5 s and aborts"
-          " to the safe state naming dut", "error", _set("dut", silent=True), mentions="dut", safe_within_ms=3500),
+          " to the safe state naming dut", "error", _set("dut", silent=True), mentions="dut", detect_within_ms=2000),
     Fault("i2c-nack", "the RM3100 stops acknowledging on I2C",
           "aborts to the safe state naming rm3100", "error", _set("rm3100", silent=True),
-          dut="rm3100", mentions="rm3100", safe_within_ms=1500),
+          dut="rm3100", mentions="rm3100", detect_within_ms=1500),
     Fault("stuck-sensor", "the HMR2300 repeats its last reading",
           "detects 60 identical readings (3 s) and aborts naming dut", "error",
-          _set("dut", stuck=True), mentions="frozen", safe_within_ms=5000),
+          _set("dut", stuck=True), mentions="frozen", detect_within_ms=3500),
     Fault("protection-trip", "load_bus trips its over-current protection",
           "detects the trip within 0.2 s and aborts to the safe state", "error",
-          _trip("load_bus"), mentions="load_bus", safe_within_ms=1500),
+          _trip("load_bus"), mentions="load_bus", detect_within_ms=500),
     Fault("coil-trip", "the coil_x supply trips its over-current protection",
-          "detects the trip within 1 s and aborts to the safe state", "error", _trip("coil_x"), mentions="coil x", safe_within_ms=3000),
-    Fault("full-disk", "the run's files may not grow beyond 256 kB (RLIMIT_FSIZE)",
+          "detects the trip within 1 s and aborts to the safe state", "error", _trip("coil_x"), mentions="coil x", detect_within_ms=1500),
+    Fault("full-disk", "the disk is full: the runs folder is a small tmpfs filled up (where mounts are not allowed: the rig's file-size limit set to the current size)",
           "stops recording, aborts to the safe state, keeps what was committed", "error",
-          mode="full-disk", mentions="disk", safe_within_ms=2500),
+          mode="full-disk", mentions="disk", detect_within_ms=1000),
     Fault("sigkill", "SIGKILL of the rig process", "the guardian process switches every output"
-          " off; the run reads back as incomplete", "incomplete", mode="sigkill", mentions="guardian", safe_within_ms=1500),
+          " off; the run reads back as incomplete", "incomplete", mode="sigkill", mentions="guardian", detect_within_ms=200),
+    Fault("hung", "the rig process stops (SIGSTOP: as a deadlock or a computation holding the"
+          " interpreter)", "the guardian misses the heartbeat for 3 s, kills the rig and switches"
+          " every output off", "incomplete", mode="sigstop", mentions="stopped answering", detect_within_ms=3500),
 )  # fmt: skip
 
 
 @dataclass
 class Measured:
-    """What a run did under one fault."""
+    """What a run did under one fault during one step kind."""
 
     fault: Fault
+    kind: str
     status: str
     exit_code: int
     reason: str
-    time_to_safe_ms: float | None  # None: the run completed (outputs off at its normal end)
+    time_to_safe_ms: float | None  # from the injection; None: the run completed normally
+    detected_ms: float | None  # from the injection to the rig knowing; None: unknown or completed
     samples_stored: int
     samples_lost: int | None  # received but not stored; None where unknowable (process killed)
+    data_lost_ms: float | None  # newest stored sample before a kill or stop (killed processes)
     duration_s: float
+    outputs_left_on: tuple[str, ...] = ()  # outputs (other than dead ones) still on at the end
+
+    @property
+    def safe_after_detection_ms(self) -> float | None:
+        """From the rig knowing of the fault to every output off."""
+        if self.time_to_safe_ms is None or self.detected_ms is None:
+            return None
+        return max(0.0, self.time_to_safe_ms - self.detected_ms)
 
     @property
     def problems(self) -> list[str]:
@@ -145,12 +204,21 @@ class Measured:
         f, out = self.fault, []
         if self.status != f.expect_status:
             out.append(f"status {self.status}, expected {f.expect_status} ({self.reason})")
+        if self.outputs_left_on:
+            out.append(f"left on: {', '.join(self.outputs_left_on)}")
         if self.samples_lost not in (0, None):
             out.append(f"{self.samples_lost} received samples not stored")
+        if self.data_lost_ms is not None and self.data_lost_ms > LOST_DATA_MS:
+            out.append(f"newest stored sample {self.data_lost_ms:.0f} ms before the fault")
         if f.mentions and f.mentions not in self.reason:
             out.append(f"the reason does not name {f.mentions!r}: {self.reason}")
-        if f.safe_within_ms and not (self.time_to_safe_ms or float("inf")) <= f.safe_within_ms:
-            out.append(f"time to safe {self.time_to_safe_ms} ms, bound {f.safe_within_ms:g} ms")
+        if f.detect_within_ms:
+            bound = f.detect_within_ms + SAFE_AFTER_DETECTION_MS
+            if self.time_to_safe_ms is None or self.time_to_safe_ms > bound:
+                out.append(f"time to safe {self.time_to_safe_ms} ms, bound {bound:g} ms")
+            after = self.safe_after_detection_ms
+            if after is not None and after > SAFE_AFTER_DETECTION_MS:
+                out.append(f"safe {after:.0f} ms after detection")
         return out
 
     @property
@@ -173,10 +241,14 @@ class _Watch:
         self.t0 = t0
         self._thread.start()
 
+    def on(self) -> tuple[str, ...]:
+        """Outputs (not the dead ones) on right now."""
+        supplies = self.cage.physics.supplies
+        return tuple(n for n, s in supplies.items() if s.output and n not in self.dead)
+
     def _run(self) -> None:
         while not self._stop.wait(0.002):
-            supplies = self.cage.physics.supplies
-            if not any(s.output for n, s in supplies.items() if n not in self.dead):
+            if not self.on():
                 self.t_safe = time.monotonic()
                 return
 
@@ -189,40 +261,44 @@ class _Watch:
         return 1000.0 * (self.t_safe - self.t0)
 
 
-def _sweep_started(get_step: Callable[[], str | None], timeout_s: float = 30.0) -> float:
+def _target_started(get_step: Callable[[], str | None], timeout_s: float = 60.0) -> float:
     deadline = time.monotonic() + timeout_s
-    while get_step() != "sweep":
+    while get_step() != "target":
         if time.monotonic() > deadline:
-            raise TimeoutError("the run never reached the sweep")
+            raise TimeoutError("the run never reached the target step")
         time.sleep(0.01)
     return time.monotonic()
 
 
-def run_fault(fault: Fault, workdir: Path) -> Measured:
-    """Run the fault procedure with ``fault`` injected; return what happened."""
+def run_fault(fault: Fault, workdir: Path, kind: str = "sphere_sweep") -> Measured:
+    """Run the fault procedure of step kind ``kind`` with ``fault`` injected 1.5 s into it."""
     workdir.mkdir(parents=True, exist_ok=True)
     cfg = load_config()
     with SimulatedCage(cfg) as cage:
         (workdir / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
         proc_path = workdir / "faults.yaml"
-        proc_path.write_text(PROCEDURE.format(dut=fault.dut))
+        proc_path.write_text(procedure(kind, fault.dut))
         if fault.mode == "in-process":
-            return _in_process(fault, cage, workdir, proc_path)
-        return _child(fault, cage, workdir, proc_path)
+            return _in_process(fault, kind, cage, workdir, proc_path)
+        return _child(fault, kind, cage, workdir, proc_path)
 
 
-def _in_process(fault: Fault, cage: SimulatedCage, workdir: Path, proc_path: Path) -> Measured:
+def _in_process(
+    fault: Fault, kind: str, cage: SimulatedCage, workdir: Path, proc_path: Path
+) -> Measured:
     runner = Runner(parse_procedure(proc_path), load_rig_config(workdir / "rig.toml"),
                     workdir / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False,
                     guardian=False)  # fmt: skip
     watch = _Watch(cage, fault.dead)
+    t_inject: list[float] = []
 
     def injector() -> None:
-        t_sweep = _sweep_started(lambda: (getattr(runner, "current_step", None) or (0, ""))[1])
-        time.sleep(max(0.0, t_sweep + INJECT_AFTER_S - time.monotonic()))
+        t_target = _target_started(lambda: (getattr(runner, "current_step", None) or (0, ""))[1])
+        time.sleep(max(0.0, t_target + INJECT_AFTER_S - time.monotonic()))
         assert fault.inject is not None
+        t_inject.append(time.monotonic())
         fault.inject(cage)
-        watch.start(time.monotonic())
+        watch.start(t_inject[0])
 
     thread = threading.Thread(target=injector, daemon=True)
     thread.start()
@@ -230,6 +306,7 @@ def _in_process(fault: Fault, cage: SimulatedCage, workdir: Path, proc_path: Pat
     outcome = runner.run()
     took = time.monotonic() - t0
     thread.join(1.0)
+    left_on = watch.on()
     time_to_safe = watch.stop() if outcome.status != "complete" else None
     reader = RunReader(outcome.folder)
     try:
@@ -238,25 +315,60 @@ def _in_process(fault: Fault, cage: SimulatedCage, workdir: Path, proc_path: Pat
         stored = reader.count("samples")
     finally:
         reader.close()
-    return Measured(fault, outcome.status, outcome.exit_code, outcome.reason, time_to_safe,
-                    stored, received - stored, took)  # fmt: skip
+    detected = meta.get("t_end_detected")
+    detected_ms = (
+        1000.0 * (float(detected) - t_inject[0])
+        if detected is not None and t_inject and outcome.status != "complete"
+        else None
+    )
+    return Measured(fault, kind, outcome.status, outcome.exit_code, outcome.reason, time_to_safe,
+                    detected_ms, stored, received - stored, None, took, left_on)  # fmt: skip
 
 
-def _child(fault: Fault, cage: SimulatedCage, workdir: Path, proc_path: Path) -> Measured:
+def _fill_disk(folder: Path) -> None:
+    """Write zeros into ``folder`` until its file system is full."""
+    fd = os.open(folder / "filler", os.O_WRONLY | os.O_CREAT, 0o644)
+    block = b"\0" * 65536
+    try:
+        while True:
+            os.write(fd, block)
+    except OSError:  # full: a last small write takes what is left
+        with contextlib.suppress(OSError):
+            while True:
+                os.write(fd, b"\0" * 512)
+    finally:
+        os.close(fd)
+
+
+def _small_filesystem(folder: Path, size_mb: int = 8) -> bool:
+    """Mount a tmpfs of ``size_mb`` on ``folder`` (root only); False where mounts are refused."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if os.geteuid() != 0:
+        return False
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mb}m", "tmpfs", str(folder)],
+                          capture_output=True)  # fmt: skip
+    return done.returncode == 0
+
+
+def _child(
+    fault: Fault, kind: str, cage: SimulatedCage, workdir: Path, proc_path: Path
+) -> Measured:
     runs = workdir / "runs"
+    mounted = fault.mode == "full-disk" and _small_filesystem(runs)
     runs.mkdir(parents=True, exist_ok=True)
-    limit = 256 * 1024
+    try:
+        return _child_run(fault, kind, cage, workdir, proc_path, runs, mounted)
+    finally:
+        if mounted:
+            subprocess.run(["umount", "-l", str(runs)], capture_output=True)
 
-    def limits() -> None:
-        if fault.mode == "full-disk":
-            import resource
 
-            resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-
+def _child_run(fault: Fault, kind: str, cage: SimulatedCage, workdir: Path, proc_path: Path,
+               runs: Path, mounted: bool) -> Measured:  # fmt: skip
     t0 = time.monotonic()
     child = subprocess.Popen([sys.executable, "-m", "rig.cli", "-q", "run", str(proc_path), "--rig",
                               str(workdir / "rig.toml"), "--yes", "--runs-dir", str(runs)],
-                             stderr=subprocess.PIPE, text=True, preexec_fn=limits)  # fmt: skip
+                             stderr=subprocess.PIPE, text=True)  # fmt: skip
     watch = _Watch(cage, ())
 
     def step_of() -> str | None:
@@ -271,24 +383,31 @@ def _child(fault: Fault, cage: SimulatedCage, workdir: Path, proc_path: Path) ->
             return None
         return steps[-1][1] if steps else None
 
-    t_fault: float | None = None
+    t_target = _target_started(step_of)
+    time.sleep(max(0.0, t_target + INJECT_AFTER_S - time.monotonic()))
+    t_fault = time.monotonic()
+    watch.start(t_fault)
     if fault.mode == "sigkill":
-        t_sweep = _sweep_started(step_of)
-        time.sleep(max(0.0, t_sweep + INJECT_AFTER_S - time.monotonic()))
-        t_fault = time.monotonic()
-        watch.start(t_fault)
         child.send_signal(signal.SIGKILL)
-    else:  # the fault is the file size limit: it strikes when the log reaches it
-        while child.poll() is None and t_fault is None:
-            wal = next(runs.glob("*/run.sqlite-wal"), None)
-            if wal is not None and wal.exists() and os.path.getsize(wal) >= limit - 8192:
-                t_fault = time.monotonic()
-                watch.start(t_fault)
-            time.sleep(0.002)
+    elif fault.mode == "sigstop":
+        child.send_signal(signal.SIGSTOP)
+    elif mounted:
+        _fill_disk(runs)
+    else:  # no mounts here: every file of the rig may not grow from now on
+        import resource
+
+        folder = next(p for p in runs.iterdir() if (p / "run.sqlite").exists())
+        size = max(p.stat().st_size for p in folder.iterdir() if p.is_file())
+        resource.prlimit(child.pid, resource.RLIMIT_FSIZE, (size, size))
     _, err = child.communicate(timeout=60)
     took = time.monotonic() - t0
-    time.sleep(0.5)  # the guardian finishes writing its record
+    deadline = time.monotonic() + 10  # the guardian finishes writing its record
+    while watch.on() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.3)
+    left_on = watch.on()
     time_to_safe = watch.stop()
+    (runs / "filler").unlink(missing_ok=True)
     folder = next(p for p in runs.iterdir() if (p / "run.sqlite").exists())
     reader = RunReader(folder)
     try:
@@ -299,27 +418,161 @@ def _child(fault: Fault, cage: SimulatedCage, workdir: Path, proc_path: Path) ->
         newest = max(reader.samples(dev)[-1][0] for dev in reader.devices())
     finally:
         reader.close()
-    if fault.mode == "sigkill" and t_fault is not None:
-        events = [f"{e}; newest stored sample {1000 * (t_fault - newest):.0f} ms before the kill"
-                  for e in events]  # fmt: skip
+    detected_ms = None
+    data_lost_ms = None
+    if fault.mode in ("sigkill", "sigstop"):
+        data_lost_ms = max(0.0, 1000.0 * (t_fault - newest))
+        guardian = next((e for e in events if e.startswith("guardian")), "")
+        found = re.search(r" in (\d+) ms", guardian)
+        if found and time_to_safe is not None:
+            detected_ms = max(0.0, time_to_safe - float(found.group(1)))
+        reason = guardian or reason
+    elif "t_end_detected" in meta:
+        detected_ms = 1000.0 * (float(meta["t_end_detected"]) - t_fault)
     if fault.mode == "full-disk":
         reason = next((line for line in err.splitlines() if "disk" in line), reason)
-    elif events:
-        reason = events[0]
     status = meta.get("status", "incomplete")
     if fault.mode == "full-disk" and status == "incomplete":
         status = "error" if child.returncode == 2 else status  # the status row could not be written
-    return Measured(fault, status, child.returncode, reason, time_to_safe, stored, None, took)
+    return Measured(fault, kind, status, child.returncode, reason, time_to_safe, detected_ms, stored,
+                    None, data_lost_ms, took, left_on)  # fmt: skip
+
+
+EXTRA: tuple[Fault, ...] = (
+    Fault("second-run", "a second `rig run` on the same rig while the first runs",
+          "the second refuses in one line naming the first (command, PID, since); the first completes",
+          "complete", mode="second-run", mentions="in use by"),
+    Fault("cage-sigkill", "SIGKILL of `rig cage set-field 20 -15 10 --hold 60` while it holds the field",
+          "its guardian switches every output off and the polarity relays back to normal", "safe",
+          mode="cage-sigkill", mentions="guardian", detect_within_ms=200),
+)  # fmt: skip
+"""Cells that are not a fault inside a step: the interlock, and the guardian of a cage command."""
+
+
+def run_extra(fault: Fault, workdir: Path) -> Measured:
+    """Run one of :data:`EXTRA`."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    cfg = load_config()
+    with SimulatedCage(cfg) as cage:
+        rig_toml = workdir / "rig.toml"
+        rig_toml.write_text(sim_rig_config(cage.endpoints_document(), cfg))
+        if fault.mode == "second-run":
+            return _second_run(fault, cage, workdir, rig_toml)
+        return _cage_sigkill(fault, cage, rig_toml)
+
+
+def _second_run(fault: Fault, cage: SimulatedCage, workdir: Path, rig_toml: Path) -> Measured:
+    proc_path = workdir / "faults.yaml"
+    proc_path.write_text(procedure("sphere_sweep"))
+    runs, runs_b = workdir / "runs", workdir / "runs-b"
+    runs.mkdir()
+    t0 = time.monotonic()
+    first = subprocess.Popen([sys.executable, "-m", "rig.cli", "-q", "run", str(proc_path), "--rig",
+                              str(rig_toml), "--yes", "--runs-dir", str(runs)],
+                             stderr=subprocess.PIPE, text=True)  # fmt: skip
+
+    def step_of() -> str | None:
+        folder = next((p for p in runs.iterdir() if (p / "run.sqlite").exists()), None)
+        if folder is None:
+            return None
+        try:
+            reader = RunReader(folder)
+            steps = reader.steps()
+            reader.close()
+        except Exception:
+            return None
+        return steps[-1][1] if steps else None
+
+    t_target = _target_started(step_of)
+    time.sleep(max(0.0, t_target + INJECT_AFTER_S - time.monotonic()))
+    second = subprocess.run([sys.executable, "-m", "rig.cli", "-q", "run", str(proc_path), "--rig",
+                             str(rig_toml), "--yes", "--runs-dir", str(runs_b)],
+                            capture_output=True, text=True, timeout=60)  # fmt: skip
+    first.communicate(timeout=120)
+    took = time.monotonic() - t0
+    folder = next(p for p in runs.iterdir() if (p / "run.sqlite").exists())
+    reader = RunReader(folder)
+    try:
+        status, stored = reader.meta().get("status", "?"), reader.count("samples")
+    finally:
+        reader.close()
+    refused = second.returncode == 2 and not (runs_b.exists() and any(runs_b.iterdir()))
+    reason = (
+        second.stderr.strip() if refused else f"second run NOT refused (exit {second.returncode})"
+    )
+    return Measured(fault, "sphere_sweep", status, first.returncode, reason, None, None, stored,
+                    None, None, took, tuple(n for n, s in cage.physics.supplies.items() if s.output))  # fmt: skip
+
+
+def _cage_sigkill(fault: Fault, cage: SimulatedCage, rig_toml: Path) -> Measured:
+    t0 = time.monotonic()
+    child = subprocess.Popen([sys.executable, "-m", "rig.cli", "cage", "set-field", "--hold", "60",
+                              "--rig-config", str(rig_toml), "--", "20", "-15", "10"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    assert child.stdout is not None
+    line = child.stdout.readline()
+    while line and not line.startswith("holding"):
+        line = child.stdout.readline()
+    watch = _Watch(cage, ())
+    t_fault = time.monotonic()
+    watch.start(t_fault)
+    child.send_signal(signal.SIGKILL)
+    _, err = child.communicate(timeout=60)  # returns once the guardian (holding stderr) exits
+    took = time.monotonic() - t0
+    left_on = watch.on()
+    time_to_safe = watch.stop()
+    relays = list(cage.physics.relays.sign)
+    guardian = next((x for x in err.splitlines() if "guardian" in x), "no word from the guardian")
+    found = re.search(r" in (\d+) ms", guardian)
+    detected = time_to_safe - float(found.group(1)) if found and time_to_safe is not None else None
+    status = "safe" if not left_on else "outputs on"
+    if relays != [1, 1, 1]:
+        status, guardian = "relay reversed", f"{guardian}; relay signs {relays}"
+    return Measured(fault, "rig cage set-field", status, child.returncode or 0, guardian,
+                    time_to_safe, detected, 0, None, None, took, left_on)  # fmt: skip
+
+
+def cells(full: bool) -> list[tuple[Fault, str]]:
+    """The matrix: every fault during every step kind (``full``), or a diagonal for CI in which
+    every fault and every step kind appears at least once."""
+    if full:
+        return [(f, k) for f in FAULTS for k in STEP_KINDS]
+    return [(f, STEP_KINDS[i % len(STEP_KINDS)]) for i, f in enumerate(FAULTS)]
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f}"
 
 
 def markdown(rows: list[Measured]) -> str:
-    """The matrix as a Markdown table."""
-    out = ["| fault | injected | expected | status (exit) | time to safe | samples stored / lost | reason given | as expected |",
-           "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    """The matrix: faults x step kinds (time to safe after detection), then every cell."""
+    kinds = list(dict.fromkeys(m.kind for m in rows))
+    faults = list(dict.fromkeys(m.fault.key for m in rows))
+    by = {(m.fault.key, m.kind): m for m in rows}
+    out = ["Each cell: detection / safe after detection, in ms from the injection; `ok` completed"
+           " as expected; **NO** marks a cell that departed from its row.", "",
+           "| fault | detection bound | " + " | ".join(kinds) + " |",
+           "|---|---|" + "---|" * len(kinds)]  # fmt: skip
+    for key in faults:
+        f = next(m.fault for m in rows if m.fault.key == key)
+        line = [key, f"{f.detect_within_ms:g} ms" if f.detect_within_ms else "- (completes)"]
+        for kind in kinds:
+            m = by.get((key, kind))
+            if m is None:
+                line.append("")
+                continue
+            cell = "ok" if m.time_to_safe_ms is None else (
+                f"{_ms(m.detected_ms)} / {_ms(m.safe_after_detection_ms)}")  # fmt: skip
+            line.append(cell if m.ok else f"**NO** {cell}")
+        out.append("| " + " | ".join(line) + " |")
+    out += ["", "| fault | step kind | expected | status (exit) | time to safe | samples stored /"
+            " lost | data lost | reason given | as expected |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for m in rows:
         safe = "- (completed)" if m.time_to_safe_ms is None else f"{m.time_to_safe_ms:.0f} ms"
         lost = "?" if m.samples_lost is None else str(m.samples_lost)
-        reason = m.reason.replace("|", "/")[:230]
-        out.append(f"| {m.fault.key} | {m.fault.what} | {m.fault.expected} | {m.status} ({m.exit_code})"
-                   f" | {safe} | {m.samples_stored} / {lost} | {reason} | {'yes' if m.ok else 'NO'} |")  # fmt: skip
+        data = "-" if m.data_lost_ms is None else f"{m.data_lost_ms:.0f} ms"
+        reason = m.reason.replace("|", "/")[:200]
+        verdict = "yes" if m.ok else "NO: " + "; ".join(m.problems).replace("|", "/")[:200]
+        out.append(f"| {m.fault.key} | {m.kind} | {m.fault.expected} | {m.status} ({m.exit_code})"
+                   f" | {safe} | {m.samples_stored} / {lost} | {data} | {reason} | {verdict} |")  # fmt: skip
     return "\n".join(out)

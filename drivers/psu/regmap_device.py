@@ -154,4 +154,8 @@ class PolarityRelay(MappedDevice):
         self._write(self.regs[axis], 1.0 if sign < 0 else 0.0)
 
     def safe(self) -> None:
-        """Relays carry no energy of their own: nothing to switch (supplies go safe first)."""
+        """Every axis back to normal (0), the position a de-energised relay falls to. Call it only
+        with the coils off (the cage controller and the guardian switch the supplies off and wait
+        for the coil current to decay first)."""
+        for reg in self.regs:
+            self._write(reg, 0.0)

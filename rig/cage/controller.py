@@ -16,6 +16,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+from drivers.psu.riden import SupplyReading
 from rig.cage.limits import CageLimitError, CageLimits, plan_ramp
 from rig.cage.model import CageModel
 from rig.errors import RigError
@@ -35,6 +36,7 @@ class CurrentSource(Protocol):
     def set_current(self, amps: float) -> float: ...
     def set_output(self, on: bool) -> None: ...
     def safe(self) -> None: ...
+    def read(self) -> SupplyReading: ...
 
 
 class Polarity(Protocol):
@@ -138,32 +140,41 @@ class CageController:
 
     def _flip(self, axis: int, sign: int) -> None:
         """Break before make: wait for the coil current to decay, then switch the relay."""
-        drive = self.axes[axis]
         if self.currents[axis] != 0.0:
             raise CageLimitError(
                 f"axis {'xyz'[axis]}: polarity change requested at non-zero set-point"
             )
-        if drive.output_current is not None:
-            deadline = time.monotonic() + 2.0
-            while drive.output_current() > self.zero_threshold_a:
-                if time.monotonic() > deadline:
-                    raise RigError(
-                        f"axis {'xyz'[axis]}: coil current did not decay below"
-                        f" {self.zero_threshold_a:g} A within 2 s; check the supply"
-                    )
-                self.sleep(0.01)
+        self._await_decay(axis, self.sleep)
         assert self.relays is not None
         self.relays.set_polarity(axis, sign)
         self.signs[axis] = sign
 
-    def set_currents(self, target_a: npt.ArrayLike) -> Array:
-        """Ramp to signed coil currents (A) within the limits; returns the currents set."""
+    def _await_decay(self, axis: int, sleep: Callable[[float], None]) -> None:
+        """Wait (at most 2 s) for the coil current of ``axis`` to fall below the zero threshold."""
+        output_current = self.axes[axis].output_current
+        if output_current is None:
+            return
+        deadline = time.monotonic() + 2.0
+        while output_current() > self.zero_threshold_a:
+            if time.monotonic() > deadline:
+                raise RigError(
+                    f"axis {'xyz'[axis]}: coil current did not decay below"
+                    f" {self.zero_threshold_a:g} A within 2 s; check the supply"
+                )
+            sleep(0.01)
+
+    def set_currents(
+        self, target_a: npt.ArrayLike, *, sleep: Callable[[float], None] | None = None
+    ) -> Array:
+        """Ramp to signed coil currents (A) within the limits; returns the currents set. Waits
+        between set-points with ``sleep`` (default: the controller's, which may raise a fault)."""
         if not self.enabled:
             self.enable()
+        wait = self.sleep if sleep is None else sleep
         target = np.asarray(target_a, float)
         for point in plan_ramp(self.currents, target, self.limits):
             self._send(point)
-            self.sleep(self.limits.step_s)
+            wait(self.limits.step_s)
         return self.currents.copy()
 
     def set_field(self, field_ut: npt.ArrayLike) -> Array:
@@ -212,8 +223,8 @@ class CageController:
         problems: list[str] = []
         dead = any(getattr(getattr(d.supply, "link", None), "failed", False) for d in self.axes)
         if self.enabled and not dead:  # with a supply not answering, switch off at once
-            try:
-                self.set_currents(np.zeros(3))
+            try:  # plain sleeps: the fault that brought us here must not stop the ramp down
+                self.set_currents(np.zeros(3), sleep=time.sleep)
             except Exception as exc:  # a dead link must not stop the others going safe
                 problems.append(f"ramp to zero failed: {exc}")
 
@@ -232,6 +243,21 @@ class CageController:
             t.join(SAFE_TIMEOUT_S)
         self.enabled = False
         self.currents = np.zeros(3)
+        problems += self._relays_normal()
+        return problems
+
+    def _relays_normal(self) -> list[str]:
+        """Reversed relays back to normal once their coil's current has decayed; problems."""
+        problems: list[str] = []
+        for axis, drive in enumerate(self.axes):
+            if drive.bipolar or self.relays is None or self.signs[axis] == 1:
+                continue
+            try:
+                self._await_decay(axis, time.sleep)
+                self.relays.set_polarity(axis, 1)
+                self.signs[axis] = 1
+            except Exception as exc:  # a relay left reversed is reported, the rest goes on
+                problems.append(f"axis {'xyz'[axis]} polarity relay left reversed: {exc}")
         return problems
 
     def instruments(self) -> dict[str, str]:
@@ -272,7 +298,11 @@ class CageController:
         if fresh and flush is not None:
             flush()
             self.reference.read()  # a sample taken before the flush may still be on its way
-        raw = np.mean([self.reference.read() for _ in range(samples)], axis=0)
+        readings = []
+        for _ in range(samples):
+            self.sleep(0)  # a fault reported meanwhile ends the measurement
+            readings.append(self.reference.read())
+        raw = np.mean(readings, axis=0)
         if self.reference_to_cage is not None:
             matrix, offset = self.reference_to_cage
             return np.asarray(matrix @ (raw - offset))

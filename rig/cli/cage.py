@@ -85,7 +85,10 @@ def run_characterize(
             f"--amplitude {amplitude_a:g} A must be positive and within the {min(cfg.cage.max_current_a):g} A limit"
         )
     stop = threading.Event()
-    with stop_on_signals(stop, interrupt=True), RigSession(cfg) as rig:
+    with (
+        stop_on_signals(stop, interrupt=True),
+        RigSession(cfg, command="rig cage characterize") as rig,
+    ):
         controller = rig.cage()
         if not quiet:
             print(f"characterizing the cage: +-{amplitude_a:g} A, {samples} samples per point")
@@ -124,7 +127,7 @@ def run_set_field(rig_config: Path, field_ut: list[float], trim: bool, tolerance
     stop = threading.Event()
     with stop_on_signals(stop, interrupt=True):
         try:
-            with RigSession(cfg) as rig:
+            with RigSession(cfg, command="rig cage set-field") as rig:
                 controller = rig.cage()
                 target = np.array(field_ut, float)
                 if trim:
@@ -147,7 +150,7 @@ def run_set_field(rig_config: Path, field_ut: list[float], trim: bool, tolerance
                         f"holding {np.round(target, 3).tolist()} uT "
                         + ("until Ctrl-C" if hold_s is None else f"for {hold_s:g} s")
                     )
-                stop.wait(hold_s)
+                rig.hold(hold_s, stop)  # a tripped supply or a hang ends it safely
         except KeyboardInterrupt:
             if not quiet:
                 print("interrupted: outputs ramped down and off")

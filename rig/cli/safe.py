@@ -1,4 +1,7 @@
-"""``rig safe``: switch every supply, load and relay of the rig off now."""
+"""``rig safe``: switch every supply, load and relay of the rig off now.
+
+The emergency stop works whoever holds the rig's interlock: it does not wait for the holder, but
+names it, since a command still running may switch outputs on again."""
 
 from __future__ import annotations
 
@@ -20,11 +23,25 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
 
 
 def _cmd_safe(args: argparse.Namespace) -> int:
-    from rig.engine.guardian import safe_outputs
+    from rig.config import load_rig_config
+    from rig.engine.interlock import holders
+    from rig.engine.session import switch_off_every_output
 
-    done, problems = safe_outputs(args.rig)
+    cfg = load_rig_config(args.rig)
+    by_holder: dict[str, list[str]] = {}
+    for name, who in holders(cfg).items():
+        by_holder.setdefault(who, []).append(name)
+    for who, names in by_holder.items():
+        print(f"rig: warning: {', '.join(names)} held by {who}, which may switch them on again;"
+              " stop that command too", file=sys.stderr)  # fmt: skip
+    done, problems = switch_off_every_output(cfg)
     if not args.quiet:
         print(f"switched off: {', '.join(done) or 'nothing'}")
+    hint = (
+        "stop the command holding it, then run 'rig safe' again"
+        if by_holder
+        else "switch it off by hand"
+    )
     for p in problems:
-        print(f"rig: error: could not switch off {p}; switch it off by hand", file=sys.stderr)
+        print(f"rig: error: could not switch off {p}; {hint}", file=sys.stderr)
     return EXIT_INPUT if problems else EXIT_OK

@@ -1,54 +1,97 @@
-"""The guardian: a small process that switches every output off if the rig process dies unsafe.
+"""The guardian: a small process that switches every output off if the rig process dies or hangs.
 
 Nothing inside a SIGKILLed (or OOM-killed, or crashed interpreter) rig process can reach the
-hardware, so ``rig run`` starts this guardian first. It holds the read end of a pipe whose write
-end only the rig process has; the operating system closes that end when the process dies, however
-it dies. A clean exit writes ``done`` first and the guardian leaves quietly; end of file without
-``done`` means the rig died, and the guardian opens every Modbus output of the rig configuration
-(coil supplies, polarity relays, load channels), calls ``safe()`` on each, marks the run
-incomplete and records what it did in the run's store. It holds no port while the rig runs.
+hardware, and a process that is stopped, deadlocked or stuck in a long computation does not
+notice anything, so every command that drives outputs (``rig run``, ``rig demo``, ``rig cage
+...``, all through :class:`rig.engine.session.RigSession`) starts this guardian first. It holds
+the read end of a pipe whose write end only the rig process has:
 
-    python -m rig.engine.guardian RIG.toml RUN_FOLDER    (started by the runner, not by hand)
+* the rig writes a heartbeat byte every :data:`HEARTBEAT_PERIOD_S` while its main thread makes
+  progress (or waits for the operator);
+* a clean exit writes ``done``: the guardian leaves quietly;
+* end of file without ``done`` means the rig died;
+* no heartbeat for :data:`HEARTBEAT_TIMEOUT_S` means it hung: the guardian kills it (SIGKILL, so a
+  stopped process that is resumed later cannot drive the outputs again).
+
+Either way it then opens every Modbus output of the rig configuration (coil supplies, load
+channels, then the polarity relays once the coils are off), calls ``safe()`` on each, and, for a
+run, marks the run incomplete and records what it did in the run's store. It inherits the rig's
+interlock (rig.engine.interlock), so no other command can take the rig before it has finished.
+It holds no port while the rig runs.
+
+    python -m rig.engine.guardian RIG.toml RUN_FOLDER|- RIG_PID   (started by the session)
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
+import select
+import signal
 import sqlite3
 import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import IO
 
 from drivers.registry import output_kinds
 
 OUTPUT_KINDS = output_kinds()
 """Kinds the guardian switches off: every registered supply, load and relay (drivers.registry)."""
 DONE = b"done\n"
+BEAT = b"."
+HEARTBEAT_PERIOD_S = 0.2
+"""How often the rig process tells the guardian it is alive."""
+HEARTBEAT_TIMEOUT_S = 3.0
+"""No heartbeat for this long: the rig process is hung (stopped, deadlocked, or stuck with the
+interpreter held). 15 heartbeat periods: far beyond the scheduling stalls of a busy computer
+(0.6 s seen on 2 cores with 4 CPU hogs), short beside a coil's thermal time constant."""
+OWN_STALL_S = 0.5
+"""The guardian's own wait took this much longer than asked: the guardian itself was descheduled,
+so the silence it saw is not the rig's; the rig gets a fresh timeout."""
 
 
 class Guardian:
-    """The runner's side: start the guardian; ``release()`` on a clean exit."""
+    """The rig's side: start the guardian, ``beat()`` while alive, ``release()`` on a clean exit.
 
-    def __init__(self, rig_config: Path, folder: Path) -> None:
+    ``folder`` is the run folder to record into (None: a command without a run); ``lock_fds`` are
+    the interlock's descriptors, inherited so that the rig stays locked until the guardian is done.
+    """
+
+    def __init__(
+        self, rig_config: Path, folder: Path | None, lock_fds: tuple[int, ...] = ()
+    ) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "rig.engine.guardian", str(rig_config), str(folder)],
+            [sys.executable, "-m", "rig.engine.guardian", str(rig_config),
+             str(folder) if folder is not None else "-", str(os.getpid())],
             stdin=subprocess.PIPE,
+            pass_fds=lock_fds,
             start_new_session=True,  # a Ctrl-C for the rig must not reach the guardian
-        )
+        )  # fmt: skip
+        assert self.proc.stdin is not None
+        self._fd = self.proc.stdin.fileno()
+
+    def beat(self) -> bool:
+        """One heartbeat; False if the guardian is gone (the outputs are then unguarded)."""
+        try:
+            os.write(self._fd, BEAT)
+            return True
+        except OSError:
+            return False
 
     def release(self) -> None:
         """The rig has safed its outputs itself: tell the guardian to leave without acting."""
         assert self.proc.stdin is not None
         with contextlib.suppress(OSError):
-            self.proc.stdin.write(DONE)
+            os.write(self._fd, DONE)
+        with contextlib.suppress(OSError):
             self.proc.stdin.close()
         try:
             self.proc.wait(timeout=5.0)
         except subprocess.TimeoutExpired:
             self.proc.kill()
+            self.proc.wait()
 
 
 def safe_outputs(rig_config: Path) -> tuple[list[str], list[str]]:
@@ -59,13 +102,13 @@ def safe_outputs(rig_config: Path) -> tuple[list[str], list[str]]:
     return switch_off_every_output(load_rig_config(rig_config))
 
 
-def _record(folder: Path, t_died: float, done: list[str], problems: list[str]) -> None:
+def _record(folder: Path, t_found: float, why: str, done: list[str], problems: list[str]) -> None:
     """Mark the run incomplete and log what the guardian did (the run's own clock)."""
     path = folder / "run.sqlite"
     if not path.exists():
         return
-    took_ms = 1000.0 * (time.monotonic() - t_died)
-    message = f"guardian: the rig process died without going safe; switched off {', '.join(done) or 'nothing'} in {took_ms:.0f} ms"
+    took_ms = 1000.0 * (time.monotonic() - t_found)
+    message = f"guardian: {why}; switched off {', '.join(done) or 'nothing'} in {took_ms:.0f} ms"
     con = sqlite3.connect(path, timeout=10.0)
     try:
         rows = [(time.monotonic(), "error", message)]
@@ -73,10 +116,7 @@ def _record(folder: Path, t_died: float, done: list[str], problems: list[str]) -
         con.executemany("INSERT INTO events VALUES (?, ?, ?)", rows)
         con.execute(
             "INSERT OR REPLACE INTO meta VALUES ('status', ?), ('reason', ?)",
-            (
-                json.dumps("incomplete"),
-                json.dumps("the rig process was killed; the guardian switched the outputs off"),
-            ),
+            (json.dumps("incomplete"), json.dumps(f"{why}; the guardian switched the outputs off")),
         )
         con.commit()
     finally:
@@ -86,17 +126,50 @@ def _record(folder: Path, t_died: float, done: list[str], problems: list[str]) -
     seal_run(folder)  # the run is closed now: its data never change again
 
 
-def watch(pipe: IO[bytes], rig_config: Path, folder: Path) -> int:
-    """Wait for the rig to finish; act if it died. Returns the exit status."""
-    data = b""
-    while chunk := pipe.read(64):
-        data += chunk
-    if DONE in data:
+def wait_for_rig(fd: int, pid: int, timeout_s: float = HEARTBEAT_TIMEOUT_S) -> str | None:
+    """Read heartbeats until the rig says ``done`` (None) or dies or hangs (why, one phrase).
+    A hung rig is killed first, so that it cannot drive the outputs again once resumed."""
+    tail = b""
+    last_beat = time.monotonic()
+    while True:
+        before = time.monotonic()
+        ready, _, _ = select.select([fd], [], [], 0.1)
+        now = time.monotonic()
+        if now - before > 0.1 + OWN_STALL_S:
+            last_beat = now  # we were not running: the rig's silence was not measured
+        if ready:
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                return None if DONE in tail else "the rig process died without going safe"
+            tail = (tail + chunk)[-len(DONE) :]
+            last_beat = now
+            continue
+        if now - last_beat > timeout_s:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+            deadline = time.monotonic() + 1.0  # its end of the pipe closes as it dies
+            while time.monotonic() < deadline and select.select([fd], [], [], 0.05)[0]:
+                if not os.read(fd, 4096):
+                    break
+            return (
+                f"the rig process stopped answering (no heartbeat for {now - last_beat:.1f} s:"
+                " hung, stopped or deadlocked) and was killed"
+            )
+
+
+def watch(fd: int, rig_config: Path, folder: Path | None, pid: int) -> int:
+    """Wait for the rig to finish; act if it died or hung. Returns the exit status."""
+    why = wait_for_rig(fd, pid)
+    if why is None:
         return 0
-    t_died = time.monotonic()
+    t_found = time.monotonic()
     done, problems = safe_outputs(rig_config)
-    with contextlib.suppress(sqlite3.Error, OSError):
-        _record(folder, t_died, done, problems)
+    if folder is not None:
+        with contextlib.suppress(sqlite3.Error, OSError):
+            _record(folder, t_found, why, done, problems)
+    took_ms = 1000.0 * (time.monotonic() - t_found)
+    print(f"rig guardian: {why}; switched off {', '.join(done) or 'nothing'} in {took_ms:.0f} ms",
+          file=sys.stderr)  # fmt: skip
     for p in problems:
         print(
             f"rig guardian: WARNING: could not switch off {p}; switch it off by hand",
@@ -106,13 +179,12 @@ def watch(pipe: IO[bytes], rig_config: Path, folder: Path) -> int:
 
 
 def main(argv: list[str]) -> int:
-    """Entry point of ``python -m rig.engine.guardian RIG.toml RUN_FOLDER``."""
-    import signal
-
+    """Entry point of ``python -m rig.engine.guardian RIG.toml RUN_FOLDER|- RIG_PID``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # only the pipe ends the guardian
     import rig.engine.session  # noqa: F401 - imported now, so acting after a death takes no import time
 
-    return watch(sys.stdin.buffer, Path(argv[0]), Path(argv[1]))
+    folder = None if argv[1] == "-" else Path(argv[1])
+    return watch(sys.stdin.fileno(), Path(argv[0]), folder, int(argv[2]))
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from drivers.errors import DeviceError
 from drivers.protocols import Load
 from rig import __version__
 from rig.config import RigConfig
-from rig.engine.guardian import Guardian
+from rig.engine.interlock import RigLock
 from rig.engine.live import LiveView
 from rig.engine.sampling import BufferedSensor, SensorSampler
 from rig.engine.session import RigSession
@@ -50,6 +50,9 @@ OWN_STALL_S = 0.3
 """The monitor woke this much later than its period: our own process was descheduled."""
 COIL_CHECK_S = 1.0
 """How often the coil supplies' protection flags are read."""
+UNREAD_FAULT_AFTER = 2
+"""Read-backs of an output that failed in a row (each after the link's own retries) before the
+output counts as lost: one can be a glitch, two mean its state is unknown (a fault)."""
 
 
 @dataclass
@@ -94,7 +97,8 @@ class Runner:
         self.status_sources: list[Callable[[], str]] = []
         self.correction: dict[str, Any] | None = None
         self.report_requested = False
-        self.fault: str | None = None
+        self.rig: RigSession | None = None
+        self._unread: dict[str, int] = {}  # output -> read-backs failed in a row
         self._coil_checked = 0.0
         self.samplers: dict[str, SensorSampler] = {}
         self.controller: Any = None
@@ -105,6 +109,9 @@ class Runner:
     def run(self) -> RunOutcome:
         """Execute the whole procedure; always returns an outcome with the run folder."""
         params = self.proc.parameters
+        # The interlock first: a run refused because the rig is busy leaves no run folder.
+        self._lock = RigLock(self.cfg, f"rig run {self.proc.path.name}")
+        self._lock.acquire()
         self.writer = w = new_run(
             self.runs_dir, params.get("dut_serial") or self.proc.path.stem,
             procedure=self.proc.title, procedure_file=self.proc.path.name, parameters=params,
@@ -114,14 +121,19 @@ class Runner:
         )  # fmt: skip
         (w.folder / "procedure.yaml").write_text(self.proc.text, encoding="utf-8")
         shutil.copy(self.cfg.path, w.folder / "rig.toml")
-        guardian = Guardian(self.cfg.path, w.folder) if self.use_guardian else None
         old = self._install_signals()
         status, reason = "error", "unknown"
         try:
             with ExitStack() as stack:
-                self._open(stack)
-                for plan in compile_plan(self.proc, rig_timing(self.cfg)):
-                    self._execute(plan)
+                try:
+                    self._open(stack)
+                    for plan in compile_plan(self.proc, rig_timing(self.cfg)):
+                        self._execute(plan)
+                except BaseException:
+                    # when the run learnt of its end, before the safe path runs (fault matrix)
+                    seen = self.rig.fault_at if self.rig is not None else None
+                    w.set_meta(t_end_detected=seen or time.monotonic())
+                    raise
             verdict = self.results.get("verdict", {}).get("overall")
             status, reason = (
                 ("failed", "acceptance checks failed")
@@ -151,8 +163,7 @@ class Runner:
                     f"rig: WARNING: {problem}; the data committed before it is kept",
                     file=sys.stderr,
                 )
-            if guardian is not None:
-                guardian.release()
+            self._lock.release()  # the session released it already, unless it never opened
             self._restore_signals(old)
         if self.report_requested:
             self._write_report(w.folder)
@@ -203,7 +214,16 @@ class Runner:
         w = self.writer
         assert w is not None
         self.rig = rig = stack.enter_context(
-            RigSession(self.cfg, i2c_bus=self.i2c_bus, on_unsafe=self._unsafe)
+            RigSession(
+                self.cfg,
+                command=self._lock.command,
+                folder=w.folder,
+                guardian=self.use_guardian,
+                lock=self._lock,
+                i2c_bus=self.i2c_bus,
+                abort=self.abort,
+                on_unsafe=self._unsafe,
+            )
         )
         self.controller = rig.cage()
         instruments = dict(self.controller.instruments())
@@ -303,8 +323,9 @@ class Runner:
                     if reading.protection:
                         self._fail(f"{name}: the output tripped ({reading.protection}) and is off;"
                                    " check the wiring and the load before running again")  # fmt: skip
+                    self._unread.pop(name, None)
                 except (DeviceError, OSError) as exc:
-                    self._event("warning", f"reading {name}: {exc}")
+                    self._not_answering(name, exc)
             self._check_health(w, judge_sensors=not own_stall)
 
     def _check_health(self, w: RunWriter, judge_sensors: bool = True) -> None:
@@ -324,8 +345,9 @@ class Runner:
                 t_asked = time.monotonic()  # as for the loads: the reading is from after this
                 try:
                     reading = drive.supply.read()
+                    self._unread.pop(f"coil_{'xyz'[axis]}", None)
                 except (DeviceError, OSError) as exc:
-                    self._event("warning", f"reading the {'xyz'[axis]} coil supply: {exc}")
+                    self._not_answering(f"coil_{'xyz'[axis]}", exc)
                     continue
                 protection = reading.protection
                 # the supply reads an unsigned current; a polarity relay gives it its sign
@@ -335,35 +357,47 @@ class Runner:
                     self._fail(f"coil {'xyz'[axis]} supply tripped ({protection}) and is off;"
                                " check the coil wiring, then run again")  # fmt: skip
 
+    def _not_answering(self, name: str, exc: Exception) -> None:
+        """An output that did not answer a read-back (its link already retried): a warning the
+        first time; UNREAD_FAULT_AFTER times in a row, a fault (its state is no longer known)."""
+        self._unread[name] = self._unread.get(name, 0) + 1
+        if self._unread[name] >= UNREAD_FAULT_AFTER:
+            self._fail(f"{exc}; {name} stopped answering, so its output is not under control")
+        else:
+            self._event("warning", f"reading {name}: {exc}")
+
     def _coil_check_due(self, now: float) -> bool:
         if now - self._coil_checked < COIL_CHECK_S:
             return False
         self._coil_checked = now
         return True
 
+    @property
+    def fault(self) -> str | None:
+        """The first fault found by any thread (None: none so far)."""
+        return None if self.rig is None else self.rig.fault
+
     def _fail(self, message: str) -> None:
         """A fault found off the main thread: the main thread raises it at its next wait."""
-        if self.fault is None:
-            self.fault = message
+        assert self.rig is not None
+        self.rig.fail(message)
 
     # --- steps ----------------------------------------------------------------------------------
 
     def _wait_until(self, t_target: float, stop: threading.Event | None = None) -> float:
         """Sleep until ``t_target`` (monotonic) or until ``stop`` is set, honouring pause and
         abort; returns the time shift added by pauses."""
+        assert self.rig is not None
         shift = 0.0
         while True:
-            if self.fault is not None:
-                raise RigError(self.fault)
+            self.rig.check()  # a fault or an abort ends the wait
             if stop is not None and stop.is_set():
                 return shift
-            if self.abort.is_set():
-                raise RunAborted("aborted")
             if self.paused.is_set():
                 t_pause = time.monotonic()
                 self._event("operator", "paused")
                 while self.paused.is_set() and not self.abort.is_set():
-                    time.sleep(0.05)
+                    self.rig.sleep(0.05)
                 shift += time.monotonic() - t_pause
                 self._event("operator", "resumed")
                 continue
@@ -437,13 +471,15 @@ class Runner:
 
     def ask_operator(self, text: str) -> bool:
         """A yes/no question: ``confirm`` (``--yes``, tests) or the terminal."""
-        if self.confirm is not None:
-            return self.confirm(text)
-        if not sys.stdin.isatty():
+        if self.confirm is None and not sys.stdin.isatty():
             raise RigError(
                 f"the procedure asks the operator: {text!r}; run in a terminal, or pass --yes"
             )
-        return input(f"\n{text} [y/N] ").strip().lower() in ("y", "yes")
+        assert self.rig is not None
+        with self.rig.waiting_for_operator():  # as long as the operator takes: not a hang
+            if self.confirm is not None:
+                return self.confirm(text)
+            return input(f"\n{text} [y/N] ").strip().lower() in ("y", "yes")
 
     def request_report(self) -> None:
         """Write the acceptance report once the run is closed and sealed."""

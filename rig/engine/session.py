@@ -9,15 +9,27 @@ state of every output on every way out (normal end, error, Ctrl-C, SIGTERM).
                                              # output off, then the links closed
 
 Every command that drives outputs (``rig run`` and ``rig demo`` through the runner, ``rig cage
-...``) opens its devices here; ``rig safe`` and the guardian use :func:`switch_off_every_output`.
+...``) opens its devices here, and the session owns the safety around them:
+
+* the interlock (rig.engine.interlock): no second command drives the same outputs meanwhile;
+* the guardian process (rig.engine.guardian), fed a heartbeat while the main thread makes
+  progress: it switches every output off if this process dies or hangs;
+* fault-aware waiting: every wait while outputs are live (the cage controller's ramps, relay
+  flips, trim, characterization, holds) goes through :meth:`RigSession.sleep`, which raises the
+  first fault reported by any thread (:meth:`RigSession.fail`) or an abort.
+
+``rig safe`` and the guardian use :func:`switch_off_every_output`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from contextlib import ExitStack
+from pathlib import Path
 from types import TracebackType
 from typing import Any, cast
 
@@ -27,10 +39,21 @@ from drivers.registry import output_kinds
 from rig.cage.controller import CageController
 from rig.config import RigConfig
 from rig.devices import build_cage, open_device, open_load, open_magnetometer
-from rig.errors import UserInputError
+from rig.engine.guardian import HEARTBEAT_PERIOD_S, Guardian
+from rig.engine.interlock import RigLock
+from rig.errors import RigError, RunAborted, UserInputError
 
 ATTEMPTS = 3
 """Tries per device when switching everything off (a port may still be held by a dying process)."""
+MAIN_THREAD_STALL_S = 15.0
+"""The main thread made no progress for this long (outside an operator prompt): it is deadlocked
+or lost, and the heartbeat stops, so the guardian takes the outputs to the safe state. Longer
+than any single blocking call of a healthy run (a Modbus transaction with its retries, a batch
+calibration of a long run)."""
+WAIT_SLICE_S = 0.05
+"""Fault-aware waits look for faults and aborts this often."""
+COIL_DECAY_S = 2.0
+"""Longest wait for a coil's current to decay before its polarity relay is switched."""
 
 
 def _warn(message: str) -> None:
@@ -44,17 +67,45 @@ class RigSession:
     :meth:`safe`; by default it is printed to stderr, whatever the verbosity.
     """
 
-    def __init__(self, cfg: RigConfig, *, i2c_bus: Any | None = None,
+    def __init__(self, cfg: RigConfig, *, command: str = "rig", folder: Path | None = None,
+                 guardian: bool = True, lock: RigLock | None = None, i2c_bus: Any | None = None,
+                 abort: threading.Event | None = None,
                  on_unsafe: Callable[[str], None] = _warn) -> None:  # fmt: skip
         self.cfg = cfg
+        self.command = command
+        self.folder = folder
+        self.use_guardian = guardian
+        self.lock = lock
         self.i2c_bus = i2c_bus
+        self.abort = abort if abort is not None else threading.Event()
         self.on_unsafe = on_unsafe
         self.controller: CageController | None = None
         self.loads: dict[str, Load] = {}
         self.magnetometers: dict[str, Magnetometer] = {}
+        self.fault: str | None = None
+        self.fault_at: float | None = None  # monotonic s when it was reported
+        self.guardian: Guardian | None = None
         self._stack = ExitStack()
+        self._progress_s = time.monotonic()
+        self._operator_waits = 0
+        self._beating = threading.Event()
+        self._heart: threading.Thread | None = None
 
     def __enter__(self) -> RigSession:
+        """Take the interlock, then start the guardian and its heartbeat."""
+        if self.lock is None:
+            self.lock = RigLock(self.cfg, self.command)
+        if not self.lock.fds:
+            self.lock.acquire()
+        try:
+            if self.use_guardian:
+                self.guardian = Guardian(self.cfg.path, self.folder, tuple(self.lock.fds))
+                self._beating.set()
+                self._heart = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
+                self._heart.start()
+        except BaseException:
+            self.lock.release()
+            raise
         return self
 
     def __exit__(
@@ -66,7 +117,87 @@ class RigSession:
         try:
             self.safe()
         finally:
-            self._stack.close()
+            try:
+                self._stack.close()
+            finally:
+                self._beating.clear()
+                if self._heart is not None:
+                    self._heart.join(2 * HEARTBEAT_PERIOD_S + 1.0)
+                if self.guardian is not None:
+                    self.guardian.release()
+                if self.lock is not None:
+                    self.lock.release()
+
+    # --- liveness, faults and waiting -------------------------------------------------------------
+
+    def _beat(self) -> None:
+        """Heartbeat to the guardian while the main thread makes progress (or waits for the
+        operator); silent once it has been stuck for MAIN_THREAD_STALL_S."""
+        told = False
+        while self._beating.is_set():
+            stuck_s = time.monotonic() - self._progress_s
+            if self._operator_waits or stuck_s < MAIN_THREAD_STALL_S:
+                assert self.guardian is not None
+                if not self.guardian.beat() and not told:
+                    told = True
+                    self.on_unsafe(
+                        "the guardian process has gone: outputs are unguarded if rig dies"
+                    )
+            elif not told:
+                told = True
+                print(f"rig: ERROR: no progress for {stuck_s:.0f} s; the guardian switches the"
+                      " outputs off", file=sys.stderr)  # fmt: skip
+            time.sleep(HEARTBEAT_PERIOD_S)
+
+    def fail(self, message: str) -> None:
+        """Report a fault from any thread: the next fault-aware wait raises it (first one wins)."""
+        if self.fault is None:
+            self.fault_at = time.monotonic()
+            self.fault = message
+
+    def check(self) -> None:
+        """The main thread is alive; raise the reported fault, or RunAborted after an abort."""
+        self._progress_s = time.monotonic()
+        if self.fault is not None:
+            raise RigError(self.fault)
+        if self.abort.is_set():
+            raise RunAborted("aborted")
+
+    def sleep(self, seconds: float) -> None:
+        """Wait ``seconds`` (0 just checks), raising a fault or abort within WAIT_SLICE_S."""
+        end = time.monotonic() + seconds
+        while True:
+            self.check()
+            remaining = end - time.monotonic()
+            if remaining <= 0:
+                return
+            time.sleep(min(remaining, WAIT_SLICE_S))
+
+    @contextlib.contextmanager
+    def waiting_for_operator(self) -> Iterator[None]:
+        """Inside, the main thread may block for as long as the operator takes to answer."""
+        self._operator_waits += 1
+        try:
+            yield
+        finally:
+            self._operator_waits -= 1
+            self._progress_s = time.monotonic()
+
+    def hold(self, seconds: float | None, stop: threading.Event) -> None:
+        """Hold the outputs as they are for ``seconds`` (None: until ``stop``), reading the coil
+        supplies' protection flags every second; a tripped supply is a fault."""
+        end = None if seconds is None else time.monotonic() + seconds
+        next_check = time.monotonic()
+        while not stop.is_set() and (end is None or time.monotonic() < end):
+            if self.controller is not None and time.monotonic() >= next_check:
+                next_check = time.monotonic() + 1.0
+                for axis, drive in enumerate(self.controller.axes):
+                    protection = drive.supply.read().protection
+                    if protection:
+                        self.fail(f"coil {'xyz'[axis]} supply tripped ({protection}) and is off;"
+                                  " check the coil wiring")  # fmt: skip
+            left = WAIT_SLICE_S if end is None else min(WAIT_SLICE_S, end - time.monotonic())
+            self.sleep(max(0.0, left))
 
     def _device(self, name: str, what: str) -> Any:
         dev = self.cfg.devices.get(name)
@@ -80,6 +211,7 @@ class RigSession:
         """The cage controller (opened on first use): its supplies, relays and reference."""
         if self.controller is None:
             self.controller = build_cage(self.cfg, self._stack, self.i2c_bus)
+            self.controller.sleep = self.sleep  # its ramps, flips and trims see faults
         return self.controller
 
     def load(self, name: str) -> Load:
@@ -124,13 +256,23 @@ class RigSession:
 
 def switch_off_every_output(cfg: RigConfig) -> tuple[list[str], list[str]]:
     """Every supply, load and relay board of ``cfg`` to its safe state, each opened on its own
-    (one dead link does not stop the others): (devices switched off, problems)."""
+    (one dead link does not stop the others): (devices switched off, problems).
+
+    Supplies and loads first; then, once the cage's coil currents have decayed, the polarity
+    relays to normal (never switched while a coil carries current: that arcs the contacts)."""
     done: list[str] = []
     problems: list[str] = []
     kinds = output_kinds()
-    for name, dev in cfg.devices.items():
-        if dev.kind not in kinds:
-            continue
+    outputs = [(n, d) for n, d in cfg.devices.items() if d.kind in kinds]
+    relays = [(n, d) for n, d in outputs if d.kind == "relay"]
+    for name, dev in [o for o in outputs if o[1].kind != "relay"] + relays:
+        if dev.kind == "relay":
+            still = _coil_currents_above(cfg, 0.02)
+            if still:
+                problems.append(
+                    f"{name}: left as it is, {still} (switch it when the coils are off)"
+                )
+                continue
         for attempt in range(ATTEMPTS):
             try:
                 driver = open_device(dev)
@@ -146,3 +288,29 @@ def switch_off_every_output(cfg: RigConfig) -> tuple[list[str], list[str]]:
                 else:
                     time.sleep(0.3)  # a port still held by someone else
     return done, problems
+
+
+def _coil_currents_above(cfg: RigConfig, threshold_a: float) -> str:
+    """Wait up to COIL_DECAY_S for every coil's current to fall below ``threshold_a``; '' when it
+    has, else which coil still carries what (a coil that cannot be read counts as carrying)."""
+    if cfg.cage is None:
+        return ""
+    deadline = time.monotonic() + COIL_DECAY_S
+    left = list(cfg.cage.axes)
+    while True:
+        carrying = []
+        for name in left:
+            try:
+                supply = open_device(cfg.devices[name])
+                try:
+                    amps = abs(float(supply.read().i_out_a))
+                finally:
+                    supply.close()
+            except Exception as exc:  # unknown: assume it carries
+                carrying.append(f"{name} unreadable ({exc})")
+                continue
+            if amps > threshold_a:
+                carrying.append(f"{name} carries {amps:.3f} A")
+        if not carrying or time.monotonic() > deadline:
+            return "; ".join(carrying)
+        time.sleep(0.05)

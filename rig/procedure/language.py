@@ -208,6 +208,10 @@ def _read_yaml(path: Path) -> tuple[str, dict[str, Any], dict[int, dict[Any, int
         mark = getattr(exc, "problem_mark", None)
         line = f":{mark.line + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc)
+        if "nesting depth" in problem:  # PyYAML >= 6.0.3 stops deep flow nesting in its scanner
+            raise ProcedureError(
+                f"{path}{line}: nested more than {MAX_YAML_DEPTH} levels deep (MAX_YAML_DEPTH)"
+            ) from None
         raise ProcedureError(
             f"{path}{line}: YAML syntax: {problem}; check indentation and quoting"
         ) from None

@@ -14,7 +14,14 @@ from rig.errors import RigError
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.geometry import sphere_fields
 from rig.steps.live_calibration import LiveCalibration
-from rig.steps.vocabulary import Param, ProcedureError, RigTiming, Step, suggest
+from rig.steps.vocabulary import (
+    MAX_FIELD_SETPOINTS_PER_STEP,
+    Param,
+    ProcedureError,
+    RigTiming,
+    Step,
+    suggest,
+)
 
 
 class LiveCalibrate(FieldStepKind):
@@ -60,6 +67,13 @@ class LiveCalibrate(FieldStepKind):
         if params["stop_on_target"] == "yes" and not targets:
             raise ProcedureError(
                 f"{where}: stop_on_target needs 'targets', e.g. {{bias_nt: 30, scale: 0.002}}; or set stop_on_target: no"
+            )
+        setpoints = params["max_s"] / params["dwell_s"]
+        if setpoints > MAX_FIELD_SETPOINTS_PER_STEP:
+            raise ProcedureError(
+                f"{where}: max_s / dwell_s makes {setpoints:.0f} field set-points, more than"
+                f" {MAX_FIELD_SETPOINTS_PER_STEP} (MAX_FIELD_SETPOINTS_PER_STEP): lengthen dwell_s"
+                " or shorten max_s"
             )
         if params["min_s"] > params["max_s"]:
             raise ProcedureError(f"{where}: min_s must not exceed max_s")

@@ -9,7 +9,14 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rig.steps.base import FieldStepKind, load_commands
-from rig.steps.vocabulary import Command, Param, ProcedureError, RigTiming, Step
+from rig.steps.vocabulary import (
+    MAX_FIELD_SETPOINTS_PER_STEP,
+    Command,
+    Param,
+    ProcedureError,
+    RigTiming,
+    Step,
+)
 
 
 class OrbitReplay(FieldStepKind):
@@ -36,6 +43,13 @@ class OrbitReplay(FieldStepKind):
             parse_start(params["start"])
         except ValueError as exc:
             raise ProcedureError(f"{where}: {exc}") from None
+        setpoints = params["duration_s"] * params["rate_hz"]
+        if setpoints > MAX_FIELD_SETPOINTS_PER_STEP:
+            raise ProcedureError(
+                f"{where}: duration_s x rate_hz makes {setpoints:.0f} field set-points, more than"
+                f" {MAX_FIELD_SETPOINTS_PER_STEP} (MAX_FIELD_SETPOINTS_PER_STEP): lower the rate"
+                " or split the replay into several steps"
+            )
         for panel in params["panels"]:
             ch, face, max_a = panel.get("channel"), panel.get("face"), panel.get("max_a")
             if ch not in loads or face not in FACES or not isinstance(max_a, int | float):

@@ -34,6 +34,9 @@ MAX_TOTAL_DURATION_S = 7 * 86400.0
 """Longest procedure (s; 7 days), its steps' nominal durations summed (ramps left out)."""
 MAX_LOAD_SETPOINTS_PER_STEP = 1_000_000
 """Load-current set-points the load profiles of one step may make, all channels together."""
+MAX_FIELD_SETPOINTS_PER_STEP = 1_000_000
+"""Field set-points one step may make (an orbit replay's duration x rate, a live calibration's
+max_s / dwell_s): a day at 10 Hz, 1.4 h at the 200 Hz maximum rate."""
 MAX_CSV_PROFILE_BYTES = 1024 * 1024
 """Largest CSV load profile file (bytes; 1 MiB)."""
 MAX_CSV_PROFILE_ROWS = 100_000

@@ -309,3 +309,21 @@ def test_any_procedure_text_parses_or_is_refused_clearly(fuzz_folder: Path, case
     one line starting with the file; never another exception, never over 5 s. 10 000 examples:
     bench/fuzz_procedures.py."""
     check(fuzz_folder, case)
+
+
+def test_field_set_points_of_orbit_replay_and_live_calibration_are_bounded(tmp_path: Path) -> None:
+    shipped = Path(__file__).resolve().parents[2] / "procedures"
+    with pytest.raises(
+        ProcedureError,
+        match=r"1728000 field set-points, more than 1000000 \(MAX_FIELD_SETPOINTS_PER_STEP\)",
+    ):
+        parse_procedure(shipped / "orbit-replay.yaml", {"duration_s": "86400"})
+    assert parse_procedure(shipped / "orbit-replay.yaml", {"duration_s": "43200"})
+    text = (shipped / "live-calibration.yaml").read_text().replace("dwell_s: 0.8", "dwell_s: 0.05")
+    live = write(tmp_path, text)
+    with pytest.raises(
+        ProcedureError,
+        match=r"p\.yaml:\d+: .*1728000 field set-points, more than 1000000 \(MAX_FIELD_SETPOINTS_PER_STEP\)",
+    ):
+        parse_procedure(live, {"max_s": "86400"})
+    assert parse_procedure(live, {"max_s": "3600"})  # fmt: skip
