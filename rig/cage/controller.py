@@ -218,8 +218,9 @@ class CageController:
         """Cancel the ambient field (target 0 uT)."""
         return self.set_field(np.zeros(3))
 
-    def safe(self) -> list[str]:
-        """Ramp to zero if possible, then every output off; never raises. Returns problems seen."""
+    def safe(self, relays: bool = True) -> list[str]:
+        """Ramp to zero if possible, then every output off, then (``relays``) the polarity relays
+        to normal once their coils have decayed; never raises. Returns problems seen."""
         problems: list[str] = []
         dead = any(getattr(getattr(d.supply, "link", None), "failed", False) for d in self.axes)
         if self.enabled and not dead:  # with a supply not answering, switch off at once
@@ -243,10 +244,11 @@ class CageController:
             t.join(SAFE_TIMEOUT_S)
         self.enabled = False
         self.currents = np.zeros(3)
-        problems += self._relays_normal()
+        if relays:
+            problems += self.relays_normal()
         return problems
 
-    def _relays_normal(self) -> list[str]:
+    def relays_normal(self) -> list[str]:
         """Reversed relays back to normal once their coil's current has decayed; problems."""
         problems: list[str] = []
         for axis, drive in enumerate(self.axes):

@@ -36,7 +36,7 @@ from typing import Any, cast
 from drivers.errors import DeviceError
 from drivers.protocols import Load, Magnetometer
 from drivers.registry import output_kinds
-from rig.cage.controller import CageController
+from rig.cage.controller import SAFE_TIMEOUT_S, CageController
 from rig.config import RigConfig
 from rig.devices import build_cage, open_device, open_load, open_magnetometer
 from rig.engine.guardian import HEARTBEAT_PERIOD_S, Guardian
@@ -239,16 +239,33 @@ class RigSession:
         self._stack.callback(fn, *args)
 
     def safe(self) -> list[str]:
-        """Coils ramped down and off, then every load off; never raises (idempotent). Returns
-        what may still be on, each also told to ``on_unsafe``."""
-        problems = []
-        if self.controller is not None:
-            problems += [f"cage did not go fully safe: {p}" for p in self.controller.safe()]
-        for name, load in self.loads.items():
+        """Coils ramped down and off, every load off, then the polarity relays to normal once
+        the coils have decayed (a coil that cannot be read may take COIL_DECAY_S: every output
+        is off by then); never raises (idempotent). Returns what may still be on, each also told
+        to ``on_unsafe``."""
+        problems: list[str] = []
+
+        def load_off(name: str, load: Load) -> None:
             try:
                 load.safe()
             except (DeviceError, OSError) as exc:
                 problems.append(f"load {name} did not go safe: {exc}")
+
+        # the loads go off beside the coil ramp: a supply that does not answer must not delay them
+        threads = [threading.Thread(target=load_off, args=item, name=f"safe-{item[0]}")
+                   for item in self.loads.items()]  # fmt: skip
+        for t in threads:
+            t.start()
+        if self.controller is not None:
+            problems += [
+                f"cage did not go fully safe: {p}" for p in self.controller.safe(relays=False)
+            ]
+        for t in threads:
+            t.join(SAFE_TIMEOUT_S)
+        if self.controller is not None:
+            problems += [
+                f"cage did not go fully safe: {p}" for p in self.controller.relays_normal()
+            ]
         for p in problems:
             self.on_unsafe(p)
         return problems
