@@ -1,5 +1,5 @@
-"""End to end on the simulated cage: the demo recovers the hidden DUT, and every way a run can end
-leaves all supplies off with the data readable."""
+"""End to end on the simulated cage: every way a run can end leaves all supplies off with the data
+readable, and the shipped procedures pass."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
@@ -27,51 +26,6 @@ from rig.store import RunReader
 from sim.cage import SimulatedCage
 from sim.config import load_config
 from tests.simproc import sim_process as start_sim
-
-
-@pytest.mark.slow
-def test_demo_recovers_the_hidden_dut_within_3_sigma(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    assert main(["demo", "--runs-dir", str(tmp_path)]) == 0  # the README's main command
-    out = capsys.readouterr().out
-    assert "VERDICT: PASS" in out and "report:" in out
-    folder = next(p for p in tmp_path.iterdir() if (p / "run.sqlite").exists())
-    reader = RunReader(folder)
-    res, meta = reader.results(), reader.meta()
-    reader.close()
-    assert meta["status"] == "complete"
-    for name in ("report.txt", "report.html", "report.pdf"):
-        assert (folder / name).stat().st_size > 1000, name
-    vec = res["vector calibration"]
-    truth = load_config().magnetometer("dut")
-    expected = {
-        "a": truth.scale[0], "b": truth.scale[1], "c": truth.scale[2],
-        "x0_ut": truth.offset_ut[0], "y0_ut": truth.offset_ut[1], "z0_ut": truth.offset_ut[2],
-        "rho_deg": truth.nonorth_deg[0], "phi_deg": truth.nonorth_deg[1], "lambda_deg": truth.nonorth_deg[2],
-    }  # fmt: skip
-    z = {k: (vec["springmann"][k] - v) / vec["sigma"]["springmann"][k] for k, v in expected.items()}
-    for ch, k_true in truth.k_ut_per_a.items():
-        for ax in range(3):
-            z[f"k[{ch}].{ax}"] = (vec["correction"]["k_ut_per_unit"][ch][ax] - k_true[ax]) / vec[
-                "sigma"
-            ]["k_ut_per_unit"][ch][ax]
-    for ax in range(3):  # the mounting, as a small rotation vector
-        z[f"mount.{ax}"] = (
-            vec["mounting"]["rotation_vector_deg"][ax] - truth.mounting_deg[ax]
-        ) / vec["sigma"]["mounting_deg"][ax]
-    # 21 parameters: with honest sigmas one of them lands beyond 3 sigma in 5 % of runs, two in
-    # 0.15 %; so: at most one beyond 3 sigma, none beyond 4, and the mean z^2 near 1.
-    zs = np.array(list(z.values()))
-    worst = max(z, key=lambda k: abs(z[k]))
-    assert np.sum(np.abs(zs) > 3.0) <= 1 and abs(z[worst]) < 4.0, (
-        f"{worst} is {z[worst]:+.2f} sigma from the truth"
-    )
-    assert np.mean(zs**2) < 2.5, {k: round(v, 2) for k, v in z.items()}
-    scalar = res["scalar calibration"]
-    for key in ("a", "b", "c"):
-        zz = (scalar["springmann"][key] - expected[key]) / scalar["sigma"]["springmann"][key]
-        assert abs(zz) < 3.0, (key, zz)
 
 
 @pytest.fixture(scope="module")
