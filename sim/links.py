@@ -56,6 +56,28 @@ def damage(data: bytes, faults: Faults, rng: random.Random) -> bytes:
     return data
 
 
+STALE_PARTIAL_S = 0.5
+"""A partial request older than this (s) is dropped when new bytes arrive (Modbus RTU ends a frame
+after 3.5 character times of silence; this is generous for a busy computer)."""
+
+
+def rtu_request_length(buf: bytes) -> int:
+    """Length (bytes, CRC included) of the Modbus RTU request ``buf`` starts; 0 while its header
+    is incomplete. A function code of no known form takes the whole buffer."""
+    if len(buf) < 2:
+        return 0
+    fc = buf[1]
+    if fc in (1, 2, 3, 4, 5, 6, 8):
+        return 8  # id, fc, two 16-bit fields, CRC
+    if fc in (15, 16):
+        return 9 + buf[6] if len(buf) >= 7 else 0  # id, fc, address, quantity, count, data, CRC
+    if fc in (7, 11, 12, 17):
+        return 4  # id, fc, CRC
+    if fc == 43:
+        return 7  # id, fc, MEI type, read code, object id, CRC
+    return len(buf)
+
+
 class PtyNullModem:
     """Two ptys cross-connected: ``device_path`` for the server, ``client_path`` for the client.
 
@@ -77,6 +99,8 @@ class PtyNullModem:
         self._loop = loop
         self._rng = random.Random(seed)
         self._closed = False
+        self._pending = b""  # the start of a request frame whose rest has not arrived
+        self._pending_since = 0.0
         attached = threading.Event()
 
         def attach() -> None:
@@ -103,9 +127,32 @@ class PtyNullModem:
         except OSError:
             return
         if self.faults.disconnect or self.faults.silent:
+            self._pending = b""
             return
-        if self.device_id is not None and data and data[0] != self.device_id:
-            return  # another station's request: the bus stays silent
+        if self.device_id is None:
+            self._to_device(data)
+            return
+        # A request can reach this end in pieces (the kernel moves pty data in a worker thread):
+        # decide per request frame, not per piece, or the tail of our own station's request is
+        # taken for another station's and dropped (the server then waits for it and throws the
+        # next request away with it).
+        now = self._loop.time()
+        if self._pending and now - self._pending_since > STALE_PARTIAL_S:
+            self._pending = b""  # a request the client never finished (it died mid-frame)
+        if not self._pending:
+            self._pending_since = now
+        self._pending += data
+        while self._pending:
+            size = rtu_request_length(self._pending)
+            if size == 0 or len(self._pending) < size:
+                return  # the rest of the request is still on its way
+            frame, self._pending = self._pending[:size], self._pending[size:]
+            self._pending_since = now
+            if frame[0] == self.device_id:
+                self._to_device(frame)
+            # else: another station's request, and the bus stays silent
+
+    def _to_device(self, data: bytes) -> None:
         with contextlib.suppress(OSError):
             os.write(self.device_side.master, data)
 

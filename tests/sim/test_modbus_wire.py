@@ -151,3 +151,60 @@ def test_rtu_corrupt_frames_and_silent_bus(devices: dict[str, Any], cage: Simula
         c.close()
         c.connect()
         assert c.read_holding_registers(0, count=1, device_id=1).registers == [60062]
+
+
+def _crc(frame: bytes) -> bytes:
+    crc = 0xFFFF
+    for byte in frame:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc.to_bytes(2, "little")
+
+
+def _raw_request(fd: int, pieces: list[bytes], wait_s: float = 0.5) -> bytes:
+    """Write a request in ``pieces`` (a pause between them) and collect what comes back."""
+    import os
+    import select
+
+    for i, piece in enumerate(pieces):
+        if i:
+            time.sleep(0.03)
+        os.write(fd, piece)
+    got = b""
+    end = time.monotonic() + wait_s
+    while (left := end - time.monotonic()) > 0 and len(got) < 7:
+        if select.select([fd], [], [], left)[0]:
+            got += os.read(fd, 256)
+    return got
+
+
+def test_rtu_request_in_pieces_is_answered_and_another_ids_stays_silent(
+    devices: dict[str, Any],
+) -> None:
+    """The kernel may hand a request to the bus in pieces; the simulated RS-485 bus decides per
+    frame whose it is (it dropped a piece that did not start with its id, then lost the next
+    request with the half frame: over 1.5 s of silence on a busy machine)."""
+    import os
+    import termios
+    import tty
+
+    dev = devices["load_bus"]
+    fd = os.open(dev["path"], os.O_RDWR | os.O_NOCTTY)
+    try:
+        tty.setraw(fd)
+        termios.tcflush(fd, termios.TCIOFLUSH)
+        ours = bytes([1, 3, 0, 0, 0, 1])
+        ours += _crc(ours)
+        theirs = bytes([7, 16, 0, 0, 0, 1, 2, 0, 5])
+        theirs += _crc(theirs)
+        expect = bytes([1, 3, 2]) + (60062).to_bytes(2, "big")
+        expect += _crc(expect)
+        assert _raw_request(fd, [ours]) == expect
+        for cut in range(1, len(ours)):  # every split of our request
+            assert _raw_request(fd, [ours[:cut], ours[cut:]]) == expect, cut
+        # another station's write in pieces, then ours glued to its tail: silence, then our reply
+        assert _raw_request(fd, [theirs[:3], theirs[3:]], wait_s=0.3) == b""
+        assert _raw_request(fd, [theirs[:5], theirs[5:] + ours]) == expect
+    finally:
+        os.close(fd)
