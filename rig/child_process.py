@@ -87,3 +87,19 @@ def stop_child(
         return proc.wait(timeout=kill_wait_s)
     except subprocess.TimeoutExpired:
         return None
+
+
+def process_alive(pid: int) -> bool:
+    """The process ``pid`` exists and is not a zombie (a zombie holds no descriptors and does
+    nothing more). Another user's process counts as alive."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except (OSError, IndexError):  # no /proc (not Linux), or the process has gone
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            return True
+        return True

@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 from drivers.registry import output_kinds
+from rig.child_process import process_alive
 from rig.config import DeviceConfig, RigConfig
 from rig.errors import RigError
 
@@ -163,7 +164,7 @@ def _flock_or_wait_for_guardian(fd: int) -> None:
             if exc.errno not in (errno.EWOULDBLOCK, errno.EACCES):
                 raise
             pid = _holder_pid(fd)
-            if pid is None or _alive(pid) or time.monotonic() > deadline:
+            if pid is None or process_alive(pid) or time.monotonic() > deadline:
                 raise
             if not told:
                 print(f"rig: PID {pid} has died; waiting for its guardian to switch the outputs"
@@ -178,21 +179,6 @@ def _holder_pid(fd: int) -> int | None:
     except (OSError, ValueError):
         return None
     return pid if isinstance(pid, int) and pid > 0 else None
-
-
-def _alive(pid: int) -> bool:
-    """The process exists (a zombie counts as gone: it holds no descriptors)."""
-    try:
-        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return False
-        except PermissionError:
-            return True
-        return True
 
 
 def _lock_path(folder: Path, address: str) -> Path:

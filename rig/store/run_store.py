@@ -306,17 +306,9 @@ class RunReader:
 
 
 def _owner_alive(pid: Any) -> bool:
-    import os
+    from rig.child_process import process_alive
 
-    if not isinstance(pid, int):
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+    return isinstance(pid, int) and pid > 0 and process_alive(pid)
 
 
 def new_run(runs_dir: Path, label: str, **meta: Any) -> RunWriter:

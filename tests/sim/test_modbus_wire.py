@@ -154,12 +154,9 @@ def test_rtu_corrupt_frames_and_silent_bus(devices: dict[str, Any], cage: Simula
 
 
 def _crc(frame: bytes) -> bytes:
-    crc = 0xFFFF
-    for byte in frame:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc.to_bytes(2, "little")
+    from pymodbus.framer.rtu import FramerRTU
+
+    return FramerRTU.compute_CRC(frame).to_bytes(2, "big")
 
 
 def _raw_request(fd: int, pieces: list[bytes], wait_s: float = 0.5) -> bytes:
