@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
 from rig.calibration.estimators import DEFAULT_METHOD, method_names, spoken
 from rig.cli.common import EXIT_OK, Parser, Subparsers, columns, write_text
 from rig.errors import UserInputError
+from rig.io.field_units import UNIT_HELP
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
@@ -19,8 +21,8 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
         help="fit scale, offset, misalignment and current-to-bias to a CSV file",
         description=(
             "Fit m = T h + o + sum_j k_j u_j to recorded data. --field gives a vector (cage)"
-            " calibration, --field-magnitude an attitude-independent (scalar) one. Any consistent"
-            " field unit works; results are labelled uT."
+            " calibration, --field-magnitude an attitude-independent (scalar) one. Field columns"
+            " are read in --unit (and --field-unit) and converted to uT; results are in uT and nT."
         ),
     )
     cal.add_argument(
@@ -46,7 +48,33 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
         help="reference field vector columns (vector calibration)",
     )  # fmt: skip
     ref.add_argument(
-        "--field-magnitude", metavar="COL", help="reference field magnitude column (scalar)"
+        "--field-magnitude",
+        metavar="COL|VALUE",
+        help="reference field magnitude (scalar calibration): a column, or one number for a"
+        " constant field (e.g. 0.47 with --unit G); in --field-unit",
+    )
+    cal.add_argument(
+        "--unit",
+        default="uT",
+        metavar="UNIT",
+        help=f"unit of the --measured columns: {UNIT_HELP} (default uT); results are in uT"
+        " and nT whatever the file's unit",
+    )
+    cal.add_argument(
+        "--field-unit",
+        metavar="UNIT",
+        help="unit of the reference (--field, --field-magnitude): default the same as --unit,"
+        " or uT when --unit is a counts factor",
+    )
+    cal.add_argument(
+        "--columns", type=columns, metavar="NAME1,NAME2,...",
+        help="the file has no header row: these are its columns, in order",
+    )  # fmt: skip
+    cal.add_argument(
+        "--drop-invalid",
+        action="store_true",
+        help="leave out rows with an empty, non-numeric, NaN or infinite cell in a column used"
+        " (their count is printed) instead of refusing the file",
     )
     cal.add_argument(
         "--telemetry", type=columns, default=[], metavar="COL1,COL2,...",
@@ -95,7 +123,7 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from rig.calibration import Samples
-    from rig.io.csv_table import read_columns
+    from rig.io.csv_table import read_columns, read_valid_rows
 
     if args.data.is_dir():
         return _calibrate_run(args)
@@ -113,7 +141,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         raise UserInputError("--measured COLX,COLY,COLZ is required for a CSV file")
     if args.field is None and args.field_magnitude is None:
         raise UserInputError(
-            "give --field COLX,COLY,COLZ (vector) or --field-magnitude COL (scalar)"
+            "give --field COLX,COLY,COLZ (vector) or --field-magnitude COL|VALUE (scalar)"
         )
     if len(args.measured) != 3:
         raise UserInputError(f"--measured needs three columns X,Y,Z, got {len(args.measured)}")
@@ -121,27 +149,73 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         raise UserInputError(f"--field needs three columns X,Y,Z, got {len(args.field)}")
     if len(set(args.telemetry)) != len(args.telemetry):
         raise UserInputError("--telemetry names a column twice: list each channel once")
-    wanted = list(args.measured) + (args.field or [args.field_magnitude]) + list(args.telemetry)
-    cols = read_columns(args.data, list(dict.fromkeys(wanted)))
+    measured_ut_per, field_ut_per = _unit_factors(args)
+    constant = _constant_magnitude(args)
+    magnitude = [] if args.field is not None or constant is not None else [args.field_magnitude]
+    wanted = list(args.measured) + (args.field or magnitude) + list(args.telemetry)
+    wanted = list(dict.fromkeys(wanted))
+    if args.drop_invalid:
+        cols, dropped = read_valid_rows(args.data, wanted, names=args.columns)
+        if dropped and not args.quiet:
+            lines = ", ".join(str(n) for n in dropped[:5]) + (", ..." if len(dropped) > 5 else "")
+            n_rows = len(cols[wanted[0]]) + len(dropped)
+            print(f"--drop-invalid: left out {len(dropped)} of {n_rows} rows (lines {lines})",
+                  file=sys.stderr)  # fmt: skip
+    else:
+        cols = read_columns(args.data, wanted, names=args.columns)
     import numpy as np
 
-    measured = np.column_stack([cols[c] for c in args.measured])
+    measured = measured_ut_per * np.column_stack([cols[c] for c in args.measured])
     telemetry = np.column_stack([cols[c] for c in args.telemetry]) if args.telemetry else None
     if args.field is not None:
         samples = Samples.build(
             measured,
-            field_ut=np.column_stack([cols[c] for c in args.field]),
+            field_ut=field_ut_per * np.column_stack([cols[c] for c in args.field]),
             telemetry=telemetry,
             channels=tuple(args.telemetry),
         )
     else:
+        magnitude_ut = (
+            np.full(len(measured), field_ut_per * constant)
+            if constant is not None
+            else field_ut_per * cols[args.field_magnitude]
+        )
         samples = Samples.build(
             measured,
-            field_magnitude_ut=cols[args.field_magnitude],
+            field_magnitude_ut=magnitude_ut,
             telemetry=telemetry,
             channels=tuple(args.telemetry),
         )
     return _fit_and_emit(samples, args)
+
+
+def _unit_factors(args: argparse.Namespace) -> tuple[float, float]:
+    """uT per file unit of the measured columns and of the reference."""
+    from rig.io.field_units import is_counts, ut_per
+
+    field_unit = args.field_unit or ("uT" if is_counts(args.unit) else args.unit)
+    try:
+        return ut_per(args.unit), ut_per(field_unit)
+    except ValueError as exc:
+        raise UserInputError(f"--unit/--field-unit: {exc}") from None
+
+
+def _constant_magnitude(args: argparse.Namespace) -> float | None:
+    """--field-magnitude as a number (a constant field), or None when it names a column."""
+    import math
+
+    if args.field_magnitude is None or args.field_magnitude in (args.columns or []):
+        return None
+    try:
+        value = float(args.field_magnitude)
+    except ValueError:
+        return None
+    if not (math.isfinite(value) and value > 0):
+        raise UserInputError(
+            f"--field-magnitude {args.field_magnitude}: a constant field magnitude must be a"
+            " positive number"
+        )
+    return value
 
 
 def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:

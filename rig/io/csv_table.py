@@ -16,8 +16,9 @@ from rig.errors import UserInputError
 Array = npt.NDArray[np.float64]
 
 
-def _header(path: Path) -> tuple[int, list[str], str]:
-    """Line index of the header, its column names and the delimiter."""
+def _header(path: Path, names: list[str] | None = None) -> tuple[int, list[str], str]:
+    """Line index of the header, its column names and the delimiter. With ``names`` the file has
+    no header: the first data line is at index 0 and must have that many cells."""
     try:
         with path.open(encoding="utf-8-sig", newline="") as fh:
             for index, line in enumerate(fh):
@@ -25,8 +26,20 @@ def _header(path: Path) -> tuple[int, list[str], str]:
                 if not stripped or stripped.startswith("#"):
                     continue
                 delimiter = next((d for d in (",", ";", "\t") if d in stripped), ",")
-                names = [name.strip() for name in next(csv.reader([stripped], delimiter=delimiter))]
-                return index, names, delimiter
+                cells = [name.strip() for name in next(csv.reader([stripped], delimiter=delimiter))]
+                if names is None:
+                    return index, cells, delimiter
+                if len(cells) != len(names):
+                    raise UserInputError(
+                        f"{path} line {index + 1}: {len(cells)} cells, but --columns names"
+                        f" {len(names)}: name every column of the file, in order"
+                    )
+                if not _is_number(cells[0]):
+                    raise UserInputError(
+                        f"{path} line {index + 1} is a header ({', '.join(cells)}): leave"
+                        " --columns out, or remove the header row"
+                    )
+                return index - 1, list(names), delimiter
     except FileNotFoundError:
         raise UserInputError(f"{path}: no such file: check the path") from None
     except IsADirectoryError:
@@ -40,23 +53,26 @@ def _header(path: Path) -> tuple[int, list[str], str]:
     raise UserInputError(f"{path} is empty: it needs a header row and data rows")
 
 
-def read_columns(path: str | Path, columns: list[str]) -> dict[str, Array]:
-    """Columns by header name as float arrays (all the same length).
+def _is_number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def read_columns(
+    path: str | Path, columns: list[str], names: list[str] | None = None
+) -> dict[str, Array]:
+    """Columns by header name as float arrays (all the same length). ``names``: the file has
+    no header row and these are its columns, in order.
 
     Raises :class:`UserInputError` naming the file, line and column for a missing column,
     a non-numeric or empty cell, NaN or infinity, or a file without data rows.
     """
     path = Path(path)
-    header_index, names, delimiter = _header(path)
-    index: list[int] = []
-    for col in columns:
-        if col not in names:
-            close = difflib.get_close_matches(col, names, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
-            raise UserInputError(
-                f"{path}: no column '{col}'{hint}; the header has: {', '.join(names)}"
-            )
-        index.append(names.index(col))
+    header_index, names, delimiter = _header(path, names)
+    index = [_column_index(path, col, names) for col in columns]
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "input contained no data": see below
@@ -80,9 +96,52 @@ def read_columns(path: str | Path, columns: list[str]) -> dict[str, Array]:
         line = _data_line_numbers(path, header_index)[bad_row]
         raise UserInputError(
             f"{path} line {line}, column '{columns[bad_col]}': value is NaN or infinite"
-            f" ({int(bad.any(axis=1).sum())} such rows): remove or repair those rows"
+            f" ({int(bad.any(axis=1).sum())} such rows): remove or repair those rows, or add"
+            " --drop-invalid to leave them out"
         )
     return {name: data[:, j].copy() for j, name in enumerate(columns)}
+
+
+def read_valid_rows(
+    path: str | Path, columns: list[str], names: list[str] | None = None
+) -> tuple[dict[str, Array], list[int]]:
+    """Like :func:`read_columns`, but a row with an empty, non-numeric, NaN or infinite cell in
+    one of ``columns`` (or too few cells) is left out instead of refused: (columns, line numbers
+    of the rows left out). A file with no valid row at all is still an error."""
+    path = Path(path)
+    header_index, names, delimiter = _header(path, names)
+    index = [_column_index(path, col, names) for col in columns]
+    rows: list[list[float]] = []
+    dropped: list[int] = []
+    with path.open(encoding="utf-8-sig", newline="") as fh:
+        for number, line in enumerate(fh, start=1):
+            if number <= header_index + 1 or not line.strip() or line.lstrip().startswith("#"):
+                continue
+            cells = next(csv.reader([line.rstrip("\r\n")], delimiter=delimiter))
+            try:
+                values = [float(cells[i]) for i in index]
+            except (IndexError, ValueError):
+                dropped.append(number)
+                continue
+            if all(math.isfinite(v) for v in values):
+                rows.append(values)
+            else:
+                dropped.append(number)
+    if not rows:
+        raise UserInputError(
+            f"{path}: no row has a finite number in every one of {', '.join(columns)}"
+            f" ({len(dropped)} rows left out): check the columns and the delimiter"
+        )
+    data = np.asarray(rows, dtype=float)
+    return {name: data[:, j].copy() for j, name in enumerate(columns)}, dropped
+
+
+def _column_index(path: Path, col: str, names: list[str]) -> int:
+    if col not in names:
+        close = difflib.get_close_matches(col, names, n=1)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        raise UserInputError(f"{path}: no column '{col}'{hint}; the header has: {', '.join(names)}")
+    return names.index(col)
 
 
 def _data_line_numbers(path: Path, header_index: int) -> list[int]:
@@ -115,7 +174,8 @@ def _raise_bad_cell(
                 except ValueError:
                     what = "is empty" if not cell else f"'{cell[:20]}' is not a number"
                     raise UserInputError(
-                        f"{path} line {number}, column '{names[i]}': {what}: fix or delete that row"
+                        f"{path} line {number}, column '{names[i]}': {what}: fix or delete that"
+                        " row, or add --drop-invalid to leave such rows out"
                     ) from None
                 if not math.isfinite(value):
                     raise UserInputError(
