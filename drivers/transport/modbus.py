@@ -92,6 +92,9 @@ class PatientSerialClient(ModbusSerialClient):
     (Overrides ``recv`` of the pinned minor version.)
     """
 
+    heard = False
+    """Bytes arrived since the caller last cleared this: the device is alive, the line garbled."""
+
     def recv(self, size: int | None) -> bytes:
         if not self.socket:
             raise ConnectionException(str(self))
@@ -105,6 +108,7 @@ class PatientSerialClient(ModbusSerialClient):
                 if waiting:
                     buf += self.socket.read(waiting)
                     quiet_since = time.monotonic()
+                    self.heard = True
                 need = size if size is not None else rtu_reply_length(buf)
                 if buf and need is not None and len(buf) >= need:
                     return buf
@@ -196,6 +200,7 @@ class ModbusLink:
     def _call_locked(self, what: str, fn: Any, *args: Any, **kwargs: Any) -> Any:
         last: Exception | None = None
         attempts = 1 if self.failed else self.retries + 1
+        self._client.heard = False
         for attempt in range(attempts):
             try:
                 if not self._client.connected:
@@ -223,11 +228,19 @@ class ModbusLink:
                 )
             self.answered = True
             return rr
-        self.failed = True
+        # garbled replies are a noisy line, not a dead device: the next request gets every retry
+        garbled = bool(getattr(self._client, "heard", False))
+        self.failed = not garbled
         if isinstance(last, ConnectionException | DeviceNotFoundError | OSError):
             raise DeviceNotFoundError(
                 f"{self.name} at {self.where}: connection lost during {what} ({last});"
                 " check power and cable"
+            )
+        if isinstance(last, ModbusIOException) and garbled:
+            raise DeviceProtocolError(
+                f"{self.name} at {self.where}: no valid reply to {what} after {attempts}"
+                f" attempt{'s' if attempts > 1 else ''}, only damaged ones (bad CRC or cut"
+                " short); check for noise on the line: cable shield, termination, baud rate"
             )
         if isinstance(last, ModbusIOException):
             detail = str(last).split(", continue")[0].removeprefix("Modbus Error: ")
