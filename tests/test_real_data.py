@@ -118,3 +118,41 @@ def test_the_guides_real_data_example(
     assert main(argv[1:]) == 0
     out = capsys.readouterr().out
     assert re.search(r"x0 offset\s+uT\s+-24\.93", out) and "rms 1241." in out, out
+
+
+HEMISPHERE = DATA / "space-denpa-set2-hemisphere.csv"
+
+
+@pytest.mark.parametrize("method", ["ml", "ellipsoid", "centered", "twostep", "ukf"])
+def test_the_hemisphere_set_is_refused_naming_its_coverage(
+    method: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Directions within 60 deg of -z only: no scalar method can separate the z scale from the z
+    offset, so none answers, and none sends the user to another method that cannot work."""
+    code = main(["calibrate", str(HEMISPHERE), "--measured", "x,y,z", "--unit", "G",
+                 "--field-magnitude", "0.47", "--method", method])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "+z not covered" in err or "+y, +z not covered" in err, err
+    assert "c from z0" in err and "-z 99.7 %" in err and "--method" not in err
+
+
+def test_a_chi_square_verdict_needs_an_independent_noise(tmp_path: Path) -> None:
+    args = [str(SPHERE), "--measured", "x,y,z", "--unit", "G", "--field-magnitude", "0.47"]
+    assert fit(tmp_path, *args)["chi2"]["verdict"].startswith("not tested")
+    assert fit(tmp_path, *args, "--noise-nt", "1081")["chi2"]["verdict"] == "consistent"
+    assert fit(tmp_path, *args, "--noise-nt", "300")["chi2"]["verdict"] == "above noise floor"
+
+
+def test_a_degenerate_fit_is_never_called_consistent() -> None:
+    """A telemetry channel that is a constant plus a tiny ripple is an offset in disguise."""
+    from rig.calibration import Samples, calibrate
+    from rig.calibration.synthetic import cage_like
+
+    case = cage_like(1500, seed=5)
+    s = case.samples
+    ripple = 1.0 + 1e-3 * np.sin(np.arange(s.n))
+    degenerate = Samples.build(s.measured_ut, field_ut=s.field_ut, telemetry=ripple[:, None],
+                               channels=("bus",))  # fmt: skip
+    result = calibrate(degenerate, "vector", noise_nt=50.0)
+    assert result.chi2.verdict.startswith("degenerate"), result.chi2.verdict

@@ -72,3 +72,40 @@ def check_telemetry_rank(u: Array, channels: tuple[str, ...]) -> None:
             f"telemetry channels {names} are linearly dependent (identical, scaled or summing to"
             " another), so their coefficients are not separable: drop one of them from --telemetry"
         )
+
+
+COVERAGE_CONE_DEG = 60.0
+"""A field direction covers an axis direction (+x, -x, ...) when within this angle of it (deg)."""
+COVERAGE_MIN_FRACTION = 0.01
+"""An axis direction with fewer of the samples than this (fraction) counts as not covered."""
+SCALE_PRIOR_REL_SIGMA = 0.05
+"""Prior 1-sigma (relative) of an uncovered axis's scale around the mean of the covered axes'
+scales: the spread of axis gains within one three-axis magnetometer is typically a few percent."""
+CAPS = ("+x", "-x", "+y", "-y", "+z", "-z")
+
+
+def direction_coverage(field: Array) -> dict[str, float]:
+    """Fraction of the rows of ``field`` (N, 3; any unit) within :data:`COVERAGE_CONE_DEG` of each
+    axis direction +x, -x, +y, -y, +z, -z."""
+    unit = field / np.maximum(np.linalg.norm(field, axis=1, keepdims=True), 1e-300)
+    cos_min = float(np.cos(np.radians(COVERAGE_CONE_DEG)))
+    out = {}
+    for i, axis in enumerate("xyz"):
+        out[f"+{axis}"] = float(np.mean(unit[:, i] > cos_min))
+        out[f"-{axis}"] = float(np.mean(unit[:, i] < -cos_min))
+    return out
+
+
+def one_sided_axes(coverage: dict[str, float]) -> list[int]:
+    """Axes (0, 1, 2) covered on one side only: a scalar fit cannot tell their scale from their
+    offset (stretching the sphere and moving its centre fit the same one-sided cap)."""
+    covered = {c for c, f in coverage.items() if f >= COVERAGE_MIN_FRACTION}
+    return [i for i, ax in enumerate("xyz") if (f"+{ax}" in covered) != (f"-{ax}" in covered)]
+
+
+def coverage_text(coverage: dict[str, float]) -> str:
+    """'+z not covered (0.0 % of samples within 60 deg); -z 52.3 %, ...' in one line."""
+    missing = [c for c in CAPS if coverage[c] < COVERAGE_MIN_FRACTION]
+    shares = ", ".join(f"{c} {100 * coverage[c]:.1f} %" for c in CAPS)
+    head = f"{', '.join(missing)} not covered" if missing else "every axis direction covered"
+    return f"{head} (samples within {COVERAGE_CONE_DEG:.0f} deg: {shares})"

@@ -47,6 +47,7 @@ class FitRequest:
     robust: RobustLoss | None = None
     filter_options: FilterOptions | None = None
     times_s: Array | None = None
+    start: Array | None = None  # a scalar fit's linear start, when the caller has computed it
 
 
 @dataclass(frozen=True)
@@ -75,7 +76,7 @@ def _vector(s: Samples, r: FitRequest) -> Estimate:
 def _ml(s: Samples, r: FitRequest) -> Estimate:
     from rig.calibration.batch.nonlinear import ml_fit
 
-    return ml_fit(s, robust=r.robust)
+    return ml_fit(s, start=r.start, robust=r.robust)
 
 
 def _twostep(s: Samples, r: FitRequest) -> Estimate:

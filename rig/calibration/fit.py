@@ -70,17 +70,42 @@ def calibrate(
     data = s if vector else s.as_scalar()
     notes: tuple[str, ...] = ()
     noise_ut = noise_nt / 1000.0 if noise_nt is not None else None
+    start = _check_coverage(data, est.name) if not vector else None
     if est.kind == "sequential" and noise_ut is None:
         noise_ut = _batch_noise_ut(data)
         notes += (
             f"raw noise {1000 * noise_ut:.3g} nT estimated from a batch maximum-likelihood fit"
             " (give --noise-nt to set it)",
         )
-    request = FitRequest(est.name, noise_ut, robust, filter_options, times_s)
+    request = FitRequest(est.name, noise_ut, robust, filter_options, times_s, start)
     estimate = est.run(data, request)
     if est.kind == "batch" and not vector and s.field_ut is not None:
         notes = ("field vector given but a scalar method chosen: only |h| was used",)
     return summarize(estimate, data, noise_nt, notes)
+
+
+def _check_coverage(s: Samples, method: str) -> Array | None:
+    """Field-direction coverage of a scalar fit, measured before fitting from the linear start's
+    centre: an axis covered on one side only leaves its scale and offset indistinguishable, and
+    the fit is refused with what is covered and what to record. Returns the linear start."""
+    from rig.calibration.batch.nonlinear import scalar_start
+    from rig.calibration.diagnostics import coverage_text, direction_coverage, one_sided_axes
+
+    try:
+        start = scalar_start(s)
+    except (CalibrationError, np.linalg.LinAlgError):
+        return None
+    coverage = direction_coverage(s.measured_ut - start.p[3:6])
+    axes = one_sided_axes(coverage)
+    if not axes:
+        return start.p
+    pairs = ", ".join(f"{'abc'[i]} from {'xyz'[i]}0" for i in axes)
+    raise CalibrationError(
+        f"field directions: {coverage_text(coverage)}. A scalar ({method}) fit cannot tell {pairs}"
+        " on this data (any method: the magnitude of a one-sided cap fits a stretched sphere as"
+        " well as a moved one). Record the missing directions (turn the sensor through every"
+        " attitude), or calibrate against a field vector (--field) in a cage"
+    )
 
 
 def _batch_noise_ut(s: Samples) -> float:

@@ -35,6 +35,16 @@ SPRINGMANN_JSON = {
 }  # fmt: skip
 
 
+Verdict = Literal[
+    "consistent",
+    "above noise floor",
+    "below noise floor",
+    "not tested (noise estimated from these residuals)",
+    "degenerate fit (parameters not determined by the data)",
+]
+"""The chi-square verdict on the residuals (see :func:`_chi_square`)."""
+
+
 @dataclass(frozen=True)
 class ChiSquareTest:
     """Residuals against a noise floor: statistic, degrees of freedom, p-value and a verdict."""
@@ -42,7 +52,7 @@ class ChiSquareTest:
     statistic: float
     dof: int
     p_value: float
-    verdict: Literal["consistent", "above noise floor", "below noise floor"]
+    verdict: Verdict
 
     @property
     def reduced(self) -> float:
@@ -236,18 +246,31 @@ class CalibrationResult:
         return out
 
 
-def _chi_square(weighted_residuals: Array, noise: float, n_params: int) -> ChiSquareTest:
+def _chi_square(
+    weighted_residuals: Array, noise: float, n_params: int, tested: bool, degenerate: bool
+) -> ChiSquareTest:
+    """The residuals against the noise. ``tested`` False: the noise was estimated from these same
+    residuals (chi2/dof is 1 by construction), so nothing is tested. ``degenerate``: parameters
+    the data do not determine; small residuals then say nothing about the calibration."""
     from scipy.special import gammaincc  # chi-square survival: Q(dof/2, stat/2)
 
     dof = max(int(weighted_residuals.size) - n_params, 1)
     stat = float(np.sum((weighted_residuals / noise) ** 2))
     p_value = float(gammaincc(dof / 2.0, stat / 2.0))
-    verdict: Literal["consistent", "above noise floor", "below noise floor"] = "consistent"
+    verdict: Verdict = "consistent"
     if p_value < 1e-3:
         verdict = "above noise floor"
     elif p_value > 1 - 1e-3:
         verdict = "below noise floor"
+    if not tested:
+        verdict = "not tested (noise estimated from these residuals)"
+    if degenerate:
+        verdict = "degenerate fit (parameters not determined by the data)"
     return ChiSquareTest(stat, dof, p_value, verdict)
+
+
+DEGENERATE_CORRELATION = 0.999
+"""|correlation| between two parameters above which the fit does not determine them."""
 
 
 def summarize(
@@ -277,7 +300,10 @@ def summarize(
     sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - est.p.size, 1.0)))
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
     crlb = covariance_from_jacobian(fisher_jac, noise_ut**2)
-    chi = _chi_square(weighted, noise_ut, est.p.size)
+    sd = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
+    corr = est.covariance / np.outer(sd, sd) - np.eye(sd.size)
+    degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if sd.size > 1 else False
+    chi = _chi_square(weighted, noise_ut, est.p.size, noise_nt is not None, degenerate)
     result = CalibrationResult(
         model="vector" if vector else "scalar",
         method=est.method,

@@ -74,8 +74,12 @@ def calibration_table(result: CalibrationResult, source: str = "", verbose: bool
         f"Residuals ({what}): rms {result.residual_rms_nt:.1f} nT, mean"
         f" {result.residual_mean_nt:.1f} nT, max {result.residual_max_nt:.1f} nT",
         f"Noise floor {result.noise_floor_nt:.1f} nT ({noise_src}; raw noise estimated"
-        f" {result.noise_estimated_nt:.1f} nT): chi2/dof {chi.reduced:.3f}, p = {chi.p_value:.3g},"
-        f" {chi.verdict}",
+        f" {result.noise_estimated_nt:.1f} nT): "
+        + (
+            f"chi2/dof {chi.reduced:.3f}, p = {chi.p_value:.3g}, {chi.verdict}"
+            if result.noise_nt is not None
+            else f"chi-square {chi.verdict}; give the sensor's noise (--noise-nt) to test it"
+        ),
         "Angular uncertainty: "
         + ", ".join(
             f"{result.angular_uncertainty_deg(b):.3f} deg at {b:g} uT" for b in ANGULAR_FIELDS_UT

@@ -73,8 +73,8 @@ def ml_fit(
             break  # refreshing the weights would move the estimate by a negligible amount
     if not sol.converged:
         raise CalibrationError(
-            "the maximum-likelihood fit did not converge: check the column order and units, or try"
-            " --method twostep"
+            "the maximum-likelihood fit did not converge: check the column order and units, and"
+            " that the field directions cover the sphere (turn the sensor through every attitude)"
         )
     dof = max(float(np.sum(robust_w > 0)) - p.size, 1.0)
     cov = covariance_from_jacobian(sol.jacobian, sol.cost / dof)
