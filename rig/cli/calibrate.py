@@ -118,6 +118,41 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     cal.add_argument(
         "--c-header", type=Path, metavar="FILE.h", help="write a C header for flight software"
     )
+    cal.add_argument(
+        "--ardupilot",
+        type=Path,
+        metavar="FILE.parm",
+        help="write ArduPilot compass parameters (COMPASS_OFS/DIA/ODI, mGauss; Mission Planner or"
+        " MAVProxy parameter file)",
+    )
+    cal.add_argument(
+        "--ardupilot-compass",
+        type=int,
+        default=1,
+        metavar="N",
+        help="ArduPilot compass 1, 2 or 3 for --ardupilot (default 1: COMPASS_OFS_X, 2:"
+        " COMPASS_OFS2_X, ...)",
+    )
+    cal.add_argument(
+        "--px4",
+        type=Path,
+        metavar="FILE.params",
+        help="write PX4 magnetometer parameters (CAL_MAGn_xOFF/xSCALE/xODIAG, gauss;"
+        " QGroundControl parameter file)",
+    )
+    cal.add_argument(
+        "--px4-instance",
+        type=int,
+        default=0,
+        metavar="N",
+        help="PX4 magnetometer instance 0 to 3 for --px4 (default 0: CAL_MAG0_*)",
+    )
+    cal.add_argument(
+        "--autopilot-current",
+        metavar="CHANNEL",
+        help="a --telemetry channel that is the battery current in A: its current-to-bias goes"
+        " to COMPASS_MOT (--ardupilot) and CAL_MAGn_xCOMP (--px4); other channels are left out",
+    )
     cal.set_defaults(func=_cmd_calibrate)
 
 
@@ -219,7 +254,7 @@ def _constant_magnitude(args: argparse.Namespace) -> float | None:
 
 
 def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:
-    """Fit, write the result file and C header if asked, print the table."""
+    """Fit, write the result file, C header and autopilot parameters if asked, print the table."""
     from rig.calibration import calibrate
     from rig.calibration.export_c import c_header
     from rig.calibration.sequential.realtime import FilterOptions
@@ -234,6 +269,7 @@ def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:
     result = calibrate(
         samples, args.method, noise_nt=args.noise_nt, robust=args.robust, filter_options=opts
     )
+    autopilot = _autopilot_files(result, args)  # before any file: a refusal writes nothing
     if args.history is not None and result.history is not None:
         write_text(args.history, _history_csv(result))
     if args.out is not None:
@@ -242,12 +278,44 @@ def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:
         write_text(
             args.c_header, c_header(result, prefix=args.c_header.stem, source=str(args.data))
         )
+    for path, text in autopilot:
+        write_text(path, text)
     if not args.quiet:
         print(calibration_table(result, source=str(args.data), verbose=args.verbose))
-        for path in (args.out, args.c_header, args.history):
+        for path in (args.out, args.c_header, args.ardupilot, args.px4, args.history):
             if path is not None:
                 print(f"wrote {path}")
     return EXIT_OK
+
+
+def _autopilot_files(result: Any, args: argparse.Namespace) -> list[tuple[Path, str]]:
+    """The --ardupilot and --px4 files' text; an export the autopilot cannot take is an input
+    error."""
+    from rig.calibration.export_autopilot import ardupilot_params, px4_params
+
+    if args.autopilot_current is not None and args.ardupilot is None and args.px4 is None:
+        raise UserInputError("--autopilot-current needs --ardupilot FILE.parm or --px4 FILE.params")
+    out: list[tuple[Path, str]] = []
+    try:
+        if args.ardupilot is not None:
+            text = ardupilot_params(
+                result,
+                args.ardupilot_compass,
+                current_channel=args.autopilot_current,
+                source=str(args.data),
+            )
+            out.append((args.ardupilot, text))
+        if args.px4 is not None:
+            text = px4_params(
+                result,
+                args.px4_instance,
+                current_channel=args.autopilot_current,
+                source=str(args.data),
+            )
+            out.append((args.px4, text))
+    except ValueError as exc:
+        raise UserInputError(str(exc)) from None
+    return out
 
 
 def _history_csv(result: Any) -> str:
