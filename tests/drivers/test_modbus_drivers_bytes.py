@@ -15,7 +15,7 @@ from drivers.errors import (
 from drivers.psu.regmap_device import MappedSupply, PolarityRelay
 from drivers.psu.riden import RidenSupply
 from drivers.regmap import load_map
-from drivers.transport.modbus import ModbusLink
+from drivers.transport.modbus import GARBLED_EXTRA_ATTEMPTS, ModbusLink
 from tests.drivers.scripted import Exchange, ScriptedSerialPeer, ScriptedTcpPeer, crc16, rtu
 
 MODEL_RD6006P = rtu("01 03 02 EA A1")  # 60065
@@ -92,9 +92,14 @@ def test_riden_exception_reply_is_refused_not_retried() -> None:
 )
 def test_riden_garbled_replies_are_retried_then_reported(reply: bytes) -> None:
     request = rtu("01 03 00 00 00 04")
-    supply, peer = riden_rtu([Exchange(request, reply), Exchange(request, reply)])
+    # retries=1: two attempts for silence; a device that answers, garbled, gets
+    # GARBLED_EXTRA_ATTEMPTS more
+    attempts = 2 if not reply else 2 + GARBLED_EXTRA_ATTEMPTS
+    supply, peer = riden_rtu([Exchange(request, reply)] * attempts)
     try:
-        with pytest.raises(DeviceError, match=r"coil_x at /dev/pts/\d+: .*2 attempts") as info:
+        with pytest.raises(
+            DeviceError, match=rf"coil_x at /dev/pts/\d+: .*{attempts} attempts"
+        ) as info:
             supply.identify()
         if reply:  # damaged replies: a noisy line, said so; the next request gets every retry
             assert isinstance(info.value, DeviceProtocolError) and "only damaged ones" in str(
@@ -166,5 +171,21 @@ def test_polarity_relay_over_tcp() -> None:
             relay.polarity(0)
     finally:
         link.close()
+        peer.close()
+    assert peer.mismatches == []
+
+
+def test_a_noisy_line_gets_more_attempts_and_then_the_answer() -> None:
+    """Three damaged replies, then a good one: a device that answers is not given up after the
+    link's own retries (retries=1 here) while the line is merely noisy."""
+    request = rtu("01 03 00 00 00 04")
+    damaged = rtu("01 03 08 EA A1 00 00 30 39 00 8C")[:-2] + b"\x00\x00"
+    good = rtu("01 03 08 EA A1 00 00 30 39 00 8C")
+    supply, peer = riden_rtu([Exchange(request, damaged)] * 3 + [Exchange(request, good)])
+    try:
+        assert supply.identify().serial == "12345"
+        assert not supply.link.failed
+    finally:
+        supply.link.close()
         peer.close()
     assert peer.mismatches == []
