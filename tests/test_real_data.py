@@ -156,3 +156,28 @@ def test_a_degenerate_fit_is_never_called_consistent() -> None:
                                channels=("bus",))  # fmt: skip
     result = calibrate(degenerate, "vector", noise_nt=50.0)
     assert result.chi2.verdict.startswith("degenerate"), result.chi2.verdict
+
+
+def test_a_moving_median_removes_isolated_spikes(tmp_path: Path) -> None:
+    raw = np.loadtxt(SPHERE, delimiter=",", skiprows=1)
+    spiky = raw.copy()
+    rng = np.random.default_rng(3)
+    rows = rng.choice(np.arange(5, len(raw) - 5), size=60, replace=False)
+    spiky[rows, rng.integers(0, 3, size=60)] += rng.choice([-1.0, 1.0], size=60) * 0.5  # 50 uT
+    path = tmp_path / "spiky.csv"
+    np.savetxt(path, spiky, delimiter=",", header="x,y,z", comments="", fmt="%.9g")
+    args = [str(path), "--measured", "x,y,z", "--unit", "G", "--field-magnitude", "0.47"]
+    clean = fit(tmp_path, str(SPHERE), *args[1:])
+    plain = fit(tmp_path, *args)
+    filtered = fit(tmp_path, *args, "--median", "5")
+    assert plain["residual_rms_nt"] > 2 * clean["residual_rms_nt"]
+    assert filtered["residual_rms_nt"] < 1.1 * clean["residual_rms_nt"]
+    assert offsets(filtered) == pytest.approx(offsets(clean), abs=0.15)
+
+
+@pytest.mark.parametrize("window", ["4", "1", "103", "x"])
+def test_the_median_window_is_checked(window: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["calibrate", str(SPHERE), "--measured", "x,y,z", "--field-magnitude", "47",
+              "--median", window])  # fmt: skip
+    assert info.value.code == 2 and "--median" in capsys.readouterr().err

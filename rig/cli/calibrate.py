@@ -77,6 +77,13 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
         " (their count is printed) instead of refusing the file",
     )
     cal.add_argument(
+        "--median",
+        type=_odd_window,
+        metavar="N",
+        help="moving-median prefilter of the --measured columns over N samples (odd, 3-101),"
+        " in file order (centred: no delay), against isolated spikes; rows must be in time order",
+    )
+    cal.add_argument(
         "--telemetry", type=columns, default=[], metavar="COL1,COL2,...",
         help="telemetry channels (currents) whose bias to fit",
     )  # fmt: skip
@@ -201,6 +208,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     import numpy as np
 
     measured = measured_ut_per * np.column_stack([cols[c] for c in args.measured])
+    if args.median is not None:
+        from rig.io.prefilter import moving_median
+
+        measured = moving_median(measured, args.median)
     telemetry = np.column_stack([cols[c] for c in args.telemetry]) if args.telemetry else None
     if args.field is not None:
         samples = Samples.build(
@@ -222,6 +233,17 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             channels=tuple(args.telemetry),
         )
     return _fit_and_emit(samples, args)
+
+
+def _odd_window(text: str) -> int:
+    """``--median N``: an odd window of 3 to 101 samples."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number of samples") from None
+    if n < 3 or n > 101 or n % 2 == 0:
+        raise argparse.ArgumentTypeError(f"{n}: give an odd window of 3 to 101 samples")
+    return n
 
 
 def _unit_factors(args: argparse.Namespace) -> tuple[float, float]:
