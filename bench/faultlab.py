@@ -67,7 +67,7 @@ TARGETS: dict[str, str] = {
     "live_calibrate": "live_calibrate: {method: ukf, telemetry: [load_bus, load_panel],"
                       " stop_on_target: 'no', min_s: 9, max_s: 9, magnitude_ut: [15, 45], dwell_s: 0.8}",
     "noise_spectrum": "noise_spectrum: {hold_s: 9, band_hz: [0.5, 5.0]}",
-    "linearity": "linearity: {max_ut: 50, points: 6, dwell_s: 0.6}",  # one point may be lost
+    "linearity": "linearity: {max_ut: 50, points: 5, dwell_s: 1.0}",  # loads switch mid-point
     "characterize_cage": "characterize_cage: {amplitude_a: 1.0, samples: 10, repeats: 1}",
 }  # fmt: skip
 """The step each column of the matrix injects its faults into (named ``target``, about 9 s): every
