@@ -24,7 +24,7 @@ print(port.read_until(b"\r").decode().strip(), flush=True)
 MODBUS = r"""
 import sys
 from drivers.transport.modbus import ModbusLink
-link = ModbusLink(name="psu", path=sys.argv[1], baudrate=115200, device_id=1, timeout_s=0.3)
+link = ModbusLink(name="psu", path=sys.argv[1], baudrate=115200, device_id=1, timeout_s=2.0)
 print("ready", flush=True)
 print(link.read_registers(8, 2), flush=True)
 """
@@ -98,8 +98,10 @@ def test_a_modbus_rtu_reply_that_came_while_we_were_stopped_is_taken(
     proc = _start(MODBUS, path)
     request = _read_request(master, 8)
     assert request[:6] == bytes([1, 3, 0, 8, 0, 2]), request.hex()
-    proc.send_signal(signal.SIGSTOP)  # the client is waiting for the reply
-    time.sleep(0.8)  # longer than its 0.3 s timeout
+    # the client is waiting for the reply (2 s: room for this test to be descheduled between
+    # reading the request and stopping it, on a busy machine)
+    proc.send_signal(signal.SIGSTOP)
+    time.sleep(2.5)  # longer than its timeout
     body = bytes([1, 3, 4, 0x12, 0x34, 0x56, 0x78])
     os.write(master, body + _crc16(body))
     proc.send_signal(signal.SIGCONT)

@@ -45,7 +45,7 @@ def test_on_the_simulated_cage(tmp_path: Path) -> None:
     outcome = run_on_sim(
         tmp_path,
         "procedure: lin\nmagnetometers: {dut: dut, reference: reference}\nsteps:\n"
-        "  - linearity: {max_ut: 30, points: 7, dwell_s: 0.6}\n    name: linearity\n  - report: {}\n",
+        "  - linearity: {max_ut: 30, points: 7, dwell_s: 1.0}\n    name: linearity\n  - report: {}\n",
     )
     assert outcome.status == "complete", outcome.reason
     res = outcome.results["linearity"]
