@@ -98,8 +98,27 @@ class PatientSerialClient(ModbusSerialClient):
     """A reply as long as its header said has been handed over for this request: if pymodbus asks
     for more, it rejected that one (bad CRC), and the device will send nothing else."""
 
+    retrying = False
+    """Set by the caller while it sends the same request again after a timeout."""
+    _sent = b""
+    _late = b""
+    """What arrived after the last attempt gave up and before this retry of the same request: the
+    device's late answer to it, taken as this attempt's reply if it is one."""
+
     def send(self, request: bytes, addr: tuple[str, int] | None = None) -> int:
         self._whole = False
+        late = b""
+        if self.socket is not None and (waiting := int(self.socket.in_waiting)):
+            late = self.socket.read(waiting)  # pymodbus would throw it away
+        # A reply that came after the deadline answers the same request, not a different one: on
+        # a busy computer (the simulator on the same cores) every reply can come a little late,
+        # and throwing each away before the retry turned a slow device into a silent one.
+        self._late = late if self.retrying and request == self._sent else b""
+        self._sent = request
+        if self._late:
+            # not sent again: the device is answering the first one, and a second copy would
+            # get a second answer that lands on the next request
+            return len(request)
         return int(super().send(request, addr))
 
     def recv(self, size: int | None) -> bytes:
@@ -108,7 +127,9 @@ class PatientSerialClient(ModbusSerialClient):
         last = time.monotonic()
         window = QUIET_AFTER_WHOLE_S if self._whole else float(self.comm_params.timeout_connect)
         deadline = last + window
-        buf = b""
+        buf, self._late = self._late, b""
+        if buf:
+            self.heard = True
         quiet_since = last
         try:
             while True:
@@ -226,6 +247,7 @@ class ModbusLink:
                 if not getattr(self._client, "heard", False) or attempts >= garbled_attempts:
                     break
                 attempts = garbled_attempts
+            self._client.retrying = attempt > 0
             try:
                 if not self._client.connected:
                     self.connect()

@@ -168,3 +168,41 @@ def test_a_late_reply_to_an_earlier_request_is_recognized_and_the_request_repeat
     out, _ = proc.communicate(timeout=10)
     assert proc.returncode == 0, out
     assert out.strip() == f"{[0x1234, 0x5678]} 1"
+
+
+def test_a_late_reply_answers_the_retry_of_the_same_request(pty_pair: tuple[int, str]) -> None:
+    """A reply that arrives after the client gave up and before it sends the same request again
+    is that request's answer: it is taken and the request is not sent a second time (a second
+    copy would get a second answer, landing on the next request). Before, pymodbus threw it away
+    and a device a little slower than the timeout looked silent on every attempt."""
+    from pymodbus.framer import FramerType
+
+    from drivers.transport.modbus import PatientSerialClient
+
+    master, path = pty_pair
+    os.set_blocking(master, False)
+    client = PatientSerialClient(
+        path, framer=FramerType.RTU, baudrate=115200, timeout=0.2, retries=0
+    )
+    assert client.connect()
+    try:
+        request = bytes([1, 3, 0, 8, 0, 2]) + _crc16(bytes([1, 3, 0, 8, 0, 2]))
+        client.send(request)
+        assert _read_request(master, 8) == request
+        assert client.recv(None) == b""  # the deadline passes
+        body = bytes([1, 3, 4, 0x12, 0x34, 0x56, 0x78])
+        os.write(master, body + _crc16(body))  # the answer, late
+        time.sleep(0.05)
+        client.retrying = True
+        client.send(request)  # the retry
+        assert client.recv(None) == body + _crc16(body)
+        assert _read_request(master, 1, timeout_s=0.3) == b""  # not sent again
+        # a different request never takes an earlier request's late bytes
+        os.write(master, body + _crc16(body))
+        time.sleep(0.05)
+        other = bytes([1, 3, 0, 0, 0, 4]) + _crc16(bytes([1, 3, 0, 0, 0, 4]))
+        client.send(other)
+        assert _read_request(master, 8) == other
+        assert client.recv(None) == b""
+    finally:
+        client.close()
