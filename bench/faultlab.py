@@ -261,6 +261,20 @@ class _Watch:
         return 1000.0 * (self.t_safe - self.t0)
 
 
+def _current_step(runs: Path) -> str | None:
+    """Name of the step the run under ``runs`` is in (None before its store exists)."""
+    folder = next((p for p in runs.iterdir() if (p / "run.sqlite").exists()), None)
+    if folder is None:
+        return None
+    try:
+        reader = RunReader(folder)
+        steps = reader.steps()
+        reader.close()
+    except Exception:  # the file may be mid-creation
+        return None
+    return steps[-1][1] if steps else None
+
+
 def _target_started(get_step: Callable[[], str | None], timeout_s: float = 60.0) -> float:
     deadline = time.monotonic() + timeout_s
     while get_step() != "target":
@@ -371,19 +385,7 @@ def _child_run(fault: Fault, kind: str, cage: SimulatedCage, workdir: Path, proc
                              stderr=subprocess.PIPE, text=True)  # fmt: skip
     watch = _Watch(cage, ())
 
-    def step_of() -> str | None:
-        folder = next((p for p in runs.iterdir() if (p / "run.sqlite").exists()), None)
-        if folder is None:
-            return None
-        try:
-            reader = RunReader(folder)
-            steps = reader.steps()
-            reader.close()
-        except Exception:  # the file may be mid-creation
-            return None
-        return steps[-1][1] if steps else None
-
-    t_target = _target_started(step_of)
+    t_target = _target_started(lambda: _current_step(runs))
     time.sleep(max(0.0, t_target + INJECT_AFTER_S - time.monotonic()))
     t_fault = time.monotonic()
     watch.start(t_fault)
@@ -471,19 +473,7 @@ def _second_run(fault: Fault, cage: SimulatedCage, workdir: Path, rig_toml: Path
                               str(rig_toml), "--yes", "--runs-dir", str(runs)],
                              stderr=subprocess.PIPE, text=True)  # fmt: skip
 
-    def step_of() -> str | None:
-        folder = next((p for p in runs.iterdir() if (p / "run.sqlite").exists()), None)
-        if folder is None:
-            return None
-        try:
-            reader = RunReader(folder)
-            steps = reader.steps()
-            reader.close()
-        except Exception:
-            return None
-        return steps[-1][1] if steps else None
-
-    t_target = _target_started(step_of)
+    t_target = _target_started(lambda: _current_step(runs))
     time.sleep(max(0.0, t_target + INJECT_AFTER_S - time.monotonic()))
     second = subprocess.run([sys.executable, "-m", "rig.cli", "-q", "run", str(proc_path), "--rig",
                              str(rig_toml), "--yes", "--runs-dir", str(runs_b)],

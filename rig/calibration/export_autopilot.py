@@ -81,6 +81,16 @@ class _Split:
     k_ut_per_a: Array | None
     left_out: tuple[str, ...]
 
+    @property
+    def diagonal(self) -> Array:
+        """S_xx, S_yy, S_zz (ArduPilot DIA, PX4 SCALE)."""
+        return np.diag(self.s).copy()
+
+    @property
+    def off_diagonal(self) -> Array:
+        """S_xy, S_xz, S_yz, in the order both autopilots name them (ODI_X/Y/Z, X/Y/ZODIAG)."""
+        return np.array([self.s[0, 1], self.s[0, 2], self.s[1, 2]])
+
 
 def _split(result: CalibrationResult, who: str, current_channel: str | None) -> _Split:
     cal = result.calibration
@@ -167,8 +177,7 @@ def ardupilot_params(
         raise ValueError(f"ArduPilot compass must be 1, 2 or 3, got {compass}")
     split = _split(result, who, current_channel)
     s = split.s
-    dia = np.diag(s)
-    odi = np.array([s[0, 1], s[0, 2], s[1, 2]])
+    dia, odi = split.diagonal, split.off_diagonal
     lo, hi = ARDUPILOT_DIA_RANGE
     if np.any(dia <= lo) or np.any(dia >= hi):
         raise ValueError(
@@ -249,9 +258,7 @@ def px4_params(
     if instance not in PX4_INSTANCES:
         raise ValueError(f"PX4 magnetometer instance must be 0 to 3, got {instance}")
     split = _split(result, who, current_channel)
-    s = split.s
-    scale = np.diag(s)
-    odiag = np.array([s[0, 1], s[0, 2], s[1, 2]])
+    scale, odiag = split.diagonal, split.off_diagonal
     lo, hi = PX4_SCALE_RANGE
     if np.any(scale < lo) or np.any(scale > hi):
         raise ValueError(

@@ -318,23 +318,17 @@ def _autopilot_files(result: Any, args: argparse.Namespace) -> list[tuple[Path, 
     if args.autopilot_current is not None and args.ardupilot is None and args.px4 is None:
         raise UserInputError("--autopilot-current needs --ardupilot FILE.parm or --px4 FILE.params")
     out: list[tuple[Path, str]] = []
+    exports = (
+        (args.ardupilot, ardupilot_params, args.ardupilot_compass),
+        (args.px4, px4_params, args.px4_instance),
+    )
     try:
-        if args.ardupilot is not None:
-            text = ardupilot_params(
-                result,
-                args.ardupilot_compass,
-                current_channel=args.autopilot_current,
-                source=str(args.data),
-            )
-            out.append((args.ardupilot, text))
-        if args.px4 is not None:
-            text = px4_params(
-                result,
-                args.px4_instance,
-                current_channel=args.autopilot_current,
-                source=str(args.data),
-            )
-            out.append((args.px4, text))
+        for path, export, slot in exports:
+            if path is not None:
+                text = export(
+                    result, slot, current_channel=args.autopilot_current, source=str(args.data)
+                )
+                out.append((path, text))
     except ValueError as exc:
         raise UserInputError(str(exc)) from None
     return out

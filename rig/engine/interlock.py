@@ -173,11 +173,17 @@ def _flock_or_wait_for_guardian(fd: int) -> None:
             time.sleep(0.1)
 
 
-def _holder_pid(fd: int) -> int | None:
+def _record(fd: int) -> dict[str, object] | None:
+    """The holder's record in a lock file (None when unreadable)."""
     try:
-        pid = json.loads(os.pread(fd, 4096, 0) or b"{}").get("pid")
+        info = json.loads(os.pread(fd, 4096, 0) or b"{}")
     except (OSError, ValueError):
         return None
+    return info if isinstance(info, dict) else None
+
+
+def _holder_pid(fd: int) -> int | None:
+    pid = (_record(fd) or {}).get("pid")
     return pid if isinstance(pid, int) and pid > 0 else None
 
 
@@ -187,9 +193,8 @@ def _lock_path(folder: Path, address: str) -> Path:
 
 def _holder(fd: int) -> str:
     """Who holds a lock, as its holder wrote it: "'rig run X' (PID 123, since 14:02:11)"."""
-    try:
-        info = json.loads(os.pread(fd, 4096, 0) or b"{}")
-        since = str(info.get("since", "?"))
-        return f"'{info.get('command', '?')}' (PID {info.get('pid', '?')}, since {since})"
-    except (OSError, ValueError):
+    info = _record(fd)
+    if info is None:
         return "another command (its record is unreadable)"
+    since = str(info.get("since", "?"))
+    return f"'{info.get('command', '?')}' (PID {info.get('pid', '?')}, since {since})"
