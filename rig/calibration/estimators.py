@@ -47,7 +47,7 @@ class FitRequest:
     robust: RobustLoss | None = None
     filter_options: FilterOptions | None = None
     times_s: Array | None = None
-    start: Array | None = None  # a scalar fit's linear start, when the caller has computed it
+    start: Estimate | None = None  # a scalar fit's linear start, when the caller has computed it
 
 
 @dataclass(frozen=True)
@@ -76,25 +76,30 @@ def _vector(s: Samples, r: FitRequest) -> Estimate:
 def _ml(s: Samples, r: FitRequest) -> Estimate:
     from rig.calibration.batch.nonlinear import ml_fit
 
-    return ml_fit(s, start=r.start, robust=r.robust)
+    return ml_fit(s, start=None if r.start is None else r.start.p, robust=r.robust)
 
 
 def _twostep(s: Samples, r: FitRequest) -> Estimate:
     from rig.calibration.batch.nonlinear import twostep_fit
 
-    return twostep_fit(s, r.noise_ut)
+    return twostep_fit(s, r.noise_ut, start=_reused(r, "centered"))
 
 
 def _centered(s: Samples, r: FitRequest) -> Estimate:
     from rig.calibration.batch.linear import centered_fit
 
-    return centered_fit(s)
+    return _reused(r, "centered") or centered_fit(s)
 
 
 def _ellipsoid(s: Samples, r: FitRequest) -> Estimate:
     from rig.calibration.batch.linear import ellipsoid_fit
 
-    return ellipsoid_fit(s)
+    return _reused(r, "ellipsoid") or ellipsoid_fit(s)
+
+
+def _reused(r: FitRequest, method: str) -> Estimate | None:
+    """The caller's linear start when it is this linear fit of the same samples."""
+    return r.start if r.start is not None and r.start.method == method else None
 
 
 def _filter(s: Samples, r: FitRequest) -> Estimate:

@@ -6,6 +6,7 @@ import numpy as np
 
 from rig.calibration.batch.nonlinear import ml_fit
 from rig.calibration.diagnostics import check_samples
+from rig.calibration.estimate import Estimate
 from rig.calibration.estimators import (
     DEFAULT_METHOD,
     FitRequest,
@@ -72,7 +73,7 @@ def calibrate(
     noise_ut = noise_nt / 1000.0 if noise_nt is not None else None
     start = _check_coverage(data, est.name) if not vector else None
     if est.kind == "sequential" and noise_ut is None:
-        noise_ut = _batch_noise_ut(data)
+        noise_ut = _batch_noise_ut(data, None if start is None else start.p)
         notes += (
             f"raw noise {1000 * noise_ut:.3g} nT estimated from a batch maximum-likelihood fit"
             " (give --noise-nt to set it)",
@@ -84,7 +85,7 @@ def calibrate(
     return summarize(estimate, data, noise_nt, notes)
 
 
-def _check_coverage(s: Samples, method: str) -> Array | None:
+def _check_coverage(s: Samples, method: str) -> Estimate | None:
     """Field-direction coverage of a scalar fit, measured before fitting from the linear start's
     centre: an axis covered on one side only leaves its scale and offset indistinguishable, and
     the fit is refused with what is covered and what to record. Returns the linear start."""
@@ -98,7 +99,7 @@ def _check_coverage(s: Samples, method: str) -> Array | None:
     coverage = direction_coverage(s.measured_ut - start.p[3:6])
     axes = one_sided_axes(coverage)
     if not axes:
-        return start.p
+        return start
     pairs = ", ".join(f"{'abc'[i]} from {'xyz'[i]}0" for i in axes)
     raise CalibrationError(
         f"field directions: {coverage_text(coverage)}. A scalar ({method}) fit cannot tell {pairs}"
@@ -108,8 +109,9 @@ def _check_coverage(s: Samples, method: str) -> Array | None:
     )
 
 
-def _batch_noise_ut(s: Samples) -> float:
-    """Raw noise 1-sigma (uT) from the residuals of a scalar ML fit (any sample order)."""
-    est = ml_fit(s)
+def _batch_noise_ut(s: Samples, start: Array | None = None) -> float:
+    """Raw noise 1-sigma (uT) from the residuals of a scalar ML fit (any sample order);
+    ``start``: its linear start, when already computed."""
+    est = ml_fit(s, start=start)
     r = scalar_residuals_only(est.p, s) / scalar_noise_gain(est.p, s)
     return float(np.sqrt(np.sum(r**2) / max(s.n - est.p.size, 1)))

@@ -83,15 +83,17 @@ def ml_fit(
     )
 
 
-def twostep_fit(s: Samples, noise_ut: float | None = None) -> Estimate:
+def twostep_fit(
+    s: Samples, noise_ut: float | None = None, start: Estimate | None = None
+) -> Estimate:
     """TWOSTEP: the centered estimate, then Gauss-Newton on the full (uncentered) z-domain loss.
 
     The z residual keeps the ``|b|^2`` term that centering discards, with its mean ``mu = -3
     sigma^2`` (Crassidis eq. 5a, isotropic noise); ``sigma`` is the given noise or the centered
-    estimate's residual scale.
+    estimate's residual scale. ``start``: the centered estimate, when already computed.
     """
     require_varying_field(s, "TWOSTEP")
-    start = centered_fit(s)
+    start = centered_fit(s) if start is None else start
     theta0 = theta_from_p(start.p)
     if noise_ut is None:
         r0, _ = z_residuals(theta0, s)
