@@ -20,6 +20,7 @@ from drivers.errors import (
     DeviceTimeoutError,
 )
 from drivers.transport.serial_port import own_stall_s
+from drivers.transport.tty_watch import tty_stall_s, tty_watch
 
 EXCEPTIONS: dict[int, tuple[str, str]] = {
     1: ("illegal function", "the device does not offer this request; check that kind (and regmap)"
@@ -88,7 +89,8 @@ class PatientSerialClient(ModbusSerialClient):
     be descheduled past the deadline while the reply arrives: both became timeouts, and the late
     bytes were thrown away before the request was sent again. Here a reply is read until its RTU
     header says it is whole, the buffer is always looked at once more when the time is up, and
-    time this process spent descheduled (a poll that overslept) extends the deadline.
+    time this process spent descheduled (a poll that overslept) and time the kernel's terminal
+    layer held bytes back (:mod:`drivers.transport.tty_watch`) extend the deadline.
     (Overrides ``recv`` of the pinned minor version.)
     """
 
@@ -124,7 +126,7 @@ class PatientSerialClient(ModbusSerialClient):
     def recv(self, size: int | None) -> bytes:
         if not self.socket:
             raise ConnectionException(str(self))
-        last = time.monotonic()
+        start = last = time.monotonic()
         window = QUIET_AFTER_WHOLE_S if self._whole else float(self.comm_params.timeout_connect)
         deadline = last + window
         buf, self._late = self._late, b""
@@ -149,7 +151,7 @@ class PatientSerialClient(ModbusSerialClient):
                 # device (descheduled, stopped, waiting for the interpreter lock)
                 deadline += own_stall_s(now - last, self._recv_interval)
                 last = now
-                if now >= deadline:
+                if now >= deadline + tty_stall_s(start, now):
                     return buf
                 time.sleep(self._recv_interval)
         except OSError:
@@ -204,6 +206,7 @@ class ModbusLink:
             self._client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0)
         else:
             assert path is not None
+            tty_watch()
             self._client = PatientSerialClient(
                 path,
                 framer=FramerType.RTU,

@@ -7,6 +7,7 @@ import time
 import serial
 
 from drivers.errors import DeviceNotFoundError, DeviceTimeoutError
+from drivers.transport.tty_watch import tty_stall_s, tty_watch
 
 OWN_STALL_TOLERANCE_S = 0.05
 """A wait that ends this much later than asked was this process being descheduled."""
@@ -21,7 +22,10 @@ def own_stall_s(elapsed_s: float, asked_s: float) -> float:
 
 
 class SerialPort:
-    """Byte-level access with timeouts that raise :class:`DeviceTimeoutError` naming the port."""
+    """Byte-level access with timeouts that raise :class:`DeviceTimeoutError` naming the port.
+
+    A timeout is the instrument's time: it is extended by time this process was descheduled and
+    by time the kernel's terminal layer held received bytes back (:mod:`tty_watch`)."""
 
     def __init__(
         self, url: str, baudrate: int, *, timeout_s: float = 0.5, name: str = "serial"
@@ -30,6 +34,7 @@ class SerialPort:
         self.name = name
         self.timeout_s = timeout_s
         self._rx = bytearray()  # received, not yet handed out
+        tty_watch()
         try:
             self._port = serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s)
         except (serial.SerialException, OSError, ValueError) as exc:
@@ -93,9 +98,10 @@ class SerialPort:
         this process was descheduled, say) is still taken before the reply is declared missing.
         """
         limit_s = self.timeout_s if timeout_s is None else timeout_s
-        deadline = time.monotonic() + limit_s
+        start = time.monotonic()
+        deadline = start + limit_s
         while len(self._rx) < n:
-            remaining = deadline - time.monotonic()
+            remaining = deadline + tty_stall_s(start) - time.monotonic()
             deadline += self._fill(max(remaining, 0.0))
             if remaining <= 0:
                 break
@@ -113,14 +119,15 @@ class SerialPort:
         :class:`DeviceTimeoutError`. Bytes after the terminator stay for the next read; like
         :meth:`read_exact`, a reply that is already there when the time is up is taken."""
         limit_s = self.timeout_s if timeout_s is None else timeout_s
-        deadline = time.monotonic() + limit_s
+        start = time.monotonic()
+        deadline = start + limit_s
         while True:
             end = self._rx.find(terminator)
             if 0 <= end < max_bytes:
                 return self._take(end + len(terminator))
             if len(self._rx) >= max_bytes:
                 return self._take(max_bytes)
-            remaining = deadline - time.monotonic()
+            remaining = deadline + tty_stall_s(start) - time.monotonic()
             before = len(self._rx)
             deadline += self._fill(max(remaining, 0.0))
             if remaining <= 0 and len(self._rx) == before:

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from drivers.errors import DeviceError, DeviceProtocolError, DeviceTimeoutError
 from drivers.protocols import Magnetometer
 from drivers.transport.serial_port import own_stall_s
+from drivers.transport.tty_watch import tty_stall_s
 
 Sink = Callable[[float, str, tuple[float, float, float]], None]
 Listener = Callable[[float, tuple[float, float, float]], None]
@@ -106,8 +107,10 @@ class SensorSampler:
         if self.error is not None:
             return f"{self.name}: sampling stopped: {self.error}"
         last = self.latest[0] if self.latest is not None else self.started_t
-        if now - last > stall_s:
-            return (f"{self.name}: no data for {now - last:.1f} s (stream stalled or sensor"
+        # time the kernel held serial bytes back was this computer's, not the sensor's
+        silent_s = now - last - tty_stall_s(last, now)
+        if silent_s > stall_s:
+            return (f"{self.name}: no data for {silent_s:.1f} s (stream stalled or sensor"
                     " disconnected); check its cable and power")  # fmt: skip
         if self.repeats >= stuck_after:
             return (f"{self.name}: the last {self.repeats + 1} readings are identical (sensor"
@@ -118,7 +121,8 @@ class SensorSampler:
         self, after: int, timeout_s: float = 2.0
     ) -> tuple[int, float, tuple[float, float, float]]:
         """The first sample with sequence number > ``after``."""
-        deadline = time.monotonic() + timeout_s
+        start = time.monotonic()
+        deadline = start + timeout_s
         with self._cond:
             while True:
                 if self.error is not None:
@@ -126,7 +130,7 @@ class SensorSampler:
                 for seq, t, xyz in self._recent:
                     if seq > after:
                         return seq, t, xyz
-                remaining = deadline - time.monotonic()
+                remaining = deadline + tty_stall_s(start) - time.monotonic()
                 if remaining <= 0:
                     raise DeviceError(
                         f"{self.name}: no sample for {timeout_s:g} s; is it still connected?"

@@ -1,0 +1,109 @@
+"""How long this computer's terminal layer held serial data back: a canary on a private pty.
+
+Linux hands received serial bytes to the reading process in a kernel worker thread (tty flip
+buffers, flushed on an unbound workqueue), for pseudo-terminals and USB-serial adapters alike. On
+a busy computer that worker can wait for a CPU for seconds: on this project's 2-core test machine
+beside two CPU hogs, kernel workers waited up to 1.1 s to run 0.2 ms, and a pty round trip took
+3.3 s while a socket round trip in the same minutes stayed under 0.1 s. A reply held back there
+is late because of this computer, not because of the instrument, and must not be taken for a
+dead device.
+
+:class:`TtyWatch` measures it: a daemon thread writes one byte every :data:`PERIOD_S` into a pty
+pair of its own and times its arrival. While a canary byte is overdue by more than
+:data:`TOLERANCE_S`, the terminal layer counts as stalled. Serial timeouts add the stall inside
+their window (:func:`tty_stall_s`), so a timeout measures the instrument. On an idle computer the
+stall is 0 and every timeout is exactly what it says.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import threading
+import time
+import tty
+from collections import deque
+
+PERIOD_S = 0.02
+"""Pause between canary bytes (s): a stall is noticed within this plus :data:`TOLERANCE_S`."""
+TOLERANCE_S = 0.05
+"""A canary byte later than this (s) marks the terminal layer as stalled beyond it."""
+KEEP_S = 120.0
+"""Stalls older than this (s) are forgotten: no serial wait is that long."""
+
+
+class TtyWatch:
+    """One canary pty and the stalls it saw, as monotonic intervals (s)."""
+
+    def __init__(self) -> None:
+        self.pid = os.getpid()
+        self._lock = threading.Lock()
+        self._stalls: deque[tuple[float, float]] = deque()
+        self._in_flight_since: float | None = None  # monotonic time the pending byte was written
+        self.worst_s = 0.0  # the longest canary delivery seen (s)
+        self.running = False
+        try:
+            self._master, self._slave = os.openpty()
+            tty.setraw(self._master)
+            tty.setraw(self._slave)
+        except OSError:
+            return  # no ptys here: no serial stalls to account for
+        self.running = True
+        threading.Thread(target=self._run, name="tty-watch", daemon=True).start()
+
+    def _run(self) -> None:
+        try:
+            while True:
+                sent = time.monotonic()
+                with self._lock:
+                    self._in_flight_since = sent
+                os.write(self._master, b"\0")
+                while not select.select([self._slave], [], [], 1.0)[0]:
+                    pass
+                os.read(self._slave, 64)
+                arrived = time.monotonic()
+                with self._lock:
+                    self._in_flight_since = None
+                    late = arrived - sent
+                    self.worst_s = max(self.worst_s, late)
+                    if late > TOLERANCE_S:
+                        self._stalls.append((sent + TOLERANCE_S, arrived))
+                    while self._stalls and self._stalls[0][1] < arrived - KEEP_S:
+                        self._stalls.popleft()
+                time.sleep(PERIOD_S)
+        except (OSError, ValueError):
+            with self._lock:
+                self.running = False
+                self._in_flight_since = None
+
+    def stalled_s(self, since: float, until: float | None = None) -> float:
+        """Seconds of ``[since, until]`` (monotonic; ``until`` default now) during which the
+        terminal layer held data back, the stall still going on included."""
+        end = time.monotonic() if until is None else until
+        with self._lock:
+            spans = list(self._stalls)
+            if self._in_flight_since is not None:
+                spans.append((self._in_flight_since + TOLERANCE_S, end))
+        return sum(max(0.0, min(b, end) - max(a, since)) for a, b in spans)
+
+
+_watch: TtyWatch | None = None
+_watch_lock = threading.Lock()
+
+
+def tty_watch() -> TtyWatch:
+    """This process's canary, started on first use (and again in a forked child)."""
+    global _watch
+    with _watch_lock:
+        if _watch is None or _watch.pid != os.getpid():
+            _watch = TtyWatch()
+        return _watch
+
+
+def tty_stall_s(since: float, until: float | None = None) -> float:
+    """Seconds of ``[since, until]`` (monotonic, s) the terminal layer held serial data back; 0
+    before any serial port was opened in this process."""
+    watch = _watch
+    if watch is None or watch.pid != os.getpid():
+        return 0.0
+    return watch.stalled_s(since, until)
