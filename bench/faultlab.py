@@ -275,9 +275,15 @@ def _current_step(runs: Path) -> str | None:
     return steps[-1][1] if steps else None
 
 
-def _target_started(get_step: Callable[[], str | None], timeout_s: float = 60.0) -> float:
+def _target_started(get_step: Callable[[], str | None], timeout_s: float = 60.0,
+                    child: subprocess.Popen[str] | None = None) -> float:  # fmt: skip
+    """When the run enters its target step; a run that ends before says why (its stderr)."""
     deadline = time.monotonic() + timeout_s
     while get_step() != "target":
+        if child is not None and child.poll() is not None:
+            _, err = child.communicate()
+            raise RuntimeError(f"the run ended (exit {child.returncode}) before its target step:"
+                               f" {err.strip()}")  # fmt: skip
         if time.monotonic() > deadline:
             raise TimeoutError("the run never reached the target step")
         time.sleep(0.01)
@@ -385,7 +391,7 @@ def _child_run(fault: Fault, kind: str, cage: SimulatedCage, workdir: Path, proc
                              stderr=subprocess.PIPE, text=True)  # fmt: skip
     watch = _Watch(cage, ())
 
-    t_target = _target_started(lambda: _current_step(runs))
+    t_target = _target_started(lambda: _current_step(runs), child=child)
     time.sleep(max(0.0, t_target + INJECT_AFTER_S - time.monotonic()))
     t_fault = time.monotonic()
     watch.start(t_fault)
@@ -473,7 +479,7 @@ def _second_run(fault: Fault, cage: SimulatedCage, workdir: Path, rig_toml: Path
                               str(rig_toml), "--yes", "--runs-dir", str(runs)],
                              stderr=subprocess.PIPE, text=True)  # fmt: skip
 
-    t_target = _target_started(lambda: _current_step(runs))
+    t_target = _target_started(lambda: _current_step(runs), child=first)
     time.sleep(max(0.0, t_target + INJECT_AFTER_S - time.monotonic()))
     second = subprocess.run([sys.executable, "-m", "rig.cli", "-q", "run", str(proc_path), "--rig",
                              str(rig_toml), "--yes", "--runs-dir", str(runs_b)],

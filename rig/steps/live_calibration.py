@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.transport.tty_watch import tty_stall_s
 from rig.analysis import to_cage_frame
 from rig.calibration import Samples
 from rig.calibration.estimate import delta_method
@@ -37,6 +38,10 @@ CHECK_EVERY_S = 0.5
 """Sample time between two sigma evaluations (and history rows)."""
 MAX_PAIRING_S = 0.5
 """Largest time between a DUT sample and the reference sample it is paired with (s)."""
+HELD_BACK_MARGIN_S = 0.2
+"""A sample that the kernel's terminal layer held back within this long before its time stamp
+(s), or since, is not used: its time (dated back from when it arrived) and so its pairing with the
+reference, the loads and the field changes is uncertain."""
 
 
 @dataclass
@@ -98,14 +103,14 @@ class LiveCalibration:
         """A DUT sample (sampler thread): paired with the reference and the load currents as it
         arrives (so a backlog cannot pair it with a later field), then queued; never blocks."""
         settled, ref = self._state(t)
-        if not settled or ref is None or abs(ref[0] - t) > MAX_PAIRING_S:
+        if not settled or ref is None or abs(ref[0] - t) > MAX_PAIRING_S or _held_back(t):
             self.rejected += 1
             return
         self._queue.put((t, np.asarray(xyz, float), ref[1], self.telemetry(t)))
 
     def on_reference(self, t: float, xyz: tuple[float, float, float]) -> None:
         """A reference sample (sampler thread): kept when settled."""
-        if self._state(t)[0]:
+        if self._state(t)[0] and not _held_back(t):
             with self._lock:
                 self._reference = (t, np.asarray(xyz, float))
 
@@ -250,6 +255,11 @@ class LiveCalibration:
             "history_file": history_file,
         }
         return result
+
+
+def _held_back(t: float) -> bool:
+    """The terminal layer held serial data back around ``t`` (monotonic s) or since."""
+    return tty_stall_s(t - HELD_BACK_MARGIN_S) > 0.0
 
 
 def _slug(name: str) -> str:
