@@ -10,7 +10,7 @@ dead device.
 
 :class:`TtyWatch` measures it: a daemon thread writes one byte every :data:`PERIOD_S` into a pty
 pair of its own and times its arrival. While a canary byte is overdue by more than
-:data:`TOLERANCE_S`, the terminal layer counts as stalled. Serial timeouts add the stall inside
+:data:`TOLERANCE_S` and the canary is looking for it on time, the terminal layer counts as stalled. Serial timeouts add the stall inside
 their window (:func:`tty_stall_s`), so a timeout measures the instrument. On an idle computer the
 stall is 0 and every timeout is exactly what it says.
 """
@@ -28,18 +28,26 @@ PERIOD_S = 0.02
 """Pause between canary bytes (s): a stall is noticed within this plus :data:`TOLERANCE_S`."""
 TOLERANCE_S = 0.05
 """A canary byte later than this (s) marks the terminal layer as stalled beyond it."""
+POLL_S = 0.01
+"""How often the canary looks for its byte while it is late (s)."""
+GAP_S = 0.02
+"""A look that comes this much later than asked (s) was this process descheduled: the interval
+before it is not counted, since the byte may have been there unseen."""
 KEEP_S = 120.0
 """Stalls older than this (s) are forgotten: no serial wait is that long."""
 
 
 class TtyWatch:
-    """One canary pty and the stalls it saw, as monotonic intervals (s)."""
+    """One canary pty and the stalls it saw, as monotonic intervals (s).
+
+    Only time the canary was looking, on time, and did not find its byte counts: a canary thread
+    that was itself descheduled (a busy process, the interpreter lock) cannot tell when the byte
+    came, and that time is this process's own stall, which the callers measure themselves."""
 
     def __init__(self) -> None:
         self.pid = os.getpid()
         self._lock = threading.Lock()
-        self._stalls: deque[tuple[float, float]] = deque()
-        self._in_flight_since: float | None = None  # monotonic time the pending byte was written
+        self._stalls: deque[list[float]] = deque()  # [start, end], merged when adjacent
         self.worst_s = 0.0  # the longest canary delivery seen (s)
         self.running = False
         try:
@@ -51,39 +59,42 @@ class TtyWatch:
         self.running = True
         threading.Thread(target=self._run, name="tty-watch", daemon=True).start()
 
+    def _note(self, start: float, end: float) -> None:
+        with self._lock:
+            if self._stalls and self._stalls[-1][1] >= start - GAP_S:
+                self._stalls[-1][1] = end
+            else:
+                self._stalls.append([start, end])
+            while self._stalls and self._stalls[0][1] < end - KEEP_S:
+                self._stalls.popleft()
+
     def _run(self) -> None:
         try:
             while True:
-                sent = time.monotonic()
-                with self._lock:
-                    self._in_flight_since = sent
+                sent = looked = time.monotonic()
                 os.write(self._master, b"\0")
-                while not select.select([self._slave], [], [], 1.0)[0]:
-                    pass
-                os.read(self._slave, 64)
-                arrived = time.monotonic()
-                with self._lock:
-                    self._in_flight_since = None
-                    late = arrived - sent
-                    self.worst_s = max(self.worst_s, late)
-                    if late > TOLERANCE_S:
-                        self._stalls.append((sent + TOLERANCE_S, arrived))
-                    while self._stalls and self._stalls[0][1] < arrived - KEEP_S:
-                        self._stalls.popleft()
+                while True:
+                    ready = select.select([self._slave], [], [], POLL_S)[0]
+                    now = time.monotonic()
+                    on_time = now - looked <= POLL_S + GAP_S
+                    if not ready and on_time and now - sent > TOLERANCE_S:
+                        self._note(max(looked, sent + TOLERANCE_S), now)
+                    looked = now
+                    if ready:
+                        os.read(self._slave, 64)
+                        self.worst_s = max(self.worst_s, now - sent)
+                        break
                 time.sleep(PERIOD_S)
         except (OSError, ValueError):
-            with self._lock:
-                self.running = False
-                self._in_flight_since = None
+            self.running = False
 
     def stalled_s(self, since: float, until: float | None = None) -> float:
         """Seconds of ``[since, until]`` (monotonic; ``until`` default now) during which the
-        terminal layer held data back, the stall still going on included."""
+        terminal layer held data back, as far as the canary has seen (at most :data:`POLL_S`
+        behind)."""
         end = time.monotonic() if until is None else until
         with self._lock:
-            spans = list(self._stalls)
-            if self._in_flight_since is not None:
-                spans.append((self._in_flight_since + TOLERANCE_S, end))
+            spans = [(a, b) for a, b in self._stalls]
         return sum(max(0.0, min(b, end) - max(a, since)) for a, b in spans)
 
 

@@ -89,6 +89,11 @@ class Samples:
             channels = tuple(f"u{j + 1}" for j in range(u.shape[1]))
         return Samples(m, mag, u, tuple(channels), h)
 
+    def head(self, n: int) -> Samples:
+        """The first ``n`` samples (scalar: the field vector is dropped)."""
+        return Samples(self.measured_ut[:n], self.field_magnitude_ut[:n], self.telemetry[:n],
+                       self.channels)  # fmt: skip
+
     def as_scalar(self) -> Samples:
         """The same samples with the field vector dropped (only ``|h|`` kept)."""
         return Samples(self.measured_ut, self.field_magnitude_ut, self.telemetry, self.channels)

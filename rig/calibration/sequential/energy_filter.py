@@ -160,6 +160,13 @@ class EnergyFilter:
         """Average NIS over the updates made with an estimate in hand."""
         return self.nis_sum / self.updates if self.updates else math.nan
 
+    def reset(self, x: Array, P: Array) -> None:
+        """Restart the projection from ``x`` with covariance ``P`` (the information is kept: it
+        is exact). The centered form has no projection and nothing to restart."""
+        if self.projection is not None:
+            self.x, self.P = np.array(x, float), np.array(P, float)
+            self._project()
+
     def regressor(self, s: ZSample) -> Array:
         """``a`` with ``z - mu = a psi``."""
         return np.concatenate([s.design, -energy_terms(s.telemetry)])

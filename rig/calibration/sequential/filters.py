@@ -84,6 +84,10 @@ class FilterBase:
         """Average NIS over all updates (1 for a consistent filter)."""
         return self.nis_sum / self.updates if self.updates else math.nan
 
+    def reset(self, x: Array, P: Array) -> None:
+        """Restart from state ``x`` and covariance ``P`` (a re-initialization)."""
+        self.x, self.P = np.array(x, float), np.array(P, float)
+
 
 class ExtendedKalman(FilterBase):
     """EKF on the z model (eqs. 25-27); ``order=2`` adds the Gaussian second-order terms."""

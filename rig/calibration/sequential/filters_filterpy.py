@@ -73,6 +73,18 @@ class FilterpyFilter:
         """Covariance of ``theta``."""
         return np.asarray(self._kf.P, float)[: self._n, : self._n]
 
+    def reset(self, x: Array, P: Array) -> None:
+        """Restart from state ``x`` and covariance ``P`` (a re-initialization)."""
+        n = self._n
+        if self.method == "ekf":
+            self._kf.x = np.array(x, float).reshape(n, 1)
+            self._kf.P = np.array(P, float)
+            return
+        self._kf.x[:n] = x
+        self._kf.P[:n, :n] = P
+        self._kf.P[:n, n:] = 0.0
+        self._kf.P[n:, :n] = 0.0
+
     @property
     def mean_nis(self) -> float:
         """Average NIS over all updates."""

@@ -26,6 +26,7 @@ from rig.calibration.sequential.filters import (
     UpdateInfo,
     initial_covariance,
 )
+from rig.calibration.sequential.guard import DivergenceWatch, GuardReport, batch_theta, check_final
 from rig.calibration.sequential.zmodel import ZModel, ZSample, z_sample
 from rig.errors import CalibrationError
 
@@ -50,6 +51,8 @@ class SequentialFilter(Protocol):
     def mean_nis(self) -> float: ...
 
     def update(self, s: ZSample, dt_s: float = 0.0) -> UpdateInfo | None: ...
+
+    def reset(self, x: Array, P: Array) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -140,9 +143,13 @@ def run_filter(
     """Run the filter over every sample in order; return the final estimate and its history.
 
     ``history_rows`` bounds the recorded rows (the last sample is always recorded); ``progress``
-    is called with the sample index every 1000 samples.
+    is called with the sample index every 1000 samples. A filter whose innovations say it has
+    diverged is re-initialized from the batch estimate of the samples so far, and a final answer
+    far worse than the batch estimate of all samples is refused (:mod:`.guard`).
     """
     f = make_filter(opts, s.n_channels, noise_ut)
+    guarded = opts.method != "centered-seq"  # linear: the batch centered estimate at every step
+    watch = DivergenceWatch()
     every = max(1, s.n // max(history_rows, 1))
     idx: list[int] = []
     xs: list[Array] = []
@@ -164,6 +171,13 @@ def run_filter(
             ) from exc
         if info is not None:
             nis[k] = info.nis
+        if guarded and watch.diverged(k, None if info is None else info.nis):
+            try:
+                x_batch, p_batch = batch_theta(s.head(k + 1))
+                f.reset(x_batch, p_batch)
+                watch.recovered(k)
+            except (CalibrationError, np.linalg.LinAlgError):
+                watch.recovered(k)  # no better start from these samples yet: look again later
         if f.ready and ((k + 1) % every == 0 or k == s.n - 1):
             idx.append(k)
             xs.append(f.x[: 9 + 3 * s.n_channels].copy())
@@ -175,7 +189,10 @@ def run_filter(
             f"{opts.method}: the data never made the calibration observable (the field magnitude"
             " must vary for centered-seq): cover more directions and magnitudes"
         )
-    est = filter_estimate(f, s.n_channels, opts, noise_ut, nis, (idx, xs, covs))
+    if guarded:
+        check_final(np.asarray(f.x[: 9 + 3 * s.n_channels], float), s, noise_ut, opts.method,
+                    watch.report)  # fmt: skip
+    est = filter_estimate(f, s.n_channels, opts, noise_ut, nis, (idx, xs, covs), watch.report)
     assert est.history is not None
     return est, est.history
 
@@ -187,6 +204,7 @@ def filter_estimate(
     noise_ut: float,
     nis: Array,
     recorded: tuple[list[int], list[Array], list[Array]],
+    guard: GuardReport | None = None,
 ) -> Estimate:
     """The physical estimate of a filter that has seen every sample, with its history.
 
@@ -198,10 +216,20 @@ def filter_estimate(
     cov_theta = np.asarray(f.P[:n_theta, :n_theta], float)
     p, cov = delta_method(p_from_theta, theta, cov_theta, opts.method)
     mean_nis = float(np.nanmean(nis)) if np.any(np.isfinite(nis)) else float("nan")
-    note = (
+    note: tuple[str, ...] = (
         f"{opts.method} ({opts.variant}, {opts.backend}) over {nis.size} samples at"
         f" {1000 * noise_ut:.3g} nT raw noise; mean NIS {mean_nis:.2f} (1 when consistent)",
     )
+    if guard is not None and guard.recoveries:
+        note += (
+            f"diverged and was re-initialized from the batch estimate at sample(s)"
+            f" {', '.join(str(k + 1) for k in guard.recoveries)}",
+        )
+    if guard is not None and np.isfinite(guard.final_excess):
+        note += (
+            f"fits {guard.final_excess:.1f} chi-square units worse than the batch fit of the same"
+            f" samples (converged: under {guard.limit:.0f})",
+        )
     idx, xs, covs = recorded
     history = FilterHistory(
         np.asarray(idx, int),
