@@ -10,7 +10,7 @@ dead device.
 
 :class:`TtyWatch` measures it: a daemon thread writes one byte every :data:`PERIOD_S` into a pty
 pair of its own and times its arrival. While a canary byte is overdue by more than
-:data:`TOLERANCE_S` and the canary is looking for it on time, the terminal layer counts as stalled. Serial timeouts add the stall inside
+:data:`TOLERANCE_S`, the terminal layer counts as stalled. Serial timeouts add the stall inside
 their window (:func:`tty_stall_s`), so a timeout measures the instrument. On an idle computer the
 stall is 0 and every timeout is exactly what it says.
 """
@@ -38,16 +38,21 @@ KEEP_S = 120.0
 
 
 class TtyWatch:
-    """One canary pty and the stalls it saw, as monotonic intervals (s).
+    """One canary pty and the stalls it saw, as monotonic intervals (s), in two measures:
 
-    Only time the canary was looking, on time, and did not find its byte counts: a canary thread
-    that was itself descheduled (a busy process, the interpreter lock) cannot tell when the byte
-    came, and that time is this process's own stall, which the callers measure themselves."""
+    * **possible** (:meth:`stalled_s`): from :data:`TOLERANCE_S` after a byte was written until it
+      was seen. It includes time the canary thread itself was not running (a busy process, the
+      interpreter lock): generous, for timeouts, where waiting a little longer costs nothing;
+    * **seen** (:meth:`seen_stalled_s`): only time the canary was looking, on time, and did not
+      find its byte. For judging data: a busy process must not make its own samples suspect.
+    """
 
     def __init__(self) -> None:
         self.pid = os.getpid()
         self._lock = threading.Lock()
-        self._stalls: deque[list[float]] = deque()  # [start, end], merged when adjacent
+        self._possible: deque[list[float]] = deque()  # [start, end], merged when adjacent
+        self._seen: deque[list[float]] = deque()
+        self._in_flight_since: float | None = None  # when the byte not yet seen was written
         self.worst_s = 0.0  # the longest canary delivery seen (s)
         self.running = False
         try:
@@ -59,43 +64,64 @@ class TtyWatch:
         self.running = True
         threading.Thread(target=self._run, name="tty-watch", daemon=True).start()
 
-    def _note(self, start: float, end: float) -> None:
+    def _note(self, spans: deque[list[float]], start: float, end: float) -> None:
         with self._lock:
-            if self._stalls and self._stalls[-1][1] >= start - GAP_S:
-                self._stalls[-1][1] = end
+            if spans and spans[-1][1] >= start - GAP_S:
+                spans[-1][1] = max(spans[-1][1], end)
             else:
-                self._stalls.append([start, end])
-            while self._stalls and self._stalls[0][1] < end - KEEP_S:
-                self._stalls.popleft()
+                spans.append([start, end])
+            while spans and spans[0][1] < end - KEEP_S:
+                spans.popleft()
 
     def _run(self) -> None:
         try:
             while True:
                 sent = looked = time.monotonic()
+                with self._lock:
+                    self._in_flight_since = sent
                 os.write(self._master, b"\0")
                 while True:
                     ready = select.select([self._slave], [], [], POLL_S)[0]
                     now = time.monotonic()
                     on_time = now - looked <= POLL_S + GAP_S
                     if not ready and on_time and now - sent > TOLERANCE_S:
-                        self._note(max(looked, sent + TOLERANCE_S), now)
+                        self._note(self._seen, max(looked, sent + TOLERANCE_S), now)
                     looked = now
                     if ready:
                         os.read(self._slave, 64)
                         self.worst_s = max(self.worst_s, now - sent)
+                        if now - sent > TOLERANCE_S:
+                            self._note(self._possible, sent + TOLERANCE_S, now)
+                        with self._lock:
+                            self._in_flight_since = None
                         break
                 time.sleep(PERIOD_S)
         except (OSError, ValueError):
             self.running = False
+            with self._lock:
+                self._in_flight_since = None
 
     def stalled_s(self, since: float, until: float | None = None) -> float:
         """Seconds of ``[since, until]`` (monotonic; ``until`` default now) during which the
-        terminal layer held data back, as far as the canary has seen (at most :data:`POLL_S`
-        behind)."""
+        terminal layer may have held data back (possible stalls, the one going on included)."""
         end = time.monotonic() if until is None else until
         with self._lock:
-            spans = [(a, b) for a, b in self._stalls]
-        return sum(max(0.0, min(b, end) - max(a, since)) for a, b in spans)
+            spans = [(a, b) for a, b in self._possible]
+            if self._in_flight_since is not None:
+                spans.append((self._in_flight_since + TOLERANCE_S, end))
+        return _overlap(spans, since, end)
+
+    def seen_stalled_s(self, since: float, until: float | None = None) -> float:
+        """Seconds of ``[since, until]`` during which the canary saw the terminal layer hold data
+        back while it was itself running (at most :data:`POLL_S` behind)."""
+        end = time.monotonic() if until is None else until
+        with self._lock:
+            spans = [(a, b) for a, b in self._seen]
+        return _overlap(spans, since, end)
+
+
+def _overlap(spans: list[tuple[float, float]], since: float, end: float) -> float:
+    return sum(max(0.0, min(b, end) - max(a, since)) for a, b in spans)
 
 
 _watch: TtyWatch | None = None
@@ -112,9 +138,18 @@ def tty_watch() -> TtyWatch:
 
 
 def tty_stall_s(since: float, until: float | None = None) -> float:
-    """Seconds of ``[since, until]`` (monotonic, s) the terminal layer held serial data back; 0
-    before any serial port was opened in this process."""
+    """Seconds of ``[since, until]`` (monotonic, s) the terminal layer may have held serial data
+    back (generous: for timeouts); 0 before any serial port was opened in this process."""
     watch = _watch
     if watch is None or watch.pid != os.getpid():
         return 0.0
     return watch.stalled_s(since, until)
+
+
+def tty_seen_stall_s(since: float, until: float | None = None) -> float:
+    """Seconds of ``[since, until]`` the canary saw the terminal layer hold data back while this
+    process was running (strict: for judging which samples came through a stall)."""
+    watch = _watch
+    if watch is None or watch.pid != os.getpid():
+        return 0.0
+    return watch.seen_stalled_s(since, until)

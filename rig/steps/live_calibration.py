@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.transport.tty_watch import tty_stall_s
+from drivers.transport.tty_watch import tty_seen_stall_s
 from rig.analysis import to_cage_frame
 from rig.calibration import Samples
 from rig.calibration.estimate import delta_method
@@ -259,7 +259,7 @@ class LiveCalibration:
 
 def _held_back(t: float) -> bool:
     """The terminal layer held serial data back around ``t`` (monotonic s) or since."""
-    return tty_stall_s(t - HELD_BACK_MARGIN_S) > 0.0
+    return tty_seen_stall_s(t - HELD_BACK_MARGIN_S) > 0.0
 
 
 def _slug(name: str) -> str:

@@ -22,27 +22,38 @@ from drivers.transport.tty_watch import TOLERANCE_S, TtyWatch
 
 def test_stall_is_the_overlap_of_recorded_spans_with_the_window() -> None:
     watch = TtyWatch()
-    with watch._lock:  # replace what the canary saw with known spans
-        watch._stalls.clear()
-    watch._note(100.0, 100.5)
-    watch._note(100.51, 101.0)  # adjacent looks: one span
-    watch._note(102.0, 102.5)
-    assert len(watch._stalls) == 2
-    assert watch.stalled_s(99.0, 103.0) == pytest.approx(1.5)
-    assert watch.stalled_s(100.5, 102.25) == pytest.approx(0.75)
-    assert watch.stalled_s(101.0, 102.0) == 0.0
+    for spans, measure in ((watch._possible, watch.stalled_s), (watch._seen, watch.seen_stalled_s)):
+        with watch._lock:  # replace what the canary saw with known spans
+            spans.clear()
+            watch._in_flight_since = None
+        watch._note(spans, 100.0, 100.5)
+        watch._note(spans, 100.51, 101.0)  # adjacent looks: one span
+        watch._note(spans, 102.0, 102.5)
+        assert len(spans) == 2
+        assert measure(99.0, 103.0) == pytest.approx(1.5)
+        assert measure(100.5, 102.25) == pytest.approx(0.75)
+        assert measure(101.0, 102.0) == 0.0
+
+
+def test_an_overdue_canary_byte_is_a_possible_stall_going_on() -> None:
+    watch = TtyWatch()
+    now = time.monotonic()
+    with watch._lock:
+        watch._possible.clear()
+        watch._in_flight_since = now - 0.4
+    assert watch.stalled_s(now - 1.0, now) == pytest.approx(0.4 - TOLERANCE_S, abs=1e-6)
 
 
 def test_a_canary_that_was_itself_descheduled_counts_no_stall() -> None:
     """The interpreter lock held by a busy thread of our own keeps the canary from looking: that
-    is this process's stall, not the terminal layer's, and is not counted."""
+    is this process's stall, not the terminal layer's, and is not counted as seen."""
     watch = TtyWatch()
     time.sleep(0.2)
     t0 = time.monotonic()
     end = t0 + 0.5
     while time.monotonic() < end:  # pure Python: holds the interpreter lock between switches
         sum(range(1000))
-    assert watch.stalled_s(t0) < TOLERANCE_S
+    assert watch.seen_stalled_s(t0) < TOLERANCE_S
 
 
 def test_the_canary_runs_and_sees_its_bytes_arrive() -> None:
