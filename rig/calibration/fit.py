@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from rig.calibration.batch.nonlinear import ml_fit
+from rig.calibration.delay import estimate_delays
 from rig.calibration.diagnostics import check_samples
 from rig.calibration.estimate import Estimate
 from rig.calibration.estimators import (
     DEFAULT_METHOD,
+    Estimator,
     FitRequest,
     Method,
     estimator,
@@ -38,6 +42,8 @@ def calibrate(
     robust: RobustLoss | None = None,
     filter_options: FilterOptions | None = None,
     times_s: Array | None = None,
+    delays: tuple[str, ...] = (),
+    max_delay_s: float = 2.0,
 ) -> CalibrationResult:
     """Fit the measurement model to ``s`` and summarize.
 
@@ -50,7 +56,9 @@ def calibrate(
         robust: ``"huber"`` or ``"bisquare"`` IRLS (``ml`` and ``vector`` only).
         filter_options: variant, backend and start of the sequential filters (``centered-seq``,
             ``ekf``, ``ukf``); they need the raw noise, estimated from the data when not given.
-        times_s: sample times (s), for the filters' process noise or forgetting.
+        times_s: sample times (s), for the filters' process noise or forgetting, and the delays.
+        delays: telemetry channels whose delay ``tau_j`` to estimate (s, within ``+-max_delay_s``;
+            batch methods, needs ``times_s``); see :mod:`rig.calibration.delay`.
     """
     est = estimator(method or default_method(s))
     if robust is not None and not est.robust:
@@ -78,11 +86,44 @@ def calibrate(
             f"raw noise {1000 * noise_ut:.3g} nT estimated from a batch maximum-likelihood fit"
             " (give --noise-nt to set it)",
         )
-    request = FitRequest(est.name, noise_ut, robust, filter_options, times_s, start)
-    estimate = est.run(data, request)
     if est.kind == "batch" and not vector and s.field_ut is not None:
         notes = ("field vector given but a scalar method chosen: only |h| was used",)
+    if delays:
+        return _with_delays(data, est, noise_ut, robust, times_s, delays, max_delay_s, notes)
+    request = FitRequest(est.name, noise_ut, robust, filter_options, times_s, start)
+    estimate = est.run(data, request)
     return summarize(estimate, data, noise_nt, notes)
+
+
+def _with_delays(
+    data: Samples,
+    est: Estimator,
+    noise_ut: float | None,
+    robust: RobustLoss | None,
+    times_s: Array | None,
+    delays: tuple[str, ...],
+    max_delay_s: float,
+    notes: tuple[str, ...],
+) -> CalibrationResult:
+    """Estimate the channels' delays by refitting with ``est``, then summarize at those delays."""
+    if est.kind != "batch":
+        raise CalibrationError(
+            f"--delay needs a batch method (the refit at every trial delay), not {est.name}:"
+            " use --method ml or vector"
+        )
+    if times_s is None:
+        raise CalibrationError("--delay needs the sample times: give --time COL (seconds)")
+
+    def refit(shifted: Samples) -> Estimate:
+        return est.run(shifted, FitRequest(est.name, noise_ut, robust, None, times_s, None))
+
+    fit = estimate_delays(data, times_s, delays, refit, max_delay_s=max_delay_s, noise_ut=noise_ut)
+    noise_nt = None if noise_ut is None else 1000.0 * noise_ut
+    notes += (
+        "delays found by refitting at trial delays; the other parameters' sigmas hold the delays"
+        " at their estimate",
+    )
+    return replace(summarize(fit.estimate, fit.samples, noise_nt, notes), delays=fit)
 
 
 def _check_coverage(s: Samples, method: str) -> Estimate | None:

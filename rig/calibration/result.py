@@ -8,6 +8,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from rig.calibration.delay import DelayFit
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
 from rig.calibration.params import Array, Calibration
 from rig.calibration.residuals import (
@@ -80,6 +81,7 @@ class CalibrationResult:
     warnings: tuple[str, ...]
     iterations: int
     history: FilterHistory | None = None
+    delays: DelayFit | None = None
 
     @property
     def sigma(self) -> Array:
@@ -191,6 +193,13 @@ class CalibrationResult:
             "warnings": list(self.warnings),
             "iterations": self.iterations,
         }
+        if self.delays is not None:
+            d = self.delays
+            out["delay_s"] = {c: float(v) for c, v in zip(d.channels, d.delays_s, strict=True)}
+            out["sigma"]["delay_s"] = dict(zip(d.channels, d.sigma_s.tolist(), strict=True))
+            out["crlb_sigma"]["delay_s"] = dict(
+                zip(d.channels, d.crlb_sigma_s.tolist(), strict=True)
+            )
         if self.history is not None:
             nis = self.history.nis[np.isfinite(self.history.nis)]
             out["filter"] = {

@@ -88,6 +88,19 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
         help="telemetry channels (currents) whose bias to fit",
     )  # fmt: skip
     cal.add_argument(
+        "--time", metavar="COL",
+        help="sample time column in seconds (any origin, increasing): needed by --delay",
+    )  # fmt: skip
+    cal.add_argument(
+        "--delay", type=columns, default=[], metavar="COL1,...",
+        help="--telemetry channels whose delay to estimate (s; the current reaches the reading"
+        " that much after the telemetry shows it), with its 1-sigma and Cramer-Rao bound",
+    )  # fmt: skip
+    cal.add_argument(
+        "--max-delay-s", type=float, default=2.0, metavar="S",
+        help="search --delay within +-S seconds (default 2)",
+    )  # fmt: skip
+    cal.add_argument(
         "--method",
         choices=method_names(),
         help=f"estimator (default: {DEFAULT_METHOD['vector']} with --field,"
@@ -194,7 +207,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     measured_ut_per, field_ut_per = _unit_factors(args)
     constant = _constant_magnitude(args)
     magnitude = [] if args.field is not None or constant is not None else [args.field_magnitude]
-    wanted = list(args.measured) + (args.field or magnitude) + list(args.telemetry)
+    if args.delay and args.time is None:
+        raise UserInputError("--delay needs the sample times: add --time COL (seconds)")
+    timing = [args.time] if args.time is not None else []
+    wanted = list(args.measured) + (args.field or magnitude) + list(args.telemetry) + timing
     wanted = list(dict.fromkeys(wanted))
     if args.drop_invalid:
         cols, dropped = read_valid_rows(args.data, wanted, names=args.columns)
@@ -232,7 +248,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             telemetry=telemetry,
             channels=tuple(args.telemetry),
         )
-    return _fit_and_emit(samples, args)
+    times_s = np.asarray(cols[args.time], float) if args.time is not None else None
+    return _fit_and_emit(samples, args, times_s)
 
 
 def _odd_window(text: str) -> int:
@@ -275,7 +292,7 @@ def _constant_magnitude(args: argparse.Namespace) -> float | None:
     return value
 
 
-def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:
+def _fit_and_emit(samples: Any, args: argparse.Namespace, times_s: Any = None) -> int:
     """Fit, write the result file, C header and autopilot parameters if asked, print the table."""
     from rig.calibration import calibrate
     from rig.calibration.export_c import c_header
@@ -288,9 +305,9 @@ def _fit_and_emit(samples: Any, args: argparse.Namespace) -> int:
     opts = None
     if args.method in filter_methods:
         opts = FilterOptions(args.method, args.filter_variant, args.backend)
-    result = calibrate(
-        samples, args.method, noise_nt=args.noise_nt, robust=args.robust, filter_options=opts
-    )
+    result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust,
+                       filter_options=opts, times_s=times_s, delays=tuple(args.delay),
+                       max_delay_s=args.max_delay_s)  # fmt: skip
     autopilot = _autopilot_files(result, args)  # before any file: a refusal writes nothing
     if args.history is not None and result.history is not None:
         write_text(args.history, _history_csv(result))
@@ -355,6 +372,12 @@ def _calibrate_run(args: argparse.Namespace) -> int:
     from rig.analysis import stored_run_data
     from rig.steps import field_kinds
     from rig.store import RunReader
+
+    if args.delay:
+        raise UserInputError(
+            "--delay works on a CSV file with --time: export the run first (rig export RUN"
+            " --format csv) and calibrate that file"
+        )
 
     reader = RunReader(args.data)
     try:

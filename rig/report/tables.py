@@ -58,6 +58,17 @@ def calibration_table(result: CalibrationResult, source: str = "", verbose: bool
         lines.append(
             f"  {label:<22}{unit:>8}{val:>14}{sig:>12}{crlb:>14}{result.crlb_ratio[i]:>7.2f}"
         )
+    if result.delays is not None:
+        d = result.delays
+        for ch, tau, sig, crlb_sig in zip(d.channels, d.delays_s, d.sigma_s, d.crlb_sigma_s,
+                                          strict=True):  # fmt: skip
+            val, sig_text = _fmt(float(tau), float(sig))
+            _, crlb_text = _fmt(float(tau), float(crlb_sig))
+            ratio = float(sig / crlb_sig) if crlb_sig > 0 else float("nan")
+            label = f"delay[{ch}]"
+            lines.append(
+                f"  {label:<22}{'s':>8}{val:>14}{sig_text:>12}{crlb_text:>14}{ratio:>7.2f}"
+            )
     chi = result.chi2
     noise_src = (
         f"--noise-nt {result.noise_nt:g}"

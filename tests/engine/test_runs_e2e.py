@@ -192,7 +192,8 @@ def switch_off(devices: dict[str, Any]) -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    ("name", "sets"), [("cage-characterization", []), ("orbit-replay", ["duration_s=30", "tumble_deg_s=9"])]
+    ("name", "sets"),
+    [("cage-characterization", []), ("orbit-replay", ["duration_s=30", "tumble_deg_s=9"])],
 )
 def test_shipped_procedures_run_on_the_simulator(sim_process: tuple[Path, dict[str, Any]], tmp_path: Path,
                                                  name: str, sets: list[str]) -> None:  # fmt: skip
