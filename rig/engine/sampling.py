@@ -15,7 +15,7 @@ from collections.abc import Callable
 from drivers.errors import DeviceError, DeviceProtocolError, DeviceTimeoutError
 from drivers.protocols import Magnetometer
 from drivers.transport.serial_port import own_stall_s
-from drivers.transport.tty_watch import tty_stall_s
+from drivers.transport.tty_watch import tty_seen_stall_s, tty_stall_s
 
 Sink = Callable[[float, str, tuple[float, float, float]], None]
 Listener = Callable[[float, tuple[float, float, float]], None]
@@ -107,8 +107,9 @@ class SensorSampler:
         if self.error is not None:
             return f"{self.name}: sampling stopped: {self.error}"
         last = self.latest[0] if self.latest is not None else self.started_t
-        # time the kernel held serial bytes back was this computer's, not the sensor's
-        silent_s = now - last - tty_stall_s(last, now)
+        # time the kernel was seen holding serial bytes back was this computer's, not the
+        # sensor's (the strict measure: a busy rig process must not postpone the verdict)
+        silent_s = now - last - tty_seen_stall_s(last, now)
         if silent_s > stall_s:
             return (f"{self.name}: no data for {silent_s:.1f} s (stream stalled or sensor"
                     " disconnected); check its cable and power")  # fmt: skip
