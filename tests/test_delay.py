@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.calibration.delay import estimate_delays, shifted
 from rig.calibration.estimators import FitRequest, estimator
+from rig.calibration.profiled import delay_parameter, profile_fit, shifted
 from rig.calibration.residuals import Samples
 from rig.errors import CalibrationError
 
@@ -30,6 +30,13 @@ def cage_with_delayed_currents(seed: int, n: int = 3000, rate_hz: float = 20.0):
     late = np.column_stack([shifted(t, u[:, j], TRUE_DELAYS_S[j]) for j in range(2)])
     m = h @ lower.T + offset + late @ K_TRUE + NOISE_UT * rng.standard_normal((n, 3))
     return Samples.build(m, field_ut=h, telemetry=u, channels=("i_a", "i_b")), t
+
+
+def estimate_delays(s, t, channels, refit, max_delay_s=2.0, noise_ut=None):
+    params = tuple(delay_parameter(s, t, c, max_delay_s) for c in channels)
+    fit = profile_fit(s, params, refit, noise_ut=noise_ut)
+    return type("F", (), {"delays_s": fit.values, "sigma_s": fit.sigma,
+                          "crlb_sigma_s": fit.crlb_sigma, "estimate": fit.estimate})  # fmt: skip
 
 
 def _vector_refit(data: Samples):
@@ -118,4 +125,4 @@ def test_rig_calibrate_delay_needs_times_and_a_batch_method(
     assert "--delay needs the sample times: add --time COL" in capsys.readouterr().err
     filt = ["--time", "t_s", "--method", "ukf", "--noise-nt", "50", "--field-magnitude", "h"]
     assert main(["calibrate", *base, *filt]) == 2
-    assert "--delay needs a batch method" in capsys.readouterr().err
+    assert "need a batch method" in capsys.readouterr().err

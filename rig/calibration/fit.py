@@ -7,7 +7,6 @@ from dataclasses import replace
 import numpy as np
 
 from rig.calibration.batch.nonlinear import ml_fit
-from rig.calibration.delay import estimate_delays
 from rig.calibration.diagnostics import check_samples
 from rig.calibration.estimate import Estimate
 from rig.calibration.estimators import (
@@ -20,10 +19,12 @@ from rig.calibration.estimators import (
     spoken,
 )
 from rig.calibration.params import Array
+from rig.calibration.profiled import Profiled, delay_parameter, profile_fit
 from rig.calibration.residuals import Samples, scalar_noise_gain, scalar_residuals_only
 from rig.calibration.result import CalibrationResult, summarize
 from rig.calibration.robust import RobustLoss
 from rig.calibration.sequential.realtime import FilterOptions
+from rig.calibration.temperature import scale_parameter, with_temperature_channel
 from rig.errors import CalibrationError
 
 METHODS: tuple[Method, ...] = method_names()
@@ -44,6 +45,8 @@ def calibrate(
     times_s: Array | None = None,
     delays: tuple[str, ...] = (),
     max_delay_s: float = 2.0,
+    temperature: Array | None = None,
+    temperature_ref: float | None = None,
 ) -> CalibrationResult:
     """Fit the measurement model to ``s`` and summarize.
 
@@ -58,7 +61,10 @@ def calibrate(
             ``ekf``, ``ukf``); they need the raw noise, estimated from the data when not given.
         times_s: sample times (s), for the filters' process noise or forgetting, and the delays.
         delays: telemetry channels whose delay ``tau_j`` to estimate (s, within ``+-max_delay_s``;
-            batch methods, needs ``times_s``); see :mod:`rig.calibration.delay`.
+            batch methods, needs ``times_s``); see :mod:`rig.calibration.profiled`.
+        temperature: DUT temperature per sample (K or degrees C) for the offset and scale
+            coefficients per kelvin about ``temperature_ref`` (default: the mean); see
+            :mod:`rig.calibration.temperature`.
     """
     est = estimator(method or default_method(s))
     if robust is not None and not est.robust:
@@ -74,6 +80,10 @@ def calibrate(
             f"--method {est.name} needs the field vector: give --field X,Y,Z instead of"
             " --field-magnitude"
         )
+    reference = None
+    if temperature is not None:
+        reference = float(np.mean(temperature)) if temperature_ref is None else temperature_ref
+        s = with_temperature_channel(s, temperature, reference)
     n_params = (12 if vector else 9) + 3 * s.n_channels
     check_samples(s, n_params)
     data = s if vector else s.as_scalar()
@@ -88,42 +98,46 @@ def calibrate(
         )
     if est.kind == "batch" and not vector and s.field_ut is not None:
         notes = ("field vector given but a scalar method chosen: only |h| was used",)
-    if delays:
-        return _with_delays(data, est, noise_ut, robust, times_s, delays, max_delay_s, notes)
+    profiled = tuple(delay_parameter(data, times_s, c, max_delay_s) for c in delays) if (
+        delays and times_s is not None) else ()  # fmt: skip
+    if delays and times_s is None:
+        raise CalibrationError("--delay needs the sample times: give --time COL (seconds)")
+    if temperature is not None:
+        profiled += (scale_parameter(data),)
+    if profiled:
+        result = _profiled(data, est, noise_ut, robust, times_s, profiled, notes)
+        return replace(result, temperature_ref=reference)
     request = FitRequest(est.name, noise_ut, robust, filter_options, times_s, start)
     estimate = est.run(data, request)
     return summarize(estimate, data, noise_nt, notes)
 
 
-def _with_delays(
+def _profiled(
     data: Samples,
     est: Estimator,
     noise_ut: float | None,
     robust: RobustLoss | None,
     times_s: Array | None,
-    delays: tuple[str, ...],
-    max_delay_s: float,
+    params: tuple[Profiled, ...],
     notes: tuple[str, ...],
 ) -> CalibrationResult:
-    """Estimate the channels' delays by refitting with ``est``, then summarize at those delays."""
+    """Find ``params`` (delays, temperature scale) by refitting with ``est``, then summarize."""
     if est.kind != "batch":
         raise CalibrationError(
-            f"--delay needs a batch method (the refit at every trial delay), not {est.name}:"
-            " use --method ml or vector"
+            f"--delay and --temperature need a batch method (the refit at every trial value), not"
+            f" {est.name}: use --method ml or vector"
         )
-    if times_s is None:
-        raise CalibrationError("--delay needs the sample times: give --time COL (seconds)")
 
-    def refit(shifted: Samples) -> Estimate:
-        return est.run(shifted, FitRequest(est.name, noise_ut, robust, None, times_s, None))
+    def refit(trial: Samples) -> Estimate:
+        return est.run(trial, FitRequest(est.name, noise_ut, robust, None, times_s, None))
 
-    fit = estimate_delays(data, times_s, delays, refit, max_delay_s=max_delay_s, noise_ut=noise_ut)
+    fit = profile_fit(data, params, refit, noise_ut=noise_ut)
     noise_nt = None if noise_ut is None else 1000.0 * noise_ut
     notes += (
-        "delays found by refitting at trial delays; the other parameters' sigmas hold the delays"
-        " at their estimate",
+        "delays and temperature scale found by refitting at trial values; the other parameters'"
+        " sigmas hold them at their estimate",
     )
-    return replace(summarize(fit.estimate, fit.samples, noise_nt, notes), delays=fit)
+    return replace(summarize(fit.estimate, fit.samples, noise_nt, notes), profiled=fit)
 
 
 def _check_coverage(s: Samples, method: str) -> Estimate | None:

@@ -8,9 +8,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from rig.calibration.delay import DelayFit
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
 from rig.calibration.params import Array, Calibration
+from rig.calibration.profiled import ProfileFit
 from rig.calibration.residuals import (
     AXES,
     Samples,
@@ -81,7 +81,8 @@ class CalibrationResult:
     warnings: tuple[str, ...]
     iterations: int
     history: FilterHistory | None = None
-    delays: DelayFit | None = None
+    profiled: ProfileFit | None = None
+    temperature_ref: float | None = None
 
     @property
     def sigma(self) -> Array:
@@ -193,13 +194,15 @@ class CalibrationResult:
             "warnings": list(self.warnings),
             "iterations": self.iterations,
         }
-        if self.delays is not None:
-            d = self.delays
-            out["delay_s"] = {c: float(v) for c, v in zip(d.channels, d.delays_s, strict=True)}
-            out["sigma"]["delay_s"] = dict(zip(d.channels, d.sigma_s.tolist(), strict=True))
-            out["crlb_sigma"]["delay_s"] = dict(
-                zip(d.channels, d.crlb_sigma_s.tolist(), strict=True)
-            )
+        if self.profiled is not None:
+            fit = self.profiled
+            for prm, v, sig, crlb in zip(fit.params, fit.values, fit.sigma, fit.crlb_sigma,
+                                         strict=True):  # fmt: skip
+                out.setdefault(prm.group, {})[prm.key] = float(v)
+                out["sigma"].setdefault(prm.group, {})[prm.key] = float(sig)
+                out["crlb_sigma"].setdefault(prm.group, {})[prm.key] = float(crlb)
+        if self.temperature_ref is not None:
+            out.setdefault("temperature", {})["reference"] = self.temperature_ref
         if self.history is not None:
             nis = self.history.nis[np.isfinite(self.history.nis)]
             out["filter"] = {

@@ -101,6 +101,15 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
         help="search --delay within +-S seconds (default 2)",
     )  # fmt: skip
     cal.add_argument(
+        "--temperature", metavar="COL",
+        help="DUT temperature column (K or degrees C): fits the offset (uT/K, per axis) and the"
+        " scale (ppm/K) per kelvin, with 1-sigma and Cramer-Rao bound",
+    )  # fmt: skip
+    cal.add_argument(
+        "--temperature-ref", type=float, metavar="T",
+        help="temperature the other parameters refer to (default: the mean of --temperature)",
+    )  # fmt: skip
+    cal.add_argument(
         "--method",
         choices=method_names(),
         help=f"estimator (default: {DEFAULT_METHOD['vector']} with --field,"
@@ -209,7 +218,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     magnitude = [] if args.field is not None or constant is not None else [args.field_magnitude]
     if args.delay and args.time is None:
         raise UserInputError("--delay needs the sample times: add --time COL (seconds)")
+    if args.temperature_ref is not None and args.temperature is None:
+        raise UserInputError("--temperature-ref needs --temperature COL")
     timing = [args.time] if args.time is not None else []
+    timing += [args.temperature] if args.temperature is not None else []
     wanted = list(args.measured) + (args.field or magnitude) + list(args.telemetry) + timing
     wanted = list(dict.fromkeys(wanted))
     if args.drop_invalid:
@@ -249,7 +261,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             channels=tuple(args.telemetry),
         )
     times_s = np.asarray(cols[args.time], float) if args.time is not None else None
-    return _fit_and_emit(samples, args, times_s)
+    temperature = np.asarray(cols[args.temperature], float) if args.temperature else None
+    return _fit_and_emit(samples, args, times_s, temperature)
 
 
 def _odd_window(text: str) -> int:
@@ -292,7 +305,9 @@ def _constant_magnitude(args: argparse.Namespace) -> float | None:
     return value
 
 
-def _fit_and_emit(samples: Any, args: argparse.Namespace, times_s: Any = None) -> int:
+def _fit_and_emit(
+    samples: Any, args: argparse.Namespace, times_s: Any = None, temperature: Any = None
+) -> int:
     """Fit, write the result file, C header and autopilot parameters if asked, print the table."""
     from rig.calibration import calibrate
     from rig.calibration.export_c import c_header
@@ -307,7 +322,8 @@ def _fit_and_emit(samples: Any, args: argparse.Namespace, times_s: Any = None) -
         opts = FilterOptions(args.method, args.filter_variant, args.backend)
     result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust,
                        filter_options=opts, times_s=times_s, delays=tuple(args.delay),
-                       max_delay_s=args.max_delay_s)  # fmt: skip
+                       max_delay_s=args.max_delay_s, temperature=temperature,
+                       temperature_ref=args.temperature_ref)  # fmt: skip
     autopilot = _autopilot_files(result, args)  # before any file: a refusal writes nothing
     if args.history is not None and result.history is not None:
         write_text(args.history, _history_csv(result))
@@ -373,9 +389,9 @@ def _calibrate_run(args: argparse.Namespace) -> int:
     from rig.steps import field_kinds
     from rig.store import RunReader
 
-    if args.delay:
+    if args.delay or args.temperature:
         raise UserInputError(
-            "--delay works on a CSV file with --time: export the run first (rig export RUN"
+            "--delay and --temperature work on a CSV file: export the run first (rig export RUN"
             " --format csv) and calibrate that file"
         )
 

@@ -58,16 +58,19 @@ def calibration_table(result: CalibrationResult, source: str = "", verbose: bool
         lines.append(
             f"  {label:<22}{unit:>8}{val:>14}{sig:>12}{crlb:>14}{result.crlb_ratio[i]:>7.2f}"
         )
-    if result.delays is not None:
-        d = result.delays
-        for ch, tau, sig, crlb_sig in zip(d.channels, d.delays_s, d.sigma_s, d.crlb_sigma_s,
-                                          strict=True):  # fmt: skip
-            val, sig_text = _fmt(float(tau), float(sig))
-            _, crlb_text = _fmt(float(tau), float(crlb_sig))
+    if result.profiled is not None:
+        fit = result.profiled
+        for prm, v, sig, crlb_sig in zip(fit.params, fit.values, fit.sigma, fit.crlb_sigma,
+                                         strict=True):  # fmt: skip
+            per_k = prm.unit == "1/K"  # shown in ppm/K
+            scale = 1e6 if per_k else 1.0
+            val, sig_text = _fmt(float(v) * scale, float(sig) * scale)
+            _, crlb_text = _fmt(float(v) * scale, float(crlb_sig) * scale)
             ratio = float(sig / crlb_sig) if crlb_sig > 0 else float("nan")
-            label = f"delay[{ch}]"
+            label = "scale per kelvin" if per_k else f"delay[{prm.key}]"
+            unit = "ppm/K" if per_k else prm.unit
             lines.append(
-                f"  {label:<22}{'s':>8}{val:>14}{sig_text:>12}{crlb_text:>14}{ratio:>7.2f}"
+                f"  {label:<22}{unit:>8}{val:>14}{sig_text:>12}{crlb_text:>14}{ratio:>7.2f}"
             )
     chi = result.chi2
     noise_src = (

@@ -1,0 +1,202 @@
+"""Parameters found by profile likelihood: telemetry delays and the temperature scale coefficient.
+
+The delays ``tau_j`` of the measurement model ``m = T h + o + sum_j k_j u_j(t - tau_j)``.
+
+A channel's current reaches the DUT's reading later (or earlier) than its telemetry says: a filter
+in the current sensor, the telemetry bus sampling at its own time. With sample times, ``tau_j`` is
+found by profile likelihood: for a trial delay the channel's column is shifted (its own series
+interpolated linearly at ``t - tau``, held at the ends) and the batch estimator refits everything
+else; the weighted residual sum of squares is scanned on a grid over ``+-max_delay_s`` and refined
+by bounded Brent around the best grid point, channel by channel, in sweeps until the delays settle.
+
+Uncertainty: the Fisher information of the whole model with the delays appended - the batch
+estimator's own residual Jacobian for the other parameters, and central differences for the delay
+columns (``k_j du_j/dt`` at ``t - tau_j``) - so sigma and the Cramer-Rao bound include the
+correlation of ``tau_j`` with ``k_j``. A channel that never changes has no observable delay and is
+refused. The same machinery serves any parameter that acts by transforming the samples (see
+:mod:`rig.calibration.temperature`). Linear interpolation turns a step recorded between two samples into a ramp: for step-like
+currents the delay is resolved to a fraction of the telemetry's sample interval, not better.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from rig.calibration.estimate import Estimate
+from rig.calibration.params import Array
+from rig.calibration.residuals import (
+    Samples,
+    scalar_noise_gain,
+    scalar_residuals,
+    vector_residuals,
+)
+from rig.errors import CalibrationError
+
+GRID_POINTS = 21
+"""Trial values of the coarse scan over a parameter's range (the profile can have several minima)."""
+MAX_SWEEPS = 4
+SETTLED = 1e-4
+"""Values that moved less than this fraction of their range in a sweep have settled."""
+
+Refit = Callable[[Samples], Estimate]
+Apply = Callable[[Samples, float], Samples]
+
+
+@dataclass(frozen=True)
+class Profiled:
+    """A parameter found by refitting everything else at trial values: ``apply`` gives the samples
+    as the model sees them at a value. ``group``/``key`` place it in the result file."""
+
+    group: str
+    key: str
+    unit: str
+    bounds: tuple[float, float]
+    step: float
+    """Central-difference step of its information column (inside the data's resolution)."""
+    apply: Apply
+
+
+@dataclass(frozen=True)
+class ProfileFit:
+    """The profiled parameters' values with 1-sigma and Cramer-Rao 1-sigma, the estimate of every
+    other parameter at those values, and the samples as the model saw them there."""
+
+    params: tuple[Profiled, ...]
+    values: Array
+    sigma: Array
+    crlb_sigma: Array
+    estimate: Estimate
+    samples: Samples
+
+
+def shifted(times_s: Array, u: Array, tau_s: float) -> Array:
+    """``u(t - tau)`` at every sample time (linear interpolation, held at the ends)."""
+    return np.asarray(np.interp(times_s - tau_s, times_s, u))
+
+
+def delay_parameter(s: Samples, times_s: Array, channel: str, max_delay_s: float) -> Profiled:
+    """The delay (s) of telemetry ``channel`` within ``+-max_delay_s``."""
+    t = np.asarray(times_s, float)
+    if t.shape != (s.n,) or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+        raise CalibrationError(
+            "delays need the sample times in seconds, finite and increasing: check --time"
+        )
+    if not max_delay_s > 0:
+        raise CalibrationError(f"--max-delay-s must be positive, got {max_delay_s:g}")
+    if channel not in s.channels:
+        raise CalibrationError(
+            f"--delay names {channel}, not a --telemetry channel: add it there too"
+        )
+    j = s.channels.index(channel)
+    recorded = s.telemetry[:, j].copy()
+    if np.ptp(recorded) == 0:
+        raise CalibrationError(f"--delay {channel}: the channel never changes, so its delay cannot"
+                               " be seen; leave it out of --delay")  # fmt: skip
+
+    def apply(data: Samples, tau_s: float) -> Samples:
+        u = data.telemetry.copy()
+        u[:, j] = shifted(t, recorded, tau_s)
+        return Samples(data.measured_ut, data.field_magnitude_ut, u, data.channels, data.field_ut)
+
+    # inside one sample interval: the local slope of the interpolated series
+    step = 0.25 * float(np.median(np.diff(t)))
+    return Profiled("delay_s", channel, "s", (-max_delay_s, max_delay_s), step, apply)
+
+
+def profile_fit(
+    s: Samples, params: tuple[Profiled, ...], refit: Refit, *, noise_ut: float | None = None
+) -> ProfileFit:
+    """Values of ``params`` by profile likelihood over ``s``; ``refit`` fits every other parameter
+    (the batch estimator in use); ``noise_ut`` (raw 1-sigma per axis) sets the Cramer-Rao bound,
+    else the residuals do."""
+    values = np.zeros(len(params))
+
+    def samples_at(v: Array) -> Samples:
+        data = s
+        for prm, value in zip(params, v, strict=True):
+            data = prm.apply(data, float(value))
+        return data
+
+    def cost(v: Array) -> float:
+        data = samples_at(v)
+        try:
+            est = refit(data)
+        except (CalibrationError, np.linalg.LinAlgError):
+            return float("inf")
+        r, _ = weighted_residuals(est, data)
+        return float(r @ r)
+
+    for _ in range(MAX_SWEEPS):
+        before = values.copy()
+        for i, prm in enumerate(params):
+
+            def cost_at(x: float, i: int = i) -> float:
+                trial = values.copy()
+                trial[i] = x
+                return cost(trial)
+
+            lo, hi = prm.bounds
+            grid = np.linspace(lo, hi, GRID_POINTS)
+            width = float(grid[1] - grid[0])
+            costs = [cost_at(float(g)) for g in grid]
+            best = int(np.argmin(costs))
+            sol = minimize_scalar(cost_at, bounds=(max(lo, grid[best] - width),
+                                  min(hi, grid[best] + width)), method="bounded",
+                                  options={"xatol": 1e-6 * (hi - lo)})  # fmt: skip
+            values[i] = float(sol.x) if sol.fun <= costs[best] else float(grid[best])
+        spans = np.array([p.bounds[1] - p.bounds[0] for p in params])
+        if np.all(np.abs(values - before) < SETTLED * spans):
+            break
+    data = samples_at(values)
+    est = refit(data)
+    sigma, crlb = _uncertainty(est, params, samples_at, values, noise_ut)
+    return ProfileFit(params, values, sigma, crlb, est, data)
+
+
+def weighted_residuals(est: Estimate, s: Samples) -> tuple[Array, Array]:
+    """Residuals in units of the raw noise per axis (uT) and their Jacobian in ``est.p``: vector
+    residuals as they are, scalar ones divided by their noise gain (as the ML fit weighs them)."""
+    if est.rotation_ref is not None:
+        return vector_residuals(est.p, s, est.rotation_ref)
+    r, jac = scalar_residuals(est.p, s)
+    gain = scalar_noise_gain(est.p, s)
+    return r / gain, jac / gain[:, None]
+
+
+def _uncertainty(
+    est: Estimate,
+    params: tuple[Profiled, ...],
+    samples_at: Callable[[Array], Samples],
+    values: Array,
+    noise_ut: float | None,
+) -> tuple[Array, Array]:
+    """1-sigma and Cramer-Rao 1-sigma of the profiled parameters from the whole model's
+    information (their columns by central differences at the other parameters' estimate)."""
+    r, jac_p = weighted_residuals(est, samples_at(values))
+    cols = []
+    for i, prm in enumerate(params):
+        up, down = values.copy(), values.copy()
+        up[i] += prm.step
+        down[i] -= prm.step
+        r_up, _ = weighted_residuals(est, samples_at(up))
+        r_down, _ = weighted_residuals(est, samples_at(down))
+        cols.append((r_up - r_down) / (2.0 * prm.step))
+    jac = np.column_stack([jac_p, *cols])
+    try:
+        inv = np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        names = ", ".join(f"{p.group} {p.key}" for p in params)
+        raise CalibrationError(
+            f"{names}: not separable from the other parameters on these data (a delay needs its"
+            " current to change while the DUT is sampled, a temperature coefficient the"
+            " temperature to change)"
+        ) from None
+    k = jac_p.shape[1]
+    sigma_hat2 = float(r @ r) / max(r.size - jac.shape[1], 1)
+    crlb_scale = noise_ut**2 if noise_ut is not None else sigma_hat2
+    diag = np.maximum(np.diag(inv)[k:], 0.0)
+    return np.sqrt(sigma_hat2 * diag), np.sqrt(crlb_scale * diag)
