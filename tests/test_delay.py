@@ -57,14 +57,15 @@ def test_delays_recovered_within_three_sigma_with_the_crlb() -> None:
 @pytest.mark.slow
 def test_delay_sigma_matches_the_monte_carlo_spread() -> None:
     errs, sigmas = [], []
-    for seed in range(20):
-        s, t = cage_with_delayed_currents(100 + seed, n=1500)
+    runs = 15
+    for seed in range(runs):
+        s, t = cage_with_delayed_currents(100 + seed, n=1200)
         fit = estimate_delays(s, t, ("i_a", "i_b"), _vector_refit, max_delay_s=1.0)
         errs.append(fit.delays_s - np.array(TRUE_DELAYS_S))
         sigmas.append(fit.sigma_s)
     spread = np.std(errs, axis=0, ddof=1)
     mean_sigma = np.mean(sigmas, axis=0)
-    assert np.all(np.abs(np.mean(errs, axis=0)) < 3 * mean_sigma / np.sqrt(20))  # unbiased
+    assert np.all(np.abs(np.mean(errs, axis=0)) < 3 * mean_sigma / np.sqrt(runs))  # unbiased
     assert np.all((spread > 0.6 * mean_sigma) & (spread < 1.5 * mean_sigma)), (spread, mean_sigma)
 
 

@@ -305,7 +305,6 @@ class Runner:
             # samplers were too and need a moment to hand over what their sensors sent meanwhile,
             # so their freshness is judged on the next round, not now.
             own_stall = now - last > MONITOR_PERIOD_S + OWN_STALL_S
-            last = now
             for name, load in list(self.loads.items()):
                 try:
                     # On a slow link a read can overlap a change of the same channel (seen: 2.5 A
@@ -327,6 +326,10 @@ class Runner:
                 except (DeviceError, OSError) as exc:
                     self._not_answering(name, exc)
             self._check_health(w, judge_sensors=not own_stall)
+            # only the wait is judged for oversleeping: slow load read-backs (a busy bus, long
+            # retries) must not count as this process being descheduled, or a frozen sensor
+            # would never be judged (a stuck DUT ran on for 27 s under a CPU hog)
+            last = time.monotonic()
 
     def _check_health(self, w: RunWriter, judge_sensors: bool = True) -> None:
         if w.error is not None:
