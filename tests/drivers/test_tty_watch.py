@@ -18,6 +18,7 @@ from drivers.transport import modbus, serial_port, tty_watch
 from drivers.transport.modbus import ModbusLink
 from drivers.transport.serial_port import SerialPort
 from drivers.transport.tty_watch import TOLERANCE_S, TtyWatch
+from tests.drivers.scripted import crc16
 
 
 def test_stall_is_the_overlap_of_recorded_spans_with_the_window() -> None:
@@ -113,15 +114,6 @@ def test_serial_read_waits_out_a_terminal_stall(
         port.close()
 
 
-def _crc16(frame: bytes) -> bytes:
-    crc = 0xFFFF
-    for byte in frame:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc.to_bytes(2, "little")
-
-
 def test_modbus_rtu_attempt_waits_out_a_terminal_stall(
     pty_pair: tuple[int, str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -131,7 +123,7 @@ def test_modbus_rtu_attempt_waits_out_a_terminal_stall(
     try:
         reply = b"\x01\x03\x04\x00\x07\x00\x09"
         monkeypatch.setattr(modbus, "tty_stall_s", stall_until(time.monotonic() + 1.0))
-        _reply_after(master, 0.9, reply + _crc16(reply))
+        _reply_after(master, 0.9, reply + crc16(reply))
         assert link.read_registers(8, 2) == [7, 9]
         request = os.read(master, 64)
         assert request[:2] == b"\x01\x03"
