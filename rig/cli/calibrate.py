@@ -53,6 +53,11 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
         help="reference field magnitude (scalar calibration): a column, or one number for a"
         " constant field (e.g. 0.47 with --unit G); in --field-unit",
     )
+    ref.add_argument(
+        "--igrf", metavar="LAT,LON,ALT_KM,DATE",
+        help="constant reference magnitude from IGRF at this place (degrees, degrees east, km"
+        " above the ellipsoid) and date (YYYY-MM-DD): a sensor turned in the Earth's field",
+    )  # fmt: skip
     cal.add_argument(
         "--unit",
         default="uT",
@@ -203,9 +208,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             )
     if args.measured is None:
         raise UserInputError("--measured COLX,COLY,COLZ is required for a CSV file")
-    if args.field is None and args.field_magnitude is None:
+    if args.field is None and args.field_magnitude is None and args.igrf is None:
         raise UserInputError(
-            "give --field COLX,COLY,COLZ (vector) or --field-magnitude COL|VALUE (scalar)"
+            "give --field COLX,COLY,COLZ (vector), --field-magnitude COL|VALUE or --igrf"
+            " LAT,LON,ALT_KM,DATE (scalar)"
         )
     if len(args.measured) != 3:
         raise UserInputError(f"--measured needs three columns X,Y,Z, got {len(args.measured)}")
@@ -215,6 +221,14 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         raise UserInputError("--telemetry names a column twice: list each channel once")
     measured_ut_per, field_ut_per = _unit_factors(args)
     constant = _constant_magnitude(args)
+    if args.igrf is not None:
+        from rig.geomag import igrf_magnitude_ut, parse_igrf_site
+
+        lat, lon, alt, date = parse_igrf_site(args.igrf)
+        constant = igrf_magnitude_ut(lat, lon, alt, date) / field_ut_per  # in the field unit
+        if not args.quiet:
+            print(f"--igrf: |B| = {constant * field_ut_per:.3f} uT (IGRF at {lat:g}, {lon:g},"
+                  f" {alt:g} km on {date:%Y-%m-%d})", file=sys.stderr)  # fmt: skip
     magnitude = [] if args.field is not None or constant is not None else [args.field_magnitude]
     if args.delay and args.time is None:
         raise UserInputError("--delay needs the sample times: add --time COL (seconds)")
