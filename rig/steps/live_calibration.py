@@ -28,6 +28,7 @@ from rig.calibration.estimate import delta_method
 from rig.calibration.params import Array
 from rig.calibration.residuals import p_from_theta, parameter_names
 from rig.calibration.result import summarize
+from rig.calibration.sequential.guard import DivergenceWatch, batch_theta, check_final
 from rig.calibration.sequential.realtime import FilterOptions, filter_estimate, make_filter
 from rig.calibration.sequential.zmodel import z_sample
 from rig.calibration.targets import group_sigmas, unmet_targets
@@ -89,6 +90,7 @@ class LiveCalibration:
         self._reference: tuple[float, Array] | None = None
         self._rows: list[tuple[Array, float, Array, float]] = []
         self._nis: list[float] = []
+        self._watch = DivergenceWatch()  # divergence: re-initialized from the batch estimate
         self._recorded: tuple[list[int], list[Array], list[Array]] = ([], [], [])
         self._next_check = t0 + CHECK_EVERY_S
         self._thread = threading.Thread(target=self._run, name="live-calibration", daemon=True)
@@ -151,6 +153,8 @@ class LiveCalibration:
         info = self.filter.update(z_sample(m, h_mag, u), 0.0)
         self._rows.append((m, h_mag, u, t))
         self._nis.append(info.nis if info is not None else math.nan)
+        if self._watch.diverged(len(self._rows) - 1, None if info is None else info.nis):
+            self._reinitialize()
         if t >= self._next_check:
             self._next_check = t + CHECK_EVERY_S
             self._evaluate(t)
@@ -179,8 +183,38 @@ class LiveCalibration:
             and elapsed >= float(self.params["min_s"])
             and not unmet_targets(sigmas, self.targets)
         ):
+            if not self._agrees_with_batch(theta):
+                self._reinitialize()  # small sigmas of a wrong answer: not a reason to stop
+                return
             self.reason = f"targets met after {elapsed:.1f} s ({len(self._rows)} samples)"
             self.done.set()
+
+    def _samples(self) -> Samples:
+        """The settled samples so far, as calibration input."""
+        m = np.array([r[0] for r in self._rows])
+        h_mag = np.array([r[1] for r in self._rows])
+        u = np.array([r[2] for r in self._rows]).reshape(len(self._rows), -1)
+        return Samples.build(
+            m, field_magnitude_ut=h_mag, telemetry=u if self.channels else None,
+            channels=self.channels,
+        )  # fmt: skip
+
+    def _reinitialize(self) -> None:
+        """Restart the filter from the batch estimate of the samples so far (a divergence)."""
+        try:
+            x, cov = batch_theta(self._samples())
+            self.filter.reset(x, cov)
+        except (CalibrationError, np.linalg.LinAlgError):
+            pass  # no batch estimate from these samples yet: judged again a window later
+        self._watch.recovered(len(self._rows) - 1)
+
+    def _agrees_with_batch(self, theta: Array) -> bool:
+        """The estimate fits the samples so far about as well as their batch estimate."""
+        try:
+            check_final(theta, self._samples(), self.noise_ut, self.opts.method, self._watch.report)
+        except CalibrationError:
+            return False
+        return True
 
     # --- the end --------------------------------------------------------------------------------
 
@@ -218,16 +252,16 @@ class LiveCalibration:
                 f"live calibration '{step_name}': the filter never became observable"
                 f" ({len(self._rows)} settled samples): lengthen max_s or the dwell"
             )
-        m = np.array([r[0] for r in self._rows])
-        h_mag = np.array([r[1] for r in self._rows])
-        u = np.array([r[2] for r in self._rows]).reshape(len(self._rows), -1)
-        data = Samples.build(
-            m, field_magnitude_ut=h_mag, telemetry=u if self.channels else None,
-            channels=self.channels,
-        )  # fmt: skip
+        data = self._samples()
+        n_theta = 9 + 3 * len(self.channels)
+        try:  # a filter that still disagrees with the batch fit gives no result
+            check_final(np.asarray(self.filter.x[:n_theta], float), data, self.noise_ut,
+                        self.opts.method, self._watch.report)  # fmt: skip
+        except CalibrationError as exc:
+            raise CalibrationError(f"live calibration '{step_name}': {exc}") from None
         est = filter_estimate(
             self.filter, len(self.channels), self.opts, self.noise_ut, np.array(self._nis),
-            self._recorded,
+            self._recorded, self._watch.report,
         )  # fmt: skip
         result = summarize(est, data, 1000.0 * self.noise_ut).to_dict()
         history_file = f"live-{_slug(step_name)}.csv"

@@ -158,11 +158,20 @@ def test_bipolar_supply_reverses_through_zero_over_modbus(tmp_path: Path) -> Non
             time.sleep(0.3)
             assert abs(cage.physics.coil_currents()[0] - 0.4) < 1e-3
             neg = (-400) & 0xFFFF  # int16 two's complement
+            t_asked = time.monotonic()
             assert not c.write_register(0x11, neg, device_id=1).isError()
-            t_flip = time.monotonic()
+            t_answered = time.monotonic()  # the flip happened in between, however long that took
             tau = cfg.cage.inductance_h[0] / cfg.cage.resistance_ohm[0]
-            mid = cage.physics.coil_currents(t_flip + tau * math.log(2))[0]
-            assert abs(mid) < 0.02  # passes through zero, continuously
+            # continuously through zero: an L/R decay from +0.4 A toward -0.4 A, i(t) = -0.4 +
+            # 0.8 exp(-(t - t_flip) / tau), which crosses zero tau ln 2 after the flip; every
+            # sample after the answer must put the flip between the request and the answer
+            t = np.linspace(t_answered, t_answered + 3 * tau, 500)
+            i = np.array([cage.physics.coil_currents(tk)[0] for tk in t])
+            implied_flip = t + tau * np.log((i + 0.4) / 0.8)
+            assert np.all(implied_flip >= t_asked - 1e-3), (implied_flip - t_asked).min()
+            assert np.all(implied_flip <= t_answered + 1e-3), (implied_flip - t_answered).max()
+            assert np.all(np.diff(i) < 0)  # no jump back: a monotonic decay through zero
+            assert i[-1] < 0
             time.sleep(0.3)
             i_out = c.read_holding_registers(0x21, count=1, device_id=1).registers[0]
             assert i_out == neg  # signed readback
