@@ -24,16 +24,13 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from bench_realtime_filters import MG_PER_UT, NOISE_UT, PAPER, ROWS
+from bench_realtime_filters import B_TRUE_UT, D_TRUE, MG_PER_UT, NOISE_UT, PAPER, ROWS, b_and_d
 
 from rig.calibration.residuals import Samples
 from rig.calibration.sequential.realtime import FilterOptions, run_filter
-from rig.calibration.sequential.zmodel import symmetric_root
 from rig.errors import CalibrationError
 from rig.steps.orbit import circular_orbit_track
 
-B_PAPER_MG = np.array([50.0, 30.0, 60.0])
-D_PAPER = np.array([[0.05, 0.05, 0.05], [0.05, 0.10, 0.05], [0.05, 0.05, 0.05]])
 WRONG_B_MG = 2.0
 WRONG_D = 0.005
 FILTERS = {
@@ -60,17 +57,9 @@ def truth(
     rng: np.random.Generator, b_spread_mg: float, d_spread: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Bias (uT) and symmetric D of one run."""
-    b = (B_PAPER_MG + rng.uniform(-b_spread_mg, b_spread_mg, 3)) / MG_PER_UT
+    b = B_TRUE_UT + rng.uniform(-b_spread_mg, b_spread_mg, 3) / MG_PER_UT
     a = rng.uniform(-d_spread, d_spread, (3, 3))
-    return b, D_PAPER + 0.5 * (a + a.T)
-
-
-def b_and_d(theta: np.ndarray) -> np.ndarray:
-    """``[b (mG), D11, D22, D33, D12, D13, D23]`` from the z-model state."""
-    root = symmetric_root(theta)
-    b = np.linalg.solve(root, theta[:3]) * MG_PER_UT
-    d = root - np.eye(3)
-    return np.concatenate([b, d[[0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]])
+    return b, D_TRUE + 0.5 * (a + a.T)
 
 
 def main() -> int:

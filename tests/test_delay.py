@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rig.calibration.estimators import FitRequest, estimator
-from rig.calibration.profiled import delay_parameter, profile_fit, shifted
+from rig.calibration.profiled import ProfileFit, delay_parameter, profile_fit, shifted
 from rig.calibration.residuals import Samples
 from rig.errors import CalibrationError
 
@@ -32,11 +32,10 @@ def cage_with_delayed_currents(seed: int, n: int = 3000, rate_hz: float = 20.0):
     return Samples.build(m, field_ut=h, telemetry=u, channels=("i_a", "i_b")), t
 
 
-def estimate_delays(s, t, channels, refit, max_delay_s=2.0, noise_ut=None):
+def estimate_delays(s, t, channels, refit, max_delay_s=2.0, noise_ut=None) -> ProfileFit:
+    """The delays of ``channels`` as ``rig calibrate --delay`` finds them."""
     params = tuple(delay_parameter(s, t, c, max_delay_s) for c in channels)
-    fit = profile_fit(s, params, refit, noise_ut=noise_ut)
-    return type("F", (), {"delays_s": fit.values, "sigma_s": fit.sigma,
-                          "crlb_sigma_s": fit.crlb_sigma, "estimate": fit.estimate})  # fmt: skip
+    return profile_fit(s, params, refit, noise_ut=noise_ut)
 
 
 def _vector_refit(data: Samples):
@@ -46,10 +45,10 @@ def _vector_refit(data: Samples):
 def test_delays_recovered_within_three_sigma_with_the_crlb() -> None:
     s, t = cage_with_delayed_currents(1)
     fit = estimate_delays(s, t, ("i_a", "i_b"), _vector_refit, max_delay_s=1.0, noise_ut=NOISE_UT)
-    err = fit.delays_s - np.array(TRUE_DELAYS_S)
-    assert np.all(np.abs(err) < 3 * fit.sigma_s), (fit.delays_s, fit.sigma_s)
-    assert np.all(fit.sigma_s < 0.01)  # ms-level on 3000 samples of smooth currents
-    np.testing.assert_allclose(fit.crlb_sigma_s, fit.sigma_s, rtol=0.1)  # noise known and right
+    err = fit.values - np.array(TRUE_DELAYS_S)
+    assert np.all(np.abs(err) < 3 * fit.sigma), (fit.values, fit.sigma)
+    assert np.all(fit.sigma < 0.01)  # ms-level on 3000 samples of smooth currents
+    np.testing.assert_allclose(fit.crlb_sigma, fit.sigma, rtol=0.1)  # noise known and right
     k = fit.estimate.p[12:].reshape(-1, 3)
     np.testing.assert_allclose(k, K_TRUE, atol=0.01)
 
@@ -61,8 +60,8 @@ def test_delay_sigma_matches_the_monte_carlo_spread() -> None:
     for seed in range(runs):
         s, t = cage_with_delayed_currents(100 + seed, n=1200)
         fit = estimate_delays(s, t, ("i_a", "i_b"), _vector_refit, max_delay_s=1.0)
-        errs.append(fit.delays_s - np.array(TRUE_DELAYS_S))
-        sigmas.append(fit.sigma_s)
+        errs.append(fit.values - np.array(TRUE_DELAYS_S))
+        sigmas.append(fit.sigma)
     spread = np.std(errs, axis=0, ddof=1)
     mean_sigma = np.mean(sigmas, axis=0)
     assert np.all(np.abs(np.mean(errs, axis=0)) < 3 * mean_sigma / np.sqrt(runs))  # unbiased

@@ -137,19 +137,21 @@ def tty_watch() -> TtyWatch:
         return _watch
 
 
+def _current() -> TtyWatch | None:
+    """This process's canary if one was started (a forked child's copy is not its own)."""
+    watch = _watch
+    return watch if watch is not None and watch.pid == os.getpid() else None
+
+
 def tty_stall_s(since: float, until: float | None = None) -> float:
     """Seconds of ``[since, until]`` (monotonic, s) the terminal layer may have held serial data
     back (generous: for timeouts); 0 before any serial port was opened in this process."""
-    watch = _watch
-    if watch is None or watch.pid != os.getpid():
-        return 0.0
-    return watch.stalled_s(since, until)
+    watch = _current()
+    return 0.0 if watch is None else watch.stalled_s(since, until)
 
 
 def tty_seen_stall_s(since: float, until: float | None = None) -> float:
     """Seconds of ``[since, until]`` the canary saw the terminal layer hold data back while this
     process was running (strict: for judging which samples came through a stall)."""
-    watch = _watch
-    if watch is None or watch.pid != os.getpid():
-        return 0.0
-    return watch.seen_stalled_s(since, until)
+    watch = _current()
+    return 0.0 if watch is None else watch.seen_stalled_s(since, until)

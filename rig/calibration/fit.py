@@ -98,10 +98,11 @@ def calibrate(
         )
     if est.kind == "batch" and not vector and s.field_ut is not None:
         notes = ("field vector given but a scalar method chosen: only |h| was used",)
-    profiled = tuple(delay_parameter(data, times_s, c, max_delay_s) for c in delays) if (
-        delays and times_s is not None) else ()  # fmt: skip
-    if delays and times_s is None:
-        raise CalibrationError("--delay needs the sample times: give --time COL (seconds)")
+    profiled: tuple[Profiled, ...] = ()
+    if delays:
+        if times_s is None:
+            raise CalibrationError("--delay needs the sample times: give --time COL (seconds)")
+        profiled = tuple(delay_parameter(data, times_s, c, max_delay_s) for c in delays)
     if temperature is not None:
         profiled += (scale_parameter(data),)
     if profiled:

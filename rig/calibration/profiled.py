@@ -13,9 +13,10 @@ Uncertainty: the Fisher information of the whole model with the delays appended 
 estimator's own residual Jacobian for the other parameters, and central differences for the delay
 columns (``k_j du_j/dt`` at ``t - tau_j``) - so sigma and the Cramer-Rao bound include the
 correlation of ``tau_j`` with ``k_j``. A channel that never changes has no observable delay and is
-refused. The same machinery serves any parameter that acts by transforming the samples (see
-:mod:`rig.calibration.temperature`). Linear interpolation turns a step recorded between two samples into a ramp: for step-like
-currents the delay is resolved to a fraction of the telemetry's sample interval, not better.
+refused. Linear interpolation turns a step recorded between two samples into a ramp: for
+step-like currents the delay is resolved to a fraction of the telemetry's sample interval, not
+better. The same machinery serves any parameter that acts by transforming the samples (see
+:mod:`rig.calibration.temperature`).
 """
 
 from __future__ import annotations

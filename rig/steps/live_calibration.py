@@ -28,7 +28,7 @@ from rig.calibration.estimate import delta_method
 from rig.calibration.params import Array
 from rig.calibration.residuals import p_from_theta, parameter_names
 from rig.calibration.result import summarize
-from rig.calibration.sequential.guard import DivergenceWatch, batch_theta, check_final
+from rig.calibration.sequential.guard import DivergenceWatch, check_final
 from rig.calibration.sequential.realtime import FilterOptions, filter_estimate, make_filter
 from rig.calibration.sequential.zmodel import z_sample
 from rig.calibration.targets import group_sigmas, unmet_targets
@@ -201,12 +201,7 @@ class LiveCalibration:
 
     def _reinitialize(self) -> None:
         """Restart the filter from the batch estimate of the samples so far (a divergence)."""
-        try:
-            x, cov = batch_theta(self._samples())
-            self.filter.reset(x, cov)
-        except (CalibrationError, np.linalg.LinAlgError):
-            pass  # no batch estimate from these samples yet: judged again a window later
-        self._watch.recovered(len(self._rows) - 1)
+        self._watch.reinitialize(self.filter, self._samples(), len(self._rows) - 1)
 
     def _agrees_with_batch(self, theta: Array) -> bool:
         """The estimate fits the samples so far about as well as their batch estimate."""

@@ -17,8 +17,10 @@ covariance says all is well. Two statistics catch it, both in chi-square units o
 
 from __future__ import annotations
 
+import contextlib
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from scipy.stats import chi2
@@ -69,8 +71,14 @@ class GuardReport:
     limit: float = float("nan")
 
 
+class Resettable(Protocol):
+    """A filter that can be restarted from a state and covariance."""
+
+    def reset(self, x: Array, P: Array) -> None: ...
+
+
 class DivergenceWatch:
-    """Windowed NIS of one filter run; says when to re-initialize."""
+    """Windowed NIS of one filter run; says when to re-initialize, and does it."""
 
     def __init__(self) -> None:
         self._nis: deque[float] = deque(maxlen=WINDOW)
@@ -94,6 +102,13 @@ class DivergenceWatch:
         self.report.recoveries.append(k)
         self._nis.clear()
         self._quiet_until = k + WINDOW
+
+    def reinitialize(self, f: Resettable, seen: Samples, k: int) -> None:
+        """Restart ``f`` at update ``k`` from the batch estimate of the samples ``seen`` so far;
+        without one (too few samples yet) it is judged again a window later all the same."""
+        with contextlib.suppress(CalibrationError, np.linalg.LinAlgError):
+            f.reset(*batch_theta(seen))
+        self.recovered(k)
 
 
 def check_final(

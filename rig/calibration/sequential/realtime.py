@@ -26,7 +26,7 @@ from rig.calibration.sequential.filters import (
     UpdateInfo,
     initial_covariance,
 )
-from rig.calibration.sequential.guard import DivergenceWatch, GuardReport, batch_theta, check_final
+from rig.calibration.sequential.guard import DivergenceWatch, GuardReport, check_final
 from rig.calibration.sequential.zmodel import ZModel, ZSample, z_sample
 from rig.errors import CalibrationError
 
@@ -172,12 +172,7 @@ def run_filter(
         if info is not None:
             nis[k] = info.nis
         if guarded and watch.diverged(k, None if info is None else info.nis):
-            try:
-                x_batch, p_batch = batch_theta(s.head(k + 1))
-                f.reset(x_batch, p_batch)
-                watch.recovered(k)
-            except (CalibrationError, np.linalg.LinAlgError):
-                watch.recovered(k)  # no better start from these samples yet: look again later
+            watch.reinitialize(f, s.head(k + 1), k)
         if f.ready and ((k + 1) % every == 0 or k == s.n - 1):
             idx.append(k)
             xs.append(f.x[: 9 + 3 * s.n_channels].copy())
