@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Collection
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -14,6 +14,20 @@ from rig.errors import CalibrationError
 from rig.store.run_store import RunReader
 
 Array = npt.NDArray[np.float64]
+
+UNRESOLVED_SIGMA = 8.0
+"""A reference sample whose second difference is this many robust standard deviations beyond the
+others' marks a field change faster than the reference rate resolves."""
+
+
+class PairedSamples(NamedTuple):
+    """DUT samples paired with the reference field and load currents at their times."""
+
+    samples: Samples
+    t_s: Array
+    """Monotonic time of each sample (s)."""
+    unresolved: int
+    """DUT samples left out because the field moved faster than the reference could follow."""
 
 
 def change_times(reader: RunReader) -> Array:
@@ -142,9 +156,12 @@ def calibration_data(
     settle_s: float,
     correction: dict[str, Any] | None,
     field_kinds: Collection[str] = (),
-) -> tuple[Samples, Array]:
-    """DUT readings with the reference field (cage frame) and load currents at the same times,
-    and the monotonic time of each sample (s)."""
+) -> PairedSamples:
+    """DUT readings with the reference field (cage frame) and load currents at the same times.
+
+    A DUT sample is left out (and counted) when the reference samples around it show the field
+    jumping between them (:func:`unresolved_field`): the reference cannot say which field the DUT
+    saw. Polarity flips, ramps and commands a supply took late (a busy computer) make such jumps."""
     rows = np.array(reader.samples(dut), float).reshape(-1, 4)
     ref = np.array(reader.samples(reference), float).reshape(-1, 4)
     if rows.shape[0] == 0 or ref.shape[0] < 2:
@@ -164,11 +181,39 @@ def calibration_data(
         raise CalibrationError(
             "no settled DUT samples in the selected steps: hold each field longer than settle_s"
         )
+    in_run = keep.copy()
+    keep[keep] &= ~unresolved_field(ref, t[keep])
     t = t[keep]
     field = np.column_stack([np.interp(t, ref[:, 0], ref[:, 1 + i]) for i in range(3)])
     field = to_cage_frame(field, correction)
     u = np.column_stack([hold_values(reader, ch, t) for ch in telemetry]) if telemetry else None
-    return Samples.build(rows[keep, 1:], field_ut=field, telemetry=u, channels=tuple(telemetry)), t
+    if keep.sum() == 0:
+        raise CalibrationError(
+            "the field moved faster than the reference could follow at every DUT sample"
+        )
+    samples = Samples.build(rows[keep, 1:], field_ut=field, telemetry=u, channels=tuple(telemetry))
+    return PairedSamples(samples, t, int(in_run.sum() - keep.sum()))
+
+
+def unresolved_field(ref: Array, t_s: Array) -> npt.NDArray[np.bool_]:
+    """True for each time in ``t_s`` (s) whose bracketing reference samples (rows t s, x, y, z uT)
+    include one whose second difference is an outlier (:data:`UNRESOLVED_SIGMA` robust standard
+    deviations of those in the span of ``t_s``, any axis): there the field changed within a
+    reference period and no interpolation recovers it. Steady tracking and noise pass."""
+    out = np.zeros(t_s.shape, bool)
+    if ref.shape[0] < 5 or t_s.size == 0:
+        return out
+    d2 = np.abs(ref[2:, 1:] - 2.0 * ref[1:-1, 1:] + ref[:-2, 1:])
+    mid = ref[1:-1, 0]
+    span = (mid >= t_s.min()) & (mid <= t_s.max())
+    if span.sum() < 5:
+        return out
+    typical = d2[span]
+    sigma = 1.4826 * np.median(np.abs(typical - np.median(typical, axis=0)), axis=0)
+    jump = np.zeros(ref.shape[0], bool)
+    jump[1:-1] = np.any(d2 > UNRESOLVED_SIGMA * np.maximum(sigma, 1e-9), axis=1)
+    i = np.clip(np.searchsorted(ref[:, 0], t_s, side="right") - 1, 0, ref.shape[0] - 2)
+    return jump[i] | jump[i + 1]
 
 
 def stored_run_data(
@@ -177,7 +222,7 @@ def stored_run_data(
     settle_s: float = 0.25,
     *,
     field_kinds: Collection[str],
-) -> tuple[Samples, Array]:
+) -> PairedSamples:
     """:func:`calibration_data` of every field step (``field_kinds``: rig.steps.field_kinds())
     of a finished run, with the DUT, reference and reference certificate its metadata recorded."""
     meta = reader.meta()
@@ -191,14 +236,24 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
     """The ``calibrate`` step: fit the DUT from the run so far (the named steps, or every step of
     ``field_kinds``); returns the result file content."""
     dut = magnetometers.get(params["magnetometer"], params["magnetometer"])
-    samples, _ = calibration_data(reader, dut, magnetometers.get("reference", "reference"),
-                                  params["telemetry"], params["steps"], params["settle_s"], correction,
-                                  field_kinds)  # fmt: skip
+    samples, _, unresolved = calibration_data(
+        reader, dut, magnetometers.get("reference", "reference"), params["telemetry"],
+        params["steps"], params["settle_s"], correction, field_kinds)  # fmt: skip
     method = params["method"] or DEFAULT_METHOD[params["model"]]
     if params["model"] == "scalar" and estimator(method).model == "vector":
         raise CalibrationError(f"a scalar calibration cannot use method '{method}'")
-    result = calibrate(samples, method, noise_nt=params["noise_nt"] or None)
-    return result.to_dict()
+    out = calibrate(samples, method, noise_nt=params["noise_nt"] or None).to_dict()
+    out["unresolved_field_samples"] = unresolved
+    if unresolved:
+        out["warnings"].insert(0, unresolved_note(unresolved, samples.n + unresolved))
+    return out
+
+
+def unresolved_note(unresolved: int, total: int) -> str:
+    """The warning for DUT samples left out by :func:`unresolved_field`."""
+    return (f"{unresolved} of {total} DUT samples left out: the field changed faster than the"
+            " reference's sample rate resolves there (a polarity flip, a ramp, a late command), so"
+            " the field the DUT saw is unknown")  # fmt: skip
 
 
 def lookup(results: dict[str, Any], result: str, path: str) -> float:

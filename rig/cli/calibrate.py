@@ -399,7 +399,7 @@ def _history_csv(result: Any) -> str:
 def _calibrate_run(args: argparse.Namespace) -> int:
     """Re-fit the DUT from a stored run (its procedure's magnetometers and loads by default);
     ``--method ml`` (or another scalar method) fits attitude-independently from the same data."""
-    from rig.analysis import stored_run_data
+    from rig.analysis import stored_run_data, unresolved_note
     from rig.steps import field_kinds
     from rig.store import RunReader
 
@@ -412,7 +412,9 @@ def _calibrate_run(args: argparse.Namespace) -> int:
     reader = RunReader(args.data)
     try:
         telemetry = list(args.telemetry) if args.telemetry else list(reader.meta().get("loads", []))
-        samples, _ = stored_run_data(reader, telemetry, field_kinds=field_kinds())
+        samples, _, unresolved = stored_run_data(reader, telemetry, field_kinds=field_kinds())
     finally:
         reader.close()
+    if unresolved and not args.quiet:
+        print(f"note: {unresolved_note(unresolved, samples.n + unresolved)}", file=sys.stderr)
     return _fit_and_emit(samples, args)
