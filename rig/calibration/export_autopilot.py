@@ -148,13 +148,15 @@ def _header(result: CalibrationResult, autopilot: str, source: str) -> list[str]
     ]
 
 
-def _left_out_channels(split: _Split, where: str) -> list[str]:
+def _left_out_channels(split: _Split, where: str, result: CalibrationResult) -> list[str]:
+    lines = [f"# {line}" for line in result.unexported_model(where)]
     if not split.left_out:
-        return []
+        return lines
     names = ", ".join(split.left_out)
     return [
         f"# left out: current-to-bias of channel(s) {names}: {where} takes one current channel"
-        " (name it to export it)"
+        " (name it to export it)",
+        *lines,
     ]
 
 
@@ -224,7 +226,7 @@ def ardupilot_params(
             f"# current: channel '{split.channel}' must be the battery monitor's current in A;"
             f" MOT = -10 * S k (added after the matrix)"
         )
-    lines += _left_out_channels(split, "ArduPilot (COMPASS_MOTCT = 2)")
+    lines += _left_out_channels(split, "ArduPilot", result)
     groups = [("OFS", ofs), ("DIA", dia), ("ODI", odi)]
     if mot is not None:
         groups.append(("MOT", mot))
@@ -284,7 +286,7 @@ def px4_params(
             f"# current: channel '{split.channel}' must be battery_status instance 0's current"
             " in A; COMP = -10 * k gauss/kA (added before the offset, in the sensor frame)"
         )
-    lines += _left_out_channels(split, "PX4 (CAL_MAG_COMP_TYP = 2)")
+    lines += _left_out_channels(split, "PX4", result)
     groups = [("OFF", off), ("SCALE", scale), ("ODIAG", odiag)]
     params: list[tuple[str, float, int]] = []
     if comp is not None:

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
+
 from rig.calibration.params import Array
 from rig.calibration.result import CalibrationResult
+from rig.calibration.temperature import CHANNEL as TEMPERATURE
 
 
 def _c_identifier(text: str) -> str:
@@ -43,6 +46,22 @@ def c_header(result: CalibrationResult, prefix: str = "magcal", source: str = ""
     ]
     for j, ch in enumerate(cal.channels):
         lines.append(f"#define {name}_CHANNEL_{_c_identifier(ch)} {j} /* '{ch}' */")
+    delays = result.profiled_values("delay_s")
+    if delays:
+        lines += [
+            "/* telemetry delays (s): pass u[j] as channel j read delay_s[j] before the reading"
+            " (positive: the DUT sees the current later than the telemetry says) */",
+            f"static const float {fn}_delay_s[{max(n_ch, 1)}] = {{"
+            f"{_floats(np.array([delays.get(ch, 0.0) for ch in cal.channels]))}}};",
+        ]
+    scale_per_k = result.profiled_values("temperature").get("scale_per_k")
+    t_index = cal.channels.index(TEMPERATURE) if TEMPERATURE in cal.channels else None
+    if result.temperature_ref is not None:
+        lines.append(f"/* u[{name}_CHANNEL_{_c_identifier(TEMPERATURE)}] is T - T_ref (K), T_ref ="
+                     f" {result.temperature_ref:g} */")  # fmt: skip
+        lines.append(f"#define {name}_TEMPERATURE_REF {result.temperature_ref!r}f")
+    if scale_per_k is not None:
+        lines.append(f"#define {name}_SCALE_PER_K {scale_per_k!r}f /* 1/K */")
     lines += [
         "",
         f"static const float {fn}_w[3][3] = {{",
@@ -76,10 +95,21 @@ def c_header(result: CalibrationResult, prefix: str = "magcal", source: str = ""
             "            }",
             "        }",
         ]
+    gain = ""
+    if scale_per_k is not None and t_index is not None:
+        lines += [
+            "    }",
+            "    /* the sensitivity changes with temperature: divide it out */",
+            f"    const float g = (u != NULL) ? 1.0f / (1.0f + {name}_SCALE_PER_K * u[{t_index}])"
+            " : 1.0f;",
+            "    for (int i = 0; i < 3; ++i) {",
+        ]
+        gain = "g * "
+    else:
+        lines.append("    }")
+        lines.append("    for (int i = 0; i < 3; ++i) {")
     lines += [
-        "    }",
-        "    for (int i = 0; i < 3; ++i) {",
-        f"        h[i] = {fn}_w[i][0] * v[0] + {fn}_w[i][1] * v[1] + {fn}_w[i][2] * v[2];",
+        f"        h[i] = {gain}({fn}_w[i][0] * v[0] + {fn}_w[i][1] * v[1] + {fn}_w[i][2] * v[2]);",
         "    }",
     ]
     if not n_ch:

@@ -94,6 +94,28 @@ class CalibrationResult:
         """1-sigma Cramer-Rao bound of ``p`` at the estimate."""
         return np.sqrt(np.maximum(np.diag(self.crlb), 0.0))
 
+    def profiled_values(self, group: str) -> dict[str, float]:
+        """Profiled parameters of one group (``delay_s``: s per channel; ``temperature``:
+        ``scale_per_k`` in 1/K); empty when the fit had none."""
+        if self.profiled is None:
+            return {}
+        return {prm.key: float(v) for prm, v in zip(self.profiled.params, self.profiled.values,
+                                                    strict=True) if prm.group == group}  # fmt: skip
+
+    def unexported_model(self, who: str) -> list[str]:
+        """One line per part of the model ``who`` (an export without delays or a temperature
+        scale) leaves out, naming the value: a flight computer without it applies a different
+        correction from the one fitted."""
+        out = []
+        for ch, tau in self.profiled_values("delay_s").items():
+            out.append(f"left out: channel '{ch}' delay {tau:+.4f} s ({who} applies currents"
+                       " undelayed): feed it the current that much earlier or later")  # fmt: skip
+        scale = self.profiled_values("temperature").get("scale_per_k")
+        if scale is not None:
+            out.append(f"left out: temperature scale coefficient {scale * 1e6:+.1f} ppm/K about"
+                       f" {self.temperature_ref:g} ({who} has no such term)")  # fmt: skip
+        return out
+
     @property
     def crlb_ratio(self) -> Array:
         """Reported sigma over the Cramer-Rao sigma (1 = efficient)."""

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -176,3 +177,31 @@ def test_deadlocked_main_thread_is_caught(
     err = proc.stderr.read()
     assert "no progress for" in err and "stopped answering" in err, err
     print(f"deadlock: outputs off {took:.2f} s after the field was set")
+
+
+def test_time_a_thread_waits_for_a_cpu_is_measured() -> None:
+    """The heartbeat discounts the main thread's wait for a CPU (a busy computer) from its
+    'no progress' time: run_delay_s must see that wait. This thread and a spinning child pinned
+    to the same CPU share it, so this thread waits about half the time it wants to run."""
+    import time
+
+    from rig.engine.session import run_delay_s
+
+    cpu = min(os.sched_getaffinity(0))
+    old = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {cpu})
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"],
+                           preexec_fn=lambda: os.sched_setaffinity(0, {cpu}))  # fmt: skip
+    try:
+        time.sleep(0.3)  # the child is spinning
+        me = threading.get_native_id()
+        before, t0 = run_delay_s(me), time.monotonic()
+        while time.monotonic() - t0 < 1.0:
+            pass
+        waited, wall = run_delay_s(me) - before, time.monotonic() - t0
+    finally:
+        hog.kill()
+        hog.wait()
+        os.sched_setaffinity(0, old)
+    # about half the time alone; more beside other work on that CPU; never more than it took
+    assert 0.2 < waited < wall + 0.05, (waited, wall)

@@ -110,8 +110,11 @@ def test_a_slow_supply_link_does_not_cost_the_tracked_samples(tmp_path: Path) ->
             t - float(p["t_issued"]) for t, _, kind, p in reader.commands() if kind == "field"
         )
         in_step = sum(t0 <= s[0] <= t1 for s in reader.samples("dut"))
-        samples, _, _ = calibration_data(reader, "dut", "reference", [], ["orbit"], 0.0, None)
+        samples, _, unresolved = calibration_data(reader, "dut", "reference", [], ["orbit"], 0.0,
+                                                  None)  # fmt: skip
     finally:
         reader.close()
     assert in_step > 100
-    assert samples.n >= 0.75 * in_step, (samples.n, in_step, busy)
+    # kept, or left out only where the late coil_x made the field jump between reference samples
+    assert samples.n + unresolved >= 0.75 * in_step, (samples.n, unresolved, in_step, busy)
+    assert samples.n >= 0.5 * in_step, (samples.n, unresolved, in_step, busy)
