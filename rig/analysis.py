@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -30,15 +30,28 @@ class PairedSamples(NamedTuple):
     """DUT samples left out because the field moved faster than the reference could follow."""
 
 
+TRACK_RAMP_S = 0.01
+"""A tracked set-point logged without ``ramped`` (runs before it was recorded) that took longer
+than this (s) from issue to done counts as having ramped."""
+
+
 def change_times(reader: RunReader) -> Array:
     """(start, end) of every field and load change: a field command is logged when its ramp (or
-    trim) has finished and carries the time it was issued; a load change is instantaneous."""
+    trim) has finished and carries the time it was issued; a load change is instantaneous. A
+    tracked set-point (orbit replay) is no change unless it ramped (a polarity flip), nor is a
+    tracked load step: the reference and the telemetry follow them, and settling after each
+    set-point would leave nothing."""
     rows = [
         (float(p.get("t_issued", t)), t)
         for t, _, kind, p in reader.commands()
-        if kind in ("field", "load")
+        if (kind == "load" and not p.get("track"))
+        or (kind == "field" and not (p.get("track") and not _ramped(t, p)))
     ]
     return np.array(rows, float).reshape(-1, 2)
+
+
+def _ramped(t: float, payload: dict[str, Any]) -> bool:
+    return bool(payload.get("ramped", t - float(payload.get("t_issued", t)) > TRACK_RAMP_S))
 
 
 def settled(times: Array, changes: Array, settle_s: float) -> npt.NDArray[np.bool_]:
@@ -92,6 +105,59 @@ def hold_values(reader: RunReader, channel: str, t: Array) -> Array:
     vs = np.array([r[1] for r in rows], float)
     idx = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, None)
     return np.asarray(vs[idx])
+
+
+def telemetry_series(reader: RunReader, channel: str, width_s: float) -> Callable[[Array], Array]:
+    """A channel's set-points as a function of time (A), for delay estimation
+    (:func:`staircase_series`). A load command counts from the middle of its write; read-backs
+    serve a channel that was never commanded."""
+    rows = [(0.5 * (float(p.get("t_issued", t)) + t), float(p["current_a"]))
+            for t, _, kind, p in reader.commands()
+            if kind == "load" and p.get("channel") == channel]  # fmt: skip
+    rows = rows or [(t, m) for t, _, m in reader.channel(channel) if m is not None]
+    if not rows:
+        return lambda times: np.zeros_like(times)
+    return staircase_series(np.array([r[0] for r in rows]), np.array([r[1] for r in rows]), width_s)
+
+
+def phase_locked_interval_s(reader: RunReader, channel: str, t_s: Array) -> float | None:
+    """The command interval (s) of ``channel`` when the DUT samples ``t_s`` (s) fall at nearly the
+    same phase of it (resultant length of the phases above 0.5): every sample then sees the same
+    part of each step, and a delay is known only to within that interval. None otherwise."""
+    starts = np.array([t for t, _, kind, p in reader.commands()
+                       if kind == "load" and p.get("channel") == channel], float)  # fmt: skip
+    if starts.size < 10 or t_s.size < 10:
+        return None
+    interval = float(np.median(np.diff(starts)))
+    if not interval > 0:
+        return None
+    locked = abs(np.mean(np.exp(2j * np.pi * t_s / interval))) > 0.5
+    return interval if locked else None
+
+
+def staircase_series(starts_s: Array, values: Array, width_s: float) -> Callable[[Array], Array]:
+    """Values that each hold from their start (s, increasing) to the next one's, as a function of
+    time: each step a linear ramp ``width_s`` (s) wide centred on it (steps closer than that: the
+    line through the middle of each hold). The profile of a delay is then smooth and unbiased,
+    where sampling the staircase at the DUT's times moves every step to the next sample (half a
+    sample period late on average)."""
+    ends = np.r_[starts_s[1:], np.inf]
+    pts_t: list[float] = []
+    pts_v: list[float] = []
+    for start, end, value in zip(starts_s, ends, values, strict=True):
+        if end - start <= width_s:
+            pts_t.append(0.5 * (start + end))
+            pts_v.append(float(value))
+        else:
+            pts_t += [start + 0.5 * width_s, end - 0.5 * width_s]
+            pts_v += [float(value), float(value)]
+    knots_t = np.array(pts_t[:-1] if np.isinf(pts_t[-1]) else pts_t)
+    knots_v = np.array(pts_v[: knots_t.size])
+
+    def at(times: Array) -> Array:
+        return np.asarray(np.interp(times, knots_t, knots_v))
+
+    return at
 
 
 def spread_nt(xyz_ut: Array) -> float:

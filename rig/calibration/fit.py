@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import replace
 
 import numpy as np
@@ -19,7 +20,7 @@ from rig.calibration.estimators import (
     spoken,
 )
 from rig.calibration.params import Array
-from rig.calibration.profiled import Profiled, delay_parameter, profile_fit
+from rig.calibration.profiled import Profiled, Series, delay_parameter, profile_fit
 from rig.calibration.residuals import Samples, scalar_noise_gain, scalar_residuals_only
 from rig.calibration.result import CalibrationResult, summarize
 from rig.calibration.robust import RobustLoss
@@ -47,6 +48,7 @@ def calibrate(
     max_delay_s: float = 2.0,
     temperature: Array | None = None,
     temperature_ref: float | None = None,
+    telemetry_series: Mapping[str, Series] | None = None,
 ) -> CalibrationResult:
     """Fit the measurement model to ``s`` and summarize.
 
@@ -62,6 +64,8 @@ def calibrate(
         times_s: sample times (s), for the filters' process noise or forgetting, and the delays.
         delays: telemetry channels whose delay ``tau_j`` to estimate (s, within ``+-max_delay_s``;
             batch methods, needs ``times_s``); see :mod:`rig.calibration.profiled`.
+        telemetry_series: per delayed channel, its value at any time (s) when known better than
+            by interpolating the column (a run's command log); default: the column interpolated.
         temperature: DUT temperature per sample (K or degrees C) for the offset and scale
             coefficients per kelvin about ``temperature_ref`` (default: the mean); see
             :mod:`rig.calibration.temperature`.
@@ -102,7 +106,9 @@ def calibrate(
     if delays:
         if times_s is None:
             raise CalibrationError("--delay needs the sample times: give --time COL (seconds)")
-        profiled = tuple(delay_parameter(data, times_s, c, max_delay_s) for c in delays)
+        series = telemetry_series or {}
+        profiled = tuple(delay_parameter(data, times_s, c, max_delay_s, series.get(c))
+                         for c in delays)  # fmt: skip
     if temperature is not None:
         profiled += (scale_parameter(data),)
     if profiled:

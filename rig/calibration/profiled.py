@@ -79,8 +79,15 @@ def shifted(times_s: Array, u: Array, tau_s: float) -> Array:
     return np.asarray(np.interp(times_s - tau_s, times_s, u))
 
 
-def delay_parameter(s: Samples, times_s: Array, channel: str, max_delay_s: float) -> Profiled:
-    """The delay (s) of telemetry ``channel`` within ``+-max_delay_s``."""
+Series = Callable[[Array], Array]
+"""A telemetry channel's value at any times (s)."""
+
+
+def delay_parameter(
+    s: Samples, times_s: Array, channel: str, max_delay_s: float, series: Series | None = None
+) -> Profiled:
+    """The delay (s) of telemetry ``channel`` within ``+-max_delay_s``; ``series`` gives the
+    channel at any time (default: its column interpolated, :func:`shifted`)."""
     t = np.asarray(times_s, float)
     if t.shape != (s.n,) or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
         raise CalibrationError(
@@ -100,7 +107,7 @@ def delay_parameter(s: Samples, times_s: Array, channel: str, max_delay_s: float
 
     def apply(data: Samples, tau_s: float) -> Samples:
         u = data.telemetry.copy()
-        u[:, j] = shifted(t, recorded, tau_s)
+        u[:, j] = shifted(t, recorded, tau_s) if series is None else series(t - tau_s)
         return Samples(data.measured_ut, data.field_magnitude_ut, u, data.channels, data.field_ut)
 
     # inside one sample interval: the local slope of the interpolated series

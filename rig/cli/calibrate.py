@@ -320,8 +320,9 @@ def _constant_magnitude(args: argparse.Namespace) -> float | None:
 
 
 def _fit_and_emit(
-    samples: Any, args: argparse.Namespace, times_s: Any = None, temperature: Any = None
-) -> int:
+    samples: Any, args: argparse.Namespace, times_s: Any = None, temperature: Any = None,
+    series: Any = None,
+) -> int:  # fmt: skip
     """Fit, write the result file, C header and autopilot parameters if asked, print the table."""
     from rig.calibration import calibrate
     from rig.calibration.export_c import c_header
@@ -337,7 +338,7 @@ def _fit_and_emit(
     result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust,
                        filter_options=opts, times_s=times_s, delays=tuple(args.delay),
                        max_delay_s=args.max_delay_s, temperature=temperature,
-                       temperature_ref=args.temperature_ref)  # fmt: skip
+                       temperature_ref=args.temperature_ref, telemetry_series=series)  # fmt: skip
     autopilot = _autopilot_files(result, args)  # before any file: a refusal writes nothing
     if args.history is not None and result.history is not None:
         write_text(args.history, _history_csv(result))
@@ -399,22 +400,37 @@ def _history_csv(result: Any) -> str:
 def _calibrate_run(args: argparse.Namespace) -> int:
     """Re-fit the DUT from a stored run (its procedure's magnetometers and loads by default);
     ``--method ml`` (or another scalar method) fits attitude-independently from the same data."""
-    from rig.analysis import stored_run_data, unresolved_note
+    import numpy as np
+
+    from rig.analysis import (
+        phase_locked_interval_s,
+        stored_run_data,
+        telemetry_series,
+        unresolved_note,
+    )
     from rig.steps import field_kinds
     from rig.store import RunReader
 
-    if args.delay or args.temperature:
+    if args.temperature:
         raise UserInputError(
-            "--delay and --temperature work on a CSV file: export the run first (rig export RUN"
-            " --format csv) and calibrate that file"
+            "--temperature needs a DUT temperature column, and a run records none: export the run"
+            " (rig export RUN --format csv), add the temperature, and calibrate that file"
         )
 
     reader = RunReader(args.data)
     try:
         telemetry = list(args.telemetry) if args.telemetry else list(reader.meta().get("loads", []))
-        samples, _, unresolved = stored_run_data(reader, telemetry, field_kinds=field_kinds())
+        samples, t_s, unresolved = stored_run_data(reader, telemetry, field_kinds=field_kinds())
+        width_s = 2.0 * float(np.median(np.diff(t_s))) if t_s.size > 1 else 0.1
+        series = {ch: telemetry_series(reader, ch, width_s) for ch in args.delay}
+        locked = {ch: phase_locked_interval_s(reader, ch, t_s) for ch in args.delay}
     finally:
         reader.close()
+    for ch, interval in locked.items():
+        if interval is not None and not args.quiet:
+            print(f"note: the DUT sampled in step with the {1 / interval:.3g} Hz commands of {ch}:"
+                  f" its delay is known only to within {1000 * interval:.0f} ms, whatever its"
+                  " sigma says", file=sys.stderr)  # fmt: skip
     if unresolved and not args.quiet:
         print(f"note: {unresolved_note(unresolved, samples.n + unresolved)}", file=sys.stderr)
-    return _fit_and_emit(samples, args)
+    return _fit_and_emit(samples, args, times_s=t_s if args.delay else None, series=series)

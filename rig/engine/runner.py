@@ -513,7 +513,9 @@ class Runner:
         if payload.get("track"):
             # One tracked set-point moves the field by a slew-limited step that the reference
             # follows (interpolated): no interval to leave out. A ramp through zero is one.
-            if not self.controller.track(target):
+            ramped = self.controller.track(target)
+            payload = payload | {"ramped": ramped}
+            if not ramped:
                 issued = time.monotonic()
         elif payload.get("trim"):
             result = self.controller.trim(target)

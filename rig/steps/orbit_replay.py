@@ -81,9 +81,14 @@ class OrbitReplay(FieldStepKind):
             ch = panel["channel"]
             amps = np.round(panel_current(track, panel["face"], float(panel["max_a"])), 3)
             last = None
-            for t, a in zip(t_wall, amps, strict=True):
+            # eclipse entry and exit are steps; in between the current follows the sun angle
+            jumps = np.r_[True, track.sunlit[1:] != track.sunlit[:-1]]
+            for t, a, jump in zip(t_wall, amps, jumps, strict=True):
                 if last is None or abs(a - last) >= 0.002 or (a == 0.0 and last != 0.0):
-                    cmds.append(Command(float(t), "load", {"channel": ch, "current_a": float(a)}))
+                    payload: dict[str, Any] = {"channel": ch, "current_a": float(a)}
+                    if last is not None and not jump:
+                        payload["track"] = True  # followed, not a step to settle after
+                    cmds.append(Command(float(t), "load", payload))
                     last = a
             cmds.append(Command(duration, "load", {"channel": ch, "current_a": 0.0}))
         cmds += load_commands(step, duration, base)
