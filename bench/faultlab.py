@@ -221,8 +221,9 @@ class Measured:
                 out.append(f"time to safe {self.time_to_safe_ms} ms, bound {bound:g} ms"
                            f" ({self.kernel_stall_ms:.0f} ms of kernel serial stall)")  # fmt: skip
             after = self.safe_after_detection_ms
-            if after is not None and after > SAFE_AFTER_DETECTION_MS:
-                out.append(f"safe {after:.0f} ms after detection")
+            if after is not None and after > SAFE_AFTER_DETECTION_MS + self.kernel_stall_ms:
+                out.append(f"safe {after:.0f} ms after detection ({self.kernel_stall_ms:.0f} ms"
+                           " of kernel serial stall)")  # fmt: skip
         return out
 
     @property
