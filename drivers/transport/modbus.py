@@ -107,6 +107,16 @@ class PatientSerialClient(ModbusSerialClient):
     """What arrived after the last attempt gave up and before this retry of the same request: the
     device's late answer to it, taken as this attempt's reply if it is one."""
 
+    def connect(self) -> bool:
+        """Open the port, with no write timeout: pyserial checks it after the bytes are out, so
+        a process stopped or descheduled just after writing a request raised 'Write timeout' on
+        resuming, and the retry's reopen threw the device's answer away (a request is a few
+        bytes, which the kernel takes at once)."""
+        ok = bool(super().connect())
+        if ok and self.socket is not None and getattr(self.socket, "write_timeout", None):
+            self.socket.write_timeout = None
+        return ok
+
     def send(self, request: bytes, addr: tuple[str, int] | None = None) -> int:
         self._whole = False
         late = b""
