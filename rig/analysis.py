@@ -41,17 +41,20 @@ def change_times(reader: RunReader) -> Array:
     tracked set-point (orbit replay) is no change unless it ramped (a polarity flip), nor is a
     tracked load step: the reference and the telemetry follow them, and settling after each
     set-point would leave nothing."""
-    rows = [
-        (float(p.get("t_issued", t)), t)
-        for t, _, kind, p in reader.commands()
-        if (kind == "load" and not p.get("track"))
-        or (kind == "field" and not (p.get("track") and not _ramped(t, p)))
-    ]
+    rows = [(float(p.get("t_issued", t)), t) for t, _, kind, p in reader.commands()
+            if _is_change(kind, t, p)]  # fmt: skip
     return np.array(rows, float).reshape(-1, 2)
 
 
-def _ramped(t: float, payload: dict[str, Any]) -> bool:
-    return bool(payload.get("ramped", t - float(payload.get("t_issued", t)) > TRACK_RAMP_S))
+def _is_change(kind: str, t: float, payload: dict[str, Any]) -> bool:
+    """A field or load command to settle after: not a tracked one, unless a tracked field
+    set-point ramped."""
+    if kind not in ("field", "load"):
+        return False
+    if not payload.get("track"):
+        return True
+    issued = float(payload.get("t_issued", t))
+    return kind == "field" and bool(payload.get("ramped", t - issued > TRACK_RAMP_S))
 
 
 def settled(times: Array, changes: Array, settle_s: float) -> npt.NDArray[np.bool_]:
@@ -111,21 +114,29 @@ def telemetry_series(reader: RunReader, channel: str, width_s: float) -> Callabl
     """A channel's set-points as a function of time (A), for delay estimation
     (:func:`staircase_series`). A load command counts from the middle of its write; read-backs
     serve a channel that was never commanded."""
-    rows = [(0.5 * (float(p.get("t_issued", t)) + t), float(p["current_a"]))
-            for t, _, kind, p in reader.commands()
-            if kind == "load" and p.get("channel") == channel]  # fmt: skip
-    rows = rows or [(t, m) for t, _, m in reader.channel(channel) if m is not None]
+    cmds = load_commands(reader, channel)
+    if cmds.shape[0]:
+        return staircase_series(0.5 * (cmds[:, 0] + cmds[:, 1]), cmds[:, 2], width_s)
+    rows = [(t, m) for t, _, m in reader.channel(channel) if m is not None]
     if not rows:
         return lambda times: np.zeros_like(times)
     return staircase_series(np.array([r[0] for r in rows]), np.array([r[1] for r in rows]), width_s)
 
 
-def phase_locked_interval_s(reader: RunReader, channel: str, t_s: Array) -> float | None:
-    """The command interval (s) of ``channel`` when the DUT samples ``t_s`` (s) fall at nearly the
-    same phase of it (resultant length of the phases above 0.5): every sample then sees the same
-    part of each step, and a delay is known only to within that interval. None otherwise."""
-    starts = np.array([t for t, _, kind, p in reader.commands()
-                       if kind == "load" and p.get("channel") == channel], float)  # fmt: skip
+def load_commands(reader: RunReader, channel: str) -> Array:
+    """Rows (issued s, done s, current A) of every command to load ``channel``."""
+    rows = [(float(p.get("t_issued", t)), t, float(p["current_a"]))
+            for t, _, kind, p in reader.commands()
+            if kind == "load" and p.get("channel") == channel]  # fmt: skip
+    return np.array(rows, float).reshape(-1, 3)
+
+
+def phase_locked_interval_s(commands: Array, t_s: Array) -> float | None:
+    """The interval (s) of load ``commands`` (:func:`load_commands`) when the DUT samples ``t_s``
+    (s) fall at nearly the same phase of it (resultant length of the phases above 0.5): every
+    sample then sees the same part of each step, and a delay is known only to within that
+    interval. None otherwise."""
+    starts = commands[:, 1]
     if starts.size < 10 or t_s.size < 10:
         return None
     interval = float(np.median(np.diff(starts)))
@@ -247,18 +258,18 @@ def calibration_data(
         raise CalibrationError(
             "no settled DUT samples in the selected steps: hold each field longer than settle_s"
         )
-    in_run = keep.copy()
-    keep[keep] &= ~unresolved_field(ref, t[keep])
+    jumps = unresolved_field(ref, t[keep])
+    if jumps.all():
+        raise CalibrationError(
+            "the field moved faster than the reference could follow at every DUT sample"
+        )
+    keep[keep] = ~jumps
     t = t[keep]
     field = np.column_stack([np.interp(t, ref[:, 0], ref[:, 1 + i]) for i in range(3)])
     field = to_cage_frame(field, correction)
     u = np.column_stack([hold_values(reader, ch, t) for ch in telemetry]) if telemetry else None
-    if keep.sum() == 0:
-        raise CalibrationError(
-            "the field moved faster than the reference could follow at every DUT sample"
-        )
     samples = Samples.build(rows[keep, 1:], field_ut=field, telemetry=u, channels=tuple(telemetry))
-    return PairedSamples(samples, t, int(in_run.sum() - keep.sum()))
+    return PairedSamples(samples, t, int(jumps.sum()))
 
 
 def unresolved_field(ref: Array, t_s: Array) -> npt.NDArray[np.bool_]:

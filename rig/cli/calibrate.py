@@ -403,6 +403,7 @@ def _calibrate_run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from rig.analysis import (
+        load_commands,
         phase_locked_interval_s,
         stored_run_data,
         telemetry_series,
@@ -423,7 +424,7 @@ def _calibrate_run(args: argparse.Namespace) -> int:
         samples, t_s, unresolved = stored_run_data(reader, telemetry, field_kinds=field_kinds())
         width_s = 2.0 * float(np.median(np.diff(t_s))) if t_s.size > 1 else 0.1
         series = {ch: telemetry_series(reader, ch, width_s) for ch in args.delay}
-        locked = {ch: phase_locked_interval_s(reader, ch, t_s) for ch in args.delay}
+        locked = {ch: phase_locked_interval_s(load_commands(reader, ch), t_s) for ch in args.delay}
     finally:
         reader.close()
     for ch, interval in locked.items():
