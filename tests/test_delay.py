@@ -168,3 +168,17 @@ def test_a_commanded_staircase_gives_the_delay_within_three_sigma(truth_s: float
                           noise_ut=NOISE_UT)  # fmt: skip
         assert abs(fit.values[0] - truth_s) < 3 * fit.sigma[0], (seed, fit.values, fit.sigma)
         assert fit.sigma[0] < 0.002
+
+
+def test_phase_lock_is_told_from_a_drifting_clock() -> None:
+    """DUT samples at the commands' 20 Hz, jittered by 2 ms: locked, interval 50 ms; at 20.3 Hz
+    they drift through every phase of the commands: not locked."""
+    from rig.analysis import phase_locked_interval_s
+
+    rng = np.random.default_rng(5)
+    t_cmd = np.arange(1200) * 0.05
+    commands = np.column_stack([t_cmd - 0.001, t_cmd, np.ones_like(t_cmd)])
+    in_step = t_cmd + 0.013 + 0.002 * rng.standard_normal(t_cmd.size)
+    interval = phase_locked_interval_s(commands, in_step)
+    assert interval is not None and abs(interval - 0.05) < 1e-9
+    assert phase_locked_interval_s(commands, np.arange(1200) / 20.3 + 0.013) is None
