@@ -28,6 +28,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from pathlib import Path
 from types import TracebackType
@@ -37,7 +38,7 @@ from drivers.errors import DeviceError
 from drivers.protocols import Load, Magnetometer
 from drivers.registry import output_kinds
 from rig.cage.controller import SAFE_TIMEOUT_S, CageController
-from rig.config import RigConfig
+from rig.config import DeviceConfig, RigConfig
 from rig.devices import build_cage, open_device, open_load, open_magnetometer
 from rig.engine.guardian import HEARTBEAT_PERIOD_S, Guardian
 from rig.engine.interlock import RigLock
@@ -292,36 +293,60 @@ def switch_off_every_output(cfg: RigConfig) -> tuple[list[str], list[str]]:
     """Every supply, load and relay board of ``cfg`` to its safe state, each opened on its own
     (one dead link does not stop the others): (devices switched off, problems).
 
-    Supplies and loads first; then, once the cage's coil currents have decayed, the polarity
-    relays to normal (never switched while a coil carries current: that arcs the contacts)."""
-    done: list[str] = []
-    problems: list[str] = []
+    Supplies and loads first, one thread per link (devices sharing a serial bus or a TCP
+    endpoint take turns on it), so a slow or dead link does not hold back the others: the time
+    to safe is the slowest link's, not the sum. Then, once the cage's coil currents have
+    decayed, the polarity relays to normal (never switched while a coil carries current: that
+    arcs the contacts)."""
     kinds = output_kinds()
     outputs = [(n, d) for n, d in cfg.devices.items() if d.kind in kinds]
+    supplies = [(n, d) for n, d in outputs if d.kind != "relay"]
     relays = [(n, d) for n, d in outputs if d.kind == "relay"]
-    for name, dev in [o for o in outputs if o[1].kind != "relay"] + relays:
-        if dev.kind == "relay":
-            still = _coil_currents_above(cfg, 0.02)
-            if still:
-                problems.append(
-                    f"{name}: left as it is, {still} (switch it when the coils are off)"
-                )
-                continue
-        for attempt in range(ATTEMPTS):
-            try:
-                driver = open_device(dev)
-                try:
-                    driver.safe()
-                finally:
-                    driver.close()
-                done.append(name)
-                break
-            except Exception as exc:  # one dead link must not stop the others going safe
-                if attempt == ATTEMPTS - 1:
-                    problems.append(f"{name}: {exc}")
-                else:
-                    time.sleep(0.3)  # a port still held by someone else
+    links: dict[tuple[Any, ...], list[tuple[str, DeviceConfig]]] = {}
+    for name, dev in supplies:
+        links.setdefault(link_of(dev), []).append((name, dev))
+    outcome: dict[str, str | None] = {}
+    with ThreadPoolExecutor(max_workers=max(1, len(links)), thread_name_prefix="safe") as pool:
+        for results in pool.map(lambda devs: [(n, _switch_off(d)) for n, d in devs],
+                                links.values()):  # fmt: skip
+            outcome.update(results)
+    for name, dev in relays:
+        still = _coil_currents_above(cfg, 0.02)
+        outcome[name] = (
+            _switch_off(dev)
+            if not still
+            else f"left as it is, {still} (switch it when the coils are off)"
+        )
+    done = [n for n, _ in supplies + relays if outcome[n] is None]
+    problems = [f"{n}: {outcome[n]}" for n, _ in supplies + relays if outcome[n] is not None]
     return done, problems
+
+
+def link_of(dev: DeviceConfig) -> tuple[Any, ...]:
+    """What ``dev`` shares with the other devices on its wire: a serial port's path, a TCP
+    endpoint or an I2C bus (devices with the same link must take turns on it)."""
+    for key in ("path", "port", "bus"):
+        if dev.get(key) is not None:
+            return (dev.protocol, dev.get("host"), dev.get(key))
+    return ("own", dev.name)
+
+
+def _switch_off(dev: DeviceConfig) -> str | None:
+    """Open ``dev``, call its ``safe()`` and close it, up to ATTEMPTS times: None when it is
+    safe, else the last error."""
+    for attempt in range(ATTEMPTS):
+        try:
+            driver = open_device(dev)
+            try:
+                driver.safe()
+            finally:
+                driver.close()
+            return None
+        except Exception as exc:  # one dead link must not stop the others going safe
+            if attempt == ATTEMPTS - 1:
+                return str(exc)
+            time.sleep(0.3)  # a port still held by someone else
+    return "not tried"
 
 
 def _coil_currents_above(cfg: RigConfig, threshold_a: float) -> str:
