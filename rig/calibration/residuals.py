@@ -341,3 +341,51 @@ __all__ = [
     "vector_residuals",
     "z_residuals",
 ]
+
+
+def z_noise_covariance(theta: Array, noise_ut: float, frame: str = "raw") -> Array:
+    """Covariance (uT^2, 3x3) of the noise on the raw reading: ``s^2 I`` for raw noise, ``s^2 (I +
+    E)^-1`` for isotropic noise on the corrected side (Crassidis eq. 1, ``n = (I + D)^-1 eps``)."""
+    var = float(noise_ut) ** 2
+    if frame == "corrected":
+        return np.asarray(var * np.linalg.inv(np.eye(3) + sym_from_e(theta[3:9])), float)
+    return var * np.eye(3)
+
+
+def z_noise_mean(theta: Array, noise_ut: float, frame: str = "raw") -> float:
+    """Mean (uT^2) of ``z - model`` at the truth: ``tr(M Sigma)`` with ``M = I + E`` and ``Sigma``
+    the raw-noise covariance (3 s^2 for noise on the corrected side). The noise sits in the
+    reading itself, so ``2 n^T M (m - o)`` has mean ``2 tr(M Sigma)``, not 0: the paper's eq. 5a,
+    ``-tr(Sigma)``, treats the noisy reading as exact and has the sign wrong."""
+    metric = np.eye(3) + sym_from_e(theta[3:9])
+    return float(np.sum(metric * z_noise_covariance(theta, noise_ut, frame)))
+
+
+def z_eiv_correlation(theta: Array, s: Samples, noise_ut: float, frame: str = "raw") -> Array:
+    """``E[d model_k/d theta * (z_k - model_k)]`` at the truth, per sample (N, n), estimated from
+    the noisy readings without bias (uT^2 per parameter unit times uT^2).
+
+    The regressors of the z model hold the noisy reading (errors in variables), so they correlate
+    with the residual: with ``m = m0 + n``, ``a = M (m0 - o(u))`` and ``r = 2 n^T a + n^T M n -
+    tr(M Sigma)``, ``E[2 (m - o) r] = 4 Sigma a`` for ``c``, ``E[m_i m_j r] = 2 (m0_i (Sigma a)_j +
+    m0_j (Sigma a)_i) + 2 (Sigma M Sigma)_ij`` for ``E`` (times the sign and multiplicity of its
+    column) and ``u_j`` times the ``c`` term for ``c_j``. Gauss-Newton on the z residuals with
+    these subtracted from its gradient (bias-compensated least squares) has no bias of order
+    ``sigma^2`` that stays as N grows."""
+    metric = np.eye(3) + sym_from_e(theta[3:9])
+    sigma = z_noise_covariance(theta, noise_ut, frame)
+    c0, cj = theta[:3], theta[9:].reshape(-1, 3)
+    c_u = np.broadcast_to(c0, (s.n, 3)) + (s.telemetry @ cj if cj.size else 0.0)
+    o_u = np.linalg.solve(metric, c_u.T).T
+    m = s.measured_ut
+    sa = (m - o_u) @ metric @ sigma  # rows: Sigma a_k (Sigma, M symmetric)
+    sms = sigma @ metric @ sigma
+    out = np.empty((s.n, 9 + cj.size))
+    out[:, 0:3] = 4.0 * sa
+    for idx, (i, j) in enumerate(E_INDEX):
+        # E[m_i (Sigma a(m))_j] = m0_i (Sigma a)_j + (Sigma M Sigma)_ij: the plug-in's excess
+        mm = 2.0 * (m[:, i] * sa[:, j] + m[:, j] * sa[:, i]) - 2.0 * sms[i, j]
+        out[:, 3 + idx] = -(1.0 if i == j else 2.0) * mm
+    for j in range(cj.shape[0]):
+        out[:, 9 + 3 * j : 12 + 3 * j] = 4.0 * s.telemetry[:, j : j + 1] * sa
+    return out

@@ -128,31 +128,41 @@ def _record(folder: Path, t_found: float, why: str, done: list[str], problems: l
 
 def wait_for_rig(fd: int, pid: int, timeout_s: float = HEARTBEAT_TIMEOUT_S) -> str | None:
     """Read heartbeats until the rig says ``done`` (None) or dies or hangs (why, one phrase).
-    A hung rig is killed first, so that it cannot drive the outputs again once resumed."""
+    A hung rig is killed first, so that it cannot drive the outputs again once resumed.
+
+    Time the guardian itself was not running (its 0.1 s wait took more than OWN_STALL_S longer)
+    is not the rig's silence: that much is added to the rig's time, and no more."""
     tail = b""
     last_beat = time.monotonic()
+    own_stall_s = 0.0  # guardian stalls discounted since the last beat
     while True:
         before = time.monotonic()
         ready, _, _ = select.select([fd], [], [], 0.1)
         now = time.monotonic()
-        if now - before > 0.1 + OWN_STALL_S:
-            last_beat = now  # we were not running: the rig's silence was not measured
+        late = now - before - 0.1
+        if late > OWN_STALL_S:
+            own_stall_s += late  # we were not running: the rig's silence was not measured
         if ready:
             chunk = os.read(fd, 4096)
             if not chunk:
                 return None if DONE in tail else "the rig process died without going safe"
             tail = (tail + chunk)[-len(DONE) :]
-            last_beat = now
+            last_beat, own_stall_s = now, 0.0
             continue
-        if now - last_beat > timeout_s:
+        if now - last_beat - own_stall_s > timeout_s:
             with contextlib.suppress(OSError):
                 os.kill(pid, signal.SIGKILL)
             deadline = time.monotonic() + 1.0  # its end of the pipe closes as it dies
             while time.monotonic() < deadline and select.select([fd], [], [], 0.05)[0]:
                 if not os.read(fd, 4096):
                     break
+            ours = (
+                f", {own_stall_s:.1f} s more while the guardian waited for a CPU"
+                if own_stall_s
+                else ""
+            )
             return (
-                f"the rig process stopped answering (no heartbeat for {now - last_beat:.1f} s:"
+                f"the rig process stopped answering (no heartbeat for {now - last_beat - own_stall_s:.1f} s{ours}:"
                 " hung, stopped or deadlocked) and was killed"
             )
 

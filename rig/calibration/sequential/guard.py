@@ -42,7 +42,7 @@ MAX_RECOVERIES = 3
 def z_cost(theta: Array, s: Samples, noise_ut: float) -> float:
     """Chi-square of the z-domain residuals at ``theta`` (each ~ N(0, 1) under raw noise
     ``noise_ut`` uT): about ``s.n`` at a consistent estimate."""
-    r, _ = z_residuals(theta, s, -3.0 * noise_ut**2)
+    r, _ = z_residuals(theta, s, 3.0 * noise_ut**2)
     return float(np.sum((r / noise_ut) ** 2))
 
 

@@ -6,7 +6,7 @@ sample ``(m, |h|, u)`` gives the scalar observation
 
     z = |m|^2 - |h|^2 = L theta - c(u)^T (I + E)^-1 c(u) + v,   c(u) = c0 + sum_j u_j c_j
 
-with ``L = [2 m^T, -S(m), 2 u_1 m^T, ...]`` and noise ``v`` of mean ``-tr(Sigma)`` and variance
+with ``L = [2 m^T, -S(m), 2 u_1 m^T, ...]`` and noise ``v`` of mean ``+tr(Sigma)`` and variance
 ``4 g^T Sigma g + 2 tr(Sigma^2)``, ``g = (I + D)(m - o(u))`` (eq. 5). The same model as the batch
 z residuals in :mod:`rig.calibration.residuals`; this module adds the per-sample gradient, Hessian
 and the measurement variance at an estimate, for isotropic raw noise ``Sigma = s^2 I``.
@@ -98,7 +98,9 @@ class ZModel:
         self.n = n_states(n_channels)
         self.noise_ut = float(noise_ut)
         self.noise_var = self.noise_ut**2
-        self.mean_noise = -3.0 * self.noise_var  # eq. 5a, -tr(Sigma), as TWOSTEP uses it
+        # +tr(Sigma): the paper's eq. 5a says -tr(Sigma), but the reading in L holds the noise
+        # too (rig.calibration.residuals.z_noise_mean); first order in E for raw noise
+        self.mean_noise = 3.0 * self.noise_var
         self.noise_floor_var = 6.0 * self.noise_var**2  # 2 tr(Sigma^2)
         self.noise_frame = noise_frame
 

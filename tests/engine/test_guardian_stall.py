@@ -1,0 +1,45 @@
+"""The guardian's timeout measures the rig, not the guardian: time the guardian itself did not run
+(stopped here with SIGSTOP, on a bench a busy computer) is added to the rig's allowance, and no
+more (it used to restart the whole timeout)."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+from rig.engine.guardian import HEARTBEAT_TIMEOUT_S
+
+WAIT = "import sys; from rig.engine.guardian import wait_for_rig; print(wait_for_rig(0, int(sys.argv[1])))"
+
+
+def test_the_guardians_own_stall_is_added_to_the_timeout_and_no_more() -> None:
+    victim = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    r, w = os.pipe()
+    guardian = subprocess.Popen([sys.executable, "-c", WAIT, str(victim.pid)], stdin=r,
+                                stdout=subprocess.PIPE, text=True)  # fmt: skip
+    os.close(r)
+    try:
+        time.sleep(1.0)  # the guardian has started and is waiting
+        os.write(w, b".")  # the last heartbeat
+        time.sleep(0.3)
+        guardian.send_signal(signal.SIGSTOP)
+        time.sleep(1.5)
+        guardian.send_signal(signal.SIGCONT)
+        out, _ = guardian.communicate(timeout=30)
+    finally:
+        os.close(w)
+        guardian.kill()
+        victim.kill()
+        victim.wait()
+    assert victim.returncode == -signal.SIGKILL
+    said = re.search(r"no heartbeat for ([0-9.]+) s, ([0-9.]+) s more while the guardian", out)
+    assert said, out
+    silent_s, own_s = float(said.group(1)), float(said.group(2))
+    assert own_s >= 1.4, out
+    assert HEARTBEAT_TIMEOUT_S <= silent_s < HEARTBEAT_TIMEOUT_S + 0.1 + 0.6, (
+        out
+    )  # a check per 0.1 s; stalls under 0.5 s count
