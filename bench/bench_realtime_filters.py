@@ -137,7 +137,9 @@ def main() -> int:
     for run in range(args.runs):
         m = readings(field, 1000 + run)
         s = Samples.build(m, field_magnitude_ut=mag)
-        results["TWOSTEP"].append(b_and_d(theta_from_p(twostep_fit(s, NOISE_UT).p)))
+        results["TWOSTEP"].append(
+            b_and_d(theta_from_p(twostep_fit(s, NOISE_UT, noise_frame="corrected").p))
+        )
         results["centered"].append(b_and_d(theta_from_p(centered_fit(s).p)))
         zs = [z_sample(m[k], float(mag[k]), np.zeros(0)) for k in range(t.size)]
         for name, factory in FILTERS.items():
