@@ -372,20 +372,29 @@ def z_eiv_correlation(theta: Array, s: Samples, noise_ut: float, frame: str = "r
     column) and ``u_j`` times the ``c`` term for ``c_j``. Gauss-Newton on the z residuals with
     these subtracted from its gradient (bias-compensated least squares) has no bias of order
     ``sigma^2`` that stays as N grows."""
+    return eiv_correlation_rows(theta, s.measured_ut, s.telemetry, noise_ut, frame)
+
+
+def eiv_correlation_rows(
+    theta: Array, measured_ut: Array, telemetry: Array, noise_ut: float, frame: str = "raw"
+) -> Array:
+    """:func:`z_eiv_correlation` for readings (N, 3) uT and telemetry (N, J) as arrays (the
+    sequential filters pass one row)."""
     metric = np.eye(3) + sym_from_e(theta[3:9])
     sigma = z_noise_covariance(theta, noise_ut, frame)
     c0, cj = theta[:3], theta[9:].reshape(-1, 3)
-    c_u = np.broadcast_to(c0, (s.n, 3)) + (s.telemetry @ cj if cj.size else 0.0)
+    n = measured_ut.shape[0]
+    c_u = np.broadcast_to(c0, (n, 3)) + (telemetry @ cj if cj.size else 0.0)
     o_u = np.linalg.solve(metric, c_u.T).T
-    m = s.measured_ut
+    m = measured_ut
     sa = (m - o_u) @ metric @ sigma  # rows: Sigma a_k (Sigma, M symmetric)
     sms = sigma @ metric @ sigma
-    out = np.empty((s.n, 9 + cj.size))
+    out = np.empty((n, 9 + cj.size))
     out[:, 0:3] = 4.0 * sa
     for idx, (i, j) in enumerate(E_INDEX):
         # E[m_i (Sigma a(m))_j] = m0_i (Sigma a)_j + (Sigma M Sigma)_ij: the plug-in's excess
         mm = 2.0 * (m[:, i] * sa[:, j] + m[:, j] * sa[:, i]) - 2.0 * sms[i, j]
         out[:, 3 + idx] = -(1.0 if i == j else 2.0) * mm
     for j in range(cj.shape[0]):
-        out[:, 9 + 3 * j : 12 + 3 * j] = 4.0 * s.telemetry[:, j : j + 1] * sa
+        out[:, 9 + 3 * j : 12 + 3 * j] = 4.0 * telemetry[:, j : j + 1] * sa
     return out

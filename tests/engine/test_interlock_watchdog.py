@@ -143,16 +143,23 @@ def test_stopped_process_is_killed_and_outputs_switched_off(
     holder = hold_field(rig_toml, "20", "0", "10")
     holder.send_signal(signal.SIGSTOP)
     t_stop = time.monotonic()
-    took = wait_off(devices, within_s=HEARTBEAT_TIMEOUT_S + 5.0)
+    took = wait_off(devices, within_s=HEARTBEAT_TIMEOUT_S + 15.0)
     holder.wait(timeout=10)
     assert holder.returncode == -signal.SIGKILL  # a stopped process must not resume driving
     assert holder.stderr is not None
     err = holder.stderr.read()
     assert "stopped answering" in err and "coil_x" in err, err
-    # the guardian adds the time it waited for a CPU itself to the rig's (a busy computer)
-    own = re.search(r"([0-9.]+) s more while the guardian waited for a CPU", err)
-    own_s = float(own.group(1)) if own else 0.0
-    assert HEARTBEAT_TIMEOUT_S - 0.5 < took < HEARTBEAT_TIMEOUT_S + own_s + 2.0, err
+    # The guardian's own account is the measurement: the rig's silence it waited out (its own
+    # waits for a CPU added on top, and said) and how long switching off took. Seen from here,
+    # the time also holds this test's and the simulator's waits for a CPU on a busy computer
+    # (7.3 s once beside two CPU hogs, with the guardian's 3.0 s and 21 ms).
+    said = re.search(r"no heartbeat for ([0-9.]+) s(?:, ([0-9.]+) s more while the guardian"
+                     r" waited for a CPU)?.*switched off .* in ([0-9]+) ms", err)  # fmt: skip
+    assert said, err
+    silent_s, own_s = float(said.group(1)), float(said.group(2) or 0.0)
+    assert HEARTBEAT_TIMEOUT_S <= silent_s < HEARTBEAT_TIMEOUT_S + 0.7, err
+    assert int(said.group(3)) < 1000, err
+    assert HEARTBEAT_TIMEOUT_S - 0.5 < took < HEARTBEAT_TIMEOUT_S + own_s + 8.0, err
     print(f"stopped at t=0: outputs off at {time.monotonic() - t_stop:.2f} s")
 
 

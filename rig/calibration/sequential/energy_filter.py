@@ -186,13 +186,18 @@ class EnergyFilter:
             self.info *= fade
             self.info_vec *= fade
         a = self.regressor(s)
-        # eq. 5b at the current estimate (the reference field before there is one)
+        # eq. 5b with the reference |h| for the size of M (m - o): a weight from the noisy
+        # reading would correlate with the noise and bias the estimate (ADR 0014)
         if self.ready and self.projection is not None:
-            w = 1.0 / self.model.variance(self.x, s)
+            w = 1.0 / self.model.weight_variance(self.x, s)
         else:
             w = 1.0 / self.model.reference_variance(s)
         self.info += w * np.outer(a, a)
         self.info_vec += (w * (s.z - self.model.mean_noise)) * a
+        if self.projection is not None:
+            # bias-compensated: the design row holds the noisy reading, which correlates with
+            # the observation's noise (ADR 0014); evaluated at the current estimate
+            self.info_vec[: self.model.n] -= w * self.model.eiv_correlation(self.x, s)
         self.seen += 1
         if self.projection is None:
             self._solve_centered()

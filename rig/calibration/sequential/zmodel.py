@@ -20,7 +20,7 @@ from typing import Literal
 import numpy as np
 
 from rig.calibration.params import Array
-from rig.calibration.residuals import E_INDEX, quadratic_features
+from rig.calibration.residuals import E_INDEX, eiv_correlation_rows, quadratic_features
 
 M_FROM_E = np.array([0, 3, 4, 3, 1, 5, 4, 5, 2])
 """Flat 3x3 index -> position in ``[E11, E22, E33, E12, E13, E23]``."""
@@ -160,6 +160,36 @@ class ZModel:
             return float(2.0 * g @ e - e @ e)
         met = metric(theta)
         return float(2.0 * (met @ (s.measured_ut - y)) @ e + e @ met @ e)
+
+    def eiv_correlation(self, theta: Array, s: ZSample) -> Array:
+        """``E[L^T (z - L theta + q - mu)]`` of one sample at ``theta`` (n,): what the noisy
+        reading in the design row adds to the information vector on average (errors in
+        variables, :func:`rig.calibration.residuals.z_eiv_correlation`); a filter subtracts it."""
+        rows = eiv_correlation_rows(
+            theta, s.measured_ut[None, :], s.telemetry[None, :], self.noise_ut, self.noise_frame
+        )
+        return np.asarray(rows[0], float)
+
+    def weight_variance(self, theta: Array, s: ZSample) -> float:
+        """Measurement variance (uT^4) for an information weight, with the reference ``|h|``
+        where :meth:`variance` has the noisy reading: a weight that moves with the reading's
+        noise correlates with the residual and biases the estimate (errors in variables).
+
+        Raw noise: ``4 s^2 |h|^2 (v^T M^2 v) / (v^T M v) + 2 s^4 tr(M^2)``, ``v = m - o``: the
+        size of ``M (m0 - o) = W^T h`` from ``|h|``, only its direction from the reading (its
+        noise then enters through the sensor's anisotropy alone). Corrected-side noise: ``4 s^2
+        |h|^2 + 6 s^4``, exact."""
+        if self.noise_frame == "corrected":
+            return self.reference_variance(s)
+        _, y = bias_energy(theta, s.telemetry)
+        met = metric(theta)
+        v = s.measured_ut - y
+        mv = met @ v
+        ratio = float(mv @ mv) / max(float(v @ mv), 1e-12)
+        return float(
+            4.0 * self.noise_var * s.field_magnitude_ut**2 * ratio
+            + 2.0 * self.noise_var**2 * np.sum(met * met)
+        )
 
     def reference_variance(self, s: ZSample) -> float:
         """Measurement variance with ``|g|`` replaced by the reference ``|h|`` (state independent)."""
