@@ -28,6 +28,7 @@ from drivers.errors import DeviceError
 from drivers.protocols import Load
 from rig import __version__
 from rig.config import RigConfig
+from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.interlock import RigLock
 from rig.engine.live import LiveView
 from rig.engine.sampling import BufferedSensor, SensorSampler
@@ -99,6 +100,7 @@ class Runner:
         self.report_requested = False
         self.rig: RigSession | None = None
         self._unread: dict[str, int] = {}  # output -> read-backs failed in a row
+        self._cpu_wait = CpuWaitLog()  # our threads' waits for a CPU, noted every health round
         self._coil_checked = 0.0
         self.samplers: dict[str, SensorSampler] = {}
         self.controller: Any = None
@@ -336,10 +338,11 @@ class Runner:
             self._fail(f"cannot write the run data ({w.error}): is the disk full? Free space under"
                        f" {w.folder.parent}; what was recorded before is kept")  # fmt: skip
         now = time.monotonic()
+        self._cpu_wait.note(now)
         for name, sampler in list(self.samplers.items()) if judge_sensors else []:
             stall_s = max(STALL_S, 5.0 / sampler.rate_hz)
             stuck_after = int(self.cfg.devices[name].get("stuck_after", STUCK_AFTER)) or 10**9
-            problem = sampler.health(now, stall_s, stuck_after)
+            problem = sampler.health(now, stall_s, stuck_after, self._cpu_wait)
             if problem is not None:
                 self._fail(problem)
         ctl = self.controller

@@ -16,6 +16,7 @@ from drivers.errors import DeviceError, DeviceProtocolError, DeviceTimeoutError
 from drivers.protocols import Magnetometer
 from drivers.transport.serial_port import own_stall_s
 from drivers.transport.tty_watch import tty_seen_stall_s, tty_stall_s
+from rig.engine.cpu_wait import CpuWaitLog
 
 Sink = Callable[[float, str, tuple[float, float, float]], None]
 Listener = Callable[[float, tuple[float, float, float]], None]
@@ -102,14 +103,19 @@ class SensorSampler:
             with self._cond:
                 self._cond.notify_all()
 
-    def health(self, now: float, stall_s: float, stuck_after: int) -> str | None:
-        """What is wrong with this sensor's data, if anything: stopped, stalled or frozen."""
+    def health(
+        self, now: float, stall_s: float, stuck_after: int, cpu_wait: CpuWaitLog | None = None
+    ) -> str | None:
+        """What is wrong with this sensor's data, if anything: stopped, stalled or frozen.
+        ``cpu_wait``: this process's threads' waits for a CPU, noted every check round."""
         if self.error is not None:
             return f"{self.name}: sampling stopped: {self.error}"
         last = self.latest[0] if self.latest is not None else self.started_t
         # time the kernel was seen holding serial bytes back was this computer's, not the
-        # sensor's (the strict measure: a busy rig process must not postpone the verdict)
-        silent_s = now - last - tty_seen_stall_s(last, now)
+        # sensor's (the strict measure: a busy rig process must not postpone the verdict), and
+        # so was time our threads waited for a CPU while the sensor's data sat in a buffer
+        ours = cpu_wait.waited_since(last) if cpu_wait is not None else 0.0
+        silent_s = now - last - max(tty_seen_stall_s(last, now), ours)
         if silent_s > stall_s:
             return (f"{self.name}: no data for {silent_s:.1f} s (stream stalled or sensor"
                     " disconnected); check its cable and power")  # fmt: skip

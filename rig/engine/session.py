@@ -40,6 +40,7 @@ from drivers.registry import output_kinds
 from rig.cage.controller import SAFE_TIMEOUT_S, CageController
 from rig.config import DeviceConfig, RigConfig
 from rig.devices import build_cage, open_device, open_load, open_magnetometer
+from rig.engine.cpu_wait import run_delay_s
 from rig.engine.guardian import HEARTBEAT_PERIOD_S, Guardian
 from rig.engine.interlock import RigLock
 from rig.errors import RigError, RunAborted, UserInputError
@@ -55,16 +56,6 @@ WAIT_SLICE_S = 0.05
 """Fault-aware waits look for faults and aborts this often."""
 COIL_DECAY_S = 2.0
 """Longest wait for a coil's current to decay before its polarity relay is switched."""
-
-
-def run_delay_s(tid: int | None) -> float:
-    """Total time (s) thread ``tid`` of this process has waited, runnable, for a CPU (Linux
-    schedstat); 0 where the kernel does not say."""
-    try:
-        with open(f"/proc/self/task/{tid}/schedstat") as f:
-            return int(f.read().split()[1]) / 1e9
-    except (OSError, ValueError, IndexError):
-        return 0.0
 
 
 def _warn(message: str) -> None:

@@ -77,11 +77,13 @@ def pty_pair() -> Iterator[tuple[int, str]]:
 
 
 def stall_until(t_end: float) -> Callable[[float, float | None], float]:
-    """A terminal layer that holds everything back until ``t_end`` (monotonic s)."""
+    """A terminal layer that holds everything back until ``t_end`` (monotonic s), on top of the
+    stalls the real canary sees (on a busy computer the test's own pty stalls too)."""
+    real = tty_watch.tty_stall_s
 
     def stalled(since: float, until: float | None = None) -> float:
         end = time.monotonic() if until is None else until
-        return max(0.0, min(end, t_end) - since)
+        return max(max(0.0, min(end, t_end) - since), real(since, until))
 
     return stalled
 

@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
@@ -240,6 +241,10 @@ def refit_with_delays(folder: Path, out: Path) -> None:
     try:
         t_s = stored_run_data(reader, [], field_kinds=field_kinds()).t_s
         locked = [phase_locked_interval_s(load_commands(reader, ch), t_s) for ch in truth]
+        # when a command took effect is known only to within its write (issued .. answered):
+        # wide on a busy computer (a pty stall), a few ms otherwise
+        window = {ch: float(np.percentile(np.diff(load_commands(reader, ch)[:, :2]), 90))
+                  for ch in truth}  # fmt: skip
     finally:
         reader.close()
     for ch, interval in zip(truth, locked, strict=True):
@@ -247,7 +252,8 @@ def refit_with_delays(folder: Path, out: Path) -> None:
         assert said == (interval is not None), (ch, interval, proc.stderr)
     doc = json.loads(out.read_text())
     tau = doc["delay_s"]
-    assert all(abs(tau[ch] - truth[ch]) < 0.05 for ch in tau), (tau, doc["sigma"]["delay_s"])
+    assert all(abs(tau[ch] - truth[ch]) < 0.05 + window[ch] for ch in tau), (
+        tau, doc["sigma"]["delay_s"], window)  # fmt: skip
     assert doc["residual_rms_nt"] < 150, doc["residual_rms_nt"]
 
 

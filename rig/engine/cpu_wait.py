@@ -1,0 +1,57 @@
+"""Time this process's threads waited, runnable, for a CPU (Linux schedstat).
+
+On a busy computer (CI and bench PCs share their cores) a thread can be ready and still not run
+for a second or more. A check that judges an instrument by how long it went quiet ("no data for
+1.5 s") must not count that time against the instrument: its data sat in a buffer while we were
+not running. The sampler thread itself, or whichever thread held the interpreter lock it needed,
+may have been the one kept waiting, so the largest wait of any thread is what is discounted.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+
+
+def run_delay_s(tid: int | None) -> float:
+    """Total time (s) thread ``tid`` of this process has waited, runnable, for a CPU (Linux
+    schedstat); 0 where the kernel does not say."""
+    try:
+        with open(f"/proc/self/task/{tid}/schedstat") as f:
+            return int(f.read().split()[1]) / 1e9
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def thread_delays_s() -> dict[int, float]:
+    """:func:`run_delay_s` of every thread of this process, by thread id."""
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return {}
+    return {tid: run_delay_s(tid) for tid in tids}
+
+
+class CpuWaitLog:
+    """Snapshots of every thread's CPU wait, taken by :meth:`note` (call it every check round);
+    :meth:`waited_since` tells how long the most delayed thread waited since a moment."""
+
+    def __init__(self, keep: int = 2000) -> None:
+        self._snapshots: deque[tuple[float, dict[int, float]]] = deque(maxlen=keep)
+
+    def note(self, now: float) -> None:
+        """Record every thread's wait so far at monotonic time ``now`` (s)."""
+        self._snapshots.append((now, thread_delays_s()))
+
+    def waited_since(self, since: float) -> float:
+        """Largest CPU wait (s) of any thread from the last snapshot at or before ``since``
+        (the oldest one if none is that old) to the newest; 0 without two snapshots."""
+        if len(self._snapshots) < 2:
+            return 0.0
+        base = self._snapshots[0][1]
+        for t, delays in self._snapshots:
+            if t > since:
+                break
+            base = delays
+        newest = self._snapshots[-1][1]
+        return max((newest[tid] - base[tid] for tid in newest if tid in base), default=0.0)
