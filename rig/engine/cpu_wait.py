@@ -13,35 +13,37 @@ import os
 from collections import deque
 
 
-def run_delay_s(tid: int | None) -> float:
-    """Total time (s) thread ``tid`` of this process has waited, runnable, for a CPU (Linux
-    schedstat); 0 where the kernel does not say."""
+def run_delay_s(tid: int | None, pid: int | str = "self") -> float:
+    """Total time (s) thread ``tid`` of process ``pid`` (default this one) has waited, runnable,
+    for a CPU (Linux schedstat); 0 where the kernel does not say."""
     try:
-        with open(f"/proc/self/task/{tid}/schedstat") as f:
+        with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
             return int(f.read().split()[1]) / 1e9
     except (OSError, ValueError, IndexError):
         return 0.0
 
 
-def thread_delays_s() -> dict[int, float]:
-    """:func:`run_delay_s` of every thread of this process, by thread id."""
+def thread_delays_s(pid: int | str = "self") -> dict[int, float]:
+    """:func:`run_delay_s` of every thread of process ``pid`` (default this one), by thread id."""
     try:
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
+        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
     except OSError:
         return {}
-    return {tid: run_delay_s(tid) for tid in tids}
+    return {tid: run_delay_s(tid, pid) for tid in tids}
 
 
 class CpuWaitLog:
-    """Snapshots of every thread's CPU wait, taken by :meth:`note` (call it every check round);
+    """Snapshots of every thread's CPU wait (of this process, or of ``pid``: the fault harness
+    watches a rig it is about to kill), taken by :meth:`note` (call it every check round);
     :meth:`waited_since` tells how long the most delayed thread waited since a moment."""
 
-    def __init__(self, keep: int = 2000) -> None:
+    def __init__(self, keep: int = 2000, pid: int | str = "self") -> None:
         self._snapshots: deque[tuple[float, dict[int, float]]] = deque(maxlen=keep)
+        self.pid = pid
 
     def note(self, now: float) -> None:
         """Record every thread's wait so far at monotonic time ``now`` (s)."""
-        self._snapshots.append((now, thread_delays_s()))
+        self._snapshots.append((now, thread_delays_s(self.pid)))
 
     def waited_since(self, since: float) -> float:
         """Largest CPU wait (s) of any thread from the last snapshot at or before ``since``

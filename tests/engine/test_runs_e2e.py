@@ -245,6 +245,11 @@ def refit_with_delays(folder: Path, out: Path) -> None:
         # wide on a busy computer (a pty stall), a few ms otherwise
         window = {ch: float(np.percentile(np.diff(load_commands(reader, ch)[:, :2]), 90))
                   for ch in truth}  # fmt: skip
+        # and when a DUT sample was taken only to within its arrival jitter (a busy computer
+        # delivers a stream in bursts: 90th percentile of the departure from the sample period)
+        dut_t = np.array([row[0] for row in reader.samples("dut")])
+        gaps = np.diff(dut_t)
+        jitter = float(np.percentile(np.abs(gaps - np.median(gaps)), 90))
     finally:
         reader.close()
     for ch, interval in zip(truth, locked, strict=True):
@@ -252,8 +257,8 @@ def refit_with_delays(folder: Path, out: Path) -> None:
         assert said == (interval is not None), (ch, interval, proc.stderr)
     doc = json.loads(out.read_text())
     tau = doc["delay_s"]
-    assert all(abs(tau[ch] - truth[ch]) < 0.05 + window[ch] for ch in tau), (
-        tau, doc["sigma"]["delay_s"], window)  # fmt: skip
+    assert all(abs(tau[ch] - truth[ch]) < 0.05 + window[ch] + jitter for ch in tau), (
+        tau, doc["sigma"]["delay_s"], window, jitter)  # fmt: skip
     assert doc["residual_rms_nt"] < 150, doc["residual_rms_nt"]
 
 
