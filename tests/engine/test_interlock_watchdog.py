@@ -143,11 +143,17 @@ def test_sigkill_of_set_field_leaves_every_output_off_and_relays_normal(
     assert relays(devices)[0] == 1  # x reversed for -20 uT
     holder.send_signal(signal.SIGKILL)
     holder.wait()
-    took = wait_off(devices, within_s=5.0)
-    deadline = time.monotonic() + 5
+    # idle: outputs off in tens of ms (docs/reliability.md); the wall bound here is generous,
+    # since it also holds this test's and the simulator's waits for a CPU on a busy computer
+    # (over 5 s once beside two CPU hogs); the guardian's own account is checked below
+    took = wait_off(devices, within_s=20.0)
+    deadline = time.monotonic() + 20
     while relays(devices) != [0, 0, 0]:
         assert time.monotonic() < deadline, f"relays {relays(devices)} not back to normal"
         time.sleep(0.05)
+    _, err = holder.communicate(timeout=30)  # the guardian writes to the rig's stderr
+    said = re.search(r"died without going safe; switched off .* in ([0-9]+) ms", err)
+    assert said and int(said.group(1)) < 1000, err
     print(f"guardian: outputs off {1000 * took:.0f} ms after SIGKILL")
 
 
