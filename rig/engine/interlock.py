@@ -55,18 +55,28 @@ def lock_dir() -> Path:
     return folder
 
 
-def wire_address(dev: DeviceConfig) -> str:
-    """Where a device is on the wire, the same for every configuration that names it."""
+def wire_link(dev: DeviceConfig) -> str:
+    """The wire a device is on (a TCP endpoint, a serial port, an I2C bus), the same for every
+    configuration that names it: devices on one link take turns on it."""
     if dev.protocol == "modbus-tcp":
-        return f"modbus-tcp {dev.get('host')}:{dev.get('port', 502)} id {dev.get('device_id', 1)}"
+        return f"modbus-tcp {dev.get('host')}:{dev.get('port', 502)}"
     if dev.protocol == "modbus-rtu":
         path = str(dev.get("path"))
         if "://" not in path:
             path = os.path.realpath(path)  # /dev/serial/by-id/... and /dev/ttyUSB0 are one port
-        return f"modbus-rtu {path} id {dev.get('device_id', 1)}"
+        return f"modbus-rtu {path}"
     if dev.protocol == "i2c":
-        return f"i2c bus {dev.get('bus', 1)} address {int(dev.get('address')):#04x}"
+        return f"i2c bus {dev.get('bus', 1)}"
     return f"{dev.protocol} {os.path.realpath(str(dev.get('path')))}"
+
+
+def wire_address(dev: DeviceConfig) -> str:
+    """Where a device is on the wire, the same for every configuration that names it."""
+    if dev.protocol in ("modbus-tcp", "modbus-rtu"):
+        return f"{wire_link(dev)} id {dev.get('device_id', 1)}"
+    if dev.protocol == "i2c":
+        return f"{wire_link(dev)} address {int(dev.get('address')):#04x}"
+    return wire_link(dev)
 
 
 def output_devices(cfg: RigConfig) -> dict[str, str]:

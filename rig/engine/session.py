@@ -42,7 +42,7 @@ from rig.config import DeviceConfig, RigConfig
 from rig.devices import build_cage, open_device, open_load, open_magnetometer
 from rig.engine.cpu_wait import run_delay_s
 from rig.engine.guardian import HEARTBEAT_PERIOD_S, Guardian
-from rig.engine.interlock import RigLock
+from rig.engine.interlock import RigLock, wire_link
 from rig.errors import RigError, RunAborted, UserInputError
 
 ATTEMPTS = 3
@@ -293,9 +293,9 @@ def switch_off_every_output(cfg: RigConfig) -> tuple[list[str], list[str]]:
     outputs = [(n, d) for n, d in cfg.devices.items() if d.kind in kinds]
     supplies = [(n, d) for n, d in outputs if d.kind != "relay"]
     relays = [(n, d) for n, d in outputs if d.kind == "relay"]
-    links: dict[tuple[Any, ...], list[tuple[str, DeviceConfig]]] = {}
+    links: dict[str, list[tuple[str, DeviceConfig]]] = {}
     for name, dev in supplies:
-        links.setdefault(link_of(dev), []).append((name, dev))
+        links.setdefault(wire_link(dev), []).append((name, dev))
     outcome: dict[str, str | None] = {}
     with ThreadPoolExecutor(max_workers=max(1, len(links)), thread_name_prefix="safe") as pool:
         for results in pool.map(lambda devs: [(n, _switch_off(d)) for n, d in devs],
@@ -311,15 +311,6 @@ def switch_off_every_output(cfg: RigConfig) -> tuple[list[str], list[str]]:
     done = [n for n, _ in supplies + relays if outcome[n] is None]
     problems = [f"{n}: {outcome[n]}" for n, _ in supplies + relays if outcome[n] is not None]
     return done, problems
-
-
-def link_of(dev: DeviceConfig) -> tuple[Any, ...]:
-    """What ``dev`` shares with the other devices on its wire: a serial port's path, a TCP
-    endpoint or an I2C bus (devices with the same link must take turns on it)."""
-    for key in ("path", "port", "bus"):
-        if dev.get(key) is not None:
-            return (dev.protocol, dev.get("host"), dev.get(key))
-    return ("own", dev.name)
 
 
 def _switch_off(dev: DeviceConfig) -> str | None:

@@ -114,15 +114,15 @@ def twostep_fit(
     if noise_ut is None:
         r0, _ = z_residuals(theta, s)
         noise_ut = float(np.sqrt(np.mean(r0**2)))
+    inv_scale2 = 1.0 / (2.0 * s.field_magnitude_ut) ** 2
     converged, iterations = False, 0
     while iterations < MAX_GN_STEPS:
         iterations += 1
         r, jac = z_residuals(theta, s, z_noise_mean(theta, noise_ut, noise_frame))
-        scale2 = (2.0 * s.field_magnitude_ut) ** 2
         correlation = z_eiv_correlation(theta, s, noise_ut, noise_frame)
         # r = (z - model) / 2|h|, jac = -dmodel / 2|h|: the compensated gradient is
         # sum (dmodel (z - model) - E[dmodel (z - model)]) / (2|h|)^2
-        gradient = -(jac.T @ r) - (correlation.T @ (1.0 / scale2))
+        gradient = -(jac.T @ r) - (correlation.T @ inv_scale2)
         step = np.linalg.solve(jac.T @ jac, gradient)
         theta = theta + step
         if not np.all(np.isfinite(theta)):
