@@ -194,6 +194,9 @@ class Measured:
     outputs_left_on: tuple[str, ...] = ()  # outputs (other than dead ones) still on at the end
     kernel_stall_ms: float = 0.0  # of the time to safe, the kernel held serial data back (canary)
     rig_cpu_wait_ms: float = 0.0  # longest wait for a CPU of a rig thread in the 2 s before a kill
+    guardian_cpu_wait_ms: float = (
+        0.0  # the guardian's own wait for a CPU while it acted (its account)
+    )
 
     @property
     def safe_after_detection_ms(self) -> float | None:
@@ -221,15 +224,17 @@ class Measured:
         if f.mentions and f.mentions not in self.reason:
             out.append(f"the reason does not name {f.mentions!r}: {self.reason}")
         if f.detect_within_ms:
-            # a busy computer's kernel holding serial bytes back delays what no rig can hasten
-            bound = f.detect_within_ms + SAFE_AFTER_DETECTION_MS + self.kernel_stall_ms
+            # a busy computer's kernel holding serial bytes back, or keeping the guardian from a
+            # CPU, delays what no rig can hasten; both are measured, not guessed
+            busy = self.kernel_stall_ms + self.guardian_cpu_wait_ms
+            why = (f"{self.kernel_stall_ms:.0f} ms of kernel serial stall,"
+                   f" {self.guardian_cpu_wait_ms:.0f} ms of the guardian waiting for a CPU")  # fmt: skip
+            bound = f.detect_within_ms + SAFE_AFTER_DETECTION_MS + busy
             if self.time_to_safe_ms is None or self.time_to_safe_ms > bound:
-                out.append(f"time to safe {self.time_to_safe_ms} ms, bound {bound:g} ms"
-                           f" ({self.kernel_stall_ms:.0f} ms of kernel serial stall)")  # fmt: skip
+                out.append(f"time to safe {self.time_to_safe_ms} ms, bound {bound:g} ms ({why})")
             after = self.safe_after_detection_ms
-            if after is not None and after > SAFE_AFTER_DETECTION_MS + self.kernel_stall_ms:
-                out.append(f"safe {after:.0f} ms after detection ({self.kernel_stall_ms:.0f} ms"
-                           " of kernel serial stall)")  # fmt: skip
+            if after is not None and after > SAFE_AFTER_DETECTION_MS + busy:
+                out.append(f"safe {after:.0f} ms after detection ({why})")
         return out
 
     @property
@@ -466,7 +471,7 @@ def _child_run(fault: Fault, kind: str, cage: SimulatedCage, workdir: Path, proc
         status = "error" if child.returncode == 2 else status  # the status row could not be written
     return Measured(fault, kind, status, child.returncode, reason, time_to_safe, detected_ms, stored,
                     None, data_lost_ms, took, left_on, watch.kernel_stall_ms,
-                    rig_cpu_wait_ms)  # fmt: skip
+                    rig_cpu_wait_ms, guardian_cpu_wait_ms(reason))  # fmt: skip
 
 
 EXTRA: tuple[Fault, ...] = (
@@ -523,6 +528,12 @@ def _second_run(fault: Fault, cage: SimulatedCage, workdir: Path, rig_toml: Path
                     None, None, took, tuple(n for n, s in cage.physics.supplies.items() if s.output))  # fmt: skip
 
 
+def guardian_cpu_wait_ms(message: str) -> float:
+    """The guardian's own wait for a CPU (ms) from its message (``waited N ms for a CPU``); 0."""
+    found = re.search(r"waited (\d+) ms for a CPU", message)
+    return float(found.group(1)) if found else 0.0
+
+
 def _cage_sigkill(fault: Fault, cage: SimulatedCage, rig_toml: Path) -> Measured:
     t0 = time.monotonic()
     child = subprocess.Popen([sys.executable, "-m", "rig.cli", "cage", "set-field", "--hold", "60",
@@ -549,7 +560,7 @@ def _cage_sigkill(fault: Fault, cage: SimulatedCage, rig_toml: Path) -> Measured
         status, guardian = "relay reversed", f"{guardian}; relay signs {relays}"
     return Measured(fault, "rig cage set-field", status, child.returncode or 0, guardian,
                     time_to_safe, detected, 0, None, None, took, left_on,
-                    watch.kernel_stall_ms)  # fmt: skip
+                    watch.kernel_stall_ms, 0.0, guardian_cpu_wait_ms(guardian))  # fmt: skip
 
 
 def cells(full: bool) -> list[tuple[Fault, str]]:

@@ -47,7 +47,8 @@ class CpuWaitLog:
 
     def waited_since(self, since: float) -> float:
         """Largest CPU wait (s) of any thread from the last snapshot at or before ``since``
-        (the oldest one if none is that old) to the newest; 0 without two snapshots."""
+        (the oldest one if none is that old) to the newest; 0 without two snapshots. A thread
+        born after that snapshot counts with all of its wait."""
         if len(self._snapshots) < 2:
             return 0.0
         base = self._snapshots[0][1]
@@ -56,4 +57,4 @@ class CpuWaitLog:
                 break
             base = delays
         newest = self._snapshots[-1][1]
-        return max((newest[tid] - base[tid] for tid in newest if tid in base), default=0.0)
+        return max((newest[tid] - base.get(tid, 0.0) for tid in newest), default=0.0)

@@ -36,6 +36,7 @@ import time
 from pathlib import Path
 
 from drivers.registry import output_kinds
+from rig.engine.cpu_wait import CpuWaitLog
 
 OUTPUT_KINDS = output_kinds()
 """Kinds the guardian switches off: every registered supply, load and relay (drivers.registry)."""
@@ -102,13 +103,18 @@ def safe_outputs(rig_config: Path) -> tuple[list[str], list[str]]:
     return switch_off_every_output(load_rig_config(rig_config))
 
 
-def _record(folder: Path, t_found: float, why: str, done: list[str], problems: list[str]) -> None:
-    """Mark the run incomplete and log what the guardian did (the run's own clock)."""
+def _record(
+    folder: Path, t_found: float, why: str, done: list[str], problems: list[str], cpu: str = ""
+) -> None:
+    """Mark the run incomplete and log what the guardian did (the run's own clock); ``cpu`` is
+    the guardian's note on its own wait for a CPU, appended to its message."""
     path = folder / "run.sqlite"
     if not path.exists():
         return
     took_ms = 1000.0 * (time.monotonic() - t_found)
-    message = f"guardian: {why}; switched off {', '.join(done) or 'nothing'} in {took_ms:.0f} ms"
+    message = (
+        f"guardian: {why}; switched off {', '.join(done) or 'nothing'} in {took_ms:.0f} ms{cpu}"
+    )
     con = sqlite3.connect(path, timeout=10.0)
     try:
         rows = [(time.monotonic(), "error", message)]
@@ -126,17 +132,22 @@ def _record(folder: Path, t_found: float, why: str, done: list[str], problems: l
     seal_run(folder)  # the run is closed now: its data never change again
 
 
-def wait_for_rig(fd: int, pid: int, timeout_s: float = HEARTBEAT_TIMEOUT_S) -> str | None:
+def wait_for_rig(
+    fd: int, pid: int, timeout_s: float = HEARTBEAT_TIMEOUT_S, waits: CpuWaitLog | None = None
+) -> str | None:
     """Read heartbeats until the rig says ``done`` (None) or dies or hangs (why, one phrase).
     A hung rig is killed first, so that it cannot drive the outputs again once resumed.
 
     Time the guardian itself was not running (its 0.1 s wait took more than OWN_STALL_S longer)
-    is not the rig's silence: that much is added to the rig's time, and no more."""
+    is not the rig's silence: that much is added to the rig's time, and no more. ``waits``, if
+    given, is noted every round (the guardian's own waits for a CPU, for its account)."""
     tail = b""
     last_beat = time.monotonic()
     own_stall_s = 0.0  # guardian stalls discounted since the last beat
     while True:
         before = time.monotonic()
+        if waits is not None:
+            waits.note(before)
         ready, _, _ = select.select([fd], [], [], 0.1)
         now = time.monotonic()
         late = now - before - 0.1
@@ -167,19 +178,35 @@ def wait_for_rig(fd: int, pid: int, timeout_s: float = HEARTBEAT_TIMEOUT_S) -> s
             )
 
 
+CPU_WAIT_LOOKBACK_S = 0.15
+"""The guardian's account of its own CPU wait starts at its last round this long before it found
+the rig dead or hung (one select period and a margin), so it covers the rig's death and the
+guardian's waking to it."""
+
+
+def _cpu_wait_note(wait_s: float) -> str:
+    """``; the guardian waited N ms for a CPU`` (its threads' longest wait, Linux schedstat) when
+    that is worth saying (>= 50 ms): on a busy computer it is part of the time to safe, and not
+    the rig's or the hardware's."""
+    return f"; the guardian waited {1000.0 * wait_s:.0f} ms for a CPU" if wait_s >= 0.05 else ""
+
+
 def watch(fd: int, rig_config: Path, folder: Path | None, pid: int) -> int:
     """Wait for the rig to finish; act if it died or hung. Returns the exit status."""
-    why = wait_for_rig(fd, pid)
+    waits = CpuWaitLog(keep=64)
+    why = wait_for_rig(fd, pid, waits=waits)
     if why is None:
         return 0
     t_found = time.monotonic()
     done, problems = safe_outputs(rig_config)
+    waits.note(time.monotonic())
+    cpu = _cpu_wait_note(waits.waited_since(t_found - CPU_WAIT_LOOKBACK_S))
     if folder is not None:
         with contextlib.suppress(sqlite3.Error, OSError):
-            _record(folder, t_found, why, done, problems)
+            _record(folder, t_found, why, done, problems, cpu)
     took_ms = 1000.0 * (time.monotonic() - t_found)
-    print(f"rig guardian: {why}; switched off {', '.join(done) or 'nothing'} in {took_ms:.0f} ms",
-          file=sys.stderr)  # fmt: skip
+    print(f"rig guardian: {why}; switched off {', '.join(done) or 'nothing'} in {took_ms:.0f} ms"
+          f"{cpu}", file=sys.stderr)  # fmt: skip
     for p in problems:
         print(
             f"rig guardian: WARNING: could not switch off {p}; switch it off by hand",
