@@ -1,5 +1,5 @@
-"""What the rig may ask of each role of device: coil supply, load-current channel, polarity relay
-and magnetometer. Every driver satisfies one or more of these Protocols (checked by mypy where the
+"""What the rig may ask of each role of device: coil supply, load-current channel, polarity relay,
+magnetometer and thermometer. Every driver satisfies one or more of these Protocols (checked by mypy where the
 registry opens it, see :mod:`drivers.registry`); the rig never asks a driver for its class.
 
 Units are in the names: V, A, uT, Hz, s.
@@ -75,4 +75,15 @@ class Magnetometer(Protocol):
     def start_sampling(self, rate_hz: float) -> float: ...
     def read_samples(self, max_wait_s: float) -> list[Vector]: ...
     def stop_sampling(self) -> None: ...
+    def close(self) -> None: ...
+
+
+class Thermometer(Protocol):
+    """A temperature reading (degrees C), e.g. an RTD on the DUT's mount: recorded through a run
+    so that the DUT's temperature coefficients can be fitted (``rig calibrate RUN --temperature``)."""
+
+    name: str
+
+    def identify(self) -> Identity: ...
+    def read_temperature_c(self) -> float: ...
     def close(self) -> None: ...

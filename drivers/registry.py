@@ -26,8 +26,8 @@ from drivers.mag.ascii_line import AsciiLineMagnetometer, LineFormat
 from drivers.mag.hmr2300 import Hmr2300
 from drivers.mag.lis3mdl import WHO_AM_I, WHO_AM_I_VALUE, Lis3mdl
 from drivers.mag.rm3100 import REVID, REVID_VALUE, Rm3100
-from drivers.protocols import Load, Magnetometer, Relay, Supply
-from drivers.psu.regmap_device import MappedSupply, PolarityRelay
+from drivers.protocols import Load, Magnetometer, Relay, Supply, Thermometer
+from drivers.psu.regmap_device import MappedSupply, MappedThermometer, PolarityRelay
 from drivers.psu.riden import MODELS as RIDEN_MODELS
 from drivers.psu.riden import RidenSupply
 from drivers.regmap import RegisterMap, load_map, shipped_maps
@@ -35,7 +35,7 @@ from drivers.transport.i2c import I2CDevice
 from drivers.transport.modbus import ModbusLink
 from drivers.transport.serial_port import SerialPort
 
-Role = Literal["supply", "load", "relay", "magnetometer"]
+Role = Literal["supply", "load", "relay", "magnetometer", "thermometer"]
 OUTPUT_ROLES: frozenset[Role] = frozenset({"supply", "load", "relay"})
 
 TEXT: tuple[type, ...] = (str,)
@@ -403,6 +403,12 @@ def _open_relay(spec: OpenSpec) -> PolarityRelay:
                          name=spec.name)  # fmt: skip
 
 
+def _open_thermometer(spec: OpenSpec) -> MappedThermometer:
+    regmap = load_map(str(spec.get("regmap")))
+    return MappedThermometer(modbus_link(spec, baudrate=regmap.baudrate or 115200), regmap,
+                             name=spec.name)  # fmt: skip
+
+
 def _identifiable_maps(map_kind: str) -> list[RegisterMap]:
     return [m for m in shipped_maps() if m.kind == map_kind and m.constants()]
 
@@ -566,6 +572,12 @@ def _iter_registered() -> Iterator[DeviceKind]:
         _probe_maps("regmap-relay", "relay"), _map_bauds("relay"),
     )  # fmt: skip
     yield DeviceKind(
+        "regmap-thermometer", frozenset({"thermometer"}), ("modbus-tcp", "modbus-rtu"), (regmap,),
+        _open_thermometer, "Modbus temperature module (RTD, thermocouple) described by a register"
+        " map: recorded through every run (the DUT's temperature)",
+        _probe_maps("regmap-thermometer", "thermometer"), _map_bauds("thermometer"),
+    )  # fmt: skip
+    yield DeviceKind(
         "hmr2300", frozenset({"magnetometer"}), ("serial",),
         (Param("device_id", WHOLE, help="HMR2300 ID 00-98 (asked with *99ID= when absent)",
                low=0, high=98, why="HMR2300 ids; 99 is its broadcast id",
@@ -606,9 +618,11 @@ if TYPE_CHECKING:  # mypy checks that every driver satisfies the Protocols of it
     def _satisfies(
         riden: RidenSupply, mapped: MappedSupply, relay: PolarityRelay, hmr: Hmr2300,
         ascii_mag: AsciiLineMagnetometer, rm3100: Rm3100, lis3mdl: Lis3mdl,
+        thermo: MappedThermometer,
     ) -> None:  # fmt: skip
         supplies: list[Supply] = [riden, mapped]
         loads: list[Load] = [riden, mapped]
         relays: list[Relay] = [relay]
         mags: list[Magnetometer] = [hmr, ascii_mag, rm3100, lis3mdl]
-        del supplies, loads, relays, mags
+        thermometers: list[Thermometer] = [thermo]
+        del supplies, loads, relays, mags, thermometers

@@ -3,7 +3,7 @@
 Format (shared with the simulator's models of the same devices)::
 
     [device]
-    kind = "supply" | "eload" | "relay"
+    kind = "supply" | "eload" | "relay" | "thermometer"
     model = "..."
     v_max = 20.0            # V, supplies and loads
     i_max = 5.0             # A
@@ -17,7 +17,8 @@ Format (shared with the simulator's models of the same devices)::
     scale = 1000            # counts per unit (integer types)
     access = "ro" | "rw"
     role = "v_set" | "i_set" | "v_out" | "i_out" | "output" | "mode" | "protection"
-         | "polarity_x" | "polarity_y" | "polarity_z" | "constant" | "none"
+         | "polarity_x" | "polarity_y" | "polarity_z" | "temperature" (degrees C)
+         | "constant" | "none"
     value = 5005            # role "constant" only: what the register always reads (a model
                             # number): identify() and `rig devices scan` check it
 """
@@ -31,6 +32,7 @@ from pathlib import Path
 
 MAP_DIR = Path(__file__).with_name("regmaps")
 WIDTH = {"uint16": 1, "int16": 1, "uint32": 2, "int32": 2, "float32": 2}
+MAP_KINDS = ("supply", "eload", "relay", "thermometer")
 
 
 class RegisterMapError(ValueError):
@@ -151,8 +153,8 @@ def load_map(name_or_path: str) -> RegisterMap:
                              float(r.get("scale", 1.0)),
                              None if r.get("value") is None else float(r["value"])))  # fmt: skip
     kind = str(dev.get("kind", ""))
-    if kind not in ("supply", "eload", "relay"):
-        raise RegisterMapError(f"{p}: [device] kind must be supply, eload or relay")
+    if kind not in MAP_KINDS:
+        raise RegisterMapError(f"{p}: [device] kind must be {', '.join(MAP_KINDS)}")
     baudrate = dev.get("baudrate")
     if baudrate is not None and (isinstance(baudrate, bool) or not isinstance(baudrate, int)):
         raise RegisterMapError(f"{p}: [device] baudrate must be a whole number, e.g. 9600")

@@ -10,7 +10,7 @@ import numpy.typing as npt
 
 from rig.calibration import Samples, calibrate
 from rig.calibration.estimators import DEFAULT_METHOD, estimator
-from rig.errors import CalibrationError
+from rig.errors import CalibrationError, UserInputError
 from rig.store.run_store import RunReader
 
 Array = npt.NDArray[np.float64]
@@ -313,17 +313,63 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
     """The ``calibrate`` step: fit the DUT from the run so far (the named steps, or every step of
     ``field_kinds``); returns the result file content."""
     dut = magnetometers.get(params["magnetometer"], params["magnetometer"])
-    samples, _, unresolved = calibration_data(
+    samples, t_s, unresolved = calibration_data(
         reader, dut, magnetometers.get("reference", "reference"), params["telemetry"],
         params["steps"], params["settle_s"], correction, field_kinds)  # fmt: skip
     method = params["method"] or DEFAULT_METHOD[params["model"]]
     if params["model"] == "scalar" and estimator(method).model == "vector":
         raise CalibrationError(f"a scalar calibration cannot use method '{method}'")
-    out = calibrate(samples, method, noise_nt=params["noise_nt"] or None).to_dict()
+    temperature, no_temperature = None, 0
+    if params.get("temperature"):
+        samples, temperature, no_temperature = run_temperature(
+            reader, params["temperature"], samples, t_s
+        )
+    out = calibrate(samples, method, noise_nt=params["noise_nt"] or None, temperature=temperature,
+                    temperature_ref=params.get("temperature_ref_c")).to_dict()  # fmt: skip
     out["unresolved_field_samples"] = unresolved
+    if no_temperature:
+        out["warnings"].insert(0, f"{no_temperature} samples left out: no {params['temperature']}"
+                               f" reading within {MAX_TEMPERATURE_GAP_S:g} s")  # fmt: skip
     if unresolved:
         out["warnings"].insert(0, unresolved_note(unresolved, samples.n + unresolved))
     return out
+
+
+MAX_TEMPERATURE_GAP_S = 3.0
+"""A sample further than this from every reading of the thermometer (3 of its periods) has no
+temperature to speak of: it is left out of a temperature fit, and the count said."""
+
+
+def recorded_thermometer(reader: RunReader, name: str) -> None:
+    """UserInputError unless the run recorded thermometer ``name`` (naming those it did)."""
+    recorded = list(reader.meta().get("thermometers") or [])
+    if name not in recorded:
+        have = ", ".join(recorded) or "none (the rig configuration had no thermometer)"
+        raise UserInputError(f"--temperature {name}: the run recorded no such thermometer; it"
+                             f" recorded: {have}")  # fmt: skip
+
+
+def run_temperature(
+    reader: RunReader, name: str, samples: Samples, t_s: Array
+) -> tuple[Samples, Array, int]:
+    """The DUT temperature (C) a run's thermometer ``name`` recorded, interpolated linearly to
+    the calibration samples' times ``t_s`` (s): (samples kept, temperature per kept sample,
+    number left out for want of a reading within :data:`MAX_TEMPERATURE_GAP_S`)."""
+    recorded_thermometer(reader, name)
+    rows = np.array([(t, m) for t, _, m in reader.channel(name) if m is not None], float)
+    if rows.size == 0:
+        raise UserInputError(f"--temperature {name}: the thermometer never answered in this run")
+    rows = rows.reshape(-1, 2)
+    t_th, value = rows[:, 0], rows[:, 1]
+    right = np.clip(np.searchsorted(t_th, t_s), 0, len(t_th) - 1)
+    left = np.clip(right - 1, 0, len(t_th) - 1)
+    nearest = np.minimum(np.abs(t_th[right] - t_s), np.abs(t_s - t_th[left]))
+    keep = nearest <= MAX_TEMPERATURE_GAP_S
+    if not keep.any():
+        raise UserInputError(f"--temperature {name}: no reading within {MAX_TEMPERATURE_GAP_S:g} s"
+                             " of any calibration sample")  # fmt: skip
+    temperature = np.interp(t_s, t_th, value)
+    return samples.take(keep), temperature[keep], int((~keep).sum())
 
 
 def unresolved_note(unresolved: int, total: int) -> str:

@@ -32,7 +32,8 @@ from rig.config import load_rig_config
 from rig.errors import UserInputError
 
 MODBUS = ("modbus-rtu", "modbus-tcp")
-NAME_PREFIX = {"supply": "psu", "load": "load", "relay": "polarity", "magnetometer": "mag"}
+NAME_PREFIX = {"supply": "psu", "load": "load", "relay": "polarity", "magnetometer": "mag",
+               "thermometer": "temp"}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -213,7 +214,7 @@ def device_names(found: list[Found]) -> list[str]:
     names = []
     for f in found:
         roles = KINDS[f.kind].roles
-        role = next(r for r in ("supply", "load", "relay", "magnetometer") if r in roles)
+        role = next(r for r in NAME_PREFIX if r in roles)
         prefix = NAME_PREFIX[role]
         counts[prefix] = counts.get(prefix, 0) + 1
         names.append(f"{prefix}{counts[prefix]}")

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.protocols import Load, Magnetometer, Relay, Supply
+from drivers.protocols import Load, Magnetometer, Relay, Supply, Thermometer
 from drivers.registry import KINDS, OpenSpec, Role
 from drivers.regmap import RegisterMapError
 from rig.cage.controller import AxisDrive, CageController
@@ -70,6 +70,23 @@ def open_magnetometer(dev: DeviceConfig, i2c_bus: Any | None = None) -> Magnetom
     _check_role(dev, "magnetometer")
     mag: Magnetometer = open_device(dev, i2c_bus)
     return mag
+
+
+def open_thermometer(dev: DeviceConfig, i2c_bus: Any | None = None) -> Thermometer:
+    """A thermometer (a kind with the ``thermometer`` role)."""
+    _check_role(dev, "thermometer")
+    thermometer: Thermometer = open_device(dev, i2c_bus)
+    return thermometer
+
+
+def thermometer_names(cfg: RigConfig) -> list[str]:
+    """The rig's thermometers (devices of a kind with the ``thermometer`` role), in file order:
+    every run records each of them."""
+    return [
+        n
+        for n, d in cfg.devices.items()
+        if d.kind in KINDS and "thermometer" in KINDS[d.kind].roles
+    ]
 
 
 def open_load(dev: DeviceConfig, i2c_bus: Any | None = None) -> Load:

@@ -101,6 +101,22 @@ class SimulatedCage:
                                            self.physics.relays.faults)  # fmt: skip
                 entry |= {"kind": "regmap-relay", "regmap": spec.source, "role": "polarity"}
                 self.endpoints[r.name] = entry
+            if self.cfg.thermometer is not None:
+                th = self.cfg.thermometer
+                spec = load_regmap(th.regmap)
+                self.faults[th.name] = thermo_faults = Faults()
+                device = regmap_device(
+                    spec, th.endpoint.device_id, self.physics, None, thermo_faults
+                )
+                entry = self._serve_modbus(th.name, device, th.endpoint.transport,
+                                           th.endpoint.device_id, th.endpoint.baudrate,
+                                           thermo_faults)  # fmt: skip
+                entry |= {
+                    "kind": "regmap-thermometer",
+                    "regmap": spec.source,
+                    "role": "thermometer",
+                }
+                self.endpoints[th.name] = entry
             for i, m in enumerate(self.cfg.magnetometers):
                 mag = self.physics.magnetometers[m.name]
                 self.faults[m.name] = mag.faults

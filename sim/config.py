@@ -107,6 +107,29 @@ class MagnetometerConfig:
     serial_number: str = "0001"
     i2c_address: int = 0x20
     line_format: str = "{x:.4f} {y:.4f} {z:.4f}"
+    temperature_ref_c: float = 25.0  # the temperature its scale and offset refer to
+    scale_per_k: float = 0.0  # common scale coefficient (1/K): m = (1 + s dT) T h + ...
+    offset_ut_per_k: tuple[float, ...] = (0.0, 0.0, 0.0)  # offset coefficient (uT/K, per axis)
+
+
+@dataclass(frozen=True)
+class ThermalConfig:
+    """The DUT's temperature: a first-order thermal mass warmed by a heater on its mount,
+    ``tau dT/dt = ambient + k P - T`` with ``P = I^2 R`` of the heater's load channel."""
+
+    heater: str  # a load channel (a supply into the heater's resistance)
+    ambient_c: float = 25.0
+    k_per_w: float = 1.0  # steady-state rise per watt of heater power (K/W)
+    tau_s: float = 60.0  # thermal time constant of the DUT and its mount (s)
+
+
+@dataclass(frozen=True)
+class ThermometerConfig:
+    """A Modbus temperature module reading the DUT's temperature (register-map device)."""
+
+    name: str
+    regmap: str
+    endpoint: EndpointConfig
 
 
 @dataclass(frozen=True)
@@ -122,6 +145,9 @@ class SimConfig:
     source: str = ""
     faults: dict[str, dict[str, float | bool | int]] = field(default_factory=dict)
     """Faults active from the start, per device name (fields of ``sim.physics.Faults``)."""
+    thermal: ThermalConfig | None = None
+    """The DUT's thermal model (None: the DUT stays at 25 C, its reference temperature)."""
+    thermometer: ThermometerConfig | None = None
 
     def supply(self, name: str) -> SupplyConfig:
         """A supply or load channel by name."""
@@ -238,12 +264,35 @@ def _parse(raw: dict[str, Any], source: str) -> SimConfig:
                 serial_number=str(m.get("serial_number", "0001")),
                 i2c_address=int(m.get("i2c_address", 0x20)),
                 line_format=str(m.get("line_format", "{x:.4f} {y:.4f} {z:.4f}")),
+                temperature_ref_c=float(m.get("temperature_ref_c", 25.0)),
+                scale_per_k=float(m.get("scale_per_k", 0.0)),
+                offset_ut_per_k=(
+                    _vec(m, "offset_ut_per_k", where) if "offset_ut_per_k" in m else (0, 0, 0)
+                ),
             )
         )
         for ch in mags[-1].k_ut_per_a:
             if ch not in {s.name for s in supplies if s.axis is None}:
                 raise SimConfigError(f"{where}.k_ut_per_a names '{ch}', which is no load channel")
+    thermal = None
+    if "thermal" in raw:
+        t = raw["thermal"]
+        thermal = ThermalConfig(str(t["heater"]), float(t.get("ambient_c", 25.0)),
+                                float(t.get("k_per_w", 1.0)), float(t.get("tau_s", 60.0)))  # fmt: skip
+        if thermal.heater not in {s.name for s in supplies if s.axis is None}:
+            raise SimConfigError(
+                f"thermal.heater names '{thermal.heater}', which is no load channel"
+            )
+        if not (thermal.tau_s > 0 and thermal.k_per_w >= 0):
+            raise SimConfigError("thermal: tau_s must be > 0 and k_per_w >= 0")
+    thermometer = None
+    if "thermometer" in raw:
+        t = raw["thermometer"]
+        thermometer = ThermometerConfig(
+            str(t["name"]), str(t["regmap"]), _endpoint(t, "thermometer")
+        )
     names = {s.name for s in supplies} | {m.name for m in mags} | ({relay.name} if relay else set())
+    names |= {thermometer.name} if thermometer else set()
     fault_keys = {"reply_delay_s", "silent", "drop_rate", "corrupt_rate", "exception_code",
                   "disconnect", "stuck"}  # fmt: skip
     faults: dict[str, dict[str, float | bool | int]] = {}
@@ -256,6 +305,5 @@ def _parse(raw: dict[str, Any], source: str) -> SimConfig:
                 f"faults.{name}: unknown keys {sorted(unknown)}; use {sorted(fault_keys)}"
             )
         faults[name] = dict(table)
-    return SimConfig(
-        int(raw.get("seed", 0)), cage, ambient, tuple(supplies), relay, tuple(mags), source, faults
-    )
+    return SimConfig(int(raw.get("seed", 0)), cage, ambient, tuple(supplies), relay, tuple(mags),
+                     source, faults, thermal, thermometer)  # fmt: skip

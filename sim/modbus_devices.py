@@ -119,11 +119,14 @@ def riden_device(supply: Supply, device_id: int, serial_number: int = 12345) -> 
 def regmap_device(
     spec: RegMap, device_id: int, physics: CagePhysics, supply: Supply | None, faults: Faults
 ) -> SimDevice:
-    """A device described by a register map, bound to a supply/e-load or the polarity relays."""
+    """A device described by a register map, bound to a supply/e-load, the polarity relays or
+    (role ``temperature``) the DUT's temperature."""
 
     def value_of(reg: Register) -> float:
         if reg.role == "constant":
             return reg.value
+        if reg.role == "temperature":
+            return physics.dut_temperature_c()
         if reg.role.startswith("polarity_"):
             return 1.0 if physics.relays.sign["xyz".index(reg.role[-1])] < 0 else 0.0
         assert supply is not None

@@ -5,7 +5,11 @@ Everything is evaluated lazily at monotonic wall-clock time, so protocol servers
 threads see one consistent, continuously evolving cage. The DUT model is the project's measurement
 model (ARCHITECTURE.md, contract)::
 
-    m(t) = L R h(t) + o + sum_j k_j u_j(t - tau_j) + n(t),   h = K I(t) + B_ambient(t)
+    m(t) = (1 + s_T dT) L R h(t) + o + o_T dT + sum_j k_j u_j(t - tau_j) + n(t),
+    h = K I(t) + B_ambient(t),   dT = T(t) - T_ref
+
+with the DUT's temperature ``T`` a first-order thermal mass warmed by a heater load channel
+(``[thermal]`` of the configuration; constant at 25 C without one).
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -82,6 +87,8 @@ class Supply:
         self.faults = Faults()
         self.lock = threading.RLock()
         self.writes = 0
+        self.on_change: Callable[[float, float], None] | None = None
+        """Told (time s, target current A) whenever the output's target changes (a heater)."""
 
     def _target(self) -> float:
         if not self.output:
@@ -99,6 +106,8 @@ class Supply:
         elif self.output and self._target() > self.ocp_a:
             self._trip(t_s, 2)
         self.current.set_target(t_s, self._target())
+        if self.on_change is not None:
+            self.on_change(t_s, self._target())
 
     def _trip(self, t_s: float, code: int) -> None:
         self.output = False
@@ -196,25 +205,33 @@ class Magnetometer:
         self.rotation = rotation_matrix(np.radians(np.array(cfg.mounting_deg)))
         self.t_matrix = self.sensor @ self.rotation
         self.offset_ut = np.array(cfg.offset_ut)
+        self.offset_ut_per_k = np.array(cfg.offset_ut_per_k)
         self.faults = Faults()
         self._rng = rng
         self._lock = threading.Lock()
         self._last: Array | None = None
 
-    def truth_reading(self, field_ut: Array, loads_a: dict[str, float]) -> Array:
-        """Noise-free reading for a field (cage frame) and delayed load currents (uT)."""
-        m = self.t_matrix @ field_ut + self.offset_ut
+    def truth_reading(
+        self, field_ut: Array, loads_a: dict[str, float], temperature_c: float | None = None
+    ) -> Array:
+        """Noise-free reading for a field (cage frame), delayed load currents (uT) and the
+        sensor's temperature (C; None: at its reference temperature)."""
+        d_t = 0.0 if temperature_c is None else temperature_c - self.cfg.temperature_ref_c
+        m = (1.0 + self.cfg.scale_per_k * d_t) * (self.t_matrix @ field_ut)
+        m = m + self.offset_ut + self.offset_ut_per_k * d_t
         for ch, k in self.cfg.k_ut_per_a.items():
             m = m + np.asarray(k) * loads_a.get(ch, 0.0)
         return np.asarray(m)
 
-    def sample(self, field_ut: Array, loads_a: dict[str, float]) -> Array:
+    def sample(
+        self, field_ut: Array, loads_a: dict[str, float], temperature_c: float | None = None
+    ) -> Array:
         """One noisy reading (uT); a stuck sensor repeats its last one."""
         with self._lock:
             if self.faults.stuck and self._last is not None:
                 return self._last.copy()
             noise = self.cfg.noise_ut * self._rng.standard_normal(3)
-            self._last = self.truth_reading(field_ut, loads_a) + noise
+            self._last = self.truth_reading(field_ut, loads_a, temperature_c) + noise
             return self._last.copy()
 
 
@@ -256,6 +273,17 @@ class CagePhysics:
         self._ambient_rng = np.random.default_rng([cfg.seed, 100])
         self._lock = threading.Lock()
         self.events: list[tuple[float, str]] = []
+        thermal = cfg.thermal
+        self.ambient_c = thermal.ambient_c if thermal is not None else 25.0
+        self._warming = FirstOrderSignal(thermal.tau_s if thermal else 0.0)
+        """The DUT's rise above ambient (K), relaxing towards ``k_per_w`` times the heater's power."""
+        if thermal is not None:
+            heater = self.supplies[thermal.heater]
+
+            def heater_changed(t_s: float, amps: float) -> None:
+                self._warming.set_target(t_s, thermal.k_per_w * amps**2 * heater.resistance_ohm)
+
+            heater.on_change = heater_changed
 
     @staticmethod
     def _bipolar(s: SupplyConfig) -> bool:
@@ -350,11 +378,17 @@ class CagePhysics:
             if s.cfg.axis is None
         }
 
+    def dut_temperature_c(self, t_s: float | None = None) -> float:
+        """The DUT's temperature (C): ambient plus the heater's warming. Every magnetometer is at
+        the DUT position and shares it (a reference has no temperature coefficients)."""
+        return self.ambient_c + self._warming.value(now_s() if t_s is None else t_s)
+
     def read_magnetometer(self, name: str, t_s: float | None = None) -> Array:
         """One noisy reading of a magnetometer (uT, its own frame, before quantization)."""
         t = now_s() if t_s is None else t_s
         mag = self.magnetometers[name]
-        return mag.sample(self.field_ut(t), self.load_currents(t, mag.cfg.delay_s))
+        return mag.sample(self.field_ut(t), self.load_currents(t, mag.cfg.delay_s),
+                          self.dut_temperature_c(t))  # fmt: skip
 
     def safe(self) -> None:
         """Turn every output off (the simulator's own emergency stop)."""

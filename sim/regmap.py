@@ -4,7 +4,7 @@ A map lists registers with an address, a type (``uint16``, ``int16``, ``uint32``
 ``float32``; 32-bit values big-endian, high word first), an access (``ro``/``rw``), a ``scale``
 (counts per unit, integer types only) and a ``role`` that ties it to the physics
 (``v_set``, ``i_set``, ``v_out``, ``i_out``, ``output``, ``mode``, ``protection``,
-``polarity_x|y|z``, ``constant`` or ``none``).
+``polarity_x|y|z``, ``temperature`` (the DUT's, degrees C), ``constant`` or ``none``).
 """
 
 from __future__ import annotations
@@ -21,8 +21,9 @@ from sim.config import REGMAP_DIR, SimConfigError
 TYPES = {"uint16": 1, "int16": 1, "uint32": 2, "int32": 2, "float32": 2}
 ROLES = {
     "v_set", "i_set", "v_out", "i_out", "output", "mode", "protection",
-    "polarity_x", "polarity_y", "polarity_z", "constant", "none",
+    "polarity_x", "polarity_y", "polarity_z", "temperature", "constant", "none",
 }  # fmt: skip
+KINDS = ("supply", "eload", "relay", "thermometer")
 
 
 @dataclass(frozen=True)
@@ -77,7 +78,7 @@ class Register:
 class RegMap:
     """A device's register map."""
 
-    kind: str  # "supply", "eload" or "relay"
+    kind: str  # one of KINDS
     model: str
     registers: tuple[Register, ...]
     v_max: float = 0.0
@@ -135,8 +136,8 @@ def load_regmap(path: str) -> RegMap:
         if b0 < a1:
             raise SimConfigError(f"{p.name}: registers '{n0}' and '{n1}' overlap at {b0}")
     kind = str(dev.get("kind", "supply"))
-    if kind not in ("supply", "eload", "relay"):
-        raise SimConfigError(f"{p.name}: device.kind must be supply, eload or relay")
+    if kind not in KINDS:
+        raise SimConfigError(f"{p.name}: device.kind must be one of {', '.join(KINDS)}")
     return RegMap(
         kind, str(dev.get("model", p.stem)), tuple(regs),
         float(dev.get("v_max", 0.0)), float(dev.get("i_max", 0.0)), str(p),

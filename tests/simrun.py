@@ -9,17 +9,19 @@ from rig.engine.runner import Runner, RunOutcome
 from rig.procedure.language import parse_procedure
 from rig.sim_rig import sim_rig_config
 from sim.cage import SimulatedCage
-from sim.config import load_config
+from sim.config import SimConfig, load_config
 
 
 def run_on_sim(
-    folder: Path, procedure: str, reply_delay_s: dict[str, float] | None = None
-) -> RunOutcome:
+    folder: Path, procedure: str, reply_delay_s: dict[str, float] | None = None,
+    sim_config: SimConfig | None = None,
+) -> RunOutcome:  # fmt: skip
     """Write ``procedure`` (YAML text) to ``folder``, run it on a fresh simulated cage with every
     prompt confirmed and no live view, and return the outcome. ``reply_delay_s`` slows devices'
-    replies (device name -> seconds), as a slow link would."""
+    replies (device name -> seconds), as a slow link would; ``sim_config`` replaces the default
+    simulated cage."""
     (folder / "procedure.yaml").write_text(procedure)
-    cfg = load_config()
+    cfg = sim_config or load_config()
     with SimulatedCage(cfg) as cage:
         (folder / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
         for name, delay in (reply_delay_s or {}).items():

@@ -1,6 +1,8 @@
-"""Supplies, electronic loads and polarity relays described by a register-map file."""
+"""Supplies, electronic loads, polarity relays and thermometers described by a register-map file."""
 
 from __future__ import annotations
+
+import math
 
 from drivers.errors import DeviceNotFoundError, DeviceProtocolError, LimitError
 from drivers.identity import Identity
@@ -159,3 +161,28 @@ class PolarityRelay(MappedDevice):
         for the coil current to decay first)."""
         for reg in self.regs:
             self._write(reg, 0.0)
+
+
+class MappedThermometer(MappedDevice):
+    """A Modbus temperature module (an RTD or thermocouple input): one register with the role
+    ``temperature``, in degrees C after the map's scale."""
+
+    MIN_C, MAX_C = -200.0, 850.0
+    """A reading outside this range (a PT100's span) is a broken or open sensor, not a
+    temperature: modules report an open RTD as a sentinel such as -3276.8 or 3276.7."""
+
+    def __init__(self, link: ModbusLink, regmap: RegisterMap, *, name: str = "thermometer") -> None:
+        if regmap.kind != "thermometer":
+            raise RegisterMapError(f"{regmap.source}: kind '{regmap.kind}' is not a thermometer")
+        super().__init__(link, regmap, name)
+        self.temperature_reg = regmap.require("temperature")
+
+    def read_temperature_c(self) -> float:
+        """The temperature (degrees C); DeviceProtocolError for an open or shorted sensor."""
+        value = self._read(self.temperature_reg)
+        if not (math.isfinite(value) and self.MIN_C <= value <= self.MAX_C):
+            raise DeviceProtocolError(
+                f"{self.name} at {self.link.where}: reads {value:g} degrees C, outside"
+                f" {self.MIN_C:g} to {self.MAX_C:g}: is the sensor connected?"
+            )
+        return value

@@ -94,6 +94,12 @@ class Samples:
         return Samples(self.measured_ut[:n], self.field_magnitude_ut[:n], self.telemetry[:n],
                        self.channels)  # fmt: skip
 
+    def take(self, keep: Array) -> Samples:
+        """The samples where boolean mask ``keep`` (N,) is true (field vector kept if present)."""
+        h = None if self.field_ut is None else self.field_ut[keep]
+        return Samples(self.measured_ut[keep], self.field_magnitude_ut[keep],
+                       self.telemetry[keep], self.channels, h)  # fmt: skip
+
     def as_scalar(self) -> Samples:
         """The same samples with the field vector dropped (only ``|h|`` kept)."""
         return Samples(self.measured_ut, self.field_magnitude_ut, self.telemetry, self.channels)

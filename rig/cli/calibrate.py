@@ -107,8 +107,9 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     )  # fmt: skip
     cal.add_argument(
         "--temperature", metavar="COL",
-        help="DUT temperature column (K or degrees C): fits the offset (uT/K, per axis) and the"
-        " scale (ppm/K) per kelvin, with 1-sigma and Cramer-Rao bound",
+        help="DUT temperature column (K or degrees C), or for a run the thermometer it recorded"
+        " (e.g. dut_temp): fits the offset (uT/K, per axis) and the scale (ppm/K) per kelvin,"
+        " with 1-sigma and Cramer-Rao bound",
     )  # fmt: skip
     cal.add_argument(
         "--temperature-ref", type=float, metavar="T",
@@ -403,8 +404,11 @@ def _calibrate_run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from rig.analysis import (
+        MAX_TEMPERATURE_GAP_S,
         load_commands,
         phase_locked_interval_s,
+        recorded_thermometer,
+        run_temperature,
         stored_run_data,
         telemetry_series,
         unresolved_note,
@@ -412,19 +416,24 @@ def _calibrate_run(args: argparse.Namespace) -> int:
     from rig.steps import field_kinds
     from rig.store import RunReader
 
-    if args.temperature:
-        raise UserInputError(
-            "--temperature needs a DUT temperature column, and a run records none: export the run"
-            " (rig export RUN --format csv), add the temperature, and calibrate that file"
-        )
-
+    if args.temperature_ref is not None and args.temperature is None:
+        raise UserInputError("--temperature-ref needs --temperature THERMOMETER")
     reader = RunReader(args.data)
     try:
+        if args.temperature:
+            recorded_thermometer(reader, args.temperature)
         telemetry = list(args.telemetry) if args.telemetry else list(reader.meta().get("loads", []))
         samples, t_s, unresolved = stored_run_data(reader, telemetry, field_kinds=field_kinds())
         width_s = 2.0 * float(np.median(np.diff(t_s))) if t_s.size > 1 else 0.1
         series = {ch: telemetry_series(reader, ch, width_s) for ch in args.delay}
         locked = {ch: phase_locked_interval_s(load_commands(reader, ch), t_s) for ch in args.delay}
+        temperature = None
+        if args.temperature:
+            samples, temperature, left_out = run_temperature(reader, args.temperature, samples, t_s)
+            if left_out and not args.quiet:
+                print(f"note: left out {left_out} of {left_out + samples.n} samples with no"
+                      f" {args.temperature} reading within {MAX_TEMPERATURE_GAP_S:g} s",
+                      file=sys.stderr)  # fmt: skip
     finally:
         reader.close()
     for ch, interval in locked.items():
@@ -434,4 +443,5 @@ def _calibrate_run(args: argparse.Namespace) -> int:
                   " sigma says", file=sys.stderr)  # fmt: skip
     if unresolved and not args.quiet:
         print(f"note: {unresolved_note(unresolved, samples.n + unresolved)}", file=sys.stderr)
-    return _fit_and_emit(samples, args, times_s=t_s if args.delay else None, series=series)
+    return _fit_and_emit(samples, args, times_s=t_s if args.delay else None, series=series,
+                         temperature=temperature)  # fmt: skip

@@ -33,6 +33,7 @@ from rig.engine.interlock import RigLock
 from rig.engine.live import LiveView
 from rig.engine.sampling import BufferedSensor, SensorSampler
 from rig.engine.session import RigSession
+from rig.engine.temperature_log import TemperatureLog
 from rig.errors import RigError, RunAborted
 from rig.procedure.language import Procedure
 from rig.procedure.plan import StepPlan, compile_plan, rig_timing
@@ -51,6 +52,10 @@ OWN_STALL_S = 0.3
 """The monitor woke this much later than its period: our own process was descheduled."""
 COIL_CHECK_S = 1.0
 """How often the coil supplies' protection flags are read."""
+CATCH_UP_S = 2.0
+"""Longest wait at the end of a step for each sensor's samples up to that moment (s): they may sit
+in a buffer while a busy computer runs something else (a null step's noise floor was once judged
+on 4 of its 14 samples)."""
 UNREAD_FAULT_AFTER = 2
 """Read-backs of an output that failed in a row (each after the link's own retries) before the
 output counts as lost: one can be a glitch, two mean its state is unknown (a fault)."""
@@ -261,6 +266,15 @@ class Runner:
             with contextlib.suppress(Exception):
                 ident = load.identify()
                 instruments[name] = f"{ident.model} {ident.serial}".strip()
+        thermometers = self._record_thermometers(stack, instruments)
+        for step in self.proc.steps:
+            for name in KINDS[step.kind].thermometers(step):
+                if name not in thermometers:
+                    raise RigError(
+                        f"{self.proc.path}: step '{step.name}' reads thermometer '{name}', which"
+                        f" this run does not record (recording: {', '.join(thermometers) or 'none'});"
+                        f" add it to {self.cfg.path} or fix the name"
+                    )
         correction = None
         ref_name = mags.get("reference")
         if (
@@ -274,7 +288,8 @@ class Runner:
                 "offset_ut": dev.get("correction_offset_ut", [0, 0, 0]),
             }
         w.set_meta(instruments=instruments, reference_correction=correction,
-                   cage_model=self.controller.model.to_dict())  # fmt: skip
+                   cage_model=self.controller.model.to_dict(),
+                   thermometers=thermometers)  # fmt: skip
         self.correction = correction
         monitor_stop = threading.Event()
         monitor = threading.Thread(
@@ -289,6 +304,29 @@ class Runner:
         # Registered last so it runs first on the way out: the coils are ramped down and every
         # output switched off before anything else is stopped (safe() is idempotent).
         stack.callback(rig.safe)
+
+    def _record_thermometers(self, stack: ExitStack, instruments: dict[str, str]) -> list[str]:
+        """Start recording every thermometer of the rig (channels in degrees C, one reading a
+        second); one that cannot be opened is a warning, never the end of the run. Returns the
+        names being recorded."""
+        from rig.devices import thermometer_names
+
+        assert self.rig is not None and self.writer is not None
+        recorded = []
+        for name in thermometer_names(self.cfg):
+            try:
+                thermometer = self.rig.thermometer(name)
+                with contextlib.suppress(Exception):  # an identity is for the record only
+                    ident = thermometer.identify()
+                    instruments[name] = f"{ident.model} {ident.serial}".strip()
+            except (DeviceError, OSError, RigError) as exc:
+                self._event("warning", f"{exc}; the run goes on without recording {name}")
+                continue
+            log = TemperatureLog(name, thermometer, self.writer.add_channel, self._event)
+            log.start()
+            stack.callback(log.stop)
+            recorded.append(name)
+        return recorded
 
     def _unsafe(self, message: str) -> None:
         """An output that may still be on: recorded, and told to the operator whatever -q says."""
@@ -444,6 +482,10 @@ class Runner:
             raise
         t_end = time.monotonic()
         w.set_step(step.index, step.name, step.kind, self.current_step[2], t_end)
+        for sampler in list(
+            self.samplers.values()
+        ):  # the step's data are all in before it is judged
+            sampler.caught_up(t_end, CATCH_UP_S)
         execution.finish(self.current_step[2], t_end)
 
     # --- what a step may use (rig.steps.base.RunContext) ------------------------------------------

@@ -124,6 +124,21 @@ class SensorSampler:
                     " frozen); power-cycle it")  # fmt: skip
         return None
 
+    def caught_up(self, t: float, timeout_s: float) -> bool:
+        """Wait until a sample dated at ``t`` (monotonic s) or later, less half a period, has been
+        published, so that an analysis of the time up to ``t`` sees all of it: on a busy computer
+        the sensor's data can sit in a buffer for a second after it was taken. False after
+        ``timeout_s`` (the health checks judge a sensor that really stalled)."""
+        deadline = time.monotonic() + timeout_s
+        wanted = t - 0.5 / self.rate_hz
+        with self._cond:
+            while self.latest is None or self.latest[0] < wanted:
+                remaining = deadline - time.monotonic()
+                if self.error is not None or remaining <= 0:
+                    return False
+                self._cond.wait(remaining)
+        return True
+
     def wait_next(
         self, after: int, timeout_s: float = 2.0
     ) -> tuple[int, float, tuple[float, float, float]]:

@@ -35,11 +35,11 @@ from types import TracebackType
 from typing import Any, cast
 
 from drivers.errors import DeviceError
-from drivers.protocols import Load, Magnetometer
+from drivers.protocols import Load, Magnetometer, Thermometer
 from drivers.registry import output_kinds
 from rig.cage.controller import SAFE_TIMEOUT_S, CageController
 from rig.config import DeviceConfig, RigConfig
-from rig.devices import build_cage, open_device, open_load, open_magnetometer
+from rig.devices import build_cage, open_device, open_load, open_magnetometer, open_thermometer
 from rig.engine.cpu_wait import run_delay_s
 from rig.engine.guardian import HEARTBEAT_PERIOD_S, Guardian
 from rig.engine.interlock import RigLock, wire_link
@@ -241,6 +241,12 @@ class RigSession:
             self._stack.callback(mag.close)
             self.magnetometers[name] = mag
         return self.magnetometers[name]
+
+    def thermometer(self, name: str) -> Thermometer:
+        """Thermometer ``name`` (closed when the session ends)."""
+        thermometer = open_thermometer(self._device(name, "thermometer"), self.i2c_bus)
+        self._stack.callback(thermometer.close)
+        return thermometer
 
     def on_close(self, fn: Callable[..., Any], *args: Any) -> None:
         """Run ``fn(*args)`` when the session ends, after the safe state and before the links

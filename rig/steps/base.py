@@ -130,6 +130,11 @@ class StepKind:
         """Coil current (A, every axis) the step drives outside its field commands, if any."""
         return None
 
+    def thermometers(self, step: Step) -> tuple[str, ...]:
+        """Thermometers (rig configuration device names) whose recording the step reads: the
+        run refuses to start unless each is one the rig records."""
+        return ()
+
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         """A fresh :class:`StepExecution` for ``step`` in the run ``ctx``."""
         return StepExecution(ctx, step)

@@ -21,7 +21,13 @@ class Calibrate(StepKind):
         "steps": Param("list_str", []),
         "noise_nt": Param("float", 0.0, 0.0, 1e6),
         "settle_s": Param("float", 0.25, 0.0, 60.0),
+        # a thermometer the run recorded (rig configuration): fits the temperature coefficients
+        "temperature": Param("str", ""),
+        "temperature_ref_c": Param("float", 25.0, -100.0, 300.0),
     }
+
+    def thermometers(self, step: Any) -> tuple[str, ...]:
+        return (step.params["temperature"],) if step.params.get("temperature") else ()
 
     def execution(self, ctx: Any, step: Any) -> StepExecution:
         return Fit(ctx, step)

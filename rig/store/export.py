@@ -147,7 +147,17 @@ def aligned_columns(reader: RunReader) -> dict[str, Any] | None:
             ts = np.array([p[0] for p in pts], float)
             vs = np.array([p[1] for p in pts], float)
             cols[f"{ch}_{kind}_a"] = _hold(t, ts, vs)
+    for name in meta.get("thermometers") or []:
+        pts = [(r[0], r[2]) for r in reader.channel(name) if r[2] is not None]
+        ts = np.array([p[0] for p in pts], float)
+        vs = np.array([p[1] for p in pts], float).reshape(-1, 1)
+        cols[f"{name}_c"] = _interpolate(t, ts, vs)[:, 0]
     return cols
+
+
+def channel_unit(meta: dict[str, Any], name: str) -> str:
+    """The unit suffix of a stored channel: ``c`` (degrees C) for a thermometer, else ``a``."""
+    return "c" if name in (meta.get("thermometers") or []) else "a"
 
 
 def _cell(v: Any) -> Any:
@@ -159,8 +169,8 @@ def _cell(v: Any) -> Any:
 def export_csv(reader: RunReader, out_dir: Path) -> list[Path]:
     """``samples_<device>.csv``, ``channel_<name>.csv``, ``events.csv`` (all with the original
     monotonic ``t_s``), ``samples_aligned.csv`` (when the run has DUT samples: UTC, seconds since
-    run start, DUT and reference on one time base, load currents) and ``meta.json`` (with the time
-    base)."""
+    run start, DUT and reference on one time base, load currents, thermometers in degrees C) and
+    ``meta.json`` (with the time base)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for device in reader.devices():
@@ -170,11 +180,13 @@ def export_csv(reader: RunReader, out_dir: Path) -> list[Path]:
             w.writerow(["t_s", "x_ut", "y_ut", "z_ut"])
             w.writerows(reader.samples(device))
         written.append(path)
+    meta_values = reader.meta()
     for name in reader.channel_names():
         path = out_dir / f"channel_{name}.csv"
+        unit = channel_unit(meta_values, name)
         with path.open("w", newline="") as fh:
             w = csv.writer(fh)
-            w.writerow(["t_s", "commanded_a", "measured_a"])
+            w.writerow(["t_s", f"commanded_{unit}", f"measured_{unit}"])
             w.writerows(reader.channel(name))
         written.append(path)
     path = out_dir / "events.csv"
@@ -235,7 +247,8 @@ def export_hdf5(reader: RunReader, path: Path) -> Path:
             ]
             data = np.array(rows, float).reshape(-1, 3)
             ds = f.create_dataset(f"channels/{name}", data=data)
-            ds.attrs["columns"] = "t_s,commanded_a,measured_a"
+            unit = channel_unit(meta, name)
+            ds.attrs["columns"] = f"t_s,commanded_{unit},measured_{unit}"
             f.create_dataset(f"time/channels/{name}/t_run_s", data=base.run_s(data[:, 0]))
             f.create_dataset(f"time/channels/{name}/t_utc", data=base.utc(data[:, 0]), dtype=text)
         cols = aligned_columns(reader)

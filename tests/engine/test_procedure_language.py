@@ -94,7 +94,14 @@ def test_shipped_procedures_parse_and_check_within_limits() -> None:
     b0 = np.array([19.6, 1.2, -44.8])
     for path in PROCEDURES_DIR.glob("*.yaml"):
         proc = parse_procedure(path)
-        dr = dry_run(proc, k, b0, (2.5, 2.5, 2.5), 120.0, {"load_bus": 6.0, "load_panel": 30.0})
+        dr = dry_run(
+            proc,
+            k,
+            b0,
+            (2.5, 2.5, 2.5),
+            120.0,
+            {"load_bus": 6.0, "load_panel": 30.0, "heater": 6.0},
+        )
         assert dr.violations == [], (path.name, dr.violations)
 
 

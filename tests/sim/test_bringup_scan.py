@@ -50,6 +50,7 @@ def test_every_identifiable_device_is_found(
         "coil_y": ("riden-rd60xx", "RD6006P"),
         "coil_z": ("riden-rd60xx", "RD6006P"),
         "load_bus": ("riden-rd60xx", "RD6006"),
+        "heater": ("riden-rd60xx", "RD6006"),
         "load_panel": ("regmap-eload", "Maynuo M9711"),
         "dut": ("hmr2300", "HMR2300"),
         "reference": ("ascii-mag", "ASCII line magnetometer"),
@@ -62,7 +63,10 @@ def test_every_identifiable_device_is_found(
     rm = [f for f in found if f.kind == "rm3100"]
     assert [(f.params["bus"], f.params["address"]) for f in rm] == [("sim", 0x20)]
     assert len(found) == len(expect) + 1  # nothing on the empty port
-    assert [u.where for u in unknown] == [where(devices, "polarity")]  # no model register
+    # no model register: the relay board and the RTD module
+    assert sorted(u.where for u in unknown) == sorted(
+        where(devices, n) for n in ("polarity", "dut_temp")
+    )
     text = table(found, unknown)
     assert "RD6006P" in text and "a Modbus device of no known model" in text
 
@@ -75,7 +79,7 @@ def test_the_skeleton_loads_and_opens_the_cage(
     assert "FILL IN" in text and "[cage]" in text
     path = tmp_path / "rig.toml"
     # what the user does: name the relay board the scan could not identify
-    relay = unknown[0]
+    relay = next(u for u in unknown if u.params.get("port") == cage.endpoints["polarity"]["port"])
     text += (
         f'\n[devices.polarity1]\nkind = "regmap-relay"\nregmap = "relay-h-bridge"\n'
         f'protocol = "modbus-tcp"\nhost = "{relay.params["host"]}"\nport = {relay.params["port"]}\n'

@@ -188,3 +188,40 @@ def test_faults_from_the_configuration(tmp_path: Path) -> None:
     path.write_text(Path(load_config().source).read_text() + "\n[faults.nobody]\nsilent = true\n")
     with pytest.raises(SimConfigError, match=r"faults\.nobody: no device"):
         load_config(path)
+
+
+def test_the_heater_warms_the_dut_as_a_first_order_thermal_mass(physics: CagePhysics) -> None:
+    """tau dT/dt = ambient + k I^2 R - T: after one time constant 63 % of the way, and the DUT's
+    reading moves by its temperature coefficients (scale and offset per kelvin) exactly."""
+    thermal = physics.cfg.thermal
+    assert thermal is not None
+    heater = physics.supplies[thermal.heater]
+    assert physics.dut_temperature_c(T0) == pytest.approx(thermal.ambient_c)
+    heater.set_voltage(12.0, T0)
+    heater.set_current(2.0, T0)
+    heater.set_output(True, T0)
+    rise_k = thermal.k_per_w * 2.0**2 * heater.resistance_ohm
+    t_one = T0 + thermal.tau_s
+    assert physics.dut_temperature_c(t_one) - thermal.ambient_c == pytest.approx(
+        rise_k * (1 - math.exp(-1)), rel=1e-9
+    )
+    heater.set_output(False, t_one)  # cools from where it got to
+    assert physics.dut_temperature_c(t_one + thermal.tau_s) - thermal.ambient_c == pytest.approx(
+        rise_k * (1 - math.exp(-1)) * math.exp(-1), rel=1e-9
+    )
+    mag = physics.magnetometers["dut"]
+    h = np.array([30.0, -10.0, 20.0])
+    d_t = 12.0
+    warm = mag.truth_reading(h, {}, mag.cfg.temperature_ref_c + d_t)
+    expected = (1 + mag.cfg.scale_per_k * d_t) * (mag.t_matrix @ h) + mag.offset_ut
+    expected += np.array(mag.cfg.offset_ut_per_k) * d_t
+    np.testing.assert_allclose(warm, expected, rtol=1e-12)
+    assert mag.cfg.scale_per_k != 0 and np.any(mag.offset_ut_per_k != 0)
+
+
+def test_a_heater_that_is_no_load_channel_is_refused(tmp_path: Path) -> None:
+    text = Path(load_config().source).read_text().replace('heater = "heater"', 'heater = "coil_x"')
+    path = tmp_path / "cage.toml"
+    path.write_text(text)
+    with pytest.raises(SimConfigError, match="no load channel"):
+        load_config(path)
