@@ -17,6 +17,7 @@ from drivers.protocols import Magnetometer
 from drivers.transport.serial_port import own_stall_s
 from drivers.transport.tty_watch import tty_seen_stall_s, tty_stall_s
 from rig.engine.cpu_wait import CpuWaitLog
+from rig.engine.stream_clock import StreamClock
 
 Sink = Callable[[float, str, tuple[float, float, float]], None]
 Listener = Callable[[float, tuple[float, float, float]], None]
@@ -70,6 +71,7 @@ class SensorSampler:
 
     def _run(self) -> None:
         period = 1.0 / self.rate_hz
+        clock = StreamClock(period)  # a self-timed sensor's own clock, from the arrivals
         next_t = time.monotonic()
         failures = 0  # consecutive late or unreadable replies
         try:
@@ -77,10 +79,10 @@ class SensorSampler:
                 try:
                     if self.driver.self_timed:  # the sensor sends at its own rate
                         samples = self.driver.read_samples(WAIT_S)
-                        t_now = time.monotonic()
-                        # samples that waited in the buffer were sent one period apart
-                        for i, xyz in enumerate(samples):
-                            self._publish(t_now - (len(samples) - 1 - i) / self.rate_hz, xyz)
+                        if samples:
+                            dates = clock.date(time.monotonic(), len(samples))
+                            for t, xyz in zip(dates, samples, strict=True):
+                                self._publish(t, xyz)
                         failures = 0 if samples else failures
                         continue
                     next_t += period
@@ -98,6 +100,7 @@ class SensorSampler:
                     if self.on_warning is not None:
                         self.on_warning(f"{self.name}: {exc}; retrying")
                     next_t = time.monotonic()
+                    clock.reset()  # samples may have been lost: count from the next one
         except (DeviceError, OSError) as exc:
             self.error = exc
             with self._cond:

@@ -1,0 +1,116 @@
+"""When a self-timed sensor took each sample: its own clock, recovered from arrival times.
+
+A streaming sensor (the HMR2300 in continuous mode, an ASCII fluxgate) sends sample ``k`` at
+``s0 + k p`` by its own oscillator. The rig sees each sample arrive later than that by the
+transmission time and by however long this process took to read it: on a busy computer a stream
+is read in bursts, and a burst dated back from the moment it was read puts every sample in it up
+to one period late (50 ms at 20 Hz), which moves a delay estimate by as much.
+
+The arrivals' lower envelope is the sensor's clock plus the shortest transmission time: an
+arrival can be late, never early. So sample ``k`` is dated ``min(a_k, min_j (a_j + (k - j) p))``
+over the arrivals ``a_j`` of the last :data:`WINDOW_S`, with the period ``p`` itself taken from
+the envelope's slope over a longer baseline (a crystal is off its nominal rate by up to a few
+hundred ppm; a sensor that runs at its own idea of a rate by more). A sample is never dated
+after its arrival, and dates never go backwards.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+WINDOW_S = 5.0
+"""The envelope looks this far back (s): longer than any stall of a busy computer (1-2 s seen),
+short enough that a period error of 0.1 % shifts dates by at most 5 ms."""
+BLOCK_S = 5.0
+"""The period is fitted through the lowest point of each block of this length (s) ..."""
+BLOCKS = 24
+"""... over the last this many blocks (2 minutes)."""
+MAX_RATE_ERROR = 0.05
+"""A fitted period further than this (relative) from the nominal one is not believed: the nominal
+period is kept (a stream that stopped and restarted, not a slow oscillator)."""
+
+
+class StreamClock:
+    """Dates the samples of one self-timed stream (the ``k``-th sample since :meth:`reset`) from
+    their arrival times (monotonic s) and the sensor's nominal period (s)."""
+
+    def __init__(self, period_s: float) -> None:
+        self.nominal_s = period_s
+        self.reset()
+
+    def reset(self) -> None:
+        """A new stream (started, or resumed after samples were lost): forget the envelope."""
+        self.period_s = self.nominal_s
+        self._k = 0
+        self._last_t: float | None = None
+        self._recent: deque[tuple[int, float]] = deque()  # (j, a_j) within WINDOW_S
+        # the sliding-window minimum of r_j = a_j - j p: a subsequence of _recent whose
+        # residuals increase from front to back, so the front is the minimum
+        self._low: deque[tuple[int, float]] = deque()
+        self._blocks: deque[tuple[int, float]] = deque(maxlen=BLOCKS)  # lowest (j, a_j) per block
+        self._block_start: float | None = None
+        self._block_low: tuple[int, float] | None = None
+
+    def _residual(self, point: tuple[int, float]) -> float:
+        return point[1] - point[0] * self.period_s
+
+    def _push(self, point: tuple[int, float]) -> None:
+        r = self._residual(point)
+        while self._low and self._residual(self._low[-1]) >= r:
+            self._low.pop()
+        self._low.append(point)
+
+    def date(self, arrival_s: float, n: int = 1) -> list[float]:
+        """When the next ``n`` samples of the stream were taken (monotonic s), all read at
+        ``arrival_s`` (a burst: the whole burst shapes the envelope before any is dated)."""
+        first = self._k
+        self._k += n
+        for k in range(first, first + n):
+            point = (k, arrival_s)
+            self._note_block(point)
+            self._recent.append(point)
+            self._push(point)
+        horizon = arrival_s - WINDOW_S
+        while self._recent[0][1] < horizon:
+            self._recent.popleft()
+        while self._low[0][1] < horizon:
+            self._low.popleft()
+        c = self._residual(self._low[0])
+        out = []
+        for k in range(first, first + n):
+            t = min(arrival_s, k * self.period_s + c)
+            if self._last_t is not None:
+                t = max(t, min(arrival_s, self._last_t + 1e-6))
+            self._last_t = t
+            out.append(t)
+        return out
+
+    def _note_block(self, point: tuple[int, float]) -> None:
+        """Keep each block's lowest point; refit the period when a block closes."""
+        if self._block_start is None:
+            self._block_start = point[1]
+        if point[1] - self._block_start >= BLOCK_S and self._block_low is not None:
+            self._blocks.append(self._block_low)
+            self._block_start, self._block_low = point[1], None
+            self._refit()
+        if self._block_low is None or self._residual(point) < self._residual(self._block_low):
+            self._block_low = point
+
+    def _refit(self) -> None:
+        """The period from the blocks' lowest points: a least-squares line through the block
+        minima (each within a few ms of the envelope); the window minimum is then rebuilt."""
+        if len(self._blocks) < 3:
+            return
+        ks = [float(j) for j, _ in self._blocks]
+        ts = [a for _, a in self._blocks]
+        k_mean, t_mean = sum(ks) / len(ks), sum(ts) / len(ts)
+        sxx = sum((k - k_mean) ** 2 for k in ks)
+        if sxx <= 0:
+            return
+        slope = sum((k - k_mean) * (t - t_mean) for k, t in zip(ks, ts, strict=True)) / sxx
+        if abs(slope / self.nominal_s - 1.0) > MAX_RATE_ERROR:
+            return
+        self.period_s = slope
+        self._low.clear()
+        for point in self._recent:
+            self._push(point)
