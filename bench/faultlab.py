@@ -194,9 +194,8 @@ class Measured:
     outputs_left_on: tuple[str, ...] = ()  # outputs (other than dead ones) still on at the end
     kernel_stall_ms: float = 0.0  # of the time to safe, the kernel held serial data back (canary)
     rig_cpu_wait_ms: float = 0.0  # longest wait for a CPU of a rig thread in the 2 s before a kill
-    guardian_cpu_wait_ms: float = (
-        0.0  # the guardian's own wait for a CPU while it acted (its account)
-    )
+    # the guardian's own wait for a CPU while it acted (its account)
+    guardian_cpu_wait_ms: float = 0.0
 
     @property
     def safe_after_detection_ms(self) -> float | None:

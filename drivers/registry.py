@@ -390,23 +390,24 @@ def _probe_riden(target: ProbeTarget) -> list[Found]:
 # --- register-map devices -----------------------------------------------------------------------
 
 
-def _open_mapped_supply(spec: OpenSpec) -> MappedSupply:
+def _mapped(spec: OpenSpec) -> tuple[ModbusLink, RegisterMap]:
+    """A register-map device's map and its Modbus link (the map's baud rate unless given)."""
     regmap = load_map(str(spec.get("regmap")))
-    return MappedSupply(modbus_link(spec, baudrate=regmap.baudrate or 115200), regmap,
-                        name=spec.name, max_voltage_v=_float_or_none(spec.get("max_voltage_v")),
+    return modbus_link(spec, baudrate=regmap.baudrate or 115200), regmap
+
+
+def _open_mapped_supply(spec: OpenSpec) -> MappedSupply:
+    return MappedSupply(*_mapped(spec), name=spec.name,
+                        max_voltage_v=_float_or_none(spec.get("max_voltage_v")),
                         max_current_a=_float_or_none(spec.get("max_current_a")))  # fmt: skip
 
 
 def _open_relay(spec: OpenSpec) -> PolarityRelay:
-    regmap = load_map(str(spec.get("regmap")))
-    return PolarityRelay(modbus_link(spec, baudrate=regmap.baudrate or 115200), regmap,
-                         name=spec.name)  # fmt: skip
+    return PolarityRelay(*_mapped(spec), name=spec.name)
 
 
 def _open_thermometer(spec: OpenSpec) -> MappedThermometer:
-    regmap = load_map(str(spec.get("regmap")))
-    return MappedThermometer(modbus_link(spec, baudrate=regmap.baudrate or 115200), regmap,
-                             name=spec.name)  # fmt: skip
+    return MappedThermometer(*_mapped(spec), name=spec.name)
 
 
 def _identifiable_maps(map_kind: str) -> list[RegisterMap]:

@@ -117,10 +117,10 @@ def telemetry_series(reader: RunReader, channel: str, width_s: float) -> Callabl
     cmds = load_commands(reader, channel)
     if cmds.shape[0]:
         return staircase_series(0.5 * (cmds[:, 0] + cmds[:, 1]), cmds[:, 2], width_s)
-    rows = [(t, m) for t, _, m in reader.channel(channel) if m is not None]
-    if not rows:
+    rows = np.array(reader.channel_column(channel, "measured"), float).reshape(-1, 2)
+    if not rows.size:
         return lambda times: np.zeros_like(times)
-    return staircase_series(np.array([r[0] for r in rows]), np.array([r[1] for r in rows]), width_s)
+    return staircase_series(rows[:, 0], rows[:, 1], width_s)
 
 
 def load_commands(reader: RunReader, channel: str) -> Array:
@@ -356,10 +356,9 @@ def run_temperature(
     the calibration samples' times ``t_s`` (s): (samples kept, temperature per kept sample,
     number left out for want of a reading within :data:`MAX_TEMPERATURE_GAP_S`)."""
     recorded_thermometer(reader, name)
-    rows = np.array([(t, m) for t, _, m in reader.channel(name) if m is not None], float)
+    rows = np.array(reader.channel_column(name, "measured"), float).reshape(-1, 2)
     if rows.size == 0:
         raise UserInputError(f"--temperature {name}: the thermometer never answered in this run")
-    rows = rows.reshape(-1, 2)
     t_th, value = rows[:, 0], rows[:, 1]
     right = np.clip(np.searchsorted(t_th, t_s), 0, len(t_th) - 1)
     left = np.clip(right - 1, 0, len(t_th) - 1)

@@ -24,7 +24,7 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import SimDevice
 
 from sim.ascii_mag import AsciiMagnetometer
-from sim.config import SimConfig
+from sim.config import EndpointConfig, SimConfig
 from sim.hmr2300 import Hmr2300
 from sim.links import PtyNullModem, TcpProxy
 from sim.modbus_devices import regmap_device, riden_device, unserved_ids
@@ -91,32 +91,12 @@ class SimulatedCage:
                 self.endpoints[s.name] = entry
             if self.cfg.relay is not None:
                 r = self.cfg.relay
-                spec = load_regmap(r.regmap)
-                self.faults[r.name] = self.physics.relays.faults
-                device = regmap_device(
-                    spec, r.endpoint.device_id, self.physics, None, self.physics.relays.faults
-                )
-                entry = self._serve_modbus(r.name, device, r.endpoint.transport,
-                                           r.endpoint.device_id, r.endpoint.baudrate,
-                                           self.physics.relays.faults)  # fmt: skip
-                entry |= {"kind": "regmap-relay", "regmap": spec.source, "role": "polarity"}
-                self.endpoints[r.name] = entry
+                self._serve_map_device(r.name, r.regmap, r.endpoint, self.physics.relays.faults,
+                                       "regmap-relay", "polarity")  # fmt: skip
             if self.cfg.thermometer is not None:
                 th = self.cfg.thermometer
-                spec = load_regmap(th.regmap)
-                self.faults[th.name] = thermo_faults = Faults()
-                device = regmap_device(
-                    spec, th.endpoint.device_id, self.physics, None, thermo_faults
-                )
-                entry = self._serve_modbus(th.name, device, th.endpoint.transport,
-                                           th.endpoint.device_id, th.endpoint.baudrate,
-                                           thermo_faults)  # fmt: skip
-                entry |= {
-                    "kind": "regmap-thermometer",
-                    "regmap": spec.source,
-                    "role": "thermometer",
-                }
-                self.endpoints[th.name] = entry
+                self._serve_map_device(th.name, th.regmap, th.endpoint, Faults(),
+                                       "regmap-thermometer", "thermometer")  # fmt: skip
             for i, m in enumerate(self.cfg.magnetometers):
                 mag = self.physics.magnetometers[m.name]
                 self.faults[m.name] = mag.faults
@@ -157,6 +137,17 @@ class SimulatedCage:
             self.stop()
             raise
         return self.endpoints_document()
+
+    def _serve_map_device(self, name: str, regmap: str, endpoint: EndpointConfig, faults: Faults,
+                          kind: str, role: str) -> None:  # fmt: skip
+        """Serve a register-map device bound to no supply (the polarity relays, the DUT's
+        thermometer) and publish its endpoint as ``kind`` playing ``role``."""
+        spec = load_regmap(regmap)
+        self.faults[name] = faults
+        device = regmap_device(spec, endpoint.device_id, self.physics, None, faults)
+        entry = self._serve_modbus(name, device, endpoint.transport, endpoint.device_id,
+                                   endpoint.baudrate, faults)  # fmt: skip
+        self.endpoints[name] = entry | {"kind": kind, "regmap": spec.source, "role": role}
 
     def _serve_modbus(self, name: str, device: SimDevice, transport: str, device_id: int,
                       baudrate: int, faults: Faults) -> dict[str, Any]:  # fmt: skip

@@ -28,6 +28,7 @@ from drivers.errors import DeviceError
 from drivers.protocols import Load
 from rig import __version__
 from rig.config import RigConfig
+from rig.devices import thermometer_names
 from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.interlock import RigLock
 from rig.engine.live import LiveView
@@ -55,7 +56,7 @@ COIL_CHECK_S = 1.0
 CATCH_UP_S = 2.0
 """Longest wait at the end of a step for each sensor's samples up to that moment (s): they may sit
 in a buffer while a busy computer runs something else (a null step's noise floor was once judged
-on 4 of its 14 samples)."""
+on 3 of its 14 samples)."""
 UNREAD_FAULT_AFTER = 2
 """Read-backs of an output that failed in a row (each after the link's own retries) before the
 output counts as lost: one can be a glitch, two mean its state is unknown (a fault)."""
@@ -309,8 +310,6 @@ class Runner:
         """Start recording every thermometer of the rig (channels in degrees C, one reading a
         second); one that cannot be opened is a warning, never the end of the run. Returns the
         names being recorded."""
-        from rig.devices import thermometer_names
-
         assert self.rig is not None and self.writer is not None
         recorded = []
         for name in thermometer_names(self.cfg):
@@ -482,9 +481,8 @@ class Runner:
             raise
         t_end = time.monotonic()
         w.set_step(step.index, step.name, step.kind, self.current_step[2], t_end)
-        for sampler in list(
-            self.samplers.values()
-        ):  # the step's data are all in before it is judged
+        # the step's data are all in before it is judged
+        for sampler in list(self.samplers.values()):
             sampler.caught_up(t_end, CATCH_UP_S)
         execution.finish(self.current_step[2], t_end)
 

@@ -19,7 +19,7 @@ import datetime as dt
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -141,18 +141,21 @@ def aligned_columns(reader: RunReader) -> dict[str, Any] | None:
         for ax, name in enumerate("xyz"):
             cols[f"{prefix}_{name}_ut"] = values[:, ax]
     for ch in meta.get("loads") or []:
-        rec = reader.channel(ch)
-        for kind, i in (("commanded", 1), ("measured", 2)):
-            pts = [(r[0], r[i]) for r in rec if r[i] is not None]
-            ts = np.array([p[0] for p in pts], float)
-            vs = np.array([p[1] for p in pts], float)
+        for kind in ("commanded", "measured"):
+            ts, vs = _column(reader, ch, kind)
             cols[f"{ch}_{kind}_a"] = _hold(t, ts, vs)
     for name in meta.get("thermometers") or []:
-        pts = [(r[0], r[2]) for r in reader.channel(name) if r[2] is not None]
-        ts = np.array([p[0] for p in pts], float)
-        vs = np.array([p[1] for p in pts], float).reshape(-1, 1)
-        cols[f"{name}_c"] = _interpolate(t, ts, vs)[:, 0]
+        ts, vs = _column(reader, name, "measured")
+        cols[f"{name}_c"] = _interpolate(t, ts, vs.reshape(-1, 1))[:, 0]
     return cols
+
+
+def _column(
+    reader: RunReader, name: str, column: Literal["commanded", "measured"]
+) -> tuple[Array, Array]:
+    """Times and values (arrays) of a channel's ``column``, where it has one."""
+    rows = np.array(reader.channel_column(name, column), float).reshape(-1, 2)
+    return rows[:, 0], rows[:, 1]
 
 
 def channel_unit(meta: dict[str, Any], name: str) -> str:

@@ -17,7 +17,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from rig.errors import StoreWriteError, UserInputError
 from rig.store.seal import seal_run
@@ -264,9 +264,19 @@ class RunReader:
         ]
 
     def channel(self, name: str) -> list[tuple[float, float | None, float | None]]:
-        """(t, commanded, measured) rows of a current channel."""
+        """(t, commanded, measured) rows of a channel (current A; a thermometer's C)."""
         return list(self._con.execute(
             "SELECT t, commanded, measured FROM channels WHERE channel = ? ORDER BY t", (name,)))  # fmt: skip
+
+    def channel_column(
+        self, name: str, column: Literal["commanded", "measured"]
+    ) -> list[tuple[float, float]]:
+        """(t, value) of a channel's rows that have a ``column`` value, in time order."""
+        if column not in ("commanded", "measured"):
+            raise ValueError(f"no channel column {column!r}")
+        return list(self._con.execute(
+            f"SELECT t, {column} FROM channels WHERE channel = ? AND {column} IS NOT NULL"
+            " ORDER BY t", (name,)))  # fmt: skip
 
     def channel_names(self) -> list[str]:
         """Recorded current channels."""
