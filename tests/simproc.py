@@ -10,6 +10,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+
 from rig.child_process import start_child, stop_child
 
 
@@ -35,3 +37,30 @@ def sim_process(
         yield rig_toml, json.loads(ep.read_text())["devices"]
     finally:
         stop_child(proc, wait_s=stop_wait_s)
+
+
+def output_registers(
+    devices: dict[str, Any], tcp_only: bool = False
+) -> Iterator[tuple[str, Any, int, int]]:
+    """(name, connected client, output-enable register, device id) of every supply and load, on
+    their own wires (RTU ports are exclusive: only ``tcp_only`` ones while a run holds them)."""
+    for name, d in devices.items():
+        if d["kind"] not in ("riden-rd60xx", "regmap-eload"):
+            continue
+        if tcp_only and d["protocol"] != "modbus-tcp":
+            continue
+        reg = 18 if d["kind"] == "riden-rd60xx" else 0x0A10
+        if d["protocol"] == "modbus-tcp":
+            client: Any = ModbusTcpClient(d["host"], port=d["port"], timeout=2)
+        else:
+            client = ModbusSerialClient(d["path"], baudrate=d["baudrate"], timeout=2)
+        with client:
+            yield name, client, reg, d["device_id"]
+
+
+def outputs(devices: dict[str, Any], tcp_only: bool = False) -> dict[str, int]:
+    """Output-enable state of every supply and load."""
+    return {
+        name: client.read_holding_registers(reg, count=1, device_id=dev_id).registers[0]
+        for name, client, reg, dev_id in output_registers(devices, tcp_only)
+    }

@@ -30,6 +30,7 @@ from rig.cli import (
     run,
     runs,
     safe,
+    serve,
     show,
     sim,
     verify,
@@ -83,6 +84,7 @@ COMMANDS: tuple[Command, ...] = (
     cage,
     example_data,
     devices,
+    serve,
 )
 """Every command, in the order ``rig --help`` lists them. A new command is a module in
 ``rig/cli/`` with ``add_parser(sub, parents)`` and one entry here."""

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
+import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 from rig.cli.common import Parser, Subparsers, criterion_value, parse_sets
+from rig.errors import UserInputError
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
@@ -26,11 +30,50 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     runp.add_argument(
         "--yes", action="store_true", help="confirm operator prompts automatically (recorded)"
     )
+    runp.add_argument(
+        "--serve", action="store_true",
+        help="also serve the web page on this machine, to watch and operate the run (rig serve)",
+    )  # fmt: skip
+    runp.add_argument(
+        "--port", type=int, default=None, metavar="N",
+        help="port of the --serve page (default 8765; 0 picks a free one)",
+    )  # fmt: skip
     runp.set_defaults(func=_cmd_run)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    return run_procedure(args.procedure, args.rig, args.set, args.runs_dir, args.yes, args.quiet)
+    if args.port is not None and not args.serve:
+        raise UserInputError("--port is the port of the --serve page: add --serve")
+    if not args.serve:
+        return run_procedure(args.procedure, args.rig, args.set, args.runs_dir, args.yes,
+                             args.quiet)  # fmt: skip
+    with page_server(args.runs_dir, args.rig, args.port, args.quiet):
+        return run_procedure(args.procedure, args.rig, args.set, args.runs_dir, args.yes,
+                             args.quiet, serving=True)  # fmt: skip
+
+
+@contextlib.contextmanager
+def page_server(runs_dir: Path, rig_config: Path, port: int | None, quiet: bool) -> Iterator[str]:
+    """``rig serve`` as a child process for as long as the run lasts; yields its address."""
+    from rig.child_process import start_child, stop_child
+    from rig.cli.serve import DEFAULT_PORT
+
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    argv = [sys.executable, "-m", "rig.cli", "-q", "serve", "--runs-dir", str(runs_dir),
+            "--rig", str(rig_config), "--port", str(DEFAULT_PORT if port is None else port)]  # fmt: skip
+    child = start_child(argv, stdout=subprocess.PIPE)
+    assert child.stdout is not None
+    line = child.stdout.readline().decode(errors="replace").strip()
+    if not line.startswith("rig serve: "):
+        stop_child(child, first=signal.SIGTERM, wait_s=2.0)
+        raise UserInputError("the --serve page did not start (see the line above); choose"
+                             " another --port, or run without --serve")  # fmt: skip
+    url = line.removeprefix("rig serve: ")
+    print(f"rig: watch and operate this run at {url}", file=sys.stderr, flush=True)
+    try:
+        yield url
+    finally:
+        stop_child(child, first=signal.SIGTERM, wait_s=3.0)
 
 
 def confirm_all(text: str) -> bool:
@@ -76,7 +119,13 @@ def summarize(outcome: Any, quiet: bool) -> None:
 
 
 def run_procedure(
-    procedure: str, rig_config: Path, sets: list[str], runs_dir: Path, yes: bool, quiet: bool
+    procedure: str,
+    rig_config: Path,
+    sets: list[str],
+    runs_dir: Path,
+    yes: bool,
+    quiet: bool,
+    serving: bool = False,
 ) -> int:
     """``rig run``: execute on the rig named by the configuration."""
     from rig.config import load_rig_config
@@ -87,7 +136,7 @@ def run_procedure(
     proc = parse_procedure(find_procedure(procedure), parse_sets(sets))
     cfg = load_rig_config(rig_config)
     confirm = auto_confirm(quiet) if yes else None
-    runner = Runner(proc, cfg, runs_dir, confirm=confirm, quiet=quiet)
+    runner = Runner(proc, cfg, runs_dir, confirm=confirm, quiet=quiet, serving=serving)
     outcome = runner.run()
     summarize(outcome, quiet)
     return outcome.exit_code

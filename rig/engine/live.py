@@ -24,13 +24,8 @@ class LiveView:
         self.tty = sys.stderr.isatty()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
-        durations = []
-        from rig.procedure.plan import compile_plan, rig_timing
-
-        for plan in compile_plan(runner.proc, rig_timing(runner.cfg)):
-            durations.append(plan.duration_s)
-        self.durations = durations
-        self.total_s = sum(durations)
+        self.durations = [d for _, d in runner.timeline()]
+        self.total_s = sum(self.durations)
         self._last_step = -1
 
     def start(self) -> None:

@@ -32,6 +32,7 @@ from rig.devices import thermometer_names
 from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.interlock import RigLock
 from rig.engine.live import LiveView
+from rig.engine.live_state import LivePublisher
 from rig.engine.sampling import BufferedSensor, SensorSampler
 from rig.engine.session import RigSession
 from rig.engine.temperature_log import TemperatureLog
@@ -82,7 +83,7 @@ class Runner:
 
     def __init__(self, proc: Procedure, cfg: RigConfig, runs_dir: Path, *, i2c_bus: Any | None = None,
                  confirm: Confirm | None = None, quiet: bool = False, live: bool = True,
-                 guardian: bool = True) -> None:  # fmt: skip
+                 guardian: bool = True, serving: bool = False) -> None:  # fmt: skip
         self.proc = proc
         self.cfg = cfg
         self.runs_dir = runs_dir
@@ -102,6 +103,10 @@ class Runner:
         self.measured_loads: dict[str, tuple[float, float]] = {}  # name -> (time, A)
         self.change_listeners: list[ChangeListener] = []
         self.status_sources: list[Callable[[], str]] = []
+        self.live_sources: list[Callable[[], dict[str, Any]]] = []  # structured, for the page
+        self.publisher: LivePublisher | None = None
+        self.serving = serving
+        self.abort_reason: str | None = None
         self.correction: dict[str, Any] | None = None
         self.report_requested = False
         self.rig: RigSession | None = None
@@ -111,6 +116,7 @@ class Runner:
         self.samplers: dict[str, SensorSampler] = {}
         self.controller: Any = None
         self.live: LiveView | None = None
+        self._timeline: list[tuple[str, float]] | None = None
 
     # --- lifecycle ------------------------------------------------------------------------------
 
@@ -129,6 +135,8 @@ class Runner:
         )  # fmt: skip
         (w.folder / "procedure.yaml").write_text(self.proc.text, encoding="utf-8")
         shutil.copy(self.cfg.path, w.folder / "rig.toml")
+        self.publisher = LivePublisher(self, self.timeline())
+        self.publisher.start()
         old = self._install_signals()
         status, reason = "error", "unknown"
         try:
@@ -149,7 +157,10 @@ class Runner:
                 else ("complete", "all steps done")
             )
         except (KeyboardInterrupt, RunAborted) as exc:
-            status, reason = "aborted", str(exc) or "interrupted by the operator (Ctrl-C)"
+            status, reason = (
+                "aborted",
+                self.abort_reason or str(exc) or "interrupted by the operator (Ctrl-C)",
+            )
         except (RigError, DeviceError) as exc:
             status, reason = "error", str(exc)
         except Exception as exc:  # record it, leave hardware safe (done above), then re-raise
@@ -173,6 +184,7 @@ class Runner:
                 )
             self._lock.release()  # the session released it already, unless it never opened
             self._restore_signals(old)
+            self.publisher.stop(status, reason)
         if self.report_requested:
             self._write_report(w.folder)
         return RunOutcome(status, reason, w.folder, self.results)
@@ -215,7 +227,37 @@ class Runner:
 
     def _event(self, level: str, message: str) -> None:
         assert self.writer is not None
-        self.writer.add_event(time.monotonic(), level, message)
+        t = time.monotonic()
+        self.writer.add_event(t, level, message)
+        if self.publisher is not None:
+            self.publisher.note_event(t, level, message)
+
+    def timeline(self) -> list[tuple[str, float]]:
+        """Every step's name and planned duration (s), compiled once."""
+        if self._timeline is None:
+            self._timeline = [(p.step.name, p.duration_s)
+                              for p in compile_plan(self.proc, rig_timing(self.cfg))]  # fmt: skip
+        return self._timeline
+
+    def abort_from(self, reason: str) -> None:
+        """Abort the run through the safe path (as Ctrl-C does), recording ``reason``."""
+        if self.abort_reason is None:
+            self.abort_reason = reason
+        self.abort.set()
+
+    def corrected_dut(self, raw_ut: Any) -> Any:
+        """The DUT reading ``raw_ut`` (uT) corrected by the newest calibration this run has
+        fitted (loads at their commanded currents), None before the first one."""
+        if raw_ut is None:
+            return None
+        for value in reversed(list(self.results.values())):
+            corr = value.get("correction") if isinstance(value, dict) else None
+            if isinstance(corr, dict) and "matrix" in corr:
+                m = np.asarray(raw_ut, float) - np.asarray(corr["offset_ut"], float)
+                for ch, k in corr.get("k_ut_per_unit", {}).items():
+                    m = m - np.asarray(k, float) * float(self.commanded_loads.get(ch, 0.0))
+                return np.asarray(corr["matrix"], float) @ m
+        return None
 
     def _open(self, stack: ExitStack) -> None:
         """Open every device; register safe states and closes on ``stack`` (LIFO)."""
@@ -516,16 +558,39 @@ class Runner:
         self.writer.set_meta(**values)
 
     def ask_operator(self, text: str) -> bool:
-        """A yes/no question: ``confirm`` (``--yes``, tests) or the terminal."""
-        if self.confirm is None and not sys.stdin.isatty():
-            raise RigError(
-                f"the procedure asks the operator: {text!r}; run in a terminal, or pass --yes"
-            )
-        assert self.rig is not None
+        """A yes/no question, answered by ``confirm`` (``--yes``, tests), or on the web page or
+        the terminal, whichever answers first. Without a terminal the page alone can answer."""
+        assert self.rig is not None and self.publisher is not None
         with self.rig.waiting_for_operator():  # as long as the operator takes: not a hang
             if self.confirm is not None:
                 return self.confirm(text)
-            return input(f"\n{text} [y/N] ").strip().lower() in ("y", "yes")
+            prompt = self.publisher.open_prompt(text)
+            self._event("operator", f"asked: {text}")
+            try:
+                answer = self._first_answer(prompt, text)
+            finally:
+                self.publisher.close_prompt()
+            return answer
+
+    def _first_answer(self, prompt: int, text: str) -> bool:
+        assert self.rig is not None and self.publisher is not None
+        terminal = _terminal_answers() if sys.stdin.isatty() else None
+        if terminal is not None:
+            terminal.ask(f"\n{text} [y/N] ")
+        elif not self.serving:
+            raise RigError(f"the procedure asks the operator: {text!r}; run in a terminal,"
+                           " answer it on the page ('rig run --serve'), or pass --yes")  # fmt: skip
+        while True:
+            self.rig.check()  # an abort (page, signal) ends the question too
+            page = self.publisher.wait_answer(prompt, 0.1)
+            if page is not None:
+                if terminal is not None:
+                    print("(answered on the web page)", file=sys.stderr)
+                return page
+            if terminal is not None:
+                line = terminal.answer()
+                if line is not None:
+                    return line.strip().lower() in ("y", "yes")
 
     def request_report(self) -> None:
         """Write the acceptance report once the run is closed and sealed."""
@@ -585,3 +650,48 @@ class Runner:
         self.commanded_loads[name] = amps
         w.add_command(done, step_idx, "load", payload | {"t_issued": min(now, done)})
         w.add_channel(done, name, amps, None)
+
+
+class _TerminalAnswers:
+    """Lines typed on the terminal, read by one thread for the whole process: a question answered
+    on the page leaves no reader behind to steal the next answer (stale lines are dropped)."""
+
+    def __init__(self) -> None:
+        import queue
+
+        self.lines: queue.Queue[str] = queue.Queue()
+        self._thread = threading.Thread(target=self._read, name="terminal-answers", daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        for line in sys.stdin:
+            self.lines.put(line)
+
+    def ask(self, question: str) -> None:
+        """Drop what was typed before and show ``question``."""
+        import queue
+
+        while True:
+            try:
+                self.lines.get_nowait()
+            except queue.Empty:
+                break
+        print(question, end="", file=sys.stderr, flush=True)
+
+    def answer(self) -> str | None:
+        """A line typed since :meth:`ask`, or None."""
+        import queue
+
+        try:
+            return self.lines.get_nowait()
+        except queue.Empty:
+            return None
+
+
+_TERMINAL: list[_TerminalAnswers] = []
+
+
+def _terminal_answers() -> _TerminalAnswers:
+    if not _TERMINAL:
+        _TERMINAL.append(_TerminalAnswers())
+    return _TERMINAL[0]

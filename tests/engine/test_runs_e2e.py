@@ -16,7 +16,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
 from drivers.transport.tty_watch import tty_stall_s, tty_watch
 from rig.analysis import load_commands, phase_locked_interval_s, stored_run_data
@@ -30,6 +29,7 @@ from rig.steps import field_kinds
 from rig.store import RunReader
 from sim.cage import SimulatedCage
 from sim.config import load_config
+from tests.simproc import output_registers, outputs
 from tests.simproc import sim_process as start_sim
 
 
@@ -37,33 +37,6 @@ from tests.simproc import sim_process as start_sim
 def sim_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, dict[str, Any]]]:
     with start_sim(tmp_path_factory.mktemp("sim")) as sim:
         yield sim
-
-
-def output_registers(
-    devices: dict[str, Any], tcp_only: bool = False
-) -> Iterator[tuple[str, Any, int, int]]:
-    """(name, connected client, output-enable register, device id) of every supply and load, on
-    their own wires (RTU ports are exclusive: only ``tcp_only`` ones while a run holds them)."""
-    for name, d in devices.items():
-        if d["kind"] not in ("riden-rd60xx", "regmap-eload"):
-            continue
-        if tcp_only and d["protocol"] != "modbus-tcp":
-            continue
-        reg = 18 if d["kind"] == "riden-rd60xx" else 0x0A10
-        if d["protocol"] == "modbus-tcp":
-            client: Any = ModbusTcpClient(d["host"], port=d["port"], timeout=2)
-        else:
-            client = ModbusSerialClient(d["path"], baudrate=d["baudrate"], timeout=2)
-        with client:
-            yield name, client, reg, d["device_id"]
-
-
-def outputs(devices: dict[str, Any], tcp_only: bool = False) -> dict[str, int]:
-    """Output-enable state of every supply and load."""
-    return {
-        name: client.read_holding_registers(reg, count=1, device_id=dev_id).registers[0]
-        for name, client, reg, dev_id in output_registers(devices, tcp_only)
-    }
 
 
 @pytest.mark.parametrize(

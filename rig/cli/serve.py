@@ -1,0 +1,90 @@
+"""``rig serve``: the local web page for live runs, past runs and the cage (``rig.web``)."""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import socket
+import sys
+from pathlib import Path
+
+from rig.cli.common import Parser, Subparsers
+from rig.errors import UserInputError
+
+DEFAULT_PORT = 8765
+
+
+def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
+    p = sub.add_parser(
+        "serve", parents=parents, help="serve the web page: live runs, past runs, cage"
+    )
+    p.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR",
+                   help="the runs to show and operate (default: runs)")  # fmt: skip
+    p.add_argument("--rig", type=Path, metavar="CONFIG.toml",
+                   help="rig configuration, for the cage status page")  # fmt: skip
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, metavar="N",
+                   help=f"TCP port (default {DEFAULT_PORT}; 0 picks a free one)")  # fmt: skip
+    p.add_argument("--host", default="127.0.0.1", metavar="ADDR",
+                   help="address to listen on (default 127.0.0.1, this machine only)")  # fmt: skip
+    p.add_argument("--allow-remote", action="store_true",
+                   help="allow an address other than loopback; prints a one-time access token")  # fmt: skip
+    p.set_defaults(func=_cmd_serve)
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    return serve(args.runs_dir, args.rig, args.host, args.port, args.allow_remote, args.quiet)
+
+
+def is_loopback(host: str) -> bool:
+    """``host`` names this machine only (127.0.0.0/8, ::1 or localhost)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def listen(host: str, port: int) -> socket.socket:
+    """A listening TCP socket on ``host:port`` (raises UserInputError naming the fix)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as exc:
+        sock.close()
+        raise UserInputError(f"cannot listen on {host}:{port} ({exc.strerror}); choose another"
+                             " --port, or 0 for a free one") from None  # fmt: skip
+    sock.listen(64)
+    return sock
+
+
+def serve(runs_dir: Path, rig_config: Path | None, host: str, port: int, allow_remote: bool,
+          quiet: bool) -> int:  # fmt: skip
+    """Serve until Ctrl-C or SIGTERM; prints the address (and the token off loopback) first."""
+    import uvicorn
+
+    from rig.web.app import create_app
+    from rig.web.security import new_secret
+
+    loopback = is_loopback(host)
+    if not loopback and not allow_remote:
+        raise UserInputError(f"--host {host} is reachable from other machines; add --allow-remote"
+                             " to serve it there (with an access token), or drop --host")  # fmt: skip
+    if rig_config is not None and not rig_config.is_file():
+        raise UserInputError(f"{rig_config}: no such rig configuration; check --rig")
+    token = None if loopback else new_secret()
+    sock = listen(host, port)
+    shown = f"[{host}]" if ":" in host else host
+    url = f"http://{shown}:{sock.getsockname()[1]}/"
+    print(f"rig serve: {url}" + (f"?token={token}" if token else ""), flush=True)
+    if token and not quiet:
+        print("rig serve: the token is shown once; anyone with this URL can operate the rig",
+              file=sys.stderr, flush=True)  # fmt: skip
+    app = create_app(runs_dir, rig_config, access_token=token, loopback_only=loopback)
+    config = uvicorn.Config(app, log_level="warning" if not quiet else "error", access_log=False,
+                            lifespan="off", timeout_graceful_shutdown=1)  # fmt: skip
+    server = uvicorn.Server(config)
+    server.run(sockets=[sock])
+    return 0

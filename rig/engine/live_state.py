@@ -1,0 +1,173 @@
+"""The run's side of the web page: publish the live state, carry out the page's requests.
+
+A thread of its own (the steps never wait for it) writes ``live.json`` in the run folder twice a
+second and looks for requests in ``control/`` ten times a second (:mod:`rig.store.run_control`):
+pause, resume and abort go through the same events as the signals and Ctrl-C, and an answer to an
+operator prompt is handed to :meth:`Runner.ask_operator`, which takes the page's or the
+terminal's, whichever comes first.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from rig.store.run_control import CONTROL_DIR, take_requests, write_live
+
+POLL_S = 0.1
+"""How often the requests are looked for (s): an abort reaches the safe path within this."""
+PUBLISH_S = 0.5
+"""How often ``live.json`` is replaced (s)."""
+EVENTS_KEPT = 50
+
+
+def _vec(v: Any) -> list[float] | None:
+    if v is None:
+        return None
+    return [round(float(x), 4) for x in np.asarray(v, dtype=float).reshape(-1)]
+
+
+class LivePublisher:
+    """Publishes ``runner``'s state and applies the page's requests until :meth:`stop`."""
+
+    def __init__(self, runner: Any, timeline: list[tuple[str, float]]) -> None:
+        self.runner = runner
+        self.timeline = timeline
+        self.events: collections.deque[tuple[float, str, str]] = collections.deque(
+            maxlen=EVENTS_KEPT
+        )
+        self.final: dict[str, Any] | None = None
+        self.prompt: tuple[int, str] | None = None
+        self.answers: dict[int, bool] = {}
+        self._prompts = 0
+        self._lock = threading.Lock()
+        self._answered = threading.Condition(self._lock)
+        self._stop = threading.Event()
+        self._t_start = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="live-state", daemon=True)
+        self.publish_errors = 0
+
+    def start(self) -> None:
+        """Start publishing."""
+        self._publish()
+        self._thread.start()
+
+    def stop(self, status: str, reason: str) -> None:
+        """Publish the final state (``status``, ``reason``) and end the thread."""
+        self.final = {"status": status, "reason": reason}
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        self._publish()
+        with contextlib.suppress(OSError):  # an empty request box is not kept with the data
+            (self.runner.folder / CONTROL_DIR).rmdir()
+
+    def note_event(self, t: float, level: str, message: str) -> None:
+        """Keep an event for the page (the store has them all)."""
+        self.events.append((t, level, message))
+
+    # --- operator prompts -------------------------------------------------------------------------
+
+    def open_prompt(self, text: str) -> int:
+        """Show ``text`` on the page as a yes/no question; returns its number."""
+        with self._lock:
+            self._prompts += 1
+            self.prompt = (self._prompts, text)
+            return self._prompts
+
+    def close_prompt(self) -> None:
+        """The question is answered (here or on the terminal): take it off the page."""
+        with self._lock:
+            self.prompt = None
+
+    def wait_answer(self, prompt_id: int, timeout_s: float) -> bool | None:
+        """The page's answer to prompt ``prompt_id`` if it comes within ``timeout_s``, else None."""
+        with self._answered:
+            self._answered.wait_for(lambda: prompt_id in self.answers, timeout=timeout_s)
+            return self.answers.pop(prompt_id, None)
+
+    # --- the thread -------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        next_publish = time.monotonic() + PUBLISH_S
+        while not self._stop.wait(POLL_S):
+            self._apply(take_requests(self.runner.folder))
+            if time.monotonic() >= next_publish:
+                next_publish = time.monotonic() + PUBLISH_S
+                self._publish()
+
+    def _apply(self, requests: list[dict[str, Any]]) -> None:
+        r = self.runner
+        for req in requests:
+            action = req["action"]
+            if action == "abort":
+                r.abort_from("aborted from the web page")
+            elif action == "pause":
+                r.paused.set()
+            elif action == "resume":
+                r.paused.clear()
+            elif action == "answer":
+                with self._answered:
+                    current = self.prompt
+                    if current is not None and current[0] == req.get("prompt"):
+                        self.answers[current[0]] = bool(req.get("yes"))
+                        self._answered.notify_all()
+
+    def _publish(self) -> None:
+        try:
+            write_live(self.runner.folder, self.snapshot())
+        except Exception:  # a full disk or a vanished folder must not end the run from here
+            self.publish_errors += 1
+
+    def snapshot(self) -> dict[str, Any]:
+        """The state the page shows (JSON-ready; vectors in uT, currents in A, times in s)."""
+        r = self.runner
+        now = time.monotonic()
+        state: dict[str, Any] = {
+            "t": round(now - self._t_start, 3),
+            "wall_time": time.time(),
+            "status": "running",
+            "paused": r.paused.is_set(),
+            "steps": [{"name": n, "duration_s": round(d, 3)} for n, d in self.timeline],
+        }
+        step = getattr(r, "current_step", None)
+        if step is not None:
+            idx, name, t0, dur = step
+            done = sum(d for _, d in self.timeline[:idx]) + min(max(now - t0, 0.0), dur)
+            total = sum(d for _, d in self.timeline)
+            state["step"] = {"index": idx, "name": name, "elapsed_s": round(now - t0, 3),
+                             "duration_s": dur}  # fmt: skip
+            state["progress"] = round(done / total, 4) if total > 0 else 1.0
+            state["eta_s"] = round(max(total - done, 0.0), 1)
+        ctl = r.controller
+        if ctl is not None:
+            state["field_cmd_ut"] = _vec(ctl.model.field_ut(ctl.currents))
+            state["coil_a"] = _vec(ctl.currents)
+        for role in ("reference", "dut"):
+            sampler = r.samplers.get(r.proc.magnetometers.get(role, ""))
+            latest = sampler.latest if sampler is not None else None
+            if latest is not None:
+                state[f"{role}_ut"] = _vec(latest[1])
+        corrected = r.corrected_dut(state.get("dut_ut"))
+        if corrected is not None:
+            state["dut_corrected_ut"] = _vec(corrected)
+        state["loads_cmd_a"] = {k: round(float(v), 4) for k, v in r.commanded_loads.items()}
+        state["loads_a"] = {k: round(float(v[1]), 4) for k, v in list(r.measured_loads.items())}
+        for source in list(r.live_sources):
+            try:
+                state |= source()
+            except Exception:  # a step's view must not stop the page
+                continue
+        with self._lock:
+            if self.prompt is not None:
+                state["prompt"] = {"id": self.prompt[0], "text": self.prompt[1]}
+        state["events"] = [{"t": round(t - self._t_start, 2), "level": lv, "message": m}
+                           for t, lv, m in list(self.events)]  # fmt: skip
+        if self.final is not None:
+            state |= self.final
+        return state

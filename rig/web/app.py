@@ -1,0 +1,210 @@
+"""``rig serve``'s web application (Starlette): run browser, run pages, live view, cage status.
+
+The server is a process of its own. It reads run folders (SQLite, ``live.json``) and writes
+requests into a running run's ``control/`` folder (:mod:`rig.store.run_control`): a slow, stuck
+or vanished browser can neither delay a command nor lose a sample (ADR 0016).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import datetime as dt
+import json
+import shutil
+import tempfile
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+from starlette.applications import Starlette
+from starlette.background import BackgroundTask
+from starlette.requests import Request
+from starlette.responses import (
+    FileResponse,
+    JSONResponse,
+    Response,
+    StreamingResponse,
+)
+from starlette.routing import Mount, Route
+from starlette.staticfiles import StaticFiles
+from starlette.templating import Jinja2Templates
+
+from rig.errors import RigError
+from rig.store import run_control
+from rig.store.run_control import read_live
+from rig.web.runs_view import (
+    EXPORTS,
+    downloads,
+    export_file,
+    list_summaries,
+    media_type,
+    run_details,
+    run_folder,
+    summarize_run,
+)
+from rig.web.security import Guard, new_secret
+
+HERE = Path(__file__).parent
+LIVE_POLL_S = 0.25
+"""How often an open live stream looks at ``live.json`` (s)."""
+
+
+class Site:
+    """The state one server shares between its requests."""
+
+    def __init__(self, runs_dir: Path, rig_config: Path | None, csrf_secret: str) -> None:
+        self.runs_dir = runs_dir
+        self.rig_config = rig_config
+        self.csrf_secret = csrf_secret
+        self.templates = Jinja2Templates(directory=str(HERE / "templates"))
+
+    def page(self, request: Request, name: str, status: int = 200, **context: Any) -> Response:
+        return self.templates.TemplateResponse(
+            request, name, {"csrf": self.csrf_secret, **context}, status_code=status
+        )
+
+    def folder(self, request: Request) -> Path | None:
+        return run_folder(self.runs_dir, request.path_params["run_id"])
+
+
+def create_app(runs_dir: Path, rig_config: Path | None = None, *,
+               access_token: str | None = None, loopback_only: bool = True,
+               csrf_secret: str | None = None) -> Guard:  # fmt: skip
+    """The application for ``runs_dir`` (and the cage of ``rig_config``), wrapped in its guard."""
+    site = Site(runs_dir, rig_config, csrf_secret or new_secret())
+
+    async def runs_page(request: Request) -> Response:
+        return site.page(request, "runs.html", runs=list_summaries(site.runs_dir),
+                         runs_dir=str(site.runs_dir))  # fmt: skip
+
+    async def runs_api(request: Request) -> Response:
+        rows = [r.to_dict() for r in list_summaries(site.runs_dir)]
+        q = request.query_params.get("q", "").strip().lower()
+        if q:
+            rows = [r for r in rows if any(q in str(v).lower() for v in r.values())]
+        return JSONResponse(rows)
+
+    async def run_page(request: Request) -> Response:
+        folder = site.folder(request)
+        if folder is None:
+            return site.page(request, "missing.html", 404, run_id=request.path_params["run_id"])
+        return site.page(request, "run.html", run=run_details(folder))
+
+    async def run_api(request: Request) -> Response:
+        folder = site.folder(request)
+        if folder is None:
+            return JSONResponse({"error": "no such run"}, status_code=404)
+        return JSONResponse(run_details(folder))
+
+    async def run_file(request: Request) -> Response:
+        folder = site.folder(request)
+        name = request.path_params["name"]
+        if folder is None or name not in downloads(folder):
+            return Response("no such file in this run\n", status_code=404, media_type="text/plain")
+        return FileResponse(folder / name, media_type=media_type(name),
+                            filename=None if name.endswith((".png", ".html")) else name)  # fmt: skip
+
+    async def run_export(request: Request) -> Response:
+        folder = site.folder(request)
+        fmt = request.path_params["fmt"]
+        if folder is None or fmt not in EXPORTS:
+            return Response("no such run or export format\n", status_code=404,
+                            media_type="text/plain")  # fmt: skip
+        if summarize_run(folder).status == "running":
+            return Response("the run is still recording; export it once it has ended\n",
+                            status_code=409, media_type="text/plain")  # fmt: skip
+        tmp = tempfile.mkdtemp(prefix="rig-export-")
+        path, name, media = await asyncio.to_thread(export_file, folder, fmt, Path(tmp))
+        return FileResponse(path, media_type=media, filename=name,
+                            background=BackgroundTask(shutil.rmtree, tmp, True))  # fmt: skip
+
+    async def live_stream(request: Request) -> Response:
+        folder = site.folder(request)
+        if folder is None:
+            return Response("no such run\n", status_code=404, media_type="text/plain")
+
+        async def events() -> AsyncIterator[str]:
+            last = None
+            while not await request.is_disconnected():
+                state = read_live(folder)
+                if state is not None and state != last:
+                    last = state
+                    yield f"data: {json.dumps(state, separators=(',', ':'))}\n\n"
+                    if state.get("status", "running") != "running":
+                        return  # the run has ended: its final state was the last word
+                await asyncio.sleep(LIVE_POLL_S)
+
+        return StreamingResponse(events(), media_type="text/event-stream",
+                                 headers={"cache-control": "no-store"})  # fmt: skip
+
+    async def control(request: Request) -> Response:
+        folder = site.folder(request)
+        if folder is None:
+            return JSONResponse({"error": "no such run"}, status_code=404)
+        if summarize_run(folder).status != "running":
+            return JSONResponse({"error": "the run has ended"}, status_code=409)
+        try:
+            body = await request.json()
+            request_args = {"prompt": body.get("prompt"), "yes": bool(body.get("yes"))}
+            run_control.request(folder, str(body.get("action")), **request_args)
+        except (ValueError, AttributeError, RigError) as exc:
+            return JSONResponse({"error": str(exc) or "bad request"}, status_code=400)
+        return JSONResponse({"queued": body["action"]})
+
+    async def cage_page(request: Request) -> Response:
+        return site.page(request, "cage.html", cage=cage_status(site.rig_config),
+                         running=[r for r in list_summaries(site.runs_dir)
+                                  if r.status == "running"])  # fmt: skip
+
+    routes = [
+        Route("/", runs_page),
+        Route("/api/runs", runs_api),
+        Route("/runs/{run_id}", run_page),
+        Route("/api/runs/{run_id}", run_api),
+        Route("/runs/{run_id}/files/{name}", run_file),
+        Route("/runs/{run_id}/export/{fmt}", run_export),
+        Route("/runs/{run_id}/live", live_stream),
+        Route("/runs/{run_id}/control", control, methods=["POST"]),
+        Route("/cage", cage_page),
+        Mount("/static", StaticFiles(directory=str(HERE / "static")), name="static"),
+    ]
+    app = Starlette(routes=routes)
+    return Guard(app, csrf_secret=site.csrf_secret, access_token=access_token,
+                 loopback_only=loopback_only)  # fmt: skip
+
+
+def cage_status(rig_config: Path | None) -> dict[str, Any] | None:
+    """The cage page: devices with their roles, limits and the cage calibration's age."""
+    if rig_config is None:
+        return None
+    from rig.config import load_rig_config
+
+    try:
+        cfg = load_rig_config(rig_config)
+    except RigError as exc:
+        return {"error": str(exc), "path": str(rig_config)}
+    out: dict[str, Any] = {"path": str(rig_config), "devices": [
+        {"name": d.name, "kind": d.kind, "protocol": d.protocol,
+         "where": str(d.params.get("port") or d.params.get("host") or d.params.get("bus") or "")}
+        for d in cfg.devices.values()]}  # fmt: skip
+    cage = cfg.cage
+    if cage is not None:
+        out["limits"] = {
+            "max_current_a": list(cage.max_current_a),
+            "max_field_ut": cage.max_field_ut,
+            "max_slew_a_per_s": cage.max_slew_a_per_s,
+            "compliance_v": cage.compliance_v,
+        }
+        out["axes"] = list(cage.axes)
+        out["reference"] = cage.reference
+        out["polarity"] = cage.polarity
+        cal = cage.calibration
+        if cal is not None and cal.exists():
+            age = dt.datetime.now(dt.UTC) - dt.datetime.fromtimestamp(cal.stat().st_mtime, dt.UTC)
+            out["calibration"] = {
+                "path": str(cal),
+                "age_days": round(age.total_seconds() / 86400, 1),
+            }
+        else:
+            out["calibration"] = {"path": str(cal) if cal else None, "age_days": None}
+    return out

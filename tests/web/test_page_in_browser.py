@@ -1,0 +1,156 @@
+"""The web page in a real browser (Debian's chromium) against real runs on the simulated cage.
+
+A run started with ``rig run --serve`` is watched and operated from the page: the live plot gains
+points, an operator prompt answered on the page lets the run go on, abort from the page leaves
+every output off; ``rig serve`` then lists the finished run with its verdict and opens its report.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from drivers.transport.tty_watch import tty_stall_s, tty_watch
+from rig.child_process import start_child, stop_child
+from rig.store import RunReader
+from tests.simproc import outputs
+from tests.simproc import sim_process as start_sim
+from tests.web.conftest import read_url, screenshot, serve_process
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, dict[str, Any]]]:
+    with start_sim(tmp_path_factory.mktemp("sim")) as s:
+        yield s
+
+
+def start_run(rig_toml: Path, runs: Path, *args: str) -> tuple[subprocess.Popen[bytes], str]:
+    """``rig run ... --serve --port 0`` without a terminal; returns it and the page address."""
+    proc = start_child([sys.executable, "-m", "rig.cli", "run", *args, "--rig", str(rig_toml),
+                        "--runs-dir", str(runs), "--serve", "--port", "0"],
+                       stdin=subprocess.DEVNULL, stderr=subprocess.PIPE)  # fmt: skip
+    return proc, read_url(proc, "watch and operate this run at")
+
+
+def open_running_run(page: Any, url: str) -> None:
+    """From the run browser, open the run in progress."""
+    page.goto(url)
+    page.wait_for_selector("td.status-running", timeout=30_000)
+    page.click("#runs tbody tr[data-run] a")
+    page.wait_for_selector("#live:not([hidden])")
+
+
+def test_run_watched_and_prompt_answered_on_the_page_then_browsed(
+    sim: tuple[Path, dict[str, Any]], browser: Any, tmp_path: Path
+) -> None:
+    rig_toml, _ = sim
+    runs = tmp_path / "runs"
+    proc, url = start_run(rig_toml, runs, "smoke")
+    try:
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        open_running_run(page, url)
+        # the shipped smoke procedure starts with a prompt: nobody at a terminal answers it
+        page.wait_for_selector("#prompt:not([hidden])", timeout=30_000)
+        assert "Mount DUT SN-0001" in page.inner_text("#prompt-text")
+        screenshot(page, "prompt")
+        page.click("#prompt-yes")
+        page.wait_for_selector("#prompt", state="hidden", timeout=10_000)
+        # the live plot gains points while the field steps run
+        page.wait_for_function("Number(document.getElementById('live').dataset.points || 0) >= 3",
+                               timeout=30_000)  # fmt: skip
+        first = int(page.get_attribute("#live", "data-points"))
+        page.wait_for_function(
+            f"Number(document.getElementById('live').dataset.points || 0) >= {first + 4}",
+            timeout=30_000,
+        )
+        assert page.inner_text("#step-line").startswith("step ")
+        screenshot(page, "live-run")
+        page.wait_for_function("document.getElementById('live').dataset.finished === 'complete'",
+                               timeout=120_000)  # fmt: skip
+        assert proc.wait(timeout=60) == 0
+    finally:
+        if proc.poll() is None:
+            stop_child(proc, first=signal.SIGTERM)
+    folder = next(runs.iterdir())
+    reader = RunReader(folder)
+    events = [m for _, _, m in reader.events()]
+    reader.close()
+    assert any("confirmed" in m and "Mount DUT" in m for m in events), events
+
+    # later: the run browser lists it with its verdict and opens its report
+    server, url = serve_process(runs)
+    try:
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        page.goto(url)
+        row = page.locator(f"tr[data-run='{folder.name}']")
+        assert row.locator("td.status-complete").inner_text() == "complete"
+        assert row.locator("td.verdict-PASS").inner_text() == "PASS"
+        page.fill("#filter", "no such serial")
+        assert not row.is_visible()
+        page.fill("#filter", "SN-0001")
+        assert row.is_visible()
+        screenshot(page, "run-browser")
+        row.locator("a").click()
+        assert page.inner_text("#verdict") == "PASS"
+        assert "DUT noise at null field" in page.inner_text("#criteria")
+        result = page.request.get(f"{url}runs/{folder.name}/export/json").json()
+        assert result["verdict"]["overall"] == "PASS"
+        zipped = page.request.get(f"{url}runs/{folder.name}/export/csv")
+        assert zipped.ok and zipped.body()[:2] == b"PK"
+        page.click("#open-report")
+        page.wait_for_load_state()
+        assert folder.name in page.content() or "SN-0001" in page.content()
+        assert "PASS" in page.inner_text("body")
+        screenshot(page, "report")
+    finally:
+        stop_child(server, first=signal.SIGTERM, wait_s=5.0)
+
+
+def test_abort_from_the_page_leaves_every_output_off(
+    sim: tuple[Path, dict[str, Any]], browser: Any, tmp_path: Path
+) -> None:
+    rig_toml, devices = sim
+    tty_watch()  # the kernel's serial stalls are the computer's, not the page's time to safe
+    runs = tmp_path / "runs"
+    proc, url = start_run(rig_toml, runs, "dut-acceptance", "--yes")
+    try:
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        page.on("dialog", lambda d: d.accept())  # "Abort the run?"
+        open_running_run(page, url)
+        deadline = time.monotonic() + 120
+        while not any(v == 1 for v in outputs(devices, tcp_only=True).values()):
+            assert proc.poll() is None, "the run ended before its outputs were on"
+            assert time.monotonic() < deadline, "no output came on"
+            time.sleep(0.2)
+        page.wait_for_function("Number(document.getElementById('live').dataset.points || 0) >= 2",
+                               timeout=30_000)  # fmt: skip
+        t_click = time.monotonic()
+        page.click("#abort")
+        while any(v == 1 for v in outputs(devices, tcp_only=True).values()):
+            assert time.monotonic() - t_click < 10.0, "outputs still on 10 s after the abort"
+        t_safe = time.monotonic() - t_click
+        held = tty_stall_s(t_click, t_click + t_safe)
+        print(f"time to safe after the page's abort: {t_safe * 1000:.0f} ms"
+              f" ({held * 1000:.0f} ms of it the kernel held serial data back)")  # fmt: skip
+        assert t_safe - held < 1.0
+        page.wait_for_function("document.getElementById('live').dataset.finished === 'aborted'",
+                               timeout=30_000)  # fmt: skip
+        screenshot(page, "aborted")
+        assert proc.wait(timeout=60) == 130
+    finally:
+        if proc.poll() is None:
+            stop_child(proc, first=signal.SIGTERM)
+    assert all(v == 0 for v in outputs(devices).values()), outputs(devices)
+    reader = RunReader(next(runs.iterdir()))
+    meta = reader.meta()
+    reader.close()
+    assert meta["status"] == "aborted" and meta["reason"] == "aborted from the web page"
