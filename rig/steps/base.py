@@ -47,6 +47,7 @@ class RunContext(Protocol):
     measured_loads: dict[str, tuple[float, float]]  # device -> (monotonic s, A)
     change_listeners: list[ChangeListener]
     status_sources: list[Any]  # callables returning a short text for the live view
+    live_sources: list[Any]  # callables returning a dict of values for the web page
 
     @property
     def folder(self) -> Path:

@@ -113,6 +113,7 @@ class LiveStep(StepExecution):
         ctx.samplers[dut].listeners.append(self.live.on_dut)
         ctx.change_listeners.append(self.live)
         ctx.status_sources.append(self.live.status)
+        ctx.live_sources.append(self.live.page_state)
         self.live.start()
         self.stop = self.live.done
         ctx.event("info", f"live calibration: {params['method']} at {noise_nt:.3g} nT noise,"
@@ -153,6 +154,8 @@ class LiveStep(StepExecution):
             self.ctx.change_listeners.remove(self.live)
         if self.live.status in self.ctx.status_sources:
             self.ctx.status_sources.remove(self.live.status)
+        if self.live.page_state in self.ctx.live_sources:
+            self.ctx.live_sources.remove(self.live.page_state)
 
     def wind_down(self) -> None:
         """Disconnect the filter; after an early stop, switch the step's loads back to zero."""

@@ -225,6 +225,13 @@ class LiveCalibration:
             parts.append(f"{key} {sigma:.3g}{mark}")
         return " ".join(parts)
 
+    def page_state(self) -> dict[str, Any]:
+        """For the web page: updates so far, each group's 1-sigma and its target."""
+        snap = self.snapshot
+        return {"calibration": {"updates": snap.updates, "elapsed_s": round(snap.elapsed_s, 2),
+                                "sigmas": {k: float(v) for k, v in snap.sigmas.items()},
+                                "targets": {k: float(v) for k, v in self.targets.items()}}}  # fmt: skip
+
     def stop(self) -> None:
         """Let the worker finish what is queued and end (idempotent)."""
         self._queue.put(None)

@@ -77,6 +77,7 @@ function rigRunPage(running) {
   const now = document.getElementById("now");
   const fp = fieldPlot(document.getElementById("field-plot"));
   let promptId = null;
+  let lastEvents = "";
   document.getElementById("pause").onclick = () => control(runId, { action: "pause" });
   document.getElementById("resume").onclick = () => control(runId, { action: "resume" });
   document.getElementById("abort").onclick = () => {
@@ -85,6 +86,7 @@ function rigRunPage(running) {
   document.getElementById("prompt-yes").onclick = () => control(runId, { action: "answer", prompt: promptId, yes: true });
   document.getElementById("prompt-no").onclick = () => control(runId, { action: "answer", prompt: promptId, yes: false });
 
+  document.addEventListener("visibilitychange", () => { if (!document.hidden) fp.plot.setData(fp.data); });
   const source = new EventSource(`/runs/${encodeURIComponent(runId)}/live`);
   source.onmessage = (msg) => {
     const s = JSON.parse(msg.data);
@@ -126,13 +128,18 @@ function rigRunPage(running) {
       d[0].push(s.t);
       for (let i = 0; i < 3; i++) { d[1 + 2 * i].push(s.field_cmd_ut[i]); d[2 + 2 * i].push(s.reference_ut[i]); }
       if (d[0].length > MAX_POINTS) for (const col of d) col.shift();
-      fp.plot.setData(d);
+      if (!document.hidden) fp.plot.setData(d);  // a tab in the background draws when shown
       live.dataset.points = String(d[0].length);
     }
-    const ev = document.getElementById("events"); ev.innerHTML = "";
-    for (const e of (s.events || []).slice().reverse()) {
-      const li = document.createElement("li"); li.className = `level-${e.level}`;
-      li.textContent = `${e.t.toFixed(1)} s [${e.level}] ${e.message}`; ev.appendChild(li);
+    const events = s.events || [];
+    const evKey = events.length ? `${events.length}:${events[events.length - 1].t}` : "";
+    if (evKey !== lastEvents) {  // rebuilt only when there is something new
+      lastEvents = evKey;
+      const ev = document.getElementById("events"); ev.innerHTML = "";
+      for (const e of events.slice().reverse()) {
+        const li = document.createElement("li"); li.className = `level-${e.level}`;
+        li.textContent = `${e.t.toFixed(1)} s [${e.level}] ${e.message}`; ev.appendChild(li);
+      }
     }
     if (s.status && s.status !== "running") {
       source.close();
