@@ -132,7 +132,8 @@ class LivePublisher:
             "t": round(now - self._t_start, 3),
             "wall_time": time.time(),
             "status": "running",
-            "paused": r.paused.is_set(),
+            "paused": bool(r.holding),
+            "pause_requested": r.paused.is_set(),
             "steps": [{"name": n, "duration_s": round(d, 3)} for n, d in self.timeline],
         }
         step = getattr(r, "current_step", None)

@@ -107,6 +107,7 @@ class Runner:
         self.publisher: LivePublisher | None = None
         self.serving = serving
         self.abort_reason: str | None = None
+        self.holding = False  # paused and holding the schedule (a pause is asked by ``paused``)
         self.correction: dict[str, Any] | None = None
         self.report_requested = False
         self.rig: RigSession | None = None
@@ -481,8 +482,12 @@ class Runner:
             if self.paused.is_set():
                 t_pause = time.monotonic()
                 self._event("operator", "paused")
-                while self.paused.is_set() and not self.abort.is_set():
-                    self.rig.sleep(0.05)
+                self.holding = True
+                try:
+                    while self.paused.is_set() and not self.abort.is_set():
+                        self.rig.sleep(0.05)
+                finally:
+                    self.holding = False
                 shift += time.monotonic() - t_pause
                 self._event("operator", "resumed")
                 continue

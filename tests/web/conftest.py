@@ -57,9 +57,11 @@ def screenshot(page: Any, name: str) -> Path:
     return path
 
 
-def read_url(proc: subprocess.Popen[bytes], pattern: str, timeout_s: float = 60.0) -> str:
-    """The first URL a child prints on stdout or stderr in a line matching ``pattern``."""
-    stream = proc.stdout if proc.stdout is not None else proc.stderr
+def read_url(proc: subprocess.Popen[bytes], pattern: str, timeout_s: float = 60.0,
+             stream: Any = None) -> str:  # fmt: skip
+    """The first URL a child prints in a line matching ``pattern``, on ``stream`` (default: its
+    stdout if piped, else its stderr)."""
+    stream = stream or (proc.stdout if proc.stdout is not None else proc.stderr)
     assert stream is not None
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

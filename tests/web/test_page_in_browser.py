@@ -133,6 +133,16 @@ def test_abort_from_the_page_leaves_every_output_off(
             time.sleep(0.2)
         page.wait_for_function("Number(document.getElementById('live').dataset.points || 0) >= 2",
                                timeout=30_000)  # fmt: skip
+        # pause holds the schedule at the next command of a step with scheduled commands (the
+        # cage characterization runs its own sequence to its end first); resume goes on
+        page.wait_for_function("/noise floor|noise spectrum|linearity|sweep/.test("
+                               "document.getElementById('step-line').textContent)",
+                               timeout=60_000)  # fmt: skip
+        page.click("#pause")
+        page.wait_for_selector("#paused-flag:not([hidden])", timeout=5_000)
+        time.sleep(1.0)
+        page.click("#resume")
+        page.wait_for_selector("#paused-flag", state="hidden", timeout=5_000)
         t_click = time.monotonic()
         page.click("#abort")
         while any(v == 1 for v in outputs(devices, tcp_only=True).values()):
@@ -152,5 +162,45 @@ def test_abort_from_the_page_leaves_every_output_off(
     assert all(v == 0 for v in outputs(devices).values()), outputs(devices)
     reader = RunReader(next(runs.iterdir()))
     meta = reader.meta()
+    events = [(lv, m) for _, lv, m in reader.events()]
     reader.close()
     assert meta["status"] == "aborted" and meta["reason"] == "aborted from the web page"
+    assert ("operator", "paused") in events and ("operator", "resumed") in events
+
+
+def test_prompt_answered_at_the_terminal_first(
+    sim: tuple[Path, dict[str, Any]], tmp_path: Path
+) -> None:
+    """With a terminal the question is asked there too; the first answer (here the terminal's)
+    counts and the page's question goes away."""
+    import os
+    import pty
+
+    from rig.store.run_control import read_live
+
+    rig_toml, _ = sim
+    runs = tmp_path / "runs"
+    master, slave = pty.openpty()
+    proc = start_child([sys.executable, "-m", "rig.cli", "run", "smoke", "--rig", str(rig_toml),
+                        "--runs-dir", str(runs), "--serve", "--port", "0"],
+                       stdin=slave, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # fmt: skip
+    os.close(slave)
+    try:
+        read_url(proc, "watch and operate this run at", stream=proc.stderr)
+        deadline = time.monotonic() + 60
+        while True:
+            folders = list(runs.iterdir()) if runs.exists() else []
+            state = read_live(folders[0]) if folders else None
+            if state is not None and "prompt" in state:
+                break
+            assert time.monotonic() < deadline, "the page never showed the prompt"
+            time.sleep(0.1)
+        assert "Mount DUT SN-0001" in state["prompt"]["text"]
+        os.write(master, b"y\n")
+        assert proc.wait(timeout=90) == 0
+    finally:
+        os.close(master)
+        if proc.poll() is None:
+            stop_child(proc, first=signal.SIGTERM)
+    final = read_live(folders[0])
+    assert final is not None and final["status"] == "complete" and "prompt" not in final

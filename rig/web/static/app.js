@@ -109,6 +109,7 @@ function rigRunPage(running) {
     }
     Array.from(tl.children).forEach((li, i) => { li.className = s.step ? (i < s.step.index ? "done" : i === s.step.index ? "current" : "") : ""; });
     document.getElementById("paused-flag").hidden = !s.paused;
+    document.getElementById("pause-pending").hidden = s.paused || !s.pause_requested;
     const box = document.getElementById("prompt");
     if (s.prompt) { promptId = s.prompt.id; document.getElementById("prompt-text").textContent = s.prompt.text; box.hidden = false; }
     else { promptId = null; box.hidden = true; }
