@@ -22,6 +22,7 @@ from rig.calibration.residuals import (
     vector_residuals,
 )
 from rig.calibration.solver import covariance_from_jacobian
+from rig.calibration.stats import chi2_sf
 from rig.errors import CalibrationError
 
 ModelKind = Literal["scalar", "vector"]
@@ -286,11 +287,9 @@ def _chi_square(
     """The residuals against the noise. ``tested`` False: the noise was estimated from these same
     residuals (chi2/dof is 1 by construction), so nothing is tested. ``degenerate``: parameters
     the data do not determine; small residuals then say nothing about the calibration."""
-    from scipy.special import gammaincc  # chi-square survival: Q(dof/2, stat/2)
-
     dof = max(int(weighted_residuals.size) - n_params, 1)
     stat = float(np.sum((weighted_residuals / noise) ** 2))
-    p_value = float(gammaincc(dof / 2.0, stat / 2.0))
+    p_value = chi2_sf(stat, dof)
     verdict: Verdict = "consistent"
     if p_value < 1e-3:
         verdict = "above noise floor"

@@ -326,8 +326,6 @@ def _fit_and_emit(
 ) -> int:  # fmt: skip
     """Fit, write the result file, C header and autopilot parameters if asked, print the table."""
     from rig.calibration import calibrate
-    from rig.calibration.export_c import c_header
-    from rig.calibration.sequential.realtime import FilterOptions
     from rig.report.tables import calibration_table
 
     filter_methods = method_names(kind="sequential")
@@ -335,6 +333,8 @@ def _fit_and_emit(
         raise UserInputError(f"--history needs a filter: add --method {spoken(filter_methods)}")
     opts = None
     if args.method in filter_methods:
+        from rig.calibration.sequential.realtime import FilterOptions
+
         opts = FilterOptions(args.method, args.filter_variant, args.backend)
     result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust,
                        filter_options=opts, times_s=times_s, delays=tuple(args.delay),
@@ -346,6 +346,8 @@ def _fit_and_emit(
     if args.out is not None:
         write_text(args.out, json.dumps(result.to_dict(), indent=2) + "\n")
     if args.c_header is not None:
+        from rig.calibration.export_c import c_header
+
         write_text(
             args.c_header, c_header(result, prefix=args.c_header.stem, source=str(args.data))
         )
