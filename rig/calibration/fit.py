@@ -170,7 +170,7 @@ def _check_coverage(s: Samples, method: str) -> Estimate | None:
         start = scalar_start(s)
     except (CalibrationError, np.linalg.LinAlgError):
         return None
-    coverage = direction_coverage(s.measured_ut - start.p[3:6])
+    coverage = direction_coverage(s.measured_ut, start.p[3:6])
     axes = one_sided_axes(coverage)
     if not axes:
         return start

@@ -17,11 +17,10 @@ from rig.calibration.residuals import (
     calibration_from_p,
     k_start,
     parameter_names,
-    scalar_noise_gain,
-    scalar_residuals,
+    scalar_normal_equations,
     vector_residuals,
 )
-from rig.calibration.solver import covariance_from_jacobian
+from rig.calibration.solver import covariance_from_normal
 from rig.calibration.stats import chi2_sf
 from rig.errors import CalibrationError
 
@@ -318,21 +317,23 @@ def summarize(
         assert est.rotation_ref is not None and s.field_ut is not None
         raw, jac = vector_residuals(est.p, s, est.rotation_ref)
         weighted = raw * np.repeat(np.sqrt(robust_w), 3)
-        fisher_jac = jac
+        fisher = jac.T @ jac
         corrected = cal.apply(s.measured_ut, s.telemetry if s.n_channels else None) - s.field_ut
         residuals_nt = 1000.0 * corrected.reshape(-1)
         floor_gain = float(np.linalg.norm(cal.correction_matrix) / np.sqrt(3.0))
     else:
-        r, jac = scalar_residuals(est.p, s)
-        gain = scalar_noise_gain(est.p, s)
+        # One pass: residuals, noise gains and the Fisher information J^T diag(1/gain^2) J.
+        r = np.empty(s.n)
+        ne = scalar_normal_equations(est.p, s, noise_weighted=True, residuals_out=r)
+        assert ne.gain is not None
+        fisher, gain = ne.jtj, ne.gain
         weighted = r * np.sqrt(robust_w) / gain
-        fisher_jac = jac / gain[:, None]
         residuals_nt = 1000.0 * r
         floor_gain = float(np.sqrt(np.mean(gain**2)))
     n_eff = float(np.sum(robust_w > 0)) * (3 if vector else 1)
     sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - est.p.size, 1.0)))
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
-    crlb = covariance_from_jacobian(fisher_jac, noise_ut**2)
+    crlb = covariance_from_normal(fisher, noise_ut**2)
     sd = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
     corr = est.covariance / np.outer(sd, sd) - np.eye(sd.size)
     degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if sd.size > 1 else False

@@ -14,7 +14,7 @@ from rig.calibration.residuals import (
     Samples,
     p_from_theta,
     scalar_noise_gain,
-    scalar_residuals,
+    scalar_normal_equations,
     scalar_residuals_only,
     theta_from_p,
     vector_residuals,
@@ -23,7 +23,12 @@ from rig.calibration.residuals import (
     z_residuals,
 )
 from rig.calibration.robust import RobustLoss, robust_scale, robust_weights
-from rig.calibration.solver import covariance_from_jacobian, levenberg_marquardt
+from rig.calibration.solver import (
+    NormalEquations,
+    covariance_from_jacobian,
+    covariance_from_normal,
+    levenberg_marquardt,
+)
 from rig.errors import CalibrationError
 
 MAX_IRLS_PASSES = 12
@@ -55,19 +60,20 @@ def ml_fit(
     robust_w = np.ones(s.n)
     iterations = 0
     # Pass 1 fits with the noise gains of the start; pass 2 refreshes them if they moved (from a
-    # cold start). Robust fits iterate until the IRLS weights settle.
+    # cold start). Robust fits iterate until the IRLS weights settle. Every evaluation returns the
+    # noise gains at its point, so the refresh costs no extra pass over the data.
     gain = scalar_noise_gain(p, s)
     for pass_index in range(MAX_IRLS_PASSES if robust else 2):
         w = robust_w / gain**2
-        sw = np.sqrt(w)
 
-        def fun(x: Array, sw: Array = sw) -> tuple[Array, Array]:
-            return scalar_residuals(x, s, sw)
+        def fun(x: Array, w: Array = w) -> NormalEquations:
+            return scalar_normal_equations(x, s, w)
 
         sol = levenberg_marquardt(fun, p)
         iterations += sol.iterations
         p = sol.x
-        new_gain = scalar_noise_gain(p, s)
+        assert sol.normal.gain is not None
+        new_gain = sol.normal.gain
         gain_change = float(np.max(np.abs(new_gain / gain - 1.0)))
         gain = new_gain
         if robust:
@@ -84,7 +90,7 @@ def ml_fit(
             " that the field directions cover the sphere (turn the sensor through every attitude)"
         )
     dof = max(float(np.sum(robust_w > 0)) - p.size, 1.0)
-    cov = covariance_from_jacobian(sol.jacobian, sol.cost / dof)
+    cov = covariance_from_normal(sol.normal.jtj, sol.cost / dof)
     return Estimate(
         "ml", p, cov, sample_weights=None if robust is None else robust_w, iterations=iterations
     )
