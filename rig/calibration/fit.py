@@ -167,7 +167,8 @@ def _check_coverage(s: Samples, method: str) -> Estimate | None:
     from rig.calibration.diagnostics import coverage_text, direction_coverage, one_sided_axes
 
     try:
-        start = scalar_start(s)
+        # Only the linear estimators report their start as their answer: the others need a start.
+        start = scalar_start(s, quick=method not in ("centered", "ellipsoid", "twostep"))
     except (CalibrationError, np.linalg.LinAlgError):
         return None
     coverage = direction_coverage(s.measured_ut, start.p[3:6])

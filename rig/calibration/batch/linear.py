@@ -57,7 +57,8 @@ def _linear_fit(
 ) -> _LinearFit:
     """Weighted least squares by normal equations accumulated block by block (bounded memory).
 
-    ``build(rows)`` gives the rows of ``[x | y]`` (x first, ``n_x`` columns); columns from
+    ``build(rows)`` gives the rows of ``[x | y]`` (x first, ``n_x`` columns) as a new array (the
+    fit scales it in place); columns from
     ``n_fixed`` on are nuisance candidates kept only when linearly independent of the others
     before them (:func:`independent_from_gram` on their centered Gram). With ``intercept`` the
     problem is solved centered (the weighted means removed, as a free constant would). The
@@ -75,14 +76,15 @@ def _linear_fit(
     gram = np.zeros((0, 0))
     total = np.zeros(0)
     for rows in row_blocks(n):
-        a = build(rows)
+        a = build(rows)  # a fresh array: scaled in place
         if intercept:
-            a = a - shift
+            a -= shift
         if gram.size == 0:
             gram, total = np.zeros((a.shape[1], a.shape[1])), np.zeros(a.shape[1])
-        aw = a * np.sqrt(w[rows])[:, None]
-        gram += aw.T @ aw
-        total += np.sqrt(w[rows]) @ aw
+        sw = np.sqrt(w[rows])
+        a *= sw[:, None]
+        gram += a.T @ a
+        total += sw @ a
     w_sum = float(np.sum(w))
     d = total / w_sum
     centered = gram - w_sum * np.outer(d, d)
@@ -144,18 +146,22 @@ def vector_fit(s: Samples, weights: Array | None = None) -> Estimate:
     return Estimate("vector", p, cov, rotation_ref=cal.rotation, sample_weights=weights)
 
 
-def _telemetry_products(u: Array) -> Array:
+def _telemetry_products(u: Array, out: Array | None = None) -> Array:
     """Columns ``u_j`` and ``u_i u_j`` (i <= j): the candidate nuisance terms of ``|b(u)|^2``.
 
     Products that vanish or repeat (two panels never lit at once, a binary channel whose square is
     itself) are dropped by the fits (:func:`_linear_fit`): only the span matters for nuisance
-    terms.
+    terms. ``out``: where to write them (N, J (J + 3) / 2), column-major is fastest.
     """
     n_ch = u.shape[1]
-    if n_ch == 0:
-        return np.zeros((u.shape[0], 0))
-    i, j = np.triu_indices(n_ch)
-    return np.hstack([u, u[:, i] * u[:, j]])
+    if out is None:
+        out = np.empty((u.shape[0], n_ch * (n_ch + 3) // 2), order="F")
+    out[:, :n_ch] = u
+    col = n_ch
+    for i in range(n_ch):  # u_i u_j for j >= i, one broadcast product per i
+        np.multiply(u[:, i : i + 1], u[:, i:], out=out[:, col : col + n_ch - i])
+        col += n_ch - i
+    return out
 
 
 def independent_columns(x: Array, rel_tol: float = 1e-9) -> Array:
@@ -168,17 +174,23 @@ def independent_columns(x: Array, rel_tol: float = 1e-9) -> Array:
 
 
 def independent_from_gram(gram: Array, rel_tol: float = 1e-9) -> Array:
-    """:func:`independent_columns` given the Gram (information) matrix ``X^T X`` itself."""
+    """:func:`independent_columns` given the Gram (information) matrix ``X^T X`` itself.
+
+    Left-looking Cholesky in column order that skips a column whose pivot (the squared norm of
+    its part orthogonal to the kept ones, the Schur complement) is below ``rel_tol`` of its own
+    squared norm: one matrix-vector product per column, O(n^3) in all.
+    """
+    n = gram.shape[0]
+    factor = np.zeros((n, n))
     keep: list[int] = []
-    for i in range(gram.shape[0]):
+    for i in range(n):
         own = gram[i, i]
         if own <= 1e-300:
             continue
-        if keep:
-            g_kk = gram[np.ix_(keep, keep)]
-            g_ki = gram[keep, i]
-            own = own - g_ki @ np.linalg.solve(g_kk, g_ki)
-        if own > rel_tol * gram[i, i]:
+        k = len(keep)
+        col = gram[:, i] - factor[:, :k] @ factor[i, :k]
+        if col[i] > rel_tol * own:
+            factor[:, k] = col / np.sqrt(col[i])
             keep.append(i)
     return np.asarray(keep, dtype=int)
 
@@ -201,8 +213,11 @@ def centered_fit(s: Samples) -> Estimate:
 
     def build(rows: slice) -> Array:
         block = s.rows(rows)
-        return np.hstack([z_linear_design(block), _telemetry_products(block.telemetry),
-                          z_observation(block)[:, None]])  # fmt: skip
+        out = np.empty((block.n, n_x + 1), order="F")
+        out[:, :n_lin] = z_linear_design(block)
+        _telemetry_products(block.telemetry, out[:, n_lin:n_x])
+        out[:, n_x] = z_observation(block)
+        return out
 
     w = 1.0 / (4.0 * s.field_magnitude_ut**2)
     fit = _linear_fit(build, s.n, n_x, w, n_fixed=n_lin)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Literal
 
 import numpy as np
@@ -40,9 +41,27 @@ GAIN_TOLERANCE = 1e-3
 to a weight error e is of order e^2."""
 
 
-def scalar_start(s: Samples) -> Estimate:
-    """The linear initializer suited to the data: centered if |h| varies, else the ellipsoid."""
-    return ellipsoid_fit(s) if is_constant_field(s) else centered_fit(s)
+START_ROWS = 20_000
+"""A start for the maximum-likelihood fit (``scalar_start(quick=True)``) is fitted on at most
+about this many evenly spread samples (more with many telemetry channels: 50 per column of the
+linear design). The linear fit's cost grows with samples x columns^2 and its columns with the
+square of the channels (the nuisance products), the ML fit's only with samples x parameters^2."""
+
+
+def scalar_start(s: Samples, *, quick: bool = False) -> Estimate:
+    """The linear initializer suited to the data: centered if |h| varies, else the ellipsoid.
+
+    ``quick``: only a start is wanted (for :func:`ml_fit`), so on more than :data:`START_ROWS`
+    samples it is fitted on evenly spread rows; the estimate's method then reads
+    ``centered-start`` or ``ellipsoid-start`` (it is not the linear estimator's answer).
+    """
+    fit = ellipsoid_fit if is_constant_field(s) else centered_fit
+    n_x = 9 + 3 * s.n_channels + s.n_channels * (s.n_channels + 3) // 2
+    rows = max(START_ROWS, 50 * n_x)
+    if not quick or s.n <= 2 * rows:
+        return fit(s)
+    est = fit(s.rows(slice(0, s.n, s.n // rows)))
+    return replace(est, method=f"{est.method}-start")
 
 
 def ml_fit(
@@ -56,7 +75,7 @@ def ml_fit(
     noise (first order), refreshed between passes. With ``robust`` the weights are multiplied by
     Huber or bisquare IRLS weights on the standardized residuals.
     """
-    p = scalar_start(s).p if start is None else np.asarray(start, float)
+    p = scalar_start(s, quick=True).p if start is None else np.asarray(start, float)
     robust_w = np.ones(s.n)
     iterations = 0
     # Pass 1 fits with the noise gains of the start; pass 2 refreshes them if they moved (from a
