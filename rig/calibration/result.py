@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
 from rig.calibration.params import Array, Calibration
-from rig.calibration.profiled import ProfileFit
 from rig.calibration.residuals import (
     AXES,
     Samples,
@@ -23,6 +22,9 @@ from rig.calibration.residuals import (
 from rig.calibration.solver import covariance_from_normal
 from rig.calibration.stats import chi2_sf
 from rig.errors import CalibrationError
+
+if TYPE_CHECKING:
+    from rig.calibration.profiled import ProfileFit  # only a fit with delays or temperature
 
 ModelKind = Literal["scalar", "vector"]
 ANGLE_KEYS = frozenset({"rho", "phi", "lambda", "rot_x", "rot_y", "rot_z"})
