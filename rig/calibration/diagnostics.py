@@ -61,11 +61,21 @@ def check_telemetry_rank(u: Array, channels: tuple[str, ...]) -> None:
                 f"telemetry channel '{name}' is constant ({col[0]:g}), so its coefficient cannot be"
                 " told from the offset: drop it from --telemetry or record it varying"
             )
-    centered = u - u.mean(axis=0)
-    normed = centered / np.linalg.norm(centered, axis=0)
-    _, sv, vt = np.linalg.svd(normed, full_matrices=False)
+    # The singular values of the centered, unit-norm columns, from their (J, J) Gram matrix
+    # accumulated in blocks of rows about a provisional mean: no N x J copy.
+    shift = u[:: max(u.shape[0] // 4096, 1)].mean(axis=0)
+    gram = np.zeros((u.shape[1], u.shape[1]))
+    total = np.zeros(u.shape[1])
+    for start in range(0, u.shape[0], 65_536):
+        block = u[start : start + 65_536] - shift
+        gram += block.T @ block
+        total += block.sum(axis=0)
+    gram -= np.outer(total, total) / u.shape[0]
+    norm = np.sqrt(np.maximum(np.diag(gram), 1e-300))
+    eig, vec = np.linalg.eigh(gram / np.outer(norm, norm))
+    sv = np.sqrt(np.maximum(eig[::-1], 0.0))
     if sv[-1] < 1e-6 * sv[0]:
-        null = vt[-1]
+        null = vec[:, 0]
         involved = [channels[j] for j in np.argsort(-np.abs(null)) if abs(null[j]) > 0.1]
         names = ", ".join(f"'{c}'" for c in involved)
         raise CalibrationError(
@@ -84,15 +94,22 @@ scales: the spread of axis gains within one three-axis magnetometer is typically
 CAPS = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 
-def direction_coverage(field: Array) -> dict[str, float]:
-    """Fraction of the rows of ``field`` (N, 3; any unit) within :data:`COVERAGE_CONE_DEG` of each
-    axis direction +x, -x, +y, -y, +z, -z."""
-    unit = field / np.maximum(np.linalg.norm(field, axis=1, keepdims=True), 1e-300)
+def direction_coverage(field: Array, centre: Array | None = None) -> dict[str, float]:
+    """Fraction of the rows of ``field - centre`` (N, 3; any unit; ``centre`` (3,) default 0)
+    within :data:`COVERAGE_CONE_DEG` of each axis direction +x, -x, +y, -y, +z, -z."""
     cos_min = float(np.cos(np.radians(COVERAGE_CONE_DEG)))
+    counts = np.zeros((3, 2))
+    for start in range(0, field.shape[0], 65_536):  # blocks of rows: no N x 3 temporaries
+        block = field[start : start + 65_536]
+        block = block if centre is None else block - centre
+        unit = block / np.maximum(np.linalg.norm(block, axis=1, keepdims=True), 1e-300)
+        counts[:, 0] += np.count_nonzero(unit > cos_min, axis=0)
+        counts[:, 1] += np.count_nonzero(unit < -cos_min, axis=0)
+    share = counts / max(field.shape[0], 1)
     out = {}
     for i, axis in enumerate("xyz"):
-        out[f"+{axis}"] = float(np.mean(unit[:, i] > cos_min))
-        out[f"-{axis}"] = float(np.mean(unit[:, i] < -cos_min))
+        out[f"+{axis}"] = float(share[i, 0])
+        out[f"-{axis}"] = float(share[i, 1])
     return out
 
 

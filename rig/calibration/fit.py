@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,13 +21,16 @@ from rig.calibration.estimators import (
     spoken,
 )
 from rig.calibration.params import Array
-from rig.calibration.profiled import Profiled, Series, delay_parameter, profile_fit
 from rig.calibration.residuals import Samples, scalar_noise_gain, scalar_residuals_only
 from rig.calibration.result import CalibrationResult, summarize
 from rig.calibration.robust import RobustLoss
-from rig.calibration.sequential.realtime import FilterOptions
-from rig.calibration.temperature import scale_parameter, with_temperature_channel
 from rig.errors import CalibrationError
+
+if TYPE_CHECKING:
+    # Imported where used: delays, temperature and the filters pull in modules (and scipy) that a
+    # plain batch fit does not need.
+    from rig.calibration.profiled import Profiled, Series
+    from rig.calibration.sequential.realtime import FilterOptions
 
 METHODS: tuple[Method, ...] = method_names()
 
@@ -86,6 +90,8 @@ def calibrate(
         )
     reference = None
     if temperature is not None:
+        from rig.calibration.temperature import with_temperature_channel
+
         reference = float(np.mean(temperature)) if temperature_ref is None else temperature_ref
         s = with_temperature_channel(s, temperature, reference)
     n_params = (12 if vector else 9) + 3 * s.n_channels
@@ -104,12 +110,16 @@ def calibrate(
         notes = ("field vector given but a scalar method chosen: only |h| was used",)
     profiled: tuple[Profiled, ...] = ()
     if delays:
+        from rig.calibration.profiled import delay_parameter
+
         if times_s is None:
             raise CalibrationError("--delay needs the sample times: give --time COL (seconds)")
         series = telemetry_series or {}
         profiled = tuple(delay_parameter(data, times_s, c, max_delay_s, series.get(c))
                          for c in delays)  # fmt: skip
     if temperature is not None:
+        from rig.calibration.temperature import scale_parameter
+
         profiled += (scale_parameter(data),)
     if profiled:
         result = _profiled(data, est, noise_ut, robust, times_s, profiled, notes)
@@ -135,6 +145,8 @@ def _profiled(
             f" {est.name}: use --method ml or vector"
         )
 
+    from rig.calibration.profiled import profile_fit
+
     def refit(trial: Samples) -> Estimate:
         return est.run(trial, FitRequest(est.name, noise_ut, robust, None, times_s, None))
 
@@ -155,10 +167,11 @@ def _check_coverage(s: Samples, method: str) -> Estimate | None:
     from rig.calibration.diagnostics import coverage_text, direction_coverage, one_sided_axes
 
     try:
-        start = scalar_start(s)
+        # Only the linear estimators report their start as their answer: the others need a start.
+        start = scalar_start(s, quick=method not in ("centered", "ellipsoid", "twostep"))
     except (CalibrationError, np.linalg.LinAlgError):
         return None
-    coverage = direction_coverage(s.measured_ut - start.p[3:6])
+    coverage = direction_coverage(s.measured_ut, start.p[3:6])
     axes = one_sided_axes(coverage)
     if not axes:
         return start

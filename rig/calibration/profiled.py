@@ -25,7 +25,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from rig.calibration.estimate import Estimate
 from rig.calibration.params import Array
@@ -137,6 +136,8 @@ def profile_fit(
             return float("inf")
         r, _ = weighted_residuals(est, data)
         return float(r @ r)
+
+    from scipy.optimize import minimize_scalar  # here: importing scipy.optimize costs 0.25 s
 
     for _ in range(MAX_SWEEPS):
         before = values.copy()

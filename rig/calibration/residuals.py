@@ -14,7 +14,7 @@ Three residual families, each with its Jacobian (checked against finite differen
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -31,6 +31,7 @@ from rig.calibration.params import (
     springmann_matrix_derivatives,
     springmann_shape_from_matrix,
 )
+from rig.calibration.solver import NormalEquations
 
 AXES = ("x", "y", "z")
 ROTATION_KEYS = ("rot_x", "rot_y", "rot_z")
@@ -100,6 +101,12 @@ class Samples:
         return Samples(self.measured_ut[keep], self.field_magnitude_ut[keep],
                        self.telemetry[keep], self.channels, h)  # fmt: skip
 
+    def rows(self, rows: slice) -> Samples:
+        """A range of consecutive samples, as views (field vector kept if present)."""
+        h = None if self.field_ut is None else self.field_ut[rows]
+        return Samples(self.measured_ut[rows], self.field_magnitude_ut[rows],
+                       self.telemetry[rows], self.channels, h)  # fmt: skip
+
     def as_scalar(self) -> Samples:
         """The same samples with the field vector dropped (only ``|h|`` kept)."""
         return Samples(self.measured_ut, self.field_magnitude_ut, self.telemetry, self.channels)
@@ -147,27 +154,75 @@ def _shape(p: Array) -> Array:
     return np.concatenate([p[:3], p[6:9]])
 
 
+CHUNK_ROWS = 32_768
+"""Rows per block of the accumulating passes (normal equations, noise gains, linear starts): the
+per-block work arrays are then a few MB whatever the number of samples, so memory grows with the
+samples only through the data and a few per-sample vectors (docs/adr/0017)."""
+
+
+def row_blocks(n: int, rows: int = CHUNK_ROWS) -> Iterator[slice]:
+    """Consecutive row ranges of at most ``rows`` rows covering ``0..n``."""
+    for start in range(0, n, rows):
+        yield slice(start, min(start + rows, n))
+
+
 def scalar_residuals(
     p: Array, s: Samples, sqrt_weights: Array | None = None
 ) -> tuple[Array, Array]:
     """Scalar residuals ``|W v_k| - |h_k|`` (uT) and their Jacobian (N, 9 + 3J) in ``p``.
 
     With ``sqrt_weights`` both come multiplied row by row (cheaper than weighting afterwards).
+    The whole Jacobian is N x P: the fits use :func:`scalar_normal_equations` instead.
     """
-    shape = _shape(p)
-    k = p[9:].reshape(-1, 3)
-    w, g = _corrected(p, s)
-    ng = np.sqrt(np.einsum("ij,ij->i", g, g))
+    r, jac, _ = _scalar_block(p, s, _ScalarModel.at(p), sqrt_weights)
+    return (r if sqrt_weights is None else r * sqrt_weights), jac
+
+
+@dataclass(frozen=True)
+class _ScalarModel:
+    """What every block needs of ``p``: ``W``, ``dL/dshape``, offsets and ``K`` (J, 3)."""
+
+    w: Array
+    d_lower: Array
+    offset: Array
+    k: Array
+
+    @staticmethod
+    def at(p: Array) -> _ScalarModel:
+        shape = _shape(p)
+        w = np.asarray(np.linalg.inv(springmann_matrix(shape)), dtype=np.float64)
+        return _ScalarModel(w, springmann_matrix_derivatives(shape), p[3:6], p[9:].reshape(-1, 3))
+
+    def corrected(self, s: Samples) -> Array:
+        """``g_k = W (m_k - o - K^T u_k)``, shape (N, 3)."""
+        v = s.measured_ut - self.offset
+        if self.k.size:
+            v = v - s.telemetry @ self.k
+        return np.asarray(v @ self.w.T)
+
+    def magnitude_and_gain(self, s: Samples) -> tuple[Array, Array, Array, Array]:
+        """``g``, ``|g|``, ``q = W^T n_hat`` (N, 3) and its norm, the noise gain."""
+        g = self.corrected(s)
+        ng = np.sqrt(np.einsum("ij,ij->i", g, g))
+        q = (g / ng[:, None]) @ self.w
+        return g, ng, q, np.sqrt(np.einsum("ij,ij->i", q, q))
+
+
+def _scalar_block(
+    p: Array, s: Samples, model: _ScalarModel, sqrt_weights: Array | None
+) -> tuple[Array, Array, Array]:
+    """Residuals (unweighted), Jacobian (column-major, rows times ``sqrt_weights``) and noise
+    gains of the samples ``s`` (one block)."""
+    g, ng, q, gain = model.magnitude_and_gain(s)
     r = ng - s.field_magnitude_ut
-    q = (g / ng[:, None]) @ w  # rows are W^T n_hat; every Jacobian column is linear in q
+    # rows of q are W^T n_hat: every Jacobian column is linear in q
     if sqrt_weights is not None:
-        r = r * sqrt_weights
         q = q * sqrt_weights[:, None]
     # Column-major output and axis-major inputs: every column is one contiguous pass.
     jac = np.empty((s.n, p.size), order="F")
     qt, gt = np.ascontiguousarray(q.T), np.ascontiguousarray(g.T)
     ut = s.telemetry_by_channel
-    d_lower = springmann_matrix_derivatives(shape)
+    d_lower = model.d_lower
     for i, col in enumerate((0, 1, 2, 6, 7, 8)):  # d|g|/dtheta = -(W^T n)^T (dL/dtheta) g
         nz = list(zip(*np.nonzero(d_lower[i]), strict=True))
         out = jac[:, col]
@@ -177,33 +232,67 @@ def scalar_residuals(
             out -= d_lower[i, a_, b_] * qt[a_] * gt[b_]
     for ax in range(3):
         np.negative(qt[ax], out=jac[:, 3 + ax])
-        for j in range(k.shape[0]):
+        for j in range(model.k.shape[0]):
             np.multiply(ut[j], jac[:, 3 + ax], out=jac[:, 9 + 3 * j + ax])
-    return r, jac
+    return r, jac, gain
 
 
-def _corrected(p: Array, s: Samples) -> tuple[Array, Array]:
-    """``W`` and the corrected field ``g_k = W (m_k - o - K^T u_k)``, shape (N, 3)."""
-    w = np.asarray(np.linalg.inv(springmann_matrix(_shape(p))), dtype=np.float64)
-    k = p[9:].reshape(-1, 3)
-    v = s.measured_ut - p[3:6]
-    if k.size:
-        v = v - s.telemetry @ k
-    g: Array = v @ w.T
-    return w, g
+def scalar_normal_equations(
+    p: Array,
+    s: Samples,
+    weights: Array | None = None,
+    *,
+    noise_weighted: bool = False,
+    residuals_out: Array | None = None,
+) -> NormalEquations:
+    """The scalar problem's normal equations at ``p``, block by block (bounded memory).
+
+    ``weights`` (N,) multiply the squared residuals; ``noise_weighted`` further divides each by
+    the square of its own noise gain at ``p`` (the Fisher information at ``p``). The noise gains
+    at ``p`` come back in ``gain``; ``residuals_out`` (N,), if given, receives the unweighted
+    residuals (uT).
+    """
+    model = _ScalarModel.at(p)
+    jtj = np.zeros((p.size, p.size))
+    jtr = np.zeros(p.size)
+    cost = 0.0
+    gain = np.empty(s.n)
+    for rows in row_blocks(s.n):
+        block = s.rows(rows)
+        sw = None if weights is None else np.sqrt(weights[rows])
+        r, jac, gain[rows] = _scalar_block(p, block, model, sw)
+        if residuals_out is not None:
+            residuals_out[rows] = r
+        if sw is not None:
+            r = r * sw
+        if noise_weighted:
+            r = r / gain[rows]
+            jac /= gain[rows][:, None]
+        jtj += jac.T @ jac
+        jtr += jac.T @ r
+        cost += float(r @ r)
+    return NormalEquations(jtj, jtr, cost, s.n, gain)
 
 
 def scalar_residuals_only(p: Array, s: Samples) -> Array:
     """The residuals of :func:`scalar_residuals` without the Jacobian (uT)."""
-    _, g = _corrected(p, s)
-    return np.asarray(np.sqrt(np.einsum("ij,ij->i", g, g)) - s.field_magnitude_ut)
+    return scalar_residuals_and_gain(p, s)[0]
 
 
 def scalar_noise_gain(p: Array, s: Samples) -> Array:
     """``|W^T n_hat_k|``: how raw isotropic noise maps into the magnitude residual (per sample)."""
-    w, g = _corrected(p, s)
-    nhat = g / np.linalg.norm(g, axis=1)[:, None]
-    return np.asarray(np.linalg.norm(nhat @ w, axis=1))
+    return scalar_residuals_and_gain(p, s)[1]
+
+
+def scalar_residuals_and_gain(p: Array, s: Samples) -> tuple[Array, Array]:
+    """Scalar residuals (uT) and noise gains at ``p`` in one blockwise pass, (N,) each."""
+    model = _ScalarModel.at(p)
+    r, gain = np.empty(s.n), np.empty(s.n)
+    for rows in row_blocks(s.n):
+        block = s.rows(rows)
+        _, ng, _, gain[rows] = model.magnitude_and_gain(block)
+        r[rows] = ng - block.field_magnitude_ut
+    return r, gain
 
 
 def vector_residuals(p: Array, s: Samples, rotation_ref: Array) -> tuple[Array, Array]:

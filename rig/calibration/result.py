@@ -4,25 +4,27 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
 from rig.calibration.params import Array, Calibration
-from rig.calibration.profiled import ProfileFit
 from rig.calibration.residuals import (
     AXES,
     Samples,
     calibration_from_p,
     k_start,
     parameter_names,
-    scalar_noise_gain,
-    scalar_residuals,
+    scalar_normal_equations,
     vector_residuals,
 )
-from rig.calibration.solver import covariance_from_jacobian
+from rig.calibration.solver import covariance_from_normal
+from rig.calibration.stats import chi2_sf
 from rig.errors import CalibrationError
+
+if TYPE_CHECKING:
+    from rig.calibration.profiled import ProfileFit  # only a fit with delays or temperature
 
 ModelKind = Literal["scalar", "vector"]
 ANGLE_KEYS = frozenset({"rho", "phi", "lambda", "rot_x", "rot_y", "rot_z"})
@@ -286,11 +288,9 @@ def _chi_square(
     """The residuals against the noise. ``tested`` False: the noise was estimated from these same
     residuals (chi2/dof is 1 by construction), so nothing is tested. ``degenerate``: parameters
     the data do not determine; small residuals then say nothing about the calibration."""
-    from scipy.special import gammaincc  # chi-square survival: Q(dof/2, stat/2)
-
     dof = max(int(weighted_residuals.size) - n_params, 1)
     stat = float(np.sum((weighted_residuals / noise) ** 2))
-    p_value = float(gammaincc(dof / 2.0, stat / 2.0))
+    p_value = chi2_sf(stat, dof)
     verdict: Verdict = "consistent"
     if p_value < 1e-3:
         verdict = "above noise floor"
@@ -319,21 +319,23 @@ def summarize(
         assert est.rotation_ref is not None and s.field_ut is not None
         raw, jac = vector_residuals(est.p, s, est.rotation_ref)
         weighted = raw * np.repeat(np.sqrt(robust_w), 3)
-        fisher_jac = jac
+        fisher = jac.T @ jac
         corrected = cal.apply(s.measured_ut, s.telemetry if s.n_channels else None) - s.field_ut
         residuals_nt = 1000.0 * corrected.reshape(-1)
         floor_gain = float(np.linalg.norm(cal.correction_matrix) / np.sqrt(3.0))
     else:
-        r, jac = scalar_residuals(est.p, s)
-        gain = scalar_noise_gain(est.p, s)
+        # One pass: residuals, noise gains and the Fisher information J^T diag(1/gain^2) J.
+        r = np.empty(s.n)
+        ne = scalar_normal_equations(est.p, s, noise_weighted=True, residuals_out=r)
+        assert ne.gain is not None
+        fisher, gain = ne.jtj, ne.gain
         weighted = r * np.sqrt(robust_w) / gain
-        fisher_jac = jac / gain[:, None]
         residuals_nt = 1000.0 * r
         floor_gain = float(np.sqrt(np.mean(gain**2)))
     n_eff = float(np.sum(robust_w > 0)) * (3 if vector else 1)
     sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - est.p.size, 1.0)))
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
-    crlb = covariance_from_jacobian(fisher_jac, noise_ut**2)
+    crlb = covariance_from_normal(fisher, noise_ut**2)
     sd = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
     corr = est.covariance / np.outer(sd, sd) - np.eye(sd.size)
     degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if sd.size > 1 else False

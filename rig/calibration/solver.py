@@ -1,8 +1,10 @@
-"""Levenberg-Marquardt on the normal equations, for residuals with analytic Jacobians.
+"""Nonlinear least squares for tall, thin problems: Levenberg-Marquardt on the normal equations.
 
 scipy's ``least_squares`` factors the full N x P Jacobian every iteration; for calibration N is large
-(1e5 samples) and P small (9-30), so forming ``J^T J`` (one BLAS call) and solving a P x P system is
-an order of magnitude cheaper (see ``bench/bench_scalar_fit.py`` and docs/adr/0004).
+(1e5-1e7 samples) and P small (9-70), so forming ``J^T J`` (one BLAS call per block of rows) and
+solving a P x P system is an order of magnitude cheaper (see ``bench/bench_scalar_fit.py`` and
+docs/adr/0004). The residual function hands back the normal equations themselves, accumulated
+block by block, so no N x P array need exist at all (docs/adr/0017).
 """
 
 from __future__ import annotations
@@ -14,34 +16,56 @@ import numpy as np
 
 from rig.calibration.params import Array
 
-ResidualFunction = Callable[[Array], tuple[Array, Array]]
+
+@dataclass(frozen=True)
+class NormalEquations:
+    """A weighted least-squares problem at one point, summed over the samples: ``J^T J`` (P, P),
+    ``J^T r`` (P,), the cost ``r^T r`` and the number of residuals. ``gain``: per-sample values the
+    residual function computed along the way (the scalar fit's noise gains ``|W^T n_hat_k|``),
+    else None."""
+
+    jtj: Array
+    jtr: Array
+    cost: float
+    n_residuals: int
+    gain: Array | None = None
+
+    @staticmethod
+    def of(residuals: Array, jacobian: Array) -> NormalEquations:
+        """From a residual vector and its Jacobian held in memory."""
+        return NormalEquations(
+            jacobian.T @ jacobian, jacobian.T @ residuals, float(residuals @ residuals),
+            int(residuals.size),
+        )  # fmt: skip
+
+
+NormalFunction = Callable[[Array], NormalEquations]
 
 
 @dataclass(frozen=True)
 class LeastSquaresSolution:
-    """Solution of a nonlinear least-squares problem (residuals and Jacobian at ``x``)."""
+    """Solution of a nonlinear least-squares problem, with its normal equations at ``x``."""
 
     x: Array
-    residuals: Array
-    jacobian: Array
+    normal: NormalEquations
     iterations: int
     converged: bool
 
     @property
     def cost(self) -> float:
         """Sum of squared residuals."""
-        return float(self.residuals @ self.residuals)
+        return self.normal.cost
 
 
 def levenberg_marquardt(
-    fun: ResidualFunction,
+    fun: NormalFunction,
     x0: Array,
     *,
     max_iterations: int = 100,
     rel_tol: float = 1e-12,
     stat_tol: float = 1e-2,
 ) -> LeastSquaresSolution:
-    """Minimize ``|r(x)|^2`` from ``x0``; ``fun`` returns ``(r, dr/dx)``.
+    """Minimize ``|r(x)|^2`` from ``x0``; ``fun`` returns the normal equations at ``x``.
 
     Marquardt scaling by ``diag(J^T J)``; the damping shrinks after a successful step and grows after
     a rejected one. Converged when the linear model predicts a cost decrease below ``rel_tol`` of
@@ -52,18 +76,17 @@ def levenberg_marquardt(
     ``sqrt(rel_tol)`` (scaled).
     """
     x = np.asarray(x0, dtype=float).copy()
-    r, jac = fun(x)
-    cost = float(r @ r)
+    ne = fun(x)
+    cost = ne.cost
     if not np.isfinite(cost):
         raise FloatingPointError("residuals are not finite at the starting point")
     damping = 1e-4
-    dof = max(r.size - x.size, 1)
+    dof = max(ne.n_residuals - x.size, 1)
     converged = False
     iteration = 0
     while iteration < max_iterations:
         iteration += 1
-        jtj = jac.T @ jac
-        grad = jac.T @ r
+        jtj, grad = ne.jtj, ne.jtr
         scale = np.maximum(np.diag(jtj), 1e-30)
         accepted = False
         while damping < 1e16:
@@ -72,8 +95,8 @@ def levenberg_marquardt(
             if predicted <= max(rel_tol * cost, stat_tol**2 * cost / dof):
                 break  # the model predicts no useful decrease: converged without evaluating
             x_new = x + step
-            r_new, jac_new = fun(x_new)
-            cost_new = float(r_new @ r_new)
+            ne_new = fun(x_new)
+            cost_new = ne_new.cost
             if np.isfinite(cost_new) and cost_new <= cost:
                 accepted = True
                 break
@@ -87,17 +110,22 @@ def levenberg_marquardt(
         step_size = float(
             np.sqrt(np.sum(step**2 * scale) / max(float(np.sum(x**2 * scale)), 1e-300))
         )
-        x, r, jac, cost = x_new, r_new, jac_new, cost_new
+        x, ne, cost = x_new, ne_new, cost_new
         damping = max(damping / 5.0, 1e-12)
         if reduction < rel_tol and step_size < np.sqrt(rel_tol):
             converged = True
             break
-    return LeastSquaresSolution(x, r, jac, iteration, converged)
+    return LeastSquaresSolution(x, ne, iteration, converged)
 
 
 def covariance_from_jacobian(jac: Array, variance: float) -> Array:
     """``variance * (J^T J)^-1`` via a pseudo-inverse that tolerates near-singular directions."""
-    jtj = jac.T @ jac
+    return covariance_from_normal(jac.T @ jac, variance)
+
+
+def covariance_from_normal(jtj: Array, variance: float) -> Array:
+    """``variance * (J^T J)^-1`` given ``J^T J`` (scaled pseudo-inverse, as
+    :func:`covariance_from_jacobian`)."""
     scale = np.sqrt(np.maximum(np.diag(jtj), 1e-300))
     normed = jtj / np.outer(scale, scale)
     inv = np.linalg.pinv(normed, rcond=1e-14, hermitian=True)

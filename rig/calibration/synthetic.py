@@ -67,16 +67,25 @@ def rax_like(
     noise_ut: float = 0.1,
     dt_s: float = 1.0,
     channels: int = 5,
+    start_s: float = 0.0,
 ) -> SyntheticCase:
     """A tumbling CubeSat in a 97 min orbit, after Springmann and Cutler's RAX case.
 
     |h| swings between 20 and 50 uT twice per orbit; panel currents follow the sun direction on
     each of the +x, -x, +y, -y faces and drop to zero in eclipse (38 % of the orbit); the EPS draws
-    0.35 A plus 1.2 A beacon spikes of 2 s every 20 s. ``channels`` keeps the first 0-5 of those.
-    Only the field magnitude is a reference here (attitude independent), as on orbit.
+    0.35 A plus 1.2 A beacon spikes of 2 s every 20 s. ``channels`` keeps the first 0-5 of those;
+    more than 5 adds switched loads (:func:`_switched_loads`). Only the field magnitude is a
+    reference here (attitude independent), as on orbit. ``start_s``: time of the first sample
+    (s), so that long series can be made in pieces.
     """
+    if channels > len(RAX_CHANNELS):
+        return _with_switched_loads(
+            rax_like(n_samples, seed=seed, noise_ut=noise_ut, dt_s=dt_s, start_s=start_s),
+            channels - len(RAX_CHANNELS),
+            seed,
+        )
     rng = np.random.default_rng(seed)
-    t = np.arange(n_samples, dtype=float) * dt_s
+    t = start_s + np.arange(n_samples, dtype=float) * dt_s
     phase = 2 * np.pi * t / ORBIT_PERIOD_S
     magnitude = 35.0 - 15.0 * np.cos(2 * phase)
     direction_i = np.column_stack([np.cos(2 * phase), 0.3 * np.sin(phase), np.sin(2 * phase)])
@@ -100,6 +109,38 @@ def rax_like(
     m = full_truth.predict(field_b, telemetry_all) + noise_ut * rng.standard_normal((n_samples, 3))
     samples = Samples(m, np.linalg.norm(field_b, axis=1), telemetry, names, None)
     return SyntheticCase(t, samples, truth, noise_ut, field_b)
+
+
+def _switched_loads(t: Array, count: int, seed: int) -> Array:
+    """``count`` loads switched on and off (heaters, wheels, a payload): each holds its level
+    (0.1-2 A, 1 mA resolution) for a dwell drawn around its own period (7-300 s), off a third of
+    the time. Seeded by ``seed`` and the load's index, so pieces of a series made with the same
+    seed at different ``t`` are one series."""
+    out = np.empty((t.size, count))
+    for j in range(count):
+        rng = np.random.default_rng([seed, 1000 + j])
+        period = rng.uniform(7.0, 300.0)
+        slot = (np.floor(t / period).astype(np.int64) + rng.integers(1 << 20)).astype(np.uint64)
+        # The level of slot k: a (Fibonacci) hash of k, so pieces of the series agree.
+        u01 = ((slot * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(11)) / float(1 << 53)
+        level = np.where(u01 < 1 / 3, 0.0, 0.1 + 1.9 * (u01 - 1 / 3) * 1.5)
+        out[:, j] = np.round(level, 3)
+    return out
+
+
+def _with_switched_loads(case: SyntheticCase, count: int, seed: int) -> SyntheticCase:
+    """``case`` with ``count`` switched loads added to its telemetry and its readings."""
+    extra = _switched_loads(case.time_s, count, seed)
+    k_extra = np.random.default_rng([seed, 999]).uniform(-2.0, 2.0, size=(count, 3))
+    names = case.samples.channels + tuple(f"load{j + 1:02d}" for j in range(count))
+    s = case.samples
+    telemetry = np.hstack([s.telemetry, extra])
+    m = s.measured_ut + extra @ k_extra  # the bias is additive in the raw frame
+    truth = case.truth
+    truth = Calibration(truth.sensor, truth.offset_ut, np.vstack([truth.k_ut_per_unit, k_extra]),
+                        names, truth.rotation)  # fmt: skip
+    samples = Samples(m, s.field_magnitude_ut, telemetry, names, None)
+    return SyntheticCase(case.time_s, samples, truth, case.noise_ut, case.field_ut)
 
 
 def cage_like(

@@ -192,8 +192,14 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
+    import os
+
+    # One BLAS thread unless the user says otherwise (before numpy loads): the fits' products are
+    # tall and thin (blocks of 32k rows x <= 70 columns), a second thread gains nothing and, on a
+    # busy machine, spinning threads took the 100k x 69 fit from 1.1 s to 2.7-3.7 s (ADR 0017).
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from rig.calibration import Samples
-    from rig.io.csv_table import read_columns, read_valid_rows
+    from rig.io.csv_table import read_table, read_valid_rows
 
     if args.data.is_dir():
         return _calibrate_run(args)
@@ -239,27 +245,37 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     timing += [args.temperature] if args.temperature is not None else []
     wanted = list(args.measured) + (args.field or magnitude) + list(args.telemetry) + timing
     wanted = list(dict.fromkeys(wanted))
-    if args.drop_invalid:
-        cols, dropped = read_valid_rows(args.data, wanted, names=args.columns)
-        if dropped and not args.quiet:
-            lines = ", ".join(str(n) for n in dropped[:5]) + (", ..." if len(dropped) > 5 else "")
-            n_rows = len(cols[wanted[0]]) + len(dropped)
-            print(f"--drop-invalid: left out {len(dropped)} of {n_rows} rows (lines {lines})",
-                  file=sys.stderr)  # fmt: skip
-    else:
-        cols = read_columns(args.data, wanted, names=args.columns)
     import numpy as np
 
-    measured = measured_ut_per * np.column_stack([cols[c] for c in args.measured])
+    if args.drop_invalid:
+        valid, dropped = read_valid_rows(args.data, wanted, names=args.columns)
+        if dropped and not args.quiet:
+            lines = ", ".join(str(n) for n in dropped[:5]) + (", ..." if len(dropped) > 5 else "")
+            n_rows = len(valid[wanted[0]]) + len(dropped)
+            print(f"--drop-invalid: left out {len(dropped)} of {n_rows} rows (lines {lines})",
+                  file=sys.stderr)  # fmt: skip
+        table = np.column_stack([valid[c] for c in wanted])
+    else:
+        table = read_table(args.data, wanted, names=args.columns)
+    cols = {c: table[:, j] for j, c in enumerate(wanted)}
+
+    def block(names: list[str], factor: float = 1.0) -> Any:
+        """The named columns: a view of the table when adjacent (no copy of a large file)."""
+        idx = [wanted.index(c) for c in names]
+        view = (table[:, idx[0] : idx[0] + len(idx)] if idx == list(range(idx[0], idx[0] + len(idx)))
+                else table[:, idx])  # fmt: skip
+        return view if factor == 1.0 else factor * view
+
+    measured = block(args.measured, measured_ut_per)
     if args.median is not None:
         from rig.io.prefilter import moving_median
 
         measured = moving_median(measured, args.median)
-    telemetry = np.column_stack([cols[c] for c in args.telemetry]) if args.telemetry else None
+    telemetry = block(args.telemetry) if args.telemetry else None
     if args.field is not None:
         samples = Samples.build(
             measured,
-            field_ut=field_ut_per * np.column_stack([cols[c] for c in args.field]),
+            field_ut=block(args.field, field_ut_per),
             telemetry=telemetry,
             channels=tuple(args.telemetry),
         )
@@ -267,7 +283,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         magnitude_ut = (
             np.full(len(measured), field_ut_per * constant)
             if constant is not None
-            else field_ut_per * cols[args.field_magnitude]
+            else block([args.field_magnitude], field_ut_per)[:, 0]
         )
         samples = Samples.build(
             measured,
@@ -326,8 +342,6 @@ def _fit_and_emit(
 ) -> int:  # fmt: skip
     """Fit, write the result file, C header and autopilot parameters if asked, print the table."""
     from rig.calibration import calibrate
-    from rig.calibration.export_c import c_header
-    from rig.calibration.sequential.realtime import FilterOptions
     from rig.report.tables import calibration_table
 
     filter_methods = method_names(kind="sequential")
@@ -335,6 +349,8 @@ def _fit_and_emit(
         raise UserInputError(f"--history needs a filter: add --method {spoken(filter_methods)}")
     opts = None
     if args.method in filter_methods:
+        from rig.calibration.sequential.realtime import FilterOptions
+
         opts = FilterOptions(args.method, args.filter_variant, args.backend)
     result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust,
                        filter_options=opts, times_s=times_s, delays=tuple(args.delay),
@@ -346,6 +362,8 @@ def _fit_and_emit(
     if args.out is not None:
         write_text(args.out, json.dumps(result.to_dict(), indent=2) + "\n")
     if args.c_header is not None:
+        from rig.calibration.export_c import c_header
+
         write_text(
             args.c_header, c_header(result, prefix=args.c_header.stem, source=str(args.data))
         )

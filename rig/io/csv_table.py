@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import csv
 import difflib
+import io
 import math
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import numpy.typing as npt
@@ -61,6 +64,11 @@ def _is_number(cell: str) -> bool:
     return True
 
 
+BLOCK_BYTES = 8 << 20
+"""The file is parsed this many bytes at a time (whole lines) straight into the result array, so
+reading takes the result's memory plus one block, whatever the file's size."""
+
+
 def read_columns(
     path: str | Path, columns: list[str], names: list[str] | None = None
 ) -> dict[str, Array]:
@@ -68,38 +76,74 @@ def read_columns(
     no header row and these are its columns, in order.
 
     Raises :class:`UserInputError` naming the file, line and column for a missing column,
-    a non-numeric or empty cell, NaN or infinity, or a file without data rows.
+    a non-numeric or empty cell, NaN or infinity, or a file without data rows. The arrays are
+    the columns of one table (:func:`read_table`), each contiguous.
     """
+    table = read_table(path, columns, names)
+    return {name: table[:, j] for j, name in enumerate(columns)}
+
+
+def read_table(path: str | Path, columns: list[str], names: list[str] | None = None) -> Array:
+    """The named columns as one (rows, len(columns)) float array in column-major order (each
+    column contiguous), parsed block by block (:data:`BLOCK_BYTES`) with numpy's C reader.
+    Errors as :func:`read_columns`."""
     path = Path(path)
     header_index, names, delimiter = _header(path, names)
     index = [_column_index(path, col, names) for col in columns]
+    with path.open("rb") as fh:
+        lines = sum(block.count(b"\n") for block in iter(lambda: fh.read(BLOCK_BYTES), b""))
+    out = np.empty((lines + 1, len(columns)), order="F")
+    filled, bad_rows, first_bad = 0, 0, None
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # "input contained no data": see below
-            data = np.loadtxt(
-                path,
-                delimiter=delimiter,
-                skiprows=header_index + 1,
-                usecols=index,
-                comments="#",
-                ndmin=2,
-                encoding="utf-8-sig",
-            )
-    except ValueError:
+        with path.open("rb") as fh:
+            for _ in range(header_index + 1):
+                fh.readline()
+            for text in _line_blocks(fh):
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", UserWarning)  # a block of comments only
+                    block = np.loadtxt(io.StringIO(text), delimiter=delimiter, usecols=index,
+                                       comments="#", ndmin=2)  # fmt: skip
+                bad = ~np.isfinite(block)
+                if bad.any():
+                    rows = np.flatnonzero(bad.any(axis=1))
+                    if first_bad is None:
+                        first_bad = (filled + int(rows[0]), int(np.flatnonzero(bad[rows[0]])[0]))
+                    bad_rows += rows.size
+                out[filled : filled + block.shape[0]] = block
+                filled += block.shape[0]
+    except (ValueError, UnicodeDecodeError):
         _raise_bad_cell(path, header_index, names, index, delimiter)
         raise  # pragma: no cover - _raise_bad_cell always raises
-    if data.shape[0] == 0:
+    if filled == 0:
         raise UserInputError(f"{path} has a header but no data rows")
-    bad = ~np.isfinite(data)
-    if bad.any():
-        bad_row, bad_col = (int(v) for v in np.argwhere(bad)[0])
-        line = _data_line_numbers(path, header_index)[bad_row]
+    if first_bad is not None:
+        line = _data_line_numbers(path, header_index)[first_bad[0]]
         raise UserInputError(
-            f"{path} line {line}, column '{columns[bad_col]}': value is NaN or infinite"
-            f" ({int(bad.any(axis=1).sum())} such rows): remove or repair those rows, or add"
+            f"{path} line {line}, column '{columns[first_bad[1]]}': value is NaN or infinite"
+            f" ({bad_rows} such rows): remove or repair those rows, or add"
             " --drop-invalid to leave them out"
         )
-    return {name: data[:, j].copy() for j, name in enumerate(columns)}
+    return out[:filled]
+
+
+def _line_blocks(fh: BinaryIO) -> Iterator[str]:
+    """The rest of a binary file as text in blocks of whole lines (a leading BOM dropped)."""
+    rest = b""
+    first = True
+    while True:
+        chunk = fh.read(BLOCK_BYTES)
+        if first:
+            chunk = chunk.removeprefix(b"\xef\xbb\xbf")
+            first = False
+        if not chunk:
+            if rest.strip():
+                yield rest.decode("utf-8")
+            return
+        chunk = rest + chunk
+        cut = chunk.rfind(b"\n") + 1
+        rest = chunk[cut:]
+        if cut:
+            yield chunk[:cut].decode("utf-8")
 
 
 def read_valid_rows(

@@ -6,6 +6,9 @@ the linear least-squares covariance of its coefficients, mapped to the physical 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 
 from rig.calibration.diagnostics import is_constant_field, require_varying_field
@@ -16,6 +19,7 @@ from rig.calibration.residuals import (
     p_from_calibration,
     p_from_theta,
     quadratic_features,
+    row_blocks,
     sym_from_e,
     vector_residuals,
     z_linear_design,
@@ -24,25 +28,92 @@ from rig.calibration.residuals import (
 from rig.calibration.solver import covariance_from_jacobian
 from rig.errors import CalibrationError
 
+SHIFT_ROWS = 4096
+"""About this many evenly spread rows give the provisional means the Gram matrices are accumulated
+about (so that centering afterwards subtracts only a small correction)."""
 
-def _weighted_lstsq(x: Array, y: Array, w: Array | None) -> tuple[Array, Array, Array]:
-    """Solve ``x b = y`` in least squares with row weights; returns (b, residuals, (X^T W X)^-1)."""
-    sw = np.ones(x.shape[0]) if w is None else np.sqrt(w)
-    xs = x * sw[:, None]
-    ys = y * (sw[:, None] if y.ndim == 2 else sw)
-    col = np.linalg.norm(xs, axis=0)
+
+@dataclass(frozen=True)
+class _LinearFit:
+    """A weighted linear least-squares fit ``y = intercept + x[:, keep] coef``: ``coef`` (K, Y),
+    ``inv = (X_c^T W X_c)^-1`` of the kept (centered) columns, the weighted residual sum of
+    squares over all Y columns, and ``keep``, the indices of the columns of ``x`` used."""
+
+    coef: Array
+    intercept: Array
+    inv: Array
+    rss: float
+    keep: Array
+
+
+def _linear_fit(
+    build: Callable[[slice], Array],
+    n: int,
+    n_x: int,
+    weights: Array | None,
+    *,
+    n_fixed: int | None = None,
+    intercept: bool = True,
+) -> _LinearFit:
+    """Weighted least squares by normal equations accumulated block by block (bounded memory).
+
+    ``build(rows)`` gives the rows of ``[x | y]`` (x first, ``n_x`` columns) as a new array (the
+    fit scales it in place); columns from
+    ``n_fixed`` on are nuisance candidates kept only when linearly independent of the others
+    before them (:func:`independent_from_gram` on their centered Gram). With ``intercept`` the
+    problem is solved centered (the weighted means removed, as a free constant would). The
+    columns are scaled to unit norm before solving, and a normal matrix with a condition number
+    above 1e15 is refused as before. A second pass forms the residuals exactly (not by
+    subtracting sums of squares).
+    """
+    w = np.ones(n) if weights is None else np.asarray(weights, float)
+    step = max(n // SHIFT_ROWS, 1)
+    sample = slice(0, n, step)
+    shift = np.zeros(0)
+    if intercept:
+        a = build(sample)
+        shift = (w[sample] @ a) / max(float(np.sum(w[sample])), 1e-300)
+    gram = np.zeros((0, 0))
+    total = np.zeros(0)
+    for rows in row_blocks(n):
+        a = build(rows)  # a fresh array: scaled in place
+        if intercept:
+            a -= shift
+        if gram.size == 0:
+            gram, total = np.zeros((a.shape[1], a.shape[1])), np.zeros(a.shape[1])
+        sw = np.sqrt(w[rows])
+        a *= sw[:, None]
+        gram += a.T @ a
+        total += sw @ a
+    w_sum = float(np.sum(w))
+    d = total / w_sum
+    centered = gram - w_sum * np.outer(d, d)
+    if intercept:
+        gram, mean = centered, shift + d
+    n_fixed = n_x if n_fixed is None else n_fixed
+    # Candidates are told apart centered (a constant among them is the intercept's business).
+    extra = n_fixed + independent_from_gram(centered[n_fixed:n_x, n_fixed:n_x])
+    keep = np.concatenate([np.arange(n_fixed), extra]).astype(int)
+    xtx = gram[np.ix_(keep, keep)]
+    xty = gram[keep, n_x:]
+    col = np.sqrt(np.maximum(np.diag(xtx), 0.0))
     col[col == 0] = 1.0
-    b, *_ = np.linalg.lstsq(xs / col, ys, rcond=None)
-    b = (b.T / col).T if b.ndim == 2 else b / col
-    normal = (xs / col).T @ (xs / col)
+    normal = xtx / np.outer(col, col)
     cond = np.linalg.cond(normal)
     if not np.isfinite(cond) or cond > 1e15:
         raise CalibrationError(
             "the calibration problem is singular for these data (condition number"
             f" {cond:.1e}): cover more field directions and magnitudes, and vary each channel"
         )
+    coef = np.linalg.solve(normal, xty / col[:, None]) / col[:, None]
     inv = np.linalg.inv(normal) / np.outer(col, col)
-    return b, y - x @ b, inv
+    const = mean[n_x:] - mean[keep] @ coef if intercept else np.zeros(gram.shape[0] - n_x)
+    rss = 0.0
+    for rows in row_blocks(n):
+        a = build(rows)
+        resid = a[:, n_x:] - a[:, keep] @ coef - const
+        rss += float(np.sum(w[rows] @ resid**2))
+    return _LinearFit(coef, const, inv, rss, keep)
 
 
 def vector_fit(s: Samples, weights: Array | None = None) -> Estimate:
@@ -53,9 +124,14 @@ def vector_fit(s: Samples, weights: Array | None = None) -> Estimate:
     """
     if s.field_ut is None:
         raise CalibrationError("vector calibration needs the field vector: give --field X,Y,Z")
-    x = np.hstack([s.field_ut, np.ones((s.n, 1)), s.telemetry])
-    coef, resid, _ = _weighted_lstsq(x, s.measured_ut, weights)
-    cal = Calibration.from_t_matrix(coef[:3].T, coef[3], coef[4:], s.channels)
+    field = s.field_ut
+
+    def build(rows: slice) -> Array:
+        return np.hstack([field[rows], s.telemetry[rows], s.measured_ut[rows]])
+
+    fit = _linear_fit(build, s.n, 3 + s.n_channels, weights)
+    coef = fit.coef
+    cal = Calibration.from_t_matrix(coef[:3].T, fit.intercept, coef[3:], s.channels)
     if np.linalg.det(cal.rotation) < 0:
         raise CalibrationError(
             "the fitted sensor frame is left-handed (an axis is inverted): check the sign and"
@@ -65,23 +141,27 @@ def vector_fit(s: Samples, weights: Array | None = None) -> Estimate:
     _, jac = vector_residuals(p, s, cal.rotation)
     wr = np.ones(3 * s.n) if weights is None else np.repeat(weights, 3)
     dof = max(3 * s.n - p.size, 1)
-    variance = float(np.sum(wr * resid.reshape(-1) ** 2) / dof)
+    variance = fit.rss / dof
     cov = covariance_from_jacobian(jac * np.sqrt(wr)[:, None], variance)
     return Estimate("vector", p, cov, rotation_ref=cal.rotation, sample_weights=weights)
 
 
-def _telemetry_products(u: Array) -> Array:
-    """Columns ``u_j`` and ``u_i u_j`` (i <= j): the nuisance terms of ``|b(u)|^2``.
+def _telemetry_products(u: Array, out: Array | None = None) -> Array:
+    """Columns ``u_j`` and ``u_i u_j`` (i <= j): the candidate nuisance terms of ``|b(u)|^2``.
 
     Products that vanish or repeat (two panels never lit at once, a binary channel whose square is
-    itself) are dropped: only the span matters for nuisance terms.
+    itself) are dropped by the fits (:func:`_linear_fit`): only the span matters for nuisance
+    terms. ``out``: where to write them (N, J (J + 3) / 2), column-major is fastest.
     """
     n_ch = u.shape[1]
-    if n_ch == 0:
-        return np.zeros((u.shape[0], 0))
-    cols = [u] + [(u[:, i] * u[:, j])[:, None] for i in range(n_ch) for j in range(i, n_ch)]
-    x = np.hstack(cols)
-    return x[:, independent_columns(x - x.mean(axis=0))]
+    if out is None:
+        out = np.empty((u.shape[0], n_ch * (n_ch + 3) // 2), order="F")
+    out[:, :n_ch] = u
+    col = n_ch
+    for i in range(n_ch):  # u_i u_j for j >= i, one broadcast product per i
+        np.multiply(u[:, i : i + 1], u[:, i:], out=out[:, col : col + n_ch - i])
+        col += n_ch - i
+    return out
 
 
 def independent_columns(x: Array, rel_tol: float = 1e-9) -> Array:
@@ -94,17 +174,23 @@ def independent_columns(x: Array, rel_tol: float = 1e-9) -> Array:
 
 
 def independent_from_gram(gram: Array, rel_tol: float = 1e-9) -> Array:
-    """:func:`independent_columns` given the Gram (information) matrix ``X^T X`` itself."""
+    """:func:`independent_columns` given the Gram (information) matrix ``X^T X`` itself.
+
+    Left-looking Cholesky in column order that skips a column whose pivot (the squared norm of
+    its part orthogonal to the kept ones, the Schur complement) is below ``rel_tol`` of its own
+    squared norm: one matrix-vector product per column, O(n^3) in all.
+    """
+    n = gram.shape[0]
+    factor = np.zeros((n, n))
     keep: list[int] = []
-    for i in range(gram.shape[0]):
+    for i in range(n):
         own = gram[i, i]
         if own <= 1e-300:
             continue
-        if keep:
-            g_kk = gram[np.ix_(keep, keep)]
-            g_ki = gram[keep, i]
-            own = own - g_ki @ np.linalg.solve(g_kk, g_ki)
-        if own > rel_tol * gram[i, i]:
+        k = len(keep)
+        col = gram[:, i] - factor[:, :k] @ factor[i, :k]
+        if col[i] > rel_tol * own:
+            factor[:, k] = col / np.sqrt(col[i])
             keep.append(i)
     return np.asarray(keep, dtype=int)
 
@@ -122,19 +208,23 @@ def centered_fit(s: Samples) -> Estimate:
     100 nT noise and 2000 samples (Monte Carlo, 60 draws). Use it as a start, not as the answer.
     """
     require_varying_field(s, "centered")
-    lin = z_linear_design(s)
-    x = np.hstack([lin, _telemetry_products(s.telemetry)])
-    z = z_observation(s)
+    n_lin = 9 + 3 * s.n_channels
+    n_x = n_lin + s.n_channels * (s.n_channels + 3) // 2
+
+    def build(rows: slice) -> Array:
+        block = s.rows(rows)
+        out = np.empty((block.n, n_x + 1), order="F")
+        out[:, :n_lin] = z_linear_design(block)
+        _telemetry_products(block.telemetry, out[:, n_lin:n_x])
+        out[:, n_x] = z_observation(block)
+        return out
+
     w = 1.0 / (4.0 * s.field_magnitude_ut**2)
-    wn = w / w.sum()
-    xc = x - wn @ x
-    zc = z - wn @ z
-    coef, resid, inv = _weighted_lstsq(xc, zc, w)
-    n_theta = lin.shape[1]
-    dof = max(s.n - x.shape[1] - 1, 1)
-    variance = float(np.sum(w * resid**2) / dof)
-    cov_theta = variance * inv[:n_theta, :n_theta]
-    p, cov = delta_method(p_from_theta, coef[:n_theta], cov_theta, "centered")
+    fit = _linear_fit(build, s.n, n_x, w, n_fixed=n_lin)
+    dof = max(s.n - fit.keep.size - 1, 1)
+    variance = fit.rss / dof
+    cov_theta = variance * fit.inv[:n_lin, :n_lin]
+    p, cov = delta_method(p_from_theta, fit.coef[:n_lin, 0], cov_theta, "centered")
     return Estimate("centered", p, cov)
 
 
@@ -147,23 +237,26 @@ def ellipsoid_fit(s: Samples) -> Estimate:
     problem is then the same linear model as :func:`centered_fit` (centering is the intercept),
     so the two agree.
     """
-    quad = quadratic_features(s.measured_ut)
-    mu = [s.telemetry[:, j : j + 1] * s.measured_ut for j in range(s.n_channels)]
-    base = np.hstack([quad, s.measured_ut, *mu, _telemetry_products(s.telemetry)])
     n_theta = 9 + 3 * s.n_channels
+    n_x = n_theta + s.n_channels * (s.n_channels + 3) // 2
     mag2 = s.field_magnitude_ut**2
-    w = 1.0 / (4.0 * mag2)
     constant = is_constant_field(s)
-    if constant:
-        x, y = base, -np.ones(s.n)
-        mean_mag2 = float(np.mean(mag2))
-        w = np.full(s.n, 1.0 / (4.0 * mean_mag2))
-    else:
-        x, y = np.hstack([base, np.ones((s.n, 1))]), mag2
-    coef, resid, inv = _weighted_lstsq(x, y, w)
-    dof = max(s.n - x.shape[1], 1)
-    variance = float(np.sum(w * resid**2) / dof)
-    cov_coef = variance * inv[:n_theta, :n_theta]
+    mean_mag2 = float(np.mean(mag2))
+
+    def build(rows: slice) -> Array:
+        m, u = s.measured_ut[rows], s.telemetry[rows]
+        mu = [u[:, j : j + 1] * m for j in range(s.n_channels)]
+        y = -np.ones((m.shape[0], 1)) if constant else mag2[rows, None]
+        return np.hstack([quadratic_features(m), m, *mu, _telemetry_products(u), y])
+
+    # |h| constant: no intercept (the constant term is the normalization, Foster and Elkaim);
+    # |h| varying: |h|^2 on the right-hand side with an intercept (solved centered).
+    w = np.full(s.n, 1.0 / (4.0 * mean_mag2)) if constant else 1.0 / (4.0 * mag2)
+    fit = _linear_fit(build, s.n, n_x, w, n_fixed=n_theta, intercept=not constant)
+    dof = max(s.n - fit.keep.size - (0 if constant else 1), 1)
+    variance = fit.rss / dof
+    cov_coef = variance * fit.inv[:n_theta, :n_theta]
+    coef = fit.coef[:, 0]
 
     def to_p(c: Array) -> Array:
         m_sym = sym_from_e(c[:6])  # S_k . c6 = m^T M m

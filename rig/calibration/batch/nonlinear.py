@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Literal
 
 import numpy as np
@@ -14,7 +15,7 @@ from rig.calibration.residuals import (
     Samples,
     p_from_theta,
     scalar_noise_gain,
-    scalar_residuals,
+    scalar_normal_equations,
     scalar_residuals_only,
     theta_from_p,
     vector_residuals,
@@ -23,7 +24,12 @@ from rig.calibration.residuals import (
     z_residuals,
 )
 from rig.calibration.robust import RobustLoss, robust_scale, robust_weights
-from rig.calibration.solver import covariance_from_jacobian, levenberg_marquardt
+from rig.calibration.solver import (
+    NormalEquations,
+    covariance_from_jacobian,
+    covariance_from_normal,
+    levenberg_marquardt,
+)
 from rig.errors import CalibrationError
 
 MAX_IRLS_PASSES = 12
@@ -35,9 +41,27 @@ GAIN_TOLERANCE = 1e-3
 to a weight error e is of order e^2."""
 
 
-def scalar_start(s: Samples) -> Estimate:
-    """The linear initializer suited to the data: centered if |h| varies, else the ellipsoid."""
-    return ellipsoid_fit(s) if is_constant_field(s) else centered_fit(s)
+START_ROWS = 20_000
+"""A start for the maximum-likelihood fit (``scalar_start(quick=True)``) is fitted on at most
+about this many evenly spread samples (more with many telemetry channels: 50 per column of the
+linear design). The linear fit's cost grows with samples x columns^2 and its columns with the
+square of the channels (the nuisance products), the ML fit's only with samples x parameters^2."""
+
+
+def scalar_start(s: Samples, *, quick: bool = False) -> Estimate:
+    """The linear initializer suited to the data: centered if |h| varies, else the ellipsoid.
+
+    ``quick``: only a start is wanted (for :func:`ml_fit`), so on more than :data:`START_ROWS`
+    samples it is fitted on evenly spread rows; the estimate's method then reads
+    ``centered-start`` or ``ellipsoid-start`` (it is not the linear estimator's answer).
+    """
+    fit = ellipsoid_fit if is_constant_field(s) else centered_fit
+    n_x = 9 + 3 * s.n_channels + s.n_channels * (s.n_channels + 3) // 2
+    rows = max(START_ROWS, 50 * n_x)
+    if not quick or s.n <= 2 * rows:
+        return fit(s)
+    est = fit(s.rows(slice(0, s.n, s.n // rows)))
+    return replace(est, method=f"{est.method}-start")
 
 
 def ml_fit(
@@ -51,23 +75,24 @@ def ml_fit(
     noise (first order), refreshed between passes. With ``robust`` the weights are multiplied by
     Huber or bisquare IRLS weights on the standardized residuals.
     """
-    p = scalar_start(s).p if start is None else np.asarray(start, float)
+    p = scalar_start(s, quick=True).p if start is None else np.asarray(start, float)
     robust_w = np.ones(s.n)
     iterations = 0
     # Pass 1 fits with the noise gains of the start; pass 2 refreshes them if they moved (from a
-    # cold start). Robust fits iterate until the IRLS weights settle.
+    # cold start). Robust fits iterate until the IRLS weights settle. Every evaluation returns the
+    # noise gains at its point, so the refresh costs no extra pass over the data.
     gain = scalar_noise_gain(p, s)
     for pass_index in range(MAX_IRLS_PASSES if robust else 2):
         w = robust_w / gain**2
-        sw = np.sqrt(w)
 
-        def fun(x: Array, sw: Array = sw) -> tuple[Array, Array]:
-            return scalar_residuals(x, s, sw)
+        def fun(x: Array, w: Array = w) -> NormalEquations:
+            return scalar_normal_equations(x, s, w)
 
         sol = levenberg_marquardt(fun, p)
         iterations += sol.iterations
         p = sol.x
-        new_gain = scalar_noise_gain(p, s)
+        assert sol.normal.gain is not None
+        new_gain = sol.normal.gain
         gain_change = float(np.max(np.abs(new_gain / gain - 1.0)))
         gain = new_gain
         if robust:
@@ -84,7 +109,7 @@ def ml_fit(
             " that the field directions cover the sphere (turn the sensor through every attitude)"
         )
     dof = max(float(np.sum(robust_w > 0)) - p.size, 1.0)
-    cov = covariance_from_jacobian(sol.jacobian, sol.cost / dof)
+    cov = covariance_from_normal(sol.normal.jtj, sol.cost / dof)
     return Estimate(
         "ml", p, cov, sample_weights=None if robust is None else robust_w, iterations=iterations
     )
