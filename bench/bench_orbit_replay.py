@@ -14,11 +14,13 @@ Usage: python bench/bench_orbit_replay.py [--seconds 300] [--skip-demo]
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +44,24 @@ steps:
       rate_hz: 50
       attitude: nadir
 """
+
+
+@contextlib.contextmanager
+def simulated_cage(folder: Path) -> Iterator[Path]:
+    """`rig sim` as a child process writing its rig configuration into ``folder``; yields the
+    configuration's path, stops the simulator (Ctrl-C) at the end."""
+    rig_toml = folder / "rig.toml"
+    child = subprocess.Popen(
+        [sys.executable, "-m", "rig.cli", "-q", "sim", "--rig-config", str(rig_toml)]
+    )
+    try:
+        while not rig_toml.exists():
+            assert child.poll() is None, "rig sim did not start"
+            time.sleep(0.05)
+        yield rig_toml
+    finally:
+        child.send_signal(signal.SIGINT)
+        child.wait(timeout=15)
 
 
 def sample_gaps(
@@ -70,21 +90,12 @@ def main() -> int:
     ap.add_argument("--skip-demo", action="store_true")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp())
-    rig_toml = tmp / "rig.toml"
-    child = subprocess.Popen(
-        [sys.executable, "-m", "rig.cli", "-q", "sim", "--rig-config", str(rig_toml)]
-    )
-    try:
-        while not rig_toml.exists():
-            time.sleep(0.05)
+    with simulated_cage(tmp) as rig_toml:
         proc_path = tmp / "orbit.yaml"
         proc_path.write_text(PROCEDURE.format(seconds=args.seconds))
         outcome = Runner(
             parse_procedure(proc_path), load_rig_config(rig_toml), tmp / "runs", quiet=True
         ).run()
-    finally:
-        child.send_signal(signal.SIGINT)
-        child.wait(timeout=15)
     reader = RunReader(outcome.folder)
     meta = reader.meta()
     period_ms = 1000.0 / 50

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import re
-import signal
 import subprocess
 import sys
 import tempfile
@@ -23,7 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench_orbit_replay import PROCEDURE
+from bench_orbit_replay import PROCEDURE, simulated_cage
 
 from rig.store import RunReader
 
@@ -122,13 +121,7 @@ def main() -> int:
     ap.add_argument("--pages", type=int, default=5, help="pages open in the third run")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp())
-    rig_toml = tmp / "rig.toml"
-    sim = subprocess.Popen(
-        [sys.executable, "-m", "rig.cli", "-q", "sim", "--rig-config", str(rig_toml)]
-    )
-    try:
-        while not rig_toml.exists():
-            time.sleep(0.05)
+    with simulated_cage(tmp) as rig_toml:
         watched = f"--serve, {args.pages} pages"
         opened = f"{args.pages} pages opened mid-run"
         cases = [("no page server", False, 0, False), ("--serve, 0 pages", True, 0, False),
@@ -141,9 +134,6 @@ def main() -> int:
             print(f"{label:22s} p99 {r['p99']:.2f} ms  max {r['max']:.1f} ms  lost {r['lost']}"
                   f"  samples {r['received']}"
                   + (f"  page updates {r['updates']}" if pages else ""), flush=True)  # fmt: skip
-    finally:
-        sim.send_signal(signal.SIGINT)
-        sim.wait(timeout=15)
     base = results["no page server"]
     ok = True
     for label, r in results.items():

@@ -146,6 +146,7 @@ function rigRunPage(running) {
       source.close();
       const st = document.getElementById("status"); st.textContent = s.status; st.className = `status-${s.status}`;
       box.hidden = true;
+      document.querySelector("#live .controls").hidden = true;  // nothing left to operate
       live.dataset.finished = s.status;
       const reason = document.createElement("p"); reason.id = "final-reason"; reason.textContent = `Run ended: ${s.status} (${s.reason}). Reload for the report.`;
       live.prepend(reason);
