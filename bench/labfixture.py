@@ -142,11 +142,19 @@ path = "/dev/ttyUSB1"
 
 
 def generate_runs(
-    runs_dir: Path, n: int, *, rig: str, seed: int, duts: int = 40, lots: int = 5
+    runs_dir: Path,
+    n: int,
+    *,
+    rig: str,
+    seed: int,
+    duts: int = 40,
+    lots: int = 5,
+    outlier_every: int = 0,
 ) -> list[Path]:
     """``n`` closed, sealed runs of ``rig`` under ``runs_dir``: DUT serials ``SN-0000`` ...,
     lots ``1..lots``, mostly PASS, a calibration result (offsets in uT with sigma) and an acceptance
-    verdict; every 10th run used a reference whose certificate had expired (2020-06-30)."""
+    verdict; every 10th run used a reference whose certificate had expired (2020-06-30); every
+    ``outlier_every``-th run (0: none) has an x offset 3 uT off its lot's."""
     from rig.store import new_run
 
     rnd = random.Random(seed)
@@ -154,7 +162,9 @@ def generate_runs(
     for i in range(n):
         dut = f"SN-{rnd.randrange(duts):04d}"
         lot = str(1 + int(dut[3:]) % lots)
-        offset = 1.5 + 0.1 * int(lot) + rnd.gauss(0, 0.05) + (0.8 if rig.endswith("3") else 0.0)
+        offset = 1.5 + 0.1 * int(lot) + rnd.gauss(0, 0.05)
+        if outlier_every and i % outlier_every == outlier_every - 1:
+            offset += 3.0  # a rig with a problem: an offset far outside the lot's spread
         rms = abs(rnd.gauss(30, 8))
         w = new_run(
             runs_dir, f"{dut}-{i}", procedure="DUT acceptance", procedure_file="dut-acceptance.yaml",
