@@ -291,3 +291,61 @@ def test_lab_help_and_no_heavy_import() -> None:
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+
+
+TINY = """
+procedure: Tiny
+magnetometers: {dut: dut, reference: reference}
+parameters:
+  dut_serial: {default: SN-0042}
+  lot: {default: "7"}
+steps:
+  - null_field: {hold_s: 1}
+    name: noise floor
+  - check:
+      criteria:
+        - {result: noise floor, value: dut_noise_nt, max: 200, name: DUT noise at null field}
+"""
+
+
+@pytest.mark.slow
+def test_a_run_on_the_simulator_lands_in_the_index_at_close(
+    lab_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from tests.simrun import run_on_sim
+
+    monkeypatch.setenv("RIG_LAB_URL", lab_url)
+    outcome = run_on_sim(tmp_path, TINY)
+    assert outcome.status == "complete", outcome.reason
+    with psycopg.connect(lab_url) as conn:
+        run = conn.execute("SELECT run_id, dut_serial, lot, status, verdict, data_sha256, host"
+                           " FROM lab_runs").fetchall()  # fmt: skip
+        crit = conn.execute("SELECT name, unit, max, margin, verdict FROM lab_criteria").fetchall()
+        inst = conn.execute("SELECT name FROM lab_instruments ORDER BY name").fetchall()
+    ((run_id, dut, lot, status, verdict, sha, host),) = run
+    seal = json.loads((outcome.folder / "seal.json").read_text())
+    assert (run_id, dut, lot, status, verdict) == (
+        outcome.folder.name,
+        "SN-0042",
+        "7",
+        "complete",
+        "PASS",
+    )
+    assert sha == seal["data_sha256"] and host
+    ((name, unit, hi, margin, v),) = crit
+    assert unit == "nT"
+    assert name == "DUT noise at null field" and hi == 200 and 0 < margin <= 200 and v == "PASS"
+    assert ("reference",) in inst and ("dut",) in inst
+
+
+def test_a_password_in_the_rig_configuration_refuses_the_run(tmp_path: Path) -> None:
+    """Refused before a run folder (with its copy of the configuration) exists."""
+    from rig.engine.runner import Runner
+
+    cfg = SimpleNamespace(raw={"lab": {"url": f"postgresql://rig:{PASSWORD}@db/lab"}},
+                          path=tmp_path / "rig.toml")  # fmt: skip
+    runner = Runner(SimpleNamespace(parameters={}), cfg, tmp_path / "runs")  # type: ignore[arg-type]
+    with pytest.raises(UserInputError, match="holds a password") as err:
+        runner.run()
+    assert PASSWORD not in str(err.value)
+    assert not (tmp_path / "runs").exists()
