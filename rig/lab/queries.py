@@ -114,16 +114,16 @@ def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
         SELECT r.run_id, r.rig, r.started_at, r.status FROM lab_runs r
         WHERE r.data_sha256 IS NULL ORDER BY r.started_at, r.id""")  # fmt: skip
     per_rig = _rows(conn, f"""
-        WITH lots AS (
-            SELECT s.name, r.lot, avg(s.value) AS m, stddev_samp(s.value) AS sd
-            FROM lab_results s JOIN lab_runs r ON r.id = s.run
-            GROUP BY s.name, r.lot HAVING count(*) >= {MIN_FOR_LIMITS}),
+        WITH vals AS MATERIALIZED (
+            SELECT r.rig, coalesce(r.lot, '') AS lot, s.name, s.value
+            FROM lab_results s JOIN lab_runs r ON r.id = s.run),
+        lots AS (
+            SELECT name, lot, avg(value) AS m, stddev_samp(value) AS sd FROM vals
+            GROUP BY name, lot HAVING count(*) >= {MIN_FOR_LIMITS}),
         outliers AS (
-            SELECT r.rig, count(*) AS n,
-                   count(*) FILTER (WHERE abs(s.value - l.m) > {CONTROL_SIGMAS} * l.sd) AS outliers
-            FROM lab_results s JOIN lab_runs r ON r.id = s.run
-            JOIN lots l ON l.name = s.name AND l.lot IS NOT DISTINCT FROM r.lot
-            GROUP BY r.rig),
+            SELECT v.rig, count(*) AS n,
+                   count(*) FILTER (WHERE abs(v.value - l.m) > {CONTROL_SIGMAS} * l.sd) AS outliers
+            FROM vals v JOIN lots l USING (name, lot) GROUP BY v.rig),
         crit AS (
             SELECT r.rig, count(*) AS n, count(*) FILTER (WHERE c.verdict = 'FAIL') AS failed
             FROM lab_criteria c JOIN lab_runs r ON r.id = c.run GROUP BY r.rig),
