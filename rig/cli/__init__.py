@@ -26,6 +26,7 @@ from rig.cli import (
     devices,
     example_data,
     export,
+    lab,
     report,
     run,
     runs,
@@ -85,6 +86,7 @@ COMMANDS: tuple[Command, ...] = (
     example_data,
     devices,
     serve,
+    lab,
 )
 """Every command, in the order ``rig --help`` lists them. A new command is a module in
 ``rig/cli/`` with ``add_parser(sub, parents)`` and one entry here."""

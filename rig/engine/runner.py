@@ -11,6 +11,7 @@ import contextlib
 import math
 import shutil
 import signal
+import socket
 import sys
 import threading
 import time
@@ -37,6 +38,7 @@ from rig.engine.sampling import BufferedSensor, SensorSampler
 from rig.engine.session import RigSession
 from rig.engine.temperature_log import TemperatureLog
 from rig.errors import RigError, RunAborted
+from rig.lab.url import resolve_url
 from rig.procedure.language import Procedure
 from rig.procedure.plan import StepPlan, compile_plan, rig_timing
 from rig.steps import KINDS
@@ -61,6 +63,8 @@ on 3 of its 14 samples)."""
 UNREAD_FAULT_AFTER = 2
 """Read-backs of an output that failed in a row (each after the link's own retries) before the
 output counts as lost: one can be a glitch, two mean its state is unknown (a fault)."""
+LAB_TIMEOUT_S = 5.0
+"""Longest wait for the lab index at run close (s); then the run is synced later."""
 
 
 @dataclass
@@ -109,6 +113,7 @@ class Runner:
         self.abort_reason: str | None = None
         self.holding = False  # paused and holding the schedule (a pause is asked by ``paused``)
         self.correction: dict[str, Any] | None = None
+        self.lab_url: str | None = None  # the lab index to push the closed run to
         self.report_requested = False
         self.rig: RigSession | None = None
         self._unread: dict[str, int] = {}  # output -> read-backs failed in a row
@@ -124,6 +129,8 @@ class Runner:
     def run(self) -> RunOutcome:
         """Execute the whole procedure; always returns an outcome with the run folder."""
         params = self.proc.parameters
+        # a password in [lab] url is refused before the configuration is copied into a run folder
+        self.lab_url = resolve_url(None, self.cfg.raw, self.cfg.path)
         # The interlock first: a run refused because the rig is busy leaves no run folder.
         self._lock = RigLock(self.cfg, f"rig run {self.proc.path.name}")
         self._lock.acquire()
@@ -131,7 +138,7 @@ class Runner:
             self.runs_dir, params.get("dut_serial") or self.proc.path.stem,
             procedure=self.proc.title, procedure_file=self.proc.path.name, parameters=params,
             operator=params.get("operator", ""), dut_serial=params.get("dut_serial", ""),
-            software_version=__version__, rig_config=str(self.cfg.path), magnetometers=self.proc.magnetometers,
+            software_version=__version__, rig_config=str(self.cfg.path), host=socket.gethostname(), magnetometers=self.proc.magnetometers,
             loads=list(self.proc.loads),
         )  # fmt: skip
         (w.folder / "procedure.yaml").write_text(self.proc.text, encoding="utf-8")
@@ -188,7 +195,23 @@ class Runner:
             self.publisher.stop(status, reason)
         if self.report_requested:
             self._write_report(w.folder)
+        if self.lab_url is not None:
+            self._sync_lab(self.lab_url, w.folder)
         return RunOutcome(status, reason, w.folder, self.results)
+
+    def _sync_lab(self, url: str, folder: Path) -> None:
+        """Push the closed run to the lab index; best effort: a failure is one warning line and
+        the run stays as recorded ('rig lab sync' pushes it later)."""
+        from rig.lab.sync import sync_runs
+        from rig.lab.url import masked
+
+        try:
+            report = sync_runs(url, [folder], timeout_s=LAB_TIMEOUT_S)
+            if report.added and not self.quiet:
+                print(f"rig: run added to the lab index {masked(url)}", file=sys.stderr)
+        except Exception as exc:  # never a failed run: the folder is the record
+            print(f"rig: WARNING: the run was not added to the lab index ({masked(str(exc))});"
+                  " 'rig lab sync' adds it later", file=sys.stderr)  # fmt: skip
 
     def _write_report(self, folder: Path) -> None:
         """The acceptance report of the closed run; a failure leaves the run as recorded."""

@@ -1,0 +1,43 @@
+"""The trend plot: a parameter over runs with each lot's control limits, as a PNG."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from rig.lab.queries import Trend
+
+
+def trend_png(trend: Trend, path: Path) -> None:
+    """Values (with 1-sigma bars) in run order, one colour per lot, its mean and mean +- 3 sigma
+    as lines; outliers circled. matplotlib is imported here only."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(10, 4.5))
+    try:
+        lots = sorted({str(r["lot"]) for r in trend.rows})
+        for lot in lots:
+            idx = [i for i, r in enumerate(trend.rows) if str(r["lot"]) == lot]
+            vals = [float(trend.rows[i]["value"]) for i in idx]
+            sig = [float(trend.rows[i]["sigma"] or 0.0) for i in idx]
+            line = ax.errorbar(idx, vals, yerr=sig, fmt=".", ms=4, label=f"lot {lot}")
+            lim = trend.limits.get(lot)
+            if lim:
+                color = line[0].get_color()
+                lo, hi = min(idx), max(idx)
+                ax.hlines([lim["mean"]], lo, hi, colors=color, linestyles="-", lw=0.8)
+                ax.hlines([lim["lcl"], lim["ucl"]], lo, hi, colors=color, linestyles="--", lw=0.8)
+        out = [i for i, r in enumerate(trend.rows) if r["outlier"]]
+        ax.plot(out, [trend.rows[i]["value"] for i in out], "o", mfc="none", mec="red", ms=9,
+                label="outside mean +- 3 sigma")  # fmt: skip
+        ax.set_xlabel("run (time order)")
+        ax.set_ylabel(trend.param)
+        ax.set_title(f"{trend.param}: {len(trend.rows)} runs, control limits per lot")
+        ax.legend(fontsize=7, ncol=2)
+        fig.tight_layout()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=110)
+    finally:
+        plt.close(fig)

@@ -1,0 +1,162 @@
+"""The lab index's questions: runs, every acceptance of a DUT, a parameter's trend with control
+limits, and the audit (expired certificates, unsealed runs, which rig produces the outliers).
+
+Each function returns rows as dicts (JSON-ready: times as ISO strings); units as stored (criteria
+in their ``unit``, calibration parameters as in the result file).
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import psycopg
+
+Row = dict[str, Any]
+CONTROL_SIGMAS = 3.0
+"""Control limits: the lot's mean +- this many (sample) standard deviations."""
+MIN_FOR_LIMITS = 3
+"""A lot needs this many values before it has control limits."""
+
+RUN_COLUMNS = (
+    "r.run_id, r.rig, r.started_at, r.procedure, r.dut_serial, r.lot, r.operator, r.status,"
+    " r.verdict"
+)
+
+
+def _rows(conn: psycopg.Connection[Any], sql: str, params: tuple[Any, ...] = ()) -> list[Row]:
+    with conn.cursor() as cur:
+        cur.execute(sql, params)  # type: ignore[arg-type,unused-ignore]  # constant SQL
+        names = [d.name for d in cur.description or ()]
+        rows = [dict(zip(names, r, strict=True)) for r in cur.fetchall()]
+    conn.rollback()
+    for row in rows:
+        for k, v in row.items():
+            if hasattr(v, "isoformat"):
+                row[k] = v.isoformat()
+    return rows
+
+
+def runs(
+    conn: psycopg.Connection[Any], *, dut: str | None = None, status: str | None = None,
+    limit: int = 50,
+) -> list[Row]:  # fmt: skip
+    """The newest runs, optionally of one DUT serial and/or one status."""
+    where, params = [], []
+    if dut is not None:
+        where.append("r.dut_serial = %s")
+        params.append(dut)
+    if status is not None:
+        where.append("r.status = %s")
+        params.append(status)
+    sql = (f"SELECT {RUN_COLUMNS} FROM lab_runs r"
+           f"{' WHERE ' + ' AND '.join(where) if where else ''}"
+           " ORDER BY r.started_at DESC NULLS LAST, r.id DESC LIMIT %s")  # fmt: skip
+    return _rows(conn, sql, (*params, limit))
+
+
+def dut(conn: psycopg.Connection[Any], serial: str) -> list[Row]:
+    """Every run (acceptance) of a DUT serial, oldest first, with failed criteria and reports."""
+    return _rows(conn, f"""
+        SELECT {RUN_COLUMNS}, r.data_sha256, r.report_files,
+               (SELECT count(*) FROM lab_criteria c WHERE c.run = r.id AND c.verdict = 'FAIL')
+                   AS failed_criteria,
+               (SELECT min(c.margin) FROM lab_criteria c WHERE c.run = r.id) AS min_margin
+        FROM lab_runs r WHERE r.dut_serial = %s ORDER BY r.started_at, r.id""", (serial,))  # fmt: skip
+
+
+@dataclass
+class Trend:
+    """A parameter over runs, with each lot's control limits (mean +- 3 sigma of its values)."""
+
+    param: str
+    rows: list[Row]
+    limits: dict[str, Row] = field(default_factory=dict)
+    """lot -> {n, mean, sd, lcl, ucl} (lots with fewer than MIN_FOR_LIMITS values have none)."""
+
+
+def trend(conn: psycopg.Connection[Any], param: str, *, lot: str | None = None) -> Trend:
+    """``param`` (a calibration result name, e.g. ``x0_ut``) over runs in time order; each row
+    flagged ``outlier`` when outside its lot's control limits."""
+    rows = _rows(conn, """
+        SELECT r.run_id, r.rig, r.lot, r.dut_serial, r.started_at, s.source, s.value, s.sigma
+        FROM lab_results s JOIN lab_runs r ON r.id = s.run
+        WHERE s.name = %s AND (%s::text IS NULL OR r.lot = %s)
+        ORDER BY r.started_at, r.id""", (param, lot, lot))  # fmt: skip
+    by_lot: dict[str, list[float]] = {}
+    for row in rows:
+        by_lot.setdefault(str(row["lot"]), []).append(float(row["value"]))
+    limits = {}
+    for name, values in by_lot.items():
+        if len(values) >= MIN_FOR_LIMITS:
+            mean, sd = statistics.fmean(values), statistics.stdev(values)
+            limits[name] = {"n": len(values), "mean": mean, "sd": sd,
+                            "lcl": mean - CONTROL_SIGMAS * sd, "ucl": mean + CONTROL_SIGMAS * sd}  # fmt: skip
+    for row in rows:
+        lim = limits.get(str(row["lot"]))
+        row["outlier"] = bool(lim) and not lim["lcl"] <= row["value"] <= lim["ucl"]  # type: ignore[index]
+    return Trend(param, rows, limits)
+
+
+def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
+    """Runs that used an instrument whose certificate had expired; runs without a seal (no data
+    hash); and per rig: runs, failed criteria and calibration values outside their lot's
+    control limits (mean +- 3 sigma of the parameter over the lot)."""
+    expired = _rows(conn, """
+        SELECT r.run_id, r.rig, r.started_at, r.dut_serial, i.name AS instrument, i.serial,
+               i.certificate_expires
+        FROM lab_instruments i JOIN lab_runs r ON r.id = i.run
+        WHERE i.expired ORDER BY r.started_at, r.id, i.name""")  # fmt: skip
+    unsealed = _rows(conn, """
+        SELECT r.run_id, r.rig, r.started_at, r.status FROM lab_runs r
+        WHERE r.data_sha256 IS NULL ORDER BY r.started_at, r.id""")  # fmt: skip
+    per_rig = _rows(conn, f"""
+        WITH vals AS MATERIALIZED (
+            SELECT r.rig, coalesce(r.lot, '') AS lot, s.name, s.value
+            FROM lab_results s JOIN lab_runs r ON r.id = s.run),
+        lots AS (
+            SELECT name, lot, avg(value) AS m, stddev_samp(value) AS sd FROM vals
+            GROUP BY name, lot HAVING count(*) >= {MIN_FOR_LIMITS}),
+        outliers AS (
+            SELECT v.rig, count(*) AS n,
+                   count(*) FILTER (WHERE abs(v.value - l.m) > {CONTROL_SIGMAS} * l.sd) AS outliers
+            FROM vals v JOIN lots l USING (name, lot) GROUP BY v.rig),
+        crit AS (
+            SELECT r.rig, count(*) AS n, count(*) FILTER (WHERE c.verdict = 'FAIL') AS failed
+            FROM lab_criteria c JOIN lab_runs r ON r.id = c.run GROUP BY r.rig),
+        rigs AS (
+            SELECT rig, count(*) AS runs, count(*) FILTER (WHERE verdict = 'FAIL') AS failed_runs
+            FROM lab_runs GROUP BY rig)
+        SELECT g.rig, g.runs, g.failed_runs, coalesce(c.n, 0) AS criteria,
+               coalesce(c.failed, 0) AS failed_criteria,
+               coalesce(c.failed::float / nullif(c.n, 0), 0) AS failed_fraction,
+               coalesce(o.n, 0) AS values, coalesce(o.outliers, 0) AS outliers,
+               coalesce(o.outliers::float / nullif(o.n, 0), 0) AS outlier_fraction
+        FROM rigs g LEFT JOIN crit c USING (rig) LEFT JOIN outliers o USING (rig)
+        ORDER BY outlier_fraction DESC, failed_fraction DESC, g.rig""")  # fmt: skip
+    return {"expired_certificates": expired, "unsealed": unsealed, "rigs": per_rig}
+
+
+def table(rows: list[Row], columns: list[str] | None = None) -> str:
+    """Rows as an aligned text table (floats to 4 significant digits, None as '-')."""
+    if not rows:
+        return "(none)"
+    cols = columns or list(rows[0])
+
+    def cell(v: Any) -> str:
+        if v is None:
+            return "-"
+        if isinstance(v, float):
+            return f"{v:.4g}" if math.isfinite(v) else str(v)
+        if isinstance(v, list):
+            return ",".join(map(str, v)) or "-"
+        return str(v)
+
+    cells = [[cell(r.get(c)) for c in cols] for r in rows]
+    widths = [max(len(c), *(len(r[i]) for r in cells)) for i, c in enumerate(cols)]
+    lines = ["  ".join(c.upper().ljust(w) for c, w in zip(cols, widths, strict=True)).rstrip()]
+    lines += ["  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)).rstrip() for r in cells]
+    return "\n".join(lines)
