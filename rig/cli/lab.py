@@ -78,20 +78,9 @@ def _url(args: argparse.Namespace) -> str:
 
 def _query(args: argparse.Namespace) -> Any:
     """An open connection to the index, at the newest schema (the caller closes it)."""
-    from rig.lab.schema import connect, ensure_schema, unavailable
+    from rig.lab.schema import open_index
 
-    url = _url(args)
-    conn = connect(url)
-    try:
-        ensure_schema(conn)
-    except Exception as exc:
-        conn.close()
-        import psycopg
-
-        if isinstance(exc, psycopg.Error):
-            raise unavailable(url, exc) from None
-        raise
-    return conn
+    return open_index(_url(args))
 
 
 def _emit(args: argparse.Namespace, rows: Any, text: str) -> None:

@@ -26,13 +26,17 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
                    help=f"TCP port (default {DEFAULT_PORT}; 0 picks a free one)")  # fmt: skip
     p.add_argument("--host", default="127.0.0.1", metavar="ADDR",
                    help="address to listen on (default 127.0.0.1, this machine only)")  # fmt: skip
+    p.add_argument("--lab", metavar="URL", default=None,
+                   help="lab index to show on the Lab page: postgresql://USER@HOST:PORT/DB"
+                        " (default: $RIG_LAB_URL, else [lab] url of --rig; none: no Lab page)")  # fmt: skip
     p.add_argument("--allow-remote", action="store_true",
                    help="allow an address other than loopback; prints a one-time access token")  # fmt: skip
     p.set_defaults(func=_cmd_serve)
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    return serve(args.runs_dir, args.rig, args.host, args.port, args.allow_remote, args.quiet)
+    return serve(args.runs_dir, args.rig, args.host, args.port, args.allow_remote, args.quiet,
+                 lab=args.lab)  # fmt: skip
 
 
 def is_loopback(host: str) -> bool:
@@ -61,7 +65,7 @@ def listen(host: str, port: int) -> socket.socket:
 
 
 def serve(runs_dir: Path, rig_config: Path | None, host: str, port: int, allow_remote: bool,
-          quiet: bool) -> int:  # fmt: skip
+          quiet: bool, lab: str | None = None) -> int:  # fmt: skip
     """Serve until Ctrl-C or SIGTERM; prints the address (and the token off loopback) first."""
     import uvicorn
 
@@ -74,6 +78,7 @@ def serve(runs_dir: Path, rig_config: Path | None, host: str, port: int, allow_r
                              " to serve it there (with an access token), or drop --host")  # fmt: skip
     if rig_config is not None and not rig_config.is_file():
         raise UserInputError(f"{rig_config}: no such rig configuration; check --rig")
+    lab_url = _lab_url(lab, rig_config)
     token = None if loopback else new_secret()
     sock = listen(host, port)
     shown = f"[{host}]" if ":" in host else host
@@ -82,9 +87,22 @@ def serve(runs_dir: Path, rig_config: Path | None, host: str, port: int, allow_r
     if token and not quiet:
         print("rig serve: the token is shown once; anyone with this URL can operate the rig",
               file=sys.stderr, flush=True)  # fmt: skip
-    app = create_app(runs_dir, rig_config, access_token=token, loopback_only=loopback)
+    app = create_app(runs_dir, rig_config, access_token=token, loopback_only=loopback,
+                     lab_url=lab_url)  # fmt: skip
     config = uvicorn.Config(app, log_level="warning" if not quiet else "error", access_log=False,
                             lifespan="off", timeout_graceful_shutdown=1)  # fmt: skip
     server = uvicorn.Server(config)
     server.run(sockets=[sock])
     return 0
+
+
+def _lab_url(arg: str | None, rig_config: Path | None) -> str | None:
+    """The lab index for the Lab page (``--lab``, ``RIG_LAB_URL``, ``[lab] url``), or None."""
+    from rig.lab.url import resolve_url
+
+    raw = None
+    if rig_config is not None:
+        from rig.config import load_rig_config
+
+        raw = load_rig_config(rig_config).raw
+    return resolve_url(arg, raw, rig_config or "")

@@ -46,6 +46,23 @@ def connect(url: str, *, timeout_s: float = 10.0) -> psycopg.Connection[Any]:
         raise unavailable(url, exc) from None
 
 
+def open_index(url: str, *, timeout_s: float = 10.0) -> psycopg.Connection[Any]:
+    """A connection at the newest schema (migrated if behind); :class:`LabUnavailableError` when
+    the server cannot be reached or refuses. The caller closes it."""
+    import psycopg
+
+    conn = connect(url, timeout_s=timeout_s)
+    try:
+        ensure_schema(conn)
+    except psycopg.Error as exc:
+        conn.close()
+        raise unavailable(url, exc) from None
+    except BaseException:
+        conn.close()
+        raise
+    return conn
+
+
 def schema_version(conn: psycopg.Connection[Any]) -> str | None:
     """alembic's version of the index, None on an empty database."""
     with conn.cursor() as cur:

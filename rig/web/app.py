@@ -52,15 +52,20 @@ LIVE_POLL_S = 0.25
 class Site:
     """The state one server shares between its requests."""
 
-    def __init__(self, runs_dir: Path, rig_config: Path | None, csrf_secret: str) -> None:
+    def __init__(self, runs_dir: Path, rig_config: Path | None, csrf_secret: str,
+                 lab_url: str | None = None) -> None:  # fmt: skip
         self.runs_dir = runs_dir
         self.rig_config = rig_config
         self.csrf_secret = csrf_secret
+        self.lab_url = lab_url
         self.templates = Jinja2Templates(directory=str(HERE / "templates"))
 
     def page(self, request: Request, name: str, status: int = 200, **context: Any) -> Response:
         return self.templates.TemplateResponse(
-            request, name, {"csrf": self.csrf_secret, **context}, status_code=status
+            request,
+            name,
+            {"csrf": self.csrf_secret, "lab": self.lab_url is not None, **context},
+            status_code=status,
         )
 
     def folder(self, request: Request) -> Path | None:
@@ -69,9 +74,10 @@ class Site:
 
 def create_app(runs_dir: Path, rig_config: Path | None = None, *,
                access_token: str | None = None, loopback_only: bool = True,
-               csrf_secret: str | None = None) -> Guard:  # fmt: skip
-    """The application for ``runs_dir`` (and the cage of ``rig_config``), wrapped in its guard."""
-    site = Site(runs_dir, rig_config, csrf_secret or new_secret())
+               csrf_secret: str | None = None, lab_url: str | None = None) -> Guard:  # fmt: skip
+    """The application for ``runs_dir`` (the cage of ``rig_config``, the lab index at
+    ``lab_url``), wrapped in its guard."""
+    site = Site(runs_dir, rig_config, csrf_secret or new_secret(), lab_url)
 
     async def runs_page(request: Request) -> Response:
         return site.page(request, "runs.html", runs=list_summaries(site.runs_dir),
@@ -156,6 +162,55 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *,
                          running=[r for r in list_summaries(site.runs_dir)
                                   if r.status == "running"])  # fmt: skip
 
+    async def lab_page(request: Request) -> Response:
+        """/lab (runs), /lab/dut/SERIAL, /lab/trend?param=&lot=, /lab/audit."""
+        if site.lab_url is None:
+            return site.page(request, "lab.html", 404, view=None)
+        from rig.web import lab_views
+
+        view = "dut" if "serial" in request.path_params else request.path_params.get("view", "runs")
+        q = request.query_params
+        try:
+            if view == "runs":
+                limit = int(q.get("limit", "100")) if q.get("limit", "100").isdigit() else 100
+                data = await asyncio.to_thread(lab_views.lab_runs, site.lab_url, q.get("dut"),
+                                               q.get("status"), max(1, min(limit, 1000)))  # fmt: skip
+            elif view == "dut":
+                data = await asyncio.to_thread(lab_views.lab_dut, site.lab_url,
+                                               request.path_params["serial"])  # fmt: skip
+            elif view == "trend":
+                if not q.get("param"):
+                    return site.page(request, "lab.html", view="trend", data=None)
+                data = await asyncio.to_thread(lab_views.lab_trend, site.lab_url, q["param"],
+                                               q.get("lot"))  # fmt: skip
+            elif view == "audit":
+                data = await asyncio.to_thread(lab_views.lab_audit, site.lab_url)
+            else:
+                return site.page(request, "lab.html", 404, view=None)
+        except RigError as exc:  # the index is down or refused: say so, the runs stay local
+            return site.page(request, "lab.html", 503, view=view, error=str(exc))
+        return site.page(request, "lab.html", view=view, data=data, query=dict(q))
+
+    async def lab_trend_png(request: Request) -> Response:
+        if site.lab_url is None or not request.query_params.get("param"):
+            return Response("no lab index or no param\n", status_code=404, media_type="text/plain")
+        from rig.web import lab_views
+
+        tmp = Path(tempfile.mkdtemp(prefix="rig-trend-"))
+        png = tmp / "trend.png"
+        try:
+            data = await asyncio.to_thread(lab_views.lab_trend, site.lab_url,
+                                           request.query_params["param"],
+                                           request.query_params.get("lot"), png)  # fmt: skip
+        except RigError as exc:
+            shutil.rmtree(tmp, True)
+            return Response(f"{exc}\n", status_code=503, media_type="text/plain")
+        if not data["found"]:
+            shutil.rmtree(tmp, True)
+            return Response("no values\n", status_code=404, media_type="text/plain")
+        return FileResponse(png, media_type="image/png",
+                            background=BackgroundTask(shutil.rmtree, tmp, True))  # fmt: skip
+
     routes = [
         Route("/", runs_page),
         Route("/api/runs", runs_api),
@@ -166,6 +221,10 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *,
         Route("/runs/{run_id}/live", live_stream),
         Route("/runs/{run_id}/control", control, methods=["POST"]),
         Route("/cage", cage_page),
+        Route("/lab", lab_page),
+        Route("/lab/trend.png", lab_trend_png),
+        Route("/lab/dut/{serial}", lab_page, name="lab_dut"),
+        Route("/lab/{view}", lab_page),
         Mount("/static", StaticFiles(directory=str(HERE / "static")), name="static"),
     ]
     app = Starlette(routes=routes)

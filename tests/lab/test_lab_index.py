@@ -349,3 +349,54 @@ def test_a_password_in_the_rig_configuration_refuses_the_run(tmp_path: Path) -> 
         runner.run()
     assert PASSWORD not in str(err.value)
     assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.slow
+def test_the_same_views_on_the_rig_serve_page(synced: str, rig_dirs: list[Path]) -> None:
+    """`rig serve --lab URL` shows runs, a DUT's acceptances, a trend with its plot and the audit,
+    in Debian's chromium; without the index the Lab page says how to configure it."""
+    from playwright.sync_api import sync_playwright
+
+    from rig.child_process import stop_child
+    from tests.web.conftest import CHROMIUM_ARGS, chromium_path, screenshot, serve_process
+
+    server, url = serve_process(rig_dirs[0], "--lab", synced)
+    try:
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium_path(), args=CHROMIUM_ARGS)
+            page = browser.new_page(viewport={"width": 1280, "height": 900})
+            page.goto(url)
+            page.click("nav >> text=Lab")
+            assert page.inner_text("#lab-title") == "Lab index: runs of every rig"
+            rows = page.locator("table.lab tbody tr")
+            assert rows.count() == 100  # the page's default limit, newest first, every rig
+            page.fill("input[name=dut]", "SN-0007")
+            page.click("text=Show runs")
+            serials = page.locator("table.lab tbody td:nth-child(5)").all_inner_texts()
+            assert serials and set(serials) == {"SN-0007"}
+            page.locator("table.lab tbody a", has_text="SN-0007").first.click()
+            assert page.inner_text("#lab-title") == "Every run of DUT SN-0007"
+            assert page.locator("table.lab tbody tr").count() == len(serials)
+            page.goto(f"{url}lab/trend?param=x0_ut&lot=2")
+            page.wait_for_function("document.getElementById('trend-plot').naturalWidth > 500")
+            assert page.locator("tr.outlier").count() > 0
+            assert set(page.locator("tr.outlier td:nth-child(2)").all_inner_texts()) == {"cage-3"}
+            screenshot(page, "lab-trend")
+            page.click("text=Audit")
+            body = page.inner_text("main")
+            assert "runs with an expired instrument certificate (100)" in body
+            assert (
+                page.locator("table.lab").nth(2).locator("tbody tr td").first.inner_text()
+                == "cage-3"
+            )
+            browser.close()
+    finally:
+        stop_child(server, first=signal.SIGTERM, wait_s=5.0)
+    bare, bare_url = serve_process(rig_dirs[0])
+    try:
+        import httpx
+
+        r = httpx.get(f"{bare_url}lab")
+        assert r.status_code == 404 and "rig serve --lab" in r.text
+    finally:
+        stop_child(bare, first=signal.SIGTERM, wait_s=5.0)
