@@ -47,9 +47,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if not args.serve:
         return run_procedure(args.procedure, args.rig, args.set, args.runs_dir, args.yes,
                              args.quiet)  # fmt: skip
-    with page_server(args.runs_dir, args.rig, args.port, args.quiet):
+    with page_server(args.runs_dir, args.rig, args.port, args.quiet) as url:
         return run_procedure(args.procedure, args.rig, args.set, args.runs_dir, args.yes,
-                             args.quiet, serving=True)  # fmt: skip
+                             args.quiet, page_url=url)  # fmt: skip
 
 
 @contextlib.contextmanager
@@ -125,7 +125,7 @@ def run_procedure(
     runs_dir: Path,
     yes: bool,
     quiet: bool,
-    serving: bool = False,
+    page_url: str | None = None,
 ) -> int:
     """``rig run``: execute on the rig named by the configuration."""
     from rig.config import load_rig_config
@@ -136,7 +136,7 @@ def run_procedure(
     proc = parse_procedure(find_procedure(procedure), parse_sets(sets))
     cfg = load_rig_config(rig_config)
     confirm = auto_confirm(quiet) if yes else None
-    runner = Runner(proc, cfg, runs_dir, confirm=confirm, quiet=quiet, serving=serving)
+    runner = Runner(proc, cfg, runs_dir, confirm=confirm, quiet=quiet, page_url=page_url)
     outcome = runner.run()
     summarize(outcome, quiet)
     return outcome.exit_code

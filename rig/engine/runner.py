@@ -87,7 +87,7 @@ class Runner:
 
     def __init__(self, proc: Procedure, cfg: RigConfig, runs_dir: Path, *, i2c_bus: Any | None = None,
                  confirm: Confirm | None = None, quiet: bool = False, live: bool = True,
-                 guardian: bool = True, serving: bool = False) -> None:  # fmt: skip
+                 guardian: bool = True, page_url: str | None = None) -> None:  # fmt: skip
         self.proc = proc
         self.cfg = cfg
         self.runs_dir = runs_dir
@@ -109,7 +109,8 @@ class Runner:
         self.status_sources: list[Callable[[], str]] = []
         self.live_sources: list[Callable[[], dict[str, Any]]] = []  # structured, for the page
         self.publisher: LivePublisher | None = None
-        self.serving = serving
+        self.page_url = page_url  # the web page serving this run (rig run --serve), if any
+        self.serving = page_url is not None
         self.abort_reason: str | None = None
         self.holding = False  # paused and holding the schedule (a pause is asked by ``paused``)
         self.correction: dict[str, Any] | None = None
@@ -145,6 +146,9 @@ class Runner:
         shutil.copy(self.cfg.path, w.folder / "rig.toml")
         self.publisher = LivePublisher(self, self.timeline())
         self.publisher.start()
+        if self.page_url is not None:
+            print(f"rig: this run's page: {self.page_url.rstrip('/')}/runs/{w.folder.name}",
+                  file=sys.stderr, flush=True)  # fmt: skip
         old = self._install_signals()
         status, reason = "error", "unknown"
         try:

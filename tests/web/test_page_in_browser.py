@@ -125,7 +125,10 @@ def test_abort_from_the_page_leaves_every_output_off(
     try:
         page = browser.new_page(viewport={"width": 1280, "height": 900})
         page.on("dialog", lambda d: d.accept())  # "Abort the run?"
-        open_running_run(page, url)
+        run_page = read_url(proc, "this run's page:", stream=proc.stderr)
+        assert run_page.startswith(url) and "/runs/" in run_page
+        page.goto(run_page)  # the address the terminal printed for this run
+        page.wait_for_selector("#live:not([hidden])")
         deadline = time.monotonic() + 120
         while not any(v == 1 for v in outputs(devices, tcp_only=True).values()):
             assert proc.poll() is None, "the run ended before its outputs were on"
