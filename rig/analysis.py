@@ -95,6 +95,15 @@ def to_cage_frame(xyz: Array, correction: dict[str, Any] | None) -> Array:
     return np.asarray((xyz - o) @ m.T)
 
 
+def apply_correction(correction: dict[str, Any], measured_ut: Array, telemetry: Array,
+                     channels: list[str]) -> Array:  # fmt: skip
+    """A result file's correction ``h = matrix (m - offset - sum_j k_j u_j)`` of readings
+    ``measured_ut`` (N, 3) uT with telemetry (N, J) in the order of ``channels``."""
+    k = np.array([correction["k_ut_per_unit"][c] for c in channels], float).reshape(-1, 3)
+    bias = np.asarray(telemetry, float) @ k if k.size else 0.0
+    return to_cage_frame(np.asarray(measured_ut, float) - bias, correction)
+
+
 def hold_values(reader: RunReader, channel: str, t: Array) -> Array:
     """A channel's measured current (A) at times ``t`` (the last reading before each time)."""
     rows = [

@@ -28,3 +28,20 @@ def run_on_sim(
             cage.faults[name].reply_delay_s = delay
         return Runner(parse_procedure(folder / "procedure.yaml"), load_rig_config(folder / "rig.toml"),
                       folder / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False).run()  # fmt: skip
+
+
+TINY_PROCEDURE = """
+procedure: Tiny
+magnetometers: {dut: dut, reference: reference}
+parameters:
+  dut_serial: {default: SN-0042}
+  lot: {default: "7"}
+steps:
+  - null_field: {hold_s: 1}
+    name: noise floor
+  - check:
+      criteria:
+        - {result: noise floor, value: dut_noise_nt, max: 200, name: DUT noise at null field}
+"""
+"""A null field and a check on it, a few seconds: a closed run with a verdict (serial SN-0042,
+lot 7)."""

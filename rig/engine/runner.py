@@ -28,6 +28,7 @@ import numpy as np
 from drivers.errors import DeviceError
 from drivers.protocols import Load
 from rig import __version__
+from rig.analysis import apply_correction
 from rig.config import RigConfig
 from rig.devices import thermometer_names
 from rig.engine.cpu_wait import CpuWaitLog
@@ -40,7 +41,7 @@ from rig.engine.temperature_log import TemperatureLog
 from rig.errors import RigError, RunAborted
 from rig.lab.url import resolve_url
 from rig.procedure.language import Procedure
-from rig.procedure.plan import StepPlan, compile_plan, rig_timing
+from rig.procedure.plan import StepPlan, compile_plan, rig_timing, step_duration
 from rig.steps import KINDS
 from rig.steps.base import ChangeListener
 from rig.store.run_store import RunReader, RunWriter, new_run
@@ -110,7 +111,6 @@ class Runner:
         self.live_sources: list[Callable[[], dict[str, Any]]] = []  # structured, for the page
         self.publisher: LivePublisher | None = None
         self.page_url = page_url  # the web page serving this run (rig run --serve), if any
-        self.serving = page_url is not None
         self.abort_reason: str | None = None
         self.holding = False  # paused and holding the schedule (a pause is asked by ``paused``)
         self.correction: dict[str, Any] | None = None
@@ -261,10 +261,11 @@ class Runner:
             self.publisher.note_event(t, level, message)
 
     def timeline(self) -> list[tuple[str, float]]:
-        """Every step's name and planned duration (s), compiled once."""
+        """Every step's name and nominal duration (s), worked out once without compiling the
+        steps' commands (an orbit replay's take a quarter of a second)."""
         if self._timeline is None:
-            self._timeline = [(p.step.name, p.duration_s)
-                              for p in compile_plan(self.proc, rig_timing(self.cfg))]  # fmt: skip
+            timing = rig_timing(self.cfg)
+            self._timeline = [(step.name, step_duration(step, timing)) for step in self.proc.steps]
         return self._timeline
 
     def abort_from(self, reason: str) -> None:
@@ -281,10 +282,10 @@ class Runner:
         for value in reversed(list(self.results.values())):
             corr = value.get("correction") if isinstance(value, dict) else None
             if isinstance(corr, dict) and "matrix" in corr:
-                m = np.asarray(raw_ut, float) - np.asarray(corr["offset_ut"], float)
-                for ch, k in corr.get("k_ut_per_unit", {}).items():
-                    m = m - np.asarray(k, float) * float(self.commanded_loads.get(ch, 0.0))
-                return np.asarray(corr["matrix"], float) @ m
+                channels = list(corr.get("k_ut_per_unit", {}))
+                loads = np.array([[self.commanded_loads.get(ch, 0.0) for ch in channels]])
+                return apply_correction(corr, np.asarray(raw_ut, float)[None, :], loads,
+                                        channels)[0]  # fmt: skip
         return None
 
     def _open(self, stack: ExitStack) -> None:
@@ -609,7 +610,7 @@ class Runner:
         terminal = _terminal_answers() if sys.stdin.isatty() else None
         if terminal is not None:
             terminal.ask(f"\n{text} [y/N] ")
-        elif not self.serving:
+        elif self.page_url is None:
             raise RigError(f"the procedure asks the operator: {text!r}; run in a terminal,"
                            " answer it on the page ('rig run --serve'), or pass --yes")  # fmt: skip
         while True:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from rig.analysis import stored_run_data
+from rig.analysis import apply_correction, stored_run_data
 from rig.calibration import calibrate
 from rig.calibration.targets import SIGMA_TARGETS, group_of
 from rig.errors import RigError
@@ -63,11 +63,7 @@ def _calibration_series(
         s, t, _ = stored_run_data(reader, channels, field_kinds=field_kinds())
     except RigError:
         return None
-    w = np.array(res["correction"]["matrix"])
-    o = np.array(res["correction"]["offset_ut"])
-    k = np.array([res["correction"]["k_ut_per_unit"][c] for c in channels]).reshape(-1, 3)
-    bias = o + (s.telemetry @ k if k.size else 0.0)
-    corrected = (s.measured_ut - bias) @ w.T
+    corrected = apply_correction(res["correction"], s.measured_ut, s.telemetry, channels)
     return {
         "t": t - float(meta.get("start_monotonic", t[0])),
         "raw": np.linalg.norm(s.measured_ut, axis=1),

@@ -293,29 +293,14 @@ def test_lab_help_and_no_heavy_import() -> None:
     assert proc.returncode == 0, proc.stderr
 
 
-TINY = """
-procedure: Tiny
-magnetometers: {dut: dut, reference: reference}
-parameters:
-  dut_serial: {default: SN-0042}
-  lot: {default: "7"}
-steps:
-  - null_field: {hold_s: 1}
-    name: noise floor
-  - check:
-      criteria:
-        - {result: noise floor, value: dut_noise_nt, max: 200, name: DUT noise at null field}
-"""
-
-
 @pytest.mark.slow
 def test_a_run_on_the_simulator_lands_in_the_index_at_close(
     lab_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from tests.simrun import run_on_sim
+    from tests.simrun import TINY_PROCEDURE, run_on_sim
 
     monkeypatch.setenv("RIG_LAB_URL", lab_url)
-    outcome = run_on_sim(tmp_path, TINY)
+    outcome = run_on_sim(tmp_path, TINY_PROCEDURE)
     assert outcome.status == "complete", outcome.reason
     with psycopg.connect(lab_url) as conn:
         run = conn.execute("SELECT run_id, dut_serial, lot, status, verdict, data_sha256, host"

@@ -19,27 +19,14 @@ import pytest
 
 from rig.child_process import stop_child
 from rig.store import run_control
-from tests.simrun import run_on_sim
+from tests.simrun import TINY_PROCEDURE, run_on_sim
 from tests.web.conftest import serve_process
-
-PROCEDURE = """
-procedure: Tiny
-magnetometers: {dut: dut, reference: reference}
-parameters:
-  dut_serial: {default: SN-0042}
-steps:
-  - null_field: {hold_s: 1}
-    name: noise floor
-  - check:
-      criteria:
-        - {result: noise floor, value: dut_noise_nt, max: 200, name: DUT noise at null field}
-"""
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("served")
-    outcome = run_on_sim(folder, PROCEDURE)
+    outcome = run_on_sim(folder, TINY_PROCEDURE)
     assert outcome.status == "complete", outcome.reason
     (folder / "secret.txt").write_text("not for the page")
     return folder / "runs"
