@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from rig.lab.schema import connect, ensure_schema, unavailable
+from rig.lab.schema import open_index, unavailable
 from rig.lab.summary import RunSummary, sealed_key, summarize
 
 if TYPE_CHECKING:
@@ -49,9 +49,8 @@ def sync_runs(url: str, folders: Iterable[Path], *, timeout_s: float = 10.0,
     import psycopg
 
     report = SyncReport()
-    conn = connect(url, timeout_s=timeout_s)
+    conn = open_index(url, timeout_s=timeout_s)
     try:
-        ensure_schema(conn)
         todo = list(folders)
         for start in range(0, len(todo), BATCH):
             batch = todo[start : start + BATCH]

@@ -172,7 +172,7 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *,
         q = request.query_params
         try:
             if view == "runs":
-                limit = int(q.get("limit", "100")) if q.get("limit", "100").isdigit() else 100
+                limit = int(q["limit"]) if q.get("limit", "").isdigit() else 100
                 data = await asyncio.to_thread(lab_views.lab_runs, site.lab_url, q.get("dut"),
                                                q.get("status"), max(1, min(limit, 1000)))  # fmt: skip
             elif view == "dut":
