@@ -19,9 +19,11 @@ from sim.physics import Faults
 
 
 class AsciiMagnetometer:
-    """Line-oriented magnetometer: ``x y z`` in uT, newline-terminated."""
+    """Line-oriented magnetometer: ``x y z`` in uT, newline-terminated. ``read_ut(t_s)`` is the
+    field (uT) at device time ``t_s`` (monotonic s): each line carries the field of its own sample
+    time, also when our thread woke late and sends several lines back to back."""
 
-    def __init__(self, read_ut: Callable[[], np.ndarray], faults: Faults, *, rate_hz: float = 20.0,
+    def __init__(self, read_ut: Callable[[float], np.ndarray], faults: Faults, *, rate_hz: float = 20.0,
                  baudrate: int = 115200, line_format: str = "{x:.4f} {y:.4f} {z:.4f}",
                  seed: int = 0) -> None:  # fmt: skip
         self.read_ut = read_ut
@@ -46,11 +48,12 @@ class AsciiMagnetometer:
         period = 1.0 / self.rate_hz
         next_t = time.monotonic()
         while not self._stop.wait(max(0.0, next_t - time.monotonic())):
+            sample_t = next_t  # the sensor samples on its own clock, however late we are
             next_t += period
             if self.faults.silent or self.faults.disconnect:
                 continue
-            x, y, z = (float(v) for v in self.read_ut())
-            line = self.line_format.format(x=x, y=y, z=z, t=time.monotonic() - self._t0) + "\n"
+            x, y, z = (float(v) for v in self.read_ut(sample_t))
+            line = self.line_format.format(x=x, y=y, z=z, t=sample_t - self._t0) + "\n"
             data = damage(line.encode("ascii"), self.faults, self._rng)
             try:
                 os.write(self.pty.master, data)

@@ -101,8 +101,8 @@ class SimulatedCage:
                 mag = self.physics.magnetometers[m.name]
                 self.faults[m.name] = mag.faults
 
-                def reader(name: str = m.name) -> Any:
-                    return self.physics.read_magnetometer(name)
+                def reader(t_s: float, name: str = m.name) -> Any:
+                    return self.physics.read_magnetometer(name, t_s)
 
                 if m.kind == "hmr2300":
                     dev = Hmr2300(reader, mag.faults, device_id=m.endpoint.device_id,

@@ -65,11 +65,12 @@ def ascii_frame(counts: tuple[int, int, int]) -> bytes:
 
 
 class Hmr2300:
-    """The device. ``read_ut`` returns the sensor's field (uT) at the moment of sampling; frames
-    sent back to back after our thread was late are all read at the moment it runs, not at their
-    slot times (``read_ut`` takes no time argument)."""
+    """The device. ``read_ut(t_s)`` returns the sensor's field (uT) at device time ``t_s``
+    (monotonic s): each streamed sample is taken at its slot time, so frames sent back to back
+    after our thread was late carry the field of their own slots, as a real sensor's would, not
+    the field at the moment the thread ran."""
 
-    def __init__(self, read_ut: Callable[[], np.ndarray], faults: Faults, *, device_id: int = 0,
+    def __init__(self, read_ut: Callable[[float], np.ndarray], faults: Faults, *, device_id: int = 0,
                  baudrate: int = 9600, serial_number: str = "0123", seed: int = 0) -> None:  # fmt: skip
         self.read_ut = read_ut
         self.faults = faults
@@ -158,8 +159,9 @@ class Hmr2300:
     def _reply(self, text: str) -> None:
         self._send(text.encode("ascii") + b"\r")
 
-    def _sample(self) -> bytes:
-        reading = np.asarray(self.read_ut(), dtype=float)
+    def _sample(self, at_s: float | None = None) -> bytes:
+        """One output frame of the field at device time ``at_s`` (s; default now)."""
+        reading = np.asarray(self.read_ut(time.monotonic() if at_s is None else at_s), dtype=float)
         if self.average:
             self._avg = reading if self._avg is None else 0.5 * reading + 0.5 * self._avg
             reading = self._avg
@@ -271,7 +273,7 @@ class Hmr2300:
         elif cmd in ("ZN", "ZF", "ZR"):
             self.zero_on = {"ZN": True, "ZF": False, "ZR": not self.zero_on}[cmd]
             if self.zero_on:
-                self.zero_offset = np.asarray(self.read_ut(), dtype=float)
+                self.zero_offset = np.asarray(self.read_ut(time.monotonic()), dtype=float)
             self._reply("ZERO ON" if self.zero_on else "ZERO OFF")
         elif cmd in ("VN", "VF", "V"):
             self.average = {"VN": True, "VF": False, "V": not self.average}[cmd]
@@ -308,7 +310,7 @@ class Hmr2300:
             if self._last_start > due:
                 self.samples_skipped += 1  # a frame is already waiting behind the one on the wire
                 continue
-            self._send(self._sample(), at_s=due)
+            self._send(self._sample(due), at_s=due)
             self.stream_clock = (self.samples_sent, due)
 
     def _run(self) -> None:

@@ -38,8 +38,9 @@ class Rm3100:
     """The device's registers and measurement timing."""
 
     def __init__(
-        self, read_ut: Callable[[], np.ndarray], faults: Faults, address: int = 0x20
+        self, read_ut: Callable[[float], np.ndarray], faults: Faults, address: int = 0x20
     ) -> None:
+        """``read_ut(t_s)``: the field (uT) at device time ``t_s`` (monotonic s)."""
         self.read_ut = read_ut
         self.faults = faults
         self.address = address
@@ -61,11 +62,12 @@ class Rm3100:
     def _conversion_s(self) -> float:
         return sum(self.cycle_counts()) * SECONDS_PER_CYCLE
 
-    def _measure(self) -> None:
-        """Latch a reading into MX..MZ and raise DRDY."""
+    def _measure(self, done_s: float) -> None:
+        """Latch the reading of the conversion that completed at ``done_s`` (device time s: the
+        field in the middle of its integration) into MX..MZ and raise DRDY."""
         if self.faults.stuck and self.regs[STATUS] & 0x80:
             return
-        reading = np.asarray(self.read_ut(), dtype=float)
+        reading = np.asarray(self.read_ut(done_s - 0.5 * self._conversion_s()), dtype=float)
         for i, cc in enumerate(self.cycle_counts()):
             counts = round(float(reading[i]) * gain_counts_per_ut(cc))
             counts = max(-(1 << 23), min((1 << 23) - 1, counts)) & 0xFFFFFF
@@ -75,14 +77,14 @@ class Rm3100:
     def _advance(self) -> None:
         now = time.monotonic()
         if self._ready_at is not None and now >= self._ready_at:
-            self._ready_at = None
-            self._measure()
+            done_s, self._ready_at = self._ready_at, None
+            self._measure(done_s)
         if self._continuous_since is not None:
             rate = min(TMRC_HZ.get(self.regs[TMRC], 37.0), 1.0 / self._conversion_s())
             index = int((now - self._continuous_since) * rate)
             if index > self._last_cont_index:
                 self._last_cont_index = index
-                self._measure()
+                self._measure(self._continuous_since + index / rate)
 
     def write(self, reg: int, data: bytes) -> None:
         """Register write with auto-increment."""
