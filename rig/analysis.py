@@ -12,6 +12,7 @@ from rig.calibration import Samples, calibrate
 from rig.calibration.estimators import DEFAULT_METHOD, estimator
 from rig.errors import CalibrationError, UserInputError
 from rig.store.run_store import RunReader
+from rig.timing import MisdatedHold, misdated_note, misdated_samples
 
 Array = npt.NDArray[np.float64]
 
@@ -28,6 +29,9 @@ class PairedSamples(NamedTuple):
     """Monotonic time of each sample (s)."""
     unresolved: int
     """DUT samples left out because the field moved faster than the reference could follow."""
+    misdated: tuple[MisdatedHold, ...] = ()
+    """Holds where the DUT moved while the reference and every command held still: those samples
+    are left out (:func:`rig.timing.misdated_samples`)."""
 
 
 TRACK_RAMP_S = 0.01
@@ -247,7 +251,9 @@ def calibration_data(
 
     A DUT sample is left out (and counted) when the reference samples around it show the field
     jumping between them (:func:`unresolved_field`): the reference cannot say which field the DUT
-    saw. Polarity flips, ramps and commands a supply took late (a busy computer) make such jumps."""
+    saw. Polarity flips, ramps and commands a supply took late (a busy computer) make such jumps.
+    With holds (``settle_s`` > 0), DUT samples that moved at the edge of a hold while the reference
+    and every command held still contradict their dates and are left out too (rig.timing)."""
     rows = np.array(reader.samples(dut), float).reshape(-1, 4)
     ref = np.array(reader.samples(reference), float).reshape(-1, 4)
     if rows.shape[0] == 0 or ref.shape[0] < 2:
@@ -259,6 +265,7 @@ def calibration_data(
     # a step change would mix in a reference reading taken during the ramp (seen as 0.5-0.8 uT
     # errors). settle_s = 0 declares a tracked field (orbit replay), where interpolating is right.
     changes = change_times(reader)
+    issued_s = changes[:, 0].copy()
     if settle_s > 0:
         changes[:, 0] -= 1.5 * float(np.median(np.diff(ref[:, 0])))
     keep = _in_windows(t, step_windows(reader, steps, field_kinds)) & settled(t, changes, settle_s)
@@ -273,12 +280,16 @@ def calibration_data(
             "the field moved faster than the reference could follow at every DUT sample"
         )
     keep[keep] = ~jumps
+    misdated: list[MisdatedHold] = []
+    if settle_s > 0:
+        wrong, misdated = misdated_samples(t, rows[:, 1:], keep, ref[:, 0], ref[:, 1:], issued_s)
+        keep &= ~wrong
     t = t[keep]
     field = np.column_stack([np.interp(t, ref[:, 0], ref[:, 1 + i]) for i in range(3)])
     field = to_cage_frame(field, correction)
     u = np.column_stack([hold_values(reader, ch, t) for ch in telemetry]) if telemetry else None
     samples = Samples.build(rows[keep, 1:], field_ut=field, telemetry=u, channels=tuple(telemetry))
-    return PairedSamples(samples, t, int(jumps.sum()))
+    return PairedSamples(samples, t, int(jumps.sum()), tuple(misdated))
 
 
 def unresolved_field(ref: Array, t_s: Array) -> npt.NDArray[np.bool_]:
@@ -322,7 +333,7 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
     """The ``calibrate`` step: fit the DUT from the run so far (the named steps, or every step of
     ``field_kinds``); returns the result file content."""
     dut = magnetometers.get(params["magnetometer"], params["magnetometer"])
-    samples, t_s, unresolved = calibration_data(
+    samples, t_s, unresolved, misdated = calibration_data(
         reader, dut, magnetometers.get("reference", "reference"), params["telemetry"],
         params["steps"], params["settle_s"], correction, field_kinds)  # fmt: skip
     method = params["method"] or DEFAULT_METHOD[params["model"]]
@@ -336,11 +347,16 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
     out = calibrate(samples, method, noise_nt=params["noise_nt"] or None, temperature=temperature,
                     temperature_ref=params.get("temperature_ref_c")).to_dict()  # fmt: skip
     out["unresolved_field_samples"] = unresolved
+    out["misdated_samples"] = sum(m.samples for m in misdated)
+    out["timing_error_s"] = max((abs(m.early_s) for m in misdated), default=0.0)
     if no_temperature:
         out["warnings"].insert(0, f"{no_temperature} samples left out: no {params['temperature']}"
                                f" reading within {MAX_TEMPERATURE_GAP_S:g} s")  # fmt: skip
     if unresolved:
         out["warnings"].insert(0, unresolved_note(unresolved, samples.n + unresolved))
+    if misdated:
+        judged = samples.n + unresolved + out["misdated_samples"]
+        out["warnings"].insert(0, misdated_note(misdated, judged))
     return out
 
 

@@ -433,6 +433,7 @@ def _calibrate_run(args: argparse.Namespace) -> int:
     )
     from rig.steps import field_kinds
     from rig.store import RunReader
+    from rig.timing import misdated_note
 
     if args.temperature_ref is not None and args.temperature is None:
         raise UserInputError("--temperature-ref needs --temperature THERMOMETER")
@@ -441,7 +442,9 @@ def _calibrate_run(args: argparse.Namespace) -> int:
         if args.temperature:
             recorded_thermometer(reader, args.temperature)
         telemetry = list(args.telemetry) if args.telemetry else list(reader.meta().get("loads", []))
-        samples, t_s, unresolved = stored_run_data(reader, telemetry, field_kinds=field_kinds())
+        samples, t_s, unresolved, misdated = stored_run_data(
+            reader, telemetry, field_kinds=field_kinds()
+        )
         width_s = 2.0 * float(np.median(np.diff(t_s))) if t_s.size > 1 else 0.1
         series = {ch: telemetry_series(reader, ch, width_s) for ch in args.delay}
         locked = {ch: phase_locked_interval_s(load_commands(reader, ch), t_s) for ch in args.delay}
@@ -461,5 +464,8 @@ def _calibrate_run(args: argparse.Namespace) -> int:
                   " sigma says", file=sys.stderr)  # fmt: skip
     if unresolved and not args.quiet:
         print(f"note: {unresolved_note(unresolved, samples.n + unresolved)}", file=sys.stderr)
+    if misdated and not args.quiet:
+        judged = samples.n + unresolved + sum(m.samples for m in misdated)
+        print(f"note: {misdated_note(misdated, judged)}", file=sys.stderr)
     return _fit_and_emit(samples, args, times_s=t_s if args.delay else None, series=series,
                          temperature=temperature)  # fmt: skip

@@ -60,7 +60,7 @@ def _calibration_series(
 
     channels = list(res["channels"])
     try:
-        s, t, _ = stored_run_data(reader, channels, field_kinds=field_kinds())
+        s, t, *_ = stored_run_data(reader, channels, field_kinds=field_kinds())
     except RigError:
         return None
     corrected = apply_correction(res["correction"], s.measured_ut, s.telemetry, channels)
@@ -222,7 +222,7 @@ def without_telemetry(reader: RunReader, res: dict[str, Any]) -> dict[str, Any] 
     if not res["channels"]:
         return None
     try:
-        s, _, _ = stored_run_data(reader, [], field_kinds=field_kinds())
+        s, *_ = stored_run_data(reader, [], field_kinds=field_kinds())
         if res["model"] == "scalar":
             s = s.as_scalar()
         return calibrate(s, res["method"]).to_dict()

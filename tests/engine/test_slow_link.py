@@ -35,7 +35,7 @@ def test_load_telemetry_of_every_settled_sample_is_the_current_then_set(tmp_path
     assert outcome.status == "complete", outcome.reason
     reader = RunReader(outcome.folder)
     try:
-        samples, t, _ = calibration_data(reader, "dut", "reference", ["load_panel"], ["steps"], 0.25,
+        samples, t, *_ = calibration_data(reader, "dut", "reference", ["load_panel"], ["steps"], 0.25,
                                       None, field_kinds())  # fmt: skip
         sets = [(tt, p["current_a"]) for tt, _, k, p in reader.commands() if k == "load"]
     finally:
