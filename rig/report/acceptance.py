@@ -21,6 +21,7 @@ from rig.analysis import apply_correction, stored_run_data
 from rig.calibration import calibrate
 from rig.calibration.targets import SIGMA_TARGETS, group_of
 from rig.errors import RigError
+from rig.report.scaling import mark_outliers, robust_limits
 from rig.report.sections import (
     PdfLine,
     calibration_section,
@@ -104,8 +105,10 @@ def make_figures(reader: RunReader, meta: dict[str, Any], results: dict[str, Any
         figs.append(_figure(f"Field magnitude: raw, calibrated ('{cal_name}') and reference", fig))
 
         fig, ax = plt.subplots(figsize=(9, 3.6))
+        limits = robust_limits(series["residual_nt"])
         for i, axis in enumerate("xyz"):
             ax.plot(t, series["residual_nt"][:, i], ".", ms=2, label=f"residual {axis}")
+        mark_outliers(ax, np.repeat(t, 3), series["residual_nt"].ravel(), limits, "nT")
         ax.set_xlabel("time since start (s)")
         ax.set_ylabel("calibrated minus reference (nT)")
         ax.grid(alpha=0.3)
@@ -120,10 +123,15 @@ def make_figures(reader: RunReader, meta: dict[str, Any], results: dict[str, Any
 
         fig, ax = plt.subplots(figsize=(6, 3.4))
         r = series["residual_nt"].ravel()
-        ax.hist(r, bins=60, color="tab:blue", alpha=0.8)
+        limits = robust_limits(r)
+        ax.hist(np.clip(r, limits.lo, limits.hi), bins=60, range=(limits.lo, limits.hi),
+                color="tab:blue", alpha=0.8)  # fmt: skip
         ax.set_xlabel("residual per axis (nT)")
         ax.set_ylabel("samples")
-        ax.set_title(f"rms {np.sqrt(np.mean(r**2)):.1f} nT, mean {np.mean(r):.1f} nT", fontsize=9)
+        beyond = (f"; {limits.outside} beyond the axis, counted in its end bins (most extreme"
+                  f" {limits.extreme:.0f} nT)" if limits.outside else "")  # fmt: skip
+        ax.set_title(f"rms {np.sqrt(np.mean(r**2)):.1f} nT, mean {np.mean(r):.1f} nT{beyond}",
+                     fontsize=9)  # fmt: skip
         figs.append(_figure("Residual histogram", fig))
 
         f = series["field"]

@@ -1,0 +1,31 @@
+"""Report plots stay readable when a few samples are far out (rig.report.scaling; issue 30)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rig.report.scaling import robust_limits
+
+
+def test_a_few_wild_samples_do_not_set_the_axis() -> None:
+    rng = np.random.default_rng(1)
+    residual_nt = 20.0 * rng.standard_normal(3000)
+    residual_nt[[100, 101]] = [24_520.0, -23_000.0]  # two misdated samples
+    limits = robust_limits(residual_nt)
+    assert -200.0 < limits.lo < -60.0 and 60.0 < limits.hi < 200.0  # the bulk, not +-25 000
+    assert limits.outside == 2
+    assert limits.extreme == 24_520.0
+
+
+def test_clean_data_are_all_shown() -> None:
+    rng = np.random.default_rng(2)
+    residual_nt = 20.0 * rng.standard_normal(3000)
+    limits = robust_limits(residual_nt)
+    assert limits.outside == 0
+    assert limits.lo < residual_nt.min() and limits.hi > residual_nt.max()
+
+
+def test_empty_and_constant() -> None:
+    assert robust_limits([]).outside == 0
+    flat = robust_limits(np.full(10, 5.0))
+    assert flat.lo < 5.0 < flat.hi and flat.outside == 0
