@@ -31,20 +31,30 @@ def _cmd_check(args: argparse.Namespace) -> int:
     return run_check(args.procedure, args.rig, args.set, args.quiet)
 
 
-def cage_model_arrays(cfg: RigConfig | None) -> tuple[Any, Any]:
-    """The cage model for a dry run: the calibration file if there is one, else the nominal K."""
+def cage_model_arrays(cfg: RigConfig | None) -> tuple[Any, Any, Any, str]:
+    """The cage model for a dry run: (K uT/A, b0 uT, its uncertainty, where it comes from) from
+    the last characterization if there is one, else the nominal K with an ambient field not yet
+    known (None for all when the rig has no cage model)."""
+    from rig.procedure.plan import EARTH_MAX_UT, MODEL_SIGMAS, CageModelUncertainty
+
     if cfg is None or cfg.cage is None:
-        return None, None
+        return None, None, None, ""
     import numpy as np
 
     from rig.cage.model import CageModel
 
     if cfg.cage.calibration is not None and cfg.cage.calibration.exists():
         m = CageModel.load(cfg.cage.calibration)
-        return m.k_ut_per_a, m.b0_ut
+        when = m.meta.get("date", "undated")
+        return (m.k_ut_per_a, m.b0_ut, CageModelUncertainty(m.k_sigma, m.b0_sigma_ut),
+                f"the cage characterization of {when} ({cfg.cage.calibration}), currents at"
+                f" {MODEL_SIGMAS:g} sigma of it")  # fmt: skip
     if cfg.cage.nominal_k_ut_per_a is not None:
-        return np.array(cfg.cage.nominal_k_ut_per_a), np.zeros(3)
-    return None, None
+        return (np.array(cfg.cage.nominal_k_ut_per_a), np.zeros(3),
+                CageModelUncertainty(unknown_ambient_ut=EARTH_MAX_UT),
+                "nominal_k_ut_per_a: no cage characterization yet, so the ambient field is not"
+                " counted until the procedure characterizes the cage")  # fmt: skip
+    return None, None, None, ""
 
 
 def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: bool) -> int:
@@ -58,7 +68,7 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
 
     proc = parse_procedure(find_procedure(procedure), parse_sets(sets))
     cfg = load_rig_config(rig_config) if rig_config else None
-    k, b0 = cage_model_arrays(cfg)
+    k, b0, uncertainty, model_source = cage_model_arrays(cfg)
     loads_max = {}
     unchecked: list[str] = []
     if cfg is not None:
@@ -77,6 +87,7 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
         cage.max_field_ut if cage else None,
         loads_max,
         rig_timing(cfg),
+        uncertainty,
     )
     if cfg is None:
         unchecked.append(
@@ -107,7 +118,10 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
             + (f" (limit {cage.max_field_ut:g})" if cage else "")
         )
         if k is not None:
-            print("peak coil currents " + ", ".join(f"{'xyz'[i]} {a:.3f} A" for i, a in enumerate(dr.peak_current_a))
+            print(f"cage model: {model_source}")
+            print("peak coil currents " + ", ".join(
+                f"{'xyz'[i]} {a:.3f}" + (f" +-{m:.3f}" if m >= 0.0005 else "") + " A"
+                for i, (a, m) in enumerate(zip(dr.peak_current_a, dr.peak_margin_a, strict=True)))
                   + (f" (limits {', '.join(f'{x:g}' for x in cage.max_current_a)} A)" if cage else ""))  # fmt: skip
         for ch, amps in dr.peak_load_a.items():
             limit_text = f" (limit {loads_max[ch]:g})" if ch in loads_max else ""
@@ -119,6 +133,8 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
             )
     for v in dr.violations:
         print(f"LIMIT: {v}")
+    for r in dr.at_risk:
+        print(f"AT RISK: {r}")
     for u in unchecked:
         print(f"NOT CHECKED: {u}")
     if not quiet:
@@ -126,6 +142,10 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
             print(f"{len(dr.violations)} limit violation(s): fix the procedure")
         elif unchecked:
             print("limits NOT CHECKED (see above): not known to be safe on the rig")
+        elif dr.at_risk:
+            print("OK with the model as it is, but AT RISK (above) once the"
+                  " ambient field is measured: characterize the cage (rig cage characterize) and"
+                  " check again, or lower those fields")  # fmt: skip
         else:
             print(f"OK: within the limits of {cfg.path if cfg else '?'}")
     return 0 if not dr.violations and not unchecked else 1

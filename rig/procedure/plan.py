@@ -72,8 +72,48 @@ class DryRun:
     peak_field_ut: float = 0.0
     peak_current_a: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     peak_load_a: dict[str, float] = field(default_factory=dict)
+    peak_margin_a: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    """Per axis, the uncertainty margin (A) at the peak: 3 sigma of the cage model, or what an
+    ambient field not yet characterized may add."""
     violations: list[str] = field(default_factory=list)
+    at_risk: list[str] = field(default_factory=list)
+    """Limits that hold with the model as it is but not with its margin when the margin is an
+    unknown ambient field (no characterization yet): the run finds out after characterizing."""
     timeline: list[tuple[float, str, str]] = field(default_factory=list)  # start, step, summary
+
+
+MODEL_SIGMAS = 3.0
+"""Coil currents are judged at the cage model's value plus this many of its standard deviations."""
+EARTH_MAX_UT = 66.0
+"""The largest geomagnetic field on Earth (uT, near the south magnetic pole): the ambient field a
+cage without a characterization may have to cancel."""
+
+
+@dataclass(frozen=True)
+class CageModelUncertainty:
+    """How well the dry run knows the cage: 1-sigma of the coil matrix (uT/A) and ambient (uT)
+    from a characterization, or, with none yet, an ambient field of unknown direction up to
+    ``unknown_ambient_ut``."""
+
+    k_sigma: Array | None = None
+    b0_sigma_ut: Array | None = None
+    unknown_ambient_ut: float = 0.0
+
+
+def current_margin_a(
+    k_ut_per_a: Array, currents_a: npt.ArrayLike, u: CageModelUncertainty
+) -> tuple[Array, Array]:
+    """Per axis, (3-sigma margin from the characterization, margin from an unknown ambient) in A
+    for ``currents_a``: ``|K^-1| (3 sigma_b0 + 3 |sigma_K| |I|)`` and ``B_max |row_i K^-1|``."""
+    inv = np.linalg.inv(k_ut_per_a)
+    sigma_field = np.zeros(3)
+    if u.b0_sigma_ut is not None:
+        sigma_field = sigma_field + np.abs(u.b0_sigma_ut)
+    if u.k_sigma is not None:
+        sigma_field = sigma_field + np.abs(u.k_sigma) @ np.abs(np.asarray(currents_a, float))
+    model = MODEL_SIGMAS * (np.abs(inv) @ sigma_field)
+    ambient = u.unknown_ambient_ut * np.linalg.norm(inv, axis=1)
+    return model, ambient
 
 
 ABSOLUTE_MAX_FIELD_UT = 1000.0
@@ -89,9 +129,15 @@ def dry_run(
     max_field_ut: float | None = None,
     load_max_a: dict[str, float] | None = None,
     timing: RigTiming | None = None,
+    uncertainty: CageModelUncertainty | None = None,
 ) -> DryRun:
     """Check a procedure without hardware; currents need the cage model (``k_ut_per_a``, ``b0_ut``).
-    Fields beyond :data:`ABSOLUTE_MAX_FIELD_UT` are violations even without the rig's limits."""
+    Fields beyond :data:`ABSOLUTE_MAX_FIELD_UT` are violations even without the rig's limits.
+    With ``uncertainty``, a coil current is a violation when it exceeds its limit with the
+    model's 3-sigma margin, and at risk when only an unknown ambient field would take it there."""
+    given = uncertainty or CageModelUncertainty()
+    u = CageModelUncertainty(given.k_sigma, given.b0_sigma_ut)  # no unknown ambient until ...
+    risky: dict[tuple[int, int], tuple[int, float, str]] = {}  # (step, axis): count, worst A, text
     out = DryRun()
     t = 0.0
     for plan in compile_plan(proc, timing):
@@ -116,12 +162,37 @@ def dry_run(
                 )
             if k_ut_per_a is not None:
                 currents = np.linalg.solve(k_ut_per_a, f - (b0_ut if b0_ut is not None else 0.0))
+                model_a, ambient_a = current_margin_a(k_ut_per_a, currents, u)
                 for ax in range(3):
-                    out.peak_current_a[ax] = max(out.peak_current_a[ax], abs(float(currents[ax])))
-                    if max_current_a is not None and abs(currents[ax]) > max_current_a[ax] + 1e-9:
-                        out.violations.append(
-                            f"{s.where}: step {s.index + 1} ({s.name}): field {np.round(f, 1).tolist()} uT needs {currents[ax]:+.2f} A on axis {'xyz'[ax]}, beyond {max_current_a[ax]:g} A"
+                    amps = abs(float(currents[ax]))
+                    if (
+                        amps + model_a[ax] + ambient_a[ax]
+                        >= out.peak_current_a[ax] + out.peak_margin_a[ax]
+                    ):
+                        out.peak_margin_a[ax] = float(model_a[ax] + ambient_a[ax])
+                    out.peak_current_a[ax] = max(out.peak_current_a[ax], amps)
+                    if max_current_a is None:
+                        continue
+                    where = f"{s.where}: step {s.index + 1} ({s.name}): field {np.round(f, 1).tolist()} uT needs {currents[ax]:+.2f} A on axis {'xyz'[ax]}"
+                    if amps + model_a[ax] > max_current_a[ax] + 1e-9:
+                        margin = (
+                            f" (+-{model_a[ax]:.2f} A at {MODEL_SIGMAS:g} sigma of the cage model)"
+                            if model_a[ax] > 0
+                            else ""
                         )
+                        out.violations.append(f"{where}{margin}, beyond {max_current_a[ax]:g} A")
+                    elif amps + model_a[ax] + ambient_a[ax] > max_current_a[ax] + 1e-9:
+                        worst = amps + model_a[ax] + ambient_a[ax]
+                        key = (s.index, ax)
+                        count = risky.get(key, (0, 0.0, ""))[0] + 1
+                        if worst >= risky.get(key, (0, 0.0, ""))[1]:
+                            risky[key] = (
+                                count,
+                                worst,
+                                f"{where}; with an ambient field of up to {u.unknown_ambient_ut:g} uT (not characterized yet) up to {worst:.2f} A, beyond {max_current_a[ax]:g} A",
+                            )
+                        else:
+                            risky[key] = (count, *risky[key][1:])
         peak = KINDS[s.kind].peak_coil_current_a(s)
         if peak is not None:  # +-peak on every axis, outside field commands
             for ax in range(3):
@@ -139,6 +210,8 @@ def dry_run(
                     out.violations.append(
                         f"{s.where}: step {s.index + 1} ({s.name}): load {ch} {amps:g} A exceeds {limit:g} A"
                     )
+        if KINDS[s.kind].measures_cage_model:  # ... the run measures the ambient it cancels
+            u = given
         t += plan.duration_s
         if t > MAX_TOTAL_DURATION_S and not any(
             "MAX_TOTAL_DURATION_S" in v for v in out.violations
@@ -151,4 +224,7 @@ def dry_run(
     out.duration_s = t
     # keep each violation once (sweeps repeat the same message per point)
     out.violations = list(dict.fromkeys(out.violations))
+    out.at_risk = [
+        text + (f" (the worst of {n} fields)" if n > 1 else "") for n, _, text in risky.values()
+    ]
     return out

@@ -147,13 +147,13 @@ def billion_laughs(levels: int = 9) -> str:
 
 def test_an_alias_bomb_in_a_parameter_default_is_refused_at_once(tmp_path: Path) -> None:
     p = write(tmp_path, billion_laughs())
-    t0 = time.monotonic()
+    t0 = time.thread_time()  # CPU time of this thread: our work, not the scheduler's
     with pytest.raises(
         ProcedureError,
         match=r"p\.yaml:\d+: more than 500000 values with YAML aliases expanded \(MAX_YAML_NODES",
     ):
         parse_procedure(p)
-    assert time.monotonic() - t0 < 1.0  # about 1 ms; was a hang with growing memory
+    assert time.thread_time() - t0 < 1.0  # about 1 ms; was a hang with growing memory
 
 
 def test_aliases_within_the_limits_still_work(tmp_path: Path) -> None:
@@ -178,33 +178,33 @@ def test_aliases_within_the_limits_still_work(tmp_path: Path) -> None:
     ],
 )  # fmt: skip
 def test_hostile_yaml_is_refused_with_its_line(tmp_path: Path, text: str, message: str) -> None:
-    t0 = time.monotonic()
+    t0 = time.thread_time()  # CPU time of this thread: our work, not the scheduler's
     with pytest.raises(ProcedureError, match=message):
         parse_procedure(write(tmp_path, text))
-    assert time.monotonic() - t0 < 1.0
+    assert time.thread_time() - t0 < 1.0
 
 
 def test_twenty_thousand_steps_are_refused_quickly_and_ten_thousand_parse(tmp_path: Path) -> None:
     p = write(tmp_path, "procedure: T\nsteps:\n" + "  - hold: {hold_s: 1}\n" * 20_000)
-    t0 = time.monotonic()
+    t0 = time.thread_time()  # CPU time of this thread: our work, not the scheduler's
     with pytest.raises(
         ProcedureError,
         match=rf"p\.yaml:{MAX_STEPS + 3}: step {MAX_STEPS + 1}: a procedure has at most {MAX_STEPS} steps \(MAX_STEPS\)",
     ):
         parse_procedure(p)
-    assert time.monotonic() - t0 < 2.0  # about 0.2 s: it stops reading at step 10 001
+    assert time.thread_time() - t0 < 2.0  # about 0.2 s: it stops reading at step 10 001
     p = write(tmp_path, "procedure: T\nsteps:\n" + "  - hold: {hold_s: 1}\n" * MAX_STEPS)
     assert len(parse_procedure(p).steps) == MAX_STEPS
 
 
 def test_a_million_steps_are_refused_by_the_file_size_before_reading(tmp_path: Path) -> None:
     p = write(tmp_path, "procedure: T\nsteps:\n" + "  - report: {}\n" * 1_000_000)
-    t0 = time.monotonic()
+    t0 = time.thread_time()  # CPU time of this thread: our work, not the scheduler's
     with pytest.raises(
         ProcedureError, match=r"p\.yaml: larger than 1048576 bytes \(MAX_PROCEDURE_FILE_BYTES\)"
     ):
         parse_procedure(p)
-    assert time.monotonic() - t0 < 1.0  # was 299 s and 4.1 GB
+    assert time.thread_time() - t0 < 1.0  # was 299 s and 4.1 GB
 
 
 def test_duration_and_load_set_points_are_bounded_with_the_step(tmp_path: Path) -> None:

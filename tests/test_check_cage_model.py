@@ -1,0 +1,91 @@
+"""`rig check --rig` judges coil currents with what the rig knows of its cage (issue 30): the last
+characterization with its 3-sigma uncertainty, or, with none yet, an ambient field that a
+characterization step inside the procedure will measure and the currents will then cancel."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.cage.model import SCHEMA
+from rig.cli import main
+from rig.procedure.plan import EARTH_MAX_UT, CageModelUncertainty, current_margin_a
+
+RIG = """
+[cage]
+axes = {{ x = "coil_x", y = "coil_y", z = "coil_z" }}
+max_current_a = [2.5, 2.5, 2.5]
+max_field_ut = 120.0
+max_slew_a_per_s = 10.0
+nominal_k_ut_per_a = [[40.0, 0.0, 0.0], [0.0, 40.0, 0.0], [0.0, 0.0, 40.0]]
+{calibration}
+""" + "".join(
+    f'\n[devices.{n}]\nkind = "riden-rd60xx"\nprotocol = "modbus-tcp"\nhost = "127.0.0.1"\nport = 9\n'
+    for n in ("coil_x", "coil_y", "coil_z")
+)
+CHARACTERIZE = "  - characterize_cage: {amplitude_a: 1.0, samples: 10, repeats: 1}\n"
+HOLD_Z_80 = "  - set_field: {field_ut: [0, 0, 80], hold_s: 1}\n"  # 2.0 A on z with no ambient
+
+
+def write(
+    tmp_path: Path, steps: str, calibration: dict[str, object] | None = None
+) -> tuple[Path, Path]:
+    proc = tmp_path / "p.yaml"
+    proc.write_text("procedure: T\nsteps:\n" + steps)
+    line = ""
+    if calibration is not None:
+        (tmp_path / "cage.json").write_text(json.dumps({"schema": SCHEMA, **calibration}))
+        line = f'calibration = "{tmp_path / "cage.json"}"'
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text(RIG.format(calibration=line))
+    return proc, cfg
+
+
+def test_margins_follow_the_model_and_the_unknown_ambient() -> None:
+    k = 40.0 * np.eye(3)
+    model, ambient = current_margin_a(k, [1.0, 0.0, 2.0], CageModelUncertainty(
+        k_sigma=np.full((3, 3), 0.1), b0_sigma_ut=np.array([0.5, 0.5, 0.5])))  # fmt: skip
+    # 3 * (0.5 + 0.1 * (1 + 0 + 2)) / 40 per axis
+    assert model == pytest.approx(np.full(3, 3 * 0.8 / 40))
+    assert ambient == pytest.approx(np.zeros(3))
+    _, ambient = current_margin_a(
+        k, [0, 0, 0], CageModelUncertainty(unknown_ambient_ut=EARTH_MAX_UT)
+    )
+    assert ambient == pytest.approx(np.full(3, EARTH_MAX_UT / 40))
+
+
+def test_no_characterization_yet_puts_late_fields_at_risk(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    proc, cfg = write(tmp_path, HOLD_Z_80 + CHARACTERIZE + HOLD_Z_80)
+    assert main(["check", str(proc), "--rig", str(cfg)]) == 0  # within the limits as known
+    out = capsys.readouterr().out
+    assert "cage model: nominal_k_ut_per_a: no cage characterization yet" in out
+    risks = [line for line in out.splitlines() if line.startswith("AT RISK:")]
+    # only the field after the characterization: before it the currents ignore the ambient
+    assert len(risks) == 1 and "p.yaml:5: step 3" in risks[0] and "axis z" in risks[0]
+    assert f"ambient field of up to {EARTH_MAX_UT:g} uT" in risks[0] and "up to 3.65 A" in risks[0]
+    assert "AT RISK (above)" in out
+
+
+def test_a_characterization_with_its_uncertainty_decides(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cal = {"k_ut_per_a": (40.0 * np.eye(3)).tolist(), "b0_ut": [19.6, 1.2, -16.0],
+           "k_sigma_ut_per_a": np.zeros((3, 3)).tolist(), "b0_sigma_ut": [0.0, 0.0, 0.0],
+           "date": "2026-11-25T10:00:00+00:00"}  # fmt: skip
+    proc, cfg = write(tmp_path, HOLD_Z_80, cal)
+    # (80 + 16) / 40 = 2.4 A: inside 2.5 A with an exact model
+    assert main(["check", str(proc), "--rig", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "the cage characterization of 2026-11-25T10:00:00+00:00" in out and "z 2.400 A" in out
+    # the same characterization known to 1.5 uT on z: 2.4 + 3 * 1.5 / 40 = 2.51 A > 2.5 A
+    cal["b0_sigma_ut"] = [0.0, 0.0, 1.5]
+    proc, cfg = write(tmp_path, HOLD_Z_80, cal)
+    assert main(["check", str(proc), "--rig", str(cfg)]) == 1
+    out = capsys.readouterr().out
+    assert "LIMIT:" in out and "+-0.11 A at 3 sigma of the cage model" in out
+    assert "z 2.400 +-0.113 A" in out
