@@ -82,7 +82,8 @@ def run_phase(tmp: Path, runs: int, parallel: bool) -> list[dict[str, Any]]:
             if f.get("status") not in ("complete", "failed"):
                 f["reason"] = f.get("reason") or err.decode(errors="replace").strip()[-200:]
             out.append(f)
-            print(_row(f"{i + 1}{d.name[-1]}", f) + (f"  ({f['reason']})" if f.get("reason") else ""),
+            ended = f.get("status") not in ("complete", "failed") and f.get("reason")
+            print(_row(f"{i + 1}{d.name[-1]}", f) + (f"  ({f['reason']})" if ended else ""),
                   flush=True)  # fmt: skip
     return out
 

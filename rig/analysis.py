@@ -347,8 +347,8 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
     out = calibrate(samples, method, noise_nt=params["noise_nt"] or None, temperature=temperature,
                     temperature_ref=params.get("temperature_ref_c")).to_dict()  # fmt: skip
     out["unresolved_field_samples"] = unresolved
-    out["misdated_samples"] = sum(m.samples for m in misdated)
-    out["timing_error_s"] = max((abs(m.early_s) for m in misdated), default=0.0)
+    out["misdated_samples"] = int(sum(m.samples for m in misdated))
+    out["timing_error_s"] = float(max((abs(m.early_s) for m in misdated), default=0.0))
     if no_temperature:
         out["warnings"].insert(0, f"{no_temperature} samples left out: no {params['temperature']}"
                                f" reading within {MAX_TEMPERATURE_GAP_S:g} s")  # fmt: skip

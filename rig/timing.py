@@ -37,8 +37,11 @@ MIN_HOLD = 6
 """Holds with fewer settled samples are not judged (too few for a noise estimate)."""
 LEVEL = 3
 """Samples on each side of a candidate jump whose median is its level."""
-FLOOR_UT = 1e-3
-"""Smallest noise believed (uT): a quantized, noiseless stream must not make every LSB a jump."""
+FLOOR_UT = 0.02
+"""Smallest sample-to-sample noise believed (uT): a quantized stream (HMR2300: 6.7 nT per count)
+has mostly zero differences and a tiny robust spread, which would make a few counts of drift a
+"jump"; with this floor a jump must exceed 0.24 uT, far beyond what settles wrongly by chance and
+far below the microtesla effects of a misdated load or field change."""
 
 
 class MisdatedHold(NamedTuple):
@@ -112,6 +115,7 @@ def misdated_samples(t_s: Array, dut_ut: Array, keep: Mask, ref_t: Array, ref_ut
     found: list[MisdatedHold] = []
     starts = np.sort(np.asarray(change_starts_s, float))
     for first, end in _holds(keep):
+        first, end = int(first), int(end)
         if end - first < MIN_HOLD:
             continue
         t, x = t_s[first:end], dut_ut[first:end]
@@ -126,11 +130,13 @@ def misdated_samples(t_s: Array, dut_ut: Array, keep: Mask, ref_t: Array, ref_ut
         if issued_next - t[k] <= EDGE_S:  # moved before the next change was issued
             out[first + k : end] = True
             found.append(
-                MisdatedHold(float(t[k]), issued_next - float(t[k]), jump_ut, end - first - k)
+                MisdatedHold(
+                    float(t[k]), float(issued_next - t[k]), float(jump_ut), int(end - first - k)
+                )
             )
         elif t[k] - t[0] <= EDGE_S:  # still moving after the hold was taken as settled
             out[first : first + k] = True
-            found.append(MisdatedHold(float(t[k]), -(float(t[k]) - float(t[0])), jump_ut, k))
+            found.append(MisdatedHold(float(t[k]), -float(t[k] - t[0]), float(jump_ut), int(k)))
     return out, found
 
 

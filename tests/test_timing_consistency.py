@@ -103,3 +103,12 @@ def test_the_loaded_machine_run_refits_within_its_criteria(tmp_path: Path, metho
     assert "147 ms before the next change was issued" in proc.stderr
     result = json.loads(out.read_text())
     assert result["residual_rms_nt"] < 60.0
+
+
+def test_findings_are_plain_numbers_for_the_result_file() -> None:
+    """A run records its results as JSON: numpy integers there ended a loaded run in an error."""
+    t, dut, ref_t, ref = hold()
+    dut[-3:] += 5.0
+    _, found = misdated_samples(t, dut, np.ones(t.size, bool), ref_t, ref, np.array([t[-1] + 0.05]))
+    json.dumps([f._asdict() for f in found])
+    assert all(type(v) in (int, float) for f in found for v in f)
