@@ -148,7 +148,10 @@ def test_deleted_and_added_files_and_tables(run: Path, capsys: pytest.CaptureFix
     code, out = _verify(run, capsys)
     assert "CHANGED (data CHANGED, reports CHANGED, other files CHANGED)" in out[0], out
     assert "  DATA     table plots added to run.sqlite since the run was sealed" in out
-    assert "  DATA     index channels_channel_t dropped from run.sqlite since the run was sealed" in out
+    assert (
+        "  DATA     index channels_channel_t dropped from run.sqlite since the run was sealed"
+        in out
+    )
 
 
 def test_changed_data_and_a_stale_report_are_told_apart(
