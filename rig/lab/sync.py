@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import os
 import sqlite3
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -58,10 +59,11 @@ class SyncReport:
 
 
 def run_folders(runs_dir: Path) -> list[Path]:
-    """Every run folder under ``runs_dir`` (holding ``run.sqlite``), oldest first."""
+    """Every run folder under ``runs_dir`` (holding ``run.sqlite``, even a link that the sync then
+    refuses), oldest first."""
     if not runs_dir.is_dir():
         return []
-    return sorted(p for p in runs_dir.iterdir() if (p / "run.sqlite").exists())
+    return sorted(p for p in runs_dir.iterdir() if os.path.lexists(p / "run.sqlite"))
 
 
 def sync_runs(url: str, folders: Iterable[Path], *, timeout_s: float = 10.0,

@@ -203,7 +203,7 @@ class RunWriter:
             self._con.close()
         try:
             seal_run(self.folder)
-        except (sqlite3.Error, OSError) as exc:
+        except (sqlite3.Error, OSError, safe_files.UnsafeFileError) as exc:
             problems.append(f"could not seal the run in {self.folder} ({exc})")
         return problems
 
@@ -250,7 +250,7 @@ class RunReader:
                 ),
             )
             self._con.commit()
-            with contextlib.suppress(sqlite3.Error, OSError):
+            with contextlib.suppress(sqlite3.Error, OSError, safe_files.UnsafeFileError):
                 seal_run(folder)  # closed now: nobody will write to it again
 
     def meta(self) -> dict[str, Any]:

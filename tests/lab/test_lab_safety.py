@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import sqlite3
 import subprocess
 import sys
@@ -138,6 +139,21 @@ def test_a_locked_index_table_holds_a_closing_run_at_most_the_bound(
     print(f"sync alone {took:.2f} s; run exit {after_close:.2f} s after its seal (locked table)")
     # with the lock gone, the next sync adds both
     assert len(sync_runs(lab_url, [later, outcome.folder]).added) == 2
+
+
+def test_a_linked_run_sqlite_is_one_line_and_the_others_sync(lab_url: str, tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    folders = generate_runs(runs, 3, rig="cage-1", seed=17)
+    real = tmp_path / "elsewhere.sqlite"
+    os.replace(folders[1] / "run.sqlite", real)
+    (folders[1] / "run.sqlite").symlink_to(real)
+    before = real.read_bytes()
+    proc = rig_lab("sync", "--runs-dir", str(runs), "--json", url=lab_url)
+    assert proc.returncode == 0 and json.loads(proc.stdout)["added"] == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"cannot read run {folders[1].name}" in lines[0], lines
+    assert "run.sqlite: is a symbolic link" in lines[0]
+    assert real.read_bytes() == before
 
 
 @pytest.mark.parametrize("key", ["pass%77ord", "%70assword", "PASS%57ORD", "%70%61%73%73word"])
