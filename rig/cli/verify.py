@@ -48,6 +48,11 @@ def verify(folder: Path, quiet: bool) -> int:
         result = verify_run(folder)
     except sqlite3.DatabaseError as exc:
         raise damaged(folder, exc) from None
+    except OSError as exc:  # a file or sub-folder the account may not read
+        raise UserInputError(
+            f"{folder}: cannot read {exc.filename or 'the run folder'} ({exc.strerror}); verify"
+            " as the run's owner"
+        ) from None
     scope = "" if result.manifest else "; data and sealed copies only: the run has no manifest"
     if result.intact:
         if not quiet:

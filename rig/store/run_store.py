@@ -250,7 +250,7 @@ class RunReader:
                 ),
             )
             self._con.commit()
-            with contextlib.suppress(sqlite3.Error, OSError, safe_files.UnsafeFileError):
+            with contextlib.suppress(sqlite3.Error, OSError):
                 seal_run(folder)  # closed now: nobody will write to it again
 
     def meta(self) -> dict[str, Any]:

@@ -229,3 +229,26 @@ def test_a_damaged_run_is_listed_and_never_hides_the_others(
         assert main([command, str(run)]) == 2
         err = capsys.readouterr().err.strip()
         assert "run.sqlite is damaged" in err and len(err.splitlines()) == 1, err
+
+
+def test_the_manifest_learns_only_files_the_rig_writes_into_a_closed_run(
+    run: Path, tmp_path: Path
+) -> None:
+    from rig.store import new_run
+    from rig.store.seal import read_manifest, record_written
+
+    before = read_manifest(run)
+    assert before is not None and "report.html" in before["files"]
+    outside = _outside(tmp_path, "elsewhere.csv")
+    (run / "notes.txt").write_text("an operator's note")  # not the rig's: stays unlisted
+    assert record_written(run, [outside, run / "report.html"], "test")
+    after = read_manifest(run)
+    assert after is not None and set(after["files"]) == set(before["files"])
+    assert "notes.txt" not in after["files"] and "elsewhere.csv" not in after["files"]
+    live = new_run(tmp_path / "live", "SN-2", procedure="p")  # still running: no seal, no manifest
+    (live.folder / "report.txt").write_text("early")
+    assert not record_written(live.folder, [live.folder / "report.txt"], "test")
+    assert read_manifest(live.folder) is None
+    live.close("complete", "done")  # sealing lists what the folder holds
+    manifest = read_manifest(live.folder)
+    assert manifest is not None and set(manifest["files"]) == {"report.txt"}
