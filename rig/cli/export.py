@@ -25,6 +25,7 @@ def export_run(run: str, runs_dir: Path, fmt: str, out: Path | None) -> int:
     """``rig export``."""
     from rig.store import RunReader
     from rig.store.export import export_csv, export_hdf5
+    from rig.store.seal import record_written
 
     folder = resolve_run(run, runs_dir)
     reader = RunReader(folder)
@@ -33,8 +34,9 @@ def export_run(run: str, runs_dir: Path, fmt: str, out: Path | None) -> int:
             files = export_csv(reader, out or folder / "csv")
             print(f"wrote {len(files)} files to {files[0].parent}")
         else:
-            path = export_hdf5(reader, out or folder / "run.h5")
-            print(f"wrote {path}")
+            files = [export_hdf5(reader, out or folder / "run.h5")]
+            print(f"wrote {files[0]}")
     finally:
         reader.close()
+    record_written(folder, files, "rig export")  # those inside the run folder: verify knows them
     return 0

@@ -58,7 +58,8 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     trend.set_defaults(func=_cmd_trend)
 
     audit = cmds.add_parser("audit", parents=both,
-                            help="expired certificates, unsealed runs, which rig has the outliers")  # fmt: skip
+                            help="expired certificates, unsealed and refused runs, which rig has"
+                                 " the outliers")  # fmt: skip
     audit.set_defaults(func=_cmd_audit)
 
 
@@ -97,11 +98,19 @@ def _cmd_sync(args: argparse.Namespace) -> int:
     report = sync_runs(url, run_folders(args.runs_dir))
     for problem in report.unreadable:
         print(f"rig: WARNING: cannot read run {problem}; skipped", file=sys.stderr)
+    for problem in report.refused:
+        print(f"rig: WARNING: run {problem}; not pushed (in 'rig lab audit')", file=sys.stderr)
+    for problem in report.not_stored:
+        print(f"rig: WARNING: the index cannot store run {problem}; skipped (in 'rig lab audit')",
+              file=sys.stderr)  # fmt: skip
     summary = {"added": len(report.added), "already_indexed": report.present,
-               "still_running": len(report.running), "unreadable": len(report.unreadable)}  # fmt: skip
+               "still_running": len(report.running), "unreadable": len(report.unreadable),
+               "refused": len(report.refused), "not_stored": len(report.not_stored)}  # fmt: skip
+    refused = len(report.refused) + len(report.not_stored)
     _emit(args, summary, f"{len(report.added)} runs added to {masked(url)}"
-          f" ({report.present} already there, {len(report.running)} still running)")  # fmt: skip
-    return 0
+          f" ({report.present} already there, {len(report.running)} still running"
+          + (f", {refused} refused" if refused else "") + ")")  # fmt: skip
+    return 1 if refused else 0
 
 
 def _cmd_runs(args: argparse.Namespace) -> int:
@@ -176,6 +185,8 @@ def _cmd_audit(args: argparse.Namespace) -> int:
     text = "\n\n".join([
         "runs with an expired instrument certificate:\n" + table(found["expired_certificates"]),
         "runs without a seal (no data hash):\n" + table(found["unsealed"]),
+        "runs a sync refused (changed since sealed, or not storable):\n"
+        + table(found["refused"], ["run_id", "rig", "kind", "last_at", "attempts", "reason"]),
         "per rig: failed criteria and values outside their lot's control limits:\n"
         + table(found["rigs"]),
     ])  # fmt: skip

@@ -42,6 +42,9 @@ def list_runs_cmd(runs_dir: Path, quiet: bool) -> int:
     print(f"{'RUN':<{width}} {'STATUS':<10} {'VERDICT':<7} {'PROCEDURE':<24} DUT")
     for r in runs:
         m = r.meta
+        if r.status == "damaged":  # listed, never hiding the others: rig verify RUN says why
+            print(f"{r.run_id:<{width}} {'damaged':<10} {'-':<7} (run.sqlite cannot be read)")
+            continue
         print(
             f"{r.run_id:<{width}} {r.status:<10} {run_verdict(r.folder) or '-':<7}"
             f" {m.get('procedure', ''):<24} {m.get('dut_serial', '') or '-'}"

@@ -1,5 +1,6 @@
 """The lab index's questions: runs, every acceptance of a DUT, a parameter's trend with control
-limits, and the audit (expired certificates, unsealed runs, which rig produces the outliers).
+limits, and the audit (expired certificates, unsealed runs, runs refused by a sync, which rig
+produces the outliers).
 
 Each function returns rows as dicts (JSON-ready: times as ISO strings); units as stored (criteria
 in their ``unit``, calibration parameters as in the result file).
@@ -103,7 +104,7 @@ def trend(conn: psycopg.Connection[Any], param: str, *, lot: str | None = None) 
 
 def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
     """Runs that used an instrument whose certificate had expired; runs without a seal (no data
-    hash); and per rig: runs, failed criteria and calibration values outside their lot's
+    hash); runs a sync refused (changed since they were sealed, or not storable); and per rig: runs, failed criteria and calibration values outside their lot's
     control limits (mean +- 3 sigma of the parameter over the lot)."""
     expired = _rows(conn, """
         SELECT r.run_id, r.rig, r.started_at, r.dut_serial, i.name AS instrument, i.serial,
@@ -113,6 +114,9 @@ def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
     unsealed = _rows(conn, """
         SELECT r.run_id, r.rig, r.started_at, r.status FROM lab_runs r
         WHERE r.data_sha256 IS NULL ORDER BY r.started_at, r.id""")  # fmt: skip
+    refused = _rows(conn, """
+        SELECT run_id, rig, kind, reason, sealed_sha256, first_at, last_at, attempts
+        FROM lab_refusals ORDER BY last_at DESC, run_id""")  # fmt: skip
     per_rig = _rows(conn, f"""
         WITH vals AS MATERIALIZED (
             SELECT r.rig, coalesce(r.lot, '') AS lot, s.name, s.value
@@ -137,7 +141,8 @@ def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
                coalesce(o.outliers::float / nullif(o.n, 0), 0) AS outlier_fraction
         FROM rigs g LEFT JOIN crit c USING (rig) LEFT JOIN outliers o USING (rig)
         ORDER BY outlier_fraction DESC, failed_fraction DESC, g.rig""")  # fmt: skip
-    return {"expired_certificates": expired, "unsealed": unsealed, "rigs": per_rig}
+    return {"expired_certificates": expired, "unsealed": unsealed, "refused": refused,
+            "rigs": per_rig}  # fmt: skip
 
 
 def table(rows: list[Row], columns: list[str] | None = None) -> str:

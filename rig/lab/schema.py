@@ -16,7 +16,7 @@ from rig.lab.url import masked
 if TYPE_CHECKING:
     import psycopg
 
-HEAD = "0001"
+HEAD = "0002"
 """The newest migration (``migrations/versions``): the schema this code reads and writes."""
 MIGRATION_LOCK = 0x716C6162  # "qlab": the advisory lock key serializing migrations
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
@@ -35,23 +35,43 @@ def unavailable(url: str, exc: BaseException) -> LabUnavailableError:
     )
 
 
-def connect(url: str, *, timeout_s: float = 10.0) -> psycopg.Connection[Any]:
+def connect(
+    url: str, *, timeout_s: float = 10.0, statement_timeout_s: float | None = None
+) -> psycopg.Connection[Any]:
     """A connection (not autocommit); :class:`LabUnavailableError` when the server cannot be reached
-    or refuses the login. Credentials come from the URL, PGPASSWORD or ~/.pgpass (libpq's own)."""
+    or refuses the login. Credentials come from the URL, PGPASSWORD or ~/.pgpass (libpq's own).
+    ``statement_timeout_s``: the session's ``statement_timeout``, and ``lock_timeout`` at 90% of
+    it (a statement waiting longer for the server, or for a lock, is cancelled: the error says
+    which)."""
     import psycopg
 
     try:
-        return psycopg.connect(url, connect_timeout=max(1, round(timeout_s)))
+        conn = psycopg.connect(url, connect_timeout=max(2, round(timeout_s)))
     except psycopg.Error as exc:
         raise unavailable(url, exc) from None
+    if statement_timeout_s is not None:
+        ms = max(1, round(1000 * statement_timeout_s))
+        try:
+            with conn.cursor() as cur:
+                cur.execute("SELECT set_config('statement_timeout', %s, false),"
+                            " set_config('lock_timeout', %s, false)",
+                            (str(ms), str(max(1, round(0.9 * ms)))))  # fmt: skip
+            conn.commit()
+        except psycopg.Error as exc:
+            conn.close()
+            raise unavailable(url, exc) from None
+    return conn
 
 
-def open_index(url: str, *, timeout_s: float = 10.0) -> psycopg.Connection[Any]:
+def open_index(
+    url: str, *, timeout_s: float = 10.0, statement_timeout_s: float | None = None
+) -> psycopg.Connection[Any]:
     """A connection at the newest schema (migrated if behind); :class:`LabUnavailableError` when
-    the server cannot be reached or refuses. The caller closes it."""
+    the server cannot be reached or refuses. The caller closes it. ``statement_timeout_s``: see
+    :func:`connect`."""
     import psycopg
 
-    conn = connect(url, timeout_s=timeout_s)
+    conn = connect(url, timeout_s=timeout_s, statement_timeout_s=statement_timeout_s)
     try:
         ensure_schema(conn)
     except psycopg.Error as exc:

@@ -15,9 +15,12 @@ from pathlib import Path
 from typing import Any
 
 from rig.lab.url import rig_name
+from rig.store import safe_files
 from rig.store.run_store import RunReader
 from rig.store.seal import REPORT_FILES, read_seal
 
+MAX_CONFIG_BYTES = 1 << 20
+"""A run's rig.toml copy larger than this is not read."""
 UNSEALED = "unsealed"
 """The hash part of the key of a closed run that has no seal (recorded before seals existed)."""
 
@@ -133,7 +136,7 @@ def summarize(folder: Path) -> RunSummary | None:
         started_at=started,
         sealed_at=_str(seal.get("sealed_at")),
         software_version=_str(meta.get("software_version")),
-        report_files=[name for name in REPORT_FILES if (folder / name).exists()],
+        report_files=[n for n in REPORT_FILES if safe_files.is_regular_file(folder / n)],
         instruments=instruments(config, started),
         criteria=criteria(verdict),
         results=calibration_results(results),
@@ -147,8 +150,8 @@ def _str(value: Any) -> str | None:
 def _config_copy(path: Path) -> dict[str, Any]:
     """The run's copy of the rig configuration ({} when missing or unreadable)."""
     try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return tomllib.loads(safe_files.read_text(path, MAX_CONFIG_BYTES))
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError, safe_files.UnsafeFileError):
         return {}
 
 

@@ -7,20 +7,39 @@
   killed at any point leaves whole runs only, and the next sync pushes the rest.
 * Offline-first: the run folders are the record; an index that is down is one error line
   (:class:`~rig.lab.schema.LabUnavailableError`) and the next sync catches up.
+* Checked: a sealed run's data are recomputed before it is pushed (:func:`seal_problem`); a run
+  whose data, tables or configuration copies no longer match its seal is refused, and so is one
+  the index cannot store (a NUL byte in a string, a constraint). Each refusal is one line in the
+  report and a row of ``lab_refusals`` (``rig lab audit``); the other runs sync.
+* Bounded: every statement, lock waits included, ends within ``timeout_s`` (the session's
+  ``statement_timeout`` and ``lock_timeout``), so a locked table cannot hold a closing run.
 """
 
 from __future__ import annotations
 
+import os
+import sqlite3
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rig.lab.schema import open_index, unavailable
-from rig.lab.summary import RunSummary, sealed_key, summarize
+from rig.lab.summary import RunSummary, run_key, sealed_key, summarize
+from rig.store import safe_files
+from rig.store.seal import verify_run
 
 if TYPE_CHECKING:
     import psycopg
+
+
+def unstorable() -> tuple[type[Exception], ...]:
+    """Errors that are one run's (a string PostgreSQL cannot hold, a constraint, a number out of
+    range), not the index's."""
+    import psycopg
+
+    return (psycopg.DataError, psycopg.IntegrityError, ValueError, TypeError, OverflowError)
+
 
 BATCH = 200
 """Run folders whose keys are looked up in the index with one query."""
@@ -28,57 +47,134 @@ BATCH = 200
 
 @dataclass
 class SyncReport:
-    """What a sync did: runs added, already there, still running (skipped), unreadable."""
+    """What a sync did: runs added, already there, still running (skipped), unreadable, refused
+    (changed since sealed), not stored (the index refused them); the last three with the reason."""
 
     added: list[str] = field(default_factory=list)
     present: int = 0
     running: list[str] = field(default_factory=list)
     unreadable: list[str] = field(default_factory=list)
+    refused: list[str] = field(default_factory=list)
+    not_stored: list[str] = field(default_factory=list)
 
 
 def run_folders(runs_dir: Path) -> list[Path]:
-    """Every run folder under ``runs_dir`` (holding ``run.sqlite``), oldest first."""
+    """Every run folder under ``runs_dir`` (holding ``run.sqlite``, even a link that the sync then
+    refuses), oldest first."""
     if not runs_dir.is_dir():
         return []
-    return sorted(p for p in runs_dir.iterdir() if (p / "run.sqlite").is_file())
+    return sorted(p for p in runs_dir.iterdir() if os.path.lexists(p / "run.sqlite"))
 
 
 def sync_runs(url: str, folders: Iterable[Path], *, timeout_s: float = 10.0,
               on_added: Callable[[RunSummary], None] | None = None) -> SyncReport:  # fmt: skip
-    """Push every closed run of ``folders`` that the index lacks; see the module docstring."""
+    """Push every closed run of ``folders`` that the index lacks; see the module docstring.
+    ``timeout_s`` bounds the connection and every statement (a lock wait included)."""
     import psycopg
 
     report = SyncReport()
-    conn = open_index(url, timeout_s=timeout_s)
+    conn = open_index(url, timeout_s=timeout_s, statement_timeout_s=timeout_s)
     try:
         todo = list(folders)
         for start in range(0, len(todo), BATCH):
             batch = todo[start : start + BATCH]
-            keys = {f: sealed_key(f) for f in batch}
+            keys = {f: _sealed_key(f) for f in batch}
             known = _known(conn, [k for k in keys.values() if k is not None])
             for folder in batch:
                 key = keys[folder]
                 if key is not None and key in known:
                     report.present += 1
                     continue
-                try:
-                    summary = summarize(folder)
-                except Exception as exc:  # a damaged folder must not stop the others
-                    report.unreadable.append(f"{folder.name} ({type(exc).__name__}: {exc})")
-                    continue
-                if summary is None:
-                    report.running.append(folder.name)
-                elif insert_run(conn, summary):
-                    report.added.append(summary.run_id)
-                    if on_added is not None:
-                        on_added(summary)
-                else:
-                    report.present += 1
+                _sync_one(conn, folder, report, on_added)
     except psycopg.Error as exc:  # the server went away mid-sync: what is committed stays
         raise unavailable(url, exc) from None
     finally:
         conn.close()
     return report
+
+
+def _sealed_key(folder: Path) -> str | None:
+    try:
+        return sealed_key(folder)
+    except safe_files.UnsafeFileError:
+        return None  # summarize says why
+
+
+def _sync_one(conn: psycopg.Connection[Any], folder: Path, report: SyncReport,
+              on_added: Callable[[RunSummary], None] | None) -> None:  # fmt: skip
+    """One run: read, checked against its seal, inserted; a refusal is reported and recorded."""
+    try:
+        summary = summarize(folder)
+        problem = None if summary is None else seal_problem(folder, summary)
+    except Exception as exc:  # a damaged folder must not stop the others
+        report.unreadable.append(f"{folder.name} ({type(exc).__name__}: {exc})")
+        return
+    if summary is None:
+        report.running.append(folder.name)
+        return
+    if problem is not None:
+        report.refused.append(f"{folder.name}: {problem}")
+        record_refusal(conn, summary, "changed since sealed", problem)
+        return
+    try:
+        added = insert_run(conn, summary)
+    except unstorable() as exc:
+        if conn.closed or conn.broken:
+            raise
+        reason = _one_line(exc)
+        report.not_stored.append(f"{folder.name}: {reason}")
+        record_refusal(conn, summary, "cannot be stored", reason)
+        return
+    if added:
+        report.added.append(summary.run_id)
+        if on_added is not None:
+            on_added(summary)
+    else:
+        report.present += 1
+
+
+def seal_problem(folder: Path, summary: RunSummary) -> str | None:
+    """Why a sealed run may not be pushed (its data, tables or configuration copies no longer
+    match the seal: recomputed now), None when it may; an unsealed run is pushed as such."""
+    if summary.data_sha256 is None:
+        return None
+    try:
+        result = verify_run(folder)
+    except (sqlite3.Error, OSError, safe_files.UnsafeFileError) as exc:
+        return f"its data cannot be read to check the seal ({exc})"
+    if result.data_sha256 != summary.data_sha256:
+        return (f"its data changed since the run was sealed (sealed {summary.data_sha256}, now"
+                f" {result.data_sha256}); 'rig verify {folder}' says what")  # fmt: skip
+    data = result.changed.get("data")
+    return f"{data[0]}; 'rig verify {folder}' says more" if data else None
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return (text[0] if text else type(exc).__name__).replace("\x00", "\\x00")
+
+
+def _clean(text: str | None) -> str | None:
+    """A string PostgreSQL can store: NUL bytes shown escaped."""
+    return None if text is None else text.replace("\x00", "\\x00")
+
+
+def record_refusal(conn: psycopg.Connection[Any], s: RunSummary, kind: str, reason: str) -> None:
+    """A row of ``lab_refusals`` for ``rig lab audit`` (per run, seal and kind: a refusal seen
+    again counts one more attempt). Best effort: the refusal is reported either way."""
+    try:
+        with conn.transaction(), conn.cursor() as cur:
+            cur.execute(
+                "INSERT INTO lab_refusals (run_uid, run_id, rig, host, kind, reason, sealed_sha256)"
+                " VALUES (%s, %s, %s, %s, %s, %s, %s) ON CONFLICT (run_uid, kind) DO UPDATE SET"
+                " reason = EXCLUDED.reason, last_at = now(),"
+                " attempts = lab_refusals.attempts + 1",
+                (_clean(run_key(s.run_id, s.data_sha256)), _clean(s.run_id), _clean(s.rig),
+                 _clean(s.host), kind, _clean(reason), _clean(s.data_sha256)),
+            )  # fmt: skip
+    except unstorable():
+        if conn.closed or conn.broken:
+            raise
 
 
 def _known(conn: psycopg.Connection[Any], keys: list[str]) -> set[str]:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 import re
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import unquote, urlsplit
 
 from rig.errors import UserInputError
 
@@ -16,15 +16,25 @@ ENV_VAR = "RIG_LAB_URL"
 SCHEMES = ("postgresql", "postgres")
 _PASSWORD_IN_NETLOC = re.compile(r"(//[^/@:]*:)([^@/]*)(@)")
 _PASSWORD_IN_QUERY = re.compile(r"(password=)([^&\s]*)", re.IGNORECASE)
+_QUERY_PAIR = re.compile(r"([?&])([^=&#\s]*)=([^&#\s]*)")
+
+
+def _mask_query(match: re.Match[str]) -> str:
+    """A ``key=value`` pair of the query with the value hidden when the key, percent-decoded
+    (libpq decodes it: ``pass%77ord`` is ``password``), names the password."""
+    sep, key, _value = match.groups()
+    return f"{sep}{key}=***" if unquote(key).strip().lower() == "password" else match.group(0)
 
 
 def masked(url: str) -> str:
     """The URL with any password replaced by ``***`` (user, host, port and database kept)."""
-    return _PASSWORD_IN_QUERY.sub(r"\1***", _PASSWORD_IN_NETLOC.sub(r"\1***\3", url))
+    url = _PASSWORD_IN_QUERY.sub(r"\1***", _PASSWORD_IN_NETLOC.sub(r"\1***\3", url))
+    return _QUERY_PAIR.sub(_mask_query, url)
 
 
 def has_password(url: str) -> bool:
-    """True when the URL carries a password (``user:pw@host`` or ``?password=``)."""
+    """True when the URL carries a password (``user:pw@host``, or ``?password=`` with the key
+    spelled in any case or percent-encoding)."""
     return masked(url) != url
 
 

@@ -34,7 +34,9 @@ from rig.report.sections import (
 )
 from rig.report.text_report import data_hash, overall_verdict, seal_note, write_text_report
 from rig.steps import KINDS, field_kinds
+from rig.store import safe_files
 from rig.store.run_store import RunReader
+from rig.store.seal import record_written
 
 Array = npt.NDArray[np.float64]
 
@@ -182,14 +184,19 @@ def make_figures(reader: RunReader, meta: dict[str, Any], results: dict[str, Any
     return figs
 
 
+MAX_HISTORY_BYTES = 64 << 20
+"""A live calibration's history file larger than this is not plotted."""
+
+
 def read_history(path: Path) -> tuple[list[str], Array] | None:
-    """A live calibration's history CSV: header and rows (elapsed s, samples, p..., sigma...)."""
+    """A live calibration's history CSV: header and rows (elapsed s, samples, p..., sigma...);
+    None when missing, unreadable, a link or not a regular file."""
 
     try:
-        with path.open(newline="", encoding="utf-8") as fh:
-            rows = list(csv.reader(fh))
+        text = safe_files.read_text(path, MAX_HISTORY_BYTES)
+        rows = list(csv.reader(io.StringIO(text, newline="")))
         return rows[0], np.array(rows[1:], float).reshape(len(rows) - 1, len(rows[0]))
-    except (OSError, ValueError, IndexError):
+    except (OSError, ValueError, IndexError, safe_files.UnsafeFileError):
         return None
 
 
@@ -197,7 +204,10 @@ def _convergence_figure(folder: Path, live: dict[str, Any], plt: Any) -> Any:
     """One panel per target group: each parameter's 1-sigma against time, the target dashed, the
     stop marked."""
 
-    table = read_history(folder / str(live.get("history_file", "")))
+    name = str(live.get("history_file", ""))
+    if not name or "/" in name or "\\" in name or name.startswith("."):
+        return None  # a file of the run folder itself, never a path elsewhere
+    table = read_history(folder / name)
     if table is None or table[1].shape[0] == 0:
         return None
     header, rows = table
@@ -239,7 +249,8 @@ def without_telemetry(reader: RunReader, res: dict[str, Any]) -> dict[str, Any] 
 
 
 def build_report(folder: Path) -> tuple[Path, Path]:
-    """Write ``report.html`` and ``report.pdf`` (and ``report.txt``) for a run folder."""
+    """Write ``report.html`` and ``report.pdf`` (and ``report.txt``) for a run folder, each
+    replacing its name (never written through a link), and enter them in the run's manifest."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -247,7 +258,7 @@ def build_report(folder: Path) -> tuple[Path, Path]:
     from matplotlib.backends.backend_pdf import PdfPages
 
     digest = data_hash(folder)  # one pass over every row, shared by the three files
-    write_text_report(folder, digest)
+    text_path = write_text_report(folder, digest, record=False)
     reader = RunReader(folder)
     try:
         meta, results, events = reader.meta(), reader.results(), reader.events()
@@ -301,13 +312,13 @@ def build_report(folder: Path) -> tuple[Path, Path]:
         f"<p>Generated {dt.datetime.now(dt.UTC).isoformat(timespec='seconds')} by rig {meta.get('software_version', '')}.</p></body></html>",
     ]  # fmt: skip
     html_path = folder / "report.html"
-    html_path.write_text("\n".join(parts), encoding="utf-8")
+    safe_files.write_text(html_path, "\n".join(parts))
 
     # ---- PDF: a summary page from the same sections, then one page per figure ----
     pdf_path = folder / "report.pdf"
     pdf_info = {"Title": f"Acceptance report {meta.get('run_id', '')}",
                 "Subject": f"VERDICT: {overall}; data sha256 {digest}"}  # fmt: skip
-    with PdfPages(pdf_path, metadata=pdf_info) as pdf:
+    with safe_files.replacing(pdf_path) as pdf_tmp, PdfPages(pdf_tmp, metadata=pdf_info) as pdf:
         page = plt.figure(figsize=(8.27, 11.69))  # A4 portrait
         y = 0.95
         page.text(0.06, y, "Pre-flight acceptance report", fontsize=16, weight="bold")
@@ -330,6 +341,8 @@ def build_report(folder: Path) -> tuple[Path, Path]:
             f.fig.suptitle(f.title, fontsize=10)
             pdf.savefig(f.fig, bbox_inches="tight")
             plt.close(f.fig)
+    # the closed run's manifest learns the reports' digests: 'rig verify' tells an edit from these
+    record_written(folder, [text_path, html_path, pdf_path], "the rig wrote the reports")
     return html_path, pdf_path
 
 

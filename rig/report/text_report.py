@@ -6,8 +6,9 @@ from pathlib import Path
 from typing import Any
 
 from rig.analysis import value_unit
+from rig.store import safe_files
 from rig.store.run_store import RunReader
-from rig.store.seal import data_digest, read_seal
+from rig.store.seal import data_digest, read_seal, record_written
 
 
 def data_hash(folder: Path) -> str:
@@ -79,9 +80,10 @@ def _calibration_lines(name: str, res: dict[str, Any]) -> list[str]:
     return lines
 
 
-def write_text_report(folder: Path, digest: str | None = None) -> Path:
+def write_text_report(folder: Path, digest: str | None = None, *, record: bool = True) -> Path:
     """Write ``report.txt`` for a run folder (``digest``: its data digest when the caller has
-    already computed it); returns its path."""
+    already computed it), never through a link; returns its path. ``record``: enter it in the
+    closed run's manifest (the caller does, when it writes more reports)."""
     reader = RunReader(folder)
     try:
         meta, results = reader.meta(), reader.results()
@@ -116,5 +118,7 @@ def write_text_report(folder: Path, digest: str | None = None) -> Path:
         lines += [f"  {criterion_line(row)}" for row in verdict["criteria"]]
     lines.append(f"VERDICT: {overall_verdict(meta, results)}")
     path = folder / "report.txt"
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    safe_files.write_text(path, "\n".join(lines) + "\n")
+    if record:
+        record_written(folder, [path], "the rig wrote the text report")
     return path

@@ -24,6 +24,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from rig.store import safe_files
 from rig.store.run_store import RunReader
 
 Array = npt.NDArray[np.float64]
@@ -169,31 +170,38 @@ def _cell(v: Any) -> Any:
     return v
 
 
+def _file_name(name: str) -> str:
+    """A device or channel name as part of one file name: no folder separator, no NUL."""
+    return name.replace("/", "_").replace("\\", "_").replace("\x00", "_")
+
+
 def export_csv(reader: RunReader, out_dir: Path) -> list[Path]:
     """``samples_<device>.csv``, ``channel_<name>.csv``, ``events.csv`` (all with the original
     monotonic ``t_s``), ``samples_aligned.csv`` (when the run has DUT samples: UTC, seconds since
     run start, DUT and reference on one time base, load currents, thermometers in degrees C) and
-    ``meta.json`` (with the time base)."""
+    ``meta.json`` (with the time base). Every file replaces its name, never writing through a
+    link; a linked ``out_dir`` is refused."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    safe_files.check_folder(out_dir)
     written = []
     for device in reader.devices():
-        path = out_dir / f"samples_{device}.csv"
-        with path.open("w", newline="") as fh:
+        path = out_dir / _file_name(f"samples_{device}.csv")
+        with safe_files.writing(path, newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["t_s", "x_ut", "y_ut", "z_ut"])
             w.writerows(reader.samples(device))
         written.append(path)
     meta_values = reader.meta()
     for name in reader.channel_names():
-        path = out_dir / f"channel_{name}.csv"
+        path = out_dir / _file_name(f"channel_{name}.csv")
         unit = channel_unit(meta_values, name)
-        with path.open("w", newline="") as fh:
+        with safe_files.writing(path, newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["t_s", f"commanded_{unit}", f"measured_{unit}"])
             w.writerows(reader.channel(name))
         written.append(path)
     path = out_dir / "events.csv"
-    with path.open("w", newline="") as fh:
+    with safe_files.writing(path, newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["t_s", "level", "message"])
         w.writerows(reader.events())
@@ -201,14 +209,15 @@ def export_csv(reader: RunReader, out_dir: Path) -> list[Path]:
     cols = aligned_columns(reader)
     if cols is not None:
         path = out_dir / "samples_aligned.csv"
-        with path.open("w", newline="") as fh:
+        with safe_files.writing(path, newline="") as fh:
             w = csv.writer(fh)
             w.writerow(list(cols))
             for row in zip(*cols.values(), strict=True):
                 w.writerow([_cell(v) for v in row])
         written.append(path)
     meta = out_dir / "meta.json"
-    meta.write_text(
+    safe_files.write_text(
+        meta,
         json.dumps(
             {
                 "meta": reader.meta(),
@@ -217,7 +226,7 @@ def export_csv(reader: RunReader, out_dir: Path) -> list[Path]:
             },
             indent=2,
         )
-        + "\n"
+        + "\n",
     )
     written.append(meta)
     return written
@@ -227,7 +236,14 @@ def export_hdf5(reader: RunReader, path: Path) -> Path:
     """One HDF5 file: ``/samples/<device>`` (N x 4: t_s, x, y, z) and ``/channels/<name>`` (N x 3:
     t_s, commanded, measured) as stored; ``/time/samples/<device>/{t_run_s,t_utc}`` and
     ``/time/channels/<name>/...`` for each row; ``/aligned/<column>`` as ``samples_aligned.csv``.
-    Root attributes ``meta``, ``results``, ``time_base`` (JSON)."""
+    Root attributes ``meta``, ``results``, ``time_base`` (JSON). Written beside ``path`` and
+    renamed over it: a link at ``path`` is replaced, its target left alone."""
+    with safe_files.replacing(path) as tmp:
+        _write_hdf5(reader, tmp)
+    return path
+
+
+def _write_hdf5(reader: RunReader, path: Path) -> None:
     import h5py
 
     meta = reader.meta()
@@ -261,4 +277,3 @@ def export_hdf5(reader: RunReader, path: Path) -> Path:
                     f.create_dataset(f"aligned/{key}", data=values, dtype=text)
                 else:
                     f.create_dataset(f"aligned/{key}", data=np.asarray(values, float))
-    return path

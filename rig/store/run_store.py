@@ -20,7 +20,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 from rig.errors import StoreWriteError, UserInputError
-from rig.store.seal import seal_run
+from rig.store import safe_files
+from rig.store.seal import damaged, seal_run
 
 COMMIT_INTERVAL_S = 0.2
 """At most this much data (plus one commit's duration) is at risk if the process is killed."""
@@ -202,7 +203,7 @@ class RunWriter:
             self._con.close()
         try:
             seal_run(self.folder)
-        except (sqlite3.Error, OSError) as exc:
+        except (sqlite3.Error, OSError, safe_files.UnsafeFileError) as exc:
             problems.append(f"could not seal the run in {self.folder} ({exc})")
         return problems
 
@@ -231,8 +232,15 @@ class RunReader:
             raise UserInputError(
                 f"{folder}: not a run folder (no run.sqlite); list runs with 'rig runs'"
             )
-        self._con = _connect(self.path)
-        meta = self.meta()
+        safe_files.check_folder(folder)  # a link (to the folder or run.sqlite) is refused
+        safe_files.regular_file(self.path)
+        try:
+            self._con = _connect(self.path)
+            meta = self.meta()
+        except sqlite3.DatabaseError as exc:  # truncated or overwritten: one line, exit 2
+            with contextlib.suppress(AttributeError, sqlite3.Error):
+                self._con.close()
+            raise damaged(folder, exc) from None
         if meta.get("status") == "running" and not _owner_alive(meta.get("pid")):
             self._con.execute(
                 "INSERT OR REPLACE INTO meta VALUES ('status', ?), ('reason', ?)",
@@ -357,13 +365,18 @@ def new_run(runs_dir: Path, label: str, **meta: Any) -> RunWriter:
 
 
 def list_runs(runs_dir: Path) -> list[RunInfo]:
-    """Every run folder under ``runs_dir``, newest first."""
+    """Every run folder under ``runs_dir``, newest first; one that cannot be read (a damaged
+    ``run.sqlite``, a link) is listed with status ``damaged`` and the reason."""
     out: list[RunInfo] = []
     if not runs_dir.exists():
         return out
     for folder in sorted(runs_dir.iterdir(), reverse=True):
         if (folder / "run.sqlite").exists():
-            reader = RunReader(folder)
+            try:
+                reader = RunReader(folder)
+            except (UserInputError, safe_files.UnsafeFileError) as exc:
+                out.append(RunInfo(folder.name, folder, {"status": "damaged", "reason": str(exc)}))
+                continue
             out.append(RunInfo(folder.name, folder, reader.meta()))
             reader.close()
     return out

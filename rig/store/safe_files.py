@@ -21,6 +21,7 @@ import secrets
 import stat
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TextIO
 
 from rig.errors import RigError
 
@@ -126,6 +127,16 @@ def replacing(path: Path, mode: int = 0o644) -> Iterator[Path]:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+@contextlib.contextmanager
+def writing(path: Path, mode: int = 0o644, *, newline: str | None = None) -> Iterator[TextIO]:
+    """A text file (UTF-8) to write in pieces; on leaving the block without an error it replaces
+    ``path`` as :func:`replacing` does (a link there is replaced, its target left alone)."""
+    with replacing(path, mode) as tmp:
+        fd = os.open(tmp, os.O_WRONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        with os.fdopen(fd, "w", encoding="utf-8", newline=newline) as fh:
+            yield fh
 
 
 def write_bytes(path: Path, data: bytes, mode: int = 0o644) -> None:

@@ -97,7 +97,8 @@ def test_resync_adds_nothing(synced: str, rig_dirs: list[Path]) -> None:
     proc = rig_lab("sync", "--runs-dir", str(rig_dirs[1]), "--json", url=synced)
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout) == {"added": 0, "already_indexed": PER_RIG,
-                                       "still_running": 0, "unreadable": 0}  # fmt: skip
+                                       "still_running": 0, "unreadable": 0, "refused": 0,
+                                       "not_stored": 0}  # fmt: skip
     assert scalar(synced, "SELECT count(*) FROM lab_runs") == 4 * PER_RIG
 
 

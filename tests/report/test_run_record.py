@@ -133,5 +133,7 @@ def test_digest_ignores_file_layout_but_not_content(tmp_path: Path) -> None:
     con.close()
     assert data_digest(folder / "run.sqlite")[0] == digest  # a vacuumed copy is the same data
     assert verify_run(folder).intact
-    (folder / "procedure.yaml").write_text("changed")  # not sealed: it did not exist at close
-    assert verify_run(folder).intact
+    (folder / "procedure.yaml").write_text("changed")  # it did not exist at close: added
+    result = verify_run(folder)
+    assert not result.intact and list(result.changed) == ["files"], result.problems
+    assert result.problems == ["procedure.yaml added (the rig did not write it)"]
