@@ -226,7 +226,7 @@ class RigSession:
     def load(self, name: str) -> Load:
         """Load channel ``name`` at 0 A with its output on; switched off when the session ends."""
         if name not in self.loads:
-            load = open_load(self._device(name, "load"), self.i2c_bus)
+            load = open_load(self._device(name, "load"), self.i2c_bus, self.cfg)
             self._stack.callback(load.close)
             self.loads[name] = load
         return self.loads[name]
