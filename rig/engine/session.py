@@ -101,7 +101,7 @@ class RigSession:
             self.lock.acquire()
         try:
             if self.use_guardian:
-                self.guardian = Guardian(self.cfg.path, self.folder, tuple(self.lock.fds))
+                self.guardian = Guardian(self.cfg, self.folder, tuple(self.lock.fds))
                 self._beating.set()
                 self._heart = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
                 self._heart.start()
@@ -134,7 +134,10 @@ class RigSession:
 
     def _beat(self) -> None:
         """Heartbeat to the guardian while the main thread makes progress (or waits for the
-        operator); silent once it has been stuck for MAIN_THREAD_STALL_S."""
+        operator); silent once it has been stuck for MAIN_THREAD_STALL_S. Between beats it
+        watches the guardian: one that dies is a fault (:meth:`fail`), so the outputs go safe
+        through the normal exit path rather than run on unguarded."""
+        assert self.guardian is not None
         told = False
         main_tid = threading.main_thread().native_id
         seen_progress, waited_at_progress = self._progress_s, run_delay_s(main_tid)
@@ -146,17 +149,17 @@ class RigSession:
                 seen_progress, waited_at_progress = self._progress_s, waited_s
             stuck_s = time.monotonic() - seen_progress - (waited_s - waited_at_progress)
             if self._operator_waits or stuck_s < MAIN_THREAD_STALL_S:
-                assert self.guardian is not None
-                if not self.guardian.beat() and not told:
-                    told = True
-                    self.on_unsafe(
-                        "the guardian process has gone: outputs are unguarded if rig dies"
-                    )
+                self.guardian.beat()  # a failed write means it is gone: gone() below says how
             elif not told:
                 told = True
                 print(f"rig: ERROR: no progress for {stuck_s:.0f} s; the guardian switches the"
                       " outputs off", file=sys.stderr)  # fmt: skip
-            time.sleep(HEARTBEAT_PERIOD_S)
+            how = self.guardian.gone(HEARTBEAT_PERIOD_S)  # the period's wait; at once if it dies
+            if how is not None and self._beating.is_set():
+                self.fail(f"the guardian process died ({how}); outputs switched off, as nothing"
+                          " would switch them off if rig died too: find what ended it (the"
+                          " system log; an out-of-memory kill) and start again")  # fmt: skip
+                return
 
     def fail(self, message: str) -> None:
         """Report a fault from any thread: the next fault-aware wait raises it (first one wins)."""
