@@ -329,7 +329,13 @@ def main(argv: list[str]) -> int:
         print(f"rig guardian: cannot read the rig configuration the rig sent ({exc}); the rig"
               " refuses to start unguarded", file=sys.stderr)  # fmt: skip
         return 2
-    os.write(sys.stdout.fileno(), READY)  # stdout stays open: its end tells the rig we died
+    os.write(sys.stdout.fileno(), READY)
+    # the pipe stays open, unused, until this process ends (its end tells the rig it died); any
+    # later print to stdout goes nowhere, so a rig that died first cannot break the guardian
+    alive = os.dup(sys.stdout.fileno())  # noqa: F841 - held, never written
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, sys.stdout.fileno())
+    os.close(null)
     folder = None if argv[0] == "-" else Path(argv[0])
     return watch(sys.stdin.fileno(), cfg, folder, int(argv[1]))
 
