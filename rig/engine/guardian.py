@@ -97,6 +97,8 @@ class Guardian:
         self._fd = self.proc.stdin.fileno()
         self._status_fd = self.proc.stdout.fileno()
         self._gone = False
+        self.stopped = False
+        """Found stopped by :meth:`gone`."""
         try:
             _write_all(self._fd, (freeze(cfg) + "\n").encode())
             self._await_ready()
@@ -135,26 +137,39 @@ class Guardian:
             return False
 
     def gone(self, wait_s: float = 0.0) -> str | None:
-        """Wait up to ``wait_s`` for the guardian to end; how it ended (``killed by SIGKILL``,
-        ``exit status 1``) if it has, else None. Its stdout reaches end of file the moment it
-        dies, so this returns at once then."""
+        """Wait up to ``wait_s`` for the guardian to end; what became of it if it can no longer
+        act (``died (killed by SIGKILL)``, ``is stopped (...)``), else None. Its stdout reaches end
+        of file the moment it dies, so this returns at once then."""
         if not self._gone:
             if not select.select([self._status_fd], [], [], max(0.0, wait_s))[0]:
-                return None
+                return "is stopped (SIGSTOP, or a debugger holds it)" if self._stopped() else None
             if os.read(self._status_fd, 64):  # it writes nothing after ready: not an end
                 return None
             self._gone = True
         try:
             code = self.proc.wait(timeout=1.0)
         except subprocess.TimeoutExpired:
-            return "its output closed"
-        return _how_it_ended(code)
+            return "closed its end of the pipe"
+        return f"died ({_how_it_ended(code)})"
+
+    def _stopped(self) -> bool:
+        """True while the guardian process is stopped (state T or t in /proc): it would not act
+        if the rig died now (a busy computer's waiting for a CPU is state R, not this)."""
+        try:
+            stat = Path(f"/proc/{self.proc.pid}/stat").read_text(encoding="ascii")
+        except OSError:
+            return False
+        self.stopped = stat.rsplit(")", 1)[-1].split()[:1] in (["T"], ["t"])
+        return self.stopped
 
     def release(self) -> None:
-        """The rig has safed its outputs itself: tell the guardian to leave without acting."""
+        """The rig has safed its outputs itself: tell the guardian to leave without acting (a
+        stopped one is killed: it holds the interlock until it ends)."""
         with contextlib.suppress(OSError):
             os.write(self._fd, DONE)
         self._close_pipes()
+        if self.stopped:
+            self.proc.kill()
         try:
             self.proc.wait(timeout=5.0)
         except subprocess.TimeoutExpired:

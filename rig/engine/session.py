@@ -135,7 +135,7 @@ class RigSession:
     def _beat(self) -> None:
         """Heartbeat to the guardian while the main thread makes progress (or waits for the
         operator); silent once it has been stuck for MAIN_THREAD_STALL_S. Between beats it
-        watches the guardian: one that dies is a fault (:meth:`fail`), so the outputs go safe
+        watches the guardian: one that dies or is stopped is a fault (:meth:`fail`), so the outputs go safe
         through the normal exit path rather than run on unguarded."""
         assert self.guardian is not None
         told = False
@@ -156,9 +156,9 @@ class RigSession:
                       " outputs off", file=sys.stderr)  # fmt: skip
             how = self.guardian.gone(HEARTBEAT_PERIOD_S)  # the period's wait; at once if it dies
             if how is not None and self._beating.is_set():
-                self.fail(f"the guardian process died ({how}); outputs switched off, as nothing"
-                          " would switch them off if rig died too: find what ended it (the"
-                          " system log; an out-of-memory kill) and start again")  # fmt: skip
+                self.fail(f"the guardian process {how}; outputs switched off, as nothing"
+                          " would switch them off if rig died too: find what ended or stopped"
+                          " it (the system log: an out-of-memory kill) and start again")  # fmt: skip
                 return
 
     def fail(self, message: str) -> None:

@@ -236,6 +236,29 @@ def test_guardian_sigkilled_during_set_field_ends_it(cage: SimulatedCage, rig_to
     assert took < OUTPUTS_OFF_WITHIN_S, err
 
 
+def test_guardian_stopped_is_a_fault_too(cage: SimulatedCage, rig_toml: Path) -> None:
+    """A stopped guardian would not act if rig died: the rig sees its state within a heartbeat
+    period, goes safe and ends; the stopped guardian is killed (it holds the interlock)."""
+    child = start_set_field(rig_toml)
+    guardian = guardian_pid(child.pid)
+    t_stop = time.monotonic()
+    os.kill(guardian, signal.SIGSTOP)
+    took = off_after(cage, t_stop, DRIVEN[:3], 30.0)
+    _, err = child.communicate(timeout=60)
+    assert child.returncode == 2
+    assert (
+        err.strip()
+        .splitlines()[-1]
+        .startswith(
+            "rig: error: the guardian process is stopped (SIGSTOP, or a debugger holds it); outputs"
+            " switched off"
+        )
+    ), err
+    assert not Path(f"/proc/{guardian}").exists()
+    print(f"guardian SIGSTOP: outputs off {1000 * took:.0f} ms after")
+    assert took < OUTPUTS_OFF_WITHIN_S, err
+
+
 def test_a_guardian_that_cannot_read_its_configuration_refuses_the_session(
     cage: SimulatedCage, rig_toml: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
