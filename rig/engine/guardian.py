@@ -100,7 +100,8 @@ class Guardian:
         self.stopped = False
         """Found stopped by :meth:`gone`."""
         try:
-            _write_all(self._fd, (freeze(cfg) + "\n").encode())
+            with contextlib.suppress(OSError):  # one that ended at once: _await_ready says how
+                _write_all(self._fd, (freeze(cfg) + "\n").encode())
             self._await_ready()
         except BaseException:
             self.proc.kill()
