@@ -198,27 +198,32 @@ def test_guardian_sigkilled_the_run_goes_safe_and_ends_error_within_1_s(
 ) -> None:
     child, runs = start_run(rig_toml, tmp_path)
     guardian = guardian_pid(child.pid)
+    folder = next(p for p in runs.iterdir() if (p / "run.sqlite").exists())
     t_kill = time.monotonic()
     os.kill(guardian, signal.SIGKILL)
     took = off_after(cage, t_kill, DRIVEN, 30.0)
+    while True:  # the run's status, as a reader sees it (this test's time: generous bound)
+        reader = RunReader(folder)
+        try:
+            meta = reader.meta()
+        finally:
+            reader.close()
+        t_status = time.monotonic() - t_kill
+        if meta.get("status") not in (None, "running") or t_status > 30.0:
+            break
+        time.sleep(0.01)
     _, err = child.communicate(timeout=60)
-    t_exit = time.monotonic() - t_kill
     assert child.returncode == 2, err
-    folder = next(p for p in runs.iterdir() if (p / "run.sqlite").exists())
-    reader = RunReader(folder)
-    try:
-        meta = reader.meta()
-    finally:
-        reader.close()
-    assert meta["status"] == "error"
+    assert meta["status"] == "error", meta
     assert meta["reason"].startswith("the guardian process died (killed by SIGKILL); outputs"
                                      " switched off"), meta["reason"]  # fmt: skip
     detected = float(meta["t_end_detected"]) - t_kill  # the rig's own clock: when it knew
     assert cage.physics.relays.sign == [1, 1, 1]
     read_back_off(cage)
     print(f"guardian SIGKILL: detected {1000 * detected:.0f} ms, outputs off {1000 * took:.0f} ms,"
-          f" rig exited with the run closed {1000 * t_exit:.0f} ms after")  # fmt: skip
+          f" run status error {1000 * t_status:.0f} ms after")  # fmt: skip
     assert detected < took < OUTPUTS_OFF_WITHIN_S, err
+    assert t_status < 5.0  # a busy computer delays the closing of the store, not the outputs
 
 
 def test_guardian_sigkilled_during_set_field_ends_it(cage: SimulatedCage, rig_toml: Path) -> None:
