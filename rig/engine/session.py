@@ -12,8 +12,9 @@ Every command that drives outputs (``rig run`` and ``rig demo`` through the runn
 ...``) opens its devices here, and the session owns the safety around them:
 
 * the interlock (rig.engine.interlock): no second command drives the same outputs meanwhile;
-* the guardian process (rig.engine.guardian), fed a heartbeat while the main thread makes
-  progress: it switches every output off if this process dies or hangs;
+* the guardian process (rig.engine.guardian), given the configuration as parsed here and fed a
+  heartbeat while the main thread makes progress: it switches every output off if this process
+  dies or hangs; watched in turn, a guardian that dies or is stopped is a fault;
 * fault-aware waiting: every wait while outputs are live (the cage controller's ramps, relay
   flips, trim, characterization, holds) goes through :meth:`RigSession.sleep`, which raises the
   first fault reported by any thread (:meth:`RigSession.fail`) or an abort.
