@@ -136,8 +136,8 @@ class RigSession:
     def _beat(self) -> None:
         """Heartbeat to the guardian while the main thread makes progress (or waits for the
         operator); silent once it has been stuck for MAIN_THREAD_STALL_S. Between beats it
-        watches the guardian: one that dies or is stopped is a fault (:meth:`fail`), so the outputs go safe
-        through the normal exit path rather than run on unguarded."""
+        watches the guardian: one that dies or is stopped is a fault (:meth:`fail`), so the
+        outputs go safe through the normal exit path rather than run on unguarded."""
         assert self.guardian is not None
         told = False
         main_tid = threading.main_thread().native_id
