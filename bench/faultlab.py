@@ -21,7 +21,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -173,6 +173,13 @@ FAULTS: tuple[Fault, ...] = (
     Fault("hung", "the rig process stops (SIGSTOP: as a deadlock or a computation holding the"
           " interpreter)", "the guardian misses the heartbeat for 3 s, kills the rig and switches"
           " every output off", "incomplete", mode="sigstop", mentions="stopped answering", detect_within_ms=3500),
+    Fault("config-edit-sigkill", "the rig configuration file edited (coil_x renamed, a line that is"
+          " not TOML added), then SIGKILL of the rig process", "the guardian switches every output"
+          " off from its frozen copy of the configuration; the run reads back as incomplete",
+          "incomplete", mode="config-edit-sigkill", mentions="guardian", detect_within_ms=200),
+    Fault("guardian-sigkill", "SIGKILL of the guardian process", "the rig sees it die, takes every"
+          " output to the safe state and ends the run", "error", mode="guardian-sigkill",
+          mentions="guardian process died", detect_within_ms=500),
 )  # fmt: skip
 
 
@@ -418,11 +425,17 @@ def _child_run(fault: Fault, kind: str, cage: SimulatedCage, workdir: Path, proc
         waits.note(time.monotonic())
         time.sleep(max(0.0, min(0.1, t_target + INJECT_AFTER_S - time.monotonic())))
     waits.note(time.monotonic())
+    if fault.mode == "config-edit-sigkill":
+        rig_toml = workdir / "rig.toml"
+        rig_toml.write_text(edit_config(rig_toml.read_text(encoding="utf-8")), encoding="utf-8")
+    guardian = guardian_of(child.pid) if fault.mode == "guardian-sigkill" else None
     t_fault = time.monotonic()
     rig_cpu_wait_ms = 1000.0 * waits.waited_since(t_fault - 2.0)
     watch.start(t_fault)
-    if fault.mode == "sigkill":
+    if fault.mode in ("sigkill", "config-edit-sigkill"):
         child.send_signal(signal.SIGKILL)
+    elif guardian is not None:
+        os.kill(guardian, signal.SIGKILL)
     elif fault.mode == "sigstop":
         child.send_signal(signal.SIGSTOP)
     elif mounted:
@@ -454,7 +467,7 @@ def _child_run(fault: Fault, kind: str, cage: SimulatedCage, workdir: Path, proc
         reader.close()
     detected_ms = None
     data_lost_ms = None
-    if fault.mode in ("sigkill", "sigstop"):
+    if fault.mode in ("sigkill", "sigstop", "config-edit-sigkill"):
         data_lost_ms = max(0.0, 1000.0 * (t_fault - newest))
         guardian = next((e for e in events if e.startswith("guardian")), "")
         found = re.search(r" in (\d+) ms", guardian)
@@ -473,6 +486,28 @@ def _child_run(fault: Fault, kind: str, cage: SimulatedCage, workdir: Path, proc
                     rig_cpu_wait_ms, guardian_cpu_wait_ms(reason))  # fmt: skip
 
 
+def edit_config(text: str) -> str:
+    """The rig configuration edited as a careless user would during a run: coil_x renamed
+    (everywhere), and a last line that is not TOML."""
+    return text.replace('"coil_x"', '"coil_a"').replace("[devices.coil_x]", "[devices.coil_a]") + (
+        "\nthis line is not TOML\n"
+    )
+
+
+def guardian_of(rig_pid: int) -> int:
+    """The PID of the guardian of rig process ``rig_pid`` (its command line ends with it)."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            argv = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"rig.engine.guardian" in argv and argv[-2:] == [str(rig_pid).encode(), b""]:
+            return int(entry.name)
+    raise RuntimeError(f"rig process {rig_pid} has no guardian")
+
+
 EXTRA: tuple[Fault, ...] = (
     Fault("second-run", "a second `rig run` on the same rig while the first runs",
           "the second refuses in one line naming the first (command, PID, since); the first completes",
@@ -480,6 +515,11 @@ EXTRA: tuple[Fault, ...] = (
     Fault("cage-sigkill", "SIGKILL of `rig cage set-field 20 -15 10 --hold 60` while it holds the field",
           "its guardian switches every output off and the polarity relays back to normal", "safe",
           mode="cage-sigkill", mentions="guardian", detect_within_ms=200),
+    Fault("coil-as-load", "a procedure drives coil_x as a load channel (ramp to 5 A; the cage allows"
+          " 2.5 A and 120 uT), forced past the check of `rig check` and `rig run`",
+          "the coil's own limits (the cage's) refuse the set-point beyond 2.5 A: nothing beyond"
+          " it is sent, the run ends error naming coil_x and the limit", "error",
+          mode="coil-as-load", mentions="beyond its 2.5 A limit", detect_within_ms=100),
 )  # fmt: skip
 """Cells that are not a fault inside a step: the interlock, and the guardian of a cage command."""
 
@@ -493,6 +533,8 @@ def run_extra(fault: Fault, workdir: Path) -> Measured:
         rig_toml.write_text(sim_rig_config(cage.endpoints_document(), cfg))
         if fault.mode == "second-run":
             return _second_run(fault, cage, workdir, rig_toml)
+        if fault.mode == "coil-as-load":
+            return _coil_as_load(fault, cage, workdir, rig_toml)
         return _cage_sigkill(fault, cage, rig_toml)
 
 
@@ -560,6 +602,73 @@ def _cage_sigkill(fault: Fault, cage: SimulatedCage, rig_toml: Path) -> Measured
     return Measured(fault, "rig cage set-field", status, child.returncode or 0, guardian,
                     time_to_safe, detected, 0, None, None, took, left_on,
                     watch.kernel_stall_ms, 0.0, guardian_cpu_wait_ms(guardian))  # fmt: skip
+
+
+COIL_AS_LOAD = """procedure: Coil as a load
+parameters:
+  dut_serial: {default: FAULTS}
+magnetometers: {dut: dut, reference: reference}
+loads: [coil_x]
+steps:
+  - set_field: {field_ut: [0, 0, 0], hold_s: 4}
+    name: target
+    loads:
+      coil_x: {ramp: {from_a: 0.0, to_a: 5.0, step_s: 0.1}}
+"""
+"""The coil-as-load attack of issue 29 (the reference read +140 uT on x at coil_x's 3 A)."""
+
+
+@contextlib.contextmanager
+def _past_the_load_check() -> Iterator[None]:
+    """The attack: ``Runner.run`` without its refusal of a cage device named as a load."""
+    import rig.engine.runner as runner_module
+
+    check = runner_module.refuse_cage_devices_as_loads
+    runner_module.refuse_cage_devices_as_loads = lambda *args: None
+    try:
+        yield
+    finally:
+        runner_module.refuse_cage_devices_as_loads = check
+
+
+def _coil_as_load(fault: Fault, cage: SimulatedCage, workdir: Path, rig_toml: Path) -> Measured:
+    proc_path = workdir / "coil-as-load.yaml"
+    proc_path.write_text(COIL_AS_LOAD)
+    coil = cage.physics.supplies["coil_x"]
+    limit_a = load_rig_config(rig_toml).cage.max_current_a[0]  # type: ignore[union-attr]
+    peak = [0.0]
+    stop = threading.Event()
+
+    def watch() -> None:  # the coil's current in the simulator's physics, every 2 ms
+        while not stop.wait(0.002):
+            peak[0] = max(peak[0], abs(coil.output_current()))
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    t0 = time.monotonic()
+    try:
+        with _past_the_load_check():
+            outcome = Runner(parse_procedure(proc_path), load_rig_config(rig_toml), workdir / "runs",
+                             i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False).run()  # fmt: skip
+    finally:
+        stop.set()
+        watcher.join(1.0)
+    took = time.monotonic() - t0
+    reader = RunReader(outcome.folder)
+    try:
+        meta, stored = reader.meta(), reader.count("samples")
+    finally:
+        reader.close()
+    refused = float(meta.get("t_end_detected", 0.0))  # the refused set-point: the "injection"
+    left_on = tuple(n for n, s in cage.physics.supplies.items() if s.output)
+    off = [s.off_since_s for s in cage.physics.supplies.values() if s.off_since_s is not None]
+    time_to_safe = 1000.0 * (max(off) - refused) if off and not left_on and refused else None
+    status = outcome.status
+    if peak[0] > limit_a + 1e-6:
+        status = f"coil_x at {peak[0]:.3f} A, beyond its {limit_a:g} A"
+    reason = f"{outcome.reason} (coil_x peak {peak[0]:.3f} A)"
+    return Measured(fault, "set_field", status, outcome.exit_code, reason, time_to_safe, 0.0,
+                    stored, None, None, took, left_on)  # fmt: skip
 
 
 def cells(full: bool) -> list[tuple[Fault, str]]:

@@ -13,9 +13,9 @@ from drivers.registry import KINDS, OpenSpec, Role
 from drivers.regmap import RegisterMapError
 from rig.cage.controller import AxisDrive, CageController
 from rig.cage.limits import CageLimits
-from rig.cage.model import CageModel
 from rig.config import DeviceConfig, RigConfig
 from rig.errors import UserInputError
+from rig.output_limits import cage_model, limited
 
 
 def open_device(dev: DeviceConfig, i2c_bus: Any | None = None) -> Any:
@@ -51,10 +51,13 @@ def _check_role(dev: DeviceConfig, role: Role) -> None:
         )
 
 
-def open_supply(dev: DeviceConfig, i2c_bus: Any | None = None) -> Supply:
-    """A coil supply (a kind with the ``supply`` role)."""
+def open_supply(
+    dev: DeviceConfig, i2c_bus: Any | None = None, cfg: RigConfig | None = None
+) -> Supply:
+    """A coil supply (a kind with the ``supply`` role) behind its limits
+    (:mod:`rig.output_limits`; with ``cfg``, the cage's too if it is a cage coil)."""
     _check_role(dev, "supply")
-    supply: Supply = open_device(dev, i2c_bus)
+    supply: Supply = limited(cfg, dev, open_device(dev, i2c_bus))
     return supply
 
 
@@ -89,12 +92,14 @@ def thermometer_names(cfg: RigConfig) -> list[str]:
     ]
 
 
-def open_load(dev: DeviceConfig, i2c_bus: Any | None = None) -> Load:
-    """A load-current channel, ready to drive: current 0, its voltage set-point at the device's
-    ``compliance_v`` (12 V when not given) where it has one, output on. If preparing fails the
-    output is made safe and the link closed before the error propagates."""
+def open_load(dev: DeviceConfig, i2c_bus: Any | None = None, cfg: RigConfig | None = None) -> Load:
+    """A load-current channel behind its limits (:mod:`rig.output_limits`; with ``cfg``, a cage
+    coil supply keeps the cage's limits in this role too), ready to drive: current 0, its voltage
+    set-point at the device's ``compliance_v`` (12 V when not given) where it has one, output
+    on. If preparing fails the output is made safe and the link closed before the error
+    propagates."""
     _check_role(dev, "load")
-    load: Load = open_device(dev, i2c_bus)
+    load: Load = limited(cfg, dev, open_device(dev, i2c_bus))
     try:
         load.enable_as_load(float(dev.get("compliance_v", 12.0)))
     except BaseException:
@@ -116,7 +121,7 @@ def build_cage(cfg: RigConfig, stack: ExitStack, i2c_bus: Any | None = None) -> 
     c = cfg.cage
     drives = []
     for name in c.axes:
-        supply = open_supply(cfg.devices[name], i2c_bus)
+        supply = open_supply(cfg.devices[name], i2c_bus, cfg)
         stack.callback(supply.close)
         bipolar = supply.bipolar
 
@@ -137,11 +142,8 @@ def build_cage(cfg: RigConfig, stack: ExitStack, i2c_bus: Any | None = None) -> 
         reference = open_magnetometer(ref_cfg, i2c_bus)
         stack.callback(reference.close)
         reference_to_cage = _reference_correction(cfg, ref_cfg)
-    if c.calibration is not None and c.calibration.exists():
-        model = CageModel.load(c.calibration)
-    elif c.nominal_k_ut_per_a is not None:
-        model = CageModel(np.array(c.nominal_k_ut_per_a), np.zeros(3), meta={"nominal": True})
-    else:
+    model = cage_model(cfg)
+    if model is None:
         raise UserInputError(
             f"{cfg.path}: [cage] needs a calibration file or nominal_k_ut_per_a; characterize the cage first"
         )

@@ -89,6 +89,10 @@ class Supply:
         self.writes = 0
         self.on_change: Callable[[float, float], None] | None = None
         """Told (time s, target current A) whenever the output's target changes (a heater)."""
+        self.off_since_s: float | None = None
+        """When (the simulator's clock, s) the output last went from on to off: by a command or
+        a protection trip; None while it is on or was never on. What a test of a time to safe
+        reads, on the supply's side."""
 
     def _target(self) -> float:
         if not self.output:
@@ -110,6 +114,8 @@ class Supply:
             self.on_change(t_s, self._target())
 
     def _trip(self, t_s: float, code: int) -> None:
+        if self.output:
+            self.off_since_s = t_s
         self.output = False
         self.protection = code
 
@@ -134,11 +140,16 @@ class Supply:
     def set_output(self, on: bool, t_s: float | None = None) -> None:
         """Output enable; enabling clears a latched protection."""
         with self.lock:
+            t = now_s() if t_s is None else t_s
+            if on:
+                self.off_since_s = None
+            elif self.output:
+                self.off_since_s = t
             self.output = bool(on)
             if on:
                 self.protection = 0
             self.writes += 1
-            self._update(now_s() if t_s is None else t_s)
+            self._update(t)
 
     def trip(self, code: int = 2, t_s: float | None = None) -> None:
         """Fault on demand: a protection trip (1 OVP, 2 OCP)."""

@@ -62,6 +62,7 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
     and holds; 1 on a violation or when limits could not be checked (no ``--rig``, no cage model)."""
     from rig.config import load_rig_config
     from rig.errors import UserInputError
+    from rig.output_limits import refuse_cage_devices_as_loads
     from rig.procedure.language import FIELD_STEPS, parse_procedure
     from rig.procedure.plan import ABSOLUTE_MAX_FIELD_UT, dry_run, rig_timing
     from rig.procedure_files import find_procedure
@@ -72,6 +73,7 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
     loads_max = {}
     unchecked: list[str] = []
     if cfg is not None:
+        refuse_cage_devices_as_loads(list(proc.loads), cfg, proc.path)
         for name in proc.loads:
             if name not in cfg.devices:
                 raise UserInputError(f"{proc.path}: load '{name}' is not a device in {cfg.path}")

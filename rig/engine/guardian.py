@@ -19,7 +19,14 @@ run, marks the run incomplete and records what it did in the run's store. It inh
 interlock (rig.engine.interlock), so no other command can take the rig before it has finished.
 It holds no port while the rig runs.
 
-    python -m rig.engine.guardian RIG.toml RUN_FOLDER|- RIG_PID   (started by the session)
+The configuration it acts on is the one the rig parsed, frozen (rig.engine.frozen_config) and
+sent as the first line on the pipe; the guardian parses it before it waits and answers ``ready``
+on its stdout, and never reads the configuration file (an edit during the run cannot stop it).
+A guardian that cannot parse it exits without ``ready``, and the session refuses to start.
+Its stdout stays open, unused, for as long as it lives: the rig sees it end (end of file) the
+moment the guardian dies, and ends the command through its safe path (RigSession).
+
+    python -m rig.engine.guardian RUN_FOLDER|- RIG_PID   (started by the session)
 """
 
 from __future__ import annotations
@@ -36,7 +43,10 @@ import time
 from pathlib import Path
 
 from drivers.registry import output_kinds
+from rig.config import RigConfig
 from rig.engine.cpu_wait import CpuWaitLog
+from rig.engine.frozen_config import FrozenConfigError, freeze, thaw
+from rig.errors import RigError
 
 OUTPUT_KINDS = output_kinds()
 """Kinds the guardian switches off: every registered supply, load and relay (drivers.registry)."""
@@ -53,25 +63,71 @@ OWN_STALL_S = 0.5
 so the silence it saw is not the rig's; the rig gets a fresh timeout."""
 
 
-class Guardian:
-    """The rig's side: start the guardian, ``beat()`` while alive, ``release()`` on a clean exit.
+START_TIMEOUT_S = 30.0
+"""Longest wait for the guardian to say it is ready (its start-up takes ~0.3 s on an idle computer,
+seconds on a busy one); then the session refuses to start rather than run unguarded."""
+READY = b"ready\n"
 
-    ``folder`` is the run folder to record into (None: a command without a run); ``lock_fds`` are
-    the interlock's descriptors, inherited so that the rig stays locked until the guardian is done.
+
+class GuardianError(RigError):
+    """The guardian could not start: the command is refused before any output is on."""
+
+
+class Guardian:
+    """The rig's side: start the guardian with the frozen configuration, ``beat()`` while alive,
+    ``release()`` on a clean exit; :meth:`gone` tells when it died.
+
+    ``cfg`` is the configuration the rig parsed (the guardian acts on exactly its devices);
+    ``folder`` is the run folder to record into (None: a command without a run); ``lock_fds``
+    are the interlock's descriptors, inherited so that the rig stays locked until the guardian
+    is done. Raises GuardianError if the guardian does not say ``ready`` within
+    :data:`START_TIMEOUT_S`.
     """
 
-    def __init__(
-        self, rig_config: Path, folder: Path | None, lock_fds: tuple[int, ...] = ()
-    ) -> None:
+    def __init__(self, cfg: RigConfig, folder: Path | None, lock_fds: tuple[int, ...] = ()) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "rig.engine.guardian", str(rig_config),
+            [sys.executable, "-m", "rig.engine.guardian",
              str(folder) if folder is not None else "-", str(os.getpid())],
             stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
             pass_fds=lock_fds,
             start_new_session=True,  # a Ctrl-C for the rig must not reach the guardian
         )  # fmt: skip
-        assert self.proc.stdin is not None
+        assert self.proc.stdin is not None and self.proc.stdout is not None
         self._fd = self.proc.stdin.fileno()
+        self._status_fd = self.proc.stdout.fileno()
+        self._gone = False
+        self.stopped = False
+        """Found stopped by :meth:`gone`."""
+        try:
+            with contextlib.suppress(OSError):  # one that ended at once: _await_ready says how
+                _write_all(self._fd, (freeze(cfg) + "\n").encode())
+            self._await_ready()
+        except BaseException:
+            self.proc.kill()
+            self.proc.wait()
+            self._close_pipes()
+            raise
+
+    def _await_ready(self) -> None:
+        said = b""
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while READY not in said:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([self._status_fd], [], [], left)[0]:
+                raise GuardianError(
+                    f"the guardian process did not start within {START_TIMEOUT_S:g} s, so the"
+                    " outputs would be unguarded: nothing was switched on; try again on a less"
+                    " busy computer"
+                )
+            chunk = os.read(self._status_fd, 64)
+            if not chunk:
+                code = self.proc.wait()
+                raise GuardianError(
+                    f"the guardian process could not start ({_how_it_ended(code)}), so the"
+                    " outputs would be unguarded: nothing was switched on; see its line above"
+                )
+            said += chunk
 
     def beat(self) -> bool:
         """One heartbeat; False if the guardian is gone (the outputs are then unguarded)."""
@@ -81,26 +137,74 @@ class Guardian:
         except OSError:
             return False
 
+    def gone(self, wait_s: float = 0.0) -> str | None:
+        """Wait up to ``wait_s`` for the guardian to end; what became of it if it can no longer
+        act (``died (killed by SIGKILL)``, ``is stopped (...)``), else None. Its stdout reaches end
+        of file the moment it dies, so this returns at once then."""
+        if not self._gone:
+            if not select.select([self._status_fd], [], [], max(0.0, wait_s))[0]:
+                return "is stopped (SIGSTOP, or a debugger holds it)" if self._stopped() else None
+            if os.read(self._status_fd, 64):  # it writes nothing after ready: not an end
+                return None
+            self._gone = True
+        try:
+            code = self.proc.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
+            return "closed its end of the pipe"
+        return f"died ({_how_it_ended(code)})"
+
+    def _stopped(self) -> bool:
+        """True while the guardian process is stopped (state T or t in /proc): it would not act
+        if the rig died now (a busy computer's waiting for a CPU is state R, not this)."""
+        try:
+            stat = Path(f"/proc/{self.proc.pid}/stat").read_text(encoding="ascii")
+        except OSError:
+            return False
+        self.stopped = stat.rsplit(")", 1)[-1].split()[:1] in (["T"], ["t"])
+        return self.stopped
+
     def release(self) -> None:
-        """The rig has safed its outputs itself: tell the guardian to leave without acting."""
-        assert self.proc.stdin is not None
+        """The rig has safed its outputs itself: tell the guardian to leave without acting (a
+        stopped one is killed: it holds the interlock until it ends)."""
         with contextlib.suppress(OSError):
             os.write(self._fd, DONE)
-        with contextlib.suppress(OSError):
-            self.proc.stdin.close()
+        self._close_pipes()
+        if self.stopped:
+            self.proc.kill()
         try:
             self.proc.wait(timeout=5.0)
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait()
 
+    def _close_pipes(self) -> None:
+        for pipe in (self.proc.stdin, self.proc.stdout):
+            if pipe is not None:
+                with contextlib.suppress(OSError):
+                    pipe.close()
 
-def safe_outputs(rig_config: Path) -> tuple[list[str], list[str]]:
-    """Switch off every supply, load and relay board of ``rig_config``: (devices, problems)."""
-    from rig.config import load_rig_config
+
+def _write_all(fd: int, data: bytes) -> None:
+    """Write all of ``data`` to ``fd`` (a pipe takes 64 KiB at a time)."""
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view) :]
+
+
+def _how_it_ended(code: int) -> str:
+    """``killed by SIGKILL`` or ``exit status 2``, from a Popen return code."""
+    if code < 0:
+        with contextlib.suppress(ValueError):
+            return f"killed by {signal.Signals(-code).name}"
+        return f"killed by signal {-code}"
+    return f"exit status {code}"
+
+
+def safe_outputs(cfg: RigConfig) -> tuple[list[str], list[str]]:
+    """Switch off every supply, load and relay board of ``cfg``: (devices, problems)."""
     from rig.engine.session import switch_off_every_output
 
-    return switch_off_every_output(load_rig_config(rig_config))
+    return switch_off_every_output(cfg)
 
 
 def _record(
@@ -191,14 +295,15 @@ def _cpu_wait_note(wait_s: float) -> str:
     return f"; the guardian waited {1000.0 * wait_s:.0f} ms for a CPU" if wait_s >= 0.05 else ""
 
 
-def watch(fd: int, rig_config: Path, folder: Path | None, pid: int) -> int:
-    """Wait for the rig to finish; act if it died or hung. Returns the exit status."""
+def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
+    """Wait for the rig to finish; act if it died or hung, on ``cfg`` (the frozen copy). Returns
+    the exit status."""
     waits = CpuWaitLog(keep=64)
     why = wait_for_rig(fd, pid, waits=waits)
     if why is None:
         return 0
     t_found = time.monotonic()
-    done, problems = safe_outputs(rig_config)
+    done, problems = safe_outputs(cfg)
     waits.note(time.monotonic())
     cpu = _cpu_wait_note(waits.waited_since(t_found - CPU_WAIT_LOOKBACK_S))
     if folder is not None:
@@ -215,13 +320,40 @@ def watch(fd: int, rig_config: Path, folder: Path | None, pid: int) -> int:
     return 1 if problems else 0
 
 
+def read_config_line(fd: int) -> RigConfig:
+    """The frozen configuration the rig sends first on the pipe (one line); FrozenConfigError if
+    it is not one, EOFError if the pipe ends before the line does."""
+    line = b""
+    while not line.endswith(b"\n"):
+        chunk = os.read(fd, 65536)
+        if not chunk:
+            raise EOFError("the rig process ended before it sent its configuration")
+        line += chunk
+        if b"\n" in line[:-1]:  # the rig waits for ready before it beats: nothing may follow
+            raise FrozenConfigError("more than one line before ready")
+    return thaw(line.decode("utf-8", errors="replace"))
+
+
 def main(argv: list[str]) -> int:
-    """Entry point of ``python -m rig.engine.guardian RIG.toml RUN_FOLDER|- RIG_PID``."""
+    """Entry point of ``python -m rig.engine.guardian RUN_FOLDER|- RIG_PID``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # only the pipe ends the guardian
     import rig.engine.session  # noqa: F401 - imported now, so acting after a death takes no import time
 
-    folder = None if argv[1] == "-" else Path(argv[1])
-    return watch(sys.stdin.fileno(), Path(argv[0]), folder, int(argv[2]))
+    try:
+        cfg = read_config_line(sys.stdin.fileno())
+    except (FrozenConfigError, EOFError) as exc:
+        print(f"rig guardian: cannot read the rig configuration the rig sent ({exc}); the rig"
+              " refuses to start unguarded", file=sys.stderr)  # fmt: skip
+        return 2
+    os.write(sys.stdout.fileno(), READY)
+    # the pipe stays open, unused, until this process ends (its end tells the rig it died); any
+    # later print to stdout goes nowhere, so a rig that died first cannot break the guardian
+    alive = os.dup(sys.stdout.fileno())  # noqa: F841 - held, never written
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, sys.stdout.fileno())
+    os.close(null)
+    folder = None if argv[0] == "-" else Path(argv[0])
+    return watch(sys.stdin.fileno(), cfg, folder, int(argv[1]))
 
 
 if __name__ == "__main__":

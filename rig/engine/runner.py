@@ -40,6 +40,7 @@ from rig.engine.session import RigSession
 from rig.engine.temperature_log import TemperatureLog
 from rig.errors import RigError, RunAborted
 from rig.lab.url import resolve_url
+from rig.output_limits import refuse_cage_devices_as_loads
 from rig.procedure.language import Procedure
 from rig.procedure.plan import StepPlan, compile_plan, rig_timing, step_duration
 from rig.steps import KINDS
@@ -132,6 +133,8 @@ class Runner:
         params = self.proc.parameters
         # a password in [lab] url is refused before the configuration is copied into a run folder
         self.lab_url = resolve_url(None, self.cfg.raw, self.cfg.path)
+        # a cage device named as a load: refused before anything is locked or switched on
+        refuse_cage_devices_as_loads(list(self.proc.loads), self.cfg, self.proc.path)
         # The interlock first: a run refused because the rig is busy leaves no run folder.
         self._lock = RigLock(self.cfg, f"rig run {self.proc.path.name}")
         self._lock.acquire()

@@ -12,8 +12,9 @@ Every command that drives outputs (``rig run`` and ``rig demo`` through the runn
 ...``) opens its devices here, and the session owns the safety around them:
 
 * the interlock (rig.engine.interlock): no second command drives the same outputs meanwhile;
-* the guardian process (rig.engine.guardian), fed a heartbeat while the main thread makes
-  progress: it switches every output off if this process dies or hangs;
+* the guardian process (rig.engine.guardian), given the configuration as parsed here and fed a
+  heartbeat while the main thread makes progress: it switches every output off if this process
+  dies or hangs; watched in turn, a guardian that dies or is stopped is a fault;
 * fault-aware waiting: every wait while outputs are live (the cage controller's ramps, relay
   flips, trim, characterization, holds) goes through :meth:`RigSession.sleep`, which raises the
   first fault reported by any thread (:meth:`RigSession.fail`) or an abort.
@@ -101,7 +102,7 @@ class RigSession:
             self.lock.acquire()
         try:
             if self.use_guardian:
-                self.guardian = Guardian(self.cfg.path, self.folder, tuple(self.lock.fds))
+                self.guardian = Guardian(self.cfg, self.folder, tuple(self.lock.fds))
                 self._beating.set()
                 self._heart = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
                 self._heart.start()
@@ -134,7 +135,10 @@ class RigSession:
 
     def _beat(self) -> None:
         """Heartbeat to the guardian while the main thread makes progress (or waits for the
-        operator); silent once it has been stuck for MAIN_THREAD_STALL_S."""
+        operator); silent once it has been stuck for MAIN_THREAD_STALL_S. Between beats it
+        watches the guardian: one that dies or is stopped is a fault (:meth:`fail`), so the
+        outputs go safe through the normal exit path rather than run on unguarded."""
+        assert self.guardian is not None
         told = False
         main_tid = threading.main_thread().native_id
         seen_progress, waited_at_progress = self._progress_s, run_delay_s(main_tid)
@@ -146,17 +150,17 @@ class RigSession:
                 seen_progress, waited_at_progress = self._progress_s, waited_s
             stuck_s = time.monotonic() - seen_progress - (waited_s - waited_at_progress)
             if self._operator_waits or stuck_s < MAIN_THREAD_STALL_S:
-                assert self.guardian is not None
-                if not self.guardian.beat() and not told:
-                    told = True
-                    self.on_unsafe(
-                        "the guardian process has gone: outputs are unguarded if rig dies"
-                    )
+                self.guardian.beat()  # a failed write means it is gone: gone() below says how
             elif not told:
                 told = True
                 print(f"rig: ERROR: no progress for {stuck_s:.0f} s; the guardian switches the"
                       " outputs off", file=sys.stderr)  # fmt: skip
-            time.sleep(HEARTBEAT_PERIOD_S)
+            how = self.guardian.gone(HEARTBEAT_PERIOD_S)  # the period's wait; at once if it dies
+            if how is not None and self._beating.is_set():
+                self.fail(f"the guardian process {how}; outputs switched off, as nothing"
+                          " would switch them off if rig died too: find what ended or stopped"
+                          " it (the system log: an out-of-memory kill) and start again")  # fmt: skip
+                return
 
     def fail(self, message: str) -> None:
         """Report a fault from any thread: the next fault-aware wait raises it (first one wins)."""
@@ -226,7 +230,7 @@ class RigSession:
     def load(self, name: str) -> Load:
         """Load channel ``name`` at 0 A with its output on; switched off when the session ends."""
         if name not in self.loads:
-            load = open_load(self._device(name, "load"), self.i2c_bus)
+            load = open_load(self._device(name, "load"), self.i2c_bus, self.cfg)
             self._stack.callback(load.close)
             self.loads[name] = load
         return self.loads[name]

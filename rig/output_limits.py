@@ -1,0 +1,222 @@
+"""Every output's own limits, enforced where it is written, whatever role a procedure gives it.
+
+A supply or load is opened through :func:`rig.devices.open_load` or :func:`rig.devices.build_cage`,
+and both wrap the driver in a :class:`LimitedOutput` holding the device's :class:`OutputLimits`:
+
+* its instrument range, narrowed by ``max_current_a`` / ``max_voltage_v`` in the rig configuration;
+* for a cage coil supply, also the cage's limits: ``[cage].max_current_a`` for its axis,
+  ``[cage].compliance_v``, and the most current any field within ``[cage].max_field_ut`` needs on
+  its axis (from the cage model), so no path drives a coil past what a legal field command could.
+
+A set-point beyond a limit is **refused**, never capped: nothing is sent, and
+:class:`OutputLimitError` (one line: device, value, limit and where the limit comes from) ends the
+run with status ``error`` through the safe path. A capped set-point would silently run a different
+experiment than the one written; a refused one cannot exceed the limit either.
+
+``rig check`` and ``rig run`` also refuse, before any output is on, a procedure that names a cage
+coil supply, the polarity relays or the reference as a load (:func:`refuse_cage_devices_as_loads`);
+the limits here are what holds if that check is bypassed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.identity import Identity
+from drivers.psu.riden import SupplyReading
+from drivers.registry import KINDS
+from rig.cage.model import CageModel
+from rig.config import DeviceConfig, RigConfig
+from rig.errors import RigError, UserInputError
+
+TOLERANCE = 1e-9
+"""Set-points this close above a limit count as at it (floating-point rounding)."""
+
+
+class OutputLimitError(RigError):
+    """A set-point beyond an output's own limit; nothing was sent to the device."""
+
+
+@dataclass(frozen=True)
+class OutputLimits:
+    """The largest set-points an output may be given: current magnitude (A) and voltage (V), each
+    with the words naming where the limit comes from (for the refusal message)."""
+
+    device: str
+    max_current_a: float
+    current_from: str
+    max_voltage_v: float | None = None
+    voltage_from: str = ""
+
+
+def cage_model(cfg: RigConfig) -> CageModel | None:
+    """The cage model a rig configuration gives: its calibration file if there is one, else the
+    nominal ``nominal_k_ut_per_a`` (B0 = 0); None without either (or without a cage)."""
+    c = cfg.cage
+    if c is None:
+        return None
+    if c.calibration is not None and c.calibration.exists():
+        return CageModel.load(c.calibration)
+    if c.nominal_k_ut_per_a is not None:
+        return CageModel(np.array(c.nominal_k_ut_per_a), np.zeros(3), meta={"nominal": True})
+    return None
+
+
+def field_limit_current_a(model: CageModel, max_field_ut: float, axis: int) -> float:
+    """The most current (A) axis ``axis`` needs for any field within ``max_field_ut`` (uT):
+    ``I = K^-1 (B - B0)`` over ``|B| <= max_field_ut``, whose largest ``|I_axis|`` is
+    ``max_field_ut * |row_axis(K^-1)| + |(K^-1 B0)_axis|``."""
+    k_inv = np.linalg.inv(model.k_ut_per_a)
+    row = k_inv[axis]
+    return float(max_field_ut * np.linalg.norm(row) + abs(row @ model.b0_ut))
+
+
+def output_limits(cfg: RigConfig | None, dev: DeviceConfig, driver: Any) -> OutputLimits:
+    """The limits of output ``dev`` opened as ``driver``: its range and configured limits, and
+    when ``cfg`` makes it a cage coil supply the cage's; the tightest one of each kind wins."""
+    name = dev.name
+    configured = dev.get("max_current_a")
+    current = [
+        (
+            float(driver.max_current_a),
+            f"max_current_a of [devices.{name}]"
+            if configured is not None and float(configured) <= float(driver.max_current_a)
+            else "the instrument's range",
+        )
+    ]
+    volts_max = getattr(driver, "max_voltage_v", None)
+    voltage = [(float(volts_max), f"the voltage range of {name}")] if volts_max is not None else []
+    c = cfg.cage if cfg is not None else None
+    if cfg is not None and c is not None and name in c.axes:
+        axis = c.axes.index(name)
+        current.append((c.max_current_a[axis], f"the cage's max_current_a for axis {'xyz'[axis]}"))
+        voltage.append((c.compliance_v, "the cage's compliance_v"))
+        model = cage_model(cfg)
+        if model is not None:
+            current.append(
+                (
+                    field_limit_current_a(model, c.max_field_ut, axis),
+                    f"the most any field within the cage's {c.max_field_ut:g} uT limit needs"
+                    f" on axis {'xyz'[axis]}",
+                )
+            )
+    amps, amps_from = min(current, key=lambda x: x[0])
+    volts, volts_from = min(voltage, key=lambda x: x[0]) if voltage else (None, "")
+    return OutputLimits(name, amps, amps_from, volts, volts_from)
+
+
+class LimitedOutput:
+    """A supply or load driver behind its :class:`OutputLimits`: every set-point goes through
+    here, and one beyond a limit raises :class:`OutputLimitError` without reaching the device.
+    Everything else (``read``, ``safe``, ``link``, ...) is the driver's own."""
+
+    def __init__(self, driver: Any, limits: OutputLimits) -> None:
+        self.driver = driver
+        self.limits = limits
+        self.name: str = driver.name
+
+    def __getattr__(self, attr: str) -> Any:
+        return getattr(self.driver, attr)
+
+    @property
+    def max_current_a(self) -> float:
+        """The largest current set-point magnitude this output accepts (A)."""
+        return self.limits.max_current_a
+
+    @property
+    def max_voltage_v(self) -> float:
+        """The largest voltage set-point this output accepts (V)."""
+        own = float(self.driver.max_voltage_v)
+        return own if self.limits.max_voltage_v is None else min(own, self.limits.max_voltage_v)
+
+    @property
+    def bipolar(self) -> bool:
+        """True when the current set-point is signed."""
+        return bool(getattr(self.driver, "bipolar", False))
+
+    def set_current(self, amps: float) -> float:
+        """Current set-point (A), refused beyond the limit; returns what the driver set."""
+        lim = self.limits
+        if not abs(amps) <= lim.max_current_a + TOLERANCE:  # also refuses NaN
+            raise OutputLimitError(
+                f"{lim.device}: a set-point of {amps:g} A is beyond its {lim.max_current_a:g} A"
+                f" limit ({lim.current_from}); nothing was sent: lower the current asked of it"
+            )
+        return float(self.driver.set_current(amps))
+
+    def set_voltage(self, volts: float) -> float:
+        """Voltage set-point (V), refused beyond the limit; returns what the driver set."""
+        lim = self.limits
+        if lim.max_voltage_v is not None and not volts <= lim.max_voltage_v + TOLERANCE:
+            raise OutputLimitError(
+                f"{lim.device}: a set-point of {volts:g} V is beyond its {lim.max_voltage_v:g} V"
+                f" limit ({lim.voltage_from}); nothing was sent: lower the voltage asked of it"
+            )
+        return float(self.driver.set_voltage(volts))
+
+    def enable_as_load(self, compliance_v: float) -> None:
+        """As the driver's, with the compliance voltage (V) within this output's voltage limit."""
+        if self.limits.max_voltage_v is not None:
+            compliance_v = min(compliance_v, self.limits.max_voltage_v)
+        self.driver.enable_as_load(compliance_v)
+
+    def set_output(self, on: bool) -> None:
+        """Output enable."""
+        self.driver.set_output(on)
+
+    def read(self) -> SupplyReading:
+        """The driver's read-back."""
+        reading: SupplyReading = self.driver.read()
+        return reading
+
+    def identify(self) -> Identity:
+        """The driver's identity."""
+        ident: Identity = self.driver.identify()
+        return ident
+
+    def safe(self) -> None:
+        """The driver's safe state (always allowed)."""
+        self.driver.safe()
+
+    def close(self) -> None:
+        """Close the driver's link."""
+        self.driver.close()
+
+
+def limited(cfg: RigConfig | None, dev: DeviceConfig, driver: Any) -> LimitedOutput:
+    """``driver`` (output ``dev``, of ``cfg`` if given) behind its limits."""
+    return LimitedOutput(driver, output_limits(cfg, dev, driver))
+
+
+def cage_role(cfg: RigConfig, name: str) -> str | None:
+    """What device ``name`` is in the cage ("the cage's x coil supply", "the cage's polarity
+    relays", "the cage's reference magnetometer"), None if it is not part of the cage."""
+    c = cfg.cage
+    if c is None:
+        return None
+    if name in c.axes:
+        return f"the cage's {'xyz'[c.axes.index(name)]} coil supply"
+    if name == c.polarity:
+        return "the cage's polarity relays"
+    if name == c.reference:
+        return "the cage's reference magnetometer"
+    return None
+
+
+def refuse_cage_devices_as_loads(loads: list[str], cfg: RigConfig, procedure: Path) -> None:
+    """Refuse (one line, UserInputError) a procedure whose ``loads:`` name a cage device: a coil
+    is driven by field steps within the cage's limits, never as a load channel."""
+    channels = [n for n, d in cfg.devices.items() if d.kind in KINDS
+                and "load" in KINDS[d.kind].roles and cage_role(cfg, n) is None]  # fmt: skip
+    for name in loads:
+        role = cage_role(cfg, name)
+        if role is not None:
+            raise UserInputError(
+                f"{procedure}: loads: '{name}' is {role} in {cfg.path}; a cage device is never"
+                f" a load (coils take field steps, within the cage limits): name a load channel"
+                f" ({', '.join(channels) or 'none in the configuration'})"
+            )
