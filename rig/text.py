@@ -6,9 +6,8 @@ into the run's metadata, its report and the lab index. There a NUL byte broke ev
 the lab index and a 300-character serial made the run folder's name too long (issue 29). So:
 
 * **no control characters**: C0 (U+0000-U+001F), DEL (U+007F) and C1 (U+0080-U+009F) are
-  refused, except tab and line feed in free text (a prompt's text, a description: a step
-  kind's ``Param(text="free")``) and tab in a rig
-  configuration's values (a column ``delimiter``);
+  refused, except tab and line feed in free text (a prompt's text, a description: what a step
+  kind declares ``Param(text="free")``) and tab in a rig configuration's values (a ``delimiter``);
 * **labels** (every name, serial, title and parameter value) are at most :data:`MAX_TEXT_CHARS`
   characters; free text, paths, host names and URLs have no limit of their own.
 
