@@ -110,7 +110,10 @@ def folder_problem(folder: Path, st: os.stat_result) -> str | None:
     the fix; None when it can (see the module's rules)."""
     me = os.geteuid()
     if stat.S_ISLNK(st.st_mode):
-        return f"is a symbolic link: set {LOCK_DIR_ENV} to the folder itself"
+        return (
+            f"is a symbolic link (of {_user(st.st_uid)}), which could lead anywhere: remove it,"
+            f" or set {LOCK_DIR_ENV} to the folder itself"
+        )
     if not stat.S_ISDIR(st.st_mode):
         return f"is not a folder: remove it, or set {LOCK_DIR_ENV} to another folder"
     mode = f"mode {stat.S_IMODE(st.st_mode):o}"
