@@ -17,7 +17,10 @@
     port = 5020
     device_id = 1
 
-Every error names the file and the key and says what to write instead. The values each device
+Every error names the file and the key and says what to write instead. Every string, keys
+included, follows the rule of :mod:`rig.text` (it is copied into each run folder and the lab
+index): no control characters but tab, and names, serials and other labels at most
+``MAX_TEXT_CHARS`` characters (paths, host names and URLs: no limit of their own). The values each device
 key accepts (a TCP port 1-65535, a Modbus RTU address 1-247, a standard baud rate, ...) are stated
 once, in the key's :class:`drivers.registry.Param`.
 """
@@ -32,6 +35,7 @@ from typing import Any
 
 from drivers.registry import KINDS, TRANSPORTS, all_params, kinds_with_role
 from rig.errors import UserInputError
+from rig.text import shown, text_problem
 
 DEVICE_KINDS: dict[str, tuple[str, ...]] = {name: k.transports for name, k in KINDS.items()}
 """Kind name -> transports it accepts (derived from :mod:`drivers.registry`)."""
@@ -83,6 +87,34 @@ class RigConfig:
     raw: dict[str, Any] = field(default_factory=dict)
 
 
+PATH_KEYS = frozenset({"path", "regmap", "calibration", "host", "url"})
+"""Keys whose strings are paths, host names or URLs: no length limit of their own."""
+
+
+def _refuse_bad_text(path: Path, value: Any, where: str, key: str = "") -> None:
+    """A one-line :class:`UserInputError` naming the key of the first string anywhere in the
+    configuration (keys included) that breaks the rule of :mod:`rig.text`."""
+    if isinstance(value, str):
+        problem = text_problem(value, label=key not in PATH_KEYS, allowed="\t")
+        if problem is not None:
+            raise _err(path, where, f"{shown(value)} {problem}")
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            k = str(k)
+            if (problem := text_problem(k)) is not None:
+                raise _err(path, where or "the top level", f"the key {shown(k)} {problem}")
+            if not where:
+                inner = f"[{k}]"
+            elif where.startswith("[") and where.endswith("]") and isinstance(v, dict):
+                inner = f"{where[:-1]}.{k}]"  # [devices.coil_x], as the file writes it
+            else:
+                inner = f"{where}.{k}"
+            _refuse_bad_text(path, v, inner, k)
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _refuse_bad_text(path, v, f"{where}[{i}]", key)
+
+
 def _err(path: Path, where: str, msg: str) -> UserInputError:
     return UserInputError(f"{path}: {where}: {msg}")
 
@@ -103,9 +135,12 @@ def _positive(path: Path, where: str, value: Any) -> float:
     return float(value)
 
 
-def load_rig_config(path: str | Path) -> RigConfig:
-    """Parse and validate a rig configuration file."""
+def load_rig_config(path: str | Path, *, check_text: bool = True) -> RigConfig:
+    """Parse and validate a rig configuration file. ``check_text=False`` skips the rule of
+    :mod:`rig.text` (for ``rig safe``: an emergency stop is not refused over a device's serial)."""
     path = Path(path)
+    if check_text and (problem := text_problem(str(path), label=False)) is not None:
+        raise UserInputError(f"{shown(str(path), 80)}: the file's path {problem} (rename it)")
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -114,6 +149,8 @@ def load_rig_config(path: str | Path) -> RigConfig:
         ) from None
     except tomllib.TOMLDecodeError as exc:
         raise UserInputError(f"{path}: not valid TOML ({exc}); fix the syntax") from None
+    if check_text:
+        _refuse_bad_text(path, raw, "")
     devices: dict[str, DeviceConfig] = {}
     table = raw.get("devices", {})
     if not isinstance(table, dict):

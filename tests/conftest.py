@@ -25,3 +25,15 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         default=None,
         help="a rig configuration (TOML) of real hardware: enables tests/hardware",
     )
+
+
+@pytest.fixture(scope="session", autouse=True)
+def private_lock_folder(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """The interlock's folder for this test session: private (0700, ours), so a /tmp/rig-locks
+    left world-writable by an older version, or used by another session, does not matter here.
+    Tests of the lock folder itself set their own."""
+    import os
+
+    folder = tmp_path_factory.mktemp("rig-locks")
+    folder.chmod(0o700)
+    os.environ["RIG_LOCK_DIR"] = str(folder)

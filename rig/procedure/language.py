@@ -19,6 +19,9 @@ Strings may use ``{parameter}``; nothing is evaluated. Every error names the fil
 step and the fix. A file is input from anyone: its size, its YAML (nesting, aliases, values with
 aliases expanded), its steps, its duration and its load set-points are bounded by the limits in
 rig.steps.vocabulary, each checked before the work it bounds, and no nan or inf gets through.
+Every string - keys, values, ``--set`` values, step names after substitution - follows the rule
+of :mod:`rig.text`: no control characters (free text, as a step's ``Param`` declares it, may hold
+tab and line feed), and names, serials and other labels at most ``MAX_TEXT_CHARS`` characters.
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ from rig.steps.vocabulary import (
     finite_number,
     suggest,
 )
+from rig.text import FREE_TEXT_CONTROLS, shown, text_problem
 
 __all__ = [
     "NotFiniteError",
@@ -268,6 +272,58 @@ def _refuse_non_finite(
             _refuse_non_finite(v, [*keys, i], line, path, key_lines)
 
 
+def _refuse_control_characters(
+    value: Any, keys: list[Any], line: int, path: Path, key_lines: dict[int, dict[Any, int]]
+) -> None:
+    """A :class:`ProcedureError` naming the line and place of the first control character
+    anywhere in the file's data (:mod:`rig.text`): keys are labels; values may hold tab and line
+    feed here, and are held to their own rule (label or free text) once bound."""
+    if isinstance(value, str):
+        problem = text_problem(value, label=False, allowed=FREE_TEXT_CONTROLS)
+        if problem is not None:
+            raise ProcedureError(f"{path}:{line}: {_label(keys)} {shown(value)} {problem}")
+    elif isinstance(value, dict):
+        lines = key_lines.get(id(value), {})
+        for k, v in value.items():
+            if k == "__line__":
+                continue
+            at = lines.get(k, line)
+            if isinstance(k, str) and (problem := text_problem(k)) is not None:
+                raise ProcedureError(f"{path}:{at}: the key {shown(k)} {problem}")
+            _refuse_control_characters(v, [*keys, k], at, path, key_lines)
+    elif isinstance(value, list | tuple):
+        for i, v in enumerate(value):
+            _refuse_control_characters(v, [*keys, i], line, path, key_lines)
+
+
+def _refuse_bad_labels(value: Any, where: str, what: str) -> None:
+    """Every string in ``value`` is a label (:func:`rig.text.text_problem`); ``what`` names it."""
+    if isinstance(value, str):
+        if (problem := text_problem(value)) is not None:
+            raise ProcedureError(f"{where}: {what} {shown(value)} {problem}")
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            if k != "__line__":
+                _refuse_bad_labels(v, where, f"'{k}'" if what.startswith("'") else what)
+    elif isinstance(value, list | tuple):
+        for v in value:
+            _refuse_bad_labels(v, where, what)
+
+
+def _refuse_bad_params_text(specs: dict[str, Param], params: dict[str, Any], where: str) -> None:
+    """A step's or load profile's bound parameters (``{parameter}`` substituted) against the rule
+    of :mod:`rig.text`, as each :class:`Param` declares its text (label, free text, file name)."""
+    for name, value in params.items():
+        spec = specs.get(name)
+        kind = spec.text if spec is not None else "label"
+        if kind == "label":
+            _refuse_bad_labels(value, where, f"'{name}'")
+        elif isinstance(value, str):
+            allowed = FREE_TEXT_CONTROLS if kind == "free" else ""
+            if (problem := text_problem(value, label=False, allowed=allowed)) is not None:
+                raise ProcedureError(f"{where}: '{name}' {shown(value)} {problem}")
+
+
 # --- the vocabulary: step kinds (rig.steps), load profiles (rig.steps.load_profiles) ---------------
 
 COMMON_KEYS = {"name", "loads"}
@@ -356,8 +412,11 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
     YAML structure as it is read, then no nan or inf anywhere, then per step its parameters, its
     load profiles' set-points and files, and the procedure's duration so far."""
     path = Path(path)
+    if (problem := text_problem(path.name)) is not None:
+        raise ProcedureError(f"{path}: the file name {problem} (rename the file)")
     text, data, key_lines = _read_yaml(path)
     _refuse_non_finite(data, [], data.get("__line__", 1), path, key_lines)
+    _refuse_control_characters(data, [], data.get("__line__", 1), path, key_lines)
     top = Where(str(path), data.get("__line__", 1))
     allowed = {
         "procedure",
@@ -373,6 +432,7 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
             raise ProcedureError(f"{top}: unknown top-level key '{key}'{suggest(key, allowed)}")
     if not isinstance(data.get("procedure"), str):
         raise ProcedureError(f"{top}: needs 'procedure: <title>'")
+    _refuse_bad_labels(data["procedure"], str(top), "the title")
     declared = data.get("parameters") or {}
     if not isinstance(declared, dict):
         raise ProcedureError(f"{top}: 'parameters' must be a mapping of name: {{default: ...}}")
@@ -386,9 +446,12 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
         names[name] = "" if default is None else str(default)
         line = key_lines.get(id(declared), {}).get(name, top.line)
         origin[name] = f"the default of parameter '{name}' ({path}:{line})"
+        _refuse_bad_labels(names[name], f"{path}:{line}", f"parameter '{name}': 'default'")
         if isinstance(spec, dict) and spec.get("allow_empty") in (True, "yes"):
             may_be_empty.add(name)
     for name, value in (overrides or {}).items():
+        if (problem := text_problem(value)) is not None:
+            raise ProcedureError(f"{path}: --set {shown(name)}={shown(value)}: the value {problem}")
         if name not in names:
             raise ProcedureError(
                 f"{path}: --set {name}=...: the procedure has no parameter '{name}'{suggest(name, names)}"
@@ -408,9 +471,11 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
     if not isinstance(mags, dict) or "dut" not in mags:
         raise ProcedureError(f"{top}: 'magnetometers' must map roles to devices and include 'dut'")
     mags = {k: str(v) for k, v in mags.items() if k != "__line__"}
+    _refuse_bad_labels(mags, str(top), "'magnetometers'")
     loads = data.get("loads") or []
     if not isinstance(loads, list) or not all(isinstance(x, str) for x in loads):
         raise ProcedureError(f"{top}: 'loads' must be a list of load-channel device names")
+    _refuse_bad_labels(loads, str(top), "a load in 'loads'")
     raw_steps = data.get("steps")
     if not isinstance(raw_steps, list) or not raw_steps:
         raise ProcedureError(f"{top}: needs a non-empty 'steps' list")
@@ -517,10 +582,17 @@ def _parse_step(
             bind_params(LOAD_PROFILES[pkind], given, f"{where} load '{ch}'", pkind),
         )
     step_kind.validate(params, loads, f"{where} ({kind})")
-    name = str(raw.get("name") or params.get("name") or f"{kind} {i + 1}")
-    return Step(
-        i, kind, _substitute(name, names, where), params, step_loads, Where(str(path), line), loads
+    _refuse_bad_params_text(step_kind.params, params, f"{where} ({kind})")
+    for ch, (pkind, pparams) in step_loads.items():
+        _refuse_bad_params_text(LOAD_PROFILES[pkind], pparams, f"{where} load '{ch}'")
+    name = _substitute(
+        str(raw.get("name") or params.get("name") or f"{kind} {i + 1}"), names, where
     )
+    if (problem := text_problem(name)) is not None:
+        raise ProcedureError(
+            f"{where}: the step's name {shown(name)} (parameters substituted) {problem}"
+        )
+    return Step(i, kind, name, params, step_loads, Where(str(path), line), loads)
 
 
 STEP_KINDS = {name: k.params for name, k in KINDS.items()}

@@ -49,7 +49,10 @@ LOAD_PROFILES: dict[str, dict[str, Param]] = {
         "period_s": Param("float", 20.0, 0.1),
         "width_s": Param("float", 2.0, 0.01),
     },
-    "csv": {"file": Param("str", required=True), "column": Param("str", required=True)},
+    "csv": {
+        "file": Param("str", required=True, text="path"),
+        "column": Param("str", required=True),
+    },
 }
 
 

@@ -11,7 +11,7 @@ import difflib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from rig.errors import UserInputError
 
@@ -103,6 +103,9 @@ class Param:
     maximum: float | None = None
     choices: tuple[str, ...] = ()
     required: bool = False
+    text: Literal["label", "free", "path"] = "label"
+    """What its strings are (rig.text): a label (at most MAX_TEXT_CHARS characters), free text
+    (tab and line feed allowed, no length limit) or a file name (no length limit)."""
 
 
 @dataclass(frozen=True)

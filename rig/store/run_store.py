@@ -1,8 +1,15 @@
 """The run store (contract): a run is a folder ``<runs-dir>/<run-id>/`` holding ``run.sqlite``.
 
 SQLite in WAL mode. Writers queue rows; one thread commits them in small batches (every
-``COMMIT_INTERVAL_S``), so a killed process loses at most the last batch. A run whose ``status`` is
-still ``running`` when it is next opened was killed: it is marked ``incomplete`` and stays readable.
+``COMMIT_INTERVAL_S``), so a killed process loses at most the last batch.
+
+A recording run holds a **lease**: the same thread renews the ``lease`` row of ``meta`` every
+``LEASE_PERIOD_S`` (a count, the recorder's wall-clock time, its host, boot id, PID namespace and
+PID). A reader that finds a run still ``running`` marks it ``incomplete`` (and seals it) only when
+its recorder is gone: judged by the PID when the reader is provably in the recorder's boot and PID
+namespace, else by the lease - expired when its wall-clock time is more than ``LEASE_EXPIRY_S``
+away from the reader's *and* its count does not move for ``LEASE_WATCH_S``. So a reader in a
+container or on another host sharing the runs folder never closes a live run, whatever the clocks.
 """
 
 from __future__ import annotations
@@ -19,12 +26,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from rig import host_identity
 from rig.errors import StoreWriteError, UserInputError
 from rig.store import safe_files
 from rig.store.seal import damaged, seal_run
 
 COMMIT_INTERVAL_S = 0.2
 """At most this much data (plus one commit's duration) is at risk if the process is killed."""
+LEASE_PERIOD_S = 1.0
+"""The recorder renews its lease this often (s)."""
+LEASE_EXPIRY_S = 30.0
+"""A lease whose wall-clock time is further than this from the reader's (s) may have expired:
+30 periods, beyond any stall of a live recorder and any clock offset of hosts kept in time."""
+LEASE_WATCH_S = 3.0
+"""How long a reader watches a lease that may have expired for a renewal (s; 3 periods): a live
+recorder whose host's clock is off (or stopped) renews within it, and the run stays running."""
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -82,6 +98,8 @@ class RunWriter:
         self._stop = threading.Event()
         self.rows_written = 0
         self.error: sqlite3.Error | None = None
+        self._lease = _lease_of(self._con)
+        self._renew_lease()
         self._thread = threading.Thread(target=self._run, name="run-store", daemon=True)
         self._thread.start()
 
@@ -169,10 +187,22 @@ class RunWriter:
         self.rows_written += n
         return n
 
+    def _renew_lease(self) -> None:
+        """Tell readers this run is still being recorded (see the module's docstring)."""
+        self._lease["seq"] = int(self._lease.get("seq", 0)) + 1
+        self._lease["renewed_at"] = time.time()
+        with self._lock:
+            self._con.execute(META_UPSERT, ("lease", json.dumps(self._lease)))
+            self._con.commit()
+
     def _run(self) -> None:
+        renew_at = time.monotonic() + LEASE_PERIOD_S
         while not self._stop.wait(COMMIT_INTERVAL_S):
             try:
                 self._drain()
+                if time.monotonic() >= renew_at:
+                    self._renew_lease()
+                    renew_at = time.monotonic() + LEASE_PERIOD_S
             except sqlite3.Error as exc:  # disk full, I/O error: what is committed stays
                 self.error = exc
                 return
@@ -241,17 +271,34 @@ class RunReader:
             with contextlib.suppress(AttributeError, sqlite3.Error):
                 self._con.close()
             raise damaged(folder, exc) from None
-        if meta.get("status") == "running" and not _owner_alive(meta.get("pid")):
-            self._con.execute(
+        if meta.get("status") == "running":
+            reason = _recorder_gone(self._con, meta)
+            if reason is not None and self._mark_incomplete(meta.get("lease"), reason):
+                with contextlib.suppress(sqlite3.Error, OSError):
+                    seal_run(folder)  # closed now: nobody will write to it again
+
+    def _mark_incomplete(self, lease: Any, reason: str) -> bool:
+        """Mark the run incomplete unless it closed or renewed its lease meanwhile (checked in
+        the same write transaction); True when it was marked."""
+        con = self._con
+        con.commit()  # (no transaction of ours is open; BEGIN needs none)
+        con.execute("BEGIN IMMEDIATE")
+        try:
+            now = dict(con.execute("SELECT key, value FROM meta WHERE key IN ('status', 'lease')"))
+            if json.loads(now.get("status", "null")) != "running" or (
+                json.loads(now.get("lease", "null")) != lease
+            ):
+                con.rollback()
+                return False
+            con.execute(
                 "INSERT OR REPLACE INTO meta VALUES ('status', ?), ('reason', ?)",
-                (
-                    json.dumps("incomplete"),
-                    json.dumps("the rig process ended without closing the run (killed?)"),
-                ),
+                (json.dumps("incomplete"), json.dumps(reason)),
             )
-            self._con.commit()
-            with contextlib.suppress(sqlite3.Error, OSError):
-                seal_run(folder)  # closed now: nobody will write to it again
+            con.commit()
+        except BaseException:
+            con.rollback()
+            raise
+        return True
 
     def meta(self) -> dict[str, Any]:
         """All metadata."""
@@ -329,6 +376,62 @@ def _owner_alive(pid: Any) -> bool:
     return isinstance(pid, int) and pid > 0 and process_alive(pid)
 
 
+KILLED = "the rig process ended without closing the run (killed?)"
+
+
+def _lease_of(con: sqlite3.Connection) -> dict[str, Any]:
+    """This process's lease of the run in ``con``, continuing the count of the one stored."""
+    row = con.execute("SELECT value FROM meta WHERE key = 'lease'").fetchone()
+    old = json.loads(row[0]) if row else {}
+    seq = old.get("seq") if isinstance(old, dict) else None
+    return {**host_identity.identity(), "seq": seq if isinstance(seq, int) else 0,
+            "period_s": LEASE_PERIOD_S, "expiry_s": LEASE_EXPIRY_S}  # fmt: skip
+
+
+def _recorder_gone(con: sqlite3.Connection, meta: dict[str, Any]) -> str | None:
+    """Why the recorder of a ``running`` run is gone (the reason to record), None while it may
+    be recording: by PID in its own boot and PID namespace, else by its lease."""
+    lease = meta.get("lease")
+    if not isinstance(lease, dict):  # recorded before leases: its PID, as then
+        return None if _owner_alive(meta.get("pid")) else KILLED
+    alive = host_identity.alive(lease)
+    if alive is not None:
+        return None if alive else KILLED
+    if not lease_expired(con, lease):
+        return None
+    when = lease.get("renewed_at")
+    at = (
+        dt.datetime.fromtimestamp(when, dt.UTC).isoformat(timespec="seconds")
+        if isinstance(when, int | float) and not isinstance(when, bool) and abs(when) < 1e11
+        else "?"
+    )
+    return (
+        f"the rig process on {lease.get('host', '?')} stopped renewing its lease (last at {at})"
+        " without closing the run (killed?)"
+    )
+
+
+def lease_expired(con: sqlite3.Connection, lease: dict[str, Any]) -> bool:
+    """Has the recorder of ``lease`` (the stored ``lease`` row of ``con``) stopped renewing it?
+    No when its wall-clock time is within :data:`LEASE_EXPIRY_S` of ours; otherwise (a dead
+    recorder, or hosts whose clocks disagree) yes unless the row changes within
+    :data:`LEASE_WATCH_S`."""
+    when = lease.get("renewed_at")
+    if (
+        isinstance(when, int | float)
+        and not isinstance(when, bool)
+        and abs(time.time() - when) <= LEASE_EXPIRY_S
+    ):
+        return False
+    deadline = time.monotonic() + LEASE_WATCH_S
+    while time.monotonic() < deadline:
+        time.sleep(0.1)
+        row = con.execute("SELECT value FROM meta WHERE key = 'lease'").fetchone()
+        if row is None or json.loads(row[0]) != lease:
+            return False  # renewed (or rewritten): someone is recording it
+    return True
+
+
 def new_run(runs_dir: Path, label: str, **meta: Any) -> RunWriter:
     """Create ``<runs_dir>/<date>-<time>-<label>/`` with a fresh store marked running."""
     import os
@@ -354,6 +457,8 @@ def new_run(runs_dir: Path, label: str, **meta: Any) -> RunWriter:
         con.executescript(SCHEMA)
         con.executemany(META_UPSERT, _meta_rows(dict(
             run_id=folder.name, status="running", pid=os.getpid(),
+            lease={**host_identity.identity(), "seq": 0, "renewed_at": time.time(),
+                   "period_s": LEASE_PERIOD_S, "expiry_s": LEASE_EXPIRY_S},
             # the same instant on both clocks: exports convert sample times to UTC with it
             start_time=dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds"),
             start_monotonic=time.monotonic(), **meta)))  # fmt: skip
