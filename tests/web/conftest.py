@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 
 from rig.child_process import start_child, stop_child
@@ -75,10 +76,23 @@ def read_url(proc: subprocess.Popen[bytes], pattern: str, timeout_s: float = 60.
 
 
 def serve_process(runs_dir: Path, *extra: str) -> tuple[subprocess.Popen[bytes], str]:
-    """`rig serve` on a free loopback port; returns the process and its address."""
+    """`rig serve` on a free loopback port; returns the process and its address (with the access
+    token: ``http://127.0.0.1:PORT/?token=...``)."""
     proc = start_child([sys.executable, "-m", "rig.cli", "serve", "--runs-dir", str(runs_dir),
                         "--port", "0", *extra], stdout=subprocess.PIPE)  # fmt: skip
     return proc, read_url(proc, "rig serve:")
+
+
+def split_token(url: str) -> tuple[str, str]:
+    """The printed address's base (``http://127.0.0.1:PORT``, no slash) and its access token."""
+    base, token = url.split("?token=")
+    return base.rstrip("/"), token
+
+
+def owner_client(url: str) -> httpx.Client:
+    """An HTTP client of the server's owner: it knows the token (as the owner's scripts do)."""
+    base, token = split_token(url)
+    return httpx.Client(base_url=base, headers={"authorization": f"Bearer {token}"}, timeout=30)
 
 
 @pytest.fixture

@@ -22,7 +22,7 @@ from rig.child_process import start_child, stop_child
 from rig.store import RunReader
 from tests.simproc import outputs
 from tests.simproc import sim_process as start_sim
-from tests.web.conftest import read_url, screenshot, serve_process
+from tests.web.conftest import read_url, screenshot, serve_process, split_token
 
 pytestmark = pytest.mark.slow
 
@@ -90,7 +90,9 @@ def test_run_watched_and_prompt_answered_on_the_page_then_browsed(
     server, url = serve_process(runs)
     try:
         page = browser.new_page(viewport={"width": 1280, "height": 900})
-        page.goto(url)
+        page.goto(url)  # the address with its token: the page keeps it as a cookie
+        assert "token=" not in page.url
+        base, _ = split_token(url)
         row = page.locator(f"tr[data-run='{folder.name}']")
         assert row.locator("td.status-complete").inner_text() == "complete"
         assert row.locator("td.verdict-PASS").inner_text() == "PASS"
@@ -102,9 +104,9 @@ def test_run_watched_and_prompt_answered_on_the_page_then_browsed(
         row.locator("a").click()
         assert page.inner_text("#verdict") == "PASS"
         assert "DUT noise at null field" in page.inner_text("#criteria")
-        result = page.request.get(f"{url}runs/{folder.name}/export/json").json()
+        result = page.request.get(f"{base}/runs/{folder.name}/export/json").json()
         assert result["verdict"]["overall"] == "PASS"
-        zipped = page.request.get(f"{url}runs/{folder.name}/export/csv")
+        zipped = page.request.get(f"{base}/runs/{folder.name}/export/csv")
         assert zipped.ok and zipped.body()[:2] == b"PK"
         page.click("#open-report")
         page.wait_for_load_state()
@@ -126,7 +128,8 @@ def test_abort_from_the_page_leaves_every_output_off(
         page = browser.new_page(viewport={"width": 1280, "height": 900})
         page.on("dialog", lambda d: d.accept())  # "Abort the run?"
         run_page = read_url(proc, "this run's page:", stream=proc.stderr)
-        assert run_page.startswith(url) and "/runs/" in run_page
+        base, token = split_token(url)
+        assert run_page.startswith(base) and "/runs/" in run_page and run_page.endswith(token)
         page.goto(run_page)  # the address the terminal printed for this run
         page.wait_for_selector("#live:not([hidden])")
         deadline = time.monotonic() + 120

@@ -51,7 +51,12 @@ async function control(runId, body) {
     headers: { "content-type": "application/json", "x-rig-csrf": CSRF },
     body: JSON.stringify(body),
   });
-  if (!res.ok) alert((await res.json()).error || res.statusText);
+  if (!res.ok) {  // a refusal is one line, as JSON from the route or as text from the guard
+    const text = await res.text();
+    let line = text;
+    try { line = JSON.parse(text).error || text; } catch (e) { /* plain text */ }
+    alert(line.trim() || res.statusText);
+  }
 }
 
 function fieldPlot(el) {
@@ -153,3 +158,7 @@ function rigRunPage(running) {
     }
   };
 }
+
+// The page says which view it is (no inline script: the Content-Security-Policy allows none).
+if (document.body.dataset.page === "runs") rigRunsPage();
+else if (document.body.dataset.page === "run") rigRunPage(document.body.dataset.running === "true");
