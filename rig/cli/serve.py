@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ipaddress
+import os
+import signal
 import socket
 import sys
 from pathlib import Path
@@ -109,11 +111,25 @@ def serve(runs_dir: Path, rig_config: Path | None, host: str, port: int, allow_r
                                 access_log=False, lifespan="off",
                                 timeout_graceful_shutdown=1)  # fmt: skip
         server = uvicorn.Server(config)
+        _remove_on_sigterm(access_file)
         server.run(sockets=[sock])
     finally:
         with contextlib.suppress(OSError):
             access_file.unlink()
     return 0
+
+
+def _remove_on_sigterm(path: Path) -> None:
+    """On SIGTERM remove ``path``, then end as SIGTERM does (uvicorn shuts down first, then
+    raises the signal again to the handler it found: this one)."""
+
+    def on_term(signum: int, frame: object) -> None:
+        with contextlib.suppress(OSError):
+            path.unlink()
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    signal.signal(signal.SIGTERM, on_term)
 
 
 def _lab_url(arg: str | None, rig_config: Path | None) -> str | None:

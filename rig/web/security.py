@@ -14,7 +14,8 @@
   server's own is refused as well.
 - Framing: every response says ``frame-ancestors 'none'`` (CSP) and ``X-Frame-Options: DENY``, so no
   other page (another site, another loopback address or port) can frame the run page and lure a
-  click on Abort; a run's report, framed by the run page itself, says ``'self'`` and is sandboxed.
+  click on Abort; a run's report, framed by the run page itself, says ``'self'`` and runs no
+  script.
 - Bodies: a request body longer than :data:`MAX_BODY` is refused with 413 before it is read (by
   its Content-Length, or by counting as it streams in).
 """
@@ -52,9 +53,10 @@ PAGE_CSP = ("default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inl
             " img-src 'self' data:; object-src 'none'; base-uri 'none'; form-action 'self';"
             " frame-ancestors 'none'")  # fmt: skip
 """The pages' policy: their own scripts only (no inline script), framed by nobody."""
-FRAMED_FILE_CSP = ("sandbox; default-src 'none'; img-src 'self' data:; style-src 'unsafe-inline';"
-                   " frame-ancestors 'self'")  # fmt: skip
-"""A run folder's HTML report: no script runs in it, only the run page itself may frame it."""
+FRAMED_FILE_CSP = ("default-src 'none'; img-src 'self' data:; style-src 'unsafe-inline';"
+                   " base-uri 'none'; form-action 'none'; frame-ancestors 'self'")  # fmt: skip
+"""A run folder's HTML report: no script runs in it (an edited report cannot reach the page's
+secret), and only the run page itself may frame it."""
 SECURITY_HEADERS = [(b"x-content-type-options", b"nosniff"), (b"referrer-policy", b"no-referrer")]
 
 

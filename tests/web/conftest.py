@@ -58,6 +58,15 @@ def screenshot(page: Any, name: str) -> Path:
     return path
 
 
+def wait_js(page: Any, expression: str, timeout_s: float = 30.0) -> None:
+    """Wait until the JavaScript ``expression`` is true in ``page``, polled from here: the page's
+    Content-Security-Policy forbids the eval that Playwright's ``wait_for_function`` uses."""
+    deadline = time.monotonic() + timeout_s
+    while not page.evaluate(expression):
+        assert time.monotonic() < deadline, f"not true within {timeout_s} s: {expression}"
+        time.sleep(0.1)
+
+
 def read_url(proc: subprocess.Popen[bytes], pattern: str, timeout_s: float = 60.0,
              stream: Any = None) -> str:  # fmt: skip
     """The first URL a child prints in a line matching ``pattern``, on ``stream`` (default: its

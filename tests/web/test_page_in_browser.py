@@ -22,7 +22,7 @@ from rig.child_process import start_child, stop_child
 from rig.store import RunReader
 from tests.simproc import outputs
 from tests.simproc import sim_process as start_sim
-from tests.web.conftest import read_url, screenshot, serve_process, split_token
+from tests.web.conftest import read_url, screenshot, serve_process, split_token, wait_js
 
 pytestmark = pytest.mark.slow
 
@@ -65,17 +65,12 @@ def test_run_watched_and_prompt_answered_on_the_page_then_browsed(
         page.click("#prompt-yes")
         page.wait_for_selector("#prompt", state="hidden", timeout=10_000)
         # the live plot gains points while the field steps run
-        page.wait_for_function("Number(document.getElementById('live').dataset.points || 0) >= 3",
-                               timeout=30_000)  # fmt: skip
+        wait_js(page, "Number(document.getElementById('live').dataset.points || 0) >= 3", 30)
         first = int(page.get_attribute("#live", "data-points"))
-        page.wait_for_function(
-            f"Number(document.getElementById('live').dataset.points || 0) >= {first + 4}",
-            timeout=30_000,
-        )
+        wait_js(page, f"Number(document.getElementById('live').dataset.points || 0) >= {first + 4}")
         assert page.inner_text("#step-line").startswith("step ")
         screenshot(page, "live-run")
-        page.wait_for_function("document.getElementById('live').dataset.finished === 'complete'",
-                               timeout=120_000)  # fmt: skip
+        wait_js(page, "document.getElementById('live').dataset.finished === 'complete'", 120)
         assert proc.wait(timeout=60) == 0
     finally:
         if proc.poll() is None:
@@ -137,13 +132,11 @@ def test_abort_from_the_page_leaves_every_output_off(
             assert proc.poll() is None, "the run ended before its outputs were on"
             assert time.monotonic() < deadline, "no output came on"
             time.sleep(0.2)
-        page.wait_for_function("Number(document.getElementById('live').dataset.points || 0) >= 2",
-                               timeout=30_000)  # fmt: skip
+        wait_js(page, "Number(document.getElementById('live').dataset.points || 0) >= 2", 30)
         # pause holds the schedule at the next command of a step with scheduled commands (the
         # cage characterization runs its own sequence to its end first); resume goes on
-        page.wait_for_function("/noise floor|noise spectrum|linearity|sweep/.test("
-                               "document.getElementById('step-line').textContent)",
-                               timeout=60_000)  # fmt: skip
+        wait_js(page, "/noise floor|noise spectrum|linearity|sweep/.test("
+                      "document.getElementById('step-line').textContent)", 60)  # fmt: skip
         page.click("#pause")
         page.wait_for_selector("#paused-flag:not([hidden])", timeout=5_000)
         time.sleep(1.0)
@@ -158,8 +151,7 @@ def test_abort_from_the_page_leaves_every_output_off(
         print(f"time to safe after the page's abort: {t_safe * 1000:.0f} ms"
               f" ({held * 1000:.0f} ms of it the kernel held serial data back)")  # fmt: skip
         assert t_safe - held < 1.0
-        page.wait_for_function("document.getElementById('live').dataset.finished === 'aborted'",
-                               timeout=30_000)  # fmt: skip
+        wait_js(page, "document.getElementById('live').dataset.finished === 'aborted'", 30)
         screenshot(page, "aborted")
         assert proc.wait(timeout=60) == 130
     finally:

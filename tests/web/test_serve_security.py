@@ -65,10 +65,10 @@ def csrf(client: httpx.Client, rid: str) -> str:
 
 def test_lists_and_exports_a_finished_run(client: httpx.Client, runs: Path) -> None:
     rid = run_id(runs)
-    rows = client.get(f"/api/runs").json()
+    rows = client.get("/api/runs").json()
     assert [(r["run_id"], r["status"], r["verdict"]) for r in rows] == [(rid, "complete", "PASS")]
-    assert client.get(f"/api/runs", params={"q": "sn-0042"}).json() == rows
-    assert client.get(f"/api/runs", params={"q": "SN-9999"}).json() == []
+    assert client.get("/api/runs", params={"q": "sn-0042"}).json() == rows
+    assert client.get("/api/runs", params={"q": "SN-9999"}).json() == []
     page = client.get(f"/runs/{rid}")
     assert page.status_code == 200 and "DUT noise at null field" in page.text
     result = client.get(f"/runs/{rid}/export/json").json()
@@ -78,7 +78,7 @@ def test_lists_and_exports_a_finished_run(client: httpx.Client, runs: Path) -> N
     h5 = client.get(f"/runs/{rid}/export/hdf5")
     assert h5.status_code == 200 and h5.content[:8] == b"\x89HDF\r\n\x1a\n"
     assert client.get(f"/runs/{rid}/files/run.sqlite").content[:15] == b"SQLite format 3"
-    cage = client.get(f"/cage")
+    cage = client.get("/cage")
     assert cage.status_code == 200 and "rig serve --rig" in cage.text
 
 
@@ -97,7 +97,7 @@ def test_lists_and_exports_a_finished_run(client: httpx.Client, runs: Path) -> N
 def test_nothing_outside_a_run_folders_downloads_is_served(
     client: httpx.Client, runs: Path, path: str
 ) -> None:
-    r = client.get( path.format(rid=run_id(runs)))
+    r = client.get(path.format(rid=run_id(runs)))
     assert r.status_code == 404, (path, r.status_code, r.text[:100])
     assert "not for the page" not in r.text and "root:" not in r.text
 
@@ -123,9 +123,9 @@ def test_state_changes_need_the_pages_secret_and_origin(
 
 def test_loopback_server_refuses_other_host_names(client: httpx.Client) -> None:
     """A DNS name of an attacker's that points at 127.0.0.1 does not reach the page."""
-    r = client.get(f"/", headers={"host": "attacker.example:80"})
+    r = client.get("/", headers={"host": "attacker.example:80"})
     assert r.status_code == 421
-    assert client.get(f"/", headers={"host": "localhost"}).status_code == 200
+    assert client.get("/", headers={"host": "localhost"}).status_code == 200
 
 
 def test_other_addresses_need_a_flag_and_then_a_token(runs: Path) -> None:
