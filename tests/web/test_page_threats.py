@@ -94,6 +94,7 @@ def site(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     (good / "x.png").symlink_to("/etc/shadow")
     (good / "y.png").symlink_to(secret)
     (good / "plot.json").symlink_to(secret)
+    os.mkfifo(good / "z.csv")  # a reader that opened it would wait for a writer forever
     os.symlink(good, runs / "20990101-000002-LINKED")
     xdg = base / "xdg"
     xdg.mkdir(mode=0o700)
@@ -383,7 +384,7 @@ def test_links_in_run_folders_are_not_followed(site: dict[str, Any]) -> None:
     client: httpx.Client = site["client"]
     good = quote(site["good"].name, safe="")
     page = client.get(f"/runs/{good}").text
-    for name in ("x.png", "y.png", "plot.json"):
+    for name in ("x.png", "y.png", "plot.json", "z.csv"):
         r = client.get(f"/runs/{good}/files/{name}")
         assert r.status_code == 404 and one_line(r.text), name
         assert "root:" not in r.text and SECRET not in r.text
@@ -595,3 +596,18 @@ def _another_account_at_the_prompt(proc: subprocess.Popen[bytes], runs: Path) ->
     assert meta["status"] == "aborted" and meta["reason"] == "aborted from the web page"
     assert sum(ignored in m for m in events) == 1, events
     assert not any("confirmed" in m for m in events)
+
+
+def test_a_lab_serial_with_a_slash_reaches_its_page(tmp_path: Path) -> None:
+    """``/lab/dut/SN%2F01`` is the DUT page of ``SN/01`` (here the index is down: 503, one line
+    naming it), not a 404 of a path that does not exist."""
+    proc, url = serve_process(tmp_path, "--lab", "postgresql://rig@127.0.0.1:1/nothing")
+    try:
+        with owner_client(url) as client:
+            for serial in ("SN/01", "SN?1#2%3"):
+                r = client.get(f"/lab/dut/{segment(serial)}")
+                assert r.status_code == 503, (serial, r.status_code)
+                assert 'id="lab-error"' in r.text
+            assert client.get("/lab/nothing/here").status_code == 404
+    finally:
+        stop_child(proc, first=signal.SIGTERM, wait_s=5.0)
