@@ -17,7 +17,7 @@ import shutil
 import tempfile
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 from urllib.parse import quote
 
 from starlette.applications import Starlette
@@ -48,7 +48,7 @@ from rig.web.runs_view import (
     run_folder,
     summary_or_damaged,
 )
-from rig.web.security import FRAMED_FILE_CSP, MAX_BODY, Guard, new_secret
+from rig.web.security import FRAMED_FILE_CSP, Guard, new_secret
 
 HERE = Path(__file__).parent
 LIVE_POLL_S = 0.25
@@ -103,9 +103,10 @@ def parse_control(body: bytes) -> dict[str, Any]:
     return {"action": action, "prompt": prompt if action == "answer" else None, "yes": yes}
 
 
-def file_chunks(fd: int) -> Iterator[bytes]:
-    """The content of the open file ``fd`` in chunks; closes it at the end."""
-    with os.fdopen(fd, "rb") as fh:
+def file_chunks(fh: BinaryIO) -> Iterator[bytes]:
+    """The content of the open file ``fh`` in chunks; closes it at the end (a response never
+    sent leaves it to the garbage collector, which closes it too)."""
+    with fh:
         while chunk := fh.read(CHUNK):
             yield chunk
 
@@ -190,7 +191,8 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *, access_token: 
                         "x-frame-options": "SAMEORIGIN"}  # fmt: skip
         if not name.endswith((".png", ".html")):
             headers["content-disposition"] = f"attachment; filename*=utf-8''{quote(name)}"
-        return StreamingResponse(file_chunks(fd), media_type=media_type(name), headers=headers)
+        return StreamingResponse(file_chunks(os.fdopen(fd, "rb")), media_type=media_type(name),
+                                 headers=headers)  # fmt: skip
 
     async def run_export(request: Request) -> Response:
         folder = site.folder(request)
@@ -236,8 +238,7 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *, access_token: 
                                 status_code=500)  # fmt: skip
         if summary.status != "running":
             return JSONResponse({"error": "the run has ended"}, status_code=409)
-        body = await request.body()  # the guard has bounded it to MAX_BODY
-        assert len(body) <= MAX_BODY
+        body = await request.body()  # at most security.MAX_BODY bytes: the guard refused a longer one
         try:
             req = parse_control(body)
         except ValueError as exc:
