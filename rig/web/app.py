@@ -238,7 +238,7 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *, access_token: 
                                 status_code=500)  # fmt: skip
         if summary.status != "running":
             return JSONResponse({"error": "the run has ended"}, status_code=409)
-        body = await request.body()  # at most security.MAX_BODY bytes: the guard refused a longer one
+        body = await request.body()  # the guard refused one over security.MAX_BODY bytes
         try:
             req = parse_control(body)
         except ValueError as exc:

@@ -402,7 +402,8 @@ def test_a_damaged_run_is_shown_as_damaged_and_hides_no_other(site: dict[str, An
     assert site["good"].name in rows and all(rid in rows for rid in ODD_IDS)
     bad = rows[site["damaged"].name]
     assert bad["status"] == "damaged" and "rig verify" in bad["reason"] and one_line(bad["reason"])
-    assert "damaged" in client.get("/").text
+    listing = client.get("/").text
+    assert 'class="status-damaged" title="cannot read run.sqlite' in listing
     damaged = quote(site["damaged"].name, safe="")
     page = client.get(f"/runs/{damaged}")
     assert page.status_code == 500 and "is damaged" in page.text

@@ -14,6 +14,7 @@ function runRow(r) {
     } else td.textContent = text;
   });
   tr.cells[5].className = `status-${r.status}`;
+  tr.cells[5].title = r.reason || "";  // why a run is damaged, incomplete or aborted
   tr.cells[6].className = `verdict-${r.verdict || "none"}`;
   return tr;
 }
