@@ -1,15 +1,23 @@
-"""``rig serve``: the local web page for live runs, past runs and the cage (``rig.web``)."""
+"""``rig serve``: the local web page for live runs, past runs and the cage (``rig.web``).
+
+Every server has an access token (on loopback too: any local account can connect to a loopback
+port). The address printed carries it, and so does a file only this account can read
+(``rig.web.security.write_access_file``), removed when the server ends.
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ipaddress
+import os
+import signal
 import socket
 import sys
 from pathlib import Path
 
 from rig.cli.common import Parser, Subparsers
-from rig.errors import UserInputError
+from rig.errors import RigError, UserInputError
 
 DEFAULT_PORT = 8765
 
@@ -30,7 +38,8 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
                    help="lab index to show on the Lab page: postgresql://USER@HOST:PORT/DB"
                         " (default: $RIG_LAB_URL, else [lab] url of --rig; none: no Lab page)")  # fmt: skip
     p.add_argument("--allow-remote", action="store_true",
-                   help="allow an address other than loopback; prints a one-time access token")  # fmt: skip
+                   help="allow an address other than loopback (anyone with the address and its"
+                        " token can operate the rig)")  # fmt: skip
     p.set_defaults(func=_cmd_serve)
 
 
@@ -66,11 +75,11 @@ def listen(host: str, port: int) -> socket.socket:
 
 def serve(runs_dir: Path, rig_config: Path | None, host: str, port: int, allow_remote: bool,
           quiet: bool, lab: str | None = None) -> int:  # fmt: skip
-    """Serve until Ctrl-C or SIGTERM; prints the address (and the token off loopback) first."""
+    """Serve until Ctrl-C or SIGTERM; prints the address with its access token first."""
     import uvicorn
 
     from rig.web.app import create_app
-    from rig.web.security import new_secret
+    from rig.web.security import new_secret, write_access_file
 
     loopback = is_loopback(host)
     if not loopback and not allow_remote:
@@ -79,21 +88,48 @@ def serve(runs_dir: Path, rig_config: Path | None, host: str, port: int, allow_r
     if rig_config is not None and not rig_config.is_file():
         raise UserInputError(f"{rig_config}: no such rig configuration; check --rig")
     lab_url = _lab_url(lab, rig_config)
-    token = None if loopback else new_secret()
+    token = new_secret()
     sock = listen(host, port)
     shown = f"[{host}]" if ":" in host else host
-    url = f"http://{shown}:{sock.getsockname()[1]}/"
-    print(f"rig serve: {url}" + (f"?token={token}" if token else ""), flush=True)
-    if token and not quiet:
-        print("rig serve: the token is shown once; anyone with this URL can operate the rig",
-              file=sys.stderr, flush=True)  # fmt: skip
-    app = create_app(runs_dir, rig_config, access_token=token, loopback_only=loopback,
-                     lab_url=lab_url)  # fmt: skip
-    config = uvicorn.Config(app, log_level="warning" if not quiet else "error", access_log=False,
-                            lifespan="off", timeout_graceful_shutdown=1)  # fmt: skip
-    server = uvicorn.Server(config)
-    server.run(sockets=[sock])
+    bound = sock.getsockname()[1]
+    url = f"http://{shown}:{bound}/?token={token}"
+    try:
+        access_file = write_access_file(url, bound)
+    except (OSError, RigError) as exc:
+        sock.close()
+        raise UserInputError(f"cannot write the page's access file ({exc}); set XDG_RUNTIME_DIR"
+                             " to a folder of yours") from None  # fmt: skip
+    try:
+        print(f"rig serve: {url}", flush=True)
+        if not quiet:
+            who = "anyone with it" if not loopback else "this account only (keep it to yourself)"
+            print(f"rig serve: the address carries the page's access token, also in {access_file};"
+                  f" {who} can operate the rig", file=sys.stderr, flush=True)  # fmt: skip
+        app = create_app(runs_dir, rig_config, access_token=token, loopback_only=loopback,
+                         lab_url=lab_url, token_hint=str(access_file))  # fmt: skip
+        config = uvicorn.Config(app, log_level="warning" if not quiet else "error",
+                                access_log=False, lifespan="off",
+                                timeout_graceful_shutdown=1)  # fmt: skip
+        server = uvicorn.Server(config)
+        _remove_on_sigterm(access_file)
+        server.run(sockets=[sock])
+    finally:
+        with contextlib.suppress(OSError):
+            access_file.unlink()
     return 0
+
+
+def _remove_on_sigterm(path: Path) -> None:
+    """On SIGTERM remove ``path``, then end as SIGTERM does (uvicorn shuts down first, then
+    raises the signal again to the handler it found: this one)."""
+
+    def on_term(signum: int, frame: object) -> None:
+        with contextlib.suppress(OSError):
+            path.unlink()
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    signal.signal(signal.SIGTERM, on_term)
 
 
 def _lab_url(arg: str | None, rig_config: Path | None) -> str | None:

@@ -4,7 +4,8 @@ A thread of its own (the steps never wait for it) writes ``live.json`` in the ru
 second and looks for requests in ``control/`` ten times a second (:mod:`rig.store.run_control`):
 pause, resume and abort go through the same events as the signals and Ctrl-C, and an answer to an
 operator prompt is handed to :meth:`Runner.ask_operator`, which takes the page's or the
-terminal's, whichever comes first.
+terminal's, whichever comes first. It creates ``control/`` (0700) as the run starts and takes only
+its owner's requests; any other is ignored and recorded once as a warning event.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from rig.store.run_control import CONTROL_DIR, take_requests, write_live
+from rig.store.run_control import CONTROL_DIR, open_box, take_requests, write_live
 
 POLL_S = 0.1
 """How often the requests are looked for (s): an abort reaches the safe path within this."""
@@ -51,9 +52,13 @@ class LivePublisher:
         self._t_start = time.monotonic()
         self._thread = threading.Thread(target=self._run, name="live-state", daemon=True)
         self.publish_errors = 0
+        self.refused: set[str] = set()
+        """Lines already recorded about requests that were ignored (each is recorded once)."""
 
     def start(self) -> None:
         """Start publishing."""
+        with contextlib.suppress(OSError):  # no request box: the page cannot operate, that is all
+            open_box(self.runner.folder)
         self._publish()
         self._thread.start()
 
@@ -96,7 +101,12 @@ class LivePublisher:
     def _run(self) -> None:
         next_publish = time.monotonic() + PUBLISH_S
         while not self._stop.wait(POLL_S):
-            self._apply(take_requests(self.runner.folder))
+            refused: list[str] = []
+            self._apply(take_requests(self.runner.folder, refused))
+            for line in dict.fromkeys(refused):
+                if line not in self.refused:
+                    self.refused.add(line)
+                    self.runner.event("warning", line)
             if time.monotonic() >= next_publish:
                 next_publish = time.monotonic() + PUBLISH_S
                 self._publish()

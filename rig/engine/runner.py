@@ -45,6 +45,7 @@ from rig.procedure.language import Procedure
 from rig.procedure.plan import StepPlan, compile_plan, rig_timing, step_duration
 from rig.steps import KINDS
 from rig.steps.base import ChangeListener
+from rig.store.run_control import run_page_url
 from rig.store.run_store import RunReader, RunWriter, new_run
 
 Confirm = Callable[[str], bool]
@@ -150,7 +151,7 @@ class Runner:
         self.publisher = LivePublisher(self, self.timeline())
         self.publisher.start()
         if self.page_url is not None:
-            print(f"rig: this run's page: {self.page_url.rstrip('/')}/runs/{w.folder.name}",
+            print(f"rig: this run's page: {run_page_url(self.page_url, w.folder.name)}",
                   file=sys.stderr, flush=True)  # fmt: skip
         old = self._install_signals()
         status, reason = "error", "unknown"

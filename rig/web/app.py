@@ -2,7 +2,8 @@
 
 The server is a process of its own. It reads run folders (SQLite, ``live.json``) and writes
 requests into a running run's ``control/`` folder (:mod:`rig.store.run_control`): a slow, stuck
-or vanished browser can neither delay a command nor lose a sample (ADR 0016).
+or vanished browser can neither delay a command nor lose a sample (ADR 0016). Who may use it:
+:mod:`rig.web.security` and the threat model in docs/web.md.
 """
 
 from __future__ import annotations
@@ -10,11 +11,14 @@ from __future__ import annotations
 import asyncio
 import datetime as dt
 import json
+import math
+import os
 import shutil
 import tempfile
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
+from urllib.parse import quote
 
 from starlette.applications import Starlette
 from starlette.background import BackgroundTask
@@ -30,23 +34,81 @@ from starlette.staticfiles import StaticFiles
 from starlette.templating import Jinja2Templates
 
 from rig.errors import RigError
-from rig.store import run_control
+from rig.store import run_control, safe_files
 from rig.store.run_control import read_live
 from rig.web.runs_view import (
+    DAMAGED,
     EXPORTS,
+    damage,
     downloads,
     export_file,
     list_summaries,
     media_type,
     run_details,
     run_folder,
-    summarize_run,
+    summary_or_damaged,
 )
-from rig.web.security import Guard, new_secret
+from rig.web.security import FRAMED_FILE_CSP, Guard, new_secret
 
 HERE = Path(__file__).parent
 LIVE_POLL_S = 0.25
 """How often an open live stream looks at ``live.json`` (s)."""
+FRAMED_FILES = ("report.html",)
+"""Run files the run page shows in a frame of its own (allowed to be framed by the page only)."""
+CHUNK = 256 * 1024
+
+
+def segment(value: object) -> str:
+    """``value`` quoted as one URL path segment (``/``, ``?``, ``#`` and ``%`` included)."""
+    return quote(str(value), safe="")
+
+
+def text(status: int, line: str) -> Response:
+    """A plain-text answer of one line."""
+    return Response(line.rstrip("\n") + "\n", status_code=status, media_type="text/plain")
+
+
+def bad_request(line: str) -> JSONResponse:
+    """A refused control request: 400 with one line."""
+    return JSONResponse({"error": line}, status_code=400)
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a number the rig takes")
+
+
+def parse_control(body: bytes) -> dict[str, Any]:
+    """A control request's JSON, checked: ``action`` one of the known ones, ``prompt`` a whole
+    number, ``yes`` true or false (ValueError naming the problem)."""
+    try:
+        value = json.loads(body, parse_constant=_no_constant)
+    except RecursionError:
+        raise ValueError("request nested too deep") from None
+    except UnicodeDecodeError:
+        raise ValueError("request is not UTF-8 JSON") from None
+    if not isinstance(value, dict):
+        raise ValueError('a control request is a JSON object: {"action": ...}')
+    action = value.get("action")
+    if action not in run_control.ACTIONS:
+        raise ValueError(f"unknown action; use one of {', '.join(run_control.ACTIONS)}")
+    prompt = value.get("prompt")
+    if action == "answer":
+        if isinstance(prompt, float) and math.isfinite(prompt) and prompt.is_integer():
+            prompt = int(prompt)
+        if not isinstance(prompt, int) or isinstance(prompt, bool) or not 0 <= prompt < 2**53:
+            raise ValueError("prompt must be the whole number of the question shown")
+    yes = value.get("yes", False)
+    if not isinstance(yes, bool):
+        raise ValueError("yes must be true or false")
+    return {"action": action, "prompt": prompt if action == "answer" else None, "yes": yes}
+
+
+def file_chunks(fh: BinaryIO) -> Iterator[bytes]:
+    """The content of the open file ``fh`` in chunks; closes it at the end (a response never
+    sent leaves it to the garbage collector, which closes it too)."""
+    with fh:
+        while chunk := fh.read(CHUNK):
+            yield chunk
 
 
 class Site:
@@ -59,6 +121,7 @@ class Site:
         self.csrf_secret = csrf_secret
         self.lab_url = lab_url
         self.templates = Jinja2Templates(directory=str(HERE / "templates"))
+        self.templates.env.filters["seg"] = segment
 
     def page(self, request: Request, name: str, status: int = 200, **context: Any) -> Response:
         return self.templates.TemplateResponse(
@@ -72,11 +135,12 @@ class Site:
         return run_folder(self.runs_dir, request.path_params["run_id"])
 
 
-def create_app(runs_dir: Path, rig_config: Path | None = None, *,
-               access_token: str | None = None, loopback_only: bool = True,
-               csrf_secret: str | None = None, lab_url: str | None = None) -> Guard:  # fmt: skip
+def create_app(runs_dir: Path, rig_config: Path | None = None, *, access_token: str,
+               loopback_only: bool = True, csrf_secret: str | None = None,
+               lab_url: str | None = None, token_hint: str = "") -> Guard:  # fmt: skip
     """The application for ``runs_dir`` (the cage of ``rig_config``, the lab index at
-    ``lab_url``), wrapped in its guard."""
+    ``lab_url``), wrapped in its guard: every request needs ``access_token`` (``token_hint``:
+    where its owner finds it)."""
     site = Site(runs_dir, rig_config, csrf_secret or new_secret(), lab_url)
 
     async def runs_page(request: Request) -> Response:
@@ -92,33 +156,54 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *,
 
     async def run_page(request: Request) -> Response:
         folder = site.folder(request)
+        run_id = request.path_params["run_id"]
         if folder is None:
-            return site.page(request, "missing.html", 404, run_id=request.path_params["run_id"])
-        return site.page(request, "run.html", run=run_details(folder))
+            return site.page(request, "message.html", 404, title=f"No run {run_id}",
+                             message="no such run in this runs folder")  # fmt: skip
+        try:
+            details = run_details(folder)
+        except Exception as exc:  # a damaged store: say so in one line, the list still works
+            return site.page(request, "message.html", 500, title=f"Run {run_id} is {DAMAGED}",
+                             message=damage(exc))  # fmt: skip
+        return site.page(request, "run.html", run=details)
 
     async def run_api(request: Request) -> Response:
         folder = site.folder(request)
         if folder is None:
             return JSONResponse({"error": "no such run"}, status_code=404)
-        return JSONResponse(run_details(folder))
+        try:
+            return JSONResponse(run_details(folder))
+        except Exception as exc:
+            return JSONResponse({"error": damage(exc), "status": DAMAGED}, status_code=500)
 
     async def run_file(request: Request) -> Response:
         folder = site.folder(request)
         name = request.path_params["name"]
         if folder is None or name not in downloads(folder):
-            return Response("no such file in this run\n", status_code=404, media_type="text/plain")
-        return FileResponse(folder / name, media_type=media_type(name),
-                            filename=None if name.endswith((".png", ".html")) else name)  # fmt: skip
+            return text(404, "no such file in this run")
+        try:  # opened without following a link, a regular file only (checked again on the fd)
+            fd = safe_files.open_fd(folder / name)
+        except (OSError, safe_files.UnsafeFileError):
+            return text(404, "no such file in this run")
+        headers = {"content-length": str(os.fstat(fd).st_size)}
+        if name in FRAMED_FILES:
+            headers |= {"content-security-policy": FRAMED_FILE_CSP,
+                        "x-frame-options": "SAMEORIGIN"}  # fmt: skip
+        if not name.endswith((".png", ".html")):
+            headers["content-disposition"] = f"attachment; filename*=utf-8''{quote(name)}"
+        return StreamingResponse(file_chunks(os.fdopen(fd, "rb")), media_type=media_type(name),
+                                 headers=headers)  # fmt: skip
 
     async def run_export(request: Request) -> Response:
         folder = site.folder(request)
         fmt = request.path_params["fmt"]
         if folder is None or fmt not in EXPORTS:
-            return Response("no such run or export format\n", status_code=404,
-                            media_type="text/plain")  # fmt: skip
-        if summarize_run(folder).status == "running":
-            return Response("the run is still recording; export it once it has ended\n",
-                            status_code=409, media_type="text/plain")  # fmt: skip
+            return text(404, "no such run or export format")
+        summary = summary_or_damaged(folder)
+        if summary.status == DAMAGED:
+            return text(500, f"run {folder.name} is {DAMAGED}: {summary.reason}")
+        if summary.status == "running":
+            return text(409, "the run is still recording; export it once it has ended")
         tmp = tempfile.mkdtemp(prefix="rig-export-")
         path, name, media = await asyncio.to_thread(export_file, folder, fmt, Path(tmp))
         return FileResponse(path, media_type=media, filename=name,
@@ -127,7 +212,7 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *,
     async def live_stream(request: Request) -> Response:
         folder = site.folder(request)
         if folder is None:
-            return Response("no such run\n", status_code=404, media_type="text/plain")
+            return text(404, "no such run")
 
         async def events() -> AsyncIterator[str]:
             last = None
@@ -147,15 +232,22 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *,
         folder = site.folder(request)
         if folder is None:
             return JSONResponse({"error": "no such run"}, status_code=404)
-        if summarize_run(folder).status != "running":
+        summary = summary_or_damaged(folder)
+        if summary.status == DAMAGED:
+            return JSONResponse({"error": f"the run is {DAMAGED}: {summary.reason}"},
+                                status_code=500)  # fmt: skip
+        if summary.status != "running":
             return JSONResponse({"error": "the run has ended"}, status_code=409)
+        body = await request.body()  # the guard refused one over security.MAX_BODY bytes
         try:
-            body = await request.json()
-            request_args = {"prompt": body.get("prompt"), "yes": bool(body.get("yes"))}
-            run_control.request(folder, str(body.get("action")), **request_args)
-        except (ValueError, AttributeError, RigError) as exc:
-            return JSONResponse({"error": str(exc) or "bad request"}, status_code=400)
-        return JSONResponse({"queued": body["action"]})
+            req = parse_control(body)
+        except ValueError as exc:
+            return bad_request(f"bad control request: {exc}")
+        try:
+            run_control.request(folder, req["action"], prompt=req["prompt"], yes=req["yes"])
+        except RigError as exc:
+            return JSONResponse({"error": str(exc)}, status_code=409)
+        return JSONResponse({"queued": req["action"]})
 
     async def cage_page(request: Request) -> Response:
         return site.page(request, "cage.html", cage=cage_status(site.rig_config),
@@ -193,7 +285,7 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *,
 
     async def lab_trend_png(request: Request) -> Response:
         if site.lab_url is None or not request.query_params.get("param"):
-            return Response("no lab index or no param\n", status_code=404, media_type="text/plain")
+            return text(404, "no lab index or no param")
         from rig.web import lab_views
 
         tmp = Path(tempfile.mkdtemp(prefix="rig-trend-"))
@@ -204,10 +296,10 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *,
                                            request.query_params.get("lot"), png)  # fmt: skip
         except RigError as exc:
             shutil.rmtree(tmp, True)
-            return Response(f"{exc}\n", status_code=503, media_type="text/plain")
+            return text(503, str(exc))
         if not data["found"]:
             shutil.rmtree(tmp, True)
-            return Response("no values\n", status_code=404, media_type="text/plain")
+            return text(404, "no values")
         return FileResponse(png, media_type="image/png",
                             background=BackgroundTask(shutil.rmtree, tmp, True))  # fmt: skip
 
@@ -223,13 +315,19 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *,
         Route("/cage", cage_page),
         Route("/lab", lab_page),
         Route("/lab/trend.png", lab_trend_png),
-        Route("/lab/dut/{serial}", lab_page, name="lab_dut"),
+        Route("/lab/dut/{serial:path}", lab_page, name="lab_dut"),
         Route("/lab/{view}", lab_page),
         Mount("/static", StaticFiles(directory=str(HERE / "static")), name="static"),
     ]
-    app = Starlette(routes=routes)
+    app = Starlette(routes=routes, exception_handlers={Exception: internal_error})
     return Guard(app, csrf_secret=site.csrf_secret, access_token=access_token,
-                 loopback_only=loopback_only)  # fmt: skip
+                 loopback_only=loopback_only, token_hint=token_hint)  # fmt: skip
+
+
+async def internal_error(request: Request, exc: Exception) -> Response:
+    """Any error no route expected: 500 with one line naming it (never a traceback)."""
+    line = " ".join(str(exc).split())[:300] or "no detail"
+    return text(500, f"internal error: {type(exc).__name__}: {line}; the server's log has more")
 
 
 def cage_status(rig_config: Path | None) -> dict[str, Any] | None:

@@ -2,7 +2,9 @@
 
 Read only, except that opening a run whose process died marks it incomplete (as ``rig runs``
 does). Every file served is looked up by name among a run folder's own files: no path from a
-request is ever joined to the file system.
+request is ever joined to the file system, and a file or run folder that is a symbolic link (or not
+a regular file) is neither listed nor served (:mod:`rig.store.safe_files`). A run whose store cannot
+be read is listed as ``damaged`` with the reason; it never hides the others.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rig.store import RunReader
+from rig.store import RunReader, safe_files
 from rig.store.run_control import LIVE_FILE, read_live
 
 DOWNLOADS = {
@@ -48,12 +50,31 @@ class RunSummary:
         return self.__dict__.copy()
 
 
+DAMAGED = "damaged"
+"""The status shown for a run folder whose store cannot be read."""
+
+
+def is_run_folder(folder: Path) -> bool:
+    """``folder`` is a real folder (not a link) holding a regular ``run.sqlite`` (not a link)."""
+    try:
+        safe_files.check_folder(folder)
+    except safe_files.UnsafeFileError:
+        return False
+    return safe_files.is_regular_file(folder / "run.sqlite")
+
+
 def run_folder(runs_dir: Path, run_id: str) -> Path | None:
     """The folder of ``run_id`` if it is a run directly in ``runs_dir``, else None."""
     for folder in runs_dir.iterdir() if runs_dir.is_dir() else ():
-        if folder.name == run_id and (folder / "run.sqlite").is_file():
+        if folder.name == run_id and is_run_folder(folder):
             return folder
     return None
+
+
+def damage(exc: BaseException) -> str:
+    """One line saying why a run's store cannot be read."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return f"cannot read run.sqlite ({text}); check it with 'rig verify'"
 
 
 def summarize_run(folder: Path) -> RunSummary:
@@ -76,18 +97,20 @@ def summarize_run(folder: Path) -> RunSummary:
                       str(meta.get("reason", "") or ""))  # fmt: skip
 
 
+def summary_or_damaged(folder: Path) -> RunSummary:
+    """:func:`summarize_run`, or a ``damaged`` row saying why the store cannot be read."""
+    try:
+        return summarize_run(folder)
+    except Exception as exc:  # a damaged run must not hide the others
+        return RunSummary(folder.name, "", "", "", "", DAMAGED, None, damage(exc))
+
+
 def list_summaries(runs_dir: Path) -> list[RunSummary]:
-    """Every run under ``runs_dir``, newest first (a folder that cannot be read is skipped)."""
-    out: list[RunSummary] = []
+    """Every run under ``runs_dir``, newest first (one whose store cannot be read as damaged)."""
     if not runs_dir.is_dir():
-        return out
-    for folder in sorted(runs_dir.iterdir(), reverse=True):
-        if (folder / "run.sqlite").is_file():
-            try:
-                out.append(summarize_run(folder))
-            except Exception:  # a damaged run must not hide the others
-                continue
-    return out
+        return []
+    return [summary_or_damaged(folder) for folder in sorted(runs_dir.iterdir(), reverse=True)
+            if is_run_folder(folder)]  # fmt: skip
 
 
 def run_details(folder: Path) -> dict[str, Any]:
@@ -117,7 +140,7 @@ def run_details(folder: Path) -> dict[str, Any]:
         "events": [{"t": round(t - t0, 2), "level": lv, "message": m} for t, lv, m in events],
         "verdict": results.get("verdict"),
         "files": downloads(folder),
-        "plots": sorted(p.name for p in folder.glob("*.png")),
+        "plots": [name for name in downloads(folder) if name.endswith(".png")],
         "live": read_live(folder),
     }
 
@@ -127,7 +150,7 @@ def downloads(folder: Path) -> list[str]:
     names = []
     for path in sorted(folder.iterdir()):
         if (
-            path.is_file()
+            safe_files.is_regular_file(path)
             and not path.name.startswith(".")
             and path.name != LIVE_FILE
             and (path.name in DOWNLOADS or path.suffix in DOWNLOAD_SUFFIXES)

@@ -352,7 +352,15 @@ def test_the_same_views_on_the_rig_serve_page(synced: str, rig_dirs: list[Path])
     from playwright.sync_api import sync_playwright
 
     from rig.child_process import stop_child
-    from tests.web.conftest import CHROMIUM_ARGS, chromium_path, screenshot, serve_process
+    from tests.web.conftest import (
+        CHROMIUM_ARGS,
+        chromium_path,
+        owner_client,
+        screenshot,
+        serve_process,
+        split_token,
+        wait_js,
+    )
 
     server, url = serve_process(rig_dirs[0], "--lab", synced)
     try:
@@ -371,8 +379,8 @@ def test_the_same_views_on_the_rig_serve_page(synced: str, rig_dirs: list[Path])
             page.locator("table.lab tbody a", has_text="SN-0007").first.click()
             assert page.inner_text("#lab-title") == "Every run of DUT SN-0007"
             assert page.locator("table.lab tbody tr").count() == len(serials)
-            page.goto(f"{url}lab/trend?param=x0_ut&lot=2")
-            page.wait_for_function("document.getElementById('trend-plot').naturalWidth > 500")
+            page.goto(f"{split_token(url)[0]}/lab/trend?param=x0_ut&lot=2")
+            wait_js(page, "document.getElementById('trend-plot').naturalWidth > 500")
             assert page.locator("tr.outlier").count() > 0
             assert set(page.locator("tr.outlier td:nth-child(2)").all_inner_texts()) == {"cage-3"}
             screenshot(page, "lab-trend")
@@ -388,9 +396,7 @@ def test_the_same_views_on_the_rig_serve_page(synced: str, rig_dirs: list[Path])
         stop_child(server, first=signal.SIGTERM, wait_s=5.0)
     bare, bare_url = serve_process(rig_dirs[0])
     try:
-        import httpx
-
-        r = httpx.get(f"{bare_url}lab")
+        r = owner_client(bare_url).get("/lab")
         assert r.status_code == 404 and "rig serve --lab" in r.text
     finally:
         stop_child(bare, first=signal.SIGTERM, wait_s=5.0)

@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 
 from rig.child_process import start_child, stop_child
@@ -57,6 +58,15 @@ def screenshot(page: Any, name: str) -> Path:
     return path
 
 
+def wait_js(page: Any, expression: str, timeout_s: float = 30.0) -> None:
+    """Wait until the JavaScript ``expression`` is true in ``page``, polled from here: the page's
+    Content-Security-Policy forbids the eval that Playwright's ``wait_for_function`` uses."""
+    deadline = time.monotonic() + timeout_s
+    while not page.evaluate(expression):
+        assert time.monotonic() < deadline, f"not true within {timeout_s} s: {expression}"
+        time.sleep(0.1)
+
+
 def read_url(proc: subprocess.Popen[bytes], pattern: str, timeout_s: float = 60.0,
              stream: Any = None) -> str:  # fmt: skip
     """The first URL a child prints in a line matching ``pattern``, on ``stream`` (default: its
@@ -75,10 +85,23 @@ def read_url(proc: subprocess.Popen[bytes], pattern: str, timeout_s: float = 60.
 
 
 def serve_process(runs_dir: Path, *extra: str) -> tuple[subprocess.Popen[bytes], str]:
-    """`rig serve` on a free loopback port; returns the process and its address."""
+    """`rig serve` on a free loopback port; returns the process and its address (with the access
+    token: ``http://127.0.0.1:PORT/?token=...``)."""
     proc = start_child([sys.executable, "-m", "rig.cli", "serve", "--runs-dir", str(runs_dir),
                         "--port", "0", *extra], stdout=subprocess.PIPE)  # fmt: skip
     return proc, read_url(proc, "rig serve:")
+
+
+def split_token(url: str) -> tuple[str, str]:
+    """The printed address's base (``http://127.0.0.1:PORT``, no slash) and its access token."""
+    base, token = url.split("?token=")
+    return base.rstrip("/"), token
+
+
+def owner_client(url: str) -> httpx.Client:
+    """An HTTP client of the server's owner: it knows the token (as the owner's scripts do)."""
+    base, token = split_token(url)
+    return httpx.Client(base_url=base, headers={"authorization": f"Bearer {token}"}, timeout=30)
 
 
 @pytest.fixture

@@ -22,7 +22,7 @@ from rig.child_process import start_child, stop_child
 from rig.store import RunReader
 from tests.simproc import outputs
 from tests.simproc import sim_process as start_sim
-from tests.web.conftest import read_url, screenshot, serve_process
+from tests.web.conftest import read_url, screenshot, serve_process, split_token, wait_js
 
 pytestmark = pytest.mark.slow
 
@@ -65,17 +65,12 @@ def test_run_watched_and_prompt_answered_on_the_page_then_browsed(
         page.click("#prompt-yes")
         page.wait_for_selector("#prompt", state="hidden", timeout=10_000)
         # the live plot gains points while the field steps run
-        page.wait_for_function("Number(document.getElementById('live').dataset.points || 0) >= 3",
-                               timeout=30_000)  # fmt: skip
+        wait_js(page, "Number(document.getElementById('live').dataset.points || 0) >= 3", 30)
         first = int(page.get_attribute("#live", "data-points"))
-        page.wait_for_function(
-            f"Number(document.getElementById('live').dataset.points || 0) >= {first + 4}",
-            timeout=30_000,
-        )
+        wait_js(page, f"Number(document.getElementById('live').dataset.points || 0) >= {first + 4}")
         assert page.inner_text("#step-line").startswith("step ")
         screenshot(page, "live-run")
-        page.wait_for_function("document.getElementById('live').dataset.finished === 'complete'",
-                               timeout=120_000)  # fmt: skip
+        wait_js(page, "document.getElementById('live').dataset.finished === 'complete'", 120)
         assert proc.wait(timeout=60) == 0
     finally:
         if proc.poll() is None:
@@ -90,7 +85,9 @@ def test_run_watched_and_prompt_answered_on_the_page_then_browsed(
     server, url = serve_process(runs)
     try:
         page = browser.new_page(viewport={"width": 1280, "height": 900})
-        page.goto(url)
+        page.goto(url)  # the address with its token: the page keeps it as a cookie
+        assert "token=" not in page.url
+        base, _ = split_token(url)
         row = page.locator(f"tr[data-run='{folder.name}']")
         assert row.locator("td.status-complete").inner_text() == "complete"
         assert row.locator("td.verdict-PASS").inner_text() == "PASS"
@@ -102,9 +99,9 @@ def test_run_watched_and_prompt_answered_on_the_page_then_browsed(
         row.locator("a").click()
         assert page.inner_text("#verdict") == "PASS"
         assert "DUT noise at null field" in page.inner_text("#criteria")
-        result = page.request.get(f"{url}runs/{folder.name}/export/json").json()
+        result = page.request.get(f"{base}/runs/{folder.name}/export/json").json()
         assert result["verdict"]["overall"] == "PASS"
-        zipped = page.request.get(f"{url}runs/{folder.name}/export/csv")
+        zipped = page.request.get(f"{base}/runs/{folder.name}/export/csv")
         assert zipped.ok and zipped.body()[:2] == b"PK"
         page.click("#open-report")
         page.wait_for_load_state()
@@ -126,7 +123,8 @@ def test_abort_from_the_page_leaves_every_output_off(
         page = browser.new_page(viewport={"width": 1280, "height": 900})
         page.on("dialog", lambda d: d.accept())  # "Abort the run?"
         run_page = read_url(proc, "this run's page:", stream=proc.stderr)
-        assert run_page.startswith(url) and "/runs/" in run_page
+        base, token = split_token(url)
+        assert run_page.startswith(base) and "/runs/" in run_page and run_page.endswith(token)
         page.goto(run_page)  # the address the terminal printed for this run
         page.wait_for_selector("#live:not([hidden])")
         deadline = time.monotonic() + 120
@@ -134,13 +132,11 @@ def test_abort_from_the_page_leaves_every_output_off(
             assert proc.poll() is None, "the run ended before its outputs were on"
             assert time.monotonic() < deadline, "no output came on"
             time.sleep(0.2)
-        page.wait_for_function("Number(document.getElementById('live').dataset.points || 0) >= 2",
-                               timeout=30_000)  # fmt: skip
+        wait_js(page, "Number(document.getElementById('live').dataset.points || 0) >= 2", 30)
         # pause holds the schedule at the next command of a step with scheduled commands (the
         # cage characterization runs its own sequence to its end first); resume goes on
-        page.wait_for_function("/noise floor|noise spectrum|linearity|sweep/.test("
-                               "document.getElementById('step-line').textContent)",
-                               timeout=60_000)  # fmt: skip
+        wait_js(page, "/noise floor|noise spectrum|linearity|sweep/.test("
+                      "document.getElementById('step-line').textContent)", 60)  # fmt: skip
         page.click("#pause")
         page.wait_for_selector("#paused-flag:not([hidden])", timeout=5_000)
         time.sleep(1.0)
@@ -155,8 +151,7 @@ def test_abort_from_the_page_leaves_every_output_off(
         print(f"time to safe after the page's abort: {t_safe * 1000:.0f} ms"
               f" ({held * 1000:.0f} ms of it the kernel held serial data back)")  # fmt: skip
         assert t_safe - held < 1.0
-        page.wait_for_function("document.getElementById('live').dataset.finished === 'aborted'",
-                               timeout=30_000)  # fmt: skip
+        wait_js(page, "document.getElementById('live').dataset.finished === 'aborted'", 30)
         screenshot(page, "aborted")
         assert proc.wait(timeout=60) == 130
     finally:

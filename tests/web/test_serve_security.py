@@ -20,7 +20,7 @@ import pytest
 from rig.child_process import stop_child
 from rig.store import run_control
 from tests.simrun import TINY_PROCEDURE, run_on_sim
-from tests.web.conftest import serve_process
+from tests.web.conftest import owner_client, serve_process
 
 
 @pytest.fixture(scope="module")
@@ -33,39 +33,52 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def server(runs: Path) -> Iterator[str]:
+def served(runs: Path) -> Iterator[str]:
+    """The address `rig serve` printed (with its access token)."""
     proc, url = serve_process(runs)
     try:
-        yield url.rstrip("/")
+        yield url
     finally:
         stop_child(proc, first=signal.SIGTERM, wait_s=5.0)
+
+
+@pytest.fixture(scope="module")
+def client(served: str) -> Iterator[httpx.Client]:
+    """The owner's client (it has the token)."""
+    with owner_client(served) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def server(client: httpx.Client) -> str:
+    return str(client.base_url).rstrip("/")
 
 
 def run_id(runs: Path) -> str:
     return next(runs.iterdir()).name
 
 
-def csrf(base: str, rid: str) -> str:
-    html = httpx.get(f"{base}/runs/{rid}").text
+def csrf(client: httpx.Client, rid: str) -> str:
+    html = client.get(f"/runs/{rid}").text
     return html.split('name="rig-csrf" content="')[1].split('"')[0]
 
 
-def test_lists_and_exports_a_finished_run(server: str, runs: Path) -> None:
+def test_lists_and_exports_a_finished_run(client: httpx.Client, runs: Path) -> None:
     rid = run_id(runs)
-    rows = httpx.get(f"{server}/api/runs").json()
+    rows = client.get("/api/runs").json()
     assert [(r["run_id"], r["status"], r["verdict"]) for r in rows] == [(rid, "complete", "PASS")]
-    assert httpx.get(f"{server}/api/runs", params={"q": "sn-0042"}).json() == rows
-    assert httpx.get(f"{server}/api/runs", params={"q": "SN-9999"}).json() == []
-    page = httpx.get(f"{server}/runs/{rid}")
+    assert client.get("/api/runs", params={"q": "sn-0042"}).json() == rows
+    assert client.get("/api/runs", params={"q": "SN-9999"}).json() == []
+    page = client.get(f"/runs/{rid}")
     assert page.status_code == 200 and "DUT noise at null field" in page.text
-    result = httpx.get(f"{server}/runs/{rid}/export/json").json()
+    result = client.get(f"/runs/{rid}/export/json").json()
     assert result["verdict"]["overall"] == "PASS" and "dut_noise_nt" in result["noise floor"]
-    z = zipfile.ZipFile(io.BytesIO(httpx.get(f"{server}/runs/{rid}/export/csv").content))
+    z = zipfile.ZipFile(io.BytesIO(client.get(f"/runs/{rid}/export/csv").content))
     assert "samples_aligned.csv" in z.namelist()
-    h5 = httpx.get(f"{server}/runs/{rid}/export/hdf5")
+    h5 = client.get(f"/runs/{rid}/export/hdf5")
     assert h5.status_code == 200 and h5.content[:8] == b"\x89HDF\r\n\x1a\n"
-    assert httpx.get(f"{server}/runs/{rid}/files/run.sqlite").content[:15] == b"SQLite format 3"
-    cage = httpx.get(f"{server}/cage")
+    assert client.get(f"/runs/{rid}/files/run.sqlite").content[:15] == b"SQLite format 3"
+    cage = client.get("/cage")
     assert cage.status_code == 200 and "rig serve --rig" in cage.text
 
 
@@ -82,35 +95,37 @@ def test_lists_and_exports_a_finished_run(server: str, runs: Path) -> None:
     "/runs/..%2F..%2F..%2Fetc/files/passwd",
 ])  # fmt: skip
 def test_nothing_outside_a_run_folders_downloads_is_served(
-    server: str, runs: Path, path: str
+    client: httpx.Client, runs: Path, path: str
 ) -> None:
-    r = httpx.get(server + path.format(rid=run_id(runs)))
+    r = client.get(path.format(rid=run_id(runs)))
     assert r.status_code == 404, (path, r.status_code, r.text[:100])
     assert "not for the page" not in r.text and "root:" not in r.text
 
 
-def test_state_changes_need_the_pages_secret_and_origin(server: str, runs: Path) -> None:
+def test_state_changes_need_the_pages_secret_and_origin(
+    client: httpx.Client, server: str, runs: Path
+) -> None:
     rid = run_id(runs)
-    url = f"{server}/runs/{rid}/control"
+    url = f"/runs/{rid}/control"
     body = {"action": "abort"}
     # a form or script on another site: no secret header, or a foreign Origin
-    assert httpx.post(url, json=body).status_code == 403
-    assert httpx.post(url, data={"action": "abort"}).status_code == 403
-    secret = csrf(server, rid)
-    r = httpx.post(url, json=body, headers={"x-rig-csrf": secret, "origin": "http://evil.example"})
+    assert client.post(url, json=body).status_code == 403
+    assert client.post(url, data={"action": "abort"}).status_code == 403
+    secret = csrf(client, rid)
+    r = client.post(url, json=body, headers={"x-rig-csrf": secret, "origin": "http://evil.example"})
     assert r.status_code == 403
-    assert httpx.post(url, json=body, headers={"x-rig-csrf": "guess"}).status_code == 403
+    assert client.post(url, json=body, headers={"x-rig-csrf": "guess"}).status_code == 403
     # the page's own request is accepted, but this run has ended: nothing to operate
-    r = httpx.post(url, json=body, headers={"x-rig-csrf": secret, "origin": server})
+    r = client.post(url, json=body, headers={"x-rig-csrf": secret, "origin": server})
     assert r.status_code == 409 and "ended" in r.json()["error"]
     assert not (runs / rid / run_control.CONTROL_DIR).exists()
 
 
-def test_loopback_server_refuses_other_host_names(server: str) -> None:
+def test_loopback_server_refuses_other_host_names(client: httpx.Client) -> None:
     """A DNS name of an attacker's that points at 127.0.0.1 does not reach the page."""
-    r = httpx.get(f"{server}/", headers={"host": "attacker.example:80"})
+    r = client.get("/", headers={"host": "attacker.example:80"})
     assert r.status_code == 421
-    assert httpx.get(f"{server}/", headers={"host": "localhost"}).status_code == 200
+    assert client.get("/", headers={"host": "localhost"}).status_code == 200
 
 
 def test_other_addresses_need_a_flag_and_then_a_token(runs: Path) -> None:

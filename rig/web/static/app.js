@@ -14,6 +14,7 @@ function runRow(r) {
     } else td.textContent = text;
   });
   tr.cells[5].className = `status-${r.status}`;
+  tr.cells[5].title = r.reason || "";  // why a run is damaged, incomplete or aborted
   tr.cells[6].className = `verdict-${r.verdict || "none"}`;
   return tr;
 }
@@ -51,7 +52,12 @@ async function control(runId, body) {
     headers: { "content-type": "application/json", "x-rig-csrf": CSRF },
     body: JSON.stringify(body),
   });
-  if (!res.ok) alert((await res.json()).error || res.statusText);
+  if (!res.ok) {  // a refusal is one line, as JSON from the route or as text from the guard
+    const text = await res.text();
+    let line = text;
+    try { line = JSON.parse(text).error || text; } catch (e) { /* plain text */ }
+    alert(line.trim() || res.statusText);
+  }
 }
 
 function fieldPlot(el) {
@@ -153,3 +159,7 @@ function rigRunPage(running) {
     }
   };
 }
+
+// The page says which view it is (no inline script: the Content-Security-Policy allows none).
+if (document.body.dataset.page === "runs") rigRunsPage();
+else if (document.body.dataset.page === "run") rigRunPage(document.body.dataset.running === "true");
