@@ -35,26 +35,19 @@ def cage_model_arrays(cfg: RigConfig | None) -> tuple[Any, Any, Any, str]:
     """The cage model for a dry run: (K uT/A, b0 uT, its uncertainty, where it comes from) from
     the last characterization if there is one, else the nominal K with an ambient field not yet
     known (None for all when the rig has no cage model)."""
+    from rig.output_limits import cage_model
     from rig.procedure.plan import EARTH_MAX_UT, MODEL_SIGMAS, CageModelUncertainty
 
-    if cfg is None or cfg.cage is None:
+    m = cage_model(cfg) if cfg is not None else None
+    if m is None or cfg is None or cfg.cage is None:
         return None, None, None, ""
-    import numpy as np
-
-    from rig.cage.model import CageModel
-
-    if cfg.cage.calibration is not None and cfg.cage.calibration.exists():
-        m = CageModel.load(cfg.cage.calibration)
-        when = m.meta.get("date", "undated")
-        return (m.k_ut_per_a, m.b0_ut, CageModelUncertainty(m.k_sigma, m.b0_sigma_ut),
-                f"the cage characterization of {when} ({cfg.cage.calibration}), currents at"
-                f" {MODEL_SIGMAS:g} sigma of it")  # fmt: skip
-    if cfg.cage.nominal_k_ut_per_a is not None:
-        return (np.array(cfg.cage.nominal_k_ut_per_a), np.zeros(3),
-                CageModelUncertainty(unknown_ambient_ut=EARTH_MAX_UT),
+    if m.meta.get("nominal"):
+        return (m.k_ut_per_a, m.b0_ut, CageModelUncertainty(unknown_ambient_ut=EARTH_MAX_UT),
                 "nominal_k_ut_per_a: no cage characterization yet, so the ambient field is not"
                 " counted until the procedure characterizes the cage")  # fmt: skip
-    return None, None, None, ""
+    return (m.k_ut_per_a, m.b0_ut, CageModelUncertainty(m.k_sigma, m.b0_sigma_ut),
+            f"the cage characterization of {m.meta.get('date', 'undated')}"
+            f" ({cfg.cage.calibration}), currents at {MODEL_SIGMAS:g} sigma of it")  # fmt: skip
 
 
 def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: bool) -> int:
