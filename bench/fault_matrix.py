@@ -23,6 +23,7 @@ from rig import __version__
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "reliability.md"
 SOAK_MARK = "<!-- soak -->"
+ATTACK_MARK = "<!-- attacks -->"  # bench/attack_matrix.py's section, kept as it is
 
 
 def _line(m: Measured) -> str:
@@ -54,6 +55,9 @@ def main() -> int:
         old = args.out.read_text(encoding="utf-8")
         if SOAK_MARK in old:
             soak = old.split(SOAK_MARK)[1].strip()
+    attacks = "not measured yet: run bench/attack_matrix.py"
+    if args.out.exists() and ATTACK_MARK in (old := args.out.read_text(encoding="utf-8")):
+        attacks = old.split(ATTACK_MARK)[1].strip()
     template = (Path(__file__).with_name("reliability_template.md")).read_text(encoding="utf-8")
     text = template.format(
         matrix=markdown(rows),
@@ -62,6 +66,7 @@ def main() -> int:
         took=f"{time.monotonic() - t0:.0f}",
         cells=len(rows),
         soak=f"{SOAK_MARK}\n{soak or 'not measured yet: run bench/soak.py'}\n{SOAK_MARK}",
+        attacks=f"{ATTACK_MARK}\n{attacks}\n{ATTACK_MARK}",
     )
     args.out.write_text(text, encoding="utf-8")
     print(f"wrote {args.out}: {sum(m.ok for m in rows)}/{len(rows)} cells as expected")
