@@ -28,8 +28,7 @@ from drivers.mag.lis3mdl import WHO_AM_I, WHO_AM_I_VALUE, Lis3mdl
 from drivers.mag.rm3100 import REVID, REVID_VALUE, Rm3100
 from drivers.protocols import Load, Magnetometer, Relay, Supply, Thermometer
 from drivers.psu.regmap_device import MappedSupply, MappedThermometer, PolarityRelay
-from drivers.psu.riden import MODELS as RIDEN_MODELS
-from drivers.psu.riden import RidenSupply
+from drivers.psu.riden import RidenSupply, riden_model
 from drivers.regmap import RegisterMap, load_map, shipped_maps
 from drivers.transport.i2c import I2CDevice
 from drivers.transport.modbus import ModbusLink
@@ -380,10 +379,10 @@ def _probe_riden(target: ProbeTarget) -> list[Found]:
         return []
     finally:
         link.close()
-    model = next((m[1] for m in RIDEN_MODELS if regs[0] in m[0]), None)
-    if model is None:
+    model = riden_model(regs[0])
+    if model is None:  # bring-up lists it with the registers it read (an unknown model id)
         return []
-    return [Found("riden-rd60xx", target.protocol, model, str((regs[1] << 16) | regs[2]),
+    return [Found("riden-rd60xx", target.protocol, model.name, str((regs[1] << 16) | regs[2]),
                   _connection(target), target.where)]  # fmt: skip
 
 
@@ -552,7 +551,7 @@ def _iter_registered() -> Iterator[DeviceKind]:
     )  # fmt: skip
     yield DeviceKind(
         "riden-rd60xx", frozenset({"supply", "load"}), ("modbus-tcp", "modbus-rtu"),
-        supply_params, _open_riden, "Riden RD6006/RD6006P/RD6012/RD6018 bench supply",
+        supply_params, _open_riden, "Riden RD60xx bench supply (RD6006, RD6006P, RK6006, RD6012, RD6012P, RD6018, RD6024, RD6030)",
         _probe_riden, (115200, 9600),
     )  # fmt: skip
     yield DeviceKind(

@@ -6,7 +6,7 @@ import math
 
 from drivers.errors import DeviceNotFoundError, DeviceProtocolError, LimitError
 from drivers.identity import Identity
-from drivers.psu.riden import SupplyReading
+from drivers.protocols import SupplyReading
 from drivers.regmap import Register, RegisterMap, RegisterMapError
 from drivers.transport.modbus import ModbusLink
 
