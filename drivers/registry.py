@@ -5,7 +5,7 @@ The rig derives everything from here: configuration checking (``rig.config``), o
 (``rig.devices``), the guardian's list of outputs and bring-up (``rig.bringup``). Adding a device:
 
 * a Modbus supply, load or relay board whose registers are plain numbers: one register-map TOML in
-  ``drivers/regmaps/`` (used as ``kind = "regmap-supply"`` / ``"regmap-eload"`` /
+  ``regmaps/`` (used as ``kind = "regmap-supply"`` / ``"regmap-eload"`` /
   ``"regmap-relay"`` with ``regmap = "<file name>"``): no entry here;
 * anything else: one driver module satisfying a Protocol of :mod:`drivers.protocols`, plus one
   :func:`register` call at the end of this file.
@@ -557,13 +557,13 @@ def _iter_registered() -> Iterator[DeviceKind]:
     yield DeviceKind(
         "regmap-supply", frozenset({"supply", "load"}), ("modbus-tcp", "modbus-rtu"),
         (regmap, *supply_params), _open_mapped_supply,
-        "Modbus supply described by a register map (drivers/regmaps)",
+        "Modbus supply described by a register map (regmaps/)",
         _probe_maps("regmap-supply", "supply"), _map_bauds("supply"),
     )  # fmt: skip
     yield DeviceKind(
         "regmap-eload", frozenset({"load"}), ("modbus-tcp", "modbus-rtu"),
         (regmap, *supply_params), _open_mapped_supply,
-        "Modbus electronic load described by a register map (drivers/regmaps)",
+        "Modbus electronic load described by a register map (regmaps/)",
         _probe_maps("regmap-eload", "eload"), _map_bauds("eload"),
     )  # fmt: skip
     yield DeviceKind(

@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 DEFAULT_CONFIG = Path(__file__).with_name("default_cage.toml")
-REGMAP_DIR = Path(__file__).with_name("regmaps")
 
 
 class SimConfigError(ValueError):

@@ -16,7 +16,7 @@ from pymodbus.constants import ExcCodes
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from sim.physics import CagePhysics, Faults, Supply, riden_model
-from sim.regmap import Register, RegMap
+from sim.regmap import Register, RegisterMap
 
 Action = Callable[[int, int, int, int, list[int], Any], Coroutine[Any, Any, ExcCodes | None]]
 READ_CODES = {1, 2, 3, 4}
@@ -172,32 +172,22 @@ def riden_device(supply: Supply, device_id: int, serial_number: int = 12345) -> 
 
 
 def regmap_device(
-    spec: RegMap, device_id: int, physics: CagePhysics, supply: Supply | None, faults: Faults
+    spec: RegisterMap, device_id: int, physics: CagePhysics, supply: Supply | None, faults: Faults
 ) -> SimDevice:
     """A device described by a register map, bound to a supply/e-load, the polarity relays or
-    (role ``temperature``) the DUT's temperature."""
-
-    def value_of(reg: Register) -> float:
-        if reg.role == "constant":
-            return reg.value
-        if reg.role == "temperature":
-            return physics.dut_temperature_c()
-        if reg.role.startswith("polarity_"):
-            return 1.0 if physics.relays.sign["xyz".index(reg.role[-1])] < 0 else 0.0
-        assert supply is not None
-        getters: dict[str, Callable[[], float]] = {
-            "v_set": lambda: supply.v_set,
-            "i_set": lambda: sign() * supply.i_set,
-            "v_out": lambda: sign() * supply.output_voltage(),
-            "i_out": lambda: sign() * supply.output_current(),
-            "output": lambda: 1.0 if supply.output else 0.0,
-            "mode": lambda: 1.0 if supply.cc_mode() else 0.0,
-            "protection": lambda: float(supply.protection),
-        }
-        return getters[reg.role]() if reg.role in getters else stored.get(reg.name, 0.0)
-
-    stored: dict[str, float] = {}
+    (role ``temperature``) the DUT's temperature. Registers of role ``none`` keep what is written
+    (their ``value`` at power-on); a register the map lacks answers exception 2."""
+    stored: dict[str, float] = {
+        r.name: r.value for r in spec.registers if r.role != "constant" and r.value is not None
+    }
     axis = None if supply is None else supply.cfg.axis
+    if supply is not None:  # protection defaults the registers can hold (never wrapped)
+        ovp, ocp = spec.role("ovp"), spec.role("ocp")
+        supply.set_protection(
+            None if ovp is None else min(supply.ovp_v, ovp.limits()[1]),
+            None if ocp is None else min(supply.ocp_a, ocp.limits()[1]),
+        )
+    protection_names = {1: "OVP", 2: "OCP"}
 
     def sign() -> float:
         """Output polarity of a bipolar coil supply (+1 otherwise)."""
@@ -205,9 +195,36 @@ def regmap_device(
             return float(physics.bipolar_sign[axis])
         return 1.0
 
+    def protection(reg: Register) -> float:
+        assert supply is not None
+        return float(reg.protection_value(protection_names.get(supply.protection, "")))
+
+    def value_of(reg: Register) -> float:
+        if reg.role == "constant":
+            return reg.value or 0.0
+        if reg.role == "temperature":
+            return physics.dut_temperature_c()
+        if reg.role.startswith("polarity_"):
+            return 1.0 if physics.relays.sign["xyz".index(reg.role[-1])] < 0 else 0.0
+        if supply is None:
+            return stored.get(reg.name, 0.0)
+        getters: dict[str, Callable[[], float]] = {
+            "v_set": lambda: supply.v_set,
+            "i_set": lambda: sign() * supply.i_set,
+            "v_out": lambda: sign() * supply.output_voltage(),
+            "i_out": lambda: sign() * supply.output_current(),
+            "power": lambda: supply.power_w(),
+            "output": lambda: 1.0 if supply.output else 0.0,
+            "mode": lambda: 1.0 if supply.cc_mode() else 0.0,
+            "protection": lambda: protection(reg),
+            "ovp": lambda: supply.ovp_v,
+            "ocp": lambda: supply.ocp_a,
+        }
+        return getters[reg.role]() if reg.role in getters else stored.get(reg.name, 0.0)
+
     def refresh(regs: list[int], base: int) -> None:
         for reg in spec.registers:
-            words = reg.encode(value_of(reg))
+            words = reg.encode(value_of(reg), saturate=True)
             for i, w in enumerate(words):
                 if 0 <= reg.address + i - base < len(regs):
                     regs[reg.address + i - base] = w
@@ -229,6 +246,10 @@ def regmap_device(
             if value not in (0.0, 1.0):
                 raise ValueError("output must be 0 or 1")
             supply.set_output(bool(value))
+        elif reg.role == "ovp" and supply is not None:
+            supply.set_protection(ovp_v=value)
+        elif reg.role == "ocp" and supply is not None:
+            supply.set_protection(ocp_a=value)
         else:
             stored[reg.name] = value
 
@@ -244,7 +265,7 @@ def regmap_device(
         if values is None or fc in READ_CODES:
             refresh(regs, start_address)
             return None
-        words = list(values)
+        words = list(values) if isinstance(values, list) else [values]
         pos = 0
         while pos < len(words):
             reg = by_address.get(address + pos)

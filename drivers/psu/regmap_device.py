@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 from drivers.errors import DeviceNotFoundError, DeviceProtocolError, LimitError
@@ -102,18 +103,24 @@ class MappedSupply(MappedDevice):
         self._write(self.output_reg, 1.0 if on else 0.0)
 
     def read(self) -> SupplyReading:
-        """Set-points and measured output (registers the map lacks read as 0)."""
+        """Set-points, measured output and power, protection (registers the map lacks read as 0;
+        power as None)."""
 
         def get(role: str) -> float:
             reg = self.map.role(role)
             return self._read(reg) if reg is not None else 0.0
 
-        prot = int(get("protection"))
-        return SupplyReading(
+        prot = self.map.role("protection")
+        protection = "" if prot is None else prot.protection_name(int(self._read(prot)))
+        reading = SupplyReading(
             v_set_v=get("v_set"), i_set_a=get("i_set"), v_out_v=get("v_out"), i_out_a=get("i_out"),
             output_on=bool(get("output")), constant_current=bool(get("mode")),
-            protection={0: "", 1: "OVP", 2: "OCP"}.get(prot, f"code {prot}"),
+            protection=protection,
         )  # fmt: skip
+        power = self.map.role("power")
+        if power is None:
+            return reading
+        return dataclasses.replace(reading, power_w=self._read(power))
 
     def enable_as_load(self, compliance_v: float) -> None:
         """Drive a load harness: current 0, the voltage set-point (if the map has one) to the
