@@ -10,6 +10,8 @@ Format::
     i_max = 5.0             # A
     bipolar = false         # signed current set-point
     baudrate = 9600         # factory default on Modbus RTU (optional; 115200 when absent)
+    write_function = 16     # 16: every write is Write Multiple Registers (a device without
+                            # function 6); 6 (default): one register by 6, wider ones by 16
 
     [[registers]]
     name = "i_set"
@@ -24,6 +26,8 @@ Format::
                             # value it reads at power-on in the simulator
     codes = ["", "OVP", "OCP"]   # role "protection", a code per value (this is the default), or
     flags = ["OVP", "OCP"]       # role "protection", one bit each (bit 0 first)
+    on = 42                 # role "output" written as a command: the values for on and off (the
+    off = 43                # state is then read from a register of role "output_state")
 
 An unknown key, role, kind, type or access is an error naming the file, the line and the nearest
 valid name; so are overlapping registers.
@@ -52,7 +56,8 @@ ROLES = {
     "v_out": "measured output voltage (V)",
     "i_out": "measured output current (A)",
     "power": "measured output power (W)",
-    "output": "output (or load input) enable, 0/1",
+    "output": "output (or load input) enable, 0/1 (or the command values 'on'/'off')",
+    "output_state": "output (or load input) state as read, 0/1, where 'output' is a command",
     "mode": "CV/CC, 1 = constant current",
     "protection": "protection state (see codes/flags)",
     "ovp": "over-voltage protection level (V)",
@@ -66,9 +71,9 @@ ROLES = {
     "constant": "always reads 'value' (a model number)",
     "none": "no meaning to the rig (kept by the simulator)",
 }
-DEVICE_KEYS = ("kind", "model", "v_max", "i_max", "bipolar", "baudrate")
+DEVICE_KEYS = ("kind", "model", "v_max", "i_max", "bipolar", "baudrate", "write_function")
 REGISTER_KEYS = ("name", "address", "type", "scale", "unit", "access", "role", "value", "codes",
-                 "flags")  # fmt: skip
+                 "flags", "on", "off")  # fmt: skip
 TOP_KEYS = ("device", "registers")
 DEFAULT_CODES = ("", "OVP", "OCP")
 _RANGES = {"uint16": (0, 0xFFFF), "int16": (-0x8000, 0x7FFF),
@@ -92,6 +97,8 @@ class Register:
     value: float | None = None  # role "constant": what it always reads; else power-on value
     codes: tuple[str, ...] = DEFAULT_CODES
     flags: tuple[str, ...] = ()
+    on: float = 1.0  # role "output": the value written to switch on
+    off: float = 0.0  # and off
 
     @property
     def width(self) -> int:
@@ -165,6 +172,7 @@ class RegisterMap:
     bipolar: bool
     source: str
     baudrate: int | None = None
+    write_function: int = 6  # 16: the device has no Write Single Register (function 6)
 
     @property
     def name(self) -> str:
@@ -292,11 +300,15 @@ def _load(path: str, mtime_ns: int) -> RegisterMap:
         if ("codes" in r or "flags" in r) and role != "protection":
             raise RegisterMapError(f"{at('codes' if 'codes' in r else 'flags')}: codes and flags"
                                    " belong to a register with role 'protection'")  # fmt: skip
+        if ("on" in r or "off" in r) and role != "output":
+            raise RegisterMapError(f"{at('on' if 'on' in r else 'off')}: on and off belong to a"
+                                   " register with role 'output'")  # fmt: skip
         regs.append(Register(
             str(r["name"]), int(r["address"]), type_, access, role, float(r.get("scale", 1.0)),
             None if r.get("value") is None else float(r["value"]),
             _names(at("codes"), r["codes"]) if "codes" in r else DEFAULT_CODES,
             _names(at("flags"), r["flags"]) if "flags" in r else (),
+            float(r.get("on", 1.0)), float(r.get("off", 0.0)),
         ))  # fmt: skip
     spans = sorted((r.address, r.address + r.width, r.name) for r in regs)
     for (_, a1, n0), (b0, _, n1) in itertools.pairwise(spans):
@@ -310,9 +322,14 @@ def _load(path: str, mtime_ns: int) -> RegisterMap:
         raise RegisterMapError(
             f"{p}:{lines.of('[device]', 0, 'baudrate')}: baudrate must be a whole number, e.g. 9600"
         )
+    write_function = dev.get("write_function", 6)
+    if write_function not in (6, 16) or isinstance(write_function, bool):
+        raise RegisterMapError(
+            f"{p}:{lines.of('[device]', 0, 'write_function')}: write_function must be 6 or 16"
+        )
     return RegisterMap(kind, str(dev.get("model", p.stem)), tuple(regs), float(dev.get("v_max", 0.0)),
                        float(dev.get("i_max", 0.0)), bool(dev.get("bipolar", False)), str(p),
-                       baudrate)  # fmt: skip
+                       baudrate, int(write_function))  # fmt: skip
 
 
 def load_map(name_or_path: str) -> RegisterMap:

@@ -199,6 +199,13 @@ def regmap_device(
         assert supply is not None
         return float(reg.protection_value(protection_names.get(supply.protection, "")))
 
+    def output_reads(reg: Register) -> float:
+        """An output register reads 1/0, or (a command register) the last command written."""
+        assert supply is not None
+        if (reg.on, reg.off) == (1.0, 0.0):
+            return 1.0 if supply.output else 0.0
+        return stored.get(reg.name, reg.on if supply.output else reg.off)
+
     def value_of(reg: Register) -> float:
         if reg.role == "constant":
             return reg.value or 0.0
@@ -214,7 +221,8 @@ def regmap_device(
             "v_out": lambda: sign() * supply.output_voltage(),
             "i_out": lambda: sign() * supply.output_current(),
             "power": lambda: supply.power_w(),
-            "output": lambda: 1.0 if supply.output else 0.0,
+            "output": lambda: output_reads(reg),
+            "output_state": lambda: 1.0 if supply.output else 0.0,
             "mode": lambda: 1.0 if supply.cc_mode() else 0.0,
             "protection": lambda: protection(reg),
             "ovp": lambda: supply.ovp_v,
@@ -243,9 +251,11 @@ def regmap_device(
             else:
                 supply.set_current(value)
         elif reg.role == "output" and supply is not None:
-            if value not in (0.0, 1.0):
+            if (reg.on, reg.off) == (1.0, 0.0) and value not in (0.0, 1.0):
                 raise ValueError("output must be 0 or 1")
-            supply.set_output(bool(value))
+            if value in (reg.on, reg.off):
+                supply.set_output(value == reg.on)
+            stored[reg.name] = value  # a command register reads back the last command
         elif reg.role == "ovp" and supply is not None:
             supply.set_protection(ovp_v=value)
         elif reg.role == "ocp" and supply is not None:
@@ -260,6 +270,8 @@ def regmap_device(
         fault = await _apply_faults(faults)
         if fault is not None:
             return fault
+        if fc == WRITE_SINGLE and spec.write_function == 16:
+            return ExcCodes.ILLEGAL_FUNCTION  # a device without function 6 (the Maynuo M97xx)
         if fc == WRITE_SINGLE and values is None:
             return None  # pymodbus reading back the word just written: the reply echoes it
         if values is None or fc in READ_CODES:

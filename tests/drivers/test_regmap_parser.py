@@ -84,3 +84,17 @@ def test_protection_codes_and_flags() -> None:
     assert hm.protection_value("OCP") == 2
     dps = load_map("dps5005").require("protection")
     assert [dps.protection_name(v) for v in (0, 1, 2, 3, 9)] == ["", "OVP", "OCP", "OPP", "code 9"]
+
+
+def test_command_values_belong_to_an_output_and_write_function_is_6_or_16(tmp_path: Path) -> None:
+    path = broken(tmp_path, 'role = "v_set"', 'role = "v_set"\non = 42')
+    with pytest.raises(
+        RegisterMapError, match=r"on and off belong to a register with role 'output'"
+    ):
+        load_map(str(path))
+    path = broken(tmp_path, "baudrate = 9600", "baudrate = 9600\nwrite_function = 7")
+    with pytest.raises(RegisterMapError, match=rf"{path}:\d+: write_function must be 6 or 16"):
+        load_map(str(path))
+    maynuo = load_map("maynuo-m97")
+    assert maynuo.write_function == 16
+    assert (maynuo.require("output").on, maynuo.require("output").off) == (42.0, 43.0)
