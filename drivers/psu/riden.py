@@ -113,6 +113,7 @@ class RidenSupply:
             raise DeviceNotFoundError(unknown_model_message(f"{name} at {link.where}", model_id))
         self.spec, self.model, self.model_id = spec, spec.name, model_id
         self.v_lsb = spec.v_per_count
+        self._v_counts = round(1.0 / spec.v_per_count)  # counts per V: values are counts / this
         self._limit_v, self._limit_a = max_voltage_v, max_current_a
         self.current_range = 0
         if spec.range_dependent:
@@ -130,6 +131,12 @@ class RidenSupply:
     def i_lsb(self) -> float:
         """Current resolution (A per count) in the present range."""
         return self.spec.ranges[self.current_range].a_per_count
+
+    @property
+    def _i_counts(self) -> int:
+        """Counts per A in the present range (values are counts divided by it, so 1000 counts
+        of 1 mA read 1.0 exactly)."""
+        return round(1.0 / self.i_lsb)
 
     @property
     def max_voltage_v(self) -> float:
@@ -152,9 +159,9 @@ class RidenSupply:
         """Voltage set-point (V); returns the value set after rounding to the resolution."""
         if not 0.0 <= volts <= self.max_voltage_v:
             raise LimitError(f"{self.name}: {volts:g} V is outside 0-{self.max_voltage_v:g} V")
-        counts = round(volts / self.v_lsb)
+        counts = round(volts * self._v_counts)
         self.link.write_register(REG_V_SET, counts)
-        return counts * self.v_lsb
+        return counts / self._v_counts
 
     def set_current(self, amps: float) -> float:
         """Current limit (A); returns the value set after rounding to the resolution."""
@@ -162,9 +169,9 @@ class RidenSupply:
             self._set_range(self.link.read_registers(REG_I_RANGE, 1)[0])
         if not 0.0 <= amps <= self.max_current_a:
             raise LimitError(f"{self.name}: {amps:g} A is outside 0-{self.max_current_a:g} A")
-        counts = round(amps / self.i_lsb)
+        counts = round(amps * self._i_counts)
         self.link.write_register(REG_I_SET, counts)
-        return counts * self.i_lsb
+        return counts / self._i_counts
 
     def set_output(self, on: bool) -> None:
         """Output enable."""
@@ -180,14 +187,14 @@ class RidenSupply:
         code = r[REG_PROTECT - REG_V_SET]
         p = (r[REG_P_H - REG_V_SET] << 16) | r[REG_P_H + 1 - REG_V_SET]
         return SupplyReading(
-            v_set_v=r[0] * self.v_lsb,
-            i_set_a=r[1] * self.i_lsb,
-            v_out_v=r[2] * self.v_lsb,
-            i_out_a=r[3] * self.i_lsb,
+            v_set_v=r[0] / self._v_counts,
+            i_set_a=r[1] / self._i_counts,
+            v_out_v=r[2] / self._v_counts,
+            i_out_a=r[3] / self._i_counts,
             output_on=bool(r[REG_OUTPUT - REG_V_SET]),
             constant_current=bool(r[REG_CVCC - REG_V_SET]),
             protection={0: "", 1: "OVP", 2: "OCP"}.get(code, f"code {code}"),
-            power_w=p * self.spec.w_per_count,
+            power_w=p / round(1.0 / self.spec.w_per_count),
         )
 
     def enable_as_load(self, compliance_v: float) -> None:

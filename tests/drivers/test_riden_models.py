@@ -104,7 +104,8 @@ def test_5v_1a_in_each_models_counts(
             supply.set_current(1.0)
             assert image.writes == [(8, v_counts), (9, a_counts)]
             r = supply.read()
-            assert (r.v_out_v, r.i_out_a) == pytest.approx((5.0, 1.0), abs=1e-12)
+            assert (r.v_out_v, r.i_out_a) == (5.0, 1.0)
+            assert supply.set_voltage(12.34) == 12.34  # counts / counts-per-V: the decimal value
         finally:
             supply.close()
 

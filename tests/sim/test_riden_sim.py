@@ -157,3 +157,23 @@ def test_every_write_single_register_reply_is_an_echo(p_cage: SimulatedCage) -> 
     for tid, (address, value) in enumerate(writes, 1):
         request, reply = write_single(port, address, value, tid)
         assert reply == request, f"register {address} = {value}: {reply.hex(' ')}"
+
+
+@pytest.mark.parametrize(("lines", "message"), [
+    ("model_id = 60209", r"supply 'coil_x': unknown Riden model id 60209; known: RD6006 60060-60064"),
+    ("model_id = 60065\ncurrent_range = 1",
+     r"supply 'coil_x': current_range 1 does not exist on the RD6006P; use 0-0"),
+])  # fmt: skip
+def test_a_wrong_model_in_the_cage_file_is_one_line(
+    tmp_path: Path, lines: str, message: str
+) -> None:
+    from sim.cage import SimulatedCage as Cage
+    from sim.config import SimConfigError
+
+    text = Path(load_config().source).read_text()
+    text = re.sub(r'model_id = \d+[^\n]*\naxis = "x"', f'{lines}\naxis = "x"', text)
+    path = tmp_path / "cage.toml"
+    path.write_text(text)
+    with pytest.raises(SimConfigError, match=message) as info:
+        Cage(load_config(path))
+    assert "\n" not in str(info.value)
