@@ -346,9 +346,11 @@ def _float_or_none(value: Any) -> float | None:
 def _open_riden(spec: OpenSpec) -> RidenSupply:
     link = modbus_link(spec)
     try:  # the driver asks the model at once: a wrong id or model must not leave the port open
+        current_range = spec.get("current_range")
         return RidenSupply(link, name=spec.name,
                            max_voltage_v=_float_or_none(spec.get("max_voltage_v")),
-                           max_current_a=_float_or_none(spec.get("max_current_a")))  # fmt: skip
+                           max_current_a=_float_or_none(spec.get("max_current_a")),
+                           current_range=None if current_range is None else int(current_range))  # fmt: skip
     except BaseException:
         link.close()
         raise
@@ -549,9 +551,13 @@ def _iter_registered() -> Iterator[DeviceKind]:
         Param("correction_matrix", LIST, help="calibration certificate: 3x3 matrix"),
         Param("correction_offset_ut", LIST, help="calibration certificate: offset (uT)"),
     )  # fmt: skip
+    current_range = Param(
+        "current_range", WHOLE, help="RD6012P only: 0 = the 6 A range (0.1 mA), 1 = 12 A (1 mA)",
+        choices=(0, 1), fix="write current_range = 0 (6 A, finer) or 1 (12 A)",
+    )  # fmt: skip
     yield DeviceKind(
         "riden-rd60xx", frozenset({"supply", "load"}), ("modbus-tcp", "modbus-rtu"),
-        supply_params, _open_riden, "Riden RD60xx bench supply (RD6006, RD6006P, RK6006, RD6012, RD6012P, RD6018, RD6024, RD6030)",
+        (*supply_params, current_range), _open_riden, "Riden RD60xx bench supply (RD6006, RD6006P, RK6006, RD6012, RD6012P, RD6018, RD6024, RD6030)",
         _probe_riden, (115200, 9600),
     )  # fmt: skip
     yield DeviceKind(

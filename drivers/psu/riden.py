@@ -97,14 +97,15 @@ class RidenSupply:
     Set-points are rounded to the model's resolution; the value actually set is returned. On an
     RD6012P the current resolution follows register 20 (the range chosen on the front panel):
     the driver reads it when it opens, before every current set-point and in every
-    :meth:`read`, so a range change never scales a current by 10.
+    :meth:`read`, so a range change never scales a current by 10. ``current_range`` (0 or 1),
+    when given, is written to register 20 at open.
     """
 
     bipolar = False
     """Riden supplies are unipolar: polarity comes from relays."""
 
     def __init__(self, link: ModbusLink, *, name: str = "riden", max_voltage_v: float | None = None,
-                 max_current_a: float | None = None) -> None:  # fmt: skip
+                 max_current_a: float | None = None, current_range: int | None = None) -> None:  # fmt: skip
         self.link = link
         self.name = name
         model_id = link.read_registers(REG_ID, 1)[0]
@@ -116,6 +117,14 @@ class RidenSupply:
         self._v_counts = round(1.0 / spec.v_per_count)  # counts per V: values are counts / this
         self._limit_v, self._limit_a = max_voltage_v, max_current_a
         self.current_range = 0
+        if current_range is not None and not spec.range_dependent:
+            raise LimitError(
+                f"{name} at {link.where}: current_range applies to the RD6012P only, this is an"
+                f" {spec.name} (model id {model_id}); remove current_range from its configuration"
+            )
+        if current_range is not None:  # the configured range, written and read back
+            self._set_range(current_range)
+            link.write_register(REG_I_RANGE, current_range)
         if spec.range_dependent:
             self._set_range(link.read_registers(REG_I_RANGE, 1)[0])
 

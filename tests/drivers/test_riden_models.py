@@ -136,3 +136,26 @@ def test_devices_scan_names_the_model_and_prints_an_unknown_ids_registers() -> N
     assert "RD6012P" in text
     assert "Riden-like model id 60209 not in the known RD60xx table" in text
     assert "(registers 0-3: 60209 0 12345 140)" in text
+
+
+def test_a_configured_rd6012p_range_is_written_at_open_and_refused_elsewhere() -> None:
+    with riden_image(60125, r20=0) as image:
+        link = ModbusLink(name="coil_x", host="127.0.0.1", port=image.port, timeout_s=1.0)
+        supply = RidenSupply(link, name="coil_x", current_range=1)
+        try:
+            assert image.writes == [(20, 1)] and supply.max_current_a == 12.0
+            supply.set_current(1.0)
+            assert image.writes[-1] == (9, 1000)
+        finally:
+            supply.close()
+    with riden_image(60065) as image:
+        link = ModbusLink(name="coil_x", host="127.0.0.1", port=image.port, timeout_s=1.0)
+        try:
+            with pytest.raises(
+                LimitError,
+                match=r"current_range applies to the RD6012P only, this"
+                r" is an RD6006P \(model id 60065\); remove current_range",
+            ):
+                RidenSupply(link, name="coil_x", current_range=0)
+        finally:
+            link.close()
