@@ -7,12 +7,26 @@ Units are in the names: V, A, uT, Hz, s.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Protocol
 
 from drivers.identity import Identity
-from drivers.psu.riden import SupplyReading
 
 Vector = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class SupplyReading:
+    """Set-points and measured output of a supply or load (V, A, W), as one read returns them."""
+
+    v_set_v: float
+    i_set_a: float
+    v_out_v: float
+    i_out_a: float
+    output_on: bool
+    constant_current: bool
+    protection: str  # "" (none), "OVP", "OCP", "OPP", "OTP", "SCP" or "code N"
+    power_w: float | None = None  # the device's own power reading; None where it has none
 
 
 class Output(Protocol):

@@ -5,7 +5,7 @@ The rig derives everything from here: configuration checking (``rig.config``), o
 (``rig.devices``), the guardian's list of outputs and bring-up (``rig.bringup``). Adding a device:
 
 * a Modbus supply, load or relay board whose registers are plain numbers: one register-map TOML in
-  ``drivers/regmaps/`` (used as ``kind = "regmap-supply"`` / ``"regmap-eload"`` /
+  ``regmaps/`` (used as ``kind = "regmap-supply"`` / ``"regmap-eload"`` /
   ``"regmap-relay"`` with ``regmap = "<file name>"``): no entry here;
 * anything else: one driver module satisfying a Protocol of :mod:`drivers.protocols`, plus one
   :func:`register` call at the end of this file.
@@ -28,8 +28,7 @@ from drivers.mag.lis3mdl import WHO_AM_I, WHO_AM_I_VALUE, Lis3mdl
 from drivers.mag.rm3100 import REVID, REVID_VALUE, Rm3100
 from drivers.protocols import Load, Magnetometer, Relay, Supply, Thermometer
 from drivers.psu.regmap_device import MappedSupply, MappedThermometer, PolarityRelay
-from drivers.psu.riden import MODELS as RIDEN_MODELS
-from drivers.psu.riden import RidenSupply
+from drivers.psu.riden import RidenSupply, riden_model
 from drivers.regmap import RegisterMap, load_map, shipped_maps
 from drivers.transport.i2c import I2CDevice
 from drivers.transport.modbus import ModbusLink
@@ -347,9 +346,11 @@ def _float_or_none(value: Any) -> float | None:
 def _open_riden(spec: OpenSpec) -> RidenSupply:
     link = modbus_link(spec)
     try:  # the driver asks the model at once: a wrong id or model must not leave the port open
+        current_range = spec.get("current_range")
         return RidenSupply(link, name=spec.name,
                            max_voltage_v=_float_or_none(spec.get("max_voltage_v")),
-                           max_current_a=_float_or_none(spec.get("max_current_a")))  # fmt: skip
+                           max_current_a=_float_or_none(spec.get("max_current_a")),
+                           current_range=None if current_range is None else int(current_range))  # fmt: skip
     except BaseException:
         link.close()
         raise
@@ -380,10 +381,10 @@ def _probe_riden(target: ProbeTarget) -> list[Found]:
         return []
     finally:
         link.close()
-    model = next((m[1] for m in RIDEN_MODELS if regs[0] in m[0]), None)
-    if model is None:
+    model = riden_model(regs[0])
+    if model is None:  # bring-up lists it with the registers it read (an unknown model id)
         return []
-    return [Found("riden-rd60xx", target.protocol, model, str((regs[1] << 16) | regs[2]),
+    return [Found("riden-rd60xx", target.protocol, model.name, str((regs[1] << 16) | regs[2]),
                   _connection(target), target.where)]  # fmt: skip
 
 
@@ -550,21 +551,25 @@ def _iter_registered() -> Iterator[DeviceKind]:
         Param("correction_matrix", LIST, help="calibration certificate: 3x3 matrix"),
         Param("correction_offset_ut", LIST, help="calibration certificate: offset (uT)"),
     )  # fmt: skip
+    current_range = Param(
+        "current_range", WHOLE, help="RD6012P only: 0 = the 6 A range (0.1 mA), 1 = 12 A (1 mA)",
+        choices=(0, 1), fix="write current_range = 0 (6 A, finer) or 1 (12 A)",
+    )  # fmt: skip
     yield DeviceKind(
         "riden-rd60xx", frozenset({"supply", "load"}), ("modbus-tcp", "modbus-rtu"),
-        supply_params, _open_riden, "Riden RD6006/RD6006P/RD6012/RD6018 bench supply",
+        (*supply_params, current_range), _open_riden, "Riden RD60xx bench supply (RD6006, RD6006P, RK6006, RD6012, RD6012P, RD6018, RD6024, RD6030)",
         _probe_riden, (115200, 9600),
     )  # fmt: skip
     yield DeviceKind(
         "regmap-supply", frozenset({"supply", "load"}), ("modbus-tcp", "modbus-rtu"),
         (regmap, *supply_params), _open_mapped_supply,
-        "Modbus supply described by a register map (drivers/regmaps)",
+        "Modbus supply described by a register map (regmaps/)",
         _probe_maps("regmap-supply", "supply"), _map_bauds("supply"),
     )  # fmt: skip
     yield DeviceKind(
         "regmap-eload", frozenset({"load"}), ("modbus-tcp", "modbus-rtu"),
         (regmap, *supply_params), _open_mapped_supply,
-        "Modbus electronic load described by a register map (drivers/regmaps)",
+        "Modbus electronic load described by a register map (regmaps/)",
         _probe_maps("regmap-eload", "eload"), _map_bauds("eload"),
     )  # fmt: skip
     yield DeviceKind(

@@ -43,6 +43,18 @@ class Unknown:
     protocol: str
     params: dict[str, Any]
     where: str
+    registers: tuple[int, ...] = ()
+    """Holding registers 0-3 as read (empty if the device refused the read)."""
+
+    def describe(self) -> str:
+        """What the table says of it: the registers it read, and a Riden-like model id named."""
+        if not self.registers:
+            return "a Modbus device of no known model"
+        regs = " ".join(str(r) for r in self.registers)
+        if 60000 <= self.registers[0] <= 60999:
+            return (f"Riden-like model id {self.registers[0]} not in the known RD60xx table"
+                    f" (registers 0-3: {regs})")  # fmt: skip
+        return f"a Modbus device of no known model (registers 0-3: {regs})"
 
 
 def serial_ports(extra: Iterable[str] = (), *, listed: bool = True) -> list[str]:
@@ -111,8 +123,11 @@ def _targets_for_port(path: str, timeout_s: float) -> list[tuple[DeviceKind, Pro
     return out
 
 
-def _modbus_answers(protocol: str, params: dict[str, Any], timeout_s: float) -> bool:
-    """Does anything answer a Modbus read of holding register 0 (a value or an exception)?"""
+def _modbus_answers(
+    protocol: str, params: dict[str, Any], timeout_s: float
+) -> tuple[int, ...] | None:
+    """Does anything answer a Modbus read of holding registers 0-3 (values or an exception)?
+    Returns the registers read (empty if refused), or None when nothing answered."""
     try:
         if protocol == "modbus-tcp":
             link = ModbusLink(name="scan", host=params["host"], port=params["port"],
@@ -121,14 +136,13 @@ def _modbus_answers(protocol: str, params: dict[str, Any], timeout_s: float) -> 
             link = ModbusLink(name="scan", path=params["path"], baudrate=params["baudrate"],
                               timeout_s=timeout_s, retries=0)  # fmt: skip
     except DeviceError:
-        return False
+        return None
     try:
-        link.read_registers(0, 1)
-        return True
+        return tuple(link.read_registers(0, 4))
     except DeviceRefusedError:
-        return True
+        return ()
     except DeviceError:
-        return False
+        return None
     finally:
         link.close()
 
@@ -163,8 +177,9 @@ def scan(
             for baud in sorted({b for k in KINDS.values() if "modbus-rtu" in k.transports
                                 for b in k.probe_baudrates}):  # fmt: skip
                 params = {"path": path, "baudrate": baud, "device_id": 1}
-                if _modbus_answers("modbus-rtu", params, timeout_s):
-                    unknown.append(Unknown("modbus-rtu", params, path))
+                regs = _modbus_answers("modbus-rtu", params, timeout_s)
+                if regs is not None:
+                    unknown.append(Unknown("modbus-rtu", params, path, regs))
                     break
     for host, port in tcp:
         where = f"{host}:{port}"
@@ -177,8 +192,9 @@ def scan(
                 if hit:
                     break
         found += hit
-        if not hit and _modbus_answers("modbus-tcp", params, timeout_s):
-            unknown.append(Unknown("modbus-tcp", params, where))
+        regs = None if hit else _modbus_answers("modbus-tcp", params, timeout_s)
+        if regs is not None:
+            unknown.append(Unknown("modbus-tcp", params, where, regs))
     for bus in buses:
         say(f"I2C bus {bus}")
         obj = (i2c_objects or {}).get(str(bus))
@@ -192,7 +208,7 @@ def table(found: list[Found], unknown: list[Unknown]) -> str:
     """What answered, one row per device: port, kind, model, serial."""
     rows = [("port", "kind", "model", "serial")]
     rows += [(f.where, f.kind, f.model, f.serial or "-") for f in found]
-    rows += [(u.where, "?", "a Modbus device of no known model", "-") for u in unknown]
+    rows += [(u.where, "?", u.describe(), "-") for u in unknown]
     widths = [max(len(r[i]) for r in rows) for i in range(4)]
     return "\n".join(
         "  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip()

@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 DEFAULT_CONFIG = Path(__file__).with_name("default_cage.toml")
-REGMAP_DIR = Path(__file__).with_name("regmaps")
 
 
 class SimConfigError(ValueError):
@@ -74,6 +73,7 @@ class SupplyConfig:
     endpoint: EndpointConfig
     axis: int | None = None  # coil axis 0-2, None for a load channel
     model_id: int = 60125
+    current_range: int = 0  # Riden RD6012P register 20: 0 = 6 A range (0.1 mA), 1 = 12 A (1 mA)
     regmap: str = ""
     resistance_ohm: float = 5.0
     tau_s: float = 0.002
@@ -227,6 +227,7 @@ def _parse(raw: dict[str, Any], source: str) -> SimConfig:
                 endpoint=_endpoint(s, where),
                 axis=None if axis is None else AXES[axis],
                 model_id=int(s.get("model_id", 60125)),
+                current_range=int(s.get("current_range", 0)),
                 regmap=str(s.get("regmap", "")),
                 resistance_ohm=float(s.get("resistance_ohm", 5.0)),
                 tau_s=float(s.get("tau_s", 0.002)),

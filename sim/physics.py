@@ -28,21 +28,42 @@ from sim.signals import FirstOrderSignal
 
 Array = npt.NDArray[np.float64]
 
-RIDEN_MODELS: dict[range, tuple[str, float, float, float, float]] = {
-    # id range: (name, V per count, A per count, V max, A max)
-    range(60060, 60065): ("RD6006", 0.01, 0.001, 60.0, 6.0),
-    range(60065, 60066): ("RD6006P", 0.001, 0.0001, 60.0, 6.0),
-    range(60120, 60130): ("RD6012", 0.01, 0.01, 60.0, 12.0),
-    range(60180, 60190): ("RD6018", 0.01, 0.01, 60.0, 18.0),
+
+@dataclass(frozen=True)
+class RidenSpec:
+    """A Riden RD60xx model as the published tables give it (docs/devices.md names them).
+
+    ``a_per_count`` and ``i_max_a`` have one entry per current range: register 20 selects it on
+    the RD6012P (0 = 6 A at 0.1 mA, 1 = 12 A at 1 mA); the other models have one range.
+    """
+
+    name: str
+    v_per_count: float
+    w_per_count: float
+    a_per_count: tuple[float, ...]
+    i_max_a: tuple[float, ...]
+    v_max_v: float = 60.0
+
+
+RIDEN_MODELS: dict[range, RidenSpec] = {
+    range(60060, 60065): RidenSpec("RD6006", 0.01, 0.01, (0.001,), (6.0,)),
+    range(60065, 60066): RidenSpec("RD6006P", 0.001, 0.001, (0.0001,), (6.0,)),
+    range(60066, 60067): RidenSpec("RK6006", 0.01, 0.01, (0.001,), (6.0,)),
+    range(60120, 60125): RidenSpec("RD6012", 0.01, 0.01, (0.01,), (12.0,)),
+    range(60125, 60130): RidenSpec("RD6012P", 0.001, 0.001, (0.0001, 0.001), (6.0, 12.0)),
+    range(60180, 60190): RidenSpec("RD6018", 0.01, 0.01, (0.01,), (18.0,)),
+    range(60240, 60245): RidenSpec("RD6024", 0.01, 0.01, (0.01,), (24.0,)),
+    range(60300, 60305): RidenSpec("RD6030", 0.01, 0.01, (0.01,), (30.0,)),
 }
 
 
-def riden_model(model_id: int) -> tuple[str, float, float, float, float]:
-    """(name, V/count, A/count, V max, A max) for a Riden model ID (register 0)."""
+def riden_model(model_id: int) -> RidenSpec:
+    """The Riden model of a model ID (register 0); ValueError for one no table lists."""
     for ids, spec in RIDEN_MODELS.items():
         if model_id in ids:
             return spec
-    raise ValueError(f"unknown Riden model id {model_id}")
+    known = ", ".join(f"{s.name} {r.start}-{r.stop - 1}" for r, s in RIDEN_MODELS.items())
+    raise ValueError(f"unknown Riden model id {model_id}; known: {known}")
 
 
 def now_s() -> float:
@@ -150,6 +171,22 @@ class Supply:
                 self.protection = 0
             self.writes += 1
             self._update(t)
+
+    def set_protection(self, ovp_v: float | None = None, ocp_a: float | None = None,
+                       t_s: float | None = None) -> None:  # fmt: skip
+        """New OVP (V) and/or OCP (A) levels; one below the live output trips it at once, as on
+        the instrument (not at the next set-point write)."""
+        with self.lock:
+            if ovp_v is not None:
+                self.ovp_v = ovp_v
+            if ocp_a is not None:
+                self.ocp_a = ocp_a
+            self.writes += 1
+            self._update(now_s() if t_s is None else t_s)
+
+    def power_w(self, t_s: float | None = None) -> float:
+        """Output power (W): output voltage times output current."""
+        return self.output_voltage(t_s) * self.output_current(t_s)
 
     def trip(self, code: int = 2, t_s: float | None = None) -> None:
         """Fault on demand: a protection trip (1 OVP, 2 OCP)."""
@@ -305,8 +342,16 @@ class CagePhysics:
     @staticmethod
     def _limits(s: SupplyConfig) -> tuple[float, float]:
         if s.kind == "riden-rd60xx":
-            _, _, _, v_max, i_max = riden_model(s.model_id)
-            return v_max, i_max
+            try:
+                riden = riden_model(s.model_id)
+            except ValueError as exc:
+                raise SimConfigError(f"supply '{s.name}': {exc}") from None
+            if not 0 <= s.current_range < len(riden.i_max_a):
+                raise SimConfigError(
+                    f"supply '{s.name}': current_range {s.current_range} does not exist on the"
+                    f" {riden.name}; use 0-{len(riden.i_max_a) - 1}"
+                )
+            return riden.v_max_v, max(riden.i_max_a)
         from sim.regmap import load_regmap
 
         spec = load_regmap(s.regmap)

@@ -4,6 +4,12 @@ Over I2C the register address is plain (the manual's 0x80 read bit is SPI only).
 transfers auto-increment. Results are 24-bit two's complement, big-endian; the gain depends on the
 cycle count (``0.3671 CC + 1.5`` counts per uT, 75 at the default CC = 200). A transfer to another
 address, or any transfer while the NACK fault is on, raises ``OSError(121)`` like the kernel.
+
+Mode bits as the PNI RM3100 user manual (Tables 5-2 and 5-3) gives them: POLL's PMX/PMY/PMZ
+(bits 4-6) choose the axes of a single measurement, whose end raises DRDY. CMM: START (bit 0),
+DRDM (bits 2-3), CMX/CMY/CMZ (bits 4-6). In continuous mode DRDY follows DRDM: 00 only on an
+alarm (the alarm limits are not modelled, so never), 01 after a measurement on any axis, 10 after
+the full sequence of the chosen axes; only the chosen axes' results are updated.
 """
 
 from __future__ import annotations
@@ -20,6 +26,9 @@ import numpy as np
 from sim.physics import Faults
 
 POLL, CMM, CCX, CCY, CCZ, TMRC = 0x00, 0x01, 0x04, 0x06, 0x08, 0x0B
+AXIS_BITS = (0x10, 0x20, 0x40)  # PMX/PMY/PMZ in POLL, CMX/CMY/CMZ in CMM
+CMM_START, CMM_DRDM = 0x01, 0x0C
+DRDM_ALARM, DRDM_ANY_AXIS, DRDM_ALL_AXES = 0x00, 0x04, 0x08
 MX, BIST, STATUS, HSHAKE, REVID = 0x24, 0x33, 0x34, 0x35, 0x36
 REVID_VALUE = 0x22
 I2C_M_RD = 0x0001
@@ -51,6 +60,7 @@ class Rm3100:
         self.regs[REVID] = REVID_VALUE
         self.regs[HSHAKE] = 0x1B
         self._ready_at: float | None = None  # completion time of a pending single measurement
+        self._poll_axes = 0x70  # the PMX/PMY/PMZ bits of the pending single measurement
         self._continuous_since: float | None = None
         self._last_cont_index = -1
         self._lock = threading.Lock()
@@ -62,29 +72,41 @@ class Rm3100:
     def _conversion_s(self) -> float:
         return sum(self.cycle_counts()) * SECONDS_PER_CYCLE
 
-    def _measure(self, done_s: float) -> None:
+    def _measure(self, done_s: float, axes: int, drdy: bool) -> None:
         """Latch the reading of the conversion that completed at ``done_s`` (device time s: the
-        field in the middle of its integration) into MX..MZ and raise DRDY."""
+        field in the middle of its integration) into the results of ``axes`` (bits 4-6) and,
+        if ``drdy``, raise DRDY."""
         if self.faults.stuck and self.regs[STATUS] & 0x80:
             return
         reading = np.asarray(self.read_ut(done_s - 0.5 * self._conversion_s()), dtype=float)
         for i, cc in enumerate(self.cycle_counts()):
+            if not axes & AXIS_BITS[i]:
+                continue
             counts = round(float(reading[i]) * gain_counts_per_ut(cc))
             counts = max(-(1 << 23), min((1 << 23) - 1, counts)) & 0xFFFFFF
             self.regs[MX + 3 * i : MX + 3 * i + 3] = counts.to_bytes(3, "big")
-        self.regs[STATUS] |= 0x80
+        if drdy:
+            self.regs[STATUS] |= 0x80
+
+    def _continuous_drdy(self) -> bool:
+        """Whether a continuous-mode measurement raises DRDY (manual Table 5-3, DRDM)."""
+        drdm = self.regs[CMM] & CMM_DRDM
+        if drdm == DRDM_ANY_AXIS:
+            return True
+        return drdm == DRDM_ALL_AXES and bool(self.regs[CMM] & 0x70)
 
     def _advance(self) -> None:
         now = time.monotonic()
         if self._ready_at is not None and now >= self._ready_at:
             done_s, self._ready_at = self._ready_at, None
-            self._measure(done_s)
+            self._measure(done_s, self._poll_axes, drdy=True)
         if self._continuous_since is not None:
             rate = min(TMRC_HZ.get(self.regs[TMRC], 37.0), 1.0 / self._conversion_s())
             index = int((now - self._continuous_since) * rate)
             if index > self._last_cont_index:
                 self._last_cont_index = index
-                self._measure(self._continuous_since + index / rate)
+                self._measure(self._continuous_since + index / rate, self.regs[CMM] & 0x70,
+                              drdy=self._continuous_drdy())  # fmt: skip
 
     def write(self, reg: int, data: bytes) -> None:
         """Register write with auto-increment."""
@@ -95,10 +117,11 @@ class Rm3100:
             if r == POLL:
                 if value & 0x70:
                     self.regs[STATUS] &= 0x7F
+                    self._poll_axes = value & 0x70
                     self._ready_at = time.monotonic() + self._conversion_s()
             elif r == CMM:
                 self.regs[CMM] = value
-                if value & 0x01:
+                if value & CMM_START:
                     self._continuous_since = time.monotonic()
                     self._last_cont_index = 0
                 else:

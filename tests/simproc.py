@@ -39,17 +39,24 @@ def sim_process(
         stop_child(proc, wait_s=stop_wait_s)
 
 
+LOAD_INPUT_STATE = 0x0B05
+LOAD_OFF = (0x0A00, 43)
+"""The simulated Maynuo M97xx load (regmaps/maynuo-m97.toml): input state register; CMD register
+and its input-off command (function 16 only: the M97xx has no function 06)."""
+
+
 def output_registers(
     devices: dict[str, Any], tcp_only: bool = False
 ) -> Iterator[tuple[str, Any, int, int]]:
-    """(name, connected client, output-enable register, device id) of every supply and load, on
-    their own wires (RTU ports are exclusive: only ``tcp_only`` ones while a run holds them)."""
+    """(name, connected client, output-state register, device id) of every supply and load, on
+    their own wires (RTU ports are exclusive: only ``tcp_only`` ones while a run holds them). The
+    Maynuo load's state is 0x0B05; it is switched by commands to 0x0A00 (:data:`LOAD_OFF`)."""
     for name, d in devices.items():
         if d["kind"] not in ("riden-rd60xx", "regmap-eload"):
             continue
         if tcp_only and d["protocol"] != "modbus-tcp":
             continue
-        reg = 18 if d["kind"] == "riden-rd60xx" else 0x0A10
+        reg = 18 if d["kind"] == "riden-rd60xx" else LOAD_INPUT_STATE
         if d["protocol"] == "modbus-tcp":
             client: Any = ModbusTcpClient(d["host"], port=d["port"], timeout=2)
         else:

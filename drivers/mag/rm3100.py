@@ -2,6 +2,10 @@
 
 Plain register addresses over I2C (the manual's 0x80 read bit is SPI only). Results are 24-bit
 two's complement, big-endian; gain = 0.3671 CC + 1.5 counts per uT (75 at CC = 200).
+
+Continuous mode writes CMM = 0x79: START, CMX/CMY/CMZ, and DRDM = 10, "DRDY high after a full
+measurement of the selected axes" (PNI RM3100 user manual, Table 5-3). With DRDM = 00 (0x71)
+DRDY rises only on an alarm, so with the alarms off a real sensor never signals data ready.
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ from drivers.transport.i2c import I2CDevice
 
 POLL, CMM, CCX, TMRC, MX, STATUS, REVID = 0x00, 0x01, 0x04, 0x0B, 0x24, 0x34, 0x36
 REVID_VALUE = 0x22
+CMM_CONTINUOUS = 0x79
+"""START (bit 0) | DRDM = 10 (bits 2-3: DRDY after each full X/Y/Z set) | CMX CMY CMZ (bits 4-6)."""
 TMRC_HZ = {0x92: 600.0, 0x93: 300.0, 0x94: 150.0, 0x95: 75.0, 0x96: 37.0, 0x97: 18.0,
            0x98: 9.0, 0x99: 4.5, 0x9A: 2.3, 0x9B: 1.2, 0x9C: 0.6, 0x9D: 0.3}  # fmt: skip
 
@@ -71,7 +77,7 @@ class Rm3100(PolledSampling):
         if tmrc not in TMRC_HZ:
             raise ValueError(f"{self.name}: TMRC 0x{tmrc:02x} outside 0x92-0x9D")
         self.dev.write(TMRC, [tmrc])
-        self.dev.write(CMM, [0x71])
+        self.dev.write(CMM, [CMM_CONTINUOUS])
         self.continuous = True
         return TMRC_HZ[tmrc]
 

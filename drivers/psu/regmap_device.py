@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 from drivers.errors import DeviceNotFoundError, DeviceProtocolError, LimitError
 from drivers.identity import Identity
-from drivers.psu.riden import SupplyReading
+from drivers.protocols import SupplyReading
 from drivers.regmap import Register, RegisterMap, RegisterMapError
 from drivers.transport.modbus import ModbusLink
 
@@ -26,7 +27,7 @@ class MappedDevice:
         if reg.access != "rw":
             raise RegisterMapError(f"{self.map.source}: register '{reg.name}' is read-only")
         words = reg.encode(value)
-        if len(words) == 1:
+        if len(words) == 1 and self.map.write_function == 6:
             self.link.write_register(reg.address, words[0])
         else:
             self.link.write_registers(reg.address, words)
@@ -98,22 +99,28 @@ class MappedSupply(MappedDevice):
         return amps
 
     def set_output(self, on: bool) -> None:
-        """Output (or load input) enable."""
-        self._write(self.output_reg, 1.0 if on else 0.0)
+        """Output (or load input) enable (the map's on/off values: 1/0, or a command)."""
+        self._write(self.output_reg, self.output_reg.on if on else self.output_reg.off)
 
     def read(self) -> SupplyReading:
-        """Set-points and measured output (registers the map lacks read as 0)."""
+        """Set-points, measured output and power, protection (registers the map lacks read as 0;
+        power as None)."""
 
         def get(role: str) -> float:
             reg = self.map.role(role)
             return self._read(reg) if reg is not None else 0.0
 
-        prot = int(get("protection"))
-        return SupplyReading(
+        prot = self.map.role("protection")
+        protection = "" if prot is None else prot.protection_name(int(self._read(prot)))
+        reading = SupplyReading(
             v_set_v=get("v_set"), i_set_a=get("i_set"), v_out_v=get("v_out"), i_out_a=get("i_out"),
-            output_on=bool(get("output")), constant_current=bool(get("mode")),
-            protection={0: "", 1: "OVP", 2: "OCP"}.get(prot, f"code {prot}"),
+            output_on=bool(get("output_state" if self.map.role("output_state") else "output")),
+            constant_current=bool(get("mode")), protection=protection,
         )  # fmt: skip
+        power = self.map.role("power")
+        if power is None:
+            return reading
+        return dataclasses.replace(reading, power_w=self._read(power))
 
     def enable_as_load(self, compliance_v: float) -> None:
         """Drive a load harness: current 0, the voltage set-point (if the map has one) to the

@@ -16,7 +16,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from drivers.psu.riden import SupplyReading
+from drivers.protocols import SupplyReading
 from rig.cage.limits import CageLimitError, CageLimits, plan_ramp
 from rig.cage.model import CageModel
 from rig.errors import RigError

@@ -1,4 +1,4 @@
-"""Byte-exact Modbus RTU exchanges of the RDTech DPS supplies (drivers/regmaps/dps*.toml), from the
+"""Byte-exact Modbus RTU exchanges of the RDTech DPS supplies (regmaps/dps*.toml), from the
 published register map (Ruideng "DPS5005 digital power communication protocol V1.2"): holding
 registers 0x00 U-SET (V x 100), 0x01 I-SET (A x 1000, x 100 on the DPS5015/5020), 0x02 UOUT,
 0x03 IOUT, 0x07 PROTECT, 0x08 CV/CC, 0x09 ONOFF, 0x0B MODEL; function codes 03 and 06."""
@@ -40,6 +40,7 @@ def test_dps5005_identify_set_points_readback_and_safe() -> None:
         Exchange(rtu("01 03 00 03 00 01"), rtu("01 03 02 05 DC")),  # IOUT 1.500 A
         Exchange(rtu("01 03 00 09 00 01"), rtu("01 03 02 00 01")),  # ONOFF on
         Exchange(rtu("01 03 00 08 00 01"), rtu("01 03 02 00 01")),  # CV/CC: CC
+        Exchange(rtu("01 03 00 04 00 01"), rtu("01 03 02 03 84")),  # POWER 9.00 W
         echo("01 06 00 09 00 00"),  # safe: output off, then I-SET 0
         echo("01 06 00 01 00 00"),
     ])  # fmt: skip
@@ -51,6 +52,7 @@ def test_dps5005_identify_set_points_readback_and_safe() -> None:
         r = supply.read()
         assert (r.v_set_v, r.i_set_a, r.v_out_v, r.i_out_a) == pytest.approx((12.0, 1.5, 6.0, 1.5))
         assert r.output_on and r.constant_current and r.protection == ""
+        assert r.power_w == pytest.approx(9.0)
         supply.safe()
     finally:
         supply.close()

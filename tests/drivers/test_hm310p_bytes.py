@@ -1,4 +1,4 @@
-"""Byte-exact Modbus RTU exchanges of the Hanmatek HM310P / HM305P (drivers/regmaps/hm3*.toml), from
+"""Byte-exact Modbus RTU exchanges of the Hanmatek HM310P / HM305P (regmaps/hm3*.toml), from
 the published register table (mckenm/HanmaTekPSUCmd wiki): 0x0001 output, 0x0002 protection bit
 mask, 0x0003 model, 0x0005 decimals (0x0233), 0x0010 V, 0x0011 A, 0x0030 V set (V x 100),
 0x0031 A set (A x 1000); function codes 03 and 06."""
@@ -29,6 +29,7 @@ def test_hm310p_identify_set_points_readback_and_safe() -> None:
     supply, peer = hm("hm310p", [
         # model (0x0003) reads 3010 = 0x0BC2, decimals (0x0005) 0x0233; whole frames, CRC included
         Exchange(bytes.fromhex("01 03 00 03 00 01 74 0A"), bytes.fromhex("01 03 02 0B C2 3E E5")),
+        Exchange(rtu("01 03 00 04 00 01"), rtu("01 03 02 4B 50")),  # class 0x4B50
         Exchange(bytes.fromhex("01 03 00 05 00 01 94 0B"), bytes.fromhex("01 03 02 02 33 F9 31")),
         Exchange(bytes.fromhex("01 06 00 30 04 B0 8A B1"), bytes.fromhex("01 06 00 30 04 B0 8A B1")),  # 12.00 V
         echo("01 06 00 31 09 C4"),  # 2.500 A
@@ -39,6 +40,7 @@ def test_hm310p_identify_set_points_readback_and_safe() -> None:
         Exchange(rtu("01 03 00 10 00 01"), rtu("01 03 02 00 00")),  # V 0.00 (tripped)
         Exchange(rtu("01 03 00 11 00 01"), rtu("01 03 02 00 00")),  # A 0.000
         Exchange(rtu("01 03 00 01 00 01"), rtu("01 03 02 00 00")),  # output off
+        Exchange(rtu("01 03 00 12 00 02"), rtu("01 03 04 00 00 00 00")),  # 0.000 W
         echo("01 06 00 01 00 00"),  # safe: output off, then A set 0
         echo("01 06 00 31 00 00"),
     ])  # fmt: skip
@@ -50,6 +52,7 @@ def test_hm310p_identify_set_points_readback_and_safe() -> None:
         r = supply.read()
         assert (r.v_set_v, r.i_set_a, r.v_out_v, r.i_out_a) == pytest.approx((12.0, 2.5, 0.0, 0.0))
         assert not r.output_on and not r.constant_current and r.protection == "OCP"
+        assert r.power_w == 0.0
         supply.safe()
     finally:
         supply.close()

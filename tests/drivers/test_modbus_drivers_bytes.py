@@ -136,9 +136,10 @@ def test_riden_over_tcp() -> None:
 def test_electronic_load_float32_over_tcp() -> None:
     peer = ScriptedTcpPeer([
         (bytes.fromhex("01 10 0A 01 00 02 04 40 20 00 00"), bytes.fromhex("01 10 0A 01 00 02")),  # 2.5 A
-        (bytes.fromhex("01 06 0A 10 00 01"), bytes.fromhex("01 06 0A 10 00 01")),  # input on
+        # CMD 42 = input on, by function 16 (the M97xx has no function 06)
+        (bytes.fromhex("01 10 0A 00 00 01 02 00 2A"), bytes.fromhex("01 10 0A 00 00 01")),
         (bytes.fromhex("01 03 0B 02 00 02"), bytes.fromhex("01 03 04 40 1F FF EF")),  # 2.49999 A
-        (bytes.fromhex("01 06 0A 10 00 00"), bytes.fromhex("01 06 0A 10 00 00")),  # safe: off
+        (bytes.fromhex("01 10 0A 00 00 01 02 00 2B"), bytes.fromhex("01 10 0A 00 00 01")),  # 43: off
         (bytes.fromhex("01 10 0A 01 00 02 04 00 00 00 00"), bytes.fromhex("01 10 0A 01 00 02")),
     ])  # fmt: skip
     link = ModbusLink(name="load", host="127.0.0.1", port=peer.port, timeout_s=0.5, retries=0)

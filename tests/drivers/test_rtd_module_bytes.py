@@ -1,4 +1,4 @@
-"""Byte-exact Modbus RTU exchanges of the RTD module map (drivers/regmaps/rtd-module.toml): the
+"""Byte-exact Modbus RTU exchanges of the RTD module map (regmaps/rtd-module.toml): the
 temperature as a signed 16-bit holding register 0x0000 in tenths of a degree C, function 03; a
 negative temperature, and an open sensor's sentinel refused in one line."""
 

@@ -153,7 +153,7 @@ def test_rm3100_poll_and_continuous_bytes() -> None:
         (0x20, b"\x34", 1, b"\x80"),  # DRDY
         (0x20, b"\x24", 9, raw),
         (0x20, b"\x0b\x95", 0, b""),  # TMRC 75 Hz
-        (0x20, b"\x01\x71", 0, b""),  # CMM start
+        (0x20, b"\x01\x79", 0, b""),  # CMM: start, DRDM = 10, x y z
         (0x20, b"\x01\x00", 0, b""),
     ])  # fmt: skip
     rm = Rm3100(bus, 0x20)

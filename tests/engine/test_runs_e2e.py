@@ -29,7 +29,7 @@ from rig.steps import field_kinds
 from rig.store import RunReader
 from sim.cage import SimulatedCage
 from sim.config import load_config
-from tests.simproc import output_registers, outputs
+from tests.simproc import LOAD_INPUT_STATE, LOAD_OFF, output_registers, outputs
 from tests.simproc import sim_process as start_sim
 
 
@@ -172,7 +172,10 @@ def test_sigkill_mid_run_loses_at_most_half_a_second(
 def switch_off(devices: dict[str, Any]) -> None:
     """Output enable off on every supply and load."""
     for _, client, reg, dev_id in output_registers(devices):
-        client.write_register(reg, 0, device_id=dev_id)
+        if reg == LOAD_INPUT_STATE:  # the load: the input-off command, by function 16
+            client.write_registers(LOAD_OFF[0], [LOAD_OFF[1]], device_id=dev_id)
+        else:
+            client.write_register(reg, 0, device_id=dev_id)
 
 
 @pytest.mark.slow

@@ -72,12 +72,19 @@ def test_exception_replies(devices: dict[str, Any]) -> None:
 def test_electronic_load_float32_and_bias(devices: dict[str, Any], cage: SimulatedCage) -> None:
     dev = devices["load_panel"]
     assert mbpoll(dev, "-r", str(0x0A01), "-t", "4:float", "-B", write=["2.5"]).returncode == 0
-    assert mbpoll(dev, "-r", str(0x0A10), "-t", "4", write=["1"]).returncode == 0
+    single = mbpoll(dev, "-r", str(0x0A00), "-t", "4", write=["42"])  # function 06
+    assert single.returncode != 0 and "Illegal function" in single.stdout + single.stderr
+    client = ModbusTcpClient("127.0.0.1", port=dev["port"])
+    assert client.connect()
+    assert not client.write_registers(0x0A00, [42], device_id=dev["device_id"]).isError()  # on
     time.sleep(0.1)
     meas = values(mbpoll(dev, "-r", str(0x0B02), "-t", "4:float", "-B"))
     assert abs(meas[0x0B02] - 2.5) < 1e-3
     assert abs(cage.physics.load_currents(time.monotonic())["load_panel"] - 2.5) < 1e-3
-    assert mbpoll(dev, "-r", str(0x0A10), "-t", "4", write=["0"]).returncode == 0
+    assert values(mbpoll(dev, "-r", str(0x0B05), "-t", "4"))[0x0B05] == 1  # input state
+    assert not client.write_registers(0x0A00, [43], device_id=dev["device_id"]).isError()  # off
+    client.close()
+    assert not cage.physics.supplies["load_panel"].output
 
 
 @needs_mbpoll

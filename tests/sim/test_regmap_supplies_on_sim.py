@@ -1,8 +1,6 @@
 """Every shipped register map of a unipolar supply drives a coil and a load channel of the simulated
-cage: the simulator serves its own copy of the map (sim/regmaps), the rig reads the driver's copy
-(drivers/regmaps), so a disagreement between the two fails here.
-
-Adding a supply as a register map adds it to this test by itself (both copies share a file name).
+cage: the simulator serves the map (regmaps/) and the rig's drivers read the same file through the
+same parser. Adding a supply as a register map adds it to this test by itself.
 """
 
 from __future__ import annotations
@@ -20,14 +18,10 @@ from drivers.regmap import shipped_maps
 from rig.config import load_rig_config
 from rig.devices import build_cage, open_load
 from sim.cage import SimulatedCage
-from sim.config import REGMAP_DIR, load_config
+from sim.config import load_config
 from tests.sim.rig_toml import rig_toml
 
-SUPPLY_MAPS = sorted(
-    m.name
-    for m in shipped_maps()
-    if m.kind == "supply" and not m.bipolar and (REGMAP_DIR / f"{m.name}.toml").exists()
-)
+SUPPLY_MAPS = sorted(m.name for m in shipped_maps() if m.kind == "supply" and not m.bipolar)
 
 
 def supply_block(name: str, regmap: str, text: str) -> str:

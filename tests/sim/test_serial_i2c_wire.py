@@ -73,7 +73,7 @@ def test_rm3100_poll_drdy_and_24_bit_results(cage: SimulatedCage) -> None:
 def test_rm3100_continuous_mode(cage: SimulatedCage) -> None:
     bus = cage.i2c_bus
     _write(bus, 0x20, 0x0B, [0x95])  # 75 Hz
-    _write(bus, 0x20, 0x01, [0x71])  # CMM: start, x y z
+    _write(bus, 0x20, 0x01, [0x79])  # CMM: start, DRDM = 10 (DRDY after each x y z set), x y z
     seen = 0
     period_s = 1 / 75
     t_end = time.monotonic() + 0.2

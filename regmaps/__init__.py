@@ -1,0 +1,343 @@
+"""Register maps of Modbus devices (TOML files in this folder) and the one parser that reads them,
+for the drivers and the simulator alike (docs/adr/0019-one-register-map-directory.md).
+
+Format::
+
+    [device]
+    kind = "supply" | "eload" | "relay" | "thermometer"
+    model = "..."
+    v_max = 20.0            # V, supplies and loads
+    i_max = 5.0             # A
+    bipolar = false         # signed current set-point
+    baudrate = 9600         # factory default on Modbus RTU (optional; 115200 when absent)
+    write_function = 16     # 16: every write is Write Multiple Registers (a device without
+                            # function 6); 6 (default): one register by 6, wider ones by 16
+
+    [[registers]]
+    name = "i_set"
+    address = 0x0A01
+    type = "uint16" | "int16" | "uint32" | "int32" | "float32"   # 32-bit: big-endian, high word first
+    scale = 1000            # counts per unit (integer types)
+    unit = "A"              # documentation only
+    access = "ro" | "rw"
+    role = one of ROLES (below)
+    value = 5005            # role "constant": what the register always reads (a model number,
+                            # checked by identify() and `rig devices scan`); other roles: the
+                            # value it reads at power-on in the simulator
+    codes = ["", "OVP", "OCP"]   # role "protection", a code per value (this is the default), or
+    flags = ["OVP", "OCP"]       # role "protection", one bit each (bit 0 first)
+    on = 42                 # role "output" written as a command: the values for on and off (the
+    off = 43                # state is then read from a register of role "output_state")
+
+An unknown key, role, kind, type or access is an error naming the file, the line and the nearest
+valid name; so are overlapping registers.
+"""
+
+from __future__ import annotations
+
+import difflib
+import itertools
+import re
+import struct
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+MAP_DIR = Path(__file__).parent
+TYPES = {"uint16": 1, "int16": 1, "uint32": 2, "int32": 2, "float32": 2}
+KINDS = ("supply", "eload", "relay", "thermometer")
+ACCESS = ("ro", "rw")
+ROLES = {
+    "v_set": "voltage set-point (V)",
+    "i_set": "current set-point (A)",
+    "v_out": "measured output voltage (V)",
+    "i_out": "measured output current (A)",
+    "power": "measured output power (W)",
+    "output": "output (or load input) enable, 0/1 (or the command values 'on'/'off')",
+    "output_state": "output (or load input) state as read, 0/1, where 'output' is a command",
+    "mode": "CV/CC, 1 = constant current",
+    "protection": "protection state (see codes/flags)",
+    "ovp": "over-voltage protection level (V)",
+    "ocp": "over-current protection level (A)",
+    "opp": "over-power protection level (W)",
+    "polarity_x": "H-bridge relay of the x coil, 1 = reversed",
+    "polarity_y": "H-bridge relay of the y coil, 1 = reversed",
+    "polarity_z": "H-bridge relay of the z coil, 1 = reversed",
+    "temperature": "the DUT's temperature (degrees C)",
+    "serial": "serial number",
+    "constant": "always reads 'value' (a model number)",
+    "none": "no meaning to the rig (kept by the simulator)",
+}
+DEVICE_KEYS = ("kind", "model", "v_max", "i_max", "bipolar", "baudrate", "write_function")
+REGISTER_KEYS = ("name", "address", "type", "scale", "unit", "access", "role", "value", "codes",
+                 "flags", "on", "off")  # fmt: skip
+TOP_KEYS = ("device", "registers")
+DEFAULT_CODES = ("", "OVP", "OCP")
+_RANGES = {"uint16": (0, 0xFFFF), "int16": (-0x8000, 0x7FFF),
+           "uint32": (0, 0xFFFFFFFF), "int32": (-0x80000000, 0x7FFFFFFF)}  # fmt: skip
+
+
+class RegisterMapError(ValueError):
+    """A register-map file is malformed or missing; the message names the file, line and fix."""
+
+
+@dataclass(frozen=True)
+class Register:
+    """One value: its address, encoding and role."""
+
+    name: str
+    address: int
+    type: str
+    access: str
+    role: str
+    scale: float = 1.0
+    value: float | None = None  # role "constant": what it always reads; else power-on value
+    codes: tuple[str, ...] = DEFAULT_CODES
+    flags: tuple[str, ...] = ()
+    on: float = 1.0  # role "output": the value written to switch on
+    off: float = 0.0  # and off
+
+    @property
+    def width(self) -> int:
+        """Number of 16-bit registers."""
+        return TYPES[self.type]
+
+    def limits(self) -> tuple[float, float]:
+        """Lowest and highest physical value the register can hold."""
+        if self.type == "float32":
+            return (-3.4e38, 3.4e38)
+        lo, hi = _RANGES[self.type]
+        return (lo / self.scale, hi / self.scale)
+
+    def encode(self, value: float, *, saturate: bool = False) -> list[int]:
+        """Physical value to register words. A value that does not fit raises ValueError, or
+        with ``saturate`` is held at the nearest end (a simulated instrument's display)."""
+        if self.type == "float32":
+            return list(struct.unpack(">HH", struct.pack(">f", value)))
+        counts = round(value * self.scale)
+        lo, hi = _RANGES[self.type]
+        if saturate:
+            counts = max(lo, min(hi, counts))
+        elif not lo <= counts <= hi:
+            raise ValueError(
+                f"{value:g} does not fit register '{self.name}' ({self.type}, scale {self.scale:g})"
+            )
+        if self.width == 1:
+            return [counts & 0xFFFF]
+        c = counts & 0xFFFFFFFF
+        return [c >> 16, c & 0xFFFF]
+
+    def decode(self, words: list[int]) -> float:
+        """Register words to the physical value."""
+        if self.type == "float32":
+            return float(struct.unpack(">f", struct.pack(">HH", *words))[0])
+        c = words[0] if self.width == 1 else (words[0] << 16) | words[1]
+        bits = 16 * self.width
+        if self.type.startswith("int") and c & (1 << (bits - 1)):
+            c -= 1 << bits
+        return c / self.scale
+
+    def protection_name(self, raw: int) -> str:
+        """A protection register's value as "" (none), "OVP", "OCP", ... or "code N"."""
+        if self.flags:
+            names = [f for i, f in enumerate(self.flags) if raw & (1 << i)]
+            unknown = raw & ~((1 << len(self.flags)) - 1)
+            return "+".join(names + ([f"code {unknown}"] if unknown else []))
+        if 0 <= raw < len(self.codes):
+            return self.codes[raw]
+        return f"code {raw}"
+
+    def protection_value(self, name: str) -> int:
+        """The register value that reports protection ``name`` ("" = none); the simulator's side
+        of :meth:`protection_name`. ValueError for a name the register cannot report."""
+        if not name:
+            return 0
+        if self.flags:
+            return 1 << self.flags.index(name)
+        return self.codes.index(name)
+
+
+@dataclass(frozen=True)
+class RegisterMap:
+    """A parsed map."""
+
+    kind: str
+    model: str
+    registers: tuple[Register, ...]
+    v_max: float
+    i_max: float
+    bipolar: bool
+    source: str
+    baudrate: int | None = None
+    write_function: int = 6  # 16: the device has no Write Single Register (function 6)
+
+    @property
+    def name(self) -> str:
+        """The map's file name without ``.toml`` (what ``regmap = "..."`` names)."""
+        return Path(self.source).stem
+
+    def constants(self) -> tuple[Register, ...]:
+        """Registers that always read a stated value (the model number): the device's identity."""
+        return tuple(r for r in self.registers if r.role == "constant" and r.value is not None)
+
+    def role(self, role: str) -> Register | None:
+        """The register with ``role``, if the map has one."""
+        return next((r for r in self.registers if r.role == role), None)
+
+    def require(self, role: str) -> Register:
+        """The register with ``role``, or a RegisterMapError naming the file."""
+        reg = self.role(role)
+        if reg is None:
+            raise RegisterMapError(f"{self.source}: no register with role '{role}'; add one")
+        return reg
+
+
+def find_map(name_or_path: str) -> Path:
+    """A map by path, or by name among the shipped maps."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    shipped = MAP_DIR / (name_or_path if name_or_path.endswith(".toml") else f"{name_or_path}.toml")
+    if shipped.is_file():
+        return shipped
+    names = ", ".join(sorted(f.stem for f in MAP_DIR.glob("*.toml")))
+    raise RegisterMapError(
+        f"register map '{name_or_path}' not found; give a path or one of: {names}"
+    )
+
+
+class _Lines:
+    """Line numbers of the ``[device]`` keys and of each ``[[registers]]`` entry's keys."""
+
+    def __init__(self, text: str) -> None:
+        self.lines = text.splitlines()
+        self.headers = [(i + 1, m.group(1)) for i, line in enumerate(self.lines)
+                        if (m := re.match(r"\s*(\[\[?[^\]]+\]\]?)", line))]  # fmt: skip
+
+    def _block(self, header: str, index: int) -> tuple[int, int]:
+        starts = [n for n, h in self.headers if h.replace(" ", "") == header]
+        if index >= len(starts):
+            return (1, len(self.lines))
+        start = starts[index]
+        later = [n for n, _ in self.headers if n > start]
+        return (start, (later[0] - 1) if later else len(self.lines))
+
+    def top(self, key: str) -> int:
+        """Line of a top-level key or table named ``key`` (1 if not found)."""
+        for n, line in enumerate(self.lines, 1):
+            if re.match(rf"\s*(\[+\s*)?{re.escape(key)}\b", line):
+                return n
+        return 1
+
+    def of(self, header: str, index: int, key: str | None = None) -> int:
+        """Line (1-based) of ``key`` in the ``index``-th block under ``header``, or the header."""
+        start, end = self._block(header, index)
+        if key is not None:
+            for n in range(start, end + 1):
+                if re.match(rf"\s*{re.escape(key)}\s*=", self.lines[n - 1]):
+                    return n
+        return start
+
+
+def _nearest(word: str, valid: Any) -> str:
+    options = list(valid)
+    match = difflib.get_close_matches(word, options, n=1, cutoff=0.0)
+    return f"did you mean '{match[0]}'?" if match else f"use one of {', '.join(options)}"
+
+
+def _check_keys(where: Callable[[str], str], got: dict[str, Any], valid: tuple[str, ...]) -> None:
+    for key in got:
+        if key not in valid:
+            raise RegisterMapError(f"{where(key)}: unknown key '{key}'; {_nearest(key, valid)}")
+
+
+def _choice(where: str, what: str, value: Any, valid: Any) -> str:
+    if not isinstance(value, str) or value not in valid:
+        raise RegisterMapError(
+            f"{where}: unknown {what} {value!r}; {_nearest(str(value), valid)}"
+            f" (valid: {', '.join(valid)})"
+        )
+    return value
+
+
+def _names(where: str, value: Any) -> tuple[str, ...]:
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise RegisterMapError(f'{where}: must be a list of names, e.g. ["OVP", "OCP"]')
+    return tuple(value)
+
+
+@lru_cache(maxsize=64)
+def _load(path: str, mtime_ns: int) -> RegisterMap:
+    p = Path(path)
+    text = p.read_text(encoding="utf-8")
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise RegisterMapError(f"{p}: not valid TOML ({exc})") from None
+    lines = _Lines(text)
+    _check_keys(lambda key: f"{p}:{lines.top(key)}", raw, TOP_KEYS)
+    dev = raw.get("device", {})
+    _check_keys(lambda key: f"{p}:{lines.of('[device]', 0, key)}", dev, DEVICE_KEYS)
+    regs = []
+    for i, r in enumerate(raw.get("registers", [])):
+
+        def at(key: str | None = None, i: int = i) -> str:
+            return f"{p}:{lines.of('[[registers]]', i, key)}"
+
+        for key in r:
+            if key not in REGISTER_KEYS:
+                raise RegisterMapError(
+                    f"{at(key)}: unknown key '{key}'; {_nearest(key, REGISTER_KEYS)}"
+                )
+        if "name" not in r or "address" not in r:
+            raise RegisterMapError(f"{at()}: registers[{i}] needs a name and an address")
+        type_ = _choice(at("type"), "type", r.get("type"), TYPES)
+        access = _choice(at("access"), "access", r.get("access", "ro"), ACCESS)
+        role = _choice(at("role"), "role", r.get("role", "none"), ROLES)
+        if ("codes" in r or "flags" in r) and role != "protection":
+            raise RegisterMapError(f"{at('codes' if 'codes' in r else 'flags')}: codes and flags"
+                                   " belong to a register with role 'protection'")  # fmt: skip
+        if ("on" in r or "off" in r) and role != "output":
+            raise RegisterMapError(f"{at('on' if 'on' in r else 'off')}: on and off belong to a"
+                                   " register with role 'output'")  # fmt: skip
+        regs.append(Register(
+            str(r["name"]), int(r["address"]), type_, access, role, float(r.get("scale", 1.0)),
+            None if r.get("value") is None else float(r["value"]),
+            _names(at("codes"), r["codes"]) if "codes" in r else DEFAULT_CODES,
+            _names(at("flags"), r["flags"]) if "flags" in r else (),
+            float(r.get("on", 1.0)), float(r.get("off", 0.0)),
+        ))  # fmt: skip
+    spans = sorted((r.address, r.address + r.width, r.name) for r in regs)
+    for (_, a1, n0), (b0, _, n1) in itertools.pairwise(spans):
+        if b0 < a1:
+            raise RegisterMapError(
+                f"{p}: registers '{n0}' and '{n1}' overlap at {b0:#06x}; fix an address or a type"
+            )
+    kind = _choice(f"{p}:{lines.of('[device]', 0, 'kind')}", "kind", dev.get("kind"), KINDS)
+    baudrate = dev.get("baudrate")
+    if baudrate is not None and (isinstance(baudrate, bool) or not isinstance(baudrate, int)):
+        raise RegisterMapError(
+            f"{p}:{lines.of('[device]', 0, 'baudrate')}: baudrate must be a whole number, e.g. 9600"
+        )
+    write_function = dev.get("write_function", 6)
+    if write_function not in (6, 16) or isinstance(write_function, bool):
+        raise RegisterMapError(
+            f"{p}:{lines.of('[device]', 0, 'write_function')}: write_function must be 6 or 16"
+        )
+    return RegisterMap(kind, str(dev.get("model", p.stem)), tuple(regs), float(dev.get("v_max", 0.0)),
+                       float(dev.get("i_max", 0.0)), bool(dev.get("bipolar", False)), str(p),
+                       baudrate, int(write_function))  # fmt: skip
+
+
+def load_map(name_or_path: str) -> RegisterMap:
+    """Parse and check a register map (a path, or the name of a shipped map)."""
+    p = find_map(name_or_path)
+    return _load(str(p), p.stat().st_mtime_ns)
+
+
+def shipped_maps() -> list[RegisterMap]:
+    """Every map in this folder (sorted by name)."""
+    return [load_map(str(f)) for f in sorted(MAP_DIR.glob("*.toml"))]

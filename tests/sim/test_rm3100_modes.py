@@ -1,0 +1,89 @@
+"""RM3100 mode bits as the PNI RM3100 user manual gives them (Tables 5-2 and 5-3): DRDY in
+continuous mode follows DRDM (00: only on an alarm; 01: after any axis; 10: after the chosen
+axes), CMX/CMY/CMZ and PMX/PMY/PMZ choose the axes measured. The driver runs against the
+simulated sensor on its smbus2-compatible bus; writing the common 0x71 (DRDM = 00) must fail."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+import drivers.mag.rm3100 as rm3100_driver
+from drivers.errors import DeviceTimeoutError
+from drivers.mag.rm3100 import Rm3100
+from sim.physics import Faults
+from sim.rm3100 import Rm3100 as SimRm3100
+from sim.rm3100 import SimI2CBus
+
+FIELD_UT = (12.5, -20.0, 31.0)
+GAIN = 0.3671 * 200 + 1.5  # counts per uT at the default cycle count
+
+
+def sim_bus() -> tuple[SimI2CBus, SimRm3100]:
+    bus = SimI2CBus()
+    device = SimRm3100(lambda _t: np.array(FIELD_UT), Faults())
+    bus.attach(device)
+    return bus, device
+
+
+def drdy(bus: SimI2CBus) -> bool:
+    return bool(bus.read_byte_data(0x20, 0x34) & 0x80)
+
+
+def results(bus: SimI2CBus) -> list[int]:
+    raw = bytes(bus.read_i2c_block_data(0x20, 0x24, 9))
+    return [int.from_bytes(raw[i : i + 3], "big", signed=True) for i in (0, 3, 6)]
+
+
+def wait_drdy(bus: SimI2CBus, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if drdy(bus):
+            return True
+        time.sleep(0.002)
+    return False
+
+
+def test_driver_continuous_mode_gets_drdy_after_every_measurement() -> None:
+    bus, _ = sim_bus()
+    rm = Rm3100(bus, 0x20, cycle_count=200)
+    assert rm.start_continuous(0x94) == 150.0
+    for _ in range(5):
+        assert rm.read(timeout_s=0.5) == pytest.approx(FIELD_UT, abs=0.02)
+    rm.stop_continuous()
+
+
+def test_a_driver_writing_0x71_never_sees_drdy(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(rm3100_driver, "CMM_CONTINUOUS", 0x71)  # DRDM = 00, alarms off
+    bus, _ = sim_bus()
+    rm = Rm3100(bus, 0x20, cycle_count=200)
+    rm.start_continuous(0x94)
+    with pytest.raises(DeviceTimeoutError, match="no data ready"):
+        rm.read(timeout_s=0.3)
+
+
+@pytest.mark.parametrize(
+    ("cmm", "raised"), [(0x71, False), (0x75, True), (0x79, True), (0x7D, False)]
+)
+def test_drdm_decides_drdy_in_continuous_mode(cmm: int, raised: bool) -> None:
+    bus, _ = sim_bus()
+    bus.write_byte_data(0x20, 0x0B, 0x92)  # TMRC: the fastest rate
+    bus.write_byte_data(0x20, 0x01, cmm)
+    assert wait_drdy(bus, 0.3) is raised
+    if not raised:  # the results still update: only the flag stays low
+        assert results(bus) != [0, 0, 0]
+
+
+def test_only_the_chosen_axes_are_measured() -> None:
+    bus, _ = sim_bus()
+    bus.write_byte_data(0x20, 0x00, 0x10)  # POLL: PMX only
+    assert wait_drdy(bus, 0.3)
+    x, y, z = results(bus)
+    assert x == round(FIELD_UT[0] * GAIN) and (y, z) == (0, 0)
+    bus.write_byte_data(0x20, 0x0B, 0x92)
+    bus.write_byte_data(0x20, 0x01, 0x49)  # CMM: START, DRDM = 10, CMZ only
+    assert wait_drdy(bus, 0.3)
+    x2, y2, z2 = results(bus)
+    assert (x2, y2) == (x, 0) and z2 == round(FIELD_UT[2] * GAIN)
