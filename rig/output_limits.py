@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from drivers.identity import Identity
-from drivers.psu.riden import SupplyReading
+from drivers.protocols import SupplyReading
 from drivers.registry import KINDS
 from rig.cage.model import CageModel
 from rig.config import DeviceConfig, RigConfig
