@@ -131,11 +131,12 @@ def test_forced_past_the_check_the_coil_is_held_by_the_cage_limits(
 
     reader = RunReader(outcome.folder)
     try:
-        t_step = reader.steps()[0][3]
         ref = np.array(reader.samples("reference"))
     finally:
         reader.close()
-    ambient = ref[ref[:, 0] < t_step, 1:].mean(axis=0)
+    # the lab field the coil adds to (on a busy machine the run may have no reference sample
+    # before the step began to take it from)
+    ambient = np.array(cage.physics.cfg.ambient.field_ut)
     made = np.linalg.norm(ref[:, 1:] - ambient, axis=1)
     assert 90.0 < made.max() < 120.0, made.max()
 
