@@ -550,6 +550,9 @@ def _iter_registered() -> Iterator[DeviceKind]:
               fix="write the samples per second, e.g. rate_hz = 20"),
         Param("correction_matrix", LIST, help="calibration certificate: 3x3 matrix"),
         Param("correction_offset_ut", LIST, help="calibration certificate: offset (uT)"),
+        Param("stuck_after", WHOLE, False, 60, "identical readings in a row that mean a frozen"
+              " sensor (0 = never judged)", low=0, high=1_000_000,
+              fix="write a whole number of readings, e.g. stuck_after = 60 (3 s at 20 Hz)"),
     )  # fmt: skip
     current_range = Param(
         "current_range", WHOLE, help="RD6012P only: 0 = the 6 A range (0.1 mA), 1 = 12 A (1 mA)",

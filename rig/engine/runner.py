@@ -409,7 +409,16 @@ class Runner:
 
     def _monitor(self, stop: threading.Event) -> None:
         """Read back load currents and watch the rig's health at about 5 Hz: a tripped supply, a
-        stalled or frozen sensor or a store that cannot write ends the run (see ``fault``)."""
+        stalled or frozen sensor or a store that cannot write ends the run (see ``fault``). If
+        the watching itself fails, nothing watches the run any more: that is a fault too."""
+        try:
+            self._watch(stop)
+        except Exception as exc:  # a monitor that died silently would leave the run unwatched
+            self._fail(f"the health monitor stopped ({type(exc).__name__}: {exc}); the run is"
+                       " no longer watched, so it ends here: report this")  # fmt: skip
+
+    def _watch(self, stop: threading.Event) -> None:
+        """The monitor's loop (:meth:`_monitor`)."""
         w = self.writer
         assert w is not None
         last = time.monotonic()
