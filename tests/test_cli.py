@@ -280,3 +280,30 @@ def test_devices_scan_is_registered_and_loaded_only_when_used() -> None:
         " sys.exit(bool({'rig.bringup', 'numpy', 'pymodbus'} & set(sys.modules)))"
     )
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_every_option_of_every_command_has_help() -> None:
+    """`--help` explains every argument (issue 33: --runs-dir, PROCEDURE, --set, ... had none)."""
+    import argparse
+
+    from rig.cli import build_parser
+
+    def walk(p: argparse.ArgumentParser, path: list[str]) -> list[str]:
+        bare = []
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, sp in a.choices.items():
+                    bare += walk(sp, [*path, name])
+            elif not isinstance(a, argparse._HelpAction) and not a.help:
+                bare.append(" ".join([*path, "/".join(a.option_strings) or a.dest]))
+        return bare
+
+    assert walk(build_parser(), ["rig"]) == []
+
+
+def test_rig_cage_takes_rig_like_every_other_command() -> None:
+    from rig.cli import build_parser
+
+    for spelling in ("--rig", "--rig-config"):  # the old spelling stays an alias
+        args = build_parser().parse_args(["cage", "set-field", "0", "0", "0", spelling, "r.toml"])
+        assert str(args.rig_config) == "r.toml"

@@ -1,4 +1,4 @@
-"""``rig cage``: characterize the cage, set or null a field, with the safe state on every exit."""
+"""``rig cage``: characterize the cage or set a field, with the safe state on every exit."""
 
 from __future__ import annotations
 
@@ -14,14 +14,15 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     cage = sub.add_parser(
         "cage",
         parents=parents,
-        help="drive the cage: characterize it, set or null a field",
+        help="drive the cage: characterize it or set a field (0 0 0 nulls it)",
         description="Cage operations on the devices of a rig configuration (rig sim --rig-config writes one).",
     )
     cage_sub = cage.add_subparsers(dest="cage_command", required=True, parser_class=Parser)
     ch = cage_sub.add_parser(
         "characterize", parents=parents, help="fit B = K I + B0 from a current sweep"
     )
-    ch.add_argument("--rig-config", type=Path, required=True, metavar="FILE.toml")
+    ch.add_argument("--rig", "--rig-config", dest="rig_config", type=Path, required=True,
+                    metavar="FILE.toml", help="the rig configuration (rig sim --rig-config writes one)")  # fmt: skip
     ch.add_argument("--amplitude", type=float, default=1.0, metavar="A", help="sweep current (A)")
     ch.add_argument(
         "--samples", type=int, default=20, metavar="N", help="reference samples per point"
@@ -34,11 +35,13 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     for axis in "xyz":
         sf.add_argument(f"b{axis}", type=float, metavar=f"B{axis.upper()}",
                         help=f"field {axis} in uT, cage frame")  # fmt: skip
-    sf.add_argument("--rig-config", type=Path, required=True, metavar="FILE.toml")
+    sf.add_argument("--rig", "--rig-config", dest="rig_config", type=Path, required=True,
+                    metavar="FILE.toml", help="the rig configuration (rig sim --rig-config writes one)")  # fmt: skip
     sf.add_argument(
         "--trim", action="store_true", help="close the loop on the reference magnetometer"
     )
-    sf.add_argument("--tolerance-nt", type=float, default=10.0, metavar="NT")
+    sf.add_argument("--tolerance-nt", type=float, default=10.0, metavar="NT",
+                    help="with --trim: how close to the field the reference must read (nT; default: %(default)s)")  # fmt: skip
     sf.add_argument(
         "--hold", type=float, metavar="S", help="hold for S seconds (default: until Ctrl-C)"
     )

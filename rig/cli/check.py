@@ -16,14 +16,16 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     chk = sub.add_parser(
         "check", parents=parents, help="dry-run a procedure: timeline, duration, limits"
     )
-    chk.add_argument("procedure", metavar="PROCEDURE")
+    chk.add_argument("procedure", metavar="PROCEDURE",
+                     help="a procedure file, or the name of a shipped one (e.g. dut-acceptance)")  # fmt: skip
     chk.add_argument(
         "--rig",
         type=Path,
         metavar="CONFIG.toml",
         help="check currents and fields against its limits",
     )
-    chk.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    chk.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                     help="give a procedure parameter a value (repeat for several)")  # fmt: skip
     chk.set_defaults(func=_cmd_check)
 
 

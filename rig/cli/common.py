@@ -25,6 +25,18 @@ class Parser(argparse.ArgumentParser):
         self.exit(EXIT_INPUT, f"rig: {message} (see '{self.prog} --help')\n")
 
 
+def add_runs_dir(parser: argparse.ArgumentParser) -> None:
+    """``--runs-dir DIR``, the same on every command that finds runs."""
+    parser.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR",
+                        help="the folder holding the run folders (default: %(default)s)")  # fmt: skip
+
+
+def add_run(parser: argparse.ArgumentParser) -> None:
+    """The ``RUN`` argument, the same on every command that reads one run."""
+    parser.add_argument("run", metavar="RUN",
+                        help="a run folder, or a run id under --runs-dir (see 'rig runs')")  # fmt: skip
+
+
 def columns(text: str) -> list[str]:
     """``A,B,C`` as a list of column names (blanks dropped)."""
     return [c.strip() for c in text.split(",") if c.strip()]

@@ -5,15 +5,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rig.cli.common import Parser, Subparsers
+from rig.cli.common import Parser, Subparsers, add_runs_dir
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     demo = sub.add_parser(
         "demo", parents=parents, help="the acceptance procedure on the simulated cage"
     )
-    demo.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
-    demo.add_argument("--procedure", default="dut-acceptance", metavar="PROCEDURE")
+    add_runs_dir(demo)
+    demo.add_argument("--procedure", default="dut-acceptance", metavar="PROCEDURE",
+                      help="the procedure to run, a file or a shipped name (default: %(default)s)")  # fmt: skip
     demo.set_defaults(func=_cmd_demo)
 
 

@@ -19,11 +19,15 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
             " Helmholtz-cage sweep with two load channels (vector)."
         ),
     )
-    ex.add_argument("out", type=Path, metavar="OUT.csv")
-    ex.add_argument("--kind", choices=("rax", "cage"), default="rax")
-    ex.add_argument("--samples", type=int, default=6000, metavar="N")
-    ex.add_argument("--seed", type=int, default=1)
-    ex.add_argument("--noise-nt", type=float, default=100.0, metavar="SIGMA")
+    ex.add_argument("out", type=Path, metavar="OUT.csv", help="the CSV file to write")
+    ex.add_argument("--kind", choices=("rax", "cage"), default="rax",
+                    help="which data set (default: %(default)s; see above)")  # fmt: skip
+    ex.add_argument("--samples", type=int, default=6000, metavar="N",
+                    help="rows to write (default: %(default)s)")  # fmt: skip
+    ex.add_argument("--seed", type=int, default=1,
+                    help="random seed: the same seed gives the same data (default: %(default)s)")  # fmt: skip
+    ex.add_argument("--noise-nt", type=float, default=100.0, metavar="SIGMA",
+                    help="magnetometer noise per axis (nT, 1 sigma; default: %(default)s)")  # fmt: skip
     ex.set_defaults(func=_cmd_example_data)
 
 

@@ -5,15 +5,17 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rig.cli.common import Parser, Subparsers, resolve_run
+from rig.cli.common import Parser, Subparsers, add_run, add_runs_dir, resolve_run
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     exp = sub.add_parser("export", parents=parents, help="export a run to CSV or HDF5")
-    exp.add_argument("run", metavar="RUN")
-    exp.add_argument("--format", choices=("csv", "hdf5"), default="csv")
-    exp.add_argument("--out", type=Path, metavar="PATH")
-    exp.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    add_run(exp)
+    exp.add_argument("--format", choices=("csv", "hdf5"), default="csv",
+                     help="csv: one file per table; hdf5: one run.h5 (default: %(default)s)")  # fmt: skip
+    exp.add_argument("--out", type=Path, metavar="PATH",
+                     help="where to write (default: csv/ or run.h5 in the run folder)")  # fmt: skip
+    add_runs_dir(exp)
     exp.set_defaults(func=_cmd_export)
 
 

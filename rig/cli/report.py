@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rig.cli.common import Parser, Subparsers, resolve_run
+from rig.cli.common import Parser, Subparsers, add_run, add_runs_dir, resolve_run
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     rep = sub.add_parser("report", parents=parents, help="(re)build a run's HTML and PDF report")
-    rep.add_argument("run", metavar="RUN")
-    rep.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    add_run(rep)
+    add_runs_dir(rep)
     rep.set_defaults(func=_cmd_report)
 
 

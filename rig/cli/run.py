@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from rig.cli.common import Parser, Subparsers, criterion_value, parse_sets
+from rig.cli.common import Parser, Subparsers, add_runs_dir, criterion_value, parse_sets
 from rig.errors import UserInputError
 
 
@@ -26,7 +26,7 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     runp.add_argument(
         "--set", action="append", default=[], metavar="NAME=VALUE", help="set a procedure parameter"
     )
-    runp.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    add_runs_dir(runp)
     runp.add_argument(
         "--yes", action="store_true", help="confirm operator prompts automatically (recorded)"
     )

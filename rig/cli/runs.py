@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rig.cli.common import Parser, Subparsers
+from rig.cli.common import Parser, Subparsers, add_runs_dir
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     runs = sub.add_parser("runs", parents=parents, help="list recorded runs")
-    runs.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    add_runs_dir(runs)
     runs.set_defaults(func=_cmd_runs)
 
 

@@ -8,13 +8,13 @@ import math
 from pathlib import Path
 from typing import Any
 
-from rig.cli.common import Parser, Subparsers, criterion_value, resolve_run
+from rig.cli.common import Parser, Subparsers, add_run, add_runs_dir, criterion_value, resolve_run
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     show = sub.add_parser("show", parents=parents, help="summarize one run (--json: all of it)")
-    show.add_argument("run", metavar="RUN")
-    show.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR")
+    add_run(show)
+    add_runs_dir(show)
     show.add_argument(
         "--json",
         action="store_true",
