@@ -82,3 +82,14 @@ def test_binary_file_and_directory(tmp_path: Path) -> None:
         read_columns(path, ["x"])
     with pytest.raises(UserInputError, match="is a directory"):
         read_columns(tmp_path, ["x"])
+
+
+@pytest.mark.parametrize(("asked", "hint"), [("mx", "mx_ut"), ("MZ", "mz_ut"), ("i_pxx", "i_px")])
+def test_a_missing_column_suggests_the_name_with_its_unit_first(
+    tmp_path: Path, asked: str, hint: str
+) -> None:
+    """'mx' for 'mx_ut' was answered with 'i_mx' (issue 33)."""
+    path = tmp_path / "d.csv"
+    path.write_text("t_s,mx_ut,my_ut,mz_ut,i_mx,i_px\n0,1,2,3,4,5\n")
+    with pytest.raises(UserInputError, match=f"did you mean '{hint}'"):
+        read_columns(path, [asked])

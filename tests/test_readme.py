@@ -51,3 +51,21 @@ def test_csv_example_rig_steps(
     result = json.loads((tmp_path / "runs/example/result.json").read_text())
     assert result["model"] == "scalar" and abs(result["residual_rms_nt"] / 100 - 1) < 0.1
     assert (tmp_path / "runs/example/magcal.h").read_text().startswith("/* magcal")
+
+
+def test_the_readme_states_the_number_of_tests_there_are() -> None:
+    """The README's test count is checked, not remembered (it said 631 when there were 634)."""
+    import subprocess
+    import sys
+
+    stated = re.search(r"(\d+) tests\. Tests marked `slow`", README.read_text())
+    assert stated, "the README no longer states the number of tests"
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider"],
+        cwd=README.parent, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    collected = re.search(r"(\d+) tests? collected", proc.stdout)
+    assert collected, proc.stdout[-500:] + proc.stderr[-500:]
+    assert int(stated.group(1)) == int(collected.group(1)), (
+        f"README says {stated.group(1)} tests, pytest collects {collected.group(1)}: update it"
+    )

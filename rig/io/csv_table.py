@@ -182,7 +182,9 @@ def read_valid_rows(
 
 def _column_index(path: Path, col: str, names: list[str]) -> int:
     if col not in names:
-        close = difflib.get_close_matches(col, names, n=1)
+        # a name given without its unit ('mx' for 'mx_ut') before spelling likeness ('i_mx')
+        stems = [n for n in names if n.lower().startswith(col.lower() + "_")]
+        close = stems or difflib.get_close_matches(col, names, n=1)
         hint = f" (did you mean '{close[0]}'?)" if close else ""
         raise UserInputError(f"{path}: no column '{col}'{hint}; the header has: {', '.join(names)}")
     return names.index(col)
