@@ -101,20 +101,26 @@ def summarize(outcome: Any, quiet: bool) -> None:
             ]
             what = f" ({', '.join(failed)})" if outcome.status == "failed" and failed else ""
             prefix = "error: " if outcome.status == "error" else ""
+            safe = "; every output off" if outcome.outputs.startswith("outputs: safe") else ""
             print(
                 f"rig: {prefix}run {outcome.folder.name} ended with status {outcome.status}:"
-                f" {outcome.reason}{what}; data in {outcome.folder}",
+                f" {outcome.reason}{what}{safe}; data in {outcome.folder}",
                 file=sys.stderr,
             )
         return
     print(f"run {outcome.folder.name}: {outcome.status} ({outcome.reason})")
+    if outcome.outputs:
+        print(outcome.outputs)
     if verdict:
         for row in verdict["criteria"]:
             print(f"  {row['verdict']:<4} {row['name']:<28} {criterion_value(row)}")
         print(f"VERDICT: {verdict['overall']}")
-    for name in ("report.html", "report.pdf"):
-        if (outcome.folder / name).exists():
-            print(f"report: {outcome.folder / name}")
+    reports = [outcome.folder / n for n in ("report.html", "report.pdf")]
+    for path in reports:
+        if path.exists():
+            print(f"report: {path}")
+    if not any(p.exists() for p in reports):
+        print(f"report: not written; write it with: rig report {outcome.folder}")
     print(f"data:   {outcome.folder / 'run.sqlite'}")
 
 

@@ -78,6 +78,8 @@ class RunOutcome:
     reason: str
     folder: Path
     results: dict[str, Any] = field(default_factory=dict)
+    outputs: str = ""
+    """What became of the outputs at the end, one line (empty: none was ever opened)."""
 
     @property
     def exit_code(self) -> int:
@@ -119,6 +121,7 @@ class Runner:
         self.lab_url: str | None = None  # the lab index to push the closed run to
         self.report_requested = False
         self.rig: RigSession | None = None
+        self.unsafe: list[str] = []  # outputs that may still be on after the safe path
         self._unread: dict[str, int] = {}  # output -> read-backs failed in a row
         self._cpu_wait = CpuWaitLog()  # our threads' waits for a CPU, noted every health round
         self._coil_checked = 0.0
@@ -185,6 +188,9 @@ class Runner:
         finally:
             if self.live is not None:
                 self.live.stop()
+            outputs = self._outputs_note()
+            if outputs:
+                self._event("error" if self.unsafe else "info", outputs)
             for name, s in self.samplers.items():
                 w.set_meta(**{f"samples_{name}": s.count, f"retried_{name}": s.retried})
             if self.lateness_s:
@@ -201,11 +207,25 @@ class Runner:
             self._lock.release()  # the session released it already, unless it never opened
             self._restore_signals(old)
             self.publisher.stop(status, reason)
-        if self.report_requested:
+        # a report asked for while the run was recording says RUNNING: rebuilt now it is closed
+        stale = any((w.folder / n).exists() for n in ("report.html", "report.txt", "report.pdf"))
+        if self.report_requested or stale:
             self._write_report(w.folder)
         if self.lab_url is not None:
             self._sync_lab(self.lab_url, w.folder)
-        return RunOutcome(status, reason, w.folder, self.results)
+        return RunOutcome(status, reason, w.folder, self.results, outputs)
+
+    def _outputs_note(self) -> str:
+        """One line on the outputs after the session's safe path ('' if none was opened)."""
+        if self.rig is None:
+            return ""
+        if self.unsafe:
+            return (f"outputs: {len(self.unsafe)} may still be on ({self.unsafe[0]}); switch them"
+                    f" off by hand or with 'rig safe --rig {self.cfg.path}'")  # fmt: skip
+        return (
+            "outputs: safe - coils ramped down and off, every supply and load off, polarity"
+            " relays normal"
+        )
 
     def _sync_lab(self, url: str, folder: Path) -> None:
         """Push the closed run to the lab index; best effort: a failure is one warning line and
@@ -404,6 +424,7 @@ class Runner:
 
     def _unsafe(self, message: str) -> None:
         """An output that may still be on: recorded, and told to the operator whatever -q says."""
+        self.unsafe.append(message)
         self._event("error", message)
         print(f"rig: WARNING: {message}; switch it off by hand", file=sys.stderr)
 
