@@ -237,6 +237,8 @@ class Runner:
             report = sync_runs(url, [folder], timeout_s=LAB_TIMEOUT_S)
             if report.added and not self.quiet:
                 print(f"rig: run added to the lab index {masked(url)}", file=sys.stderr)
+            for why in report.refused + report.not_stored + report.unreadable:
+                print(f"rig: WARNING: the lab index did not take this run: {why}", file=sys.stderr)
         except Exception as exc:  # never a failed run: the folder is the record
             print(f"rig: WARNING: the run was not added to the lab index ({masked(str(exc))});"
                   " 'rig lab sync' adds it later", file=sys.stderr)  # fmt: skip
