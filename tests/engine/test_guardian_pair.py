@@ -19,18 +19,16 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from bench.faultlab import guardian_of
 from rig.config import load_rig_config
 from rig.engine.guardian import HEARTBEAT_TIMEOUT_S, GuardianError
 from rig.engine.session import RigSession
-from rig.sim_rig import sim_rig_config
 from rig.store import RunReader
 from sim.cage import SimulatedCage
-from sim.config import load_config
 from tests.simproc import outputs
 
 RIG = [sys.executable, "-m", "rig.cli"]
@@ -53,22 +51,7 @@ EDITS = {
 DRIVEN = ("coil_x", "coil_y", "coil_z", "load_bus")
 
 
-@pytest.fixture(scope="module")
-def cage() -> Iterator[SimulatedCage]:
-    with SimulatedCage(load_config()) as sim:
-        yield sim
-
-
-@pytest.fixture
-def rig_toml(cage: SimulatedCage, tmp_path: Path) -> Path:
-    path = tmp_path / "rig.toml"
-    path.write_text(sim_rig_config(cage.endpoints_document(), load_config()))
-    return path
-
-
-@pytest.fixture(autouse=True)
-def own_lock_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("RIG_LOCK_DIR", str(tmp_path / "locks"))
+pytestmark = pytest.mark.usefixtures("own_lock_dir")
 
 
 def start_run(rig_toml: Path, tmp_path: Path) -> tuple[subprocess.Popen[str], Path]:
@@ -135,20 +118,6 @@ def read_back_off(cage: SimulatedCage) -> None:
     assert set(outputs(devices).values()) == {0}, outputs(devices)
 
 
-def guardian_pid(rig_pid: int) -> int:
-    """The guardian of rig process ``rig_pid`` (its command line ends with that PID)."""
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            argv = (entry / "cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if b"rig.engine.guardian" in argv and argv[-2:] == [str(rig_pid).encode(), b""]:
-            return int(entry.name)
-    raise AssertionError(f"no guardian for {rig_pid}")
-
-
 @pytest.mark.parametrize("edit", list(EDITS))
 @pytest.mark.parametrize("command", ["rig run", "rig cage set-field"])
 def test_config_edited_then_sigkill_outputs_off_within_1_s(
@@ -197,7 +166,7 @@ def test_guardian_sigkilled_the_run_goes_safe_and_ends_error_within_1_s(
     cage: SimulatedCage, rig_toml: Path, tmp_path: Path
 ) -> None:
     child, runs = start_run(rig_toml, tmp_path)
-    guardian = guardian_pid(child.pid)
+    guardian = guardian_of(child.pid)
     folder = next(p for p in runs.iterdir() if (p / "run.sqlite").exists())
     t_kill = time.monotonic()
     os.kill(guardian, signal.SIGKILL)
@@ -229,7 +198,7 @@ def test_guardian_sigkilled_the_run_goes_safe_and_ends_error_within_1_s(
 def test_guardian_sigkilled_during_set_field_ends_it(cage: SimulatedCage, rig_toml: Path) -> None:
     child = start_set_field(rig_toml)
     t_kill = time.monotonic()
-    os.kill(guardian_pid(child.pid), signal.SIGKILL)
+    os.kill(guardian_of(child.pid), signal.SIGKILL)
     took = off_after(cage, t_kill, DRIVEN[:3], 30.0)
     _, err = child.communicate(timeout=60)
     assert child.returncode == 2
@@ -245,7 +214,7 @@ def test_guardian_stopped_is_a_fault_too(cage: SimulatedCage, rig_toml: Path) ->
     """A stopped guardian would not act if rig died: the rig sees its state within a heartbeat
     period, goes safe and ends; the stopped guardian is killed (it holds the interlock)."""
     child = start_set_field(rig_toml)
-    guardian = guardian_pid(child.pid)
+    guardian = guardian_of(child.pid)
     t_stop = time.monotonic()
     os.kill(guardian, signal.SIGSTOP)
     took = off_after(cage, t_stop, DRIVEN[:3], 30.0)

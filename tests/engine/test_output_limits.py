@@ -7,7 +7,6 @@ from __future__ import annotations
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -25,9 +24,7 @@ from rig.output_limits import (
     output_limits,
 )
 from rig.procedure.language import parse_procedure
-from rig.sim_rig import sim_rig_config
 from sim.cage import SimulatedCage
-from sim.config import load_config
 
 RIG = [sys.executable, "-m", "rig.cli"]
 COIL_AS_LOAD = """procedure: Coil as a load
@@ -41,22 +38,7 @@ steps:
 """The attack of issue 29: coil_x at up to 5 A as a load (the cage allows 2.5 A and 120 uT)."""
 
 
-@pytest.fixture(scope="module")
-def cage() -> Iterator[SimulatedCage]:
-    with SimulatedCage(load_config()) as sim:
-        yield sim
-
-
-@pytest.fixture
-def rig_toml(cage: SimulatedCage, tmp_path: Path) -> Path:
-    path = tmp_path / "rig.toml"
-    path.write_text(sim_rig_config(cage.endpoints_document(), load_config()))
-    return path
-
-
-@pytest.fixture(autouse=True)
-def own_lock_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("RIG_LOCK_DIR", str(tmp_path / "locks"))
+pytestmark = pytest.mark.usefixtures("own_lock_dir")
 
 
 @pytest.mark.parametrize(("device", "role"), [("coil_x", "x coil supply"), ("polarity", "polarity relays"),
