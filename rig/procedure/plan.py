@@ -183,16 +183,13 @@ def dry_run(
                         out.violations.append(f"{where}{margin}, beyond {max_current_a[ax]:g} A")
                     elif amps + model_a[ax] + ambient_a[ax] > max_current_a[ax] + 1e-9:
                         worst = amps + model_a[ax] + ambient_a[ax]
-                        key = (s.index, ax)
-                        count = risky.get(key, (0, 0.0, ""))[0] + 1
-                        if worst >= risky.get(key, (0, 0.0, ""))[1]:
-                            risky[key] = (
-                                count,
+                        count, before, text = risky.get((s.index, ax), (0, 0.0, ""))
+                        if worst >= before:
+                            before, text = (
                                 worst,
                                 f"{where}; with an ambient field of up to {u.unknown_ambient_ut:g} uT (not characterized yet) up to {worst:.2f} A, beyond {max_current_a[ax]:g} A",
                             )
-                        else:
-                            risky[key] = (count, *risky[key][1:])
+                        risky[(s.index, ax)] = (count + 1, before, text)
         peak = KINDS[s.kind].peak_coil_current_a(s)
         if peak is not None:  # +-peak on every axis, outside field commands
             for ax in range(3):
