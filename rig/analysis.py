@@ -61,11 +61,16 @@ def _is_change(kind: str, t: float, payload: dict[str, Any]) -> bool:
     return kind == "field" and bool(payload.get("ramped", t - issued > TRACK_RAMP_S))
 
 
-def settled(times: Array, changes: Array, settle_s: float) -> npt.NDArray[np.bool_]:
-    """True for samples outside every change interval extended by ``settle_s`` after its end."""
+def settled(
+    times: Array, changes: Array, settle_s: float, t_unc_s: Array | None = None
+) -> npt.NDArray[np.bool_]:
+    """True for samples outside every change interval extended by ``settle_s`` after its end;
+    with ``t_unc_s`` (s per sample, NaN unknown), a sample is outside only when its whole
+    interval t +- t_unc is (ADR 0020: a stall widens what is left out, never shifts it)."""
+    unc = np.zeros(times.shape) if t_unc_s is None else np.nan_to_num(t_unc_s, nan=0.0)
     ok = np.ones(times.shape, bool)
     for start, end in changes.reshape(-1, 2):
-        ok &= ~((times >= start) & (times < end + settle_s))
+        ok &= ~((times + unc >= start) & (times - unc < end + settle_s))
     return ok
 
 
@@ -200,8 +205,9 @@ def settled_samples(
     change extended by ``settle_s`` (s); ``changes`` (from :func:`change_times`) when the caller
     already has them."""
     changes = change_times(reader) if changes is None else changes
-    rows = np.array(reader.samples(device), float).reshape(-1, 4)
-    keep = _in_windows(rows[:, 0], [window]) & settled(rows[:, 0], changes, settle_s)
+    dated = np.array(reader.dated_samples(device), float).reshape(-1, 5)
+    rows = dated[:, :4]
+    keep = _in_windows(rows[:, 0], [window]) & settled(rows[:, 0], changes, settle_s, dated[:, 4])
     return rows[keep]
 
 
@@ -254,7 +260,8 @@ def calibration_data(
     saw. Polarity flips, ramps and commands a supply took late (a busy computer) make such jumps.
     With holds (``settle_s`` > 0), DUT samples that moved at the edge of a hold while the reference
     and every command held still contradict their dates and are left out too (rig.timing)."""
-    rows = np.array(reader.samples(dut), float).reshape(-1, 4)
+    dated = np.array(reader.dated_samples(dut), float).reshape(-1, 5)
+    rows, t_unc = dated[:, :4], dated[:, 4]
     ref = np.array(reader.samples(reference), float).reshape(-1, 4)
     if rows.shape[0] == 0 or ref.shape[0] < 2:
         raise CalibrationError(
@@ -268,7 +275,8 @@ def calibration_data(
     issued_s = changes[:, 0].copy()
     if settle_s > 0:
         changes[:, 0] -= 1.5 * float(np.median(np.diff(ref[:, 0])))
-    keep = _in_windows(t, step_windows(reader, steps, field_kinds)) & settled(t, changes, settle_s)
+    keep = _in_windows(t, step_windows(reader, steps, field_kinds))
+    keep &= settled(t, changes, settle_s, t_unc if settle_s > 0 else None)
     keep &= (t >= ref[0, 0]) & (t <= ref[-1, 0])
     if keep.sum() == 0:
         raise CalibrationError(

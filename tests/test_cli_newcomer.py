@@ -411,7 +411,7 @@ def test_csv_export_has_utc_run_time_and_an_aligned_table(tmp_path: Path) -> Non
         assert row["load_bus_measured_a"] == ("" if t_run < 0.6 else "0.79")
     # the original files keep their columns; meta.json says how to convert them
     with (tmp_path / "csv" / "samples_dut.csv").open() as fh:
-        assert next(csv.reader(fh)) == ["t_s", "x_ut", "y_ut", "z_ut"]
+        assert next(csv.reader(fh)) == ["t_s", "x_ut", "y_ut", "z_ut", "t_unc_s"]
     time_base = json.loads((tmp_path / "csv" / "meta.json").read_text())["time_base"]
     assert time_base["start_monotonic_s"] == START_MONO
     assert time_base["start_time_utc"] == START_UTC

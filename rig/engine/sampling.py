@@ -1,5 +1,9 @@
 """Magnetometer sampling threads: each sensor at its own rate, monotonic timestamps, into the store.
 
+Every sample is stored with its date and how well the date is known (ADR 0020): a self-timed
+stream's from :class:`rig.engine.stream_clock.StreamClock`, a polled sample's from its exchange
+(taken after the request, dated at the reply).
+
 The sampler is the only reader of its sensor. Others (the cage controller's trim) read through
 :class:`BufferedSensor`, which hands out the sampler's samples as they arrive.
 """
@@ -19,7 +23,8 @@ from drivers.transport.tty_watch import tty_seen_stall_s, tty_stall_s
 from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.stream_clock import StreamClock
 
-Sink = Callable[[float, str, tuple[float, float, float]], None]
+Sink = Callable[[float, str, tuple[float, float, float], float], None]
+"""(date s, device, reading uT, date uncertainty s): :meth:`rig.store.RunWriter.add_sample`."""
 Listener = Callable[[float, tuple[float, float, float]], None]
 RETRIES = 1
 """Late or unreadable replies retried in a row before a sensor is declared failed."""
@@ -56,8 +61,8 @@ class SensorSampler:
         self.started_t = time.monotonic()
         self._thread.start()
 
-    def _publish(self, t: float, xyz: tuple[float, float, float]) -> None:
-        self.sink(t, self.name, xyz)
+    def _publish(self, t: float, xyz: tuple[float, float, float], t_unc_s: float) -> None:
+        self.sink(t, self.name, xyz, t_unc_s)
         for listener in list(self.listeners):
             listener(t, xyz)
         with self._cond:
@@ -80,14 +85,18 @@ class SensorSampler:
                     if self.driver.self_timed:  # the sensor sends at its own rate
                         samples = self.driver.read_samples(WAIT_S)
                         if samples:
-                            dates = clock.date(time.monotonic(), len(samples))
-                            for t, xyz in zip(dates, samples, strict=True):
-                                self._publish(t, xyz)
+                            dates = clock.dated(time.monotonic(), len(samples))
+                            for (t, unc), xyz in zip(dates, samples, strict=True):
+                                self._publish(t, xyz, unc)
                         failures = 0 if samples else failures
                         continue
                     next_t += period
+                    asked = time.monotonic()
                     for xyz in self.driver.read_samples(WAIT_S):
-                        self._publish(time.monotonic(), xyz)
+                        # taken between the request and the reply: dated at the reply, known
+                        # to within the whole exchange (a stall in it widens it)
+                        replied = time.monotonic()
+                        self._publish(replied, xyz, replied - asked)
                     failures = 0
                     self._stop.wait(max(0.0, next_t - time.monotonic()))
                 except (DeviceTimeoutError, DeviceProtocolError) as exc:

@@ -12,10 +12,19 @@ over the arrivals ``a_j`` of the last :data:`WINDOW_S`, with the period ``p`` it
 the envelope's slope over a longer baseline (a crystal is off its nominal rate by up to a few
 hundred ppm; a sensor that runs at its own idea of a rate by more). A sample is never dated
 after its arrival, and dates never go backwards.
+
+Each date comes with how well it is known (:meth:`StreamClock.dated`, s, a half-width): the
+envelope's own jitter (how far the lowest tenth of the arrivals sits above the lowest) plus how
+far the date moves when the period takes either end of its uncertainty (until the period is fitted, how far a line through the window's
+lowest arrivals is from the nominal period, plus that line's uncertainty; then three standard
+errors of the fit): a
+sample dated by extrapolation from an arrival many periods away is known less well. A stall or a burst therefore widens the uncertainty of the samples it delayed instead of
+shifting their dates (ADR 0020).
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 WINDOW_S = 5.0
@@ -28,6 +37,17 @@ BLOCKS = 24
 MAX_RATE_ERROR = 0.05
 """A fitted period further than this (relative) from the nominal one is not believed: the nominal
 period is kept (a stream that stopped and restarted, not a slow oscillator)."""
+JITTER_FLOOR_S = 0.001
+"""The smallest date uncertainty claimed (s): the scheduler's wake-up jitter on an idle computer."""
+EARLY_BLOCK_S = 0.5
+"""Before the period is fitted, its uncertainty comes from the lowest arrival of each this long
+(s) in the window."""
+MIN_ARRIVALS = 10
+"""Below this many arrivals in the window the envelope is not yet known: dates +- a period."""
+FIT_SIGMAS = 3.0
+"""A fitted period's uncertainty is taken as this many standard errors of the fit (a bound)."""
+MIN_RATE_UNCERTAINTY = 1e-5
+"""A fitted period is never claimed better than this (relative): a crystal's short-term wander."""
 
 
 class StreamClock:
@@ -41,6 +61,8 @@ class StreamClock:
     def reset(self) -> None:
         """A new stream (started, or resumed after samples were lost): forget the envelope."""
         self.period_s = self.nominal_s
+        self.rate_uncertainty = MAX_RATE_ERROR  # relative, of the fitted period
+        self._fitted = False
         self._k = 0
         self._last_t: float | None = None
         self._recent: deque[tuple[int, float]] = deque()  # (j, a_j) within WINDOW_S
@@ -63,6 +85,12 @@ class StreamClock:
     def date(self, arrival_s: float, n: int = 1) -> list[float]:
         """When the next ``n`` samples of the stream were taken (monotonic s), all read at
         ``arrival_s`` (a burst: the whole burst shapes the envelope before any is dated)."""
+        return [t for t, _ in self.dated(arrival_s, n)]
+
+    def dated(self, arrival_s: float, n: int = 1) -> list[tuple[float, float]]:
+        """(date s, uncertainty s) of the next ``n`` samples, all read at ``arrival_s``: each
+        sample was taken within date +- uncertainty on the sensor's clock (as offset by the
+        shortest transmission time, common to the whole stream)."""
         first = self._k
         self._k += n
         for k in range(first, first + n):
@@ -76,14 +104,30 @@ class StreamClock:
         while self._low[0][1] < horizon:
             self._low.popleft()
         c = self._residual(self._low[0])
+        jitter = self._jitter_s(c)
+        delta = self.rate_uncertainty if self._fitted else self._early_rate_uncertainty()
+        bounds = [
+            (q, min(a - j * q for j, a in self._recent))
+            for q in (self.period_s * (1 - delta), self.period_s * (1 + delta))
+        ]
         out = []
         for k in range(first, first + n):
             t = min(arrival_s, k * self.period_s + c)
             if self._last_t is not None:
                 t = max(t, min(arrival_s, self._last_t + 1e-6))
             self._last_t = t
-            out.append(t)
+            # the date's sensitivity to the period within its uncertainty
+            reach = max(abs(min(arrival_s, k * q + c_q) - t) for q, c_q in bounds)
+            out.append((t, jitter + reach))
         return out
+
+    def _jitter_s(self, floor: float) -> float:
+        """How far the median arrival of the window sits above the envelope (s), at least
+        :data:`JITTER_FLOOR_S`: a bound on how late the anchoring arrival itself may have been."""
+        excess = sorted(self._residual(p) - floor for p in self._recent)
+        if len(excess) < MIN_ARRIVALS:  # too few to know the envelope: a period either way
+            return max(JITTER_FLOOR_S, self.period_s)
+        return max(JITTER_FLOOR_S, excess[len(excess) // 10])
 
     def _note_block(self, point: tuple[int, float]) -> None:
         """Keep each block's lowest point; refit the period when a block closes."""
@@ -101,16 +145,46 @@ class StreamClock:
         minima (each within a few ms of the envelope); the window minimum is then rebuilt."""
         if len(self._blocks) < 3:
             return
-        ks = [float(j) for j, _ in self._blocks]
-        ts = [a for _, a in self._blocks]
-        k_mean, t_mean = sum(ks) / len(ks), sum(ts) / len(ts)
-        sxx = sum((k - k_mean) ** 2 for k in ks)
-        if sxx <= 0:
+        line = _line(list(self._blocks))
+        if line is None or abs(line[0] / self.nominal_s - 1.0) > MAX_RATE_ERROR:
             return
-        slope = sum((k - k_mean) * (t - t_mean) for k, t in zip(ks, ts, strict=True)) / sxx
-        if abs(slope / self.nominal_s - 1.0) > MAX_RATE_ERROR:
-            return
-        self.period_s = slope
+        self.period_s, self.rate_uncertainty = line
+        self._fitted = True
         self._low.clear()
         for point in self._recent:
             self._push(point)
+
+    def _early_rate_uncertainty(self) -> float:
+        """Before the period is fitted: how far the nominal period may be from the sensor's
+        (relative), from a line through the lowest arrival of each :data:`EARLY_BLOCK_S` of the
+        window - its distance from the nominal plus its own uncertainty - capped at
+        :data:`MAX_RATE_ERROR` (also what is claimed with too few arrivals for a line)."""
+        lows: dict[int, tuple[int, float]] = {}
+        t0 = self._recent[0][1]
+        for point in self._recent:
+            b = int((point[1] - t0) / EARLY_BLOCK_S)
+            if b not in lows or self._residual(point) < self._residual(lows[b]):
+                lows[b] = point
+        line = _line(list(lows.values())) if len(lows) >= 4 else None
+        if line is None:
+            return MAX_RATE_ERROR
+        slope, unc = line
+        return min(MAX_RATE_ERROR, abs(slope / self.period_s - 1.0) + unc)
+
+
+def _line(points: list[tuple[int, float]]) -> tuple[float, float] | None:
+    """Least-squares period (s) through (sample number, time s) points, and its relative
+    uncertainty (:data:`FIT_SIGMAS` standard errors, at least :data:`MIN_RATE_UNCERTAINTY`);
+    None when the points do not determine a positive slope."""
+    ks = [float(j) for j, _ in points]
+    ts = [a for _, a in points]
+    k_mean, t_mean = sum(ks) / len(ks), sum(ts) / len(ts)
+    sxx = sum((k - k_mean) ** 2 for k in ks)
+    if sxx <= 0:
+        return None
+    slope = sum((k - k_mean) * (t - t_mean) for k, t in zip(ks, ts, strict=True)) / sxx
+    if slope <= 0:
+        return None
+    scatter = sum((t - t_mean - slope * (k - k_mean)) ** 2 for k, t in zip(ks, ts, strict=True))
+    scatter /= max(1, len(ks) - 2)
+    return slope, max(MIN_RATE_UNCERTAINTY, FIT_SIGMAS * math.sqrt(scatter / sxx) / slope)

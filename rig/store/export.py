@@ -188,8 +188,8 @@ def export_csv(reader: RunReader, out_dir: Path) -> list[Path]:
         path = out_dir / _file_name(f"samples_{device}.csv")
         with safe_files.writing(path, newline="") as fh:
             w = csv.writer(fh)
-            w.writerow(["t_s", "x_ut", "y_ut", "z_ut"])
-            w.writerows(reader.samples(device))
+            w.writerow(["t_s", "x_ut", "y_ut", "z_ut", "t_unc_s"])
+            w.writerows([_cell(v) for v in row] for row in reader.dated_samples(device))
         written.append(path)
     meta_values = reader.meta()
     for name in reader.channel_names():
@@ -254,10 +254,12 @@ def _write_hdf5(reader: RunReader, path: Path) -> None:
         f.attrs["results"] = json.dumps(reader.results())
         f.attrs["time_base"] = json.dumps(base.describe())
         for device in reader.devices():
-            data = np.array(reader.samples(device), float).reshape(-1, 4)
+            dated = np.array(reader.dated_samples(device), float).reshape(-1, 5)
+            data = dated[:, :4]
             ds = f.create_dataset(f"samples/{device}", data=data)
             ds.attrs["columns"] = "t_s,x_ut,y_ut,z_ut"
             f.create_dataset(f"time/samples/{device}/t_run_s", data=base.run_s(data[:, 0]))
+            f.create_dataset(f"time/samples/{device}/t_unc_s", data=dated[:, 4])
             f.create_dataset(f"time/samples/{device}/t_utc", data=base.utc(data[:, 0]), dtype=text)
         for name in reader.channel_names():
             rows = [

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import json
+import math
 import queue
 import sqlite3
 import threading
@@ -44,8 +45,8 @@ recorder whose host's clock is off (or stopped) renews within it, and the run st
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
-CREATE TABLE IF NOT EXISTS samples (t REAL NOT NULL, device TEXT NOT NULL, x REAL, y REAL, z REAL);
-CREATE TABLE IF NOT EXISTS channels (t REAL NOT NULL, channel TEXT NOT NULL, commanded REAL, measured REAL);
+CREATE TABLE IF NOT EXISTS samples (t REAL NOT NULL, device TEXT NOT NULL, x REAL, y REAL, z REAL, t_unc REAL);
+CREATE TABLE IF NOT EXISTS channels (t REAL NOT NULL, channel TEXT NOT NULL, commanded REAL, measured REAL, t_unc REAL);
 CREATE TABLE IF NOT EXISTS commands (t REAL NOT NULL, step INTEGER, kind TEXT NOT NULL, payload TEXT);
 CREATE TABLE IF NOT EXISTS events (t REAL NOT NULL, level TEXT NOT NULL, message TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS steps (idx INTEGER PRIMARY KEY, name TEXT, kind TEXT, t_start REAL, t_end REAL);
@@ -54,9 +55,12 @@ CREATE INDEX IF NOT EXISTS samples_device_t ON samples (device, t);
 CREATE INDEX IF NOT EXISTS channels_channel_t ON channels (channel, t);
 """
 
+TIME_UNCERTAINTY = "t_unc"
+"""Column of ``samples`` and ``channels``: the row was taken within t +- t_unc (s, monotonic clock;
+ADR 0020). NULL when unknown: commanded set-points, and runs recorded before it existed."""
 TABLE_COLUMNS = {
-    "samples": ("t", "device", "x", "y", "z"),
-    "channels": ("t", "channel", "commanded", "measured"),
+    "samples": ("t", "device", "x", "y", "z", "t_unc"),
+    "channels": ("t", "channel", "commanded", "measured", "t_unc"),
     "commands": ("t", "step", "kind", "payload"),
     "events": ("t", "level", "message"),
 }
@@ -105,15 +109,23 @@ class RunWriter:
 
     # --- queued rows ----------------------------------------------------------------------------
 
-    def add_sample(self, t: float, device: str, xyz: tuple[float, float, float]) -> None:
-        """A magnetometer reading (uT) at monotonic time ``t``."""
-        self._queue.put(("samples", (t, device, *xyz)))
+    def add_sample(
+        self, t: float, device: str, xyz: tuple[float, float, float], t_unc_s: float | None = None
+    ) -> None:
+        """A magnetometer reading (uT) taken at monotonic time ``t`` +- ``t_unc_s`` (s)."""
+        self._queue.put(("samples", (t, device, *xyz, t_unc_s)))
 
     def add_channel(
-        self, t: float, channel: str, commanded: float | None, measured: float | None
+        self,
+        t: float,
+        channel: str,
+        commanded: float | None,
+        measured: float | None,
+        t_unc_s: float | None = None,
     ) -> None:
-        """A commanded and/or measured current (A) of a coil or load channel."""
-        self._queue.put(("channels", (t, channel, commanded, measured)))
+        """A commanded and/or measured current (A) of a coil or load channel; a measured value
+        was taken within ``t`` +- ``t_unc_s`` (s)."""
+        self._queue.put(("channels", (t, channel, commanded, measured, t_unc_s)))
 
     def add_command(self, t: float, step: int | None, kind: str, payload: dict[str, Any]) -> None:
         """A command the engine executed."""
@@ -311,6 +323,22 @@ class RunReader:
                 "SELECT t, x, y, z FROM samples WHERE device = ? ORDER BY t", (device,)
             )
         )
+
+    def dated_samples(self, device: str) -> list[tuple[float, float, float, float, float]]:
+        """(t, x, y, z, t_unc) rows of one magnetometer in the order of :meth:`samples`: the
+        sample was taken within t +- t_unc (s; NaN when the run did not record it)."""
+        unc = TIME_UNCERTAINTY if self._has_time_uncertainty() else "NULL"
+        return [
+            (t, x, y, z, math.nan if u is None else u)
+            for t, x, y, z, u in self._con.execute(
+                f"SELECT t, x, y, z, {unc} FROM samples WHERE device = ? ORDER BY t", (device,)
+            )
+        ]
+
+    def _has_time_uncertainty(self) -> bool:
+        """Whether this run recorded date uncertainties (runs before ADR 0020's did not)."""
+        cols = {r[1] for r in self._con.execute("PRAGMA table_info(samples)")}
+        return TIME_UNCERTAINTY in cols
 
     def devices(self) -> list[str]:
         """Magnetometers with samples."""

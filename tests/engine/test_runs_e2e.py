@@ -223,7 +223,10 @@ def refit_with_delays(folder: Path, out: Path) -> None:
                   for ch in truth}  # fmt: skip
         # and when a DUT sample was taken only to within its arrival jitter (a busy computer
         # delivers a stream in bursts: 90th percentile of the departure from the sample period)
-        dut_t = np.array([row[0] for row in reader.samples("dut")])
+        dated = np.array(reader.dated_samples("dut"))
+        dut_t = dated[:, 0]
+        # every sample is stored with how well its date is known (ADR 0020)
+        assert np.all(np.isfinite(dated[:, 4])) and np.all(dated[:, 4] >= 0.001), dated[:5]
         gaps = np.diff(dut_t)
         jitter = float(np.percentile(np.abs(gaps - np.median(gaps)), 90))
     finally:

@@ -60,3 +60,27 @@ def test_a_reset_forgets_the_old_stream() -> None:
     clock.date(10.0, 3)
     clock.reset()
     assert clock.date(50.0, 2) == [pytest.approx(49.95), 50.0]
+
+
+@pytest.mark.parametrize("rate_error", [0.0, 4e-4, -0.01, 0.03, -0.045])
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_every_date_is_within_its_stated_uncertainty(seed: int, rate_error: float) -> None:
+    """The uncertainty is a promise: every sample was taken within date +- uncertainty, from the
+    first sample on (the period not yet fitted) and through every stall; on time it is about a
+    millisecond, and only samples a stall delayed are known less well."""
+    nominal = 0.05
+    sent, reads = stalled_reads(seed, nominal * (1 + rate_error), 120.0)
+    clock = StreamClock(nominal)
+    out: list[tuple[float, float]] = []
+    for t_read, n in reads:
+        out += clock.dated(t_read, n)
+    dated = np.array(out)
+    error = dated[:, 0] - (sent + LATENCY_S)
+    unc = dated[:, 1]
+    assert np.all(np.abs(error) <= unc), np.max(np.abs(error) / unc)
+    fitted = sent > 100.0 + 30.0
+    assert np.median(unc[fitted]) < 0.002
+    assert np.quantile(unc[fitted], 0.99) < 0.005
+    print(f"seed {seed} rate error {rate_error:+.1e}: worst |error|/uncertainty"
+          f" {np.max(np.abs(error) / unc):.2f}, median uncertainty {1000 * np.median(unc):.2f} ms,"
+          f" largest {1000 * unc.max():.0f} ms")  # fmt: skip

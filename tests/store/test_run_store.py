@@ -79,7 +79,7 @@ def test_exports(tmp_path: Path) -> None:
     w.close("complete", "ok")
     r = RunReader(w.folder)
     files = export_csv(r, tmp_path / "csv")
-    assert (tmp_path / "csv" / "samples_ref.csv").read_text().splitlines()[1] == "0.0,0.0,0.0,-1.0"
+    assert (tmp_path / "csv" / "samples_ref.csv").read_text().splitlines()[1] == "0.0,0.0,0.0,-1.0,"
     assert len(files) == 4
     h5py = pytest.importorskip("h5py")
     export_hdf5(r, tmp_path / "run.h5")
