@@ -12,7 +12,7 @@ from rig.calibration import Samples, calibrate
 from rig.calibration.estimators import DEFAULT_METHOD, estimator
 from rig.errors import CalibrationError, UserInputError
 from rig.store.run_store import RunReader
-from rig.timing import MisdatedHold, misdated_note, misdated_samples
+from rig.timing import MisdatedHold, misdated_note, misdated_samples, timing_fault
 
 Array = npt.NDArray[np.float64]
 
@@ -365,6 +365,9 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
     if misdated:
         judged = samples.n + unresolved + out["misdated_samples"]
         out["warnings"].insert(0, misdated_note(misdated, judged))
+        if (fault := timing_fault(misdated, judged)) is not None:
+            out["timing_fault"] = fault
+            out["warnings"].insert(0, fault)
     return out
 
 
@@ -460,4 +463,21 @@ def evaluate_criteria(results: dict[str, Any], criteria: list[dict[str, Any]]) -
         rows.append({"name": name, "value": value, "unit": value_unit(str(c["value"])), "min": lo,
                      "max": hi, "margin": min(margins), "verdict": "PASS" if ok else "FAIL"})  # fmt: skip
     overall = "PASS" if rows and all(r["verdict"] == "PASS" for r in rows) else "FAIL"
-    return {"criteria": rows, "overall": overall}
+    rerun = timing_faults(results, criteria)
+    verdict: dict[str, Any] = {"criteria": rows, "overall": RERUN if rerun else overall}
+    if rerun:
+        verdict["rerun"] = rerun
+    return verdict
+
+
+RERUN = "RE-RUN"
+"""The overall verdict of a run whose timing checks failed in a result a criterion judges: neither
+PASS nor FAIL can be given from it (ADR 0020)."""
+
+
+def timing_faults(results: dict[str, Any], criteria: list[dict[str, Any]]) -> list[dict[str, str]]:
+    """[{result, why}] for each result the ``criteria`` judge whose data failed the timing
+    checks (its ``timing_fault``): the steps to run again."""
+    named = dict.fromkeys(str(c["result"]) for c in criteria)
+    return [{"result": name, "why": str(results[name]["timing_fault"])} for name in named
+            if isinstance(results.get(name), dict) and results[name].get("timing_fault")]  # fmt: skip

@@ -150,3 +150,23 @@ def misdated_note(found: Sequence[MisdatedHold], total: int) -> str:
             f" the reference and every command held still (worst {worst.jump_ut:.2f} uT at"
             f" t = {worst.t_s:.3f} s, {when}): those samples are misdated by a timing error;"
             " re-run the step if many are")  # fmt: skip
+
+
+MAX_MISDATED_FRACTION = 0.01
+"""More misdated samples than this fraction of those judged, and the record's timing is not
+trusted for the step: leaving them out may not have found them all (ADR 0020)."""
+MAX_MISDATED_HOLDS = 5
+"""Nor when more holds than this had misdated samples."""
+
+
+def timing_fault(found: Sequence[MisdatedHold], total: int) -> str | None:
+    """Why a calibration's data cannot be trusted for a verdict (a re-run is needed), or None:
+    too many misdated samples (:data:`MAX_MISDATED_FRACTION` of ``total`` judged) or holds
+    (:data:`MAX_MISDATED_HOLDS`). A few, left out, leave the rest trusted."""
+    left = sum(f.samples for f in found)
+    if left <= MAX_MISDATED_FRACTION * max(total, 1) and len(found) <= MAX_MISDATED_HOLDS:
+        return None
+    worst = max(found, key=lambda f: abs(f.early_s))
+    return (f"timing fault: {left} of {total} samples in {len(found)} hold(s) contradict their"
+            f" dates (worst {1000.0 * abs(worst.early_s):.0f} ms); the data cannot be trusted"
+            " for a verdict: re-run the step on a less busy computer")  # fmt: skip

@@ -112,3 +112,29 @@ def test_findings_are_plain_numbers_for_the_result_file() -> None:
     _, found = misdated_samples(t, dut, np.ones(t.size, bool), ref_t, ref, np.array([t[-1] + 0.05]))
     json.dumps([f._asdict() for f in found])
     assert all(type(v) in (int, float) for f in found for v in f)
+
+
+def test_a_few_misdated_samples_leave_the_verdict_a_flood_withholds_it() -> None:
+    """Two misdated samples in 1260 are left out and the rest trusted; 3 % of the samples, or
+    holds beyond MAX_MISDATED_HOLDS, make the data untrustworthy: the check's verdict is RE-RUN
+    naming the step, never PASS or FAIL from them (ADR 0020)."""
+    from rig.analysis import RERUN, evaluate_criteria
+    from rig.timing import MAX_MISDATED_HOLDS, MisdatedHold, timing_fault
+
+    few = [MisdatedHold(345.836, 0.147, 22.0, 2)]
+    assert timing_fault(few, 1260) is None
+    flood = [MisdatedHold(10.0 * i, 0.15, 5.0, 8) for i in range(5)]  # 40 of 1260
+    assert "timing fault: 40 of 1260 samples in 5 hold(s)" in str(timing_fault(flood, 1260))
+    spread = [MisdatedHold(10.0 * i, 0.1, 5.0, 1) for i in range(MAX_MISDATED_HOLDS + 1)]
+    assert timing_fault(spread, 100_000) is not None
+
+    criteria = [{"result": "vector calibration", "value": "residual_rms_nt", "max": 60.0}]
+    good = {"vector calibration": {"residual_rms_nt": 22.6}}
+    assert evaluate_criteria(good, criteria)["overall"] == "PASS"
+    faulty = {"vector calibration": {"residual_rms_nt": 990.0, "timing_fault": "timing fault: x"}}
+    verdict = evaluate_criteria(faulty, criteria)
+    assert verdict["overall"] == RERUN and verdict["criteria"][0]["verdict"] == "FAIL"
+    assert verdict["rerun"] == [{"result": "vector calibration", "why": "timing fault: x"}]
+    # a fault in a result no criterion judges does not withhold the verdict
+    other = {**good, "noise": {"timing_fault": "timing fault: y"}}
+    assert evaluate_criteria(other, criteria)["overall"] == "PASS"

@@ -163,10 +163,12 @@ def _cmd_trend(args: argparse.Namespace) -> int:
             raise UserInputError(
                 f"cannot write {args.png}: {exc.strerror}; choose another path"
             ) from None
-    limits = [{"lot": lot, **lim} for lot, lim in sorted(tr.limits.items())]
-    cols = ["run_id", "rig", "lot", "dut_serial", "started_at", "value", "sigma", "outlier"]
+    limits = [{"series": name, **lim} for name, lim in sorted(tr.limits.items())]
+    cols = ["run_id", "rig", "lot", "source", "dut_serial", "started_at", "value", "sigma",
+            "outlier"]  # fmt: skip
     text = (
-        f"{table(tr.rows, cols)}\n\ncontrol limits (mean +- 3 sigma of the lot):\n{table(limits)}"
+        f"{table(tr.rows, cols)}\n\n{tr.runs} runs, {len(tr.rows)} calibrations; control limits"
+        f" (mean +- 3 sigma of each calibration in each lot):\n{table(limits)}"
     )
     if args.png is not None:
         text += f"\n\nplot: {args.png}"

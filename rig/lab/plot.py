@@ -8,8 +8,8 @@ from rig.lab.queries import Trend
 
 
 def trend_png(trend: Trend, path: Path) -> None:
-    """Values (with 1-sigma bars) in run order, one colour per lot, its mean and mean +- 3 sigma
-    as lines; outliers circled. matplotlib is imported here only."""
+    """Values (with 1-sigma bars) in run order, one colour per series (calibration and lot), its
+    mean and control limits as lines; outliers circled. matplotlib is imported here only."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -17,13 +17,12 @@ def trend_png(trend: Trend, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(10, 4.5))
     try:
-        lots = sorted({str(r["lot"]) for r in trend.rows})
-        for lot in lots:
-            idx = [i for i, r in enumerate(trend.rows) if str(r["lot"]) == lot]
+        for series in trend.series:
+            idx = [i for i, r in enumerate(trend.rows) if r["series"] == series]
             vals = [float(trend.rows[i]["value"]) for i in idx]
             sig = [float(trend.rows[i]["sigma"] or 0.0) for i in idx]
-            line = ax.errorbar(idx, vals, yerr=sig, fmt=".", ms=4, label=f"lot {lot}")
-            lim = trend.limits.get(lot)
+            line = ax.errorbar(idx, vals, yerr=sig, fmt=".", ms=4, label=series)
+            lim = trend.limits.get(series)
             if lim:
                 color = line[0].get_color()
                 lo, hi = min(idx), max(idx)
@@ -32,9 +31,12 @@ def trend_png(trend: Trend, path: Path) -> None:
         out = [i for i, r in enumerate(trend.rows) if r["outlier"]]
         ax.plot(out, [trend.rows[i]["value"] for i in out], "o", mfc="none", mec="red", ms=9,
                 label="outside mean +- 3 sigma")  # fmt: skip
-        ax.set_xlabel("run (time order)")
+        ax.set_xlabel("calibration (time order)")
         ax.set_ylabel(trend.param)
-        ax.set_title(f"{trend.param}: {len(trend.rows)} runs, control limits per lot")
+        ax.set_title(
+            f"{trend.param}: {trend.runs} runs, {len(trend.rows)} calibrations,"
+            " control limits per calibration and lot"
+        )
         ax.legend(fontsize=7, ncol=2)
         fig.tight_layout()
         path.parent.mkdir(parents=True, exist_ok=True)

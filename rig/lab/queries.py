@@ -69,43 +69,88 @@ def dut(conn: psycopg.Connection[Any], serial: str) -> list[Row]:
         FROM lab_runs r WHERE r.dut_serial = %s ORDER BY r.started_at, r.id""", (serial,))  # fmt: skip
 
 
+POSITIVE_SUFFIXES = ("_rms_nt",)
+"""Parameters whose names end so are magnitudes (> 0): their control limits are taken on the
+logarithm, so a lower limit is never negative (a residual's lot mean - 3 sd can be)."""
+
+
+def positive_quantity(param: str) -> bool:
+    """Whether ``param`` is a magnitude (:data:`POSITIVE_SUFFIXES`)."""
+    return param.endswith(POSITIVE_SUFFIXES)
+
+
+def series_label(source: Any, lot: Any) -> str:
+    """One trend series: a calibration (the step that fitted it) within a lot."""
+    return f"{source}, lot {lot}" if lot not in (None, "") else f"{source}, no lot"
+
+
 @dataclass
 class Trend:
-    """A parameter over runs, with each lot's control limits (mean +- 3 sigma of its values)."""
+    """A parameter over runs: one series per calibration (``source``, the step that fitted it)
+    and lot, each with its control limits (mean +- 3 sigma of its values; of their logarithm for
+    a magnitude)."""
 
     param: str
     rows: list[Row]
     limits: dict[str, Row] = field(default_factory=dict)
-    """lot -> {n, mean, sd, lcl, ucl} (lots with fewer than MIN_FOR_LIMITS values have none)."""
+    """series label -> {source, lot, n, mean, sd, lcl, ucl} (series with fewer than
+    MIN_FOR_LIMITS values have none)."""
+
+    @property
+    def runs(self) -> int:
+        """How many runs the rows come from (a run can hold several calibrations)."""
+        return len({row["run_id"] for row in self.rows})
+
+    @property
+    def series(self) -> list[str]:
+        """The series labels, in order of first appearance."""
+        return list(dict.fromkeys(str(row["series"]) for row in self.rows))
+
+
+def control_limits(values: list[float], positive: bool) -> Row:
+    """{n, mean, sd, lcl, ucl} of ``values``: mean +- :data:`CONTROL_SIGMAS` sd, or for a
+    ``positive`` quantity (every value > 0) the same on the logarithm, mapped back."""
+    mean, sd = statistics.fmean(values), statistics.stdev(values)
+    if positive and min(values) > 0:
+        logs = [math.log(v) for v in values]
+        m, s = statistics.fmean(logs), statistics.stdev(logs)
+        lcl, ucl = math.exp(m - CONTROL_SIGMAS * s), math.exp(m + CONTROL_SIGMAS * s)
+    else:
+        lcl, ucl = mean - CONTROL_SIGMAS * sd, mean + CONTROL_SIGMAS * sd
+        lcl = max(lcl, 0.0) if positive else lcl
+    return {"n": len(values), "mean": mean, "sd": sd, "lcl": lcl, "ucl": ucl}
 
 
 def trend(conn: psycopg.Connection[Any], param: str, *, lot: str | None = None) -> Trend:
-    """``param`` (a calibration result name, e.g. ``x0_ut``) over runs in time order; each row
-    flagged ``outlier`` when outside its lot's control limits."""
+    """``param`` (a calibration result name, e.g. ``x0_ut``) over runs in time order, one series
+    per calibration and lot (``series``); each row flagged ``outlier`` when outside its series'
+    control limits."""
     rows = _rows(conn, """
         SELECT r.run_id, r.rig, r.lot, r.dut_serial, r.started_at, s.source, s.value, s.sigma
         FROM lab_results s JOIN lab_runs r ON r.id = s.run
         WHERE s.name = %s AND (%s::text IS NULL OR r.lot = %s)
-        ORDER BY r.started_at, r.id""", (param, lot, lot))  # fmt: skip
-    by_lot: dict[str, list[float]] = {}
+        ORDER BY r.started_at, r.id, s.source""", (param, lot, lot))  # fmt: skip
+    by_series: dict[str, list[float]] = {}
     for row in rows:
-        by_lot.setdefault(str(row["lot"]), []).append(float(row["value"]))
+        row["series"] = series_label(row["source"], row["lot"])
+        by_series.setdefault(row["series"], []).append(float(row["value"]))
     limits = {}
-    for name, values in by_lot.items():
-        if len(values) >= MIN_FOR_LIMITS:
-            mean, sd = statistics.fmean(values), statistics.stdev(values)
-            limits[name] = {"n": len(values), "mean": mean, "sd": sd,
-                            "lcl": mean - CONTROL_SIGMAS * sd, "ucl": mean + CONTROL_SIGMAS * sd}  # fmt: skip
+    positive = positive_quantity(param)
     for row in rows:
-        lim = limits.get(str(row["lot"]))
+        name = row["series"]
+        if name not in limits and len(by_series[name]) >= MIN_FOR_LIMITS:
+            limits[name] = {"source": row["source"], "lot": row["lot"],
+                            **control_limits(by_series[name], positive)}  # fmt: skip
+    for row in rows:
+        lim = limits.get(row["series"])
         row["outlier"] = bool(lim) and not lim["lcl"] <= row["value"] <= lim["ucl"]  # type: ignore[index]
     return Trend(param, rows, limits)
 
 
 def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
     """Runs that used an instrument whose certificate had expired; runs without a seal (no data
-    hash); runs a sync refused (changed since they were sealed, or not storable); and per rig: runs, failed criteria and calibration values outside their lot's
-    control limits (mean +- 3 sigma of the parameter over the lot)."""
+    hash); runs a sync refused (changed since they were sealed, or not storable); and per rig: runs, failed criteria and calibration values outside their series'
+    control limits (mean +- 3 sigma of the parameter over the same calibration in the same lot)."""
     expired = _rows(conn, """
         SELECT r.run_id, r.rig, r.started_at, r.dut_serial, i.name AS instrument, i.serial,
                i.certificate_expires
@@ -119,15 +164,15 @@ def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
         FROM lab_refusals ORDER BY last_at DESC, run_id""")  # fmt: skip
     per_rig = _rows(conn, f"""
         WITH vals AS MATERIALIZED (
-            SELECT r.rig, coalesce(r.lot, '') AS lot, s.name, s.value
+            SELECT r.rig, coalesce(r.lot, '') AS lot, s.source, s.name, s.value
             FROM lab_results s JOIN lab_runs r ON r.id = s.run),
         lots AS (
-            SELECT name, lot, avg(value) AS m, stddev_samp(value) AS sd FROM vals
-            GROUP BY name, lot HAVING count(*) >= {MIN_FOR_LIMITS}),
+            SELECT name, source, lot, avg(value) AS m, stddev_samp(value) AS sd FROM vals
+            GROUP BY name, source, lot HAVING count(*) >= {MIN_FOR_LIMITS}),
         outliers AS (
             SELECT v.rig, count(*) AS n,
                    count(*) FILTER (WHERE abs(v.value - l.m) > {CONTROL_SIGMAS} * l.sd) AS outliers
-            FROM vals v JOIN lots l USING (name, lot) GROUP BY v.rig),
+            FROM vals v JOIN lots l USING (name, source, lot) GROUP BY v.rig),
         crit AS (
             SELECT r.rig, count(*) AS n, count(*) FILTER (WHERE c.verdict = 'FAIL') AS failed
             FROM lab_criteria c JOIN lab_runs r ON r.id = c.run GROUP BY r.rig),

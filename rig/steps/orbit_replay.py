@@ -32,7 +32,11 @@ class OrbitReplay(FieldStepKind):
         "attitude": Param("str", "nadir", choices=("inertial", "nadir", "tumbling")),
         "tumble_deg_s": Param("float", 2.0, 0.0, 360.0),
         "panels": Param("list_dict", []),
+        "field_scale": Param("float", 1.0, 0.05, 1.0),
     }
+    """``field_scale``: the fraction of the orbit's field replayed (1 = as in orbit): a cage whose
+    limits the full field would reach, with the ambient field to cancel, replays it scaled; the
+    field's direction and the panels' currents are unchanged."""
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
         from rig.steps.orbit import FACES, parse_start
@@ -74,8 +78,9 @@ class OrbitReplay(FieldStepKind):
             raise ProcedureError(
                 f"{step.where}: step {step.index + 1} (orbit_replay): {exc}"
             ) from None
+        field_ut = track.field_body_ut * float(p["field_scale"])
         cmds = [Command(float(t), "field", {"field_ut": [float(v) for v in f], "track": True})
-                for t, f in zip(t_wall, track.field_body_ut, strict=True)]  # fmt: skip
+                for t, f in zip(t_wall, field_ut, strict=True)]  # fmt: skip
         duration = float(p["duration_s"])
         for panel in p["panels"]:
             ch = panel["channel"]
