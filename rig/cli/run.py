@@ -9,10 +9,13 @@ import subprocess
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rig.cli.common import Parser, Subparsers, add_runs_dir, criterion_value, parse_sets
 from rig.errors import UserInputError
+
+if TYPE_CHECKING:
+    from rig.steps.vocabulary import Procedure
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
@@ -124,6 +127,21 @@ def summarize(outcome: Any, quiet: bool) -> None:
     print(f"data:   {outcome.folder / 'run.sqlite'}")
 
 
+def refuse_unanswerable_questions(proc: Procedure) -> None:
+    """A one-line :class:`UserInputError` before anything starts when a step asks the operator
+    and nothing could answer (no terminal on stdin, no page, no --yes): the run would stop there
+    with its outputs already on."""
+    from rig.steps import KINDS
+
+    for step in proc.steps:
+        if KINDS[step.kind].asks_operator:
+            raise UserInputError(
+                f"{step.where}: step {step.index + 1} ({step.kind}) asks the operator a question"
+                " and the input is not a terminal: run in a terminal, answer on the page"
+                " ('rig run --serve'), or pass --yes to confirm every question"
+            )
+
+
 def run_procedure(
     procedure: str,
     rig_config: Path,
@@ -142,6 +160,8 @@ def run_procedure(
     proc = parse_procedure(find_procedure(procedure), parse_sets(sets))
     cfg = load_rig_config(rig_config)
     confirm = auto_confirm(quiet) if yes else None
+    if confirm is None and page_url is None and not sys.stdin.isatty():
+        refuse_unanswerable_questions(proc)
     runner = Runner(proc, cfg, runs_dir, confirm=confirm, quiet=quiet, page_url=page_url)
     outcome = runner.run()
     summarize(outcome, quiet)

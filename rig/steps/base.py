@@ -111,6 +111,9 @@ class StepKind:
     hold_from_field: ClassVar[bool] = False
     """Each field is held for its planned time from when it is reached: the timeline after a field
     command shifts by the time the ramp took (a slow link lengthens the step, never the dwell)."""
+    asks_operator: ClassVar[bool] = False
+    """It asks the operator a question: a run without --yes needs a terminal or the page to answer
+    it, checked before the run starts."""
     measures_cage_model: ClassVar[bool] = False
     """It measures the cage model (coil matrix and ambient field) that later steps' currents use:
     a dry run without a characterization cannot know the ambient field those steps cancel."""

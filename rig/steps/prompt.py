@@ -12,6 +12,7 @@ from rig.steps.vocabulary import Param
 class Prompt(StepKind):
     name = "prompt"
     summary = "ask the operator to confirm (a 'no' aborts the run)"
+    asks_operator = True
     params: ClassVar[dict[str, Param]] = {"text": Param("str", required=True, text="free")}
 
     def shorthand(self, body: Any) -> Any:
