@@ -11,6 +11,7 @@ The sampler is the only reader of its sensor. Others (the cage controller's trim
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import time
 from collections import deque
@@ -47,7 +48,9 @@ class SensorSampler:
         self.error: Exception | None = None
         self.latest: tuple[float, tuple[float, float, float]] | None = None
         self._cond = threading.Condition()
-        self._recent: deque[tuple[int, float, tuple[float, float, float]]] = deque(maxlen=1000)
+        self._recent: deque[tuple[int, float, tuple[float, float, float], float]] = deque(
+            maxlen=1000
+        )  # (sequence number, date s, reading uT, date uncertainty s)
         self.listeners: list[Listener] = []
         self.started_t = time.monotonic()
         self.repeats = 0  # consecutive readings identical to the one before
@@ -71,7 +74,7 @@ class SensorSampler:
                 self.repeats + 1 if self.latest is not None and self.latest[1] == xyz else 0
             )
             self.latest = (t, xyz)
-            self._recent.append((self.count, t, xyz))
+            self._recent.append((self.count, t, xyz, t_unc_s))
             self._cond.notify_all()
 
     def _run(self) -> None:
@@ -153,17 +156,18 @@ class SensorSampler:
 
     def wait_next(
         self, after: int, timeout_s: float = 2.0
-    ) -> tuple[int, float, tuple[float, float, float]]:
-        """The first sample with sequence number > ``after``."""
+    ) -> tuple[int, float, tuple[float, float, float], float]:
+        """The first sample with sequence number > ``after``: (sequence number, date s, reading
+        uT, date uncertainty s)."""
         start = time.monotonic()
         deadline = start + timeout_s
         with self._cond:
             while True:
                 if self.error is not None:
                     raise DeviceError(f"{self.name}: sampling stopped: {self.error}")
-                for seq, t, xyz in self._recent:
-                    if seq > after:
-                        return seq, t, xyz
+                for item in self._recent:
+                    if item[0] > after:
+                        return item
                 remaining = deadline + tty_stall_s(start) - time.monotonic()
                 if remaining <= 0:
                     raise DeviceError(
@@ -187,13 +191,19 @@ class BufferedSensor:
     def __init__(self, sampler: SensorSampler) -> None:
         self.sampler = sampler
         self._seen = 0
+        self._not_before = -math.inf
 
     def flush(self) -> None:
-        """Ignore everything sampled so far."""
+        """Ignore everything sampled so far, including samples taken before now that have not
+        arrived yet (a busy computer can hold a second of a stream back): a later :meth:`read`
+        returns only a sample taken after this moment, by its date and uncertainty (ADR 0020)."""
         self._seen = self.sampler.count
+        self._not_before = time.monotonic()
 
     def read(self) -> tuple[float, float, float]:
-        """The next sample after the last one handed out."""
-        seq, _, xyz = self.sampler.wait_next(self._seen)
-        self._seen = seq
-        return xyz
+        """The next sample after the last one handed out (and taken after the last flush)."""
+        while True:
+            seq, t, xyz, t_unc = self.sampler.wait_next(self._seen)
+            self._seen = seq
+            if t - t_unc >= self._not_before:
+                return xyz
