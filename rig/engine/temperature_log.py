@@ -21,8 +21,9 @@ PERIOD_S = 1.0
 """Between readings (s): a DUT and its mount change temperature over minutes; RTD modules
 convert a few times a second."""
 
-ChannelSink = Callable[[float, str, float | None, float | None], None]
-"""(time s, channel, set-point, measured): :meth:`rig.store.RunWriter.add_channel`."""
+ChannelSink = Callable[[float, str, float | None, float | None, float | None], None]
+"""(time s, channel, set-point, measured, time uncertainty s):
+:meth:`rig.store.RunWriter.add_channel`."""
 
 
 class TemperatureLog:
@@ -58,7 +59,8 @@ class TemperatureLog:
                                   f" {self.name} answers again")  # fmt: skip
                 failing = True
             else:
-                self.sink(t_asked, self.name, None, value)
+                # taken after it was asked, known to within the exchange (ADR 0020)
+                self.sink(t_asked, self.name, None, value, time.monotonic() - t_asked)
                 self.readings += 1
                 if failing:
                     self.on_event("info", f"{self.name} answers again ({value:.1f} C)")
