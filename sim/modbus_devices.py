@@ -10,13 +10,17 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Callable, Coroutine
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pymodbus.constants import ExcCodes
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from sim.device_kind import CageHost, SimKind
 from sim.physics import CagePhysics, Faults, Supply, riden_model
-from sim.regmap import Register, RegisterMap
+from sim.regmap import Register, RegisterMap, load_regmap
+
+if TYPE_CHECKING:
+    from sim.config import SupplyConfig
 
 Action = Callable[[int, int, int, int, list[int], Any], Coroutine[Any, Any, ExcCodes | None]]
 READ_CODES = {1, 2, 3, 4}
@@ -314,3 +318,30 @@ def unserved_ids() -> SimDevice:
 
     every_address = SimData(address=0, count=65536, datatype=DataType.REGISTERS)
     return SimDevice(id=0, simdata=[every_address], action=action)
+
+
+def _role(s: SupplyConfig) -> str:
+    return f"coil_{'xyz'[s.axis]}" if s.axis is not None else "load"
+
+
+def _start_riden(host: CageHost, s: SupplyConfig, index: int) -> dict[str, Any]:
+    """A Riden RD60xx (its register set, :func:`riden_device`) driving a coil or a load."""
+    supply = host.physics.supplies[s.name]
+    device = riden_device(supply, s.endpoint.device_id)
+    entry = host.serve_modbus(s.name, device, s.endpoint, supply.faults)
+    return entry | {"kind": "riden-rd60xx", "role": _role(s)}
+
+
+def _start_regmap(host: CageHost, s: SupplyConfig, index: int) -> dict[str, Any]:
+    """A supply or electronic load described by a register map (``regmap = "<name>"``)."""
+    supply = host.physics.supplies[s.name]
+    spec = load_regmap(s.regmap)
+    if spec.kind == "eload":
+        supply.set_voltage(min(s.input_voltage_v, supply.v_max))
+    device = regmap_device(spec, s.endpoint.device_id, host.physics, supply, supply.faults)
+    entry = host.serve_modbus(s.name, device, s.endpoint, supply.faults)
+    return entry | {"kind": f"regmap-{spec.kind}", "regmap": spec.source, "role": _role(s)}
+
+
+RIDEN = SimKind("riden-rd60xx", "supplies", _start_riden)
+REGMAP = SimKind("regmap", "supplies", _start_regmap)
