@@ -7,10 +7,10 @@ the lab tabs, its page at ``/lab/<name>`` (docs/architecture.md).
 
 from __future__ import annotations
 
-from rig.web.lab_views import audit, dut, runs, trend
+from rig.web.lab_views import audit, dut, refusals, runs, trend
 from rig.web.lab_views.view import LabView
 
-VIEWS: dict[str, LabView] = {m.VIEW.name: m.VIEW for m in (runs, trend, audit, dut)}
+VIEWS: dict[str, LabView] = {m.VIEW.name: m.VIEW for m in (runs, trend, audit, refusals, dut)}
 """Every lab view, in the order of the tabs."""
 
 
