@@ -15,11 +15,11 @@ backend, :mod:`.guard` the divergence watch.
 
 from __future__ import annotations
 
-from rig.calibration.sequential import centered_seq, ekf, ukf
+from rig.calibration.sequential import centered_seq, ekf, rls, ukf
 from rig.calibration.sequential.kind import SequentialKind
 from rig.errors import CalibrationError
 
-KINDS: dict[str, SequentialKind] = {m.KIND.name: m.KIND for m in (centered_seq, ekf, ukf)}
+KINDS: dict[str, SequentialKind] = {m.KIND.name: m.KIND for m in (centered_seq, ekf, ukf, rls)}
 """Every sequential estimator, in the order the CLI lists them."""
 
 
