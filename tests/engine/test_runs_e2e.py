@@ -24,11 +24,10 @@ from rig.config import load_rig_config
 from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
 from rig.procedure_files import find_procedure
-from rig.sim_rig import sim_rig_config
 from rig.steps import field_kinds
 from rig.store import RunReader
-from sim.cage import SimulatedCage
 from sim.config import load_config
+from tests.simcage import sim_cage
 from tests.simproc import LOAD_INPUT_STATE, LOAD_OFF, output_registers, outputs
 from tests.simproc import sim_process as start_sim
 
@@ -105,10 +104,8 @@ def test_interrupted_run_leaves_supplies_off_and_data_readable(
 
 
 def test_a_device_that_stops_answering_ends_the_run_safely(tmp_path: Path) -> None:
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
-        rc = load_rig_config(tmp_path / "rig.toml")
+    with sim_cage(tmp_path) as (cage, rig_toml):
+        rc = load_rig_config(rig_toml)
         proc = parse_procedure(find_procedure("smoke"))
         threading.Timer(4.0, lambda: setattr(cage.faults["coil_x"], "silent", True)).start()
         outcome = Runner(
@@ -285,10 +282,8 @@ def test_live_calibration_stops_on_target_and_reports_convergence(
 def test_pause_and_resume_with_sigusr1(tmp_path: Path) -> None:
     import os
 
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
-        rc = load_rig_config(tmp_path / "rig.toml")
+    with sim_cage(tmp_path) as (cage, rig_toml):
+        rc = load_rig_config(rig_toml)
         proc = parse_procedure(find_procedure("smoke"))
         pid = os.getpid()
         threading.Timer(3.0, os.kill, (pid, signal.SIGUSR1)).start()
@@ -307,13 +302,11 @@ def test_pause_and_resume_with_sigusr1(tmp_path: Path) -> None:
 
 
 def test_rig_safe_switches_everything_off(tmp_path: Path) -> None:
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+    with sim_cage(tmp_path) as (cage, rig_toml):
         for s in cage.physics.supplies.values():
             s.set_current(0.5)
             s.set_output(True)
-        assert main(["safe", "--rig", str(tmp_path / "rig.toml")]) == 0
+        assert main(["safe", "--rig", str(rig_toml)]) == 0
         assert not any(s.output for s in cage.physics.supplies.values())
         cage.faults["load_panel"].silent = True  # one that does not answer: named, exit 2
-        assert main(["safe", "--rig", str(tmp_path / "rig.toml"), "-q"]) == 2
+        assert main(["safe", "--rig", str(rig_toml), "-q"]) == 2
