@@ -93,6 +93,9 @@ class LiveCalibration:
         self._watch = DivergenceWatch()  # divergence: re-initialized from the batch estimate
         self._recorded: tuple[list[int], list[Array], list[Array]] = ([], [], [])
         self._next_check = t0 + CHECK_EVERY_S
+        self._queued = 0  # DUT samples queued for the worker (written by the DUT sampler only)
+        self._taken = 0  # ... and finished with by the worker (written by the worker only)
+        self._caught_up = threading.Condition()
         self._thread = threading.Thread(target=self._run, name="live-calibration", daemon=True)
 
     # --- feeds (called from the sampler threads and the runner) ---------------------------------
@@ -108,6 +111,7 @@ class LiveCalibration:
         if not settled or ref is None or abs(ref[0] - t) > MAX_PAIRING_S or _held_back(t):
             self.rejected += 1
             return
+        self._queued += 1
         self._queue.put((t, np.asarray(xyz, float), ref[1], self.telemetry(t)))
 
     def on_reference(self, t: float, xyz: tuple[float, float, float]) -> None:
@@ -141,12 +145,21 @@ class LiveCalibration:
             item = self._queue.get()
             if item is None:
                 return
-            if self.error is not None:
-                continue
             try:
-                self._update(*item)
+                if self.error is None:
+                    self._update(*item)
             except (CalibrationError, np.linalg.LinAlgError, ValueError) as exc:
                 self.error = exc
+            finally:
+                with self._caught_up:
+                    self._taken += 1
+                    self._caught_up.notify_all()
+
+    def wait_caught_up(self, timeout_s: float) -> bool:
+        """Wait until the worker has finished with every DUT sample queued so far (True), or
+        ``timeout_s`` (s) has passed (False): tests feeding samples faster than real time."""
+        with self._caught_up:
+            return self._caught_up.wait_for(lambda: self._taken >= self._queued, timeout_s)
 
     def _update(self, t: float, m: Array, ref: Array, u: Array) -> None:
         h_mag = float(np.linalg.norm(to_cage_frame(ref[None, :], self.correction)[0]))

@@ -16,10 +16,8 @@ from rig.config import load_rig_config
 from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
 from rig.report.acceptance import build_report
-from rig.sim_rig import sim_rig_config
 from rig.store.seal import SEAL_FILE, data_digest, verify_run
-from sim.cage import SimulatedCage
-from sim.config import load_config
+from tests.simcage import sim_cage
 
 PROCEDURE = """procedure: Record test
 parameters:
@@ -46,12 +44,10 @@ def recorded_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     check step (the report must still show the verdict)."""
     tmp = tmp_path_factory.mktemp("record")
     (tmp / "record.yaml").write_text(PROCEDURE)
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+    with sim_cage(tmp) as (cage, rig_toml):
         outcome = Runner(
             parse_procedure(tmp / "record.yaml"),
-            load_rig_config(tmp / "rig.toml"),
+            load_rig_config(rig_toml),
             tmp / "runs",
             i2c_bus=cage.i2c_bus,
             confirm=lambda s: True,
