@@ -90,7 +90,9 @@ path = "/dev/ttyUSB0"
 
 def test_unknown_keys_are_refused(tmp_path: Path) -> None:
     """Issue 32: a key no kind declares is refused (it used to pass through unread)."""
-    with pytest.raises(UserInputError, match=r"rig.toml:6: \[devices.ref\].line_format: unknown key"):
+    with pytest.raises(
+        UserInputError, match=r"rig.toml:6: \[devices.ref\].line_format: unknown key"
+    ):
         load_rig_config(write(tmp_path, """
 [devices.ref]
 kind = "ascii-mag"
