@@ -170,7 +170,7 @@ TRANSPORTS: dict[str, tuple[Param, ...]] = {
     "modbus-tcp": (
         Param("host", TEXT, True, help="IP address or host name", nonempty=True,
               fix='write the device\'s or gateway\'s address, e.g. host = "192.168.1.50"'),
-        Param("port", WHOLE, True, None, "TCP port (Modbus TCP's own is 502)", low=1, high=65535,
+        Param("port", WHOLE, True, None, "the port the device listens on (Modbus TCP's own: 502)", low=1, high=65535,
               why="a TCP port",
               fix="write the port the device listens on, e.g. port = 502 (Modbus TCP's own)"),
         Param("device_id", WHOLE, False, 1, "Modbus unit id", low=0, high=255,
@@ -591,7 +591,8 @@ MAP_BAUD = {"baudrate": replace(BAUDRATE, default=None,
                                 help="baud rate (default: the register map's factory rate)")}  # fmt: skip
 """A register-map device's baud rate defaults to its map's (``[device].baudrate``)."""
 CURRENT_RANGE = Param(
-    "current_range", WHOLE, help="RD6012P only: 0 = the 6 A range (0.1 mA), 1 = 12 A (1 mA)",
+    "current_range", WHOLE, help="RD6012P only: 0 = the 6 A range (0.1 mA), 1 = 12 A (1 mA); written to"
+                            " register 20 at open",
     choices=(0, 1), fix="write current_range = 0 (6 A, finer) or 1 (12 A)",
 )  # fmt: skip
 MAG_PARAMS: tuple[Param, ...] = (

@@ -452,7 +452,7 @@ def _row(p: Param, *first: str, label: str = "") -> str:
     if len(p.choices) > 6:  # the standard baud rates
         accepted = f"{p.why or 'one of'}: {p.choices[0]} ... {p.choices[-1]}"
     cells = [*first, key, p.wanted, p.unit or "-", accepted or "-", _shown(p.default),
-             p.help.replace("|", "/")]  # fmt: skip
+             (p.help + (f" ({p.why})" if p.why and p.why not in p.help else "")).replace("|", "/")]  # fmt: skip
     return "| " + " | ".join(cells) + " |"
 
 
