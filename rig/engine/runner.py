@@ -52,9 +52,6 @@ Confirm = Callable[[str], bool]
 MONITOR_PERIOD_S = 0.2
 STALL_S = 1.5
 """A sensor that sends nothing for this long (or 5 of its periods) has stalled."""
-STUCK_AFTER = 60
-"""This many identical readings in a row (3 s at 20 Hz) mean a frozen sensor: real noise varies.
-A device's ``stuck_after`` in the rig configuration overrides it (0 = never)."""
 OWN_STALL_S = 0.3
 """The monitor woke this much later than its period: our own process was descheduled."""
 COIL_CHECK_S = 1.0
@@ -485,7 +482,7 @@ class Runner:
         self._cpu_wait.note(now)
         for name, sampler in list(self.samplers.items()) if judge_sensors else []:
             stall_s = max(STALL_S, 5.0 / sampler.rate_hz)
-            stuck_after = int(self.cfg.devices[name].get("stuck_after", STUCK_AFTER)) or 10**9
+            stuck_after = int(self.cfg.devices[name].get("stuck_after")) or 10**9  # 0: never
             problem = sampler.health(now, stall_s, stuck_after, self._cpu_wait)
             if problem is not None:
                 self._fail(problem)
