@@ -234,6 +234,8 @@ class _Source:
 
     path: Path
     text: str
+    lenient: bool = False
+    """Unknown keys and tables are passed over, not refused (``rig safe``)."""
 
     def unknown(self, table: tuple[str, ...], key: str, valid: Iterable[str],
                 note: str = "") -> UserInputError:  # fmt: skip
@@ -287,6 +289,8 @@ def _device(src: _Source, name: str, spec: Any) -> DeviceConfig:
         raise _err(path, where, "must be a table")
     entry, protocol = _kind_and_protocol(path, where, spec)
     keys = device_keys(entry, protocol)
+    if src.lenient:
+        spec = {k: v for k, v in spec.items() if k in keys or k in ("kind", "protocol")}
     for key in spec:
         if key not in keys and key not in ("kind", "protocol"):
             note = _elsewhere(key, entry, protocol)
@@ -318,6 +322,8 @@ def _table(src: _Source, name: str, raw: Any, keys: tuple[Param, ...]) -> dict[s
     if not isinstance(raw, dict):
         raise _err(src.path, f"[{name}]", "must be a table")
     declared = {p.name: p for p in keys}
+    if src.lenient:
+        raw = {k: v for k, v in raw.items() if k in declared}
     for key in raw:
         if key not in declared:
             raise src.unknown((name,), key, declared)
@@ -332,7 +338,8 @@ def _table(src: _Source, name: str, raw: Any, keys: tuple[Param, ...]) -> dict[s
 
 def load_rig_config(path: str | Path, *, check_text: bool = True) -> RigConfig:
     """Parse and validate a rig configuration file. ``check_text=False`` skips the rule of
-    :mod:`rig.text` (for ``rig safe``: an emergency stop is not refused over a device's serial)."""
+    :mod:`rig.text` and passes over unknown keys and tables (for ``rig safe``: an emergency stop
+    is not refused over a device's serial or a stray key)."""
     path = Path(path)
     if check_text and (problem := text_problem(str(path), label=False)) is not None:
         raise UserInputError(f"{shown(str(path), 80)}: the file's path {problem} (rename it)")
@@ -347,7 +354,10 @@ def load_rig_config(path: str | Path, *, check_text: bool = True) -> RigConfig:
         raise UserInputError(f"{path}: not valid TOML ({exc}); fix the syntax") from None
     if check_text:
         _refuse_bad_text(path, raw, "")
-    src = _Source(path, text)
+    src = _Source(path, text, lenient=not check_text)
+    for name in list(raw) if not check_text else []:
+        if name not in TABLES:
+            del raw[name]
     for name in raw:
         if name not in TABLES:
             raise src.unknown((), name, TABLES)

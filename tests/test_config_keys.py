@@ -277,3 +277,16 @@ def test_the_sim_writer_refuses_an_endpoint_entry_it_cannot_write() -> None:
         device_lines("dut", dev | {"colour": "red"})
     with pytest.raises(ValueError, match="not the drivers' defaults"):
         device_lines("dut", dev | {"unit": "nT"})
+
+
+def test_rig_safe_reads_a_configuration_with_stray_keys(tmp_path: Path) -> None:
+    """An emergency stop is never refused over a misspelt key: ``rig safe``'s reading passes over
+    unknown keys and tables (every other command refuses them)."""
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text('[devices.coil_x]\nkind = "riden-rd60xx"\nprotocol = "modbus-tcp"\n'
+                   'host = "127.0.0.1"\nport = 5020\nstuk_after = 3\n[extra]\nx = 1\n')  # fmt: skip
+    with pytest.raises(UserInputError, match="unknown"):
+        load_rig_config(cfg)
+    loaded = load_rig_config(cfg, check_text=False)
+    assert "stuk_after" not in loaded.devices["coil_x"].params
+    assert loaded.devices["coil_x"].get("port") == 5020
