@@ -12,13 +12,15 @@ import datetime as dt
 import io
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
 
-from rig.analysis import apply_correction, stored_run_data
+from rig.analysis import apply_correction, selected_data
 from rig.calibration import calibrate
+from rig.calibration.estimators import Method
+from rig.calibration.record import CalibrationRecord, calibrations, latest_calibration
 from rig.calibration.targets import SIGMA_TARGETS, group_of
 from rig.errors import RigError
 from rig.report.scaling import mark_outliers, robust_limits
@@ -56,17 +58,18 @@ def _figure(title: str, fig: Any) -> Figure:
     return Figure(title, buf.getvalue(), fig)
 
 
-def _calibration_series(
-    reader: RunReader, meta: dict[str, Any], res: dict[str, Any]
+def calibration_series(
+    reader: RunReader, meta: dict[str, Any], res: CalibrationRecord
 ) -> dict[str, Array] | None:
-    """Time series for the plots: DUT raw and corrected magnitude, reference magnitude, residual."""
+    """Time series for the plots, on the samples the calibration was fitted on (its stored
+    selection): DUT raw and corrected magnitude, reference magnitude, residual (nT)."""
 
-    channels = list(res["channels"])
+    channels = list(res.channels)
     try:
-        s, t, *_ = stored_run_data(reader, channels, field_kinds=field_kinds())
+        s, t, *_ = selected_data(reader, res, field_kinds=field_kinds())
     except RigError:
         return None
-    corrected = apply_correction(res["correction"], s.measured_ut, s.telemetry, channels)
+    corrected = apply_correction(res.correction, s.measured_ut, s.telemetry, channels)
     return {
         "t": t - float(meta.get("start_monotonic", t[0])),
         "raw": np.linalg.norm(s.measured_ut, axis=1),
@@ -87,13 +90,9 @@ def make_figures(reader: RunReader, meta: dict[str, Any], results: dict[str, Any
     import matplotlib.pyplot as plt
 
     figs: list[Figure] = []
-    cal_name = next(
-        (n for n, r in results.items() if isinstance(r, dict) and r.get("model") == "vector"), None
-    )
-    cal_name = cal_name or next(
-        (n for n, r in results.items() if isinstance(r, dict) and "springmann" in r), None
-    )
-    series = _calibration_series(reader, meta, results[cal_name]) if cal_name else None
+    latest = latest_calibration(results, "vector") or latest_calibration(results)
+    cal_name = latest[0] if latest else ""
+    series = calibration_series(reader, meta, latest[1]) if latest else None
     if series is not None:
         t = series["t"]
         fig, ax = plt.subplots(figsize=(9, 3.6))
@@ -234,16 +233,17 @@ def _convergence_figure(folder: Path, live: dict[str, Any], plt: Any) -> Any:
     return fig
 
 
-def without_telemetry(reader: RunReader, res: dict[str, Any]) -> dict[str, Any] | None:
-    """The same calibration re-fitted without the current channels (the Springmann comparison)."""
+def without_telemetry(reader: RunReader, res: CalibrationRecord) -> CalibrationRecord | None:
+    """The same calibration re-fitted on the same samples (its stored selection) without the
+    current channels (the Springmann comparison)."""
 
-    if not res["channels"]:
+    if not res.channels:
         return None
     try:
-        s, *_ = stored_run_data(reader, [], field_kinds=field_kinds())
-        if res["model"] == "scalar":
+        s, *_ = selected_data(reader, res, field_kinds=field_kinds(), telemetry=[])
+        if res.model == "scalar":
             s = s.as_scalar()
-        return calibrate(s, res["method"]).to_dict()
+        return CalibrationRecord.from_dict(calibrate(s, cast("Method", res.method)).to_dict())
     except RigError:
         return None
 
@@ -264,7 +264,7 @@ def build_report(folder: Path) -> tuple[Path, Path]:
         meta, results, events = reader.meta(), reader.results(), reader.events()
         steps = reader.steps()
         figs = make_figures(reader, meta, results)
-        cals = {n: r for n, r in results.items() if isinstance(r, dict) and "springmann" in r}
+        cals = calibrations(results)
         plain = {n: without_telemetry(reader, r) for n, r in cals.items()}
     finally:
         reader.close()
@@ -287,7 +287,10 @@ def build_report(folder: Path) -> tuple[Path, Path]:
     sections = [
         criteria_section(verdict),
         step_results_section(steps, results),
-        *(calibration_section(name, res, plain.get(name)) for name, res in cals.items()),
+        *(
+            calibration_section(name, res.to_dict(), _stored(plain.get(name)))
+            for name, res in cals.items()
+        ),
         plots_section(figs),
         steps_section(steps),
         log_section(events, t_start),
@@ -344,6 +347,10 @@ def build_report(folder: Path) -> tuple[Path, Path]:
     # the closed run's manifest learns the reports' digests: 'rig verify' tells an edit from these
     record_written(folder, [text_path, html_path, pdf_path], "the rig wrote the reports")
     return html_path, pdf_path
+
+
+def _stored(record: CalibrationRecord | None) -> dict[str, Any] | None:
+    return record.to_dict() if record is not None else None
 
 
 PDF_COLOURS = {"PASS": "#1a7f37", "FAIL": "#b42318"}
