@@ -74,8 +74,8 @@ def make_figures(
 def without_telemetry(reader: RunReader, res: CalibrationRecord) -> CalibrationRecord | None:
     """The same calibration re-fitted on the same samples (its stored selection) without the
     current channels (the Springmann comparison)."""
-    if not res.channels:
-        return None
+    if not res.channels or (res.live is not None and res.selection is None):
+        return None  # a live fit recorded without its selection: its samples are not known
     try:
         s, *_ = selected_data(reader, res, field_kinds=field_kinds(), telemetry=[])
         if res.model == "scalar":

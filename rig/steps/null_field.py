@@ -87,7 +87,7 @@ class NullField(FieldStepKind):
         floors = ", ".join(f"{role} {v:.1f} nT" for role, v in found.noise_nt.items())
         pairs = ", ".join(f"{role} {v:.1f} nT" for role, v in found.paired_noise_nt.items())
         return [
-            f"Noise floor {name}: {floors}"
+            f"Noise floor '{name}': {floors}"
             + (f"; paired with the reference {pairs}" if pairs else "")
         ]
 
