@@ -332,8 +332,8 @@ def _table(src: _Source, name: str, raw: Any, keys: tuple[Param, ...]) -> dict[s
             raise _err(src.path, f"[{name}]", f"needs '{p.name}' ({p.help})")
         if p.name in raw and (problem := p.problem(raw[p.name])) is not None:
             raise _err(src.path, f"[{name}].{p.name}", problem)
-    defaults = {p.name: copy.copy(p.default) for p in keys if p.default is not None}
-    return defaults | raw
+    defaults: dict[str, Any] = {p.name: copy.copy(p.default) for p in keys if p.default is not None}
+    return defaults | dict(raw)
 
 
 def load_rig_config(path: str | Path, *, check_text: bool = True) -> RigConfig:

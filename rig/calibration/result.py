@@ -164,13 +164,8 @@ class CalibrationResult:
         cal = self.calibration
         sp = cal.springmann
         cr = cal.crassidis
-        spv = dict(
-            zip(
-                ("a", "b", "c", "x0", "y0", "z0", "rho", "phi", "lambda"),
-                sp.as_vector(),
-                strict=True,
-            )
-        )
+        names = ("a", "b", "c", "x0", "y0", "z0", "rho", "phi", "lambda")
+        spv = dict(zip(names, sp.as_vector(), strict=True))
         out: dict[str, Any] = {
             "model": self.model,
             "method": self.method,
@@ -218,6 +213,12 @@ class CalibrationResult:
             "warnings": list(self.warnings),
             "iterations": self.iterations,
         }
+        self._add_extras(out)
+        return out
+
+    def _add_extras(self, out: dict[str, Any]) -> None:
+        """The profiled parameters (delays, temperature) with their sigma, the temperature
+        reference and a filter's summary, into the result file ``out``."""
         if self.profiled is not None:
             fit = self.profiled
             for prm, v, sig, crlb in zip(fit.params, fit.values, fit.sigma, fit.crlb_sigma,
@@ -234,7 +235,6 @@ class CalibrationResult:
                 "mean_nis": float(np.mean(nis)) if nis.size else None,
                 "recorded_rows": int(self.history.index.size),
             }
-        return out
 
     def _crassidis_sigma(self) -> dict[str, Any]:
         """1-sigma of the Crassidis ``b`` (uT) and ``D`` (eq. 11), by the delta method."""

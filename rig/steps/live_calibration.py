@@ -45,6 +45,10 @@ HELD_BACK_MARGIN_S = 0.2
 reference, the loads and the field changes is uncertain."""
 
 
+LIVE_PANEL = "sigma-targets"
+"""The live page's panel for a live calibration: each value against its target (app.js)."""
+
+
 @dataclass
 class LiveSnapshot:
     """The latest evaluation: elapsed time (s), updates so far and the sigma of every group."""
@@ -239,11 +243,13 @@ class LiveCalibration:
         return " ".join(parts)
 
     def page_state(self) -> dict[str, Any]:
-        """For the web page: updates so far, each group's 1-sigma and its target."""
+        """For the web page: the panel to draw (:data:`LIVE_PANEL`) with the updates so far,
+        each group's 1-sigma and its target."""
         snap = self.snapshot
-        return {"calibration": {"updates": snap.updates, "elapsed_s": round(snap.elapsed_s, 2),
-                                "sigmas": {k: float(v) for k, v in snap.sigmas.items()},
-                                "targets": {k: float(v) for k, v in self.targets.items()}}}  # fmt: skip
+        return {"panel": {"name": LIVE_PANEL, "updates": snap.updates,
+                          "elapsed_s": round(snap.elapsed_s, 2),
+                          "values": {k: float(v) for k, v in snap.sigmas.items()},
+                          "targets": {k: float(v) for k, v in self.targets.items()}}}  # fmt: skip
 
     def stop(self) -> None:
         """Let the worker finish what is queued and end (idempotent)."""
