@@ -134,6 +134,11 @@ class FakeReader:
     def samples(self, device: str) -> list[tuple[float, float, float, float]]:
         return list(self.rec.samples.get(device, []))
 
+    def dated_samples(self, device: str) -> list[tuple[float, float, float, float, float]]:
+        """(t, x, y, z, t_unc): synthetic samples are dated exactly (1 ms, the floor a stream
+        clock claims)."""
+        return [(*row, 0.001) for row in self.rec.samples.get(device, [])]
+
     def devices(self) -> list[str]:
         return sorted(d for d, rows in self.rec.samples.items() if rows)
 
