@@ -13,6 +13,7 @@ from typing import Any
 
 from rig.cli.common import Parser, Subparsers, add_runs_dir, criterion_value, parse_sets
 from rig.errors import UserInputError
+from rig.store.run_states import RunStatus, Verdict
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
@@ -95,12 +96,16 @@ def summarize(outcome: Any, quiet: bool) -> None:
     says so: one line on stderr with its status and reason (``-q`` means errors only, not nothing)."""
     verdict = outcome.results.get("verdict")
     if quiet:
-        if outcome.status != "complete":
+        if outcome.status != RunStatus.COMPLETE:
             failed = [
-                r["name"] for r in (verdict or {}).get("criteria", []) if r["verdict"] != "PASS"
+                r["name"]
+                for r in (verdict or {}).get("criteria", [])
+                if r["verdict"] != Verdict.PASS
             ]
-            what = f" ({', '.join(failed)})" if outcome.status == "failed" and failed else ""
-            prefix = "error: " if outcome.status == "error" else ""
+            what = (
+                f" ({', '.join(failed)})" if outcome.status == RunStatus.FAILED and failed else ""
+            )
+            prefix = "error: " if outcome.status == RunStatus.ERROR else ""
             safe = "; every output off" if outcome.outputs.startswith("outputs: safe") else ""
             print(
                 f"rig: {prefix}run {outcome.folder.name} ended with status {outcome.status}:"

@@ -35,6 +35,7 @@ from rig.report.sections import (
 from rig.report.text_report import data_hash, overall_verdict, seal_note, write_text_report
 from rig.steps import KINDS, field_kinds
 from rig.store import safe_files
+from rig.store.run_states import Verdict
 from rig.store.run_store import RunReader
 from rig.store.seal import record_written
 
@@ -282,7 +283,7 @@ def build_report(folder: Path) -> tuple[Path, Path]:
         ("Data SHA-256", f"data sha256 {digest} ({seal_note(folder, digest)})"),
     ]  # fmt: skip
 
-    colour = "#1a7f37" if overall == "PASS" else "#b42318"
+    colour = "#1a7f37" if overall == Verdict.PASS else "#b42318"
     t_start = float(meta.get("start_monotonic", events[0][0] if events else 0.0))
     sections = [
         criteria_section(verdict),

@@ -17,6 +17,7 @@ import numpy as np
 
 from rig.report.text_report import criterion_line, limit_text
 from rig.steps import KINDS
+from rig.store.run_states import Verdict
 
 SPRINGMANN_UNITS = {"a": "", "b": "", "c": "", "x0_ut": "uT", "y0_ut": "uT", "z0_ut": "uT",
                     "rho_deg": "deg", "phi_deg": "deg", "lambda_deg": "deg"}  # fmt: skip
@@ -77,7 +78,9 @@ def criteria_section(verdict: dict[str, Any] | None) -> Section:
         else:
             rows.append(f"<tr><td>{esc(row['name'])}</td><td colspan='3'>{esc(row['reason'])}</td>"
                         "<td class='FAIL'>FAIL</td></tr>")  # fmt: skip
-        lines.append(PdfLine(criterion_line(row), "PASS" if row["verdict"] == "PASS" else "FAIL"))
+        lines.append(
+            PdfLine(criterion_line(row), "PASS" if row["verdict"] == Verdict.PASS else "FAIL")
+        )
     return Section("".join(rows) + "</table>", tuple(lines))
 
 

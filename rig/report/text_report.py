@@ -7,6 +7,7 @@ from typing import Any
 
 from rig.analysis import value_unit
 from rig.store import safe_files
+from rig.store.run_states import ACCEPTANCE, RunStatus
 from rig.store.run_store import RunReader
 from rig.store.seal import data_digest, read_seal, record_written
 
@@ -28,8 +29,8 @@ def seal_note(folder: Path, digest: str) -> str:
 
 def overall_verdict(meta: dict[str, Any], results: dict[str, Any]) -> str:
     """PASS, FAIL or NO VERDICT for a closed run; a run that did not finish is never an acceptance."""
-    status = meta.get("status", "incomplete")
-    if status not in ("complete", "failed"):
+    status = meta.get("status", RunStatus.INCOMPLETE)
+    if status not in ACCEPTANCE:
         return f"{str(status).upper()} RUN - NOT A VALID ACCEPTANCE"
     verdict = results.get("verdict")
     return str(verdict["overall"]) if verdict else "NO VERDICT"

@@ -36,6 +36,7 @@ from starlette.templating import Jinja2Templates
 from rig.errors import RigError
 from rig.store import run_control, safe_files
 from rig.store.run_control import read_live
+from rig.store.run_states import RunStatus
 from rig.web.runs_view import (
     DAMAGED,
     EXPORTS,
@@ -202,7 +203,7 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *, access_token: 
         summary = summary_or_damaged(folder)
         if summary.status == DAMAGED:
             return text(500, f"run {folder.name} is {DAMAGED}: {summary.reason}")
-        if summary.status == "running":
+        if summary.status == RunStatus.RUNNING:
             return text(409, "the run is still recording; export it once it has ended")
         tmp = tempfile.mkdtemp(prefix="rig-export-")
         path, name, media = await asyncio.to_thread(export_file, folder, fmt, Path(tmp))
@@ -221,7 +222,7 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *, access_token: 
                 if state is not None and state != last:
                     last = state
                     yield f"data: {json.dumps(state, separators=(',', ':'))}\n\n"
-                    if state.get("status", "running") != "running":
+                    if state.get("status", RunStatus.RUNNING) != RunStatus.RUNNING:
                         return  # the run has ended: its final state was the last word
                 await asyncio.sleep(LIVE_POLL_S)
 
@@ -236,7 +237,7 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *, access_token: 
         if summary.status == DAMAGED:
             return JSONResponse({"error": f"the run is {DAMAGED}: {summary.reason}"},
                                 status_code=500)  # fmt: skip
-        if summary.status != "running":
+        if summary.status != RunStatus.RUNNING:
             return JSONResponse({"error": "the run has ended"}, status_code=409)
         body = await request.body()  # the guard refused one over security.MAX_BODY bytes
         try:
@@ -252,7 +253,7 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *, access_token: 
     async def cage_page(request: Request) -> Response:
         return site.page(request, "cage.html", cage=cage_status(site.rig_config),
                          running=[r for r in list_summaries(site.runs_dir)
-                                  if r.status == "running"])  # fmt: skip
+                                  if r.status == RunStatus.RUNNING])  # fmt: skip
 
     async def lab_page(request: Request) -> Response:
         """/lab (runs), /lab/dut/SERIAL, /lab/trend?param=&lot=, /lab/audit."""
