@@ -13,7 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 from drivers.registry import output_kinds
 from rig.config import DeviceConfig, RigConfig
 from rig.devices import open_device
-from rig.engine.interlock import wire_link
+from rig.engine.wire_address import wire_link
 
 ATTEMPTS = 3
 """Tries per device when switching everything off (a port may still be held by a dying process)."""
