@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from rig.engine.run_tracker import RunTracker
 from rig.store.run_states import (
     ENDED,
     TRANSITIONS,
@@ -46,3 +47,26 @@ def test_the_table_covers_every_state_and_ends_are_final() -> None:
     assert check_transition(RunStatus.PAUSED, RunStatus.ABORTED) is RunStatus.ABORTED
     with pytest.raises(RunStateError, match="from running to running"):
         check_transition(RunStatus.RUNNING, RunStatus.RUNNING)
+
+
+def test_the_tracker_moves_only_along_the_table() -> None:
+    tracker = RunTracker()
+    assert tracker.state is RunStatus.RUNNING and not tracker.holding
+    with tracker.paused():
+        assert tracker.holding and tracker.state is RunStatus.PAUSED
+    assert tracker.state is RunStatus.RUNNING
+    tracker.to(RunStatus.ABORTED)
+    with pytest.raises(RunStateError, match="from aborted to running"):
+        tracker.to(RunStatus.RUNNING)
+    assert tracker.state is RunStatus.ABORTED
+
+
+def test_pause_and_abort_requests() -> None:
+    tracker = RunTracker()
+    tracker.toggle_pause()
+    assert tracker.pause_requested.is_set()
+    tracker.toggle_pause()
+    assert not tracker.pause_requested.is_set()
+    tracker.request_abort("aborted from the web page")
+    tracker.request_abort("stopped by SIGTERM")
+    assert tracker.abort_requested.is_set() and tracker.abort_reason == "aborted from the web page"
