@@ -46,7 +46,6 @@ from drivers.registry import output_kinds
 from rig.config import RigConfig
 from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.frozen_config import FrozenConfigError, freeze, thaw
-from rig.engine.switch_off import switch_off_every_output
 from rig.errors import RigError
 
 OUTPUT_KINDS = output_kinds()
@@ -203,6 +202,8 @@ def _how_it_ended(code: int) -> str:
 
 def safe_outputs(cfg: RigConfig) -> tuple[list[str], list[str]]:
     """Switch off every supply, load and relay board of ``cfg``: (devices, problems)."""
+    from rig.engine.switch_off import switch_off_every_output  # light to import the guardian
+
     return switch_off_every_output(cfg)
 
 
@@ -336,6 +337,7 @@ def read_config_line(fd: int) -> RigConfig:
 def main(argv: list[str]) -> int:
     """Entry point of ``python -m rig.engine.guardian RUN_FOLDER|- RIG_PID``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # only the pipe ends the guardian
+    import rig.engine.switch_off  # noqa: F401 - imported now, so acting after a death takes no import time
 
     try:
         cfg = read_config_line(sys.stdin.fileno())
