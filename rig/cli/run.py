@@ -13,7 +13,6 @@ from typing import Any
 
 from rig.cli.common import Parser, Subparsers, add_runs_dir, criterion_value, parse_sets
 from rig.errors import UserInputError
-from rig.store.run_states import RunStatus, Verdict
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
@@ -94,6 +93,8 @@ def auto_confirm(quiet: bool) -> Callable[[str], bool]:
 def summarize(outcome: Any, quiet: bool) -> None:
     """A short terminal summary of a finished run. With ``quiet`` only a run that did not complete
     says so: one line on stderr with its status and reason (``-q`` means errors only, not nothing)."""
+    from rig.store.run_states import RunStatus, Verdict  # here: building the parser stays light
+
     verdict = outcome.results.get("verdict")
     if quiet:
         if outcome.status != RunStatus.COMPLETE:
