@@ -13,6 +13,7 @@ from rig.calibration import Samples, calibrate
 from rig.calibration.estimators import DEFAULT_METHOD, estimator
 from rig.calibration.record import CalibrationRecord, SampleSelection
 from rig.errors import CalibrationError, UserInputError
+from rig.store.run_states import Verdict
 from rig.store.run_store import RunReader
 from rig.timing import MisdatedHold, misdated_note, misdated_samples, timing_fault
 
@@ -482,15 +483,17 @@ def evaluate_criteria(results: dict[str, Any], criteria: list[dict[str, Any]]) -
         try:
             value = lookup(results, c["result"], c["value"])
         except KeyError as exc:
-            rows.append({"name": name, "verdict": "FAIL", "reason": str(exc).strip("'\"")})
+            rows.append({"name": name, "verdict": Verdict.FAIL, "reason": str(exc).strip("'\"")})
             continue
         lo, hi = c.get("min"), c.get("max")
         ok = (lo is None or value >= lo) and (hi is None or value <= hi)
         margins = [value - lo] if lo is not None else []
         margins += [hi - value] if hi is not None else []
         rows.append({"name": name, "value": value, "unit": value_unit(str(c["value"])), "min": lo,
-                     "max": hi, "margin": min(margins), "verdict": "PASS" if ok else "FAIL"})  # fmt: skip
-    overall = "PASS" if rows and all(r["verdict"] == "PASS" for r in rows) else "FAIL"
+                     "max": hi, "margin": min(margins), "verdict": Verdict.PASS if ok else Verdict.FAIL})  # fmt: skip
+    overall = (
+        Verdict.PASS if rows and all(r["verdict"] == Verdict.PASS for r in rows) else Verdict.FAIL
+    )
     rerun = timing_faults(results, criteria)
     verdict: dict[str, Any] = {"criteria": rows, "overall": RERUN if rerun else overall}
     if rerun:
@@ -498,7 +501,7 @@ def evaluate_criteria(results: dict[str, Any], criteria: list[dict[str, Any]]) -
     return verdict
 
 
-RERUN = "RE-RUN"
+RERUN = Verdict.RERUN
 """The overall verdict of a run whose timing checks failed in a result a criterion judges: neither
 PASS nor FAIL can be given from it (ADR 0020)."""
 

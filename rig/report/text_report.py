@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from rig.analysis import value_unit
+from rig.store.run_states import ACCEPTANCE, RunStatus, Verdict
 from rig.store.seal import data_digest, read_seal
 
 
@@ -26,9 +27,14 @@ def seal_note(folder: Path, digest: str) -> str:
 
 
 def overall_verdict(meta: dict[str, Any], results: dict[str, Any]) -> str:
-    """PASS, FAIL or NO VERDICT for a closed run; a run that did not finish is never an acceptance."""
-    status = meta.get("status", "incomplete")
-    if status not in ("complete", "failed"):
+    """PASS, FAIL, RE-RUN or NO VERDICT for a closed run; a run that did not finish is never an
+    acceptance, and one whose data failed the timing checks is judged neither way."""
+    status = meta.get("status", RunStatus.INCOMPLETE)
+    if status == RunStatus.RERUN:
+        rerun = (results.get("verdict") or {}).get("rerun") or []
+        why = "; ".join(f"{r['result']}: {r['why']}" for r in rerun) or meta.get("reason", "")
+        return f"{Verdict.RERUN} - NOT JUDGED, RUN AGAIN ({why})"
+    if status not in ACCEPTANCE:
         return f"{str(status).upper()} RUN - NOT A VALID ACCEPTANCE"
     verdict = results.get("verdict")
     return str(verdict["overall"]) if verdict else "NO VERDICT"
