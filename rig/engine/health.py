@@ -94,9 +94,10 @@ class HealthMonitor:
                 if started <= time.monotonic() and ended >= t_asked:
                     continue  # the current changed while it was read: which one is it?
                 book.measured[name] = (t_asked, float(reading.i_out_a))
-                self.writer.add_channel(
-                    t_asked, name, book.commanded.get(name), float(reading.i_out_a)
-                )
+                self.writer.add_channel(  # known to within the exchange (ADR 0020)
+                    t_asked, name, book.commanded.get(name), float(reading.i_out_a),
+                    time.monotonic() - t_asked,
+                )  # fmt: skip
                 if reading.protection:
                     self.rig.fail(f"{name}: the output tripped ({reading.protection}) and is off;"
                                   " check the wiring and the load before running again")  # fmt: skip
@@ -124,8 +125,8 @@ class HealthMonitor:
             self.rig.check_coils(self._coil_read, self._not_answering)
 
     def _coil_read(self, t_asked: float, channel: str, amps: float) -> None:
-        self._unread.pop(channel, None)
-        self.writer.add_channel(t_asked, channel, None, amps)
+        self._unread.pop(channel, None)  # read now: known to within the exchange (ADR 0020)
+        self.writer.add_channel(t_asked, channel, None, amps, time.monotonic() - t_asked)
 
     def _not_answering(self, name: str, exc: Exception) -> None:
         """An output that did not answer a read-back (its link already retried): a warning the
