@@ -250,8 +250,10 @@ def _cage_lines(supplies: list[str], relays: list[str], mags: list[str]) -> list
         + " }",
         "# FILL IN: the polarity relay board (omit it when the supplies are bipolar)",
         f'polarity = "{relays[0]}"' if relays else '# polarity = "polarity1"',
-        "# FILL IN: the reference magnetometer (a calibrated one, not the DUT)",
-        f'reference = "{mags[0]}"' if mags else '# reference = "mag1"',
+        "# FILL IN: the reference magnetometer (a calibrated one, never the DUT). A scan cannot",
+        "# tell them apart: uncomment this line and name the reference"
+        + (f" ({' or '.join(mags)} answered)." if mags else "."),
+        f'# reference = "{mags[0] if mags else "mag1"}"',
         'calibration = "cage-calibration.json"   # written by `rig cage characterize`',
         "# FILL IN: the limits of your coils and supplies (these are conservative placeholders)",
         "max_current_a = [1.0, 1.0, 1.0]",
