@@ -114,6 +114,20 @@ class DeviceConfig:
         ``default`` is for optional keys without one (e.g. ``max_current_a``)."""
         return self.params.get(key, default)
 
+    @property
+    def where(self) -> str:
+        """Where the device is, for people: ``host:port id N``, ``/dev/ttyUSB0 id N``, a serial
+        port, or ``i2c bus N address 0xNN``."""
+        p = self.params
+        if self.protocol == "i2c":
+            address = p.get("address")
+            at = f" address {address:#04x}" if isinstance(address, int) else ""
+            return f"i2c bus {p.get('bus')}{at}"
+        place = f"{p['host']}:{p.get('port')}" if "host" in p else str(p.get("path", ""))
+        if self.protocol.startswith("modbus") and "device_id" in p:
+            place += f" id {p['device_id']}"
+        return place
+
 
 @dataclass(frozen=True)
 class CageConfig:

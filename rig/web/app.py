@@ -355,7 +355,7 @@ def cage_status(rig_config: Path | None) -> dict[str, Any] | None:
         return {"error": str(exc), "path": str(rig_config)}
     out: dict[str, Any] = {"path": str(rig_config), "devices": [
         {"name": d.name, "kind": d.kind, "protocol": d.protocol,
-         "where": str(d.params.get("port") or d.params.get("host") or d.params.get("bus") or "")}
+         "where": d.where}
         for d in cfg.devices.values()]}  # fmt: skip
     cage = cfg.cage
     if cage is not None:
