@@ -480,7 +480,12 @@ def _calibrate_run(args: argparse.Namespace) -> int:
         )
         width_s = 2.0 * float(np.median(np.diff(t_s))) if t_s.size > 1 else 0.1
         series = {ch: telemetry_series(reader, ch, width_s) for ch in args.delay}
-        locked = {ch: phase_locked_interval_s(load_commands(reader, ch), t_s) for ch in args.delay}
+        commands = {ch: load_commands(reader, ch) for ch in args.delay}
+        locked = {ch: phase_locked_interval_s(commands[ch], t_s) for ch in args.delay}
+        # when a command took effect is known only to within its write (issued .. answered):
+        # wide on a busy computer; that width enters the delay's sigma too (ADR 0020)
+        writes = {ch: float(np.median(np.diff(c[:, :2]))) if len(c) else 0.0
+                  for ch, c in commands.items()}  # fmt: skip
         temperature = None
         if args.temperature:
             samples, temperature, left_out = run_temperature(reader, args.temperature, samples, t_s)
@@ -500,6 +505,6 @@ def _calibrate_run(args: argparse.Namespace) -> int:
     if misdated and not args.quiet:
         judged = samples.n + unresolved + sum(m.samples for m in misdated)
         print(f"note: {misdated_note(misdated, judged)}", file=sys.stderr)
-    resolution = {ch: interval for ch, interval in locked.items() if interval is not None}
+    resolution = {ch: float(np.hypot(locked[ch] or 0.0, writes[ch])) for ch in args.delay}
     return _fit_and_emit(samples, args, times_s=t_s if args.delay else None, series=series,
                          temperature=temperature, delay_resolution_s=resolution)  # fmt: skip
