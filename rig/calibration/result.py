@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from rig.calibration.correlated import NoiseCheck, fit_noise_check
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
 from rig.calibration.params import Array, Calibration
 from rig.calibration.residuals import (
@@ -85,6 +86,9 @@ class CalibrationResult:
     history: FilterHistory | None = None
     profiled: ProfileFit | None = None
     temperature_ref: float | None = None
+    noise_check: NoiseCheck | None = None
+    """The residuals' whiteness and tails; when correlated, ``covariance`` and ``crlb`` hold for
+    that noise (ADR 0025)."""
 
     @property
     def sigma(self) -> Array:
@@ -218,6 +222,8 @@ class CalibrationResult:
             "warnings": list(self.warnings),
             "iterations": self.iterations,
         }
+        if self.noise_check is not None:
+            out["residual_whiteness"] = self.noise_check.to_dict()
         if self.profiled is not None:
             fit = self.profiled
             for prm, v, sig, crlb in zip(fit.params, fit.values, fit.sigma, fit.crlb_sigma,
@@ -320,6 +326,7 @@ def summarize(
         raw, jac = vector_residuals(est.p, s, est.rotation_ref)
         weighted = raw * np.repeat(np.sqrt(robust_w), 3)
         fisher = jac.T @ jac
+        vector_rows: tuple[Array, Array] | None = (raw, jac)
         corrected = cal.apply(s.measured_ut, s.telemetry if s.n_channels else None) - s.field_ut
         residuals_nt = 1000.0 * corrected.reshape(-1)
         floor_gain = float(np.linalg.norm(cal.correction_matrix) / np.sqrt(3.0))
@@ -329,6 +336,7 @@ def summarize(
         ne = scalar_normal_equations(est.p, s, noise_weighted=True, residuals_out=r)
         assert ne.gain is not None
         fisher, gain = ne.jtj, ne.gain
+        vector_rows = None
         weighted = r * np.sqrt(robust_w) / gain
         residuals_nt = 1000.0 * r
         floor_gain = float(np.sqrt(np.mean(gain**2)))
@@ -336,6 +344,10 @@ def summarize(
     sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - est.p.size, 1.0)))
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
     crlb = covariance_from_normal(fisher, noise_ut**2)
+    check, info, ratio = fit_noise_check(est.p, s, est.sample_weights, vector_rows, sigma_hat**2)
+    covariance = est.covariance * np.outer(check.inflation, check.inflation)
+    if info is not None:  # the bound for the same (correlated) noise: an AR model of it
+        crlb = covariance_from_normal(info, noise_ut**2 * ratio)
     sd = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
     corr = est.covariance / np.outer(sd, sd) - np.eye(sd.size)
     degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if sd.size > 1 else False
@@ -347,7 +359,7 @@ def summarize(
         calibration=cal,
         names=names,
         p=est.p,
-        covariance=est.covariance,
+        covariance=covariance,
         crlb=crlb,
         residuals_nt=residuals_nt,
         noise_nt=noise_nt,
@@ -357,8 +369,9 @@ def summarize(
         warnings=(),
         iterations=est.iterations,
         history=est.history,
+        noise_check=check,
     )
-    warnings = list(extra_warnings) + list(est.notes)
+    warnings = list(extra_warnings) + list(est.notes) + check.notes(est.sample_weights is not None)
     warnings += _warnings(result, s, est, noise_nt)
     return _replace_warnings(result, tuple(warnings))
 
