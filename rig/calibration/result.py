@@ -376,6 +376,28 @@ def summarize(
     return _replace_warnings(result, tuple(warnings))
 
 
+NEAR_ZERO = 0.05
+"""A channel value counts as near zero below this fraction of the channel's largest |value|."""
+
+
+def _offset_channel_advice(channel: str, u: Array) -> str:
+    """Why an offset and the coefficient of ``channel`` (values ``u``) correlate, as the data show
+    it: the channel's mean is large against its spread (the offset and ``k u`` then move alike)."""
+    top = float(np.max(np.abs(u)))
+    near = np.abs(u) <= NEAR_ZERO * top
+    spread = f"mean {float(np.mean(u)):.3g}, standard deviation {float(np.std(u)):.3g}"
+    if not np.any(near):
+        return (
+            f"channel '{channel}' never returns near zero (min |u| = {float(np.min(np.abs(u))):.3g},"
+            f" {spread}); record a segment with it at zero to separate offset and coefficient"
+        )
+    return (
+        f"channel '{channel}' is near zero in {100 * float(np.mean(near)):.0f} % of the samples"
+        f" ({spread}); more samples with it at zero (or of the opposite sign) separate offset and"
+        " coefficient"
+    )
+
+
 def _replace_warnings(result: CalibrationResult, warnings: tuple[str, ...]) -> CalibrationResult:
     from dataclasses import replace
 
@@ -411,11 +433,7 @@ def _warnings(
         other = a if k_name == b else b
         if k_name is not None and other in ("x0", "y0", "z0"):
             ch = k_name[2 : k_name.index("]")]
-            low = float(np.min(np.abs(s.telemetry[:, s.channels.index(ch)])))
-            msg += (
-                f": channel '{ch}' never returns near zero (min |u| = {low:.3g}); record a"
-                " segment with that channel at zero to separate offset and coefficient"
-            )
+            msg += ": " + _offset_channel_advice(ch, s.telemetry[:, s.channels.index(ch)])
         elif result.names.index(a) < ks and result.names.index(b) < ks:
             msg += ": cover more field directions and magnitudes"
         out.append(msg)
