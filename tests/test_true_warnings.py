@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from rig.calibration import Calibration, Samples, calibrate
 from rig.calibration.synthetic import cage_like
@@ -57,3 +58,27 @@ def test_a_scalar_fits_rotation_is_not_offered_as_a_mounting(tmp_path: Path) -> 
     for text, name in ((parm.read_text(), "COMPASS_ORIENT"), (params.read_text(), "CAL_MAG0_ROT")):
         line = next(x for x in text.splitlines() if x.startswith("# left out: rotation"))
         assert "not the mounting" in line and f"do not set {name} from it" in line, line
+
+
+@pytest.mark.parametrize(
+    ("extra", "said"),
+    [
+        (["--unit", "G", "--field-magnitude", "47"],
+         "47 G is 4700 uT, 67.1 times the strongest Earth field (70 uT)"),
+        (["--field-magnitude", "0.47"],
+         "0.47 uT is 1/42.6 of the weakest Earth field (20 uT)"),
+        (["--unit", "G", "--field-magnitude", "4.7"], "a scale of 0.199"),
+    ],
+)  # fmt: skip
+def test_an_implausible_field_names_both_readings(
+    extra: list[str], said: str, capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    args = ["calibrate", str(SPHERE), "--measured", "x,y,z", *extra]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and said in err and "--allow-implausible-field" in err, err
+    if "47" in extra:
+        assert "did you mean 47 uT? pass --field-unit uT" in err, err
+    if "0.47" in extra:
+        assert "did you mean 0.47 G? pass --unit G" in err, err
+    assert main(["-q", *args, "--allow-implausible-field"]) == 0
