@@ -15,9 +15,11 @@ See ``docs/devices.md``.
 
 from __future__ import annotations
 
+import copy
+import datetime as dt
 import math
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Literal
 
 from drivers.errors import DeviceError
@@ -42,8 +44,11 @@ WHOLE: tuple[type, ...] = (int,)
 NUMBER: tuple[type, ...] = (int, float)
 LIST: tuple[type, ...] = (list,)
 WHOLE_OR_TEXT: tuple[type, ...] = (int, str)
+DATE: tuple[type, ...] = (dt.date,)
+TABLE: tuple[type, ...] = (dict,)
 WANTED = {TEXT: "text", WHOLE: "a whole number", NUMBER: "a number", LIST: "a list",
-          WHOLE_OR_TEXT: "a whole number (or \"sim\")"}  # fmt: skip
+          WHOLE_OR_TEXT: "a whole number (or \"sim\")", DATE: "a TOML date (2026-01-15, no quotes)",
+          TABLE: "a table"}  # fmt: skip
 
 
 STANDARD_BAUDRATES: tuple[int, ...] = (
@@ -55,8 +60,10 @@ STANDARD_BAUDRATES: tuple[int, ...] = (
 
 @dataclass(frozen=True)
 class Param:
-    """One configuration key of a device: its accepted types, whether it must be given, a short
-    help text (shown in errors and in ``docs/devices.md``), and the values it accepts.
+    """One configuration key (of a device, the ``[cage]`` or the ``[lab]`` table): its accepted
+    types, whether it must be given, its default (filled in when the key is absent; None: no
+    default), a short help text and its ``unit`` (shown in errors and in ``docs/devices.md``), and
+    the values it accepts.
 
     The accepted values are stated here and nowhere else: ``low``/``high`` (inclusive bounds),
     ``above`` (an exclusive lower bound, e.g. 0 for a timeout), ``choices`` (a list of the
@@ -76,6 +83,7 @@ class Param:
     nonempty: bool = False
     why: str = ""
     fix: str = ""
+    unit: str = ""
 
     @property
     def wanted(self) -> str:
@@ -150,19 +158,20 @@ PATH = Param("path", TEXT, True, help="serial port, e.g. /dev/ttyUSB0 (or a pyse
 BAUDRATE = Param("baudrate", WHOLE, False, 115200, "baud rate", choices=STANDARD_BAUDRATES,
                  why="a standard baud rate",
                  fix="write the rate set on the device (its menu or manual shows it),"
-                     " e.g. baudrate = 9600")  # fmt: skip
+                     " e.g. baudrate = 9600", unit="Bd")  # fmt: skip
 MODBUS_ID_FIX = (
     "write the Modbus address set on the device (its menu or DIP switches show it),"
     " e.g. device_id = 1"
 )
-TIMEOUT = Param("timeout_s", NUMBER, False, 0.5, "reply timeout (s)", above=0.0,
-                fix="write the seconds to wait for a reply, e.g. timeout_s = 0.5")  # fmt: skip
+TIMEOUT = Param("timeout_s", NUMBER, False, 0.5, "reply timeout", above=0.0,
+                fix="write the seconds to wait for a reply, e.g. timeout_s = 0.5", unit="s")  # fmt: skip
 
 TRANSPORTS: dict[str, tuple[Param, ...]] = {
     "modbus-tcp": (
         Param("host", TEXT, True, help="IP address or host name", nonempty=True,
               fix='write the device\'s or gateway\'s address, e.g. host = "192.168.1.50"'),
-        Param("port", WHOLE, True, 502, "TCP port", low=1, high=65535, why="a TCP port",
+        Param("port", WHOLE, True, None, "the port the device listens on (Modbus TCP's own: 502)", low=1, high=65535,
+              why="a TCP port",
               fix="write the port the device listens on, e.g. port = 502 (Modbus TCP's own)"),
         Param("device_id", WHOLE, False, 1, "Modbus unit id", low=0, high=255,
               why="a Modbus TCP unit id: 1-247 picks a serial device behind a gateway; a device"
@@ -173,7 +182,7 @@ TRANSPORTS: dict[str, tuple[Param, ...]] = {
     "modbus-rtu": (
         PATH,
         BAUDRATE,
-        Param("parity", TEXT, False, "N", "N, E or O", choices=("N", "E", "O"),
+        Param("parity", TEXT, False, "N", "N (none), E (even) or O (odd)", choices=("N", "E", "O"),
               why="a parity (none, even, odd)", fix='write the parity set on the device, e.g. parity = "N"'),
         Param("device_id", WHOLE, False, 1, "Modbus device (slave) id", low=1, high=247,
               why="a Modbus RTU address: 0 is the broadcast address, which no device answers;"
@@ -183,7 +192,7 @@ TRANSPORTS: dict[str, tuple[Param, ...]] = {
     ),
     "serial": (
         PATH,
-        replace(BAUDRATE, default=None),  # the driver's own default
+        replace(BAUDRATE, default=None),  # each serial kind states its own (transport_keys)
     ),
     "i2c": (
         Param("address", WHOLE, True, help="7-bit I2C address, e.g. 0x20", low=0x08, high=0x77,
@@ -194,6 +203,15 @@ TRANSPORTS: dict[str, tuple[Param, ...]] = {
 }  # fmt: skip
 """Each transport's connection parameters."""
 
+RECORD_KEYS: tuple[Param, ...] = (
+    Param("serial", TEXT, help="the instrument's serial number (for the record and the lab index)"),
+    Param("calibrated_on", DATE, help="date of its calibration certificate (lab index)"),
+    Param("certificate_expires", DATE,
+          help="the certificate's expiry date (the lab index lists runs made after it)"),
+)  # fmt: skip
+"""Keys every kind accepts; no driver reads them: they are copied into each run folder and read by
+the lab index (``rig.lab.summary``, ``docs/lab.md``)."""
+
 
 def transport_param(protocol: str, name: str) -> Param:
     """One connection parameter of a transport, e.g. ``transport_param("modbus-tcp", "port")``."""
@@ -202,8 +220,9 @@ def transport_param(protocol: str, name: str) -> Param:
 
 @dataclass(frozen=True)
 class OpenSpec:
-    """What a kind's ``open`` gets: the device's name, transport and parameters (defaults not yet
-    applied), and for I2C the bus (a number or an smbus2-compatible object)."""
+    """What a kind's ``open`` gets: the device's name, transport and parameters (the registered
+    opener fills in the declared defaults), and for I2C the bus (a number or an smbus2-compatible
+    object)."""
 
     name: str
     protocol: str
@@ -257,9 +276,11 @@ Prober = Callable[[ProbeTarget], list[Found]]
 class DeviceKind:
     """A registered kind of device.
 
-    ``open`` builds the driver; ``probe`` (optional) recognizes the device on a bring-up target of
-    one of ``transports`` at each of ``probe_baudrates`` (serial lines only); ``probe_first``
-    kinds are tried before the others on a serial port (a passive listen before any request).
+    ``open`` builds the driver from a spec whose declared defaults are filled in; ``probe``
+    (optional) recognizes the device on a bring-up target of one of ``transports`` at each of
+    ``probe_baudrates`` (serial lines only); ``probe_first`` kinds are tried before the others on a
+    serial port (a passive listen before any request). ``transport_keys`` holds this kind's own
+    version of a transport key (the HMR2300's baud rate defaults to 9600 Bd).
     """
 
     name: str
@@ -271,6 +292,7 @@ class DeviceKind:
     probe: Prober | None = None
     probe_baudrates: tuple[int, ...] = ()
     probe_first: bool = False
+    transport_keys: Mapping[str, Param] = field(default_factory=dict)
 
     @property
     def is_output(self) -> bool:
@@ -278,22 +300,35 @@ class DeviceKind:
         return bool(self.roles & OUTPUT_ROLES)
 
     def param_specs(self, protocol: str) -> tuple[Param, ...]:
-        """The transport's parameters followed by the kind's own."""
-        return TRANSPORTS[protocol] + self.params
+        """Every key a device of this kind over ``protocol`` accepts: the transport's (with this
+        kind's defaults), the kind's own, then :data:`RECORD_KEYS`."""
+        transport = tuple(self.transport_keys.get(p.name, p) for p in TRANSPORTS[protocol])
+        return transport + self.params + RECORD_KEYS
+
+    def defaults(self, protocol: str) -> dict[str, Any]:
+        """The declared defaults over ``protocol`` (keys without one are left out), fresh copies."""
+        return {p.name: copy.copy(p.default) for p in self.param_specs(protocol)
+                if p.default is not None}  # fmt: skip
 
 
 KINDS: dict[str, DeviceKind] = {}
 
 
 def register(kind: DeviceKind) -> DeviceKind:
-    """Add a kind (its name must be new; its transports must be known)."""
+    """Add a kind (its name must be new; its transports must be known). Its opener is wrapped so
+    that it always sees the declared defaults, however the spec was made."""
     if kind.name in KINDS:
         raise ValueError(f"device kind '{kind.name}' is registered twice")
     unknown = set(kind.transports) - set(TRANSPORTS)
     if unknown:
         raise ValueError(f"device kind '{kind.name}': unknown transports {sorted(unknown)}")
-    KINDS[kind.name] = kind
-    return kind
+    opener = kind.open
+
+    def open_with_defaults(spec: OpenSpec) -> Any:
+        return opener(replace(spec, params=kind.defaults(spec.protocol) | dict(spec.params)))
+
+    KINDS[kind.name] = replace(kind, open=open_with_defaults)
+    return KINDS[kind.name]
 
 
 def get_kind(name: str) -> DeviceKind:
@@ -314,7 +349,7 @@ def output_kinds() -> tuple[str, ...]:
 def all_params() -> dict[str, Param]:
     """Every parameter any transport or kind declares, by name (one type per name)."""
     out: dict[str, Param] = {}
-    for params in [*TRANSPORTS.values(), *(k.params for k in KINDS.values())]:
+    for params in [*TRANSPORTS.values(), *(k.params for k in KINDS.values()), RECORD_KEYS]:
         for p in params:
             out.setdefault(p.name, p)
     return out
@@ -323,16 +358,22 @@ def all_params() -> dict[str, Param]:
 # --- helpers the openers share -------------------------------------------------------------------
 
 
-def modbus_link(spec: OpenSpec, *, baudrate: int = 115200, timeout_s: float = 0.5,
-                retries: int = 2) -> ModbusLink:  # fmt: skip
-    """The Modbus link of a ``modbus-tcp`` or ``modbus-rtu`` device."""
-    timeout = float(spec.get("timeout_s", timeout_s))
-    device_id = int(spec.get("device_id", 1))
+def transport_defaults(protocol: str) -> dict[str, Any]:
+    """The declared defaults of a transport's keys (for a link opened outside a kind's opener)."""
+    return {p.name: p.default for p in TRANSPORTS[protocol] if p.default is not None}
+
+
+def modbus_link(spec: OpenSpec, *, baudrate: int | None = None, retries: int = 2) -> ModbusLink:
+    """The Modbus link of a ``modbus-tcp`` or ``modbus-rtu`` device (declared defaults applied);
+    ``baudrate`` is the rate when the spec gives none (a register map's factory rate)."""
+    p = transport_defaults(spec.protocol) | {k: v for k, v in spec.params.items() if v is not None}
+    timeout, device_id = float(p["timeout_s"]), int(p["device_id"])
     if spec.protocol == "modbus-tcp":
-        return ModbusLink(name=spec.name, host=str(spec.get("host")), port=int(spec.get("port", 502)),
+        return ModbusLink(name=spec.name, host=str(p["host"]), port=int(p["port"]),
                           device_id=device_id, timeout_s=timeout, retries=retries)  # fmt: skip
-    return ModbusLink(name=spec.name, path=str(spec.get("path")), baudrate=int(spec.get("baudrate", baudrate)),
-                      parity=str(spec.get("parity", "N")), device_id=device_id, timeout_s=timeout,
+    rate = spec.get("baudrate") or baudrate or p["baudrate"]
+    return ModbusLink(name=spec.name, path=str(p["path"]), baudrate=int(rate),
+                      parity=str(p["parity"]), device_id=device_id, timeout_s=timeout,
                       retries=retries)  # fmt: skip
 
 
@@ -357,11 +398,11 @@ def _open_riden(spec: OpenSpec) -> RidenSupply:
 
 
 def _probe_link(target: ProbeTarget, name: str, baudrate: int | None = None) -> ModbusLink:
-    params = dict(target.params)
+    params = dict(target.params) | {"timeout_s": target.timeout_s}
     if baudrate is not None:
         params["baudrate"] = baudrate
     spec = OpenSpec(f"scan:{name}", target.protocol, params)
-    return modbus_link(spec, timeout_s=target.timeout_s, retries=0)
+    return modbus_link(spec, retries=0)
 
 
 def _connection(target: ProbeTarget) -> dict[str, Any]:
@@ -394,7 +435,7 @@ def _probe_riden(target: ProbeTarget) -> list[Found]:
 def _mapped(spec: OpenSpec) -> tuple[ModbusLink, RegisterMap]:
     """A register-map device's map and its Modbus link (the map's baud rate unless given)."""
     regmap = load_map(str(spec.get("regmap")))
-    return modbus_link(spec, baudrate=regmap.baudrate or 115200), regmap
+    return modbus_link(spec, baudrate=regmap.baudrate), regmap
 
 
 def _open_mapped_supply(spec: OpenSpec) -> MappedSupply:
@@ -453,7 +494,7 @@ def _map_bauds(map_kind: str) -> tuple[int, ...]:
 
 def _open_hmr2300(spec: OpenSpec) -> Hmr2300:
     device_id = spec.get("device_id")
-    return Hmr2300(str(spec.get("path")), baudrate=int(spec.get("baudrate", 9600)),
+    return Hmr2300(str(spec.get("path")), baudrate=int(spec.get("baudrate")),
                    device_id=None if device_id is None else int(device_id), name=spec.name)  # fmt: skip
 
 
@@ -475,12 +516,12 @@ def _probe_hmr2300(target: ProbeTarget) -> list[Found]:
 
 
 def _open_ascii(spec: OpenSpec) -> AsciiLineMagnetometer:
-    columns = tuple(int(c) for c in spec.get("columns", (0, 1, 2)))
+    columns = tuple(int(c) for c in spec.get("columns"))
     if len(columns) != 3:
         raise ValueError(f"device '{spec.name}': columns must name 3 columns, e.g. [0, 1, 2]")
     fmt = LineFormat(delimiter=spec.get("delimiter"), columns=(columns[0], columns[1], columns[2]),
-                     scale_to_ut=float(spec.get("scale_to_ut", 1.0)))  # fmt: skip
-    return AsciiLineMagnetometer(str(spec.get("path")), baudrate=int(spec.get("baudrate", 115200)),
+                     scale_to_ut=float(spec.get("scale_to_ut")))  # fmt: skip
+    return AsciiLineMagnetometer(str(spec.get("path")), baudrate=int(spec.get("baudrate")),
                                  fmt=fmt, name=spec.name)  # fmt: skip
 
 
@@ -507,8 +548,7 @@ def _probe_ascii(target: ProbeTarget) -> list[Found]:
 
 
 def _i2c_bus(spec: OpenSpec) -> Any:
-    bus = spec.get("bus", 1)
-    return spec.i2c_bus if spec.i2c_bus is not None else int(bus)
+    return spec.i2c_bus if spec.i2c_bus is not None else int(spec.get("bus"))
 
 
 def _probe_i2c(kind_name: str, model: str, addresses: tuple[int, ...], register: int,
@@ -534,88 +574,101 @@ def _probe_i2c(kind_name: str, model: str, addresses: tuple[int, ...], register:
     return probe
 
 
-def _iter_registered() -> Iterator[DeviceKind]:
-    supply_params = (
-        Param("max_current_a", NUMBER, help="current limit (A), below the device's own",
-              above=0.0, fix="write the largest current this rig may ask for, e.g. max_current_a = 2.0"),
-        Param("max_voltage_v", NUMBER, help="voltage limit (V), below the device's own",
-              above=0.0, fix="write the largest voltage this rig may ask for, e.g. max_voltage_v = 24.0"),
-        Param("compliance_v", NUMBER, False, 12.0, "voltage set-point when used as a load (V)",
-              above=0.0, fix="write the voltage set-point for use as a load, e.g. compliance_v = 12.0"),
-    )  # fmt: skip
-    regmap = Param("regmap", TEXT, True,
-                   help="a register-map file or a shipped map name, e.g. \"maynuo-m97\"")  # fmt: skip
-    mag_params = (
-        Param("rate_hz", NUMBER, False, 20.0, "sample rate (Hz)", above=0.0,
-              fix="write the samples per second, e.g. rate_hz = 20"),
-        Param("correction_matrix", LIST, help="calibration certificate: 3x3 matrix"),
-        Param("correction_offset_ut", LIST, help="calibration certificate: offset (uT)"),
-        Param("stuck_after", WHOLE, False, 60, "identical readings in a row that mean a frozen"
-              " sensor (0 = never judged)", low=0, high=1_000_000,
-              fix="write a whole number of readings, e.g. stuck_after = 60 (3 s at 20 Hz)"),
-    )  # fmt: skip
-    current_range = Param(
-        "current_range", WHOLE, help="RD6012P only: 0 = the 6 A range (0.1 mA), 1 = 12 A (1 mA)",
-        choices=(0, 1), fix="write current_range = 0 (6 A, finer) or 1 (12 A)",
-    )  # fmt: skip
+# --- the kinds ----------------------------------------------------------------------------------
+
+SUPPLY_PARAMS: tuple[Param, ...] = (
+    Param("max_current_a", NUMBER, help="current limit, below the device's own", above=0.0,
+          fix="write the largest current this rig may ask for, e.g. max_current_a = 2.0", unit="A"),
+    Param("max_voltage_v", NUMBER, help="voltage limit, below the device's own", above=0.0,
+          fix="write the largest voltage this rig may ask for, e.g. max_voltage_v = 24.0", unit="V"),
+    Param("compliance_v", NUMBER, False, 12.0, "voltage set-point when used as a load", above=0.0,
+          fix="write the voltage set-point for use as a load, e.g. compliance_v = 12.0", unit="V"),
+)  # fmt: skip
+"""The limits every supply and load accepts."""
+REGMAP = Param("regmap", TEXT, True,
+               help="a register-map file or a shipped map name, e.g. \"maynuo-m97\"")  # fmt: skip
+MAP_BAUD = {"baudrate": replace(BAUDRATE, default=None,
+                                help="baud rate (default: the register map's factory rate)")}  # fmt: skip
+"""A register-map device's baud rate defaults to its map's (``[device].baudrate``)."""
+CURRENT_RANGE = Param(
+    "current_range", WHOLE, help="RD6012P only: 0 = the 6 A range (0.1 mA), 1 = 12 A (1 mA); written to"
+                            " register 20 at open",
+    choices=(0, 1), fix="write current_range = 0 (6 A, finer) or 1 (12 A)",
+)  # fmt: skip
+MAG_PARAMS: tuple[Param, ...] = (
+    Param("rate_hz", NUMBER, False, 20.0, "sample rate", above=0.0,
+          fix="write the samples per second, e.g. rate_hz = 20", unit="Hz"),
+    Param("correction_matrix", LIST, help="calibration certificate: 3x3 matrix"),
+    Param("correction_offset_ut", LIST, help="calibration certificate: offset", unit="uT"),
+    Param("stuck_after", WHOLE, False, 60, "identical readings in a row that mean a frozen"
+          " sensor (0 = never judged)", low=0, high=1_000_000,
+          fix="write a whole number of readings, e.g. stuck_after = 60 (3 s at 20 Hz)"),
+)  # fmt: skip
+"""The keys every magnetometer accepts."""
+HMR2300_ID = Param("device_id", WHOLE, help="HMR2300 ID 00-98 (asked with *99ID= when absent)",
+                   low=0, high=98, why="HMR2300 ids; 99 is its broadcast id",
+                   fix="write the id the sensor answers *99ID= with, or leave device_id out")  # fmt: skip
+ASCII_PARAMS: tuple[Param, ...] = (
+    Param("delimiter", TEXT, help="column separator (whitespace when absent)"),
+    Param("columns", LIST, False, [0, 1, 2], "x, y, z column numbers"),
+    Param("scale_to_ut", NUMBER, False, 1.0, "multiplier from the line's unit to uT"),
+)
+
+
+def _modbus_kinds() -> Iterator[DeviceKind]:
+    """Supplies, loads, relay boards and thermometers on Modbus."""
+    modbus = ("modbus-tcp", "modbus-rtu")
     yield DeviceKind(
-        "riden-rd60xx", frozenset({"supply", "load"}), ("modbus-tcp", "modbus-rtu"),
-        (*supply_params, current_range), _open_riden, "Riden RD60xx bench supply (RD6006, RD6006P, RK6006, RD6012, RD6012P, RD6018, RD6024, RD6030)",
-        _probe_riden, (115200, 9600),
+        "riden-rd60xx", frozenset({"supply", "load"}), modbus, (*SUPPLY_PARAMS, CURRENT_RANGE),
+        _open_riden, "Riden RD60xx bench supply (RD6006, RD6006P, RK6006, RD6012, RD6012P, RD6018,"
+        " RD6024, RD6030)", _probe_riden, (115200, 9600),
     )  # fmt: skip
-    yield DeviceKind(
-        "regmap-supply", frozenset({"supply", "load"}), ("modbus-tcp", "modbus-rtu"),
-        (regmap, *supply_params), _open_mapped_supply,
-        "Modbus supply described by a register map (regmaps/)",
-        _probe_maps("regmap-supply", "supply"), _map_bauds("supply"),
+    map_kinds: tuple[tuple[str, frozenset[Role], str, tuple[Param, ...], Opener, str], ...] = (
+        ("regmap-supply", frozenset({"supply", "load"}), "supply", (REGMAP, *SUPPLY_PARAMS),
+         _open_mapped_supply, "Modbus supply described by a register map (regmaps/)"),
+        ("regmap-eload", frozenset({"load"}), "eload", (REGMAP, *SUPPLY_PARAMS),
+         _open_mapped_supply, "Modbus electronic load described by a register map (regmaps/)"),
+        ("regmap-relay", frozenset({"relay"}), "relay", (REGMAP,), _open_relay,
+         "Modbus polarity relay board described by a register map"),
+        ("regmap-thermometer", frozenset({"thermometer"}), "thermometer", (REGMAP,),
+         _open_thermometer, "Modbus temperature module (RTD, thermocouple) described by a"
+         " register map: recorded through every run (the DUT's temperature)"),
     )  # fmt: skip
+    for name, roles, map_kind, params, opener, description in map_kinds:
+        yield DeviceKind(name, roles, modbus, params, opener, description,
+                         _probe_maps(name, map_kind), _map_bauds(map_kind),
+                         transport_keys=MAP_BAUD)  # fmt: skip
+
+
+def _magnetometer_kinds() -> Iterator[DeviceKind]:
+    """Magnetometers on a serial line or I2C."""
     yield DeviceKind(
-        "regmap-eload", frozenset({"load"}), ("modbus-tcp", "modbus-rtu"),
-        (regmap, *supply_params), _open_mapped_supply,
-        "Modbus electronic load described by a register map (regmaps/)",
-        _probe_maps("regmap-eload", "eload"), _map_bauds("eload"),
-    )  # fmt: skip
-    yield DeviceKind(
-        "regmap-relay", frozenset({"relay"}), ("modbus-tcp", "modbus-rtu"), (regmap,),
-        _open_relay, "Modbus polarity relay board described by a register map",
-        _probe_maps("regmap-relay", "relay"), _map_bauds("relay"),
-    )  # fmt: skip
-    yield DeviceKind(
-        "regmap-thermometer", frozenset({"thermometer"}), ("modbus-tcp", "modbus-rtu"), (regmap,),
-        _open_thermometer, "Modbus temperature module (RTD, thermocouple) described by a register"
-        " map: recorded through every run (the DUT's temperature)",
-        _probe_maps("regmap-thermometer", "thermometer"), _map_bauds("thermometer"),
-    )  # fmt: skip
-    yield DeviceKind(
-        "hmr2300", frozenset({"magnetometer"}), ("serial",),
-        (Param("device_id", WHOLE, help="HMR2300 ID 00-98 (asked with *99ID= when absent)",
-               low=0, high=98, why="HMR2300 ids; 99 is its broadcast id",
-               fix="write the id the sensor answers *99ID= with, or leave device_id out"),
-         *mag_params),
+        "hmr2300", frozenset({"magnetometer"}), ("serial",), (HMR2300_ID, *MAG_PARAMS),
         _open_hmr2300, "Honeywell HMR2300 smart magnetometer (RS-232/RS-485)",
-        _probe_hmr2300, (9600, 19200),
+        _probe_hmr2300, (9600, 19200), transport_keys={"baudrate": replace(BAUDRATE, default=9600)},
     )  # fmt: skip
     yield DeviceKind(
-        "ascii-mag", frozenset({"magnetometer"}), ("serial",),
-        (Param("delimiter", TEXT, help="column separator (whitespace when absent)"),
-         Param("columns", LIST, False, [0, 1, 2], "x, y, z column numbers"),
-         Param("scale_to_ut", NUMBER, False, 1.0, "multiplier from the line's unit to uT"),
-         *mag_params),
+        "ascii-mag", frozenset({"magnetometer"}), ("serial",), (*ASCII_PARAMS, *MAG_PARAMS),
         _open_ascii, "magnetometer sending one text line per sample (x y z)",
-        _probe_ascii, (115200,), probe_first=True,
+        _probe_ascii, (115200,), probe_first=True, transport_keys={"baudrate": BAUDRATE},
     )  # fmt: skip
     yield DeviceKind(
-        "rm3100", frozenset({"magnetometer"}), ("i2c",), mag_params,
-        lambda s: Rm3100(_i2c_bus(s), int(s.get("address", 0x20)), name=s.name),
+        "rm3100", frozenset({"magnetometer"}), ("i2c",), MAG_PARAMS,
+        lambda s: Rm3100(_i2c_bus(s), int(s.get("address")), name=s.name),
         "PNI RM3100 on I2C", _probe_i2c("rm3100", "RM3100", (0x20, 0x21, 0x22, 0x23), REVID,
                                         REVID_VALUE),
     )  # fmt: skip
     yield DeviceKind(
-        "lis3mdl", frozenset({"magnetometer"}), ("i2c",), mag_params,
-        lambda s: Lis3mdl(_i2c_bus(s), int(s.get("address", 0x1C)), name=s.name),
+        "lis3mdl", frozenset({"magnetometer"}), ("i2c",), MAG_PARAMS,
+        lambda s: Lis3mdl(_i2c_bus(s), int(s.get("address")), name=s.name),
         "ST LIS3MDL on I2C", _probe_i2c("lis3mdl", "LIS3MDL", (0x1C, 0x1E), WHO_AM_I,
                                         WHO_AM_I_VALUE),
     )  # fmt: skip
+
+
+def _iter_registered() -> Iterator[DeviceKind]:
+    yield from _modbus_kinds()
+    yield from _magnetometer_kinds()
 
 
 for _kind in _iter_registered():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Collection
+from dataclasses import replace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -10,7 +11,9 @@ import numpy.typing as npt
 
 from rig.calibration import Samples, calibrate
 from rig.calibration.estimators import DEFAULT_METHOD, estimator
+from rig.calibration.record import CalibrationRecord, SampleSelection
 from rig.errors import CalibrationError, UserInputError
+from rig.store.run_states import Verdict
 from rig.store.run_store import RunReader
 from rig.timing import MisdatedHold, misdated_note, misdated_samples, timing_fault
 
@@ -329,21 +332,44 @@ def stored_run_data(
     field_kinds: Collection[str],
 ) -> PairedSamples:
     """:func:`calibration_data` of every field step (``field_kinds``: rig.steps.field_kinds())
-    of a finished run, with the DUT, reference and reference certificate its metadata recorded."""
+    of a finished run, with the DUT, reference and reference certificate its metadata recorded
+    (``rig calibrate RUN``: a new fit of the whole run)."""
     meta = reader.meta()
     mags = meta.get("magnetometers", {"dut": "dut", "reference": "reference"})
     return calibration_data(reader, mags.get("dut", "dut"), mags.get("reference", "reference"), telemetry,
                             [], settle_s, meta.get("reference_correction"), field_kinds)  # fmt: skip
 
 
+def selected_data(
+    reader: RunReader,
+    record: CalibrationRecord,
+    *,
+    field_kinds: Collection[str],
+    telemetry: list[str] | None = None,
+) -> PairedSamples:
+    """The samples a stored calibration was fitted on, selected again from its own stored
+    selection (steps, settling, exclusions); ``telemetry``: other channels (``[]``: none) for a
+    comparison on the same samples. A result recorded before results named their selection:
+    every field step settled 0.25 s, as the report then did."""
+    channels = list(record.channels) if telemetry is None else telemetry
+    sel = record.selection
+    if sel is None:
+        return stored_run_data(reader, channels, field_kinds=field_kinds)
+    return calibration_data(reader, sel.dut, sel.reference, channels, list(sel.steps), sel.settle_s,
+                            reader.meta().get("reference_correction"), field_kinds)  # fmt: skip
+
+
 def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict[str, str],
                   correction: dict[str, Any] | None, field_kinds: Collection[str]) -> dict[str, Any]:  # fmt: skip
     """The ``calibrate`` step: fit the DUT from the run so far (the named steps, or every step of
-    ``field_kinds``); returns the result file content."""
+    ``field_kinds``); returns the result file content, with the selection it was fitted on."""
     dut = magnetometers.get(params["magnetometer"], params["magnetometer"])
+    reference = magnetometers.get("reference", "reference")
+    steps = [n for _, n, k, _, t1 in reader.steps() if t1 is not None
+             and ((params["steps"] and n in params["steps"]) or (not params["steps"] and k in field_kinds))]  # fmt: skip
     samples, t_s, unresolved, misdated = calibration_data(
-        reader, dut, magnetometers.get("reference", "reference"), params["telemetry"],
-        params["steps"], params["settle_s"], correction, field_kinds)  # fmt: skip
+        reader, dut, reference, params["telemetry"], params["steps"], params["settle_s"],
+        correction, field_kinds)  # fmt: skip
     method = params["method"] or DEFAULT_METHOD[params["model"]]
     if params["model"] == "scalar" and estimator(method).model == "vector":
         raise CalibrationError(f"a scalar calibration cannot use method '{method}'")
@@ -352,23 +378,26 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
         samples, temperature, no_temperature = run_temperature(
             reader, params["temperature"], samples, t_s
         )
-    out = calibrate(samples, method, noise_nt=params["noise_nt"] or None, temperature=temperature,
-                    temperature_ref=params.get("temperature_ref_c")).to_dict()  # fmt: skip
-    out["unresolved_field_samples"] = unresolved
-    out["misdated_samples"] = int(sum(m.samples for m in misdated))
-    out["timing_error_s"] = float(max((abs(m.early_s) for m in misdated), default=0.0))
+    fit = calibrate(samples, method, noise_nt=params["noise_nt"] or None, temperature=temperature,
+                    temperature_ref=params.get("temperature_ref_c"))  # fmt: skip
+    n_misdated = int(sum(m.samples for m in misdated))
+    fault = timing_fault(misdated, samples.n + unresolved + n_misdated) if misdated else None
+    selection = SampleSelection(tuple(steps), float(params["settle_s"]), tuple(params["telemetry"]),
+                                dut, reference, unresolved, n_misdated,
+                                float(max((abs(m.early_s) for m in misdated), default=0.0)),
+                                fault)  # fmt: skip
+    warnings = list(fit.warnings)
     if no_temperature:
-        out["warnings"].insert(0, f"{no_temperature} samples left out: no {params['temperature']}"
-                               f" reading within {MAX_TEMPERATURE_GAP_S:g} s")  # fmt: skip
+        warnings.insert(0, f"{no_temperature} samples left out: no {params['temperature']}"
+                        f" reading within {MAX_TEMPERATURE_GAP_S:g} s")  # fmt: skip
     if unresolved:
-        out["warnings"].insert(0, unresolved_note(unresolved, samples.n + unresolved))
+        warnings.insert(0, unresolved_note(unresolved, samples.n + unresolved))
     if misdated:
-        judged = samples.n + unresolved + out["misdated_samples"]
-        out["warnings"].insert(0, misdated_note(misdated, judged))
-        if (fault := timing_fault(misdated, judged)) is not None:
-            out["timing_fault"] = fault
-            out["warnings"].insert(0, fault)
-    return out
+        warnings.insert(0, misdated_note(misdated, samples.n + unresolved + selection.misdated))
+    if fault is not None:
+        warnings.insert(0, fault)
+    record = CalibrationRecord.from_dict(fit.to_dict())
+    return replace(record, selection=selection, warnings=tuple(warnings)).to_dict()
 
 
 MAX_TEMPERATURE_GAP_S = 3.0
@@ -454,15 +483,17 @@ def evaluate_criteria(results: dict[str, Any], criteria: list[dict[str, Any]]) -
         try:
             value = lookup(results, c["result"], c["value"])
         except KeyError as exc:
-            rows.append({"name": name, "verdict": "FAIL", "reason": str(exc).strip("'\"")})
+            rows.append({"name": name, "verdict": Verdict.FAIL, "reason": str(exc).strip("'\"")})
             continue
         lo, hi = c.get("min"), c.get("max")
         ok = (lo is None or value >= lo) and (hi is None or value <= hi)
         margins = [value - lo] if lo is not None else []
         margins += [hi - value] if hi is not None else []
         rows.append({"name": name, "value": value, "unit": value_unit(str(c["value"])), "min": lo,
-                     "max": hi, "margin": min(margins), "verdict": "PASS" if ok else "FAIL"})  # fmt: skip
-    overall = "PASS" if rows and all(r["verdict"] == "PASS" for r in rows) else "FAIL"
+                     "max": hi, "margin": min(margins), "verdict": Verdict.PASS if ok else Verdict.FAIL})  # fmt: skip
+    overall = (
+        Verdict.PASS if rows and all(r["verdict"] == Verdict.PASS for r in rows) else Verdict.FAIL
+    )
     rerun = timing_faults(results, criteria)
     verdict: dict[str, Any] = {"criteria": rows, "overall": RERUN if rerun else overall}
     if rerun:
@@ -470,7 +501,7 @@ def evaluate_criteria(results: dict[str, Any], criteria: list[dict[str, Any]]) -
     return verdict
 
 
-RERUN = "RE-RUN"
+RERUN = Verdict.RERUN
 """The overall verdict of a run whose timing checks failed in a result a criterion judges: neither
 PASS nor FAIL can be given from it (ADR 0020)."""
 

@@ -237,19 +237,9 @@ def device_names(found: list[Found]) -> list[str]:
     return names
 
 
-def skeleton(found: list[Found], unknown: Iterable[Unknown] = ()) -> str:
-    """A rig configuration (TOML) for what answered; it loads as is, and the cage section says
-    what the user must check and fill in."""
-    names = device_names(found)
-    supplies = [n for n, f in zip(names, found, strict=True) if "supply" in KINDS[f.kind].roles]
-    relays = [n for n, f in zip(names, found, strict=True) if "relay" in KINDS[f.kind].roles]
-    mags = [n for n, f in zip(names, found, strict=True) if "magnetometer" in KINDS[f.kind].roles]
-    stamp = time.strftime("%Y-%m-%d %H:%M")
-    lines = [
-        f"# Rig configuration written by `rig devices scan` on {stamp}.",
-        "# The devices below answered; check the names and which one does what.",
-        "",
-    ]
+def _cage_lines(supplies: list[str], relays: list[str], mags: list[str]) -> list[str]:
+    """The ``[cage]`` section of a skeleton, commented out when fewer than three supplies
+    answered (keys as declared in :data:`rig.config.CAGE_KEYS`)."""
     cage = [
         "[cage]",
         "# FILL IN: which supply drives which coil axis (supplies found: "
@@ -260,8 +250,10 @@ def skeleton(found: list[Found], unknown: Iterable[Unknown] = ()) -> str:
         + " }",
         "# FILL IN: the polarity relay board (omit it when the supplies are bipolar)",
         f'polarity = "{relays[0]}"' if relays else '# polarity = "polarity1"',
-        "# FILL IN: the reference magnetometer (a calibrated one, not the DUT)",
-        f'reference = "{mags[0]}"' if mags else '# reference = "mag1"',
+        "# FILL IN: the reference magnetometer (a calibrated one, never the DUT). A scan cannot",
+        "# tell them apart: uncomment this line and name the reference"
+        + (f" ({' or '.join(mags)} answered)." if mags else "."),
+        f'# reference = "{mags[0] if mags else "mag1"}"',
         'calibration = "cage-calibration.json"   # written by `rig cage characterize`',
         "# FILL IN: the limits of your coils and supplies (these are conservative placeholders)",
         "max_current_a = [1.0, 1.0, 1.0]",
@@ -273,42 +265,68 @@ def skeleton(found: list[Found], unknown: Iterable[Unknown] = ()) -> str:
         "",
     ]
     if len(supplies) >= 3:
-        lines += cage
-    else:
-        lines += ["# No cage section: fewer than three supplies answered. When the coil supplies are",
-                  "# connected, scan again or write it by hand:"]  # fmt: skip
-        lines += [f"# {ln}" if ln and not ln.startswith("#") else ln for ln in cage]
+        return cage
+    return [
+        "# No cage section: fewer than three supplies answered. When the coil supplies are",
+        "# connected, scan again or write it by hand:",
+        *(f"# {ln}" if ln and not ln.startswith("#") else ln for ln in cage),
+    ]
+
+
+def _found_lines(name: str, f: Found) -> list[str]:
+    """The ``[devices.NAME]`` table of a device that answered, with the keys to fill in."""
+    lines = [
+        f"[devices.{name}]   # {f.model}"
+        + (f", serial {f.serial}" if f.serial else "")
+        + f" at {f.where}",
+        f'kind = "{f.kind}"',
+        f'protocol = "{f.protocol}"',
+    ]
+    for key, value in f.params.items():
+        lines.append(
+            f"address = 0x{int(value):02X}" if key == "address" else f"{key} = {_value(value)}"
+        )
+    kind = KINDS[f.kind]
+    if kind.is_output and "max_current_a" in {p.name for p in kind.params}:
+        lines.append("# max_current_a = 2.0   # FILL IN: the current limit of what it drives (A)")
+    if "magnetometer" in kind.roles:
+        lines.append("# rate_hz = 20.0        # the rate to sample it at (Hz)")
+    return [*lines, ""]
+
+
+def _unknown_lines(i: int, u: Unknown) -> list[str]:
+    """A commented-out ``[devices.modbusN]`` table for a Modbus device no map recognized."""
+    return [
+        f"# A Modbus device answered at {u.where} but no register map recognized it",
+        "# (a relay board has no model register). FILL IN its kind and map, then uncomment:",
+        f"# [devices.modbus{i}]",
+        '# kind = "regmap-relay"          # or regmap-supply / regmap-eload',
+        '# regmap = "relay-h-bridge"      # a shipped map name or a file',
+        f'# protocol = "{u.protocol}"',
+        *(f"# {k} = {_value(v)}" for k, v in u.params.items()),
+        "",
+    ]
+
+
+def skeleton(found: list[Found], unknown: Iterable[Unknown] = ()) -> str:
+    """A rig configuration (TOML) for what answered; it loads as is, and the cage section says
+    what the user must check and fill in."""
+    names = device_names(found)
+
+    def named(role: str) -> list[str]:
+        return [n for n, f in zip(names, found, strict=True) if role in KINDS[f.kind].roles]
+
+    stamp = time.strftime("%Y-%m-%d %H:%M")
+    lines = [
+        f"# Rig configuration written by `rig devices scan` on {stamp}.",
+        "# The devices below answered; check the names and which one does what.",
+        "",
+        *_cage_lines(named("supply"), named("relay"), named("magnetometer")),
+    ]
     for name, f in zip(names, found, strict=True):
-        lines.append(
-            f"[devices.{name}]   # {f.model}"
-            + (f", serial {f.serial}" if f.serial else "")
-            + f" at {f.where}"
-        )
-        lines.append(f'kind = "{f.kind}"')
-        lines.append(f'protocol = "{f.protocol}"')
-        for key, value in f.params.items():
-            if key == "address":
-                lines.append(f"address = 0x{int(value):02X}")
-            else:
-                lines.append(f"{key} = {_value(value)}")
-        if KINDS[f.kind].is_output and "max_current_a" in {p.name for p in KINDS[f.kind].params}:
-            lines.append(
-                "# max_current_a = 2.0   # FILL IN: the current limit of what it drives (A)"
-            )
-        if "magnetometer" in KINDS[f.kind].roles:
-            lines.append("# rate_hz = 20.0        # the rate to sample it at (Hz)")
-        lines.append("")
+        lines += _found_lines(name, f)
     for i, u in enumerate(unknown, 1):
-        lines.append(f"# A Modbus device answered at {u.where} but no register map recognized it")
-        lines.append(
-            "# (a relay board has no model register). FILL IN its kind and map, then uncomment:"
-        )
-        lines.append(f"# [devices.modbus{i}]")
-        lines.append('# kind = "regmap-relay"          # or regmap-supply / regmap-eload')
-        lines.append('# regmap = "relay-h-bridge"      # a shipped map name or a file')
-        lines.append(f'# protocol = "{u.protocol}"')
-        lines += [f"# {k} = {_value(v)}" for k, v in u.params.items()]
-        lines.append("")
+        lines += _unknown_lines(i, u)
     return "\n".join(lines)
 
 

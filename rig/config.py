@@ -17,6 +17,13 @@
     port = 5020
     device_id = 1
 
+Every key is declared once, as a :class:`drivers.registry.Param` (type, unit, accepted values,
+default, help): a device's in :mod:`drivers.registry`, the ``[cage]`` table's in
+:data:`CAGE_KEYS`, the ``[lab]`` table's in :data:`LAB_KEYS`. The loader fills in the
+declared defaults and refuses any other key with the file, the line and the nearest valid key.
+``python -m rig.config --doc`` prints the key tables of ``docs/devices.md`` from the same
+declarations (``--doc --write`` updates the file).
+
 Every error names the file and the key and says what to write instead. Every string, keys
 included, follows the rule of :mod:`rig.text` (it is copied into each run folder and the lab
 index): no control characters but tab, and names, serials and other labels at most
@@ -27,29 +34,75 @@ once, in the key's :class:`drivers.registry.Param`.
 
 from __future__ import annotations
 
+import argparse
+import copy
+import difflib
 import math
+import re
+import sys
 import tomllib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from drivers.registry import KINDS, TRANSPORTS, all_params, kinds_with_role
+from drivers.registry import (
+    KINDS,
+    LIST,
+    NUMBER,
+    RECORD_KEYS,
+    TABLE,
+    TEXT,
+    TRANSPORTS,
+    DeviceKind,
+    Param,
+    Role,
+    kinds_with_role,
+)
 from rig.errors import UserInputError
 from rig.text import shown, text_problem
 
 DEVICE_KINDS: dict[str, tuple[str, ...]] = {name: k.transports for name, k in KINDS.items()}
 """Kind name -> transports it accepts (derived from :mod:`drivers.registry`)."""
-PARAM_TYPES: dict[str, tuple[type, ...]] = {name: p.types for name, p in all_params().items()}
-"""Types of the device parameters the drivers read (others are passed through)."""
-REQUIRED: dict[str, tuple[str, ...]] = {
-    protocol: tuple(p.name for p in params if p.required) for protocol, params in TRANSPORTS.items()
-}
-"""Parameters each transport needs."""
+
+CAGE_KEYS: tuple[Param, ...] = (
+    Param("axes", TABLE, True, help='the supply of each coil axis: { x = "...", y = "...",'
+          ' z = "..." }'),
+    Param("polarity", TEXT, help="the polarity relay board; omit when every coil supply is bipolar"),
+    Param("reference", TEXT, help="the magnetometer for trim and characterization"),
+    Param("calibration", TEXT, help="the cage model file (relative to the rig configuration),"
+          " written by rig cage characterize"),
+    Param("max_current_a", LIST, True, help="coil current limit per axis [x, y, z]", unit="A"),
+    Param("max_field_ut", NUMBER, True, help="largest field magnitude a procedure may ask for",
+          above=0.0, fix="write the cage's field limit, e.g. max_field_ut = 150.0", unit="uT"),
+    Param("max_slew_a_per_s", NUMBER, True, help="coil current slew limit", above=0.0,
+          fix="write the slew limit, e.g. max_slew_a_per_s = 4.0", unit="A/s"),
+    Param("compliance_v", NUMBER, False, 20.0, "the coil supplies' voltage set-point", above=0.0,
+          fix="write the voltage set-point, e.g. compliance_v = 20.0", unit="V"),
+    Param("step_s", NUMBER, False, 0.05, "interval between set-points of a ramp", above=0.0,
+          fix="write the interval, e.g. step_s = 0.05", unit="s"),
+    Param("nominal_k_ut_per_a", LIST, help="nameplate coil constants (3x3, field per current)"
+          " until the cage is characterized", unit="uT/A"),
+)  # fmt: skip
+"""The keys of the ``[cage]`` table."""
+
+LAB_KEYS: tuple[Param, ...] = (
+    Param("url", TEXT, help="the lab index: postgresql://USER@HOST:PORT/DATABASE, never a password"
+          " (docs/lab.md)", nonempty=True),
+    Param("rig", TEXT, help="this rig's name in the lab index (default: the host name)"),
+)  # fmt: skip
+"""The keys of the ``[lab]`` table (the URL's own rules, no password in it, are checked where it is
+used: :func:`rig.lab.url.config_url`)."""
+
+TABLES: dict[str, tuple[Param, ...] | None] = {"devices": None, "cage": CAGE_KEYS, "lab": LAB_KEYS}
+"""The top-level tables of a rig configuration and their keys (``devices``: one table per
+device, its keys from :mod:`drivers.registry`)."""
 
 
 @dataclass(frozen=True)
 class DeviceConfig:
-    """One device: its kind, transport and the transport's parameters."""
+    """One device: its kind, transport and the transport's and kind's parameters (the declared
+    defaults filled in by :func:`load_rig_config`)."""
 
     name: str
     kind: str
@@ -57,13 +110,28 @@ class DeviceConfig:
     params: dict[str, Any]
 
     def get(self, key: str, default: Any = None) -> Any:
-        """A transport or driver parameter."""
+        """A parameter; a declared key with a default is always there (no ``default`` needed),
+        ``default`` is for optional keys without one (e.g. ``max_current_a``)."""
         return self.params.get(key, default)
+
+    @property
+    def where(self) -> str:
+        """Where the device is, for people: ``host:port id N``, ``/dev/ttyUSB0 id N``, a serial
+        port, or ``i2c bus N address 0xNN``."""
+        p = self.params
+        if self.protocol == "i2c":
+            address = p.get("address")
+            at = f" address {address:#04x}" if isinstance(address, int) else ""
+            return f"i2c bus {p.get('bus')}{at}"
+        place = f"{p['host']}:{p.get('port')}" if "host" in p else str(p.get("path", ""))
+        if self.protocol.startswith("modbus") and "device_id" in p:
+            place += f" id {p['device_id']}"
+        return place
 
 
 @dataclass(frozen=True)
 class CageConfig:
-    """Which devices make the cage, and its limits."""
+    """Which devices make the cage, and its limits (units as in :data:`CAGE_KEYS`)."""
 
     axes: tuple[str, str, str]
     polarity: str | None
@@ -119,30 +187,179 @@ def _err(path: Path, where: str, msg: str) -> UserInputError:
     return UserInputError(f"{path}: {where}: {msg}")
 
 
-def _numbers(path: Path, where: str, value: Any, n: int) -> tuple[float, ...]:
-    if (
-        not isinstance(value, list)
-        or len(value) != n
-        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-    ):
-        raise _err(path, where, f"must be a list of {n} numbers")
-    return tuple(float(v) for v in value)
+# --- where a key is written (tomllib gives no line numbers) -------------------------------------
+
+_HEADER = re.compile(r"^\s*\[\[?\s*([^\[\]#]+?)\s*\]\]?\s*(#.*)?$")
+_KEY = re.compile(
+    r"""^\s*((?:"[^"]*"|'[^']*'|[A-Za-z0-9_\-]+)(?:\s*\.\s*(?:"[^"]*"|'[^']*'|[A-Za-z0-9_\-]+))*)\s*="""
+)
+_PART = re.compile(r""""([^"]*)"|'([^']*)'|([A-Za-z0-9_\-]+)""")
 
 
-def _positive(path: Path, where: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf:
-        raise _err(path, where, "must be a positive number")
-    return float(value)
+def _parts(dotted: str) -> tuple[str, ...]:
+    """``devices."coil x".port`` -> ("devices", "coil x", "port")."""
+    return tuple(next(g for g in m.groups() if g is not None) for m in _PART.finditer(dotted))
+
+
+def _in_inline_table(rest: str, key: str) -> bool:
+    """Does the inline table ``rest`` (the text after ``name =``) write ``key``?"""
+    return re.search(r"[{,]\s*(?:" + re.escape(key) + r"|\"" + re.escape(key) + r"\")\s*[=.]",
+                     rest) is not None  # fmt: skip
+
+
+def line_of(text: str, path: tuple[str, ...]) -> int | None:
+    """The line (1-based) where the table or key ``path`` (e.g. ("devices", "dut", "port")) is
+    written: its header, its ``key =`` line (dotted keys too) or the line of the inline table that
+    holds it; else the first line inside it; None when not found."""
+    table: tuple[str, ...] = ()
+    inside: int | None = None
+    for n, line in enumerate(text.splitlines(), 1):
+        if m := _HEADER.match(line):
+            table = _parts(m.group(1))
+            found = table
+        elif m := _KEY.match(line):
+            found = table + _parts(m.group(1))
+            rest = line[m.end() :]
+            n_found = len(found)
+            inline = found == path[:n_found] and n_found < len(path) and "{" in rest
+            if inline and _in_inline_table(rest, path[n_found]):
+                return n
+        else:
+            continue
+        if found == path:
+            return n
+        if inside is None and found[: len(path)] == path:
+            inside = n
+    return inside
+
+
+def _nearest(key: str, valid: Iterable[str]) -> str:
+    """``"; did you mean 'stuck_after'?"`` (difflib), else the valid keys."""
+    options = sorted(set(valid))
+    match = difflib.get_close_matches(key, options, n=1, cutoff=0.6)
+    if match:
+        return f"; did you mean '{match[0]}'?"
+    return f"; the keys here: {', '.join(options)}" if options else ""
+
+
+@dataclass(frozen=True)
+class _Source:
+    """The file being loaded: its path and text, to name the line of a key in an error."""
+
+    path: Path
+    text: str
+    lenient: bool = False
+    """Unknown keys and tables are passed over, not refused (``rig safe``)."""
+
+    def unknown(self, table: tuple[str, ...], key: str, valid: Iterable[str],
+                note: str = "") -> UserInputError:  # fmt: skip
+        """``rig.toml:7: [devices.dut].stuk_after: unknown key; did you mean 'stuck_after'?``"""
+        line = line_of(self.text, (*table, key))
+        at = f"{self.path}:{line}" if line is not None else f"{self.path}"
+        where = f"[{'.'.join(table)}].{key}" if table else f"[{key}]"
+        hint = note or _nearest(key, valid)
+        return UserInputError(f"{at}: {where}: unknown {'key' if table else 'table'}{hint}")
+
+
+# --- devices ------------------------------------------------------------------------------------
+
+
+def device_keys(kind: DeviceKind, protocol: str) -> dict[str, Param]:
+    """Every key a device of ``kind`` over ``protocol`` accepts, by name (``kind`` and
+    ``protocol`` themselves aside)."""
+    return {p.name: p for p in kind.param_specs(protocol)}
+
+
+def _elsewhere(key: str, kind: DeviceKind, protocol: str) -> str:
+    """A note when ``key`` is another transport's or kind's: where it belongs."""
+    transports = [t for t, ps in TRANSPORTS.items() if any(p.name == key for p in ps)]
+    kinds = [k.name for k in KINDS.values() if any(p.name == key for p in k.params)]
+    if not transports and not kinds:
+        return ""
+    owners = ", ".join([*(f"{t} devices" for t in transports), *kinds])
+    valid = ", ".join(sorted({*device_keys(kind, protocol), "kind", "protocol"}))
+    return f": it is a key of {owners}, not of {kind.name} over {protocol} (its keys: {valid})"
+
+
+def _kind_and_protocol(path: Path, where: str, spec: dict[str, Any]) -> tuple[DeviceKind, str]:
+    kind = spec.get("kind")
+    if not isinstance(kind, str) or kind not in KINDS:
+        raise _err(path, f"{where}.kind", f"{kind!r} is not one of {', '.join(KINDS)}")
+    entry = KINDS[kind]
+    protocol = spec.get("protocol")
+    if not isinstance(protocol, str) or protocol not in entry.transports:
+        raise _err(
+            path,
+            f"{where}.protocol",
+            f"{protocol!r} does not suit {kind}; use {' or '.join(entry.transports)}",
+        )
+    return entry, protocol
+
+
+def _device(src: _Source, name: str, spec: Any) -> DeviceConfig:
+    """One ``[devices.NAME]`` table checked against its kind's declared keys, defaults filled in."""
+    path, where = src.path, f"[devices.{name}]"
+    if not isinstance(spec, dict):
+        raise _err(path, where, "must be a table")
+    entry, protocol = _kind_and_protocol(path, where, spec)
+    keys = device_keys(entry, protocol)
+    if src.lenient:
+        spec = {k: v for k, v in spec.items() if k in keys or k in ("kind", "protocol")}
+    for key in spec:
+        if key not in keys and key not in ("kind", "protocol"):
+            note = _elsewhere(key, entry, protocol)
+            raise src.unknown(("devices", name), key, [*keys, "kind", "protocol"], note)
+    for param in TRANSPORTS[protocol]:
+        if param.required and param.name not in spec:
+            raise _err(path, where, f"needs '{param.name}' for {protocol} ({param.help})")
+    for param in entry.params:
+        if param.required and param.name not in spec:
+            raise _err(path, where, f"needs '{param.name}' ({param.help})")
+    for key, value in spec.items():
+        if key in keys and (problem := keys[key].problem(value)) is not None:
+            raise _err(path, f"{where}.{key}", problem)
+    params = entry.defaults(protocol) | {
+        k: v for k, v in spec.items() if k not in ("kind", "protocol")
+    }
+    return DeviceConfig(name, entry.name, protocol, params)
+
+
+def _devices(src: _Source, table: Any) -> dict[str, DeviceConfig]:
+    if not isinstance(table, dict):
+        raise _err(src.path, "[devices]", "must be a table of [devices.NAME] tables")
+    return {name: _device(src, name, spec) for name, spec in table.items()}
+
+
+def _table(src: _Source, name: str, raw: Any, keys: tuple[Param, ...]) -> dict[str, Any]:
+    """A ``[name]`` table checked against its declared ``keys``: unknown keys refused, the type,
+    range and presence of each checked, defaults filled in."""
+    if not isinstance(raw, dict):
+        raise _err(src.path, f"[{name}]", "must be a table")
+    declared = {p.name: p for p in keys}
+    if src.lenient:
+        raw = {k: v for k, v in raw.items() if k in declared}
+    for key in raw:
+        if key not in declared:
+            raise src.unknown((name,), key, declared)
+    for p in keys:
+        if p.required and p.name not in raw:
+            raise _err(src.path, f"[{name}]", f"needs '{p.name}' ({p.help})")
+        if p.name in raw and (problem := p.problem(raw[p.name])) is not None:
+            raise _err(src.path, f"[{name}].{p.name}", problem)
+    defaults: dict[str, Any] = {p.name: copy.copy(p.default) for p in keys if p.default is not None}
+    return defaults | dict(raw)
 
 
 def load_rig_config(path: str | Path, *, check_text: bool = True) -> RigConfig:
     """Parse and validate a rig configuration file. ``check_text=False`` skips the rule of
-    :mod:`rig.text` (for ``rig safe``: an emergency stop is not refused over a device's serial)."""
+    :mod:`rig.text` and passes over unknown keys and tables (for ``rig safe``: an emergency stop
+    is not refused over a device's serial or a stray key)."""
     path = Path(path)
     if check_text and (problem := text_problem(str(path), label=False)) is not None:
         raise UserInputError(f"{shown(str(path), 80)}: the file's path {problem} (rename it)")
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
+        raw = tomllib.loads(text)
     except FileNotFoundError:
         raise UserInputError(
             f"{path}: no such rig configuration; check the path (rig sim --rig-config writes one)"
@@ -151,52 +368,46 @@ def load_rig_config(path: str | Path, *, check_text: bool = True) -> RigConfig:
         raise UserInputError(f"{path}: not valid TOML ({exc}); fix the syntax") from None
     if check_text:
         _refuse_bad_text(path, raw, "")
-    devices: dict[str, DeviceConfig] = {}
-    table = raw.get("devices", {})
-    if not isinstance(table, dict):
-        raise _err(path, "[devices]", "must be a table of [devices.NAME] tables")
-    for name, spec in table.items():
-        where = f"[devices.{name}]"
-        if not isinstance(spec, dict):
-            raise _err(path, where, "must be a table")
-        kind = spec.get("kind")
-        if not isinstance(kind, str) or kind not in KINDS:
-            raise _err(path, f"{where}.kind", f"{kind!r} is not one of {', '.join(KINDS)}")
-        entry = KINDS[kind]
-        protocol = spec.get("protocol")
-        if not isinstance(protocol, str) or protocol not in entry.transports:
-            raise _err(
-                path,
-                f"{where}.protocol",
-                f"{protocol!r} does not suit {kind}; use {' or '.join(entry.transports)}",
-            )
-        for param in TRANSPORTS[protocol]:
-            if param.required and param.name not in spec:
-                raise _err(path, where, f"needs '{param.name}' for {protocol} ({param.help})")
-        for param in entry.params:
-            if param.required and param.name not in spec:
-                raise _err(path, where, f"needs '{param.name}' ({param.help})")
-        own = {p.name: p for p in entry.param_specs(protocol)}
-        known = all_params()
-        for key, value in spec.items():
-            if key in own:  # this transport's and kind's keys: type and accepted values
-                problem = own[key].problem(value)
-            elif key in known and not known[key].accepts(value):  # another kind's key: its type
-                problem = f"must be {known[key].wanted}, got {value!r}"
-            else:
-                problem = None
-            if problem is not None:
-                raise _err(path, f"{where}.{key}", problem)
-        params = {k: v for k, v in spec.items() if k not in ("kind", "protocol")}
-        devices[name] = DeviceConfig(name, kind, protocol, params)
-    cage = _cage(path, raw.get("cage"), devices) if "cage" in raw else None
+    src = _Source(path, text, lenient=not check_text)
+    for name in list(raw) if not check_text else []:
+        if name not in TABLES:
+            del raw[name]
+    for name in raw:
+        if name not in TABLES:
+            raise src.unknown((), name, TABLES)
+    devices = _devices(src, raw.get("devices", {}))
+    if "lab" in raw:
+        _table(src, "lab", raw["lab"], LAB_KEYS)
+    cage = (
+        _cage(path, _table(src, "cage", raw["cage"], CAGE_KEYS), devices) if "cage" in raw else None
+    )
     return RigConfig(path, devices, cage, raw)
 
 
-def _cage(path: Path, c: Any, devices: dict[str, DeviceConfig]) -> CageConfig:
-    if not isinstance(c, dict):
-        raise _err(path, "[cage]", "must be a table")
-    axes = c.get("axes")
+# --- the cage -----------------------------------------------------------------------------------
+
+
+def _numbers(path: Path, where: str, value: Any, n: int) -> tuple[float, ...]:
+    if (
+        not isinstance(value, list)
+        or len(value) != n
+        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+        or not all(math.isfinite(v) for v in value)
+    ):
+        raise _err(path, where, f"must be a list of {n} finite numbers")
+    return tuple(float(v) for v in value)
+
+
+def _device_with_role(path: Path, key: str, name: Any, devices: dict[str, DeviceConfig],
+                      role: Role, what: str) -> None:  # fmt: skip
+    """Refuse a ``[cage]`` entry that does not name a device of a kind that plays ``role``."""
+    kinds = kinds_with_role(role)
+    if not isinstance(name, str) or name not in devices or devices[name].kind not in kinds:
+        raise _err(path, f"[cage].{key}",
+                   f"'{name}' is not {what} in [devices] (kinds: {', '.join(kinds)})")  # fmt: skip
+
+
+def _axes(path: Path, axes: Any, devices: dict[str, DeviceConfig]) -> tuple[str, str, str]:
     if not isinstance(axes, dict) or set(axes) != {"x", "y", "z"}:
         raise _err(
             path,
@@ -204,56 +415,125 @@ def _cage(path: Path, c: Any, devices: dict[str, DeviceConfig]) -> CageConfig:
             'must name a supply for x, y and z: axes = { x = "...", y = "...", z = "..." }',
         )
     for ax, name in axes.items():
-        if (
-            not isinstance(name, str)
-            or name not in devices
-            or devices[name].kind not in kinds_with_role("supply")
-        ):
-            raise _err(
-                path,
-                f"[cage].axes.{ax}",
-                f"'{name}' is not a supply in [devices] (kinds: {', '.join(kinds_with_role('supply'))})",
-            )
-    polarity = c.get("polarity")
-    if polarity is not None and (
-        not isinstance(polarity, str)
-        or polarity not in devices
-        or devices[polarity].kind not in kinds_with_role("relay")
-    ):
-        raise _err(
-            path,
-            "[cage].polarity",
-            f"'{polarity}' is not a relay device in [devices] (kinds: {', '.join(kinds_with_role('relay'))})",
-        )
-    reference = c.get("reference")
-    if reference is not None and (
-        not isinstance(reference, str)
-        or reference not in devices
-        or devices[reference].kind not in kinds_with_role("magnetometer")
-    ):
-        raise _err(
-            path,
-            "[cage].reference",
-            f"'{reference}' is not a magnetometer in [devices]"
-            f" (kinds: {', '.join(kinds_with_role('magnetometer'))})",
-        )
+        _device_with_role(path, f"axes.{ax}", name, devices, "supply", "a supply")
+    return axes["x"], axes["y"], axes["z"]
+
+
+def _nominal(path: Path, nominal: Any) -> tuple[tuple[float, ...], ...] | None:
+    if nominal is None:
+        return None
+    if not isinstance(nominal, list) or len(nominal) != 3:
+        raise _err(path, "[cage].nominal_k_ut_per_a", "must be a 3x3 list of lists (uT/A)")
+    return tuple(_numbers(path, "[cage].nominal_k_ut_per_a", row, 3) for row in nominal)
+
+
+def _cage(path: Path, c: dict[str, Any], devices: dict[str, DeviceConfig]) -> CageConfig:
+    """The ``[cage]`` table (keys, types and defaults already checked by :func:`_table`): the
+    devices it names and the shapes of its lists."""
+    axes = _axes(path, c["axes"], devices)
+    polarity, reference = c.get("polarity"), c.get("reference")
+    if polarity is not None:
+        _device_with_role(path, "polarity", polarity, devices, "relay", "a relay device")
+    if reference is not None:
+        _device_with_role(path, "reference", reference, devices, "magnetometer", "a magnetometer")
     calibration = c.get("calibration")
-    if calibration is not None and not isinstance(calibration, str):
-        raise _err(path, "[cage].calibration", 'must be a file name, e.g. "cage.json"')
-    nominal = c.get("nominal_k_ut_per_a")
-    if nominal is not None:
-        if not isinstance(nominal, list) or len(nominal) != 3:
-            raise _err(path, "[cage].nominal_k_ut_per_a", "must be a 3x3 list of lists (uT/A)")
-        nominal = tuple(_numbers(path, "[cage].nominal_k_ut_per_a", row, 3) for row in nominal)
+    max_current = _numbers(path, "[cage].max_current_a", c["max_current_a"], 3)
     return CageConfig(
-        axes=(axes["x"], axes["y"], axes["z"]),
+        axes=axes,
         polarity=polarity,
         reference=reference,
         calibration=(path.parent / calibration) if calibration else None,
-        max_current_a=_numbers(path, "[cage].max_current_a", c.get("max_current_a"), 3),  # type: ignore[arg-type]
-        max_field_ut=_positive(path, "[cage].max_field_ut", c.get("max_field_ut")),
-        max_slew_a_per_s=_positive(path, "[cage].max_slew_a_per_s", c.get("max_slew_a_per_s")),
-        compliance_v=_positive(path, "[cage].compliance_v", c.get("compliance_v", 20.0)),
-        step_s=_positive(path, "[cage].step_s", c.get("step_s", 0.05)),
-        nominal_k_ut_per_a=nominal,
+        max_current_a=(max_current[0], max_current[1], max_current[2]),
+        max_field_ut=float(c["max_field_ut"]),
+        max_slew_a_per_s=float(c["max_slew_a_per_s"]),
+        compliance_v=float(c["compliance_v"]),
+        step_s=float(c["step_s"]),
+        nominal_k_ut_per_a=_nominal(path, c.get("nominal_k_ut_per_a")),
     )
+
+
+# --- the key tables of docs/devices.md, from the declarations ------------------------------------
+
+DOC_BEGIN = "<!-- BEGIN keys: generated by `python -m rig.config --doc --write`; do not edit -->"
+DOC_END = "<!-- END keys -->"
+DOC_FILE = Path(__file__).resolve().parent.parent / "docs" / "devices.md"
+_COLUMNS = "| key | type | unit | accepted | default | meaning |"
+
+
+def _shown(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, str):
+        return f'`"{value}"`'
+    return f"`{value}`"
+
+
+def _row(p: Param, *first: str, label: str = "") -> str:
+    """One table row: the key (bold when required), type, unit, accepted values, default, help."""
+    key = label or f"`{p.name}`"
+    key = f"**{key}**" if p.required else key
+    accepted = p.accepted
+    if len(p.choices) > 6:  # the standard baud rates
+        accepted = f"{p.why or 'one of'}: {p.choices[0]} ... {p.choices[-1]}"
+    cells = [*first, key, p.wanted, p.unit or "-", accepted or "-", _shown(p.default),
+             (p.help + (f" ({p.why})" if p.why and p.why not in p.help else "")).replace("|", "/")]  # fmt: skip
+    return "| " + " | ".join(cells) + " |"
+
+
+def _kind_rows() -> list[str]:
+    """One row per distinct kind key (its own, or its version of a transport key, labelled with
+    the transports) with the kinds that accept it."""
+    rows: list[tuple[str, Param, list[str]]] = []
+    for kind in KINDS.values():
+        own = [(f"`{p.name}`", p) for p in kind.params]
+        for p in kind.transport_keys.values():
+            over = [t for t in kind.transports if p.name in {q.name for q in TRANSPORTS[t]}]
+            own.append((f"`{p.name}` ({', '.join(over)})", p))
+        for label, p in own:
+            row = next((r for r in rows if r[:2] == (label, p)), None)  # Params hold lists
+            if row is None:
+                rows.append(row := (label, p, []))
+            row[2].append(f"`{kind.name}`")
+    return [_row(p, ", ".join(kinds), label=label) for label, p, kinds in rows]
+
+
+def keys_doc() -> str:
+    """The key tables of ``docs/devices.md`` (Markdown), from the declarations."""
+    out = [DOC_BEGIN, "", "Transport keys (required in bold):", "",
+           "| transport " + _COLUMNS, "|---" * 7 + "|"]  # fmt: skip
+    out += [_row(p, t) for t, params in TRANSPORTS.items() for p in params]
+    out += ["", "Each kind's own keys, and its own version of a transport key:", "",
+            "| kinds " + _COLUMNS, "|---" * 7 + "|", *_kind_rows()]  # fmt: skip
+    for title, params in (("Keys every device accepts (records for the lab index, docs/lab.md):",
+                           RECORD_KEYS), ("The `[cage]` table:", CAGE_KEYS),
+                          ("The `[lab]` table (docs/lab.md):", LAB_KEYS)):  # fmt: skip
+        out += ["", title, "", _COLUMNS, "|---" * 6 + "|", *(_row(p) for p in params)]
+    return "\n".join([*out, "", DOC_END])
+
+
+def with_keys_doc(text: str) -> str:
+    """``text`` (docs/devices.md) with its generated block replaced by :func:`keys_doc`."""
+    begin, end = text.find(DOC_BEGIN), text.find(DOC_END)
+    if begin < 0 or end < begin:
+        raise ValueError(f"no generated block ({DOC_BEGIN} ... {DOC_END}) in the text")
+    return text[:begin] + keys_doc() + text[end + len(DOC_END) :]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m rig.config --doc [--write]``: print the key tables, or rewrite them in place in
+    docs/devices.md."""
+    parser = argparse.ArgumentParser(prog="python -m rig.config", description=main.__doc__)
+    parser.add_argument("--doc", action="store_true", required=True,
+                        help="the key tables of docs/devices.md, from the declarations")  # fmt: skip
+    parser.add_argument("--write", action="store_true", help=f"update {DOC_FILE} in place")
+    args = parser.parse_args(argv)
+    if args.write:
+        DOC_FILE.write_text(with_keys_doc(DOC_FILE.read_text(encoding="utf-8")), encoding="utf-8")
+        print(f"wrote {DOC_FILE}")
+    else:
+        print(keys_doc())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

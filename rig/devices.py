@@ -110,11 +110,14 @@ def open_load(dev: DeviceConfig, i2c_bus: Any | None = None, cfg: RigConfig | No
     return load
 
 
-def build_cage(cfg: RigConfig, stack: ExitStack, i2c_bus: Any | None = None) -> CageController:
+def build_cage(
+    cfg: RigConfig, stack: ExitStack, i2c_bus: Any | None = None, *, safe_on_exit: bool = True
+) -> CageController:
     """Open the cage's devices (closed by ``stack``) and build its controller.
 
     The controller's ``safe()`` is registered on ``stack`` first, so it runs on every exit path
-    before the links close.
+    before the links close; not with ``safe_on_exit=False``: a ``RigSession`` takes its outputs
+    safe itself (ADR 0012).
     """
     if cfg.cage is None:
         raise UserInputError(f"{cfg.path}: no [cage] section; add one to drive the cage")
@@ -150,7 +153,8 @@ def build_cage(cfg: RigConfig, stack: ExitStack, i2c_bus: Any | None = None) -> 
     limits = CageLimits(c.max_current_a, c.max_field_ut, c.max_slew_a_per_s, c.step_s)
     controller = CageController(drives, model, limits, relays=relays, reference=reference,
                                 reference_to_cage=reference_to_cage)  # fmt: skip
-    stack.callback(controller.safe)
+    if safe_on_exit:
+        stack.callback(controller.safe)
     return controller
 
 

@@ -5,11 +5,19 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from typing import Any
 
 import numpy as np
 
+from drivers.registry import KINDS
 from sim.config import MagnetometerConfig, SimConfig
+
+ENDPOINT_ONLY = frozenset({"role", "stopbits", "line_format", "unit"})
+"""What the simulator's endpoints document says of a device that is no rig configuration key: its
+role in the cage (read here for ``[cage]``), and line settings the drivers take as their defaults
+(8N1, whitespace-separated columns in uT). :func:`device_lines` writes only declared keys."""
+_XYZ = re.compile(r"\{x[^{}]*\}\s+\{y[^{}]*\}\s+\{z[^{}]*\}")
 
 
 def rig_config_toml(
@@ -51,18 +59,34 @@ def rig_config_toml(
             lines.append(f"nominal_k_ut_per_a = [{rows}]")
         lines.append("")
     for name, dev in endpoints["devices"].items():
-        lines.append(f"[devices.{name}]")
-        for key, value in dev.items():
-            if isinstance(value, list):
-                lines.append(f"{key} = {json.dumps(value)}")
-            elif isinstance(value, bool):
-                lines.append(f"{key} = {'true' if value else 'false'}")
-            elif isinstance(value, int | float):
-                lines.append(f"{key} = {value}")
-            else:
-                lines.append(f"{key} = {json.dumps(str(value))}")
-        lines.append("")
+        lines += device_lines(name, dev)
     return "\n".join(lines)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, list):
+        return json.dumps(value)
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return str(value)
+    return json.dumps(str(value))
+
+
+def device_lines(name: str, dev: dict[str, Any]) -> list[str]:
+    """The ``[devices.NAME]`` table of one simulated device: ``kind``, ``protocol`` and the keys
+    its kind declares (:mod:`drivers.registry`); the endpoint's own entries (:data:`ENDPOINT_ONLY`)
+    are left out, anything else undeclared is a mistake here."""
+    declared = {p.name for p in KINDS[dev["kind"]].param_specs(dev["protocol"])}
+    unknown = set(dev) - declared - ENDPOINT_ONLY - {"kind", "protocol"}
+    if unknown:
+        raise ValueError(f"simulated device '{name}': no rig configuration key {sorted(unknown)}")
+    fmt = str(dev.get("line_format", "{x} {y} {z}"))
+    if dev.get("unit", "uT") != "uT" or dev.get("stopbits", 1) != 1 or not _XYZ.fullmatch(fmt):
+        raise ValueError(f"simulated device '{name}': its line settings are not the drivers'"
+                         " defaults (8N1; x, y, z in uT separated by whitespace)")  # fmt: skip
+    keys = [k for k in dev if k in declared or k in ("kind", "protocol")]
+    return [f"[devices.{name}]", *(f"{k} = {_toml_value(dev[k])}" for k in keys), ""]
 
 
 def reference_certificate(mag: MagnetometerConfig) -> dict[str, Any]:

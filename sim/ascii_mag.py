@@ -11,11 +11,16 @@ import random
 import threading
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sim.device_kind import CageHost, SimKind
 from sim.links import damage, open_pty
 from sim.physics import Faults
+
+if TYPE_CHECKING:
+    from sim.config import MagnetometerConfig
 
 
 class AsciiMagnetometer:
@@ -67,3 +72,16 @@ class AsciiMagnetometer:
         self._stop.set()
         self._thread.join(timeout=1.0)
         self.pty.close()
+
+
+def _start(host: CageHost, m: MagnetometerConfig, index: int) -> dict[str, Any]:
+    """An ASCII-line magnetometer on a pseudo-terminal (uT, ``line_format``)."""
+    dev = AsciiMagnetometer(host.field_reader(m.name), host.physics.magnetometers[m.name].faults,
+                            rate_hz=m.rate_hz, baudrate=m.endpoint.baudrate,
+                            line_format=m.line_format, seed=host.cfg.seed + index)  # fmt: skip
+    host.add_serial(m.name, dev)
+    return {"kind": "ascii-mag", "protocol": "serial", "path": dev.path,
+            "baudrate": m.endpoint.baudrate, "line_format": m.line_format, "unit": "uT"}  # fmt: skip
+
+
+KIND = SimKind("ascii-mag", "magnetometers", _start)

@@ -1,5 +1,8 @@
 """The whole simulated cage: physics plus every device on its real transport.
 
+Each supply and magnetometer is started by its kind (:data:`sim.device_kinds.KINDS`, one module
+per kind); the polarity relays and the DUT's thermometer are register-map devices served here.
+
     cage = SimulatedCage(load_config())
     endpoints = cage.start()   # {"devices": {name: {"kind", "protocol", "host", "port", ...}}}
     ...
@@ -16,23 +19,23 @@ import asyncio
 import contextlib
 import logging
 import threading
+from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
+import numpy as np
 from pymodbus import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import SimDevice
 
-from sim.ascii_mag import AsciiMagnetometer
 from sim.config import EndpointConfig, SimConfig
-from sim.hmr2300 import Hmr2300
+from sim.device_kind import SerialDevice
+from sim.device_kinds import sim_kind
 from sim.links import PtyNullModem, TcpProxy
-from sim.modbus_devices import regmap_device, riden_device, unserved_ids
+from sim.modbus_devices import regmap_device, unserved_ids
 from sim.physics import CagePhysics, Faults
 from sim.regmap import load_regmap
-from sim.rm3100 import Rm3100, SimI2CBus
-
-KIND_BY_SUPPLY = {"riden-rd60xx": "riden-rd60xx", "regmap": "regmap"}
+from sim.rm3100 import BusDevice, SimI2CBus
 
 
 class SimulatedCage:
@@ -51,9 +54,9 @@ class SimulatedCage:
         self._servers: list[Any] = []
         self._proxies: dict[str, TcpProxy] = {}
         self._modems: list[PtyNullModem] = []
-        self._serial_devices: list[Hmr2300 | AsciiMagnetometer] = []
-        self.serial_devices: dict[str, Hmr2300 | AsciiMagnetometer] = {}
-        self.i2c_devices: dict[str, Rm3100] = {}
+        self._serial_devices: list[SerialDevice] = []
+        self.serial_devices: dict[str, Any] = {}  # name -> device (Hmr2300, AsciiMagnetometer)
+        self.i2c_devices: dict[str, BusDevice] = {}
         self._started = False
 
     def _run(self, coro: Any) -> Any:
@@ -68,27 +71,10 @@ class SimulatedCage:
         self._thread.start()
         self._started = True
         try:
-            for s in self.cfg.supplies:
-                supply = self.physics.supplies[s.name]
-                self.faults[s.name] = supply.faults
-                if s.kind == "riden-rd60xx":
-                    device = riden_device(supply, s.endpoint.device_id)
-                    kind = "riden-rd60xx"
-                else:
-                    spec = load_regmap(s.regmap)
-                    if spec.kind == "eload":
-                        supply.set_voltage(min(s.input_voltage_v, supply.v_max))
-                    device = regmap_device(
-                        spec, s.endpoint.device_id, self.physics, supply, supply.faults
-                    )
-                    kind = f"regmap-{spec.kind}"
-                entry = self._serve_modbus(s.name, device, s.endpoint.transport,
-                                           s.endpoint.device_id, s.endpoint.baudrate, supply.faults)  # fmt: skip
-                entry["kind"] = kind
-                if s.kind == "regmap":
-                    entry["regmap"] = load_regmap(s.regmap).source
-                entry["role"] = f"coil_{'xyz'[s.axis]}" if s.axis is not None else "load"
-                self.endpoints[s.name] = entry
+            for i, s in enumerate(self.cfg.supplies):
+                self.faults[s.name] = self.physics.supplies[s.name].faults
+                kind = sim_kind("supplies", s.kind, s.name)
+                self.endpoints[s.name] = kind.start(self, s, i)
             if self.cfg.relay is not None:
                 r = self.cfg.relay
                 self._serve_map_device(r.name, r.regmap, r.endpoint, self.physics.relays.faults,
@@ -98,38 +84,9 @@ class SimulatedCage:
                 self._serve_map_device(th.name, th.regmap, th.endpoint, Faults(),
                                        "regmap-thermometer", "thermometer")  # fmt: skip
             for i, m in enumerate(self.cfg.magnetometers):
-                mag = self.physics.magnetometers[m.name]
-                self.faults[m.name] = mag.faults
-
-                def reader(t_s: float, name: str = m.name) -> Any:
-                    return self.physics.read_magnetometer(name, t_s)
-
-                if m.kind == "hmr2300":
-                    dev = Hmr2300(reader, mag.faults, device_id=m.endpoint.device_id,
-                                  baudrate=m.endpoint.baudrate, serial_number=m.serial_number,
-                                  seed=self.cfg.seed + i)  # fmt: skip
-                    self._serial_devices.append(dev)
-                    self.serial_devices[m.name] = dev
-                    self.endpoints[m.name] = {"kind": "hmr2300", "protocol": "serial",
-                                              "path": dev.path, "baudrate": m.endpoint.baudrate,
-                                              "device_id": m.endpoint.device_id}  # fmt: skip
-                elif m.kind == "ascii-mag":
-                    adev = AsciiMagnetometer(reader, mag.faults, rate_hz=m.rate_hz,
-                                             baudrate=m.endpoint.baudrate,
-                                             line_format=m.line_format, seed=self.cfg.seed + i)  # fmt: skip
-                    self._serial_devices.append(adev)
-                    self.serial_devices[m.name] = adev
-                    self.endpoints[m.name] = {"kind": "ascii-mag", "protocol": "serial",
-                                              "path": adev.path, "baudrate": m.endpoint.baudrate,
-                                              "line_format": m.line_format, "unit": "uT"}  # fmt: skip
-                elif m.kind == "rm3100":
-                    rdev = Rm3100(reader, mag.faults, m.i2c_address)
-                    self.i2c_bus.attach(rdev)
-                    self.i2c_devices[m.name] = rdev
-                    self.endpoints[m.name] = {"kind": "rm3100", "protocol": "i2c",
-                                              "bus": "sim", "address": m.i2c_address}  # fmt: skip
-                else:
-                    raise ValueError(f"magnetometer '{m.name}': unknown kind '{m.kind}'")
+                self.faults[m.name] = self.physics.magnetometers[m.name].faults
+                kind = sim_kind("magnetometers", m.kind, m.name)
+                self.endpoints[m.name] = kind.start(self, m, i)
             for name, settings in self.cfg.faults.items():
                 for key, value in settings.items():
                     setattr(self.faults[name], key, value)
@@ -137,6 +94,32 @@ class SimulatedCage:
             self.stop()
             raise
         return self.endpoints_document()
+
+    # --- what a device kind's start uses (sim.device_kind.CageHost) -----------------------------
+
+    def serve_modbus(self, name: str, device: SimDevice, endpoint: EndpointConfig,
+                     faults: Faults) -> dict[str, Any]:  # fmt: skip
+        """Serve a Modbus device on its endpoint; returns the endpoint entry (no kind yet)."""
+        return self._serve_modbus(name, device, endpoint.transport, endpoint.device_id,
+                                  endpoint.baudrate, faults)  # fmt: skip
+
+    def add_serial(self, name: str, device: SerialDevice) -> None:
+        """Own a pseudo-terminal device (closed on stop)."""
+        self._serial_devices.append(device)
+        self.serial_devices[name] = device
+
+    def add_i2c(self, name: str, device: BusDevice) -> None:
+        """Put a device on the simulated I2C bus."""
+        self.i2c_bus.attach(device)
+        self.i2c_devices[name] = device
+
+    def field_reader(self, name: str) -> Callable[[float], np.ndarray]:
+        """``read(t_s)``: what magnetometer ``name`` senses (uT, its frame) at time ``t_s``."""
+
+        def read(t_s: float) -> np.ndarray:
+            return self.physics.read_magnetometer(name, t_s)
+
+        return read
 
     def _serve_map_device(self, name: str, regmap: str, endpoint: EndpointConfig, faults: Faults,
                           kind: str, role: str) -> None:  # fmt: skip

@@ -194,8 +194,7 @@ def load_config(path: str | Path = DEFAULT_CONFIG) -> SimConfig:
         raise SimConfigError(f"{path}: missing or malformed entry {exc}") from None
 
 
-def _parse(raw: dict[str, Any], source: str) -> SimConfig:
-    c = raw["cage"]
+def _cage(c: dict[str, Any]) -> CageConfig:
     cage = CageConfig(
         coil_matrix_ut_per_a=_mat(c, "coil_matrix_ut_per_a", "cage"),
         resistance_ohm=_vec(c, "resistance_ohm", "cage"),
@@ -205,8 +204,11 @@ def _parse(raw: dict[str, Any], source: str) -> SimConfig:
     )
     if cage.polarity not in ("relay", "bipolar"):
         raise SimConfigError("cage.polarity must be 'relay' or 'bipolar'")
-    a = raw["ambient"]
-    ambient = AmbientConfig(
+    return cage
+
+
+def _ambient(a: dict[str, Any]) -> AmbientConfig:
+    return AmbientConfig(
         field_ut=_vec(a, "field_ut", "ambient"),
         drift_amplitude_ut=_vec(a, "drift_amplitude_ut", "ambient"),
         drift_period_s=_vec(a, "drift_period_s", "ambient"),
@@ -214,78 +216,113 @@ def _parse(raw: dict[str, Any], source: str) -> SimConfig:
         ripple_hz=float(a.get("ripple_hz", 50.0)),
         noise_ut=float(a.get("noise_ut", 0.0)),
     )
-    supplies = []
-    for i, s in enumerate(raw.get("supplies", [])):
-        where = f"supplies[{i}]"
-        axis = s.get("axis")
-        if axis is not None and axis not in AXES:
-            raise SimConfigError(f"{where}.axis must be x, y or z")
-        supplies.append(
-            SupplyConfig(
-                name=str(s["name"]),
-                kind=str(s["kind"]),
-                endpoint=_endpoint(s, where),
-                axis=None if axis is None else AXES[axis],
-                model_id=int(s.get("model_id", 60125)),
-                current_range=int(s.get("current_range", 0)),
-                regmap=str(s.get("regmap", "")),
-                resistance_ohm=float(s.get("resistance_ohm", 5.0)),
-                tau_s=float(s.get("tau_s", 0.002)),
-                input_voltage_v=float(s.get("input_voltage_v", 48.0)),
-            )
-        )
+
+
+def _supply(s: dict[str, Any], where: str) -> SupplyConfig:
+    axis = s.get("axis")
+    if axis is not None and axis not in AXES:
+        raise SimConfigError(f"{where}.axis must be x, y or z")
+    return SupplyConfig(
+        name=str(s["name"]),
+        kind=str(s["kind"]),
+        endpoint=_endpoint(s, where),
+        axis=None if axis is None else AXES[axis],
+        model_id=int(s.get("model_id", 60125)),
+        current_range=int(s.get("current_range", 0)),
+        regmap=str(s.get("regmap", "")),
+        resistance_ohm=float(s.get("resistance_ohm", 5.0)),
+        tau_s=float(s.get("tau_s", 0.002)),
+        input_voltage_v=float(s.get("input_voltage_v", 48.0)),
+    )
+
+
+def _supplies(raw: dict[str, Any]) -> list[SupplyConfig]:
+    supplies = [_supply(s, f"supplies[{i}]") for i, s in enumerate(raw.get("supplies", []))]
     axes_driven = sorted(s.axis for s in supplies if s.axis is not None)
     if axes_driven != [0, 1, 2]:
         raise SimConfigError("supplies must drive each coil axis x, y, z exactly once")
+    return supplies
+
+
+def _vec_or(
+    m: dict[str, Any], key: str, where: str, default: tuple[float, ...]
+) -> tuple[float, ...]:
+    return _vec(m, key, where) if key in m else default
+
+
+def _magnetometer(m: dict[str, Any], where: str, loads: set[str]) -> MagnetometerConfig:
+    zero = (0.0, 0.0, 0.0)
+    mag = MagnetometerConfig(
+        name=str(m["name"]),
+        kind=str(m["kind"]),
+        endpoint=_endpoint(m, where),
+        scale=_vec_or(m, "scale", where, (1.0, 1.0, 1.0)),
+        nonorth_deg=_vec_or(m, "nonorth_deg", where, zero),
+        mounting_deg=_vec_or(m, "mounting_deg", where, zero),
+        offset_ut=_vec_or(m, "offset_ut", where, zero),
+        k_ut_per_a={
+            k: _vec({"v": v}, "v", f"{where}.k_ut_per_a.{k}")
+            for k, v in m.get("k_ut_per_a", {}).items()
+        },
+        delay_s={k: float(v) for k, v in m.get("delay_s", {}).items()},
+        noise_ut=float(m.get("noise_ut", 0.0)),
+        rate_hz=float(m.get("rate_hz", 20.0)),
+        serial_number=str(m.get("serial_number", "0001")),
+        i2c_address=int(m.get("i2c_address", 0x20)),
+        line_format=str(m.get("line_format", "{x:.4f} {y:.4f} {z:.4f}")),
+        temperature_ref_c=float(m.get("temperature_ref_c", 25.0)),
+        scale_per_k=float(m.get("scale_per_k", 0.0)),
+        offset_ut_per_k=_vec_or(m, "offset_ut_per_k", where, zero),
+    )
+    for ch in mag.k_ut_per_a:
+        if ch not in loads:
+            raise SimConfigError(f"{where}.k_ut_per_a names '{ch}', which is no load channel")
+    return mag
+
+
+def _thermal(t: dict[str, Any], loads: set[str]) -> ThermalConfig:
+    thermal = ThermalConfig(str(t["heater"]), float(t.get("ambient_c", 25.0)),
+                            float(t.get("k_per_w", 1.0)), float(t.get("tau_s", 60.0)))  # fmt: skip
+    if thermal.heater not in loads:
+        raise SimConfigError(f"thermal.heater names '{thermal.heater}', which is no load channel")
+    if not (thermal.tau_s > 0 and thermal.k_per_w >= 0):
+        raise SimConfigError("thermal: tau_s must be > 0 and k_per_w >= 0")
+    return thermal
+
+
+FAULT_KEYS = frozenset({"reply_delay_s", "silent", "drop_rate", "corrupt_rate", "exception_code",
+                        "disconnect", "stuck"})  # fmt: skip
+"""The fields of ``sim.physics.Faults`` a ``[faults.NAME]`` table may set."""
+
+
+def _faults(raw: dict[str, Any], names: set[str]) -> dict[str, dict[str, float | bool | int]]:
+    faults: dict[str, dict[str, float | bool | int]] = {}
+    for name, table in raw.get("faults", {}).items():
+        if name not in names:
+            raise SimConfigError(f"faults.{name}: no device of that name")
+        unknown = set(table) - FAULT_KEYS
+        if unknown:
+            raise SimConfigError(
+                f"faults.{name}: unknown keys {sorted(unknown)}; use {sorted(FAULT_KEYS)}"
+            )
+        faults[name] = dict(table)
+    return faults
+
+
+def _parse(raw: dict[str, Any], source: str) -> SimConfig:
+    cage = _cage(raw["cage"])
+    ambient = _ambient(raw["ambient"])
+    supplies = _supplies(raw)
+    loads = {s.name for s in supplies if s.axis is None}
     relay = None
     if "relay" in raw:
         r = raw["relay"]
         relay = RelayConfig(str(r["name"]), str(r["regmap"]), _endpoint(r, "relay"))
     if cage.polarity == "relay" and relay is None:
         raise SimConfigError("cage.polarity = 'relay' needs a [relay] device")
-    mags = []
-    for i, m in enumerate(raw.get("magnetometers", [])):
-        where = f"magnetometers[{i}]"
-        mags.append(
-            MagnetometerConfig(
-                name=str(m["name"]),
-                kind=str(m["kind"]),
-                endpoint=_endpoint(m, where),
-                scale=_vec(m, "scale", where) if "scale" in m else (1.0, 1.0, 1.0),
-                nonorth_deg=_vec(m, "nonorth_deg", where) if "nonorth_deg" in m else (0, 0, 0),
-                mounting_deg=_vec(m, "mounting_deg", where) if "mounting_deg" in m else (0, 0, 0),
-                offset_ut=_vec(m, "offset_ut", where) if "offset_ut" in m else (0, 0, 0),
-                k_ut_per_a={
-                    k: _vec({"v": v}, "v", f"{where}.k_ut_per_a.{k}")
-                    for k, v in m.get("k_ut_per_a", {}).items()
-                },
-                delay_s={k: float(v) for k, v in m.get("delay_s", {}).items()},
-                noise_ut=float(m.get("noise_ut", 0.0)),
-                rate_hz=float(m.get("rate_hz", 20.0)),
-                serial_number=str(m.get("serial_number", "0001")),
-                i2c_address=int(m.get("i2c_address", 0x20)),
-                line_format=str(m.get("line_format", "{x:.4f} {y:.4f} {z:.4f}")),
-                temperature_ref_c=float(m.get("temperature_ref_c", 25.0)),
-                scale_per_k=float(m.get("scale_per_k", 0.0)),
-                offset_ut_per_k=(
-                    _vec(m, "offset_ut_per_k", where) if "offset_ut_per_k" in m else (0, 0, 0)
-                ),
-            )
-        )
-        for ch in mags[-1].k_ut_per_a:
-            if ch not in {s.name for s in supplies if s.axis is None}:
-                raise SimConfigError(f"{where}.k_ut_per_a names '{ch}', which is no load channel")
-    thermal = None
-    if "thermal" in raw:
-        t = raw["thermal"]
-        thermal = ThermalConfig(str(t["heater"]), float(t.get("ambient_c", 25.0)),
-                                float(t.get("k_per_w", 1.0)), float(t.get("tau_s", 60.0)))  # fmt: skip
-        if thermal.heater not in {s.name for s in supplies if s.axis is None}:
-            raise SimConfigError(
-                f"thermal.heater names '{thermal.heater}', which is no load channel"
-            )
-        if not (thermal.tau_s > 0 and thermal.k_per_w >= 0):
-            raise SimConfigError("thermal: tau_s must be > 0 and k_per_w >= 0")
+    mags = [_magnetometer(m, f"magnetometers[{i}]", loads)
+            for i, m in enumerate(raw.get("magnetometers", []))]  # fmt: skip
+    thermal = _thermal(raw["thermal"], loads) if "thermal" in raw else None
     thermometer = None
     if "thermometer" in raw:
         t = raw["thermometer"]
@@ -294,17 +331,5 @@ def _parse(raw: dict[str, Any], source: str) -> SimConfig:
         )
     names = {s.name for s in supplies} | {m.name for m in mags} | ({relay.name} if relay else set())
     names |= {thermometer.name} if thermometer else set()
-    fault_keys = {"reply_delay_s", "silent", "drop_rate", "corrupt_rate", "exception_code",
-                  "disconnect", "stuck"}  # fmt: skip
-    faults: dict[str, dict[str, float | bool | int]] = {}
-    for name, table in raw.get("faults", {}).items():
-        if name not in names:
-            raise SimConfigError(f"faults.{name}: no device of that name")
-        unknown = set(table) - fault_keys
-        if unknown:
-            raise SimConfigError(
-                f"faults.{name}: unknown keys {sorted(unknown)}; use {sorted(fault_keys)}"
-            )
-        faults[name] = dict(table)
-    return SimConfig(int(raw.get("seed", 0)), cage, ambient, tuple(supplies), relay, tuple(mags),
-                     source, faults, thermal, thermometer)  # fmt: skip
+    return SimConfig(int(raw.get("seed", 0)), cage, ambient, tuple(supplies),
+                     relay, tuple(mags), source, _faults(raw, names), thermal, thermometer)  # fmt: skip

@@ -28,11 +28,16 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sim.device_kind import CageHost, SimKind
 from sim.links import damage, open_pty
 from sim.physics import Faults
+
+if TYPE_CHECKING:
+    from sim.config import MagnetometerConfig
 
 COUNTS_PER_UT = 150.0
 FULL_SCALE_COUNTS = 30000
@@ -352,3 +357,16 @@ class Hmr2300:
         self._stop.set()
         self._thread.join(timeout=1.0)
         self.pty.close()
+
+
+def _start(host: CageHost, m: MagnetometerConfig, index: int) -> dict[str, Any]:
+    """An HMR2300 on a pseudo-terminal at the DUT position."""
+    dev = Hmr2300(host.field_reader(m.name), host.physics.magnetometers[m.name].faults,
+                  device_id=m.endpoint.device_id, baudrate=m.endpoint.baudrate,
+                  serial_number=m.serial_number, seed=host.cfg.seed + index)  # fmt: skip
+    host.add_serial(m.name, dev)
+    return {"kind": "hmr2300", "protocol": "serial", "path": dev.path,
+            "baudrate": m.endpoint.baudrate, "device_id": m.endpoint.device_id}  # fmt: skip
+
+
+KIND = SimKind("hmr2300", "magnetometers", _start)

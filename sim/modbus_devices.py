@@ -10,13 +10,17 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Callable, Coroutine
-from typing import Any
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from pymodbus.constants import ExcCodes
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from sim.device_kind import CageHost, SimKind
 from sim.physics import CagePhysics, Faults, Supply, riden_model
-from sim.regmap import Register, RegisterMap
+from sim.regmap import Register, RegisterMap, load_regmap
+
+if TYPE_CHECKING:
+    from sim.config import SupplyConfig
 
 Action = Callable[[int, int, int, int, list[int], Any], Coroutine[Any, Any, ExcCodes | None]]
 READ_CODES = {1, 2, 3, 4}
@@ -54,247 +58,291 @@ async def _apply_faults(faults: Faults) -> ExcCodes | None:
     return None
 
 
-def riden_device(supply: Supply, device_id: int, serial_number: int = 12345) -> SimDevice:
-    """A Riden RD60xx (model from ``supply.cfg.model_id``) on Modbus ``device_id``."""
-    model_id = supply.cfg.model_id
-    spec = riden_model(model_id)
-    v_lsb, w_lsb = spec.v_per_count, spec.w_per_count
-    state = {"range": supply.cfg.current_range if len(spec.a_per_count) > 1 else 0}
-    writable = RIDEN_WRITABLE | ({R_I_RANGE} if len(spec.a_per_count) > 1 else set())
-    stored: dict[int, int] = {R_CLOCK[0]: 2026, R_CLOCK[1]: 1, R_CLOCK[2]: 1, R_SETTINGS[-1]: 4}
-    start = time.monotonic()
+def _write_words(address: int, values: Any, write: Callable[[int, list[int]], int],
+                       ) -> ExcCodes | None:  # fmt: skip
+    """Apply a write request's words through ``write(address, words)`` (words used, or an
+    exception code's negative)."""
+    words = list(values) if isinstance(values, list) else [values]
+    pos = 0
+    while pos < len(words):
+        used = write(address + pos, words[pos:])
+        if used < 0:
+            return ExcCodes(-used)
+        pos += used
+    return None
 
-    def i_lsb() -> float:
-        return spec.a_per_count[state["range"]]
 
-    def i_max() -> float:
-        return spec.i_max_a[state["range"]]
+class _Model:
+    """A Modbus device model: faults first, then a read refreshes the registers from the physics
+    and a write is checked and applied (:meth:`write`: words used, or an exception's negative)."""
 
-    def default_protection() -> None:
-        supply.set_protection(
-            RIDEN_OVP_DEFAULT_V, min(i_max() + RIDEN_OCP_MARGIN_A, 0xFFFF * i_lsb())
-        )
+    faults: Faults
+    write_function: int = 6
 
-    default_protection()
+    def refresh(self, regs: list[int], base: int) -> None:
+        raise NotImplementedError
 
-    def refresh(regs: list[int], base: int) -> None:
-        def put(addr: int, value: int) -> None:
-            if 0 <= addr - base < len(regs):
-                regs[addr - base] = value & 0xFFFF
+    def write(self, address: int, words: list[int]) -> int:
+        raise NotImplementedError
 
-        with supply.lock:
-            i_out = supply.output_current()
-            v_out = supply.output_voltage()
-            put(R_ID, model_id)
-            put(R_SN_H, serial_number >> 16)
-            put(R_SN_L, serial_number & 0xFFFF)
-            put(R_FW, 140)
-            temp_c = 28 + min(20.0, (time.monotonic() - start) / 600.0 * abs(i_out))
-            put(R_TEMP_C, round(temp_c))
-            put(R_TEMP_F, round(temp_c * 9 / 5 + 32))
-            put(R_V_SET, round(supply.v_set / v_lsb))
-            put(R_I_SET, round(supply.i_set / i_lsb()))
-            put(R_V_OUT, round(v_out / v_lsb))
-            put(R_I_OUT, round(i_out / i_lsb()))
-            power = round(v_out * i_out / w_lsb)
-            put(R_P_H, power >> 16)
-            put(R_P_L, power & 0xFFFF)
-            put(R_V_IN, round(supply.cfg.input_voltage_v * 100))
-            put(R_PROTECT, supply.protection)
-            put(R_CVCC, 1 if supply.cc_mode() else 0)
-            put(R_OUTPUT, 1 if supply.output else 0)
-            put(R_I_RANGE, state["range"])
-            for addr, value in stored.items():
-                put(addr, value)
-            put(R_M0_V, round(supply.v_set / v_lsb))  # M0 is the active set
-            put(R_M0_I, round(supply.i_set / i_lsb()))
-            put(R_M0_OVP, round(supply.ovp_v / v_lsb))
-            put(R_M0_OCP, round(supply.ocp_a / i_lsb()))
+    def writable(self, address: int, count: int) -> bool:
+        """Whether a write of ``count`` words at ``address`` may start (checked before any is
+        applied); by default each register is checked as it is written."""
+        return True
 
-    def write(addr: int, word: int) -> ExcCodes | None:
-        if addr in (R_V_SET, R_M0_V):
-            if word * v_lsb > spec.v_max_v:
-                return ExcCodes.ILLEGAL_VALUE
-            supply.set_voltage(word * v_lsb)
-        elif addr in (R_I_SET, R_M0_I):
-            if word * i_lsb() > i_max():
-                return ExcCodes.ILLEGAL_VALUE
-            supply.set_current(word * i_lsb())
-        elif addr == R_OUTPUT:
-            if word not in (0, 1):
-                return ExcCodes.ILLEGAL_VALUE
-            supply.set_output(bool(word))
-        elif addr == R_M0_OVP:
-            supply.set_protection(ovp_v=word * v_lsb)
-        elif addr == R_M0_OCP:
-            supply.set_protection(ocp_a=word * i_lsb())
-        elif addr == R_I_RANGE:
-            if word not in range(len(spec.a_per_count)):
-                return ExcCodes.ILLEGAL_VALUE
-            if word != state["range"]:  # the set-point in A is kept (capped at the new range)
-                state["range"] = word
-                if supply.i_set > i_max():
-                    supply.set_current(i_max())
-                default_protection()
-        else:
-            stored[addr] = word
-        return None
-
-    async def action(fc: int, start_address: int, address: int, count: int,
+    async def action(self, fc: int, start_address: int, address: int, count: int,
                      regs: list[int], values: Any) -> ExcCodes | None:  # fmt: skip
-        fault = await _apply_faults(supply.faults)
+        """pymodbus' hook, run on every access before it answers."""
+        fault = await _apply_faults(self.faults)
         if fault is not None:
             return fault
+        if fc == WRITE_SINGLE and self.write_function == 16:
+            return ExcCodes.ILLEGAL_FUNCTION  # a device without function 6 (the Maynuo M97xx)
         if fc == WRITE_SINGLE and values is None:
             return None  # pymodbus reading back the word just written: the reply echoes it
         if values is None or fc in READ_CODES:
-            refresh(regs, start_address)
+            self.refresh(regs, start_address)
             return None
-        words = list(values) if isinstance(values, list) else [values]
-        if any(address + i not in writable for i in range(len(words))):
+        if not self.writable(address, len(values) if isinstance(values, list) else 1):
             return ExcCodes.ILLEGAL_ADDRESS
-        for offset, word in enumerate(words):
-            try:
-                result = write(address + offset, int(word))
-            except ValueError:
+        return _write_words(address, values, self.write)
+
+
+class RidenModel(_Model):
+    """A Riden RD60xx's registers (model from ``supply.cfg.model_id``) bound to ``supply``."""
+
+    def __init__(self, supply: Supply, serial_number: int) -> None:
+        self.supply, self.faults, self.serial_number = supply, supply.faults, serial_number
+        self.model_id = supply.cfg.model_id
+        self.spec = spec = riden_model(self.model_id)
+        self.range = supply.cfg.current_range if len(spec.a_per_count) > 1 else 0
+        self.writable_set = RIDEN_WRITABLE | ({R_I_RANGE} if len(spec.a_per_count) > 1 else set())
+        self.stored: dict[int, int] = {R_CLOCK[0]: 2026, R_CLOCK[1]: 1, R_CLOCK[2]: 1,
+                                       R_SETTINGS[-1]: 4}  # fmt: skip
+        self.start = time.monotonic()
+        self.default_protection()
+
+    def i_lsb(self) -> float:
+        """Current resolution of the present range (A per count)."""
+        return self.spec.a_per_count[self.range]
+
+    def i_max(self) -> float:
+        """Full scale of the present range (A)."""
+        return self.spec.i_max_a[self.range]
+
+    def default_protection(self) -> None:
+        """OVP and OCP as at power-on (or after a range change)."""
+        self.supply.set_protection(
+            RIDEN_OVP_DEFAULT_V, min(self.i_max() + RIDEN_OCP_MARGIN_A, 0xFFFF * self.i_lsb())
+        )
+
+    def words(self) -> dict[int, int]:
+        """Every live register's value (address -> value, before wrapping to 16 bits)."""
+        sup, v_lsb, i_lsb = self.supply, self.spec.v_per_count, self.i_lsb()
+        with sup.lock:
+            i_out, v_out = sup.output_current(), sup.output_voltage()
+            temp_c = 28 + min(20.0, (time.monotonic() - self.start) / 600.0 * abs(i_out))
+            power = round(v_out * i_out / self.spec.w_per_count)
+            return {
+                R_ID: self.model_id, R_SN_H: self.serial_number >> 16,
+                R_SN_L: self.serial_number & 0xFFFF, R_FW: 140, R_TEMP_C: round(temp_c),
+                R_TEMP_F: round(temp_c * 9 / 5 + 32), R_V_SET: round(sup.v_set / v_lsb),
+                R_I_SET: round(sup.i_set / i_lsb), R_V_OUT: round(v_out / v_lsb),
+                R_I_OUT: round(i_out / i_lsb), R_P_H: power >> 16, R_P_L: power & 0xFFFF,
+                R_V_IN: round(sup.cfg.input_voltage_v * 100), R_PROTECT: sup.protection,
+                R_CVCC: 1 if sup.cc_mode() else 0, R_OUTPUT: 1 if sup.output else 0,
+                R_I_RANGE: self.range, **self.stored,
+                R_M0_V: round(sup.v_set / v_lsb), R_M0_I: round(sup.i_set / i_lsb),  # M0: active
+                R_M0_OVP: round(sup.ovp_v / v_lsb), R_M0_OCP: round(sup.ocp_a / i_lsb),
+            }  # fmt: skip
+
+    def refresh(self, regs: list[int], base: int) -> None:
+        """The live registers into ``regs`` (holding addresses ``base`` onwards)."""
+        for addr, value in self.words().items():
+            if 0 <= addr - base < len(regs):
+                regs[addr - base] = value & 0xFFFF
+
+    def writable(self, address: int, count: int) -> bool:
+        """Every register of the write is writable (else none is written: exception 2)."""
+        return all(address + i in self.writable_set for i in range(count))
+
+    def write(self, address: int, words: list[int]) -> int:
+        """One register written (1), or a Modbus exception's negative."""
+        try:
+            refused = self._write(address, int(words[0]))
+        except ValueError:
+            return -ExcCodes.ILLEGAL_VALUE
+        return 1 if refused is None else -refused
+
+    def _write(self, addr: int, word: int) -> ExcCodes | None:
+        sup, v_lsb, i_lsb = self.supply, self.spec.v_per_count, self.i_lsb()
+        if addr in (R_V_SET, R_M0_V):
+            if word * v_lsb > self.spec.v_max_v:
                 return ExcCodes.ILLEGAL_VALUE
-            if result is not None:
-                return result
+            sup.set_voltage(word * v_lsb)
+        elif addr in (R_I_SET, R_M0_I):
+            if word * i_lsb > self.i_max():
+                return ExcCodes.ILLEGAL_VALUE
+            sup.set_current(word * i_lsb)
+        elif addr == R_OUTPUT:
+            if word not in (0, 1):
+                return ExcCodes.ILLEGAL_VALUE
+            sup.set_output(bool(word))
+        elif addr == R_M0_OVP:
+            sup.set_protection(ovp_v=word * v_lsb)
+        elif addr == R_M0_OCP:
+            sup.set_protection(ocp_a=word * i_lsb)
+        elif addr == R_I_RANGE:
+            return self._set_range(word)
+        else:
+            self.stored[addr] = word
         return None
 
+    def _set_range(self, word: int) -> ExcCodes | None:
+        if word not in range(len(self.spec.a_per_count)):
+            return ExcCodes.ILLEGAL_VALUE
+        if word != self.range:  # the set-point in A is kept (capped at the new range)
+            self.range = word
+            if self.supply.i_set > self.i_max():
+                self.supply.set_current(self.i_max())
+            self.default_protection()
+        return None
+
+
+def riden_device(supply: Supply, device_id: int, serial_number: int = 12345) -> SimDevice:
+    """A Riden RD60xx (model from ``supply.cfg.model_id``) on Modbus ``device_id``."""
+    model = RidenModel(supply, serial_number)
     regs0 = [0] * RIDEN_SIZE
-    refresh(regs0, 0)
+    model.refresh(regs0, 0)
     return SimDevice(
         id=device_id,
         simdata=[SimData(address=0, values=regs0, datatype=DataType.REGISTERS)],
-        action=action,
+        action=model.action,
     )
+
+
+class RegmapModel(_Model):
+    """A device described by a register map, bound to a supply/e-load, the polarity relays or
+    (role ``temperature``) the DUT's temperature. Registers of role ``none`` keep what is written
+    (their ``value`` at power-on); a register the map lacks answers exception 2."""
+
+    PROTECTION_NAMES: ClassVar[dict[int, str]] = {1: "OVP", 2: "OCP"}
+
+    def __init__(self, spec: RegisterMap, physics: CagePhysics, supply: Supply | None,
+                 faults: Faults) -> None:  # fmt: skip
+        self.spec, self.physics, self.supply, self.faults = spec, physics, supply, faults
+        self.write_function = spec.write_function
+        self.stored: dict[str, float] = {
+            r.name: r.value for r in spec.registers if r.role != "constant" and r.value is not None
+        }
+        self.axis = None if supply is None else supply.cfg.axis
+        self.by_address = {r.address: r for r in spec.registers}
+        if supply is not None:  # protection defaults the registers can hold (never wrapped)
+            ovp, ocp = spec.role("ovp"), spec.role("ocp")
+            supply.set_protection(
+                None if ovp is None else min(supply.ovp_v, ovp.limits()[1]),
+                None if ocp is None else min(supply.ocp_a, ocp.limits()[1]),
+            )
+
+    def sign(self) -> float:
+        """Output polarity of a bipolar coil supply (+1 otherwise)."""
+        if self.spec.bipolar and self.axis is not None:
+            return float(self.physics.bipolar_sign[self.axis])
+        return 1.0
+
+    def value_of(self, reg: Register) -> float:
+        """What ``reg`` reads now (in its unit)."""
+        if reg.role == "constant":
+            return reg.value or 0.0
+        if reg.role == "temperature":
+            return self.physics.dut_temperature_c()
+        if reg.role.startswith("polarity_"):
+            return 1.0 if self.physics.relays.sign["xyz".index(reg.role[-1])] < 0 else 0.0
+        if self.supply is None:
+            return self.stored.get(reg.name, 0.0)
+        getter = self._supply_getters(self.supply, reg).get(reg.role)
+        return getter() if getter is not None else self.stored.get(reg.name, 0.0)
+
+    def _supply_getters(self, sup: Supply, reg: Register) -> dict[str, Callable[[], float]]:
+        on = 1.0 if sup.output else 0.0
+        return {
+            "v_set": lambda: sup.v_set,
+            "i_set": lambda: self.sign() * sup.i_set,
+            "v_out": lambda: self.sign() * sup.output_voltage(),
+            "i_out": lambda: self.sign() * sup.output_current(),
+            "power": sup.power_w,
+            # an output register reads 1/0, or (a command register) the last command written
+            "output": lambda: on if (reg.on, reg.off) == (1.0, 0.0)
+            else self.stored.get(reg.name, reg.on if sup.output else reg.off),
+            "output_state": lambda: on,
+            "mode": lambda: 1.0 if sup.cc_mode() else 0.0,
+            "protection": lambda: float(
+                reg.protection_value(self.PROTECTION_NAMES.get(sup.protection, ""))),
+            "ovp": lambda: sup.ovp_v,
+            "ocp": lambda: sup.ocp_a,
+        }  # fmt: skip
+
+    def refresh(self, regs: list[int], base: int) -> None:
+        """Every register's value into ``regs`` (holding addresses ``base`` onwards)."""
+        for reg in self.spec.registers:
+            for i, w in enumerate(reg.encode(self.value_of(reg), saturate=True)):
+                if 0 <= reg.address + i - base < len(regs):
+                    regs[reg.address + i - base] = w
+
+    def write(self, address: int, words: list[int]) -> int:
+        """The register at ``address`` written from ``words``: its width, or an exception's
+        negative (not a writable register's start, or cut short: 2; a refused value: 3)."""
+        reg = self.by_address.get(address)
+        if reg is None or reg.access != "rw" or reg.width > len(words):
+            return -ExcCodes.ILLEGAL_ADDRESS
+        try:
+            self.apply(reg, reg.decode(words[: reg.width]))
+        except ValueError:
+            return -ExcCodes.ILLEGAL_VALUE
+        return reg.width
+
+    def apply(self, reg: Register, value: float) -> None:
+        """A written value to the physics (ValueError: refused)."""
+        sup = self.supply
+        if reg.role.startswith("polarity_"):
+            self.physics.set_polarity("xyz".index(reg.role[-1]), -1 if value else 1)
+        elif sup is None or reg.role not in ("v_set", "i_set", "output", "ovp", "ocp"):
+            self.stored[reg.name] = value
+        elif reg.role == "v_set":
+            sup.set_voltage(value)
+        elif reg.role == "i_set":
+            self._set_current(sup, value)
+        elif reg.role == "output":
+            if (reg.on, reg.off) == (1.0, 0.0) and value not in (0.0, 1.0):
+                raise ValueError("output must be 0 or 1")
+            if value in (reg.on, reg.off):
+                sup.set_output(value == reg.on)
+            self.stored[reg.name] = value  # a command register reads back the last command
+        elif reg.role == "ovp":
+            sup.set_protection(ovp_v=value)
+        else:
+            sup.set_protection(ocp_a=value)
+
+    def _set_current(self, sup: Supply, value: float) -> None:
+        if self.spec.bipolar and self.axis is not None:
+            sup.set_current(abs(value))
+            self.physics.set_bipolar_sign(self.axis, -1 if value < 0 else 1)
+        elif value < 0:
+            raise ValueError("this supply is unipolar: current set-point must be >= 0")
+        else:
+            sup.set_current(value)
 
 
 def regmap_device(
     spec: RegisterMap, device_id: int, physics: CagePhysics, supply: Supply | None, faults: Faults
 ) -> SimDevice:
-    """A device described by a register map, bound to a supply/e-load, the polarity relays or
-    (role ``temperature``) the DUT's temperature. Registers of role ``none`` keep what is written
-    (their ``value`` at power-on); a register the map lacks answers exception 2."""
-    stored: dict[str, float] = {
-        r.name: r.value for r in spec.registers if r.role != "constant" and r.value is not None
-    }
-    axis = None if supply is None else supply.cfg.axis
-    if supply is not None:  # protection defaults the registers can hold (never wrapped)
-        ovp, ocp = spec.role("ovp"), spec.role("ocp")
-        supply.set_protection(
-            None if ovp is None else min(supply.ovp_v, ovp.limits()[1]),
-            None if ocp is None else min(supply.ocp_a, ocp.limits()[1]),
-        )
-    protection_names = {1: "OVP", 2: "OCP"}
-
-    def sign() -> float:
-        """Output polarity of a bipolar coil supply (+1 otherwise)."""
-        if spec.bipolar and axis is not None:
-            return float(physics.bipolar_sign[axis])
-        return 1.0
-
-    def protection(reg: Register) -> float:
-        assert supply is not None
-        return float(reg.protection_value(protection_names.get(supply.protection, "")))
-
-    def output_reads(reg: Register) -> float:
-        """An output register reads 1/0, or (a command register) the last command written."""
-        assert supply is not None
-        if (reg.on, reg.off) == (1.0, 0.0):
-            return 1.0 if supply.output else 0.0
-        return stored.get(reg.name, reg.on if supply.output else reg.off)
-
-    def value_of(reg: Register) -> float:
-        if reg.role == "constant":
-            return reg.value or 0.0
-        if reg.role == "temperature":
-            return physics.dut_temperature_c()
-        if reg.role.startswith("polarity_"):
-            return 1.0 if physics.relays.sign["xyz".index(reg.role[-1])] < 0 else 0.0
-        if supply is None:
-            return stored.get(reg.name, 0.0)
-        getters: dict[str, Callable[[], float]] = {
-            "v_set": lambda: supply.v_set,
-            "i_set": lambda: sign() * supply.i_set,
-            "v_out": lambda: sign() * supply.output_voltage(),
-            "i_out": lambda: sign() * supply.output_current(),
-            "power": lambda: supply.power_w(),
-            "output": lambda: output_reads(reg),
-            "output_state": lambda: 1.0 if supply.output else 0.0,
-            "mode": lambda: 1.0 if supply.cc_mode() else 0.0,
-            "protection": lambda: protection(reg),
-            "ovp": lambda: supply.ovp_v,
-            "ocp": lambda: supply.ocp_a,
-        }
-        return getters[reg.role]() if reg.role in getters else stored.get(reg.name, 0.0)
-
-    def refresh(regs: list[int], base: int) -> None:
-        for reg in spec.registers:
-            words = reg.encode(value_of(reg), saturate=True)
-            for i, w in enumerate(words):
-                if 0 <= reg.address + i - base < len(regs):
-                    regs[reg.address + i - base] = w
-
-    def apply(reg: Register, value: float) -> None:
-        if reg.role.startswith("polarity_"):
-            physics.set_polarity("xyz".index(reg.role[-1]), -1 if value else 1)
-        elif reg.role == "v_set" and supply is not None:
-            supply.set_voltage(value)
-        elif reg.role == "i_set" and supply is not None:
-            if spec.bipolar and axis is not None:
-                supply.set_current(abs(value))
-                physics.set_bipolar_sign(axis, -1 if value < 0 else 1)
-            elif value < 0:
-                raise ValueError("this supply is unipolar: current set-point must be >= 0")
-            else:
-                supply.set_current(value)
-        elif reg.role == "output" and supply is not None:
-            if (reg.on, reg.off) == (1.0, 0.0) and value not in (0.0, 1.0):
-                raise ValueError("output must be 0 or 1")
-            if value in (reg.on, reg.off):
-                supply.set_output(value == reg.on)
-            stored[reg.name] = value  # a command register reads back the last command
-        elif reg.role == "ovp" and supply is not None:
-            supply.set_protection(ovp_v=value)
-        elif reg.role == "ocp" and supply is not None:
-            supply.set_protection(ocp_a=value)
-        else:
-            stored[reg.name] = value
-
-    by_address = {r.address: r for r in spec.registers}
-
-    async def action(fc: int, start_address: int, address: int, count: int,
-                     regs: list[int], values: Any) -> ExcCodes | None:  # fmt: skip
-        fault = await _apply_faults(faults)
-        if fault is not None:
-            return fault
-        if fc == WRITE_SINGLE and spec.write_function == 16:
-            return ExcCodes.ILLEGAL_FUNCTION  # a device without function 6 (the Maynuo M97xx)
-        if fc == WRITE_SINGLE and values is None:
-            return None  # pymodbus reading back the word just written: the reply echoes it
-        if values is None or fc in READ_CODES:
-            refresh(regs, start_address)
-            return None
-        words = list(values) if isinstance(values, list) else [values]
-        pos = 0
-        while pos < len(words):
-            reg = by_address.get(address + pos)
-            if reg is None or reg.access != "rw" or pos + reg.width > len(words):
-                return ExcCodes.ILLEGAL_ADDRESS
-            try:
-                apply(reg, reg.decode(words[pos : pos + reg.width]))
-            except ValueError:
-                return ExcCodes.ILLEGAL_VALUE
-            pos += reg.width
-        return None
-
+    """A device described by a register map (:class:`RegmapModel`) on Modbus ``device_id``."""
+    model = RegmapModel(spec, physics, supply, faults)
     blocks = [
         SimData(address=r.address, values=r.encode(0.0), datatype=DataType.REGISTERS)
         for r in sorted(spec.registers, key=lambda r: r.address)
     ]
-    return SimDevice(id=device_id, simdata=blocks, action=action)
+    return SimDevice(id=device_id, simdata=blocks, action=model.action)
 
 
 def unserved_ids() -> SimDevice:
@@ -314,3 +362,30 @@ def unserved_ids() -> SimDevice:
 
     every_address = SimData(address=0, count=65536, datatype=DataType.REGISTERS)
     return SimDevice(id=0, simdata=[every_address], action=action)
+
+
+def _role(s: SupplyConfig) -> str:
+    return f"coil_{'xyz'[s.axis]}" if s.axis is not None else "load"
+
+
+def _start_riden(host: CageHost, s: SupplyConfig, index: int) -> dict[str, Any]:
+    """A Riden RD60xx (its register set, :func:`riden_device`) driving a coil or a load."""
+    supply = host.physics.supplies[s.name]
+    device = riden_device(supply, s.endpoint.device_id)
+    entry = host.serve_modbus(s.name, device, s.endpoint, supply.faults)
+    return entry | {"kind": "riden-rd60xx", "role": _role(s)}
+
+
+def _start_regmap(host: CageHost, s: SupplyConfig, index: int) -> dict[str, Any]:
+    """A supply or electronic load described by a register map (``regmap = "<name>"``)."""
+    supply = host.physics.supplies[s.name]
+    spec = load_regmap(s.regmap)
+    if spec.kind == "eload":
+        supply.set_voltage(min(s.input_voltage_v, supply.v_max))
+    device = regmap_device(spec, s.endpoint.device_id, host.physics, supply, supply.faults)
+    entry = host.serve_modbus(s.name, device, s.endpoint, supply.faults)
+    return entry | {"kind": f"regmap-{spec.kind}", "regmap": spec.source, "role": _role(s)}
+
+
+RIDEN = SimKind("riden-rd60xx", "supplies", _start_riden)
+REGMAP = SimKind("regmap", "supplies", _start_regmap)

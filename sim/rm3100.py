@@ -19,11 +19,15 @@ import errno
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from sim.device_kind import CageHost, SimKind
 from sim.physics import Faults
+
+if TYPE_CHECKING:
+    from sim.config import MagnetometerConfig
 
 POLL, CMM, CCX, CCY, CCZ, TMRC = 0x00, 0x01, 0x04, 0x06, 0x08, 0x0B
 AXIS_BITS = (0x10, 0x20, 0x40)  # PMX/PMY/PMZ in POLL, CMX/CMY/CMZ in CMM
@@ -144,19 +148,33 @@ class Rm3100:
         return out
 
 
+class BusDevice(Protocol):
+    """A device on :class:`SimI2CBus`: its address, its faults, and register access (its
+    ``_advance`` brings its conversions up to now before every transfer)."""
+
+    address: int
+    faults: Faults
+
+    def _advance(self) -> None: ...
+
+    def write(self, reg: int, data: bytes) -> None: ...
+
+    def read(self, reg: int, length: int) -> bytes: ...
+
+
 class SimI2CBus:
     """An smbus2-compatible bus object carrying simulated devices (``i2c_rdwr`` and friends)."""
 
     def __init__(self) -> None:
-        self.devices: dict[int, Rm3100] = {}
+        self.devices: dict[int, BusDevice] = {}
         self._lock = threading.Lock()
         self.transfers = 0
 
-    def attach(self, device: Rm3100) -> None:
+    def attach(self, device: BusDevice) -> None:
         """Put a device on the bus at its address."""
         self.devices[device.address] = device
 
-    def _device(self, addr: int) -> Rm3100:
+    def _device(self, addr: int) -> BusDevice:
         dev = self.devices.get(addr)
         if dev is None or dev.faults.silent or dev.faults.disconnect:
             raise OSError(errno.EREMOTEIO, "Remote I/O error")  # errno 121, as the kernel
@@ -214,3 +232,13 @@ class SimI2CBus:
 
     def close(self) -> None:
         """Nothing to release (API compatibility)."""
+
+
+def _start(host: CageHost, m: MagnetometerConfig, index: int) -> dict[str, Any]:
+    """An RM3100 on the simulated I2C bus (``cage.i2c_bus``) at ``i2c_address``."""
+    host.add_i2c(m.name, Rm3100(host.field_reader(m.name),
+                                host.physics.magnetometers[m.name].faults, m.i2c_address))  # fmt: skip
+    return {"kind": "rm3100", "protocol": "i2c", "bus": "sim", "address": m.i2c_address}
+
+
+KIND = SimKind("rm3100", "magnetometers", _start)

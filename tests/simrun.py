@@ -7,9 +7,8 @@ from pathlib import Path
 from rig.config import load_rig_config
 from rig.engine.runner import Runner, RunOutcome
 from rig.procedure.language import parse_procedure
-from rig.sim_rig import sim_rig_config
-from sim.cage import SimulatedCage
-from sim.config import SimConfig, load_config
+from sim.config import SimConfig
+from tests.simcage import sim_cage
 
 
 def run_on_sim(
@@ -21,12 +20,10 @@ def run_on_sim(
     replies (device name -> seconds), as a slow link would; ``sim_config`` replaces the default
     simulated cage."""
     (folder / "procedure.yaml").write_text(procedure)
-    cfg = sim_config or load_config()
-    with SimulatedCage(cfg) as cage:
-        (folder / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+    with sim_cage(folder, sim_config) as (cage, rig_toml):
         for name, delay in (reply_delay_s or {}).items():
             cage.faults[name].reply_delay_s = delay
-        return Runner(parse_procedure(folder / "procedure.yaml"), load_rig_config(folder / "rig.toml"),
+        return Runner(parse_procedure(folder / "procedure.yaml"), load_rig_config(rig_toml),
                       folder / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False).run()  # fmt: skip
 
 

@@ -258,7 +258,7 @@ def test_method_choices_come_from_the_estimator_table() -> None:
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     method = next(a for a in sub.choices["calibrate"]._actions if a.dest == "method")
     assert tuple(method.choices or ()) == method_names()
-    assert "centered-seq, ekf and ukf are the sequential" in (method.help or "")
+    assert "centered-seq, ekf, ukf and rls are the sequential" in (method.help or "")
 
 
 def test_cage_set_field_help_and_usage_error() -> None:

@@ -138,3 +138,16 @@ def test_a_few_misdated_samples_leave_the_verdict_a_flood_withholds_it() -> None
     # a fault in a result no criterion judges does not withhold the verdict
     other = {**good, "noise": {"timing_fault": "timing fault: y"}}
     assert evaluate_criteria(other, criteria)["overall"] == "PASS"
+
+
+def test_a_run_whose_data_failed_the_timing_checks_ends_re_run() -> None:
+    """Status re-run, exit code 3, and a report headline that names the step and why."""
+    from rig.report.text_report import overall_verdict
+    from rig.store.run_states import ENDED, EXIT_CODES, RunStatus
+
+    verdict = {"overall": "RE-RUN", "rerun": [{"result": "vector calibration",
+                                                "why": "timing fault: 40 of 1260 samples"}]}  # fmt: skip
+    text = overall_verdict({"status": "re-run"}, {"verdict": verdict})
+    assert text.startswith("RE-RUN - NOT JUDGED, RUN AGAIN"), text
+    assert "vector calibration: timing fault: 40 of 1260 samples" in text
+    assert EXIT_CODES[RunStatus.RERUN] == 3 and RunStatus.RERUN in ENDED

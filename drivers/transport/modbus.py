@@ -14,6 +14,7 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 
 from drivers.errors import (
     DeviceAbsentError,
+    DeviceError,
     DeviceNotFoundError,
     DeviceProtocolError,
     DeviceRefusedError,
@@ -277,34 +278,43 @@ class ModbusLink:
                 time.sleep(0.05 * (attempt + 1))  # let a garbled line settle before retrying
                 continue
             self.failed = False
-            if rr.isError():
-                code = int(getattr(rr, "exception_code", 0))
-                if code in GATEWAY_CODES:
-                    raise self._gateway_error(what, code)
-                self.answered = True
-                raise DeviceRefusedError(
-                    f"{self.name} at {self.where} refused {what}: {exception_text(code)}"
-                )
+            return self._answer(what, rr)
+        raise self._gave_up(what, attempts, last)
+
+    def _answer(self, what: str, rr: Any) -> Any:
+        """A reply: returned, or its exception code raised as the device's refusal (or, 10 and
+        11, as a gateway's word that the device behind it is absent)."""
+        if rr.isError():
+            code = int(getattr(rr, "exception_code", 0))
+            if code in GATEWAY_CODES:
+                raise self._gateway_error(what, code)
             self.answered = True
-            return rr
+            raise DeviceRefusedError(
+                f"{self.name} at {self.where} refused {what}: {exception_text(code)}"
+            )
+        self.answered = True
+        return rr
+
+    def _gave_up(self, what: str, attempts: int, last: Exception | None) -> DeviceError:
+        """The error after ``attempts`` tries of ``what`` that all failed, the last with ``last``."""
         # garbled replies are a noisy line, not a dead device: the next request gets every retry
         garbled = bool(getattr(self._client, "heard", False))
         self.failed = not garbled
         if isinstance(last, ConnectionException | DeviceNotFoundError | OSError):
-            raise DeviceNotFoundError(
+            return DeviceNotFoundError(
                 f"{self.name} at {self.where}: connection lost during {what} ({last});"
                 " check power and cable"
             )
         if isinstance(last, ModbusIOException) and garbled:
-            raise DeviceProtocolError(
+            return DeviceProtocolError(
                 f"{self.name} at {self.where}: no valid reply to {what} after {attempts}"
                 f" attempt{'s' if attempts > 1 else ''}, only damaged ones (bad CRC or cut"
                 " short); check for noise on the line: cable shield, termination, baud rate"
             )
         if isinstance(last, ModbusIOException):
             detail = str(last).split(", continue")[0].removeprefix("Modbus Error: ")
-            raise DeviceTimeoutError(self._silence(what, attempts, detail))
-        raise DeviceProtocolError(
+            return DeviceTimeoutError(self._silence(what, attempts, detail))
+        return DeviceProtocolError(
             f"{self.name} at {self.where}: malformed reply to {what} after {attempts}"
             f" attempts ({last}); check for noise on the line or a wrong framing"
         )

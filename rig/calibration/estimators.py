@@ -2,11 +2,12 @@
 
 ``rig calibrate --method`` (choices and help), the procedure language (``calibrate`` and
 ``live_calibrate`` steps) and :func:`rig.calibration.calibrate` read this table; adding an
-estimator is one function and one row here.
+batch estimator is one function and one row here, a sequential one a module and a line there.
 
 * **batch** estimators see every sample at once (linear initializers, maximum likelihood, TWOSTEP);
 * **sequential** estimators are filters that take the samples one by one, in order (Crassidis, Lai
-  and Harman's sequential centered, EKF and UKF; see ADR 0009 for the energy-state forms).
+  and Harman's sequential centered, EKF and UKF; see ADR 0009 for the energy-state forms). Each is
+  a module registered in :data:`rig.calibration.sequential.KINDS` (ADR 0022); their rows follow.
 
 Importing this module costs no numpy (the CLI builds its parser from it at start-up): each row's
 ``run`` imports its implementation when called.
@@ -16,8 +17,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, cast
+from typing import TYPE_CHECKING, Literal
 
+from rig.calibration.sequential import KINDS
 from rig.errors import CalibrationError
 
 if TYPE_CHECKING:
@@ -25,15 +27,14 @@ if TYPE_CHECKING:
     from rig.calibration.params import Array
     from rig.calibration.residuals import Samples
     from rig.calibration.robust import RobustLoss
-    from rig.calibration.sequential.realtime import FilterOptions
+    from rig.calibration.sequential.kind import FilterOptions
 
 Kind = Literal["batch", "sequential"]
 Model = Literal["scalar", "vector"]
 BatchMethod = Literal["ml", "twostep", "centered", "ellipsoid", "vector"]
-SequentialMethod = Literal["centered-seq", "ekf", "ukf"]
-Method = Literal[BatchMethod, SequentialMethod]
-"""The names of the rows below, as types (mypy checks each row's name against them; a test checks
-that they name every row and in which kind)."""
+Method = str
+"""A row's name: a :data:`BatchMethod` or a key of :data:`rig.calibration.sequential.KINDS`
+(checked against the table at run time, :func:`estimator`)."""
 
 
 @dataclass(frozen=True)
@@ -110,14 +111,14 @@ def _filter(s: Samples, r: FitRequest) -> Estimate:
 
     opts = r.filter_options or FilterOptions()
     if opts.method != r.method:
-        opts = replace(opts, method=cast("SequentialMethod", r.method))
+        opts = replace(opts, method=r.method)
     if r.noise_ut is None:
         raise CalibrationError(f"{r.method} needs the raw noise: give --noise-nt")
     est, _ = run_filter(s, opts, r.noise_ut, times_s=r.times_s)
     return est
 
 
-ESTIMATORS: tuple[Estimator, ...] = (
+_BATCH: tuple[Estimator, ...] = (
     Estimator("ml", "batch", "scalar", "maximum likelihood on |h| (analytic Jacobian), started"
               " from centered or, when |h| is constant, the ellipsoid", _ml, robust=True),
     Estimator("twostep", "batch", "scalar", "TWOSTEP (Alonso-Shuster): centered start, then"
@@ -128,14 +129,14 @@ ESTIMATORS: tuple[Estimator, ...] = (
               " constant |h|", _ellipsoid),
     Estimator("vector", "batch", "vector", "cage linear least squares on the field vector: scale,"
               " misalignment, mounting rotation, offset, current-to-bias", _vector, robust=True),
-    Estimator("centered-seq", "sequential", "scalar", "sequential centered least squares"
-              " (Crassidis eqs. 19-22); equals centered after the last sample", _filter),
-    Estimator("ekf", "sequential", "scalar", "energy-state filter with a Gauss-Newton projection"
-              " (--filter-variant paper: the paper's EKF)", _filter),
-    Estimator("ukf", "sequential", "scalar", "energy-state filter with a sigma-point projection"
-              " (--filter-variant paper: the paper's 9-state UKF)", _filter),
 )  # fmt: skip
-"""Every estimator, in the order the CLI lists them."""
+"""The batch estimators (each row's name is a :data:`BatchMethod`; a test checks the type)."""
+
+ESTIMATORS: tuple[Estimator, ...] = _BATCH + tuple(
+    Estimator(k.name, "sequential", "scalar", k.description, _filter) for k in KINDS.values()
+)
+"""Every estimator, in the order the CLI lists them: the batch rows, then the registered
+sequential ones."""
 
 DEFAULT_METHOD: dict[Model, Method] = {"vector": "vector", "scalar": "ml"}
 """The estimator used when none is named, by what the data allow (field vector or magnitude)."""

@@ -169,24 +169,9 @@ def _left_out_channels(split: _Split, where: str, result: CalibrationResult) -> 
     ]
 
 
-def ardupilot_params(
-    result: CalibrationResult,
-    compass: int = 1,
-    *,
-    current_channel: str | None = None,
-    source: str = "",
-) -> str:
-    """An ArduPilot parameter file (``NAME,VALUE`` lines, Mission Planner/MAVProxy ``.parm``).
-
-    Offsets in mGauss (``COMPASS_OFS* = -10 o``, ArduPilot adds them), the symmetric soft-iron
-    ``COMPASS_DIA*``/``COMPASS_ODI*``, ``COMPASS_SCALE* = 1``; with ``current_channel`` (a
-    telemetry channel in A) also ``COMPASS_MOTCT = 2`` and ``COMPASS_MOT*`` in mGauss/A.
-    ``compass`` is 1, 2 or 3. Raises ValueError (one line) when the result cannot be exported.
-    """
-    who = f"ArduPilot compass {compass}"
-    if compass not in ARDUPILOT_COMPASSES:
-        raise ValueError(f"ArduPilot compass must be 1, 2 or 3, got {compass}")
-    split = _split(result, who, current_channel)
+def _ardupilot_values(split: _Split, who: str) -> tuple[Array, Array, Array, Array | None]:
+    """(OFS mGauss, DIA, ODI, MOT mGauss/A or None) of ``split``; ValueError (one line) when a
+    value is outside what ArduPilot accepts."""
     s = split.s
     dia, odi = split.diagonal, split.off_diagonal
     lo, hi = ARDUPILOT_DIA_RANGE
@@ -215,6 +200,29 @@ def ardupilot_params(
                 f"cannot export to {who}: COMPASS_MOT {_triple(mot)} mGauss/A outside"
                 f" +-{ARDUPILOT_MOT_MAX_MGAUSS_PER_A:.0f}, its documented range"
             )
+    return ofs, dia, odi, mot
+
+
+def ardupilot_params(
+    result: CalibrationResult,
+    compass: int = 1,
+    *,
+    current_channel: str | None = None,
+    source: str = "",
+) -> str:
+    """An ArduPilot parameter file (``NAME,VALUE`` lines, Mission Planner/MAVProxy ``.parm``).
+
+    Offsets in mGauss (``COMPASS_OFS* = -10 o``, ArduPilot adds them), the symmetric soft-iron
+    ``COMPASS_DIA*``/``COMPASS_ODI*``, ``COMPASS_SCALE* = 1``; with ``current_channel`` (a
+    telemetry channel in A) also ``COMPASS_MOTCT = 2`` and ``COMPASS_MOT*`` in mGauss/A.
+    ``compass`` is 1, 2 or 3. Raises ValueError (one line) when the result cannot be exported.
+    """
+    who = f"ArduPilot compass {compass}"
+    if compass not in ARDUPILOT_COMPASSES:
+        raise ValueError(f"ArduPilot compass must be 1, 2 or 3, got {compass}")
+    split = _split(result, who, current_channel)
+    ofs, dia, odi, mot = _ardupilot_values(split, who)
+    ofs_len = float(np.linalg.norm(ofs))
     n = "" if compass == 1 else str(compass)
     lines = _header(result, f"ArduPilot (compass {compass})", source)
     lines += [

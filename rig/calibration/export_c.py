@@ -26,6 +26,15 @@ def c_header(result: CalibrationResult, prefix: str = "magcal", source: str = ""
     The function computes ``h = W (m - o - sum_j k_j u_j)`` in uT, in the same channel order as
     the fit; ``u`` may be ``NULL`` when there are no channels.
     """
+    name = _c_identifier(prefix)
+    lines = _c_constants(result, prefix, source)
+    lines += _c_apply(result, name, prefix.lower())
+    lines += ["}", "", f"#endif /* {name}_H */", ""]
+    return "\n".join(lines)
+
+
+def _c_constants(result: CalibrationResult, prefix: str, source: str) -> list[str]:
+    """The header's comment, guard, channel indices, delays, temperature and arrays."""
     cal = result.calibration
     name = _c_identifier(prefix)
     fn = prefix.lower()
@@ -55,7 +64,6 @@ def c_header(result: CalibrationResult, prefix: str = "magcal", source: str = ""
             f"{_floats(np.array([delays.get(ch, 0.0) for ch in cal.channels]))}}};",
         ]
     scale_per_k = result.profiled_values("temperature").get("scale_per_k")
-    t_index = cal.channels.index(TEMPERATURE) if TEMPERATURE in cal.channels else None
     if result.temperature_ref is not None:
         lines.append(f"/* u[{name}_CHANNEL_{_c_identifier(TEMPERATURE)}] is T - T_ref (K), T_ref ="
                      f" {result.temperature_ref:g} */")  # fmt: skip
@@ -78,7 +86,16 @@ def c_header(result: CalibrationResult, prefix: str = "magcal", source: str = ""
             ),
             "};",
         ]
-    lines += [
+    return lines
+
+
+def _c_apply(result: CalibrationResult, name: str, fn: str) -> list[str]:
+    """The inline ``apply`` function up to its closing brace (the caller closes it)."""
+    cal = result.calibration
+    n_ch = len(cal.channels)
+    scale_per_k = result.profiled_values("temperature").get("scale_per_k")
+    t_index = cal.channels.index(TEMPERATURE) if TEMPERATURE in cal.channels else None
+    lines = [
         "",
         f"/* m: raw reading (uT); u: {n_ch} telemetry values in fit order (or NULL); h: output. */",
         f"static inline void {fn}_apply(const float m[3], const float *u, float h[3])",
@@ -114,5 +131,4 @@ def c_header(result: CalibrationResult, prefix: str = "magcal", source: str = ""
     ]
     if not n_ch:
         lines.insert(-3, "    (void)u;")
-    lines += ["}", "", f"#endif /* {name}_H */", ""]
-    return "\n".join(lines)
+    return lines

@@ -40,6 +40,66 @@ def default_method(s: Samples) -> Method:
     return DEFAULT_METHOD["vector" if s.field_ut is not None else "scalar"]
 
 
+def _checked_estimator(
+    s: Samples, method: Method | None, noise_nt: float | None, robust: RobustLoss | None
+) -> Estimator:
+    """The estimator for ``method`` (default: :func:`default_method`); CalibrationError (one
+    line, the fix) when the options or the data do not suit it."""
+    est = estimator(method or default_method(s))
+    if robust is not None and not est.robust:
+        raise CalibrationError(
+            f"--robust works with --method {spoken(method_names(robust=True))}, not {est.name}:"
+            " drop --robust or change method"
+        )
+    if noise_nt is not None and not noise_nt > 0:
+        raise CalibrationError(f"--noise-nt must be positive, got {noise_nt:g}")
+    if est.model == "vector" and s.field_ut is None:
+        raise CalibrationError(
+            f"--method {est.name} needs the field vector: give --field X,Y,Z instead of"
+            " --field-magnitude"
+        )
+    return est
+
+
+def _with_temperature(
+    s: Samples, temperature: Array | None, temperature_ref: float | None
+) -> tuple[Samples, float | None]:
+    """``s`` with the temperature channel (T - T_ref, K) and T_ref (default: the mean); ``s``
+    and None without a temperature."""
+    if temperature is None:
+        return s, None
+    from rig.calibration.temperature import with_temperature_channel
+
+    reference = float(np.mean(temperature)) if temperature_ref is None else temperature_ref
+    return with_temperature_channel(s, temperature, reference), reference
+
+
+def _profiled_parameters(
+    data: Samples,
+    times_s: Array | None,
+    delays: tuple[str, ...],
+    max_delay_s: float,
+    telemetry_series: Mapping[str, Series] | None,
+    temperature: bool,
+) -> tuple[Profiled, ...]:
+    """The parameters fitted by profiling: each delayed channel's delay (s) and, with a
+    temperature, the scale per kelvin."""
+    profiled: tuple[Profiled, ...] = ()
+    if delays:
+        from rig.calibration.profiled import delay_parameter
+
+        if times_s is None:
+            raise CalibrationError("--delay needs the sample times: give --time COL (seconds)")
+        series = telemetry_series or {}
+        profiled = tuple(delay_parameter(data, times_s, c, max_delay_s, series.get(c))
+                         for c in delays)  # fmt: skip
+    if temperature:
+        from rig.calibration.temperature import scale_parameter
+
+        profiled += (scale_parameter(data),)
+    return profiled
+
+
 def calibrate(
     s: Samples,
     method: Method | None = None,
@@ -74,28 +134,10 @@ def calibrate(
             coefficients per kelvin about ``temperature_ref`` (default: the mean); see
             :mod:`rig.calibration.temperature`.
     """
-    est = estimator(method or default_method(s))
-    if robust is not None and not est.robust:
-        raise CalibrationError(
-            f"--robust works with --method {spoken(method_names(robust=True))}, not {est.name}:"
-            " drop --robust or change method"
-        )
-    if noise_nt is not None and not noise_nt > 0:
-        raise CalibrationError(f"--noise-nt must be positive, got {noise_nt:g}")
+    est = _checked_estimator(s, method, noise_nt, robust)
     vector = est.model == "vector"
-    if vector and s.field_ut is None:
-        raise CalibrationError(
-            f"--method {est.name} needs the field vector: give --field X,Y,Z instead of"
-            " --field-magnitude"
-        )
-    reference = None
-    if temperature is not None:
-        from rig.calibration.temperature import with_temperature_channel
-
-        reference = float(np.mean(temperature)) if temperature_ref is None else temperature_ref
-        s = with_temperature_channel(s, temperature, reference)
-    n_params = (12 if vector else 9) + 3 * s.n_channels
-    check_samples(s, n_params)
+    s, reference = _with_temperature(s, temperature, temperature_ref)
+    check_samples(s, (12 if vector else 9) + 3 * s.n_channels)
     data = s if vector else s.as_scalar()
     notes: tuple[str, ...] = ()
     noise_ut = noise_nt / 1000.0 if noise_nt is not None else None
@@ -108,19 +150,8 @@ def calibrate(
         )
     if est.kind == "batch" and not vector and s.field_ut is not None:
         notes = ("field vector given but a scalar method chosen: only |h| was used",)
-    profiled: tuple[Profiled, ...] = ()
-    if delays:
-        from rig.calibration.profiled import delay_parameter
-
-        if times_s is None:
-            raise CalibrationError("--delay needs the sample times: give --time COL (seconds)")
-        series = telemetry_series or {}
-        profiled = tuple(delay_parameter(data, times_s, c, max_delay_s, series.get(c))
-                         for c in delays)  # fmt: skip
-    if temperature is not None:
-        from rig.calibration.temperature import scale_parameter
-
-        profiled += (scale_parameter(data),)
+    profiled = _profiled_parameters(data, times_s, delays, max_delay_s, telemetry_series,
+                                    temperature is not None)  # fmt: skip
     if profiled:
         result = _profiled(data, est, noise_ut, robust, times_s, profiled, notes)
         return replace(result, temperature_ref=reference)

@@ -168,13 +168,8 @@ class CalibrationResult:
         cal = self.calibration
         sp = cal.springmann
         cr = cal.crassidis
-        spv = dict(
-            zip(
-                ("a", "b", "c", "x0", "y0", "z0", "rho", "phi", "lambda"),
-                sp.as_vector(),
-                strict=True,
-            )
-        )
+        names = ("a", "b", "c", "x0", "y0", "z0", "rho", "phi", "lambda")
+        spv = dict(zip(names, sp.as_vector(), strict=True))
         out: dict[str, Any] = {
             "model": self.model,
             "method": self.method,
@@ -222,6 +217,12 @@ class CalibrationResult:
             "warnings": list(self.warnings),
             "iterations": self.iterations,
         }
+        self._add_extras(out)
+        return out
+
+    def _add_extras(self, out: dict[str, Any]) -> None:
+        """The profiled parameters (delays, temperature) with their sigma, the temperature
+        reference, a filter's summary and the residuals' whiteness, into the result file ``out``."""
         if self.noise_check is not None:
             out["residual_whiteness"] = self.noise_check.to_dict()
         if self.profiled is not None:
@@ -240,7 +241,6 @@ class CalibrationResult:
                 "mean_nis": float(np.mean(nis)) if nis.size else None,
                 "recorded_rows": int(self.history.index.size),
             }
-        return out
 
     def _crassidis_sigma(self) -> dict[str, Any]:
         """1-sigma of the Crassidis ``b`` (uT) and ``D`` (eq. 11), by the delta method."""
@@ -343,11 +343,7 @@ def summarize(
     n_eff = float(np.sum(robust_w > 0)) * (3 if vector else 1)
     sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - est.p.size, 1.0)))
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
-    crlb = covariance_from_normal(fisher, noise_ut**2)
-    check, info, ratio = fit_noise_check(est.p, s, est.sample_weights, vector_rows, sigma_hat**2)
-    covariance = est.covariance * np.outer(check.inflation, check.inflation)
-    if info is not None:  # the bound for the same (correlated) noise: an AR model of it
-        crlb = covariance_from_normal(info, noise_ut**2 * ratio)
+    check, covariance, crlb = _noise_model(est, s, vector_rows, sigma_hat, noise_ut, fisher)
     sd = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
     corr = est.covariance / np.outer(sd, sd) - np.eye(sd.size)
     degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if sd.size > 1 else False
@@ -396,6 +392,23 @@ def _offset_channel_advice(channel: str, u: Array) -> str:
         f" ({spread}); more samples with it at zero (or of the opposite sign) separate offset and"
         " coefficient"
     )
+
+
+def _noise_model(
+    est: Estimate,
+    s: Samples,
+    vector_rows: tuple[Array, Array] | None,
+    sigma_hat: float,
+    noise_ut: float,
+    fisher: Array,
+) -> tuple[NoiseCheck, Array, Array]:
+    """The residuals' whiteness test, the covariance (HAC sigmas when correlated) and the
+    Cramer-Rao bound for the same noise (white, or an AR model of it) (ADR 0025)."""
+    check, info, ratio = fit_noise_check(est.p, s, est.sample_weights, vector_rows, sigma_hat**2)
+    covariance = est.covariance * np.outer(check.inflation, check.inflation)
+    if info is None:
+        return check, covariance, covariance_from_normal(fisher, noise_ut**2)
+    return check, covariance, covariance_from_normal(info, noise_ut**2 * ratio)
 
 
 def _replace_warnings(result: CalibrationResult, warnings: tuple[str, ...]) -> CalibrationResult:

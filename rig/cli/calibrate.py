@@ -195,28 +195,8 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     cal.set_defaults(func=_cmd_calibrate)
 
 
-def _cmd_calibrate(args: argparse.Namespace) -> int:
-    import os
-
-    # One BLAS thread unless the user says otherwise (before numpy loads): the fits' products are
-    # tall and thin (blocks of 32k rows x <= 70 columns), a second thread gains nothing and, on a
-    # busy machine, spinning threads took the 100k x 69 fit from 1.1 s to 2.7-3.7 s (ADR 0017).
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    from rig.calibration import Samples
-    from rig.io.csv_table import read_table, read_valid_rows
-
-    if args.data.is_dir():
-        return _calibrate_run(args)
-    if not args.data.exists():
-        run_folder = args.runs_dir / args.data
-        if (run_folder / "run.sqlite").exists():
-            args.data = run_folder
-            return _calibrate_run(args)
-        if args.data.suffix.lower() != ".csv":
-            raise UserInputError(
-                f"no CSV file or run '{args.data}' (looked at {args.data} and {run_folder}):"
-                " give a CSV file, a run folder, or a run id listed by 'rig runs' (--runs-dir DIR)"
-            )
+def _check_csv_args(args: argparse.Namespace) -> None:
+    """UserInputError (one line, the fix) unless the options describe a CSV calibration."""
     if args.measured is None:
         raise UserInputError("--measured COLX,COLY,COLZ is required for a CSV file")
     if args.field is None and args.field_magnitude is None and args.igrf is None:
@@ -230,26 +210,14 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         raise UserInputError(f"--field needs three columns X,Y,Z, got {len(args.field)}")
     if len(set(args.telemetry)) != len(args.telemetry):
         raise UserInputError("--telemetry names a column twice: list each channel once")
-    measured_ut_per, field_ut_per = _unit_factors(args)
-    constant = _constant_magnitude(args)
-    if args.igrf is not None:
-        from rig.geomag import igrf_magnitude_ut, parse_igrf_site
 
-        lat, lon, alt, date = parse_igrf_site(args.igrf)
-        constant = igrf_magnitude_ut(lat, lon, alt, date) / field_ut_per  # in the field unit
-        if not args.quiet:
-            print(f"--igrf: |B| = {constant * field_ut_per:.3f} uT (IGRF at {lat:g}, {lon:g},"
-                  f" {alt:g} km on {date:%Y-%m-%d})", file=sys.stderr)  # fmt: skip
-    magnitude = [] if args.field is not None or constant is not None else [args.field_magnitude]
-    if args.delay and args.time is None:
-        raise UserInputError("--delay needs the sample times: add --time COL (seconds)")
-    if args.temperature_ref is not None and args.temperature is None:
-        raise UserInputError("--temperature-ref needs --temperature COL")
-    timing = [args.time] if args.time is not None else []
-    timing += [args.temperature] if args.temperature is not None else []
-    wanted = list(args.measured) + (args.field or magnitude) + list(args.telemetry) + timing
-    wanted = list(dict.fromkeys(wanted))
+
+def _read_columns(args: argparse.Namespace, wanted: list[str]) -> Any:
+    """The ``wanted`` columns of the CSV file (rows with a bad value left out and counted with
+    ``--drop-invalid``), as one float array in that order."""
     import numpy as np
+
+    from rig.io.csv_table import read_table, read_valid_rows
 
     if args.drop_invalid:
         valid, dropped = read_valid_rows(args.data, wanted, names=args.columns)
@@ -258,10 +226,19 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             n_rows = len(valid[wanted[0]]) + len(dropped)
             print(f"--drop-invalid: left out {len(dropped)} of {n_rows} rows (lines {lines})",
                   file=sys.stderr)  # fmt: skip
-        table = np.column_stack([valid[c] for c in wanted])
-    else:
-        table = read_table(args.data, wanted, names=args.columns)
-    cols = {c: table[:, j] for j, c in enumerate(wanted)}
+        return np.column_stack([valid[c] for c in wanted])
+    return read_table(args.data, wanted, names=args.columns)
+
+
+def _csv_samples(args: argparse.Namespace, table: Any, wanted: list[str], constant: float | None,
+                 factors: tuple[float, float]) -> Any:  # fmt: skip
+    """The CSV columns as calibration samples (uT; ``factors``: the measured and field columns'
+    uT per unit; ``constant``: a field magnitude in the field unit, for every row)."""
+    import numpy as np
+
+    from rig.calibration import Samples
+
+    measured_ut_per, field_ut_per = factors
 
     def block(names: list[str], factor: float = 1.0) -> Any:
         """The named columns: a view of the table when adjacent (no copy of a large file)."""
@@ -295,6 +272,53 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
             telemetry=telemetry,
             channels=tuple(args.telemetry),
         )
+    return samples
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    import os
+
+    # One BLAS thread unless the user says otherwise (before numpy loads): the fits' products are
+    # tall and thin (blocks of 32k rows x <= 70 columns), a second thread gains nothing and, on a
+    # busy machine, spinning threads took the 100k x 69 fit from 1.1 s to 2.7-3.7 s (ADR 0017).
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    if args.data.is_dir():
+        return _calibrate_run(args)
+    if not args.data.exists():
+        run_folder = args.runs_dir / args.data
+        if (run_folder / "run.sqlite").exists():
+            args.data = run_folder
+            return _calibrate_run(args)
+        if args.data.suffix.lower() != ".csv":
+            raise UserInputError(
+                f"no CSV file or run '{args.data}' (looked at {args.data} and {run_folder}):"
+                " give a CSV file, a run folder, or a run id listed by 'rig runs' (--runs-dir DIR)"
+            )
+    _check_csv_args(args)
+    measured_ut_per, field_ut_per = _unit_factors(args)
+    constant = _constant_magnitude(args)
+    if args.igrf is not None:
+        from rig.geomag import igrf_magnitude_ut, parse_igrf_site
+
+        lat, lon, alt, date = parse_igrf_site(args.igrf)
+        constant = igrf_magnitude_ut(lat, lon, alt, date) / field_ut_per  # in the field unit
+        if not args.quiet:
+            print(f"--igrf: |B| = {constant * field_ut_per:.3f} uT (IGRF at {lat:g}, {lon:g},"
+                  f" {alt:g} km on {date:%Y-%m-%d})", file=sys.stderr)  # fmt: skip
+    magnitude = [] if args.field is not None or constant is not None else [args.field_magnitude]
+    if args.delay and args.time is None:
+        raise UserInputError("--delay needs the sample times: add --time COL (seconds)")
+    if args.temperature_ref is not None and args.temperature is None:
+        raise UserInputError("--temperature-ref needs --temperature COL")
+    timing = [args.time] if args.time is not None else []
+    timing += [args.temperature] if args.temperature is not None else []
+    wanted = list(args.measured) + (args.field or magnitude) + list(args.telemetry) + timing
+    wanted = list(dict.fromkeys(wanted))
+    import numpy as np
+
+    table = _read_columns(args, wanted)
+    cols = {c: table[:, j] for j, c in enumerate(wanted)}
+    samples = _csv_samples(args, table, wanted, constant, (measured_ut_per, field_ut_per))
     from rig.cli.field_sanity import check_plausible_fields
 
     check_plausible_fields(samples, args)

@@ -10,6 +10,8 @@ from rig.cli.common import Parser, Subparsers, parse_sets
 
 if TYPE_CHECKING:
     from rig.config import RigConfig
+    from rig.procedure.language import Procedure
+    from rig.procedure.plan import DryRun
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
@@ -54,80 +56,23 @@ def cage_model_arrays(cfg: RigConfig | None) -> tuple[Any, Any, Any, str]:
 
 def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: bool) -> int:
     """Dry run: timeline, duration, peaks against limits. Exit 0 only when every limit was checked
-    and holds; 1 on a violation or when limits could not be checked (no ``--rig``, no cage model)."""
+    and holds; 1 on a violation or when limits could not be checked (no ``--rig``, no cage model).
+    The rig configuration is loaded (and checked) against the declared keys (:mod:`rig.config`)."""
     from rig.config import load_rig_config
-    from rig.errors import UserInputError
-    from rig.output_limits import refuse_cage_devices_as_loads
-    from rig.procedure.language import FIELD_STEPS, parse_procedure
-    from rig.procedure.plan import ABSOLUTE_MAX_FIELD_UT, dry_run, rig_timing
+    from rig.procedure.language import parse_procedure
+    from rig.procedure.plan import dry_run, rig_timing
     from rig.procedure_files import find_procedure
 
     proc = parse_procedure(find_procedure(procedure), parse_sets(sets))
     cfg = load_rig_config(rig_config) if rig_config else None
     k, b0, uncertainty, model_source = cage_model_arrays(cfg)
-    loads_max = {}
-    unchecked: list[str] = []
-    if cfg is not None:
-        refuse_cage_devices_as_loads(list(proc.loads), cfg, proc.path)
-        for name in proc.loads:
-            if name not in cfg.devices:
-                raise UserInputError(f"{proc.path}: load '{name}' is not a device in {cfg.path}")
-            limit = cfg.devices[name].get("max_current_a")
-            if limit is not None:
-                loads_max[name] = float(limit)
+    loads_max = _load_limits(proc, cfg)
     cage = cfg.cage if cfg is not None else None
-    dr = dry_run(
-        proc,
-        k,
-        b0,
-        cage.max_current_a if cage else None,
-        cage.max_field_ut if cage else None,
-        loads_max,
-        rig_timing(cfg),
-        uncertainty,
-    )
-    if cfg is None:
-        unchecked.append(
-            "no rig configuration given (--rig CONFIG.toml); the rig's field, coil current and"
-            f" load current limits were not checked (only |B| <= {ABSOLUTE_MAX_FIELD_UT:g} uT)"
-        )
-    elif cage is None:
-        unchecked.append(
-            f"{cfg.path} has no [cage] section; field and coil current limits were not checked"
-        )
-    elif k is None and any(s.kind in FIELD_STEPS for s in proc.steps):
-        unchecked.append(
-            f"{cfg.path} has no cage model ([cage].calibration file or nominal_k_ut_per_a); coil"
-            " currents were not checked: run cage-characterization or add nominal_k_ut_per_a"
-        )
-    no_limit = [ch for ch in dr.peak_load_a if ch not in loads_max] if cfg is not None else []
+    dr = dry_run(proc, k, b0, cage.max_current_a if cage else None,
+                 cage.max_field_ut if cage else None, loads_max, rig_timing(cfg), uncertainty)  # fmt: skip
+    unchecked = _unchecked(proc, cfg, k)
     if not quiet:
-        live = any(s.kind == "live_calibrate" for s in proc.steps)
-        how_long = "at most" if live else "about"
-        print(
-            f"{proc.title} ({proc.path}): {len(proc.steps)} steps, {how_long} {dr.duration_s:.0f} s"
-            + (" (live_calibrate steps may stop earlier)" if live else "")
-        )
-        for t, name, summary in dr.timeline:
-            print(f"  {t:7.1f} s  {name:<28} {summary}")
-        print(
-            f"peak |B| {dr.peak_field_ut:.1f} uT"
-            + (f" (limit {cage.max_field_ut:g})" if cage else "")
-        )
-        if k is not None:
-            print(f"cage model: {model_source}")
-            print("peak coil currents " + ", ".join(
-                f"{'xyz'[i]} {a:.3f}" + (f" +-{m:.3f}" if m >= 0.0005 else "") + " A"
-                for i, (a, m) in enumerate(zip(dr.peak_current_a, dr.peak_margin_a, strict=True)))
-                  + (f" (limits {', '.join(f'{x:g}' for x in cage.max_current_a)} A)" if cage else ""))  # fmt: skip
-        for ch, amps in dr.peak_load_a.items():
-            limit_text = f" (limit {loads_max[ch]:g})" if ch in loads_max else ""
-            print(f"peak load {ch} {amps:.3f} A{limit_text}")
-        if no_limit and cfg is not None:
-            print(
-                f"note: {', '.join(no_limit)} {'has' if len(no_limit) == 1 else 'have'} no"
-                f" max_current_a in {cfg.path}: only the instrument limits the current"
-            )
+        _print_plan(proc, dr, cfg, k, model_source, loads_max)
     for v in dr.violations:
         print(f"LIMIT: {v}")
     for r in dr.at_risk:
@@ -135,14 +80,88 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
     for u in unchecked:
         print(f"NOT CHECKED: {u}")
     if not quiet:
-        if dr.violations:
-            print(f"{len(dr.violations)} limit violation(s): fix the procedure")
-        elif unchecked:
-            print("limits NOT CHECKED (see above): not known to be safe on the rig")
-        elif dr.at_risk:
-            print("OK with the model as it is, but AT RISK (above) once the"
-                  " ambient field is measured: characterize the cage (rig cage characterize) and"
-                  " check again, or lower those fields")  # fmt: skip
-        else:
-            print(f"OK: within the limits of {cfg.path if cfg else '?'}")
+        print(_verdict(dr, unchecked, cfg))
     return 0 if not dr.violations and not unchecked else 1
+
+
+def _load_limits(proc: Procedure, cfg: RigConfig | None) -> dict[str, float]:
+    """Each load channel's ``max_current_a`` (A) from the rig configuration, where it has one."""
+    from rig.errors import UserInputError
+    from rig.output_limits import refuse_cage_devices_as_loads
+
+    if cfg is None:
+        return {}
+    refuse_cage_devices_as_loads(list(proc.loads), cfg, proc.path)
+    limits = {}
+    for name in proc.loads:
+        if name not in cfg.devices:
+            raise UserInputError(f"{proc.path}: load '{name}' is not a device in {cfg.path}")
+        limit = cfg.devices[name].get("max_current_a")
+        if limit is not None:
+            limits[name] = float(limit)
+    return limits
+
+
+def _unchecked(proc: Procedure, cfg: RigConfig | None, k: Any) -> list[str]:
+    """The limits the dry run could not check, one sentence each with the fix."""
+    from rig.procedure.language import FIELD_STEPS
+    from rig.procedure.plan import ABSOLUTE_MAX_FIELD_UT
+
+    if cfg is None:
+        return [
+            "no rig configuration given (--rig CONFIG.toml); the rig's field, coil current and"
+            f" load current limits were not checked (only |B| <= {ABSOLUTE_MAX_FIELD_UT:g} uT)"
+        ]
+    if cfg.cage is None:
+        return [f"{cfg.path} has no [cage] section; field and coil current limits were not checked"]
+    if k is None and any(s.kind in FIELD_STEPS for s in proc.steps):
+        return [
+            f"{cfg.path} has no cage model ([cage].calibration file or nominal_k_ut_per_a); coil"
+            " currents were not checked: run cage-characterization or add nominal_k_ut_per_a"
+        ]
+    return []
+
+
+def _print_plan(proc: Procedure, dr: DryRun, cfg: RigConfig | None, k: Any, model_source: str,
+                loads_max: dict[str, float]) -> None:  # fmt: skip
+    """The timeline, the peaks and their limits."""
+    cage = cfg.cage if cfg is not None else None
+    live = any(s.kind == "live_calibrate" for s in proc.steps)
+    how_long = "at most" if live else "about"
+    print(
+        f"{proc.title} ({proc.path}): {len(proc.steps)} steps, {how_long} {dr.duration_s:.0f} s"
+        + (" (live_calibrate steps may stop earlier)" if live else "")
+    )
+    for t, name, summary in dr.timeline:
+        print(f"  {t:7.1f} s  {name:<28} {summary}")
+    print(
+        f"peak |B| {dr.peak_field_ut:.1f} uT" + (f" (limit {cage.max_field_ut:g})" if cage else "")
+    )
+    if k is not None:
+        print(f"cage model: {model_source}")
+        print("peak coil currents " + ", ".join(
+            f"{'xyz'[i]} {a:.3f}" + (f" +-{m:.3f}" if m >= 0.0005 else "") + " A"
+            for i, (a, m) in enumerate(zip(dr.peak_current_a, dr.peak_margin_a, strict=True)))
+              + (f" (limits {', '.join(f'{x:g}' for x in cage.max_current_a)} A)" if cage else ""))  # fmt: skip
+    for ch, amps in dr.peak_load_a.items():
+        limit_text = f" (limit {loads_max[ch]:g})" if ch in loads_max else ""
+        print(f"peak load {ch} {amps:.3f} A{limit_text}")
+    no_limit = [ch for ch in dr.peak_load_a if ch not in loads_max]
+    if no_limit and cfg is not None:
+        print(
+            f"note: {', '.join(no_limit)} {'has' if len(no_limit) == 1 else 'have'} no"
+            f" max_current_a in {cfg.path}: only the instrument limits the current"
+        )
+
+
+def _verdict(dr: DryRun, unchecked: list[str], cfg: RigConfig | None) -> str:
+    """The last line: violations, not checked, at risk or OK."""
+    if dr.violations:
+        return f"{len(dr.violations)} limit violation(s): fix the procedure"
+    if unchecked:
+        return "limits NOT CHECKED (see above): not known to be safe on the rig"
+    if dr.at_risk:
+        return ("OK with the model as it is, but AT RISK (above) once the"
+                " ambient field is measured: characterize the cage (rig cage characterize) and"
+                " check again, or lower those fields")  # fmt: skip
+    return f"OK: within the limits of {cfg.path if cfg else '?'}"

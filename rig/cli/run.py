@@ -96,14 +96,20 @@ def auto_confirm(quiet: bool) -> Callable[[str], bool]:
 def summarize(outcome: Any, quiet: bool) -> None:
     """A short terminal summary of a finished run. With ``quiet`` only a run that did not complete
     says so: one line on stderr with its status and reason (``-q`` means errors only, not nothing)."""
+    from rig.store.run_states import RunStatus, Verdict  # here: building the parser stays light
+
     verdict = outcome.results.get("verdict")
     if quiet:
-        if outcome.status != "complete":
+        if outcome.status != RunStatus.COMPLETE:
             failed = [
-                r["name"] for r in (verdict or {}).get("criteria", []) if r["verdict"] != "PASS"
+                r["name"]
+                for r in (verdict or {}).get("criteria", [])
+                if r["verdict"] != Verdict.PASS
             ]
-            what = f" ({', '.join(failed)})" if outcome.status == "failed" and failed else ""
-            prefix = "error: " if outcome.status == "error" else ""
+            what = (
+                f" ({', '.join(failed)})" if outcome.status == RunStatus.FAILED and failed else ""
+            )
+            prefix = "error: " if outcome.status == RunStatus.ERROR else ""
             safe = "; every output off" if outcome.outputs.startswith("outputs: safe") else ""
             print(
                 f"rig: {prefix}run {outcome.folder.name} ended with status {outcome.status}:"

@@ -69,12 +69,21 @@ def _result_summary(value: Any) -> str:
     return ", ".join(parts[:8]) + (", ..." if len(parts) > 8 else "") if parts else "(see --json)"
 
 
-def show_run(run: str, runs_dir: Path, as_json: bool = False) -> int:
-    """``rig show``: a summary of one run; ``as_json`` prints everything stored as one JSON
-    document (meta, samples per device, steps, results) and nothing else."""
+def verdict_line(status: str, verdict: Any) -> str:
+    """The last line of ``rig show``: the verdict, or why there is none yet or none at all."""
+    if isinstance(verdict, dict):
+        return f"VERDICT: {verdict.get('overall')}"
+    if status == "running":
+        return "VERDICT: not yet judged (running)"
+    if status in ("aborted", "failed", "error", "incomplete", "damaged"):
+        return f"VERDICT: not judged ({status})"
+    return "VERDICT: - (no check step)"
+
+
+def _read(folder: Path) -> tuple[dict[str, Any], dict[str, Any], dict[str, int], list[Any]]:
+    """(meta, results, sample count per device, steps) of a run folder."""
     from rig.store import RunReader
 
-    folder = resolve_run(run, runs_dir)
     reader = RunReader(folder)
     try:
         meta, results = reader.meta(), reader.results()
@@ -84,43 +93,35 @@ def show_run(run: str, runs_dir: Path, as_json: bool = False) -> int:
             else len(reader.samples(d))
             for d in reader.devices()
         }
-        steps = reader.steps()
+        return meta, results, counts, reader.steps()
     finally:
         reader.close()
-    if as_json:
-        doc = {
-            "run_id": meta.get("run_id", folder.name),
-            "folder": str(folder),
-            "meta": meta,
-            "samples": counts,
-            "steps": [
-                {
-                    "index": i,
-                    "name": n,
-                    "kind": k,
-                    "t_start": t0,
-                    "t_end": t1,
-                    "duration_s": None if t1 is None else t1 - t0,
-                }
-                for i, n, k, t0, t1 in steps
-            ],
-            "results": results,
-        }
-        print(json.dumps(_finite(doc), indent=2, default=str, allow_nan=False))
-        return 0
-    status = meta.get("status", "incomplete")
+
+
+def _json(folder: Path, meta: dict[str, Any], results: dict[str, Any], counts: dict[str, int],
+          steps: list[Any]) -> str:  # fmt: skip
+    """Everything stored as one JSON document (no NaN or Infinity)."""
+    doc = {
+        "run_id": meta.get("run_id", folder.name),
+        "folder": str(folder),
+        "meta": meta,
+        "samples": counts,
+        "steps": [{"index": i, "name": n, "kind": k, "t_start": t0, "t_end": t1,
+                   "duration_s": None if t1 is None else t1 - t0} for i, n, k, t0, t1 in steps],
+        "results": results,
+    }  # fmt: skip
+    return json.dumps(_finite(doc), indent=2, default=str, allow_nan=False)
+
+
+def _print_header(folder: Path, meta: dict[str, Any], counts: dict[str, int]) -> None:
     print(f"run        {meta.get('run_id', folder.name)}  ({folder})")
-    print(
-        f"procedure  {meta.get('procedure', '?')} ({meta.get('procedure_file', '?')}),"
-        f" rig software {meta.get('software_version', '?')}"
-    )
+    print(f"procedure  {meta.get('procedure', '?')} ({meta.get('procedure_file', '?')}),"
+          f" rig software {meta.get('software_version', '?')}")  # fmt: skip
     print(f"DUT        {meta.get('dut_serial') or '-'}   operator {meta.get('operator') or '-'}")
-    print(f"status     {status} ({meta.get('reason', '')})")
+    print(f"status     {meta.get('status', 'incomplete')} ({meta.get('reason', '')})")
     took = _seconds_between(meta.get("start_time"), meta.get("end_time"))
-    print(
-        f"time       {meta.get('start_time', '?')} to {meta.get('end_time', 'not ended')}"
-        + (f" ({took:.0f} s)" if took is not None else "")
-    )
+    print(f"time       {meta.get('start_time', '?')} to {meta.get('end_time', 'not ended')}"
+          + (f" ({took:.0f} s)" if took is not None else ""))  # fmt: skip
     print(f"rig        {meta.get('rig_config', '?')}")
     instruments = meta.get("instruments") or {}
     if instruments:
@@ -128,6 +129,9 @@ def show_run(run: str, runs_dir: Path, as_json: bool = False) -> int:
         for name, ident in instruments.items():
             print(f"  {name:<14} {ident}")
     print("samples    " + (", ".join(f"{d} {n}" for d, n in counts.items()) or "none"))
+
+
+def _print_results(steps: list[Any], results: dict[str, Any]) -> None:
     print("steps")
     for idx, name, kind, t0, t1 in steps:
         took_s = f"{t1 - t0:7.1f} s" if t1 is not None else "not finished"
@@ -142,8 +146,18 @@ def show_run(run: str, runs_dir: Path, as_json: bool = False) -> int:
         print("criteria")
         for row in verdict.get("criteria", []):
             print(f"  {row['verdict']:<4} {row['name']:<32} {criterion_value(row)}")
-        print(f"VERDICT: {verdict.get('overall')}")
-    else:
-        print("VERDICT: - (no check step)")
+
+
+def show_run(run: str, runs_dir: Path, as_json: bool = False) -> int:
+    """``rig show``: a summary of one run; ``as_json`` prints everything stored as one JSON
+    document (meta, samples per device, steps, results) and nothing else."""
+    folder = resolve_run(run, runs_dir)
+    meta, results, counts, steps = _read(folder)
+    if as_json:
+        print(_json(folder, meta, results, counts, steps))
+        return 0
+    _print_header(folder, meta, counts)
+    _print_results(steps, results)
+    print(verdict_line(str(meta.get("status", "incomplete")), results.get("verdict")))
     print(f"everything stored: rig show {folder} --json")
     return 0

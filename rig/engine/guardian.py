@@ -202,7 +202,7 @@ def _how_it_ended(code: int) -> str:
 
 def safe_outputs(cfg: RigConfig) -> tuple[list[str], list[str]]:
     """Switch off every supply, load and relay board of ``cfg``: (devices, problems)."""
-    from rig.engine.session import switch_off_every_output
+    from rig.engine.switch_off import switch_off_every_output  # light to import the guardian
 
     return switch_off_every_output(cfg)
 
@@ -337,7 +337,7 @@ def read_config_line(fd: int) -> RigConfig:
 def main(argv: list[str]) -> int:
     """Entry point of ``python -m rig.engine.guardian RUN_FOLDER|- RIG_PID``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # only the pipe ends the guardian
-    import rig.engine.session  # noqa: F401 - imported now, so acting after a death takes no import time
+    import rig.engine.switch_off  # noqa: F401 - imported now, so acting after a death takes no import time
 
     try:
         cfg = read_config_line(sys.stdin.fileno())

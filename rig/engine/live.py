@@ -6,9 +6,10 @@ import shutil
 import sys
 import threading
 import time
-from typing import Any
 
 import numpy as np
+
+from rig.engine.live_state import LiveRun
 
 
 def _fmt_s(seconds: float) -> str:
@@ -19,7 +20,7 @@ def _fmt_s(seconds: float) -> str:
 class LiveView:
     """Redraws one status line on stderr twice a second (a line per step when not a terminal)."""
 
-    def __init__(self, runner: Any) -> None:
+    def __init__(self, runner: LiveRun) -> None:
         self.runner = runner
         self.tty = sys.stderr.isatty()
         self._stop = threading.Event()
@@ -35,10 +36,10 @@ class LiveView:
     def line(self) -> str:
         """The status line."""
         r = self.runner
-        step = getattr(r, "current_step", None)
+        step = r.tracker.step
         if step is None:
             return "starting"
-        idx, name, t0, dur = step
+        idx, name, t0, dur = step.index, step.name, step.t_start, step.duration_s
         done = sum(self.durations[:idx]) + min(max(time.monotonic() - t0, 0.0), dur)
         frac = done / self.total_s if self.total_s > 0 else 1.0
         width = 20
@@ -59,19 +60,19 @@ class LiveView:
             parts.append("loads " + " ".join(f"{k} {v:.2f}A" for k, v in r.commanded_loads.items()))
         for status in list(r.status_sources):  # what the running step has to say
             parts.append(status())
-        if r.paused.is_set():
+        if r.tracker.pause_requested.is_set():
             parts.append("PAUSED (kill -USR1 to resume)")
         return "  ".join(parts)
 
     def _run(self) -> None:
         while not self._stop.wait(0.5):
-            step = getattr(self.runner, "current_step", None)
+            step = self.runner.tracker.step
             if self.tty:
                 cols = shutil.get_terminal_size((120, 20)).columns
                 sys.stderr.write("\r" + self.line()[: cols - 1].ljust(cols - 1))
                 sys.stderr.flush()
-            elif step is not None and step[0] != self._last_step:
-                self._last_step = step[0]
+            elif step is not None and step.index != self._last_step:
+                self._last_step = step.index
                 sys.stderr.write(self.line() + "\n")
                 sys.stderr.flush()
 

@@ -14,11 +14,15 @@ import collections
 import contextlib
 import threading
 import time
-from typing import Any
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
+from rig.engine.run_tracker import RunTracker
+from rig.procedure.language import Procedure
 from rig.store.run_control import CONTROL_DIR, open_box, take_requests, write_live
+from rig.store.run_states import RunStatus
 
 POLL_S = 0.1
 """How often the requests are looked for (s): an abort reaches the safe path within this."""
@@ -33,10 +37,34 @@ def _vec(v: Any) -> list[float] | None:
     return [round(float(x), 4) for x in np.asarray(v, dtype=float).reshape(-1)]
 
 
+class LiveRun(Protocol):
+    """What the live view and the page read of a run (the engine's runner)."""
+
+    tracker: RunTracker
+    proc: Procedure
+    controller: Any  # rig.cage.controller.CageController once the devices are open
+    samplers: dict[str, Any]  # rig.engine.sampling.SensorSampler per sampled device
+    commanded_loads: dict[str, float]
+    measured_loads: dict[str, tuple[float, float]]
+    status_sources: list[Any]
+    live_sources: list[Any]
+
+    @property
+    def folder(self) -> Path: ...
+
+    def timeline(self) -> list[tuple[str, float]]: ...
+
+    def event(self, level: str, message: str) -> None: ...
+
+    def abort_from(self, reason: str) -> None: ...
+
+    def corrected_dut(self, raw_ut: Any) -> Any: ...
+
+
 class LivePublisher:
     """Publishes ``runner``'s state and applies the page's requests until :meth:`stop`."""
 
-    def __init__(self, runner: Any, timeline: list[tuple[str, float]]) -> None:
+    def __init__(self, runner: LiveRun, timeline: list[tuple[str, float]]) -> None:
         self.runner = runner
         self.timeline = timeline
         self.events: collections.deque[tuple[float, str, str]] = collections.deque(
@@ -118,9 +146,9 @@ class LivePublisher:
             if action == "abort":
                 r.abort_from("aborted from the web page")
             elif action == "pause":
-                r.paused.set()
+                r.tracker.pause_requested.set()
             elif action == "resume":
-                r.paused.clear()
+                r.tracker.pause_requested.clear()
             elif action == "answer":
                 with self._answered:
                     current = self.prompt
@@ -141,14 +169,14 @@ class LivePublisher:
         state: dict[str, Any] = {
             "t": round(now - self._t_start, 3),
             "wall_time": time.time(),
-            "status": "running",
-            "paused": bool(r.holding),
-            "pause_requested": r.paused.is_set(),
+            "status": RunStatus.RUNNING,
+            "paused": r.tracker.holding,
+            "pause_requested": r.tracker.pause_requested.is_set(),
             "steps": [{"name": n, "duration_s": round(d, 3)} for n, d in self.timeline],
         }
-        step = getattr(r, "current_step", None)
+        step = r.tracker.step
         if step is not None:
-            idx, name, t0, dur = step
+            idx, name, t0, dur = step.index, step.name, step.t_start, step.duration_s
             done = sum(d for _, d in self.timeline[:idx]) + min(max(now - t0, 0.0), dur)
             total = sum(d for _, d in self.timeline)
             state["step"] = {"index": idx, "name": name, "elapsed_s": round(now - t0, 3),

@@ -19,7 +19,9 @@ Every command that drives outputs (``rig run`` and ``rig demo`` through the runn
   flips, trim, characterization, holds) goes through :meth:`RigSession.sleep`, which raises the
   first fault reported by any thread (:meth:`RigSession.fail`) or an abort.
 
-``rig safe`` and the guardian use :func:`switch_off_every_output`.
+``rig safe`` and the guardian use :func:`rig.engine.switch_off.switch_off_every_output` (re-exported
+here); the session alone takes the outputs of a command to the safe state (:meth:`RigSession.safe`,
+once, as it ends; ADR 0012, ADR 0023).
 """
 
 from __future__ import annotations
@@ -29,7 +31,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from pathlib import Path
 from types import TracebackType
@@ -37,17 +38,15 @@ from typing import Any, cast
 
 from drivers.errors import DeviceError
 from drivers.protocols import Load, Magnetometer, Thermometer
-from drivers.registry import output_kinds
 from rig.cage.controller import SAFE_TIMEOUT_S, CageController
-from rig.config import DeviceConfig, RigConfig
-from rig.devices import build_cage, open_device, open_load, open_magnetometer, open_thermometer
+from rig.config import RigConfig
+from rig.devices import build_cage, open_load, open_magnetometer, open_thermometer
 from rig.engine.cpu_wait import run_delay_s
 from rig.engine.guardian import HEARTBEAT_PERIOD_S, Guardian
-from rig.engine.interlock import RigLock, wire_link
+from rig.engine.interlock import RigLock
+from rig.engine.switch_off import switch_off_every_output as switch_off_every_output
 from rig.errors import RigError, RunAborted, UserInputError
 
-ATTEMPTS = 3
-"""Tries per device when switching everything off (a port may still be held by a dying process)."""
 MAIN_THREAD_STALL_S = 15.0
 """The main thread made no progress for this long (outside an operator prompt): it is deadlocked
 or lost, and the heartbeat stops, so the guardian takes the outputs to the safe state. Longer
@@ -55,8 +54,6 @@ than any single blocking call of a healthy run (a Modbus transaction with its re
 calibration of a long run)."""
 WAIT_SLICE_S = 0.05
 """Fault-aware waits look for faults and aborts this often."""
-COIL_DECAY_S = 2.0
-"""Longest wait for a coil's current to decay before its polarity relay is switched."""
 
 
 def _warn(message: str) -> None:
@@ -202,15 +199,39 @@ class RigSession:
         end = None if seconds is None else time.monotonic() + seconds
         next_check = time.monotonic()
         while not stop.is_set() and (end is None or time.monotonic() < end):
-            if self.controller is not None and time.monotonic() >= next_check:
+            if time.monotonic() >= next_check:
                 next_check = time.monotonic() + 1.0
-                for axis, drive in enumerate(self.controller.axes):
-                    protection = drive.supply.read().protection
-                    if protection:
-                        self.fail(f"coil {'xyz'[axis]} supply tripped ({protection}) and is off;"
-                                  " check the coil wiring")  # fmt: skip
+                self.check_coils()
             left = WAIT_SLICE_S if end is None else min(WAIT_SLICE_S, end - time.monotonic())
             self.sleep(max(0.0, left))
+
+    def check_coils(
+        self,
+        record: Callable[[float, str, float], None] | None = None,
+        on_unread: Callable[[str, Exception], None] | None = None,
+    ) -> None:
+        """Read every coil supply of an enabled cage once; a tripped supply is a fault
+        (:meth:`fail`). ``record(t_asked, channel, signed A)`` gets each reading; a supply that
+        does not answer goes to ``on_unread(channel, error)``, or raises without it."""
+        ctl = self.controller
+        if ctl is None or not ctl.enabled:
+            return
+        for axis, drive in enumerate(ctl.axes):
+            channel = f"coil_{'xyz'[axis]}"
+            t_asked = time.monotonic()  # the reading is from after this
+            try:
+                reading = drive.supply.read()
+            except (DeviceError, OSError) as exc:
+                if on_unread is None:
+                    raise
+                on_unread(channel, exc)
+                continue
+            if record is not None:  # the supply reads an unsigned current; a relay gives its sign
+                sign = 1 if drive.bipolar else ctl.signs[axis]
+                record(t_asked, channel, sign * float(reading.i_out_a))
+            if reading.protection:
+                self.fail(f"coil {'xyz'[axis]} supply tripped ({reading.protection}) and is off;"
+                          " check the coil wiring, then run again")  # fmt: skip
 
     def _device(self, name: str, what: str) -> Any:
         dev = self.cfg.devices.get(name)
@@ -223,7 +244,8 @@ class RigSession:
     def cage(self) -> CageController:
         """The cage controller (opened on first use): its supplies, relays and reference."""
         if self.controller is None:
-            self.controller = build_cage(self.cfg, self._stack, self.i2c_bus)
+            # its safe state is this session's to reach (:meth:`safe`), not the stack's
+            self.controller = build_cage(self.cfg, self._stack, self.i2c_bus, safe_on_exit=False)
             self.controller.sleep = self.sleep  # its ramps, flips and trims see faults
         return self.controller
 
@@ -288,80 +310,3 @@ class RigSession:
         for p in problems:
             self.on_unsafe(p)
         return problems
-
-
-def switch_off_every_output(cfg: RigConfig) -> tuple[list[str], list[str]]:
-    """Every supply, load and relay board of ``cfg`` to its safe state, each opened on its own
-    (one dead link does not stop the others): (devices switched off, problems).
-
-    Supplies and loads first, one thread per link (devices sharing a serial bus or a TCP
-    endpoint take turns on it), so a slow or dead link does not hold back the others: the time
-    to safe is the slowest link's, not the sum. Then, once the cage's coil currents have
-    decayed, the polarity relays to normal (never switched while a coil carries current: that
-    arcs the contacts)."""
-    kinds = output_kinds()
-    outputs = [(n, d) for n, d in cfg.devices.items() if d.kind in kinds]
-    supplies = [(n, d) for n, d in outputs if d.kind != "relay"]
-    relays = [(n, d) for n, d in outputs if d.kind == "relay"]
-    links: dict[str, list[tuple[str, DeviceConfig]]] = {}
-    for name, dev in supplies:
-        links.setdefault(wire_link(dev), []).append((name, dev))
-    outcome: dict[str, str | None] = {}
-    with ThreadPoolExecutor(max_workers=max(1, len(links)), thread_name_prefix="safe") as pool:
-        for results in pool.map(lambda devs: [(n, _switch_off(d)) for n, d in devs],
-                                links.values()):  # fmt: skip
-            outcome.update(results)
-    for name, dev in relays:
-        still = _coil_currents_above(cfg, 0.02)
-        outcome[name] = (
-            _switch_off(dev)
-            if not still
-            else f"left as it is, {still} (switch it when the coils are off)"
-        )
-    done = [n for n, _ in supplies + relays if outcome[n] is None]
-    problems = [f"{n}: {outcome[n]}" for n, _ in supplies + relays if outcome[n] is not None]
-    return done, problems
-
-
-def _switch_off(dev: DeviceConfig) -> str | None:
-    """Open ``dev``, call its ``safe()`` and close it, up to ATTEMPTS times: None when it is
-    safe, else the last error."""
-    for attempt in range(ATTEMPTS):
-        try:
-            driver = open_device(dev)
-            try:
-                driver.safe()
-            finally:
-                driver.close()
-            return None
-        except Exception as exc:  # one dead link must not stop the others going safe
-            if attempt == ATTEMPTS - 1:
-                return str(exc)
-            time.sleep(0.3)  # a port still held by someone else
-    return "not tried"
-
-
-def _coil_currents_above(cfg: RigConfig, threshold_a: float) -> str:
-    """Wait up to COIL_DECAY_S for every coil's current to fall below ``threshold_a``; '' when it
-    has, else which coil still carries what (a coil that cannot be read counts as carrying)."""
-    if cfg.cage is None:
-        return ""
-    deadline = time.monotonic() + COIL_DECAY_S
-    left = list(cfg.cage.axes)
-    while True:
-        carrying = []
-        for name in left:
-            try:
-                supply = open_device(cfg.devices[name])
-                try:
-                    amps = abs(float(supply.read().i_out_a))
-                finally:
-                    supply.close()
-            except Exception as exc:  # unknown: assume it carries
-                carrying.append(f"{name} unreadable ({exc})")
-                continue
-            if amps > threshold_a:
-                carrying.append(f"{name} carries {amps:.3f} A")
-        if not carrying or time.monotonic() > deadline:
-            return "; ".join(carrying)
-        time.sleep(0.05)

@@ -147,6 +147,14 @@ def trend(conn: psycopg.Connection[Any], param: str, *, lot: str | None = None) 
     return Trend(param, rows, limits)
 
 
+def refusals(conn: psycopg.Connection[Any]) -> list[Row]:
+    """Runs a sync refused (table ``lab_refusals``: changed since they were sealed, or not
+    storable), the most recently refused first: one row per run, seal and kind of refusal."""
+    return _rows(conn, """
+        SELECT run_id, rig, host, kind, reason, sealed_sha256, first_at, last_at, attempts
+        FROM lab_refusals ORDER BY last_at DESC, run_id""")  # fmt: skip
+
+
 def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
     """Runs that used an instrument whose certificate had expired; runs without a seal (no data
     hash); runs a sync refused (changed since they were sealed, or not storable); and per rig: runs, failed criteria and calibration values outside their series'
@@ -159,9 +167,7 @@ def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
     unsealed = _rows(conn, """
         SELECT r.run_id, r.rig, r.started_at, r.status FROM lab_runs r
         WHERE r.data_sha256 IS NULL ORDER BY r.started_at, r.id""")  # fmt: skip
-    refused = _rows(conn, """
-        SELECT run_id, rig, kind, reason, sealed_sha256, first_at, last_at, attempts
-        FROM lab_refusals ORDER BY last_at DESC, run_id""")  # fmt: skip
+    refused = refusals(conn)
     per_rig = _rows(conn, f"""
         WITH vals AS MATERIALIZED (
             SELECT r.rig, coalesce(r.lot, '') AS lot, s.source, s.name, s.value

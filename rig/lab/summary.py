@@ -16,6 +16,7 @@ from typing import Any
 
 from rig.lab.url import rig_name
 from rig.store import safe_files
+from rig.store.run_states import RunStatus
 from rig.store.run_store import RunReader
 from rig.store.seal import REPORT_FILES, read_seal
 
@@ -112,8 +113,8 @@ def summarize(folder: Path) -> RunSummary | None:
         meta, results = reader.meta(), reader.results()
     finally:
         reader.close()
-    status = str(meta.get("status", "incomplete"))
-    if status == "running":
+    status = str(meta.get("status", RunStatus.INCOMPLETE))
+    if status == RunStatus.RUNNING:
         return None
     seal = read_seal(folder) or {}
     sha = seal.get("data_sha256")

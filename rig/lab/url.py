@@ -49,7 +49,8 @@ def check_url(url: str, where: str) -> str:
 
 
 def config_url(raw: dict[str, Any], path: object) -> str | None:
-    """``[lab] url`` of a parsed rig configuration, checked: no password in it."""
+    """``[lab] url`` of a parsed rig configuration, checked: no password in it. The ``[lab]`` keys
+    are declared in :data:`rig.config.LAB_KEYS` (unknown ones are refused when the file loads)."""
     lab = raw.get("lab")
     if lab is None:
         return None

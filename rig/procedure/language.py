@@ -418,26 +418,45 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
     _refuse_non_finite(data, [], data.get("__line__", 1), path, key_lines)
     _refuse_control_characters(data, [], data.get("__line__", 1), path, key_lines)
     top = Where(str(path), data.get("__line__", 1))
-    allowed = {
-        "procedure",
-        "parameters",
-        "magnetometers",
-        "loads",
-        "steps",
-        "__line__",
-        "description",
-    }
+    _check_top(data, top)
+    names, origin, may_be_empty = _declared_parameters(data, top, path, key_lines)
+    _apply_overrides(overrides or {}, names, origin, may_be_empty, path)
+    mags, loads, raw_steps = _roles_loads_and_steps(data, top)
+    steps = _parse_steps(raw_steps, path, top, names, origin, loads)
+    return Procedure(str(data["procedure"]), path, names, mags, loads, tuple(steps), text)
+
+
+_TOP_KEYS = {
+    "procedure",
+    "parameters",
+    "magnetometers",
+    "loads",
+    "steps",
+    "__line__",
+    "description",
+}
+
+
+def _check_top(data: dict[str, Any], top: Where) -> None:
+    """Only known top-level keys, and a title."""
     for key in data:
-        if key not in allowed:
-            raise ProcedureError(f"{top}: unknown top-level key '{key}'{suggest(key, allowed)}")
+        if key not in _TOP_KEYS:
+            raise ProcedureError(f"{top}: unknown top-level key '{key}'{suggest(key, _TOP_KEYS)}")
     if not isinstance(data.get("procedure"), str):
         raise ProcedureError(f"{top}: needs 'procedure: <title>'")
     _refuse_bad_labels(data["procedure"], str(top), "the title")
+
+
+def _declared_parameters(
+    data: dict[str, Any], top: Where, path: Path, key_lines: dict[int, dict[Any, int]]
+) -> tuple[dict[str, str], dict[str, str], set[str]]:
+    """The declared parameters' defaults (as text), where each comes from (for error messages),
+    and those that may be set empty."""
     declared = data.get("parameters") or {}
     if not isinstance(declared, dict):
         raise ProcedureError(f"{top}: 'parameters' must be a mapping of name: {{default: ...}}")
     names: dict[str, str] = {}
-    origin: dict[str, str] = {}  # where each parameter's value comes from, for error messages
+    origin: dict[str, str] = {}
     may_be_empty: set[str] = set()
     for name, spec in declared.items():
         if name == "__line__":
@@ -449,7 +468,13 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
         _refuse_bad_labels(names[name], f"{path}:{line}", f"parameter '{name}': 'default'")
         if isinstance(spec, dict) and spec.get("allow_empty") in (True, "yes"):
             may_be_empty.add(name)
-    for name, value in (overrides or {}).items():
+    return names, origin, may_be_empty
+
+
+def _apply_overrides(overrides: dict[str, str], names: dict[str, str], origin: dict[str, str],
+                     may_be_empty: set[str], path: Path) -> None:  # fmt: skip
+    """``--set name=value`` for each override, into ``names`` and ``origin``."""
+    for name, value in overrides.items():
         if (problem := text_problem(value)) is not None:
             raise ProcedureError(f"{path}: --set {shown(name)}={shown(value)}: the value {problem}")
         if name not in names:
@@ -467,6 +492,12 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
             )
         names[name] = value
         origin[name] = f"--set {name}={value}"
+
+
+def _roles_loads_and_steps(
+    data: dict[str, Any], top: Where
+) -> tuple[dict[str, str], tuple[str, ...], list[Any]]:
+    """The magnetometer roles, the load channels and the raw steps, checked."""
     mags = data.get("magnetometers") or {"dut": "dut", "reference": "reference"}
     if not isinstance(mags, dict) or "dut" not in mags:
         raise ProcedureError(f"{top}: 'magnetometers' must map roles to devices and include 'dut'")
@@ -483,11 +514,18 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
         raise ProcedureError(
             f"{top}: {len(raw_steps)} steps: a procedure has at most {MAX_STEPS} steps (MAX_STEPS)"
         )
+    return mags, tuple(loads), raw_steps
+
+
+def _parse_steps(raw_steps: list[Any], path: Path, top: Where, names: dict[str, str],
+                 origin: dict[str, str], loads: tuple[str, ...]) -> list[Step]:  # fmt: skip
+    """Every step bound and validated, the procedure's duration and each step's load set-points
+    within their limits."""
     steps = []
     total_s = 0.0
     for i, raw in enumerate(raw_steps):
         try:
-            step = _parse_step(i, raw, path, top, names, tuple(loads))
+            step = _parse_step(i, raw, path, top, names, loads)
         except NotFiniteError as exc:
             raise _with_origin(exc, raw, names, origin) from None
         where = f"{step.where}: step {i + 1} ({step.kind})"
@@ -499,20 +537,25 @@ def parse_procedure(path: str | Path, overrides: dict[str, str] | None = None) -
                 f" beyond the {MAX_TOTAL_DURATION_S / 86400:g}-day limit (MAX_TOTAL_DURATION_S):"
                 " shorten it or split it into several procedures"
             )
-        setpoints = 0
-        for ch, (pkind, pparams) in step.loads.items():
-            try:
-                setpoints += profile_setpoints(pkind, pparams, duration_s, path.parent)
-            except ProcedureError as exc:
-                raise type(exc)(f"{where}: load '{ch}': {exc}") from None
-            if setpoints > MAX_LOAD_SETPOINTS_PER_STEP:
-                raise ProcedureError(
-                    f"{where}: load '{ch}': the step's load profiles make more than"
-                    f" {MAX_LOAD_SETPOINTS_PER_STEP} set-points over {duration_s:g} s"
-                    " (MAX_LOAD_SETPOINTS_PER_STEP): lengthen their dwell, period or step_s"
-                )
+        _check_setpoints(step, where, duration_s, path)
         steps.append(step)
-    return Procedure(str(data["procedure"]), path, names, mags, tuple(loads), tuple(steps), text)
+    return steps
+
+
+def _check_setpoints(step: Step, where: str, duration_s: float, path: Path) -> None:
+    """The step's load profiles make at most MAX_LOAD_SETPOINTS_PER_STEP set-points."""
+    setpoints = 0
+    for ch, (pkind, pparams) in step.loads.items():
+        try:
+            setpoints += profile_setpoints(pkind, pparams, duration_s, path.parent)
+        except ProcedureError as exc:
+            raise type(exc)(f"{where}: load '{ch}': {exc}") from None
+        if setpoints > MAX_LOAD_SETPOINTS_PER_STEP:
+            raise ProcedureError(
+                f"{where}: load '{ch}': the step's load profiles make more than"
+                f" {MAX_LOAD_SETPOINTS_PER_STEP} set-points over {duration_s:g} s"
+                " (MAX_LOAD_SETPOINTS_PER_STEP): lengthen their dwell, period or step_s"
+            )
 
 
 def _parse_step(
@@ -523,17 +566,7 @@ def _parse_step(
     where = f"{path}:{line}: step {i + 1}"
     if not isinstance(raw, dict):
         raise ProcedureError(f"{where}: a step is a mapping like '- hold: {{hold_s: 5}}'")
-    kinds = [k for k in raw if k in KINDS]
-    unknown = [k for k in raw if k not in KINDS and k not in COMMON_KEYS and k != "__line__"]
-    if unknown:
-        raise ProcedureError(
-            f"{where}: unknown step or key '{unknown[0]}'{suggest(unknown[0], list(KINDS) + list(COMMON_KEYS))}; steps are: {', '.join(KINDS)}"
-        )
-    if len(kinds) != 1:
-        raise ProcedureError(
-            f"{where}: exactly one step kind per list item, found {kinds or 'none'}"
-        )
-    kind = kinds[0]
+    kind = _step_kind(raw, where)
     step_kind = KINDS[kind]
     body = step_kind.shorthand(raw[kind])
     if body is None:
@@ -544,6 +577,39 @@ def _parse_step(
         )
     body = _substitute(body, names, where)
     params = bind_params(step_kind.params, body, f"{where} ({kind})", kind)
+    step_loads = _step_loads(raw, where, kind, loads)
+    step_kind.validate(params, loads, f"{where} ({kind})")
+    _refuse_bad_params_text(step_kind.params, params, f"{where} ({kind})")
+    for ch, (pkind, pparams) in step_loads.items():
+        _refuse_bad_params_text(LOAD_PROFILES[pkind], pparams, f"{where} load '{ch}'")
+    name = _substitute(
+        str(raw.get("name") or params.get("name") or f"{kind} {i + 1}"), names, where
+    )
+    if (problem := text_problem(name)) is not None:
+        raise ProcedureError(
+            f"{where}: the step's name {shown(name)} (parameters substituted) {problem}"
+        )
+    return Step(i, kind, name, params, step_loads, Where(str(path), line), loads)
+
+
+def _step_kind(raw: dict[str, Any], where: str) -> str:
+    """The one step kind a step's mapping names (its other keys are common ones)."""
+    kinds = [k for k in raw if k in KINDS]
+    unknown = [k for k in raw if k not in KINDS and k not in COMMON_KEYS and k != "__line__"]
+    if unknown:
+        raise ProcedureError(
+            f"{where}: unknown step or key '{unknown[0]}'{suggest(unknown[0], list(KINDS) + list(COMMON_KEYS))}; steps are: {', '.join(KINDS)}"
+        )
+    if len(kinds) != 1:
+        raise ProcedureError(
+            f"{where}: exactly one step kind per list item, found {kinds or 'none'}"
+        )
+    return kinds[0]
+
+
+def _step_loads(raw: dict[str, Any], where: str, kind: str,
+                loads: tuple[str, ...]) -> dict[str, tuple[str, dict[str, Any]]]:  # fmt: skip
+    """A step's load profiles, each bound: channel -> (profile kind, parameters)."""
     step_loads: dict[str, tuple[str, dict[str, Any]]] = {}
     raw_loads = raw.get("loads") or {}
     if not isinstance(raw_loads, dict):
@@ -558,41 +624,32 @@ def _parse_step(
             raise ProcedureError(
                 f"{where}: load '{ch}' is not in the procedure's 'loads' list{suggest(ch, list(loads))}"
             )
-        if not step_kind.takes_loads:
+        if not KINDS[kind].takes_loads:
             raise ProcedureError(
                 f"{where}: load profiles run during field steps, not during '{kind}'"
             )
-        if not isinstance(prof, dict) or len([k for k in prof if k != "__line__"]) != 1:
-            raise ProcedureError(
-                f"{where}: load '{ch}' needs exactly one profile: {', '.join(LOAD_PROFILES)}"
-            )
-        pkind = next(k for k in prof if k != "__line__")
-        if pkind not in LOAD_PROFILES:
-            raise ProcedureError(
-                f"{where}: load '{ch}': unknown profile '{pkind}'{suggest(pkind, LOAD_PROFILES)}"
-            )
-        given = prof[pkind] or {}
-        if not isinstance(given, dict):
-            raise ProcedureError(
-                f"{where}: load '{ch}': the {pkind} profile's parameters must be a mapping, e.g."
-                f" '{pkind}: {{...}}'"
-            )
-        step_loads[ch] = (
-            pkind,
-            bind_params(LOAD_PROFILES[pkind], given, f"{where} load '{ch}'", pkind),
-        )
-    step_kind.validate(params, loads, f"{where} ({kind})")
-    _refuse_bad_params_text(step_kind.params, params, f"{where} ({kind})")
-    for ch, (pkind, pparams) in step_loads.items():
-        _refuse_bad_params_text(LOAD_PROFILES[pkind], pparams, f"{where} load '{ch}'")
-    name = _substitute(
-        str(raw.get("name") or params.get("name") or f"{kind} {i + 1}"), names, where
-    )
-    if (problem := text_problem(name)) is not None:
+        step_loads[ch] = _load_profile(ch, prof, where)
+    return step_loads
+
+
+def _load_profile(ch: str, prof: Any, where: str) -> tuple[str, dict[str, Any]]:
+    """Load ``ch``'s one profile, bound: (profile kind, parameters)."""
+    if not isinstance(prof, dict) or len([k for k in prof if k != "__line__"]) != 1:
         raise ProcedureError(
-            f"{where}: the step's name {shown(name)} (parameters substituted) {problem}"
+            f"{where}: load '{ch}' needs exactly one profile: {', '.join(LOAD_PROFILES)}"
         )
-    return Step(i, kind, name, params, step_loads, Where(str(path), line), loads)
+    pkind = next(k for k in prof if k != "__line__")
+    if pkind not in LOAD_PROFILES:
+        raise ProcedureError(
+            f"{where}: load '{ch}': unknown profile '{pkind}'{suggest(pkind, LOAD_PROFILES)}"
+        )
+    given = prof[pkind] or {}
+    if not isinstance(given, dict):
+        raise ProcedureError(
+            f"{where}: load '{ch}': the {pkind} profile's parameters must be a mapping, e.g."
+            f" '{pkind}: {{...}}'"
+        )
+    return pkind, bind_params(LOAD_PROFILES[pkind], given, f"{where} load '{ch}'", pkind)
 
 
 STEP_KINDS = {name: k.params for name, k in KINDS.items()}

@@ -135,12 +135,34 @@ def dry_run(
     Fields beyond :data:`ABSOLUTE_MAX_FIELD_UT` are violations even without the rig's limits.
     With ``uncertainty``, a coil current is a violation when it exceeds its limit with the
     model's 3-sigma margin, and at risk when only an unknown ambient field would take it there."""
-    given = uncertainty or CageModelUncertainty()
-    u = CageModelUncertainty(given.k_sigma, given.b0_sigma_ut)  # no unknown ambient until ...
-    risky: dict[tuple[int, int], tuple[int, float, str]] = {}  # (step, axis): count, worst A, text
-    out = DryRun()
-    t = 0.0
+    walk = _DryRunWalk(k_ut_per_a, b0_ut, max_current_a, max_field_ut, load_max_a or {},
+                       uncertainty or CageModelUncertainty())  # fmt: skip
     for plan in compile_plan(proc, timing):
+        walk.step(plan)
+    return walk.result()
+
+
+@dataclass
+class _DryRunWalk:
+    """:func:`dry_run`'s walk through a plan, one step at a time."""
+
+    k_ut_per_a: Array | None
+    b0_ut: Array | None
+    max_current_a: tuple[float, float, float] | None
+    max_field_ut: float | None
+    load_max_a: dict[str, float]
+    given: CageModelUncertainty
+    out: DryRun = field(default_factory=lambda: DryRun())
+    t: float = 0.0
+    risky: dict[tuple[int, int], tuple[int, float, str]] = field(default_factory=dict)
+    """(step, axis): count, worst A, text."""
+
+    def __post_init__(self) -> None:
+        # no unknown ambient until the run measures the ambient it cancels
+        self.u = CageModelUncertainty(self.given.k_sigma, self.given.b0_sigma_ut)
+
+    def step(self, plan: StepPlan) -> None:
+        """Walk one step: its fields, its own peak current, its loads, the time it takes."""
         s = plan.step
         fields = [np.array(c.payload["field_ut"]) for c in plan.commands if c.kind == "field"]
         summary = (
@@ -148,68 +170,87 @@ def dry_run(
             + (f", {len(fields)} fields" if fields else "")
             + (f", loads {', '.join(s.loads)}" if s.loads else "")
         )
-        out.timeline.append((t, s.name, summary))
+        self.out.timeline.append((self.t, s.name, summary))
         for f in fields:
-            mag = float(np.linalg.norm(f))
-            out.peak_field_ut = max(out.peak_field_ut, mag)
-            if max_field_ut is not None and mag > max_field_ut + 1e-9:
-                out.violations.append(
-                    f"{s.where}: step {s.index + 1} ({s.name}): |B| = {mag:.1f} uT exceeds the {max_field_ut:g} uT limit"
-                )
-            elif mag > ABSOLUTE_MAX_FIELD_UT + 1e-9:
-                out.violations.append(
-                    f"{s.where}: step {s.index + 1} ({s.name}): |B| = {mag:.1f} uT exceeds {ABSOLUTE_MAX_FIELD_UT:g} uT, more than any cage makes: fields are in uT (nT by mistake?)"
-                )
-            if k_ut_per_a is not None:
-                currents = np.linalg.solve(k_ut_per_a, f - (b0_ut if b0_ut is not None else 0.0))
-                model_a, ambient_a = current_margin_a(k_ut_per_a, currents, u)
-                for ax in range(3):
-                    amps = abs(float(currents[ax]))
-                    if (
-                        amps + model_a[ax] + ambient_a[ax]
-                        >= out.peak_current_a[ax] + out.peak_margin_a[ax]
-                    ):
-                        out.peak_margin_a[ax] = float(model_a[ax] + ambient_a[ax])
-                    out.peak_current_a[ax] = max(out.peak_current_a[ax], amps)
-                    if max_current_a is None:
-                        continue
-                    where = f"{s.where}: step {s.index + 1} ({s.name}): field {np.round(f, 1).tolist()} uT needs {currents[ax]:+.2f} A on axis {'xyz'[ax]}"
-                    if amps + model_a[ax] > max_current_a[ax] + 1e-9:
-                        margin = (
-                            f" (+-{model_a[ax]:.2f} A at {MODEL_SIGMAS:g} sigma of the cage model)"
-                            if model_a[ax] > 0
-                            else ""
-                        )
-                        out.violations.append(f"{where}{margin}, beyond {max_current_a[ax]:g} A")
-                    elif amps + model_a[ax] + ambient_a[ax] > max_current_a[ax] + 1e-9:
-                        worst = amps + model_a[ax] + ambient_a[ax]
-                        count, before, text = risky.get((s.index, ax), (0, 0.0, ""))
-                        if worst >= before:
-                            before, text = (
-                                worst,
-                                f"{where}; with an ambient field of up to {u.unknown_ambient_ut:g} uT (not characterized yet) up to {worst:.2f} A, beyond {max_current_a[ax]:g} A",
-                            )
-                        risky[(s.index, ax)] = (count + 1, before, text)
-        peak = KINDS[s.kind].peak_coil_current_a(s)
-        if peak is not None:  # +-peak on every axis, outside field commands
-            for ax in range(3):
-                out.peak_current_a[ax] = max(out.peak_current_a[ax], peak)
-                if max_current_a is not None and peak > max_current_a[ax] + 1e-9:
-                    out.violations.append(
-                        f"{s.where}: step {s.index + 1} ({s.name}): amplitude {peak:g} A on axis {'xyz'[ax]} is beyond {max_current_a[ax]:g} A"
-                    )
+            self._field(s, f)
+        self._kind_peak(s)
         for c in plan.commands:
             if c.kind == "load":
-                ch, amps = c.payload["channel"], abs(c.payload["current_a"])
-                out.peak_load_a[ch] = max(out.peak_load_a.get(ch, 0.0), amps)
-                limit = (load_max_a or {}).get(ch)
-                if limit is not None and amps > limit + 1e-9:
-                    out.violations.append(
-                        f"{s.where}: step {s.index + 1} ({s.name}): load {ch} {amps:g} A exceeds {limit:g} A"
-                    )
+                self._load(s, c.payload["channel"], abs(c.payload["current_a"]))
         if KINDS[s.kind].measures_cage_model:  # ... the run measures the ambient it cancels
-            u = given
-        t += plan.duration_s
+            self.u = self.given
+        self.t += plan.duration_s
+        self._duration(s)
+
+    def _field(self, s: Step, f: Array) -> None:
+        out = self.out
+        mag = float(np.linalg.norm(f))
+        out.peak_field_ut = max(out.peak_field_ut, mag)
+        if self.max_field_ut is not None and mag > self.max_field_ut + 1e-9:
+            out.violations.append(
+                f"{s.where}: step {s.index + 1} ({s.name}): |B| = {mag:.1f} uT exceeds the {self.max_field_ut:g} uT limit"
+            )
+        elif mag > ABSOLUTE_MAX_FIELD_UT + 1e-9:
+            out.violations.append(
+                f"{s.where}: step {s.index + 1} ({s.name}): |B| = {mag:.1f} uT exceeds {ABSOLUTE_MAX_FIELD_UT:g} uT, more than any cage makes: fields are in uT (nT by mistake?)"
+            )
+        if self.k_ut_per_a is not None:
+            b0 = self.b0_ut if self.b0_ut is not None else 0.0
+            currents = np.linalg.solve(self.k_ut_per_a, f - b0)
+            model_a, ambient_a = current_margin_a(self.k_ut_per_a, currents, self.u)
+            for ax in range(3):
+                self._axis(s, f, ax, float(currents[ax]), float(model_a[ax]), float(ambient_a[ax]))
+
+    def _axis(self, s: Step, f: Array, ax: int, current: float, model: float,
+              ambient: float) -> None:  # fmt: skip
+        """One axis's current for field ``f``: the peaks, then a violation or a risk."""
+        out, amps = self.out, abs(current)
+        if amps + model + ambient >= out.peak_current_a[ax] + out.peak_margin_a[ax]:
+            out.peak_margin_a[ax] = float(model + ambient)
+        out.peak_current_a[ax] = max(out.peak_current_a[ax], amps)
+        if self.max_current_a is None:
+            return
+        limit = self.max_current_a[ax]
+        where = f"{s.where}: step {s.index + 1} ({s.name}): field {np.round(f, 1).tolist()} uT needs {current:+.2f} A on axis {'xyz'[ax]}"
+        if amps + model > limit + 1e-9:
+            margin = (
+                f" (+-{model:.2f} A at {MODEL_SIGMAS:g} sigma of the cage model)"
+                if model > 0
+                else ""
+            )
+            out.violations.append(f"{where}{margin}, beyond {limit:g} A")
+        elif amps + model + ambient > limit + 1e-9:
+            worst = amps + model + ambient
+            count, before, text = self.risky.get((s.index, ax), (0, 0.0, ""))
+            if worst >= before:
+                before, text = (
+                    worst,
+                    f"{where}; with an ambient field of up to {self.u.unknown_ambient_ut:g} uT (not characterized yet) up to {worst:.2f} A, beyond {limit:g} A",
+                )
+            self.risky[(s.index, ax)] = (count + 1, before, text)
+
+    def _kind_peak(self, s: Step) -> None:
+        """A kind that drives coils outside field commands: +-peak on every axis."""
+        peak = KINDS[s.kind].peak_coil_current_a(s)
+        if peak is None:
+            return
+        for ax in range(3):
+            self.out.peak_current_a[ax] = max(self.out.peak_current_a[ax], peak)
+            if self.max_current_a is not None and peak > self.max_current_a[ax] + 1e-9:
+                self.out.violations.append(
+                    f"{s.where}: step {s.index + 1} ({s.name}): amplitude {peak:g} A on axis {'xyz'[ax]} is beyond {self.max_current_a[ax]:g} A"
+                )
+
+    def _load(self, s: Step, ch: str, amps: float) -> None:
+        self.out.peak_load_a[ch] = max(self.out.peak_load_a.get(ch, 0.0), amps)
+        limit = self.load_max_a.get(ch)
+        if limit is not None and amps > limit + 1e-9:
+            self.out.violations.append(
+                f"{s.where}: step {s.index + 1} ({s.name}): load {ch} {amps:g} A exceeds {limit:g} A"
+            )
+
+    def _duration(self, s: Step) -> None:
+        t, out = self.t, self.out
         if t > MAX_TOTAL_DURATION_S and not any(
             "MAX_TOTAL_DURATION_S" in v for v in out.violations
         ):
@@ -218,10 +259,14 @@ def dry_run(
                 f" {t / 86400:.2f} days here with this rig's timing, beyond the"
                 f" {MAX_TOTAL_DURATION_S / 86400:g}-day limit (MAX_TOTAL_DURATION_S)"
             )
-    out.duration_s = t
-    # keep each violation once (sweeps repeat the same message per point)
-    out.violations = list(dict.fromkeys(out.violations))
-    out.at_risk = [
-        text + (f" (the worst of {n} fields)" if n > 1 else "") for n, _, text in risky.values()
-    ]
-    return out
+
+    def result(self) -> DryRun:
+        """The dry run, each violation once (sweeps repeat the same message per point)."""
+        out = self.out
+        out.duration_s = self.t
+        out.violations = list(dict.fromkeys(out.violations))
+        out.at_risk = [
+            text + (f" (the worst of {n} fields)" if n > 1 else "")
+            for n, _, text in self.risky.values()
+        ]
+        return out

@@ -1,193 +1,250 @@
-"""The acceptance report's sections. Each renders one part of a closed run as HTML and as lines for
-the PDF's summary page; the report is the list of them (rig.report.acceptance), so the HTML and the
-PDF cannot say different things. A step kind's own paragraph comes from the kind
-(``StepKind.report_html``)."""
+"""The acceptance report's sections, built once from a closed run and rendered as HTML, PDF and text
+(rig.report.model, rig.report.pdf), so the three files cannot say different things. A step kind's
+own lines come from the kind (``StepKind.report_lines``); a calibration's from its typed record."""
 
 from __future__ import annotations
 
-import base64
-import html
 import math
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal, Protocol
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from rig.report.text_report import criterion_line, limit_text
+from rig.calibration.record import CalibrationRecord, calibrations
+from rig.report.model import Image, Para, Section, Table
+from rig.report.text_report import limit_text, overall_verdict, seal_note
 from rig.steps import KINDS
 
 SPRINGMANN_UNITS = {"a": "", "b": "", "c": "", "x0_ut": "uT", "y0_ut": "uT", "z0_ut": "uT",
                     "rho_deg": "deg", "phi_deg": "deg", "lambda_deg": "deg"}  # fmt: skip
 
-Style = Literal["heading", "text", "mono", "PASS", "FAIL"]
-
 
 @dataclass(frozen=True)
-class PdfLine:
-    """One line of the PDF summary page: ``heading``, ``text``, ``mono`` or a verdict colour."""
+class RunFacts:
+    """What the report reads of a closed run."""
 
-    text: str
-    style: Style = "text"
-
-
-@dataclass(frozen=True)
-class Section:
-    """A part of the report: its HTML (headed by its own ``<h2>``) and its PDF summary lines."""
-
-    html: str
-    pdf: tuple[PdfLine, ...] = ()
-
-
-class Plot(Protocol):
-    """A rendered figure (rig.report.acceptance.Figure)."""
-
-    title: str
-    png: bytes
-
-
-def esc(x: Any) -> str:
-    """Text for HTML."""
-    return html.escape(str(x))
+    folder: Path
+    meta: dict[str, Any]
+    results: dict[str, Any]
+    steps: list[tuple[int, str, str, float, float | None]]
+    events: list[tuple[float, str, str]]
+    digest: str
+    """The data's SHA-256 (rig.store.seal), recomputed."""
 
 
 def num(v: float, sig: float | None = None) -> str:
-    """``v +- sig`` with as many decimals as the 1-sigma supports (HTML)."""
+    """``v ± sig`` with as many decimals as the 1-sigma supports."""
     if sig is None or not math.isfinite(sig) or sig <= 0:
         return f"{v:.6g}"
     digits = max(0, min(8, 1 - math.floor(math.log10(sig))))
-    return f"{v:.{digits}f} &plusmn; {sig:.{digits}f}"
+    return f"{v:.{digits}f} ± {sig:.{digits}f}"
+
+
+def header_section(run: RunFacts) -> Section:
+    """Who, what, when, on which instruments, and the data's digest."""
+    meta = run.meta
+    dut = meta.get("magnetometers", {}).get("dut", "dut")
+    instruments = meta.get("instruments", {})
+    rows = [
+        ("Procedure", meta.get("procedure", "")), ("Run", meta.get("run_id", "")),
+        ("DUT serial", meta.get("dut_serial", "")), ("DUT model", instruments.get(dut, "")),
+        ("Operator", meta.get("operator", "")), ("Date", meta.get("start_time", "")),
+        ("Status", f"{meta.get('status', 'incomplete')} ({meta.get('reason', '')})"),
+        ("Software", f"rig {meta.get('software_version', '')}"),
+        ("Rig configuration", meta.get("rig_config", "")),
+        ("Cage calibration", meta.get("cage_model", {}).get("date", "nominal (not characterized)")),
+        ("Instruments", "; ".join(f"{k}: {v}" for k, v in instruments.items())),
+        ("Data SHA-256", f"data sha256 {run.digest} ({seal_note(run.folder, run.digest)})"),
+    ]  # fmt: skip
+    return Section("", (Table(("", ""), tuple((k, str(v)) for k, v in rows), row_heads=True),))
 
 
 def criteria_section(verdict: dict[str, Any] | None) -> Section:
     """The acceptance criteria: value, limits, margin and verdict per row."""
+    title = "Acceptance criteria"
     if not verdict:
-        return Section(
-            "<h2>Acceptance criteria</h2><p>No acceptance criteria were evaluated in this run.</p>"
-        )
-    rows = ["<h2>Acceptance criteria</h2><table><tr><th>criterion</th><th>measured</th>"
-            "<th>limits</th><th>margin</th><th>verdict</th></tr>"]  # fmt: skip
-    lines = [PdfLine("Acceptance criteria", "heading")]
+        return Section(title, (Para("No acceptance criteria were evaluated in this run."),))
+    rows = []
     for row in verdict["criteria"]:
         if "value" in row:
-            value, limits, margin = limit_text(row)
-            rows.append(f"<tr><td>{esc(row['name'])}</td><td>{esc(value)}</td><td>{esc(limits)}</td>"
-                        f"<td>{esc(margin)}</td><td class='{row['verdict']}'>{row['verdict']}</td></tr>")  # fmt: skip
+            rows.append((str(row["name"]), *limit_text(row), str(row["verdict"])))
         else:
-            rows.append(f"<tr><td>{esc(row['name'])}</td><td colspan='3'>{esc(row['reason'])}</td>"
-                        "<td class='FAIL'>FAIL</td></tr>")  # fmt: skip
-        lines.append(PdfLine(criterion_line(row), "PASS" if row["verdict"] == "PASS" else "FAIL"))
-    return Section("".join(rows) + "</table>", tuple(lines))
+            rows.append((str(row["name"]), str(row["reason"]), "", "", "FAIL"))
+    header = ("criterion", "measured", "limits", "margin", "verdict")
+    return Section(title, (Table(header, tuple(rows), verdict_col=4),))
 
 
-def step_results_section(steps: Sequence[tuple[Any, ...]], results: dict[str, Any]) -> Section:
-    """What each step's kind says of its result (noise spectrum, linearity, ...)."""
-    parts = [
-        KINDS[kind].report_html(name, results[name])
-        for _, name, kind, _, _ in steps
-        if kind in KINDS and name in results
-    ]
-    parts = [p for p in parts if p]
-    if not parts:
-        return Section("")
-    lines = [PdfLine(html.unescape(re.sub(r"<[^>]+>", "", p))) for p in parts]
-    return Section(
-        "<h2>Step results</h2>" + "".join(parts), (PdfLine("Step results", "heading"), *lines)
-    )
+def _result_line(name: str, value: Any) -> str:
+    """A result no kind describes: its top-level numbers with their unit-named keys."""
+    if not isinstance(value, dict):
+        return f"{name}: {value}"
+    parts = [f"{k} {v:.4g}" for k, v in value.items()
+             if isinstance(v, int | float) and not isinstance(v, bool)]  # fmt: skip
+    return f"{name}: " + (", ".join(parts[:8]) or "(see 'rig show RUN --json')")
 
 
-def calibration_section(name: str, res: dict[str, Any], alt: dict[str, Any] | None) -> Section:
-    """A calibration result: parameters with sigma and sigma/CRLB (and the fit without telemetry
-    beside it, ``alt``), current-to-bias coefficients, both forms, residuals, a live block."""
-    sp, sig = res["springmann"], res["sigma"]["springmann"]
-    ratio = res["crlb_ratio"]["springmann"]
-    parts = [
-        f"<h2>Calibration '{esc(name)}': {res['model']} model, method {res['method']}, {res['samples']} samples</h2>",
-        "<table><tr><th>parameter</th><th>with telemetry</th><th>unit</th><th>sigma / CRLB</th>"
-        + ("<th>without telemetry</th>" if alt else "") + "</tr>",
-    ]  # fmt: skip
-    lines = [
-        PdfLine(
-            f"Calibration '{name}' ({res['model']}, {res['method']}, {res['samples']} samples)",
-            "heading",
-        )
-    ]
+def step_results_section(run: RunFacts) -> Section:
+    """What each step's kind says of its result (noise, spectrum, linearity, cage model...)."""
+    cals = calibrations(run.results)
+    lines: list[Para] = []
+    for _, name, kind, _, _ in run.steps:
+        if name not in run.results or name in cals or kind not in KINDS:
+            continue
+        said = KINDS[kind].report_lines(name, run.results[name])
+        lines += [Para(line) for line in (said or [_result_line(name, run.results[name])])]
+    return Section("Step results", tuple(lines))
+
+
+def _parameter_table(res: CalibrationRecord, alt: CalibrationRecord | None) -> Table:
+    header: tuple[str, ...] = ("parameter", "with telemetry", "unit", "sigma / CRLB")
+    header += ("without telemetry",) if alt else ()
+    rows: list[tuple[str, ...]] = []
     for key, unit in SPRINGMANN_UNITS.items():
-        cells = f"<td>{esc(key)}</td><td>{num(sp[key], sig[key])}</td><td>{unit}</td><td>{ratio[key]:.2f}</td>"
-        if alt:
-            cells += f"<td>{num(alt['springmann'][key], alt['sigma']['springmann'][key])}</td>"
-        parts.append(f"<tr>{cells}</tr>")
-        lines.append(PdfLine(f"{key:<11} {sp[key]:+.6f} +- {sig[key]:.6f} {unit}", "mono"))
-    rms_row = f"<tr><th>residual rms</th><td>{res['residual_rms_nt']:.1f}</td><td>nT</td><td></td>"
-    rms_row += f"<td>{alt['residual_rms_nt']:.1f}</td>" if alt else ""
-    parts.append(rms_row + "</tr></table>")
-    parts.append(
-        "<table><tr><th>channel</th><th>k x</th><th>k y</th><th>k z</th><th>unit</th></tr>"
-    )
-    for ch, k in res["correction"]["k_ut_per_unit"].items():
-        s = res["sigma"]["k_ut_per_unit"][ch]
-        parts.append(f"<tr><td>{esc(ch)}</td>" + "".join(f"<td>{num(v, e)}</td>" for v, e in zip(k, s, strict=True))
-                     + "<td>uT/A</td></tr>")  # fmt: skip
-        lines.append(PdfLine(f"k[{ch}] " + "  ".join(f"{v:+.4f}" for v in k) + " uT/A", "mono"))
-    parts.append("</table>")
-    cr = res["crassidis"]
-    parts.append("<p>Crassidis form: b = (" + ", ".join(f"{v:.4f}" for v in cr["b_ut"]) + ") uT, D = "
-                 + esc(np.round(np.array(cr["D"]), 6).tolist()) + "</p>")  # fmt: skip
-    au = res["angular_uncertainty_deg"]
-    parts.append(f"<p>Residual rms {res['residual_rms_nt']:.1f} nT, mean {res['residual_mean_nt']:.1f} nT, max {res['residual_max_nt']:.1f} nT; "
-                 f"chi-square {res['chi2']['reduced']:.2f} per dof ({esc(res['chi2']['verdict'])}); angular uncertainty "
-                 f"{au['20_ut']:.3f} deg at 20 uT, {au['50_ut']:.3f} deg at 50 uT.</p>")  # fmt: skip
-    lines.append(
-        PdfLine(
-            f"residual rms {res['residual_rms_nt']:.1f} nT; angular uncertainty {au['50_ut']:.3f} deg at 50 uT"
+        row: tuple[str, ...] = (
+            key,
+            num(res.springmann[key], res.sigma_of(key)),
+            unit,
+            f"{res.ratio_of(key):.2f}",
         )
+        row += (num(alt.springmann[key], alt.sigma_of(key)),) if alt else ()
+        rows.append(row)
+    rms: tuple[str, ...] = ("residual rms", f"{res.residual_rms_nt:.1f}", "nT", "")
+    rows.append(rms + ((f"{alt.residual_rms_nt:.1f}",) if alt else ()))
+    return Table(header, tuple(rows))
+
+
+def _coefficient_table(res: CalibrationRecord) -> Table:
+    sig = res.sigma.get("k_ut_per_unit", {})
+    rows = tuple(
+        (ch, *(num(v, e) for v, e in zip(k, sig.get(ch, [math.nan] * 3), strict=True)), "uT/A")
+        for ch, k in res.k_ut_per_unit.items()
     )
-    if res.get("mounting", {}).get("observable"):
-        parts.append("<p>DUT mounting rotation (rotation vector): "
-                     + ", ".join(f"{v:+.3f}" for v in res["mounting"]["rotation_vector_deg"]) + " deg</p>")  # fmt: skip
-    live = res.get("live")
-    if isinstance(live, dict):
-        parts.append(f"<p>Live calibration: stopped because {esc(live['stopped'])}; {live['updates']} samples"
-                     f" used over {live['elapsed_s']:.1f} s at {live['noise_nt']:.1f} nT noise.</p>"
-                     "<table><tr><th>target</th><th>1-sigma at stop</th><th>target 1-sigma</th><th>met</th></tr>")  # fmt: skip
-        for key, sigma in live["sigma_at_stop"].items():
-            limit = live["targets"].get(key)
-            met = "-" if limit is None else ("PASS" if sigma <= limit else "FAIL")
-            parts.append(f"<tr><td>{esc(key)}</td><td>{sigma:.3g}</td><td>{'-' if limit is None else f'{limit:g}'}</td>"
-                         f"<td class='{met}'>{met}</td></tr>")  # fmt: skip
-        parts.append("</table>")
-        lines.append(PdfLine(f"live calibration stopped: {live['stopped']}"))
-    parts += [f"<p><i>{esc(w)}</i></p>" for w in res.get("warnings", [])]
-    return Section("".join(parts), tuple(lines))
+    return Table(("channel", "k x", "k y", "k z", "unit"), rows)
 
 
-def plots_section(figs: Sequence[Plot]) -> Section:
+def _selection_line(res: CalibrationRecord) -> Para:
+    sel = res.selection
+    if sel is None:
+        return Para("Samples: every field step settled 0.25 s (recorded before results named"
+                    " their selection)", "note")  # fmt: skip
+    return Para(f"Samples: steps {', '.join(sel.steps) or '-'} of {sel.dut} against"
+                f" {sel.reference}, settled {sel.settle_s:g} s after each change; left out"
+                f" {sel.unresolved} unresolved and {sel.misdated} misdated")  # fmt: skip
+
+
+def _fit_lines(res: CalibrationRecord) -> list[Para]:
+    cr = res.stored.get("crassidis", {})
+    au = res.angular_uncertainty_deg
+    lines = [
+        Para("Crassidis form: b = (" + ", ".join(f"{v:.4f}" for v in cr.get("b_ut", [])) + ") uT,"
+             f" D = {np.round(np.array(cr.get('D', [])), 6).tolist()}"),
+        Para(f"Residual rms {res.residual_rms_nt:.1f} nT, mean {res.residual_mean_nt:.1f} nT,"
+             f" max {res.residual_max_nt:.1f} nT; chi-square {res.chi2.get('reduced', math.nan):.2f}"
+             f" per dof ({res.chi2.get('verdict', '-')}); angular uncertainty"
+             f" {au.get('20_ut', math.nan):.3f} deg at 20 uT, {au.get('50_ut', math.nan):.3f} deg"
+             " at 50 uT."),
+    ]  # fmt: skip
+    if res.mounting_deg is not None:
+        lines.append(Para("DUT mounting rotation (rotation vector): "
+                          + ", ".join(f"{v:+.3f}" for v in res.mounting_deg) + " deg"))  # fmt: skip
+    return lines
+
+
+def _live_blocks(res: CalibrationRecord) -> list[Para | Table]:
+    live = res.live
+    if live is None:
+        return []
+    rows = []
+    for key, sigma in live.sigma_at_stop.items():
+        limit = live.targets.get(key)
+        met = "-" if limit is None else ("PASS" if sigma <= limit else "FAIL")
+        rows.append((key, f"{sigma:.3g}", "-" if limit is None else f"{limit:g}", met))
+    return [
+        Para(
+            f"Live calibration: stopped because {live.stopped}; {live.updates} samples used over"
+            f" {live.elapsed_s:.1f} s at {live.noise_nt:.1f} nT noise."
+        ),
+        Table(("target", "1-sigma at stop", "target 1-sigma", "met"), tuple(rows), verdict_col=3),
+    ]
+
+
+def calibration_section(
+    name: str, res: CalibrationRecord, alt: CalibrationRecord | None
+) -> Section:
+    """A calibration: parameters with sigma and sigma/CRLB (and the fit on the same samples
+    without telemetry, ``alt``), current-to-bias coefficients, both forms, residuals, the samples
+    it used, a live block, its warnings."""
+    title = (f"Calibration '{name}': {res.model} model, method {res.method},"
+             f" {res.samples} samples")  # fmt: skip
+    blocks: list[Para | Table] = [_selection_line(res), _parameter_table(res, alt)]
+    if res.k_ut_per_unit:
+        blocks.append(_coefficient_table(res))
+    blocks += _fit_lines(res)
+    blocks += _live_blocks(res)
+    blocks += [Para(w, "note") for w in res.warnings]
+    return Section(title, tuple(blocks))
+
+
+def plots_section(figs: Sequence[Image]) -> Section:
     """Every figure as an embedded PNG (the PDF has them on pages of their own)."""
-    parts = ["<h2>Plots</h2>"]
-    for f in figs:
-        parts.append(f"<h3>{esc(f.title)}</h3><img alt='{esc(f.title)}' "
-                     f"src='data:image/png;base64,{base64.b64encode(f.png).decode()}'>")  # fmt: skip
-    return Section("".join(parts))
+    return Section("Plots", tuple(figs), frozenset(("html",)))
 
 
-def steps_section(steps: Sequence[tuple[Any, ...]]) -> Section:
+def step_label(index: int, name: str, kind: str) -> str:
+    """A step's name, or for a step the procedure did not name (``check 11``) what its kind
+    does."""
+    step_kind = KINDS.get(kind)
+    if step_kind is None or name != f"{kind} {index + 1}":
+        return name
+    return step_kind.label(index)
+
+
+def steps_section(steps: Sequence[tuple[int, str, str, float, float | None]]) -> Section:
     """Each step with its kind and how long it took."""
-    parts = ["<h2>Steps</h2><table><tr><th>#</th><th>step</th><th>kind</th><th>duration</th></tr>"]
-    for idx, name, kind, t0, t1 in steps:
-        took = f"{t1 - t0:.1f} s" if t1 else "not finished"
-        parts.append(
-            f"<tr><td>{idx + 1}</td><td>{esc(name)}</td><td>{esc(kind)}</td><td>{took}</td></tr>"
-        )
-    return Section("".join(parts) + "</table>")
+    rows = tuple((str(i + 1), step_label(i, name, kind), kind,
+                  f"{t1 - t0:.1f} s" if t1 is not None else "not finished")
+                 for i, name, kind, t0, t1 in steps)  # fmt: skip
+    return Section("Steps", (Table(("#", "step", "kind", "duration"), rows),))
 
 
 def log_section(events: Sequence[tuple[float, str, str]], t_start: float) -> Section:
     """Operator actions, warnings, errors and limit events, in run time (s)."""
-    parts = ["<h2>Log</h2><table><tr><th>t (s)</th><th>level</th><th>message</th></tr>"]
-    for t, level, message in events:
-        if level in ("operator", "warning", "error") or "limit" in message:
-            parts.append(
-                f"<tr><td>{t - t_start:.1f}</td><td>{esc(level)}</td><td>{esc(message)}</td></tr>"
-            )
-    return Section("".join(parts) + "</table>")
+    rows = tuple((f"{t - t_start:.1f}", level, message) for t, level, message in events
+                 if level in ("operator", "warning", "error") or "limit" in message)  # fmt: skip
+    return Section("Log", (Table(("t (s)", "level", "message"), rows),) if rows else ())
+
+
+def approval_section() -> Section:
+    """Lines to sign: who prepared the report, who reviewed and approved it, when."""
+    line = "_" * 28
+    blank = ("", "", "", "")  # room to sign on paper
+    rows = [(role, line, "_" * 14, line) for role in ("Prepared by", "Reviewed by", "Approved by")]
+    spaced = tuple(r for row in rows for r in (blank, row))
+    return Section("Approval", (Table(("", "name", "date", "signature"), spaced),))
+
+
+def report_sections(
+    run: RunFacts,
+    plain: dict[str, CalibrationRecord | None] | None = None,
+    figs: Sequence[Image] = (),
+) -> list[Section]:
+    """The report, top to bottom; ``plain``: each calibration re-fitted without telemetry."""
+    plain = plain or {}
+    t_start = float(run.meta.get("start_monotonic", run.events[0][0] if run.events else 0.0))
+    return [
+        header_section(run),
+        criteria_section(run.results.get("verdict")),
+        step_results_section(run),
+        *(calibration_section(n, r, plain.get(n)) for n, r in calibrations(run.results).items()),
+        plots_section(figs),
+        steps_section(run.steps),
+        log_section(run.events, t_start),
+        approval_section(),
+    ]
+
+
+def verdict_of(run: RunFacts) -> str:
+    """PASS, FAIL, NO VERDICT or why the run is no acceptance (rig.report.text_report)."""
+    return overall_verdict(run.meta, run.results)

@@ -29,6 +29,39 @@ def _fmt(value: float, sigma: float) -> tuple[str, str]:
     return f"{value:.{digits}f}", f"{sigma:.{digits}f}"
 
 
+def _parameter_rows(result: CalibrationResult) -> list[str]:
+    """One row per parameter: label, unit, value, 1-sigma, CRLB 1-sigma, their ratio."""
+    out: list[str] = []
+    # Rotation error angles are reported about the fitted mounting; show the mounting itself.
+    mount = None
+    if result.model == "vector":
+        mount = result.to_dict()["mounting"]["rotation_vector_deg"]
+    for i, name in enumerate(result.names):
+        label, unit = _label(name)
+        scale = np.degrees(1.0) if name in ANGLE_KEYS else 1.0
+        value = float(result.p[i] * scale)
+        if mount is not None and name.startswith("rot_"):
+            value = float(mount["xyz".index(name[-1])])
+        val, sig = _fmt(value, float(result.sigma[i] * scale))
+        _, crlb = _fmt(value, float(result.crlb_sigma[i] * scale))
+        out.append(
+            f"  {label:<22}{unit:>8}{val:>14}{sig:>12}{crlb:>14}{result.crlb_ratio[i]:>7.2f}"
+        )
+    if result.profiled is not None:
+        fit = result.profiled
+        for prm, v, sig, crlb_sig in zip(fit.params, fit.values, fit.sigma, fit.crlb_sigma,
+                                         strict=True):  # fmt: skip
+            per_k = prm.unit == "1/K"  # shown in ppm/K
+            scale = 1e6 if per_k else 1.0
+            val, sig_text = _fmt(float(v) * scale, float(sig) * scale)
+            _, crlb_text = _fmt(float(v) * scale, float(crlb_sig) * scale)
+            ratio = float(sig / crlb_sig) if crlb_sig > 0 else float("nan")
+            label = "scale per kelvin" if per_k else f"delay[{prm.key}]"
+            unit = "ppm/K" if per_k else prm.unit
+            out.append(f"  {label:<22}{unit:>8}{val:>14}{sig_text:>12}{crlb_text:>14}{ratio:>7.2f}")
+    return out
+
+
 def calibration_table(result: CalibrationResult, source: str = "", verbose: bool = False) -> str:
     """The result as the table ``rig calibrate`` prints."""
     kind = (
@@ -43,35 +76,7 @@ def calibration_table(result: CalibrationResult, source: str = "", verbose: bool
         "",
         f"  {'parameter':<22}{'unit':>8}{'value':>14}{'1-sigma':>12}{'CRLB 1-sigma':>14}{'ratio':>7}",
     ]
-    # Rotation error angles are reported about the fitted mounting; show the mounting itself.
-    mount = None
-    if result.model == "vector":
-        mount = result.to_dict()["mounting"]["rotation_vector_deg"]
-    for i, name in enumerate(result.names):
-        label, unit = _label(name)
-        scale = np.degrees(1.0) if name in ANGLE_KEYS else 1.0
-        value = float(result.p[i] * scale)
-        if mount is not None and name.startswith("rot_"):
-            value = float(mount["xyz".index(name[-1])])
-        val, sig = _fmt(value, float(result.sigma[i] * scale))
-        _, crlb = _fmt(value, float(result.crlb_sigma[i] * scale))
-        lines.append(
-            f"  {label:<22}{unit:>8}{val:>14}{sig:>12}{crlb:>14}{result.crlb_ratio[i]:>7.2f}"
-        )
-    if result.profiled is not None:
-        fit = result.profiled
-        for prm, v, sig, crlb_sig in zip(fit.params, fit.values, fit.sigma, fit.crlb_sigma,
-                                         strict=True):  # fmt: skip
-            per_k = prm.unit == "1/K"  # shown in ppm/K
-            scale = 1e6 if per_k else 1.0
-            val, sig_text = _fmt(float(v) * scale, float(sig) * scale)
-            _, crlb_text = _fmt(float(v) * scale, float(crlb_sig) * scale)
-            ratio = float(sig / crlb_sig) if crlb_sig > 0 else float("nan")
-            label = "scale per kelvin" if per_k else f"delay[{prm.key}]"
-            unit = "ppm/K" if per_k else prm.unit
-            lines.append(
-                f"  {label:<22}{unit:>8}{val:>14}{sig_text:>12}{crlb_text:>14}{ratio:>7.2f}"
-            )
+    lines += _parameter_rows(result)
     chi = result.chi2
     noise_src = (
         f"--noise-nt {result.noise_nt:g}"

@@ -1,5 +1,5 @@
 """What a step kind is: its parameters and checks, how it compiles to commands, how long it takes,
-how the engine carries it out, and what it adds to the report.
+how the engine carries it out, what it adds to the report and which panel the live page draws.
 
 A kind is one module under ``rig/steps/`` defining a :class:`StepKind` subclass, registered in
 ``rig/steps/__init__.py``. The language, the planner, ``rig check``, the runner, the analysis and
@@ -150,9 +150,19 @@ class StepKind:
         """(title, matplotlib figure) for the report, from the step's result and recorded data."""
         return []
 
-    def report_html(self, name: str, result: Any) -> str:
-        """An HTML fragment for the report's results section (escaped by the kind)."""
-        return ""
+    def report_lines(self, name: str, result: Any) -> list[str]:
+        """Plain-text lines for the report's step results (rendered as HTML, PDF and text; none:
+        the report lists the result's numbers)."""
+        return []
+
+    def label(self, index: int) -> str:
+        """A readable name for a step the procedure did not name (index from 0): what the kind
+        does, from its summary."""
+        return f"{(self.summary.split(':')[0] or self.name)} (step {index + 1})"
+
+    live_panel: ClassVar[str] = ""
+    """The live page's panel for this kind's values (``live_sources``), e.g. ``calibration``;
+    the page draws the panel a running step's values name, never a kind by name."""
 
 
 class FieldStepKind(StepKind):

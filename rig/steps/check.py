@@ -13,6 +13,7 @@ from rig.steps.vocabulary import (
     ProcedureError,
     finite_number,
 )
+from rig.store.run_states import Verdict
 
 CRITERION_KEYS = {"result", "value", "min", "max", "name", "__line__"}
 
@@ -61,7 +62,7 @@ class Judge(StepExecution):
         verdict = evaluate_criteria(self.ctx.results, payload["criteria"])
         self.ctx.record_result("verdict", verdict)
         for row in verdict["criteria"]:
-            level = "info" if row["verdict"] == "PASS" else "warning"
+            level = "info" if row["verdict"] == Verdict.PASS else "warning"
             self.ctx.event(level, f"check {row['name']}: {row['verdict']}")
 
 

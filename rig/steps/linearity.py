@@ -9,7 +9,6 @@ residuals are the non-linearity.
 
 from __future__ import annotations
 
-import html
 from typing import Any, ClassVar
 
 import numpy as np
@@ -75,18 +74,18 @@ class Linearity(FieldStepKind):
         ax.set_xlabel("applied field along the axis (uT, reference)")
         ax.set_ylabel("DUT minus straight line (nT)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes
         fig.tight_layout()
         return [(f"Linearity '{name}' (full scale {result['full_scale_ut']:g} uT)", fig)]
 
-    def report_html(self, name: str, result: Any) -> str:
+    def report_lines(self, name: str, result: Any) -> list[str]:
         if not isinstance(result, dict) or "nonlinearity_ppm" not in result:
-            return ""
+            return []
         axes = ", ".join(f"{a} {v:.0f}" for a, v in result["axis_nonlinearity_ppm"].items())
-        return (
-            f"<p>Linearity {html.escape(name)}: {result['nonlinearity_ppm']:.0f} ppm of"
-            f" {result['full_scale_ut']:g} uT full scale (worst axis; per axis {axes} ppm).</p>"
-        )
+        return [
+            f"Linearity {name}: {result['nonlinearity_ppm']:.0f} ppm of"
+            f" {result['full_scale_ut']:g} uT full scale (worst axis; per axis {axes} ppm)."
+        ]
 
 
 class MeasureLinearity(StepExecution):

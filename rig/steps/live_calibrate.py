@@ -13,7 +13,8 @@ from rig.calibration.estimators import method_names
 from rig.errors import RigError
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.geometry import sphere_fields
-from rig.steps.live_calibration import LiveCalibration
+from rig.steps.live_calibration import LIVE_PANEL, LiveCalibration
+from rig.steps.null_field import latest_noise_floor
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
     Param,
@@ -27,6 +28,7 @@ from rig.steps.vocabulary import (
 class LiveCalibrate(FieldStepKind):
     name = "live_calibrate"
     summary = "sweep while a sequential filter calibrates; stop when the target sigmas are met"
+    live_panel = LIVE_PANEL
     params: ClassVar[dict[str, Param]] = {
         "method": Param("str", "ukf", choices=method_names(kind="sequential")),
         "telemetry": Param("list_str", []),
@@ -124,12 +126,10 @@ class LiveStep(StepExecution):
         filter pairs each DUT sample with one reference sample, so both noises count but field
         noise both see at once does not (the root sum square of the two floors counted it twice:
         28 against 23 nT on the simulator, mean NIS 0.48). Older results: the root sum square."""
-        for result in reversed(list(self.ctx.results.values())):
-            if isinstance(result, dict) and f"{role}_paired_noise_nt" in result:
-                return float(result[f"{role}_paired_noise_nt"])
-            if isinstance(result, dict) and f"{role}_noise_nt" in result:
-                ref_nt = float(result.get("reference_noise_nt", 0.0))
-                return float(math.hypot(result[f"{role}_noise_nt"], ref_nt))
+        floor = latest_noise_floor(self.ctx.results)
+        noise = floor.pair_noise_nt(role) if floor is not None else None
+        if noise is not None:
+            return noise
         raise RigError(
             f"{self.ctx.proc.path}: live_calibrate needs the noise: put a null_field step before it,"
             " or give noise_nt"

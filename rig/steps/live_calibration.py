@@ -45,6 +45,10 @@ HELD_BACK_MARGIN_S = 0.2
 reference, the loads and the field changes is uncertain."""
 
 
+LIVE_PANEL = "sigma-targets"
+"""The live page's panel for a live calibration: each value against its target (app.js)."""
+
+
 @dataclass
 class LiveSnapshot:
     """The latest evaluation: elapsed time (s), updates so far and the sigma of every group."""
@@ -93,6 +97,9 @@ class LiveCalibration:
         self._watch = DivergenceWatch()  # divergence: re-initialized from the batch estimate
         self._recorded: tuple[list[int], list[Array], list[Array]] = ([], [], [])
         self._next_check = t0 + CHECK_EVERY_S
+        self._queued = 0  # DUT samples queued for the worker (written by the DUT sampler only)
+        self._taken = 0  # ... and finished with by the worker (written by the worker only)
+        self._caught_up = threading.Condition()
         self._thread = threading.Thread(target=self._run, name="live-calibration", daemon=True)
 
     # --- feeds (called from the sampler threads and the runner) ---------------------------------
@@ -108,6 +115,7 @@ class LiveCalibration:
         if not settled or ref is None or abs(ref[0] - t) > MAX_PAIRING_S or _held_back(t):
             self.rejected += 1
             return
+        self._queued += 1
         self._queue.put((t, np.asarray(xyz, float), ref[1], self.telemetry(t)))
 
     def on_reference(self, t: float, xyz: tuple[float, float, float]) -> None:
@@ -141,12 +149,21 @@ class LiveCalibration:
             item = self._queue.get()
             if item is None:
                 return
-            if self.error is not None:
-                continue
             try:
-                self._update(*item)
+                if self.error is None:
+                    self._update(*item)
             except (CalibrationError, np.linalg.LinAlgError, ValueError) as exc:
                 self.error = exc
+            finally:
+                with self._caught_up:
+                    self._taken += 1
+                    self._caught_up.notify_all()
+
+    def wait_caught_up(self, timeout_s: float) -> bool:
+        """Wait until the worker has finished with every DUT sample queued so far (True), or
+        ``timeout_s`` (s) has passed (False): tests feeding samples faster than real time."""
+        with self._caught_up:
+            return self._caught_up.wait_for(lambda: self._taken >= self._queued, timeout_s)
 
     def _update(self, t: float, m: Array, ref: Array, u: Array) -> None:
         h_mag = float(np.linalg.norm(to_cage_frame(ref[None, :], self.correction)[0]))
@@ -226,11 +243,13 @@ class LiveCalibration:
         return " ".join(parts)
 
     def page_state(self) -> dict[str, Any]:
-        """For the web page: updates so far, each group's 1-sigma and its target."""
+        """For the web page: the panel to draw (:data:`LIVE_PANEL`) with the updates so far,
+        each group's 1-sigma and its target."""
         snap = self.snapshot
-        return {"calibration": {"updates": snap.updates, "elapsed_s": round(snap.elapsed_s, 2),
-                                "sigmas": {k: float(v) for k, v in snap.sigmas.items()},
-                                "targets": {k: float(v) for k, v in self.targets.items()}}}  # fmt: skip
+        return {"panel": {"name": LIVE_PANEL, "updates": snap.updates,
+                          "elapsed_s": round(snap.elapsed_s, 2),
+                          "values": {k: float(v) for k, v in snap.sigmas.items()},
+                          "targets": {k: float(v) for k, v in self.targets.items()}}}  # fmt: skip
 
     def stop(self) -> None:
         """Let the worker finish what is queued and end (idempotent)."""

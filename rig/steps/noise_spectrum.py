@@ -7,7 +7,6 @@ is detrended and its density estimated by Welch's method (Hann window, 50 % over
 
 from __future__ import annotations
 
-import html
 from typing import Any, ClassVar
 
 import numpy as np
@@ -89,19 +88,19 @@ class NoiseSpectrum(FieldStepKind):
         ax.set_xlabel("frequency (Hz)")
         ax.set_ylabel("noise density (nT/rtHz)")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes
         fig.tight_layout()
         return [(f"Noise spectrum '{name}'", fig)]
 
-    def report_html(self, name: str, result: Any) -> str:
+    def report_lines(self, name: str, result: Any) -> list[str]:
         if not isinstance(result, dict) or "density_1hz_nt_per_rthz" not in result:
-            return ""
+            return []
         lo, hi = result["band_hz"]
-        return (
-            f"<p>Noise spectrum {html.escape(name)}: {result['density_1hz_nt_per_rthz']:.3g} nT/rtHz"
+        return [
+            f"Noise spectrum {name}: {result['density_1hz_nt_per_rthz']:.3g} nT/rtHz"
             f" at 1 Hz, {result['band_density_nt_per_rthz']:.3g} nT/rtHz over {lo:g}-{hi:g} Hz"
-            f" ({result['samples']} samples at {result['rate_hz']:.1f} Hz, worst axis).</p>"
-        )
+            f" ({result['samples']} samples at {result['rate_hz']:.1f} Hz, worst axis)."
+        ]
 
 
 class MeasureSpectrum(StepExecution):

@@ -5,6 +5,8 @@ live calibration sees)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -15,6 +17,49 @@ from rig.steps.vocabulary import Param, RigTiming, Step
 
 NOISE_SETTLE_S = 0.3
 """Samples this long after a change are left out of the noise floor (s)."""
+
+
+@dataclass(frozen=True)
+class NoiseFloorResult:
+    """A null-field hold's noise: per role, the noise floor (nT, RMS over axes of the standard
+    deviation) and, beside the reference, the noise of its pairs with the reference (nT)."""
+
+    noise_nt: dict[str, float]
+    paired_noise_nt: dict[str, float]
+
+    def to_dict(self) -> dict[str, float]:
+        """The stored mapping: ``<role>_noise_nt`` and ``<role>_paired_noise_nt``."""
+        out = {f"{role}_noise_nt": v for role, v in self.noise_nt.items()}
+        return out | {f"{role}_paired_noise_nt": v for role, v in self.paired_noise_nt.items()}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> NoiseFloorResult | None:
+        """Read a stored result; None when it is not a noise floor."""
+        paired = {k.removesuffix("_paired_noise_nt"): float(v) for k, v in d.items()
+                  if k.endswith("_paired_noise_nt")}  # fmt: skip
+        noise = {k.removesuffix("_noise_nt"): float(v) for k, v in d.items()
+                 if k.endswith("_noise_nt") and not k.endswith("_paired_noise_nt")}  # fmt: skip
+        if not noise or len(noise) + len(paired) != len(d):
+            return None
+        return cls(noise, paired)
+
+    def pair_noise_nt(self, role: str) -> float | None:
+        """The noise ``role`` sees paired with the reference (nT): the paired noise measured, else
+        (older results) the root sum square of the two floors; None when not measured."""
+        if role in self.paired_noise_nt:
+            return self.paired_noise_nt[role]
+        if role in self.noise_nt:
+            return float(np.hypot(self.noise_nt[role], self.noise_nt.get("reference", 0.0)))
+        return None
+
+
+def latest_noise_floor(results: Mapping[str, Any]) -> NoiseFloorResult | None:
+    """The newest noise floor among a run's results."""
+    for value in reversed(list(results.values())):
+        found = NoiseFloorResult.from_dict(value) if isinstance(value, Mapping) else None
+        if found is not None:
+            return found
+    return None
 
 
 class NullField(FieldStepKind):
@@ -35,6 +80,36 @@ class NullField(FieldStepKind):
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return NoiseFloor(ctx, step)
 
+    def report_lines(self, name: str, result: Any) -> list[str]:
+        found = NoiseFloorResult.from_dict(result) if isinstance(result, Mapping) else None
+        if found is None:
+            return []
+        floors = ", ".join(f"{role} {v:.1f} nT" for role, v in found.noise_nt.items())
+        pairs = ", ".join(f"{role} {v:.1f} nT" for role, v in found.paired_noise_nt.items())
+        return [
+            f"Noise floor '{name}': {floors}"
+            + (f"; paired with the reference {pairs}" if pairs else "")
+        ]
+
+    def figures(self, reader: Any, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
+        window = next(((t0, t1) for _, n, _, t0, t1 in reader.steps() if n == name and t1), None)
+        if window is None:
+            return []
+        dut = reader.meta().get("magnetometers", {}).get("dut", "dut")
+        t_a, t_b = window[0] + NOISE_SETTLE_S, window[1]
+        rows = np.array([r for r in reader.samples(dut) if t_a <= r[0] <= t_b], dtype=np.float64)
+        if not rows.size:
+            return []
+        fig, ax = plt.subplots(figsize=(9, 3.0))
+        for i, axis in enumerate("xyz"):
+            ax.plot(rows[:, 0] - rows[0, 0], 1000 * (rows[:, 1 + i] - rows[:, 1 + i].mean()), "-",
+                    lw=0.8, label=axis)  # fmt: skip
+        ax.set_xlabel("time in the null-field hold (s)")
+        ax.set_ylabel("DUT reading minus mean (nT)")
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+        ax.grid(alpha=0.3)
+        return [(f"Noise floor at null field ('{name}')", fig)]
+
 
 class NoiseFloor(StepExecution):
     """After the hold: each magnetometer's noise floor (nT) as the step's result."""
@@ -53,11 +128,11 @@ class NoiseFloor(StepExecution):
             }
         finally:
             reader.close()
-        result: dict[str, Any] = {
-            f"{role}_noise_nt": noise[dev] for role, dev in mags.items() if dev in noise
-        }
-        result |= {f"{role}_paired_noise_nt": v for role, v in paired.items() if v is not None}
-        self.ctx.record_result(self.step.name, result)
+        result = NoiseFloorResult(
+            {role: noise[dev] for role, dev in mags.items() if dev in noise},
+            {role: v for role, v in paired.items() if v is not None},
+        )
+        self.ctx.record_result(self.step.name, result.to_dict())
 
 
 KIND = NullField()

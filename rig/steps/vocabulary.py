@@ -178,78 +178,99 @@ def suggest(word: object, options: list[str] | set[str] | dict[str, Any]) -> str
 
 
 def coerce(value: Any, p: Param, key: str, where: str) -> Any:
-    def bad(what: str) -> ProcedureError:
-        return ProcedureError(f"{where}: '{key}' {what}")
-
-    def not_finite(got: Any) -> NotFiniteError:
-        return NotFiniteError(
-            f"{where}: '{key}' must be a finite number, got {got!r}; {NOT_FINITE_FIX}"
-        )
-
+    """``value`` of parameter ``key`` as its kind ``p.kind`` wants it, within its bounds and
+    choices; else a ProcedureError naming ``where`` (a NotFiniteError for nan and inf)."""
     if p.kind in ("float", "int"):
-        if isinstance(value, str):  # a "{parameter}" substituted from --set or a default
-            try:
-                number: int | float = float(value)
-            except ValueError:
-                raise bad(f"must be a number, got {value!r}") from None
-        elif isinstance(value, bool) or not isinstance(value, int | float):
-            raise bad(f"must be a number, got {value!r}")
-        else:
-            number = value
-        fv = finite_number(number)
-        if fv is None:
-            raise not_finite(value)
-        if p.kind == "int" and not fv.is_integer():
-            raise bad(f"must be a whole number, got {value!r}")
-        v = int(number) if p.kind == "int" else fv  # an int stays exact
-        if (p.minimum is not None and v < p.minimum) or (p.maximum is not None and v > p.maximum):
-            raise bad(f"must be {_bounds(p)}, got {v:g}")
-        return v
+        return _number(value, p, key, where)
     if p.kind == "str":
-        if isinstance(value, bool):
-            value = "yes" if value else "no"
-        if not isinstance(value, str | int | float):
-            raise bad(f"must be text, got {value!r}")
-        value = str(value)
-        if p.choices and value not in p.choices:
-            options = ", ".join(c or "''" for c in p.choices)
-            raise bad(f"must be one of {options}, got {value!r}{suggest(value, set(p.choices))}")
-        return value
+        return _text(value, p, key, where)
     if p.kind in ("vec3", "range2", "list_float"):
-        n = {"vec3": 3, "range2": 2}.get(p.kind)
-        if (
-            not isinstance(value, list)
-            or (n is not None and len(value) != n)
-            or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-        ):
-            raise bad(f"must be a list of {n or 'some'} numbers, got {value!r}")
-        finite = [finite_number(v) for v in value]
-        vals = [v for v in finite if v is not None]
-        if len(vals) != len(finite):
-            raise not_finite(value)
-        if p.kind == "range2":
-            if vals[0] > vals[1]:
-                raise bad(f"must be [low, high], got {value!r}")
-            if (p.minimum is not None and vals[0] < p.minimum) or (
-                p.maximum is not None and vals[1] > p.maximum
-            ):
-                raise bad(f"must be {_bounds(p)}")
-        if p.kind == "list_float" and not vals:
-            raise bad("must not be empty")
-        return vals
+        return _numbers(value, p, key, where)
     if p.kind == "list_str":
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
-            raise bad(f"must be a list of names, got {value!r}")
+            raise _bad(where, key, f"must be a list of names, got {value!r}")
         return list(value)
     if p.kind == "dict":
         if not isinstance(value, dict):
-            raise bad(f"must be a mapping of name: value, got {value!r}")
+            raise _bad(where, key, f"must be a mapping of name: value, got {value!r}")
         return {k: v for k, v in value.items() if k != "__line__"}
     if p.kind == "list_dict":
         if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
-            raise bad("must be a list of mappings")
+            raise _bad(where, key, "must be a list of mappings")
         return value
     raise AssertionError(p.kind)
+
+
+def _bad(where: str, key: str, what: str) -> ProcedureError:
+    return ProcedureError(f"{where}: '{key}' {what}")
+
+
+def _not_finite(where: str, key: str, got: Any) -> NotFiniteError:
+    return NotFiniteError(
+        f"{where}: '{key}' must be a finite number, got {got!r}; {NOT_FINITE_FIX}"
+    )
+
+
+def _number(value: Any, p: Param, key: str, where: str) -> int | float:
+    """A ``float`` or ``int`` parameter (an int stays exact)."""
+    if isinstance(value, str):  # a "{parameter}" substituted from --set or a default
+        try:
+            number: int | float = float(value)
+        except ValueError:
+            raise _bad(where, key, f"must be a number, got {value!r}") from None
+    elif isinstance(value, bool) or not isinstance(value, int | float):
+        raise _bad(where, key, f"must be a number, got {value!r}")
+    else:
+        number = value
+    fv = finite_number(number)
+    if fv is None:
+        raise _not_finite(where, key, value)
+    if p.kind == "int" and not fv.is_integer():
+        raise _bad(where, key, f"must be a whole number, got {value!r}")
+    v = int(number) if p.kind == "int" else fv  # an int stays exact
+    if (p.minimum is not None and v < p.minimum) or (p.maximum is not None and v > p.maximum):
+        raise _bad(where, key, f"must be {_bounds(p)}, got {v:g}")
+    return v
+
+
+def _text(value: Any, p: Param, key: str, where: str) -> str:
+    """A ``str`` parameter (a YAML yes/no is 'yes'/'no'; a number is its text)."""
+    if isinstance(value, bool):
+        value = "yes" if value else "no"
+    if not isinstance(value, str | int | float):
+        raise _bad(where, key, f"must be text, got {value!r}")
+    text = str(value)
+    if p.choices and text not in p.choices:
+        options = ", ".join(c or "''" for c in p.choices)
+        raise _bad(
+            where, key, f"must be one of {options}, got {text!r}{suggest(text, set(p.choices))}"
+        )
+    return text
+
+
+def _numbers(value: Any, p: Param, key: str, where: str) -> list[float]:
+    """A ``vec3``, ``range2`` or ``list_float`` parameter."""
+    n = {"vec3": 3, "range2": 2}.get(p.kind)
+    if (
+        not isinstance(value, list)
+        or (n is not None and len(value) != n)
+        or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    ):
+        raise _bad(where, key, f"must be a list of {n or 'some'} numbers, got {value!r}")
+    finite = [finite_number(v) for v in value]
+    vals = [v for v in finite if v is not None]
+    if len(vals) != len(finite):
+        raise _not_finite(where, key, value)
+    if p.kind == "range2":
+        if vals[0] > vals[1]:
+            raise _bad(where, key, f"must be [low, high], got {value!r}")
+        if (p.minimum is not None and vals[0] < p.minimum) or (
+            p.maximum is not None and vals[1] > p.maximum
+        ):
+            raise _bad(where, key, f"must be {_bounds(p)}")
+    if p.kind == "list_float" and not vals:
+        raise _bad(where, key, "must not be empty")
+    return vals
 
 
 def _bounds(p: Param) -> str:

@@ -30,6 +30,7 @@ from typing import Any, Literal
 from rig import host_identity
 from rig.errors import StoreWriteError, UserInputError
 from rig.store import safe_files
+from rig.store.run_states import RunStatus
 from rig.store.seal import damaged, seal_run
 
 COMMIT_INTERVAL_S = 0.2
@@ -261,7 +262,7 @@ class RunInfo:
     @property
     def status(self) -> str:
         """complete, aborted, error, incomplete or running."""
-        return str(self.meta.get("status", "incomplete"))
+        return str(self.meta.get("status", RunStatus.INCOMPLETE))
 
 
 class RunReader:
@@ -283,7 +284,7 @@ class RunReader:
             with contextlib.suppress(AttributeError, sqlite3.Error):
                 self._con.close()
             raise damaged(folder, exc) from None
-        if meta.get("status") == "running":
+        if meta.get("status") == RunStatus.RUNNING:
             reason = _recorder_gone(self._con, meta)
             if reason is not None and self._mark_incomplete(meta.get("lease"), reason):
                 with contextlib.suppress(sqlite3.Error, OSError):
@@ -297,14 +298,14 @@ class RunReader:
         con.execute("BEGIN IMMEDIATE")
         try:
             now = dict(con.execute("SELECT key, value FROM meta WHERE key IN ('status', 'lease')"))
-            if json.loads(now.get("status", "null")) != "running" or (
+            if json.loads(now.get("status", "null")) != RunStatus.RUNNING or (
                 json.loads(now.get("lease", "null")) != lease
             ):
                 con.rollback()
                 return False
             con.execute(
                 "INSERT OR REPLACE INTO meta VALUES ('status', ?), ('reason', ?)",
-                (json.dumps("incomplete"), json.dumps(reason)),
+                (json.dumps(RunStatus.INCOMPLETE), json.dumps(reason)),
             )
             con.commit()
         except BaseException:
@@ -484,7 +485,7 @@ def new_run(runs_dir: Path, label: str, **meta: Any) -> RunWriter:
     try:
         con.executescript(SCHEMA)
         con.executemany(META_UPSERT, _meta_rows(dict(
-            run_id=folder.name, status="running", pid=os.getpid(),
+            run_id=folder.name, status=RunStatus.RUNNING, pid=os.getpid(),
             lease={**host_identity.identity(), "seq": 0, "renewed_at": time.time(),
                    "period_s": LEASE_PERIOD_S, "expiry_s": LEASE_EXPIRY_S},
             # the same instant on both clocks: exports convert sample times to UTC with it

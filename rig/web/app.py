@@ -15,7 +15,8 @@ import math
 import os
 import shutil
 import tempfile
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any, BinaryIO
 from urllib.parse import quote
@@ -29,7 +30,7 @@ from starlette.responses import (
     Response,
     StreamingResponse,
 )
-from starlette.routing import Mount, Route
+from starlette.routing import BaseRoute, Mount, Route
 from starlette.staticfiles import StaticFiles
 from starlette.templating import Jinja2Templates
 
@@ -135,6 +136,194 @@ class Site:
         return run_folder(self.runs_dir, request.path_params["run_id"])
 
 
+async def runs_page(site: Site, request: Request) -> Response:
+    return site.page(request, "runs.html", runs=list_summaries(site.runs_dir),
+                     runs_dir=str(site.runs_dir))  # fmt: skip
+
+
+async def runs_api(site: Site, request: Request) -> Response:
+    rows = [r.to_dict() for r in list_summaries(site.runs_dir)]
+    q = request.query_params.get("q", "").strip().lower()
+    if q:
+        rows = [r for r in rows if any(q in str(v).lower() for v in r.values())]
+    return JSONResponse(rows)
+
+
+async def run_page(site: Site, request: Request) -> Response:
+    folder = site.folder(request)
+    run_id = request.path_params["run_id"]
+    if folder is None:
+        return site.page(request, "message.html", 404, title=f"No run {run_id}",
+                         message="no such run in this runs folder")  # fmt: skip
+    try:
+        details = run_details(folder)
+    except Exception as exc:  # a damaged store: say so in one line, the list still works
+        return site.page(request, "message.html", 500, title=f"Run {run_id} is {DAMAGED}",
+                         message=damage(exc))  # fmt: skip
+    return site.page(request, "run.html", run=details)
+
+
+async def run_api(site: Site, request: Request) -> Response:
+    folder = site.folder(request)
+    if folder is None:
+        return JSONResponse({"error": "no such run"}, status_code=404)
+    try:
+        return JSONResponse(run_details(folder))
+    except Exception as exc:
+        return JSONResponse({"error": damage(exc), "status": DAMAGED}, status_code=500)
+
+
+async def run_file(site: Site, request: Request) -> Response:
+    folder = site.folder(request)
+    name = request.path_params["name"]
+    if folder is None or name not in downloads(folder):
+        return text(404, "no such file in this run")
+    try:  # opened without following a link, a regular file only (checked again on the fd)
+        fd = safe_files.open_fd(folder / name)
+    except (OSError, safe_files.UnsafeFileError):
+        return text(404, "no such file in this run")
+    headers = {"content-length": str(os.fstat(fd).st_size)}
+    if name in FRAMED_FILES:
+        headers |= {"content-security-policy": FRAMED_FILE_CSP,
+                    "x-frame-options": "SAMEORIGIN"}  # fmt: skip
+    if not name.endswith((".png", ".html")):
+        headers["content-disposition"] = f"attachment; filename*=utf-8''{quote(name)}"
+    return StreamingResponse(file_chunks(os.fdopen(fd, "rb")), media_type=media_type(name),
+                             headers=headers)  # fmt: skip
+
+
+async def run_export(site: Site, request: Request) -> Response:
+    folder = site.folder(request)
+    fmt = request.path_params["fmt"]
+    if folder is None or fmt not in EXPORTS:
+        return text(404, "no such run or export format")
+    summary = summary_or_damaged(folder)
+    if summary.status == DAMAGED:
+        return text(500, f"run {folder.name} is {DAMAGED}: {summary.reason}")
+    if summary.status == "running":
+        return text(409, "the run is still recording; export it once it has ended")
+    tmp = tempfile.mkdtemp(prefix="rig-export-")
+    path, name, media = await asyncio.to_thread(export_file, folder, fmt, Path(tmp))
+    return FileResponse(path, media_type=media, filename=name,
+                        background=BackgroundTask(shutil.rmtree, tmp, True))  # fmt: skip
+
+
+async def live_stream(site: Site, request: Request) -> Response:
+    folder = site.folder(request)
+    if folder is None:
+        return text(404, "no such run")
+
+    async def events() -> AsyncIterator[str]:
+        last = None
+        while not await request.is_disconnected():
+            state = read_live(folder)
+            if state is not None and state != last:
+                last = state
+                yield f"data: {json.dumps(state, separators=(',', ':'))}\n\n"
+                if state.get("status", "running") != "running":
+                    return  # the run has ended: its final state was the last word
+            await asyncio.sleep(LIVE_POLL_S)
+
+    return StreamingResponse(events(), media_type="text/event-stream",
+                             headers={"cache-control": "no-store"})  # fmt: skip
+
+
+async def control(site: Site, request: Request) -> Response:
+    folder = site.folder(request)
+    if folder is None:
+        return JSONResponse({"error": "no such run"}, status_code=404)
+    summary = summary_or_damaged(folder)
+    if summary.status == DAMAGED:
+        return JSONResponse({"error": f"the run is {DAMAGED}: {summary.reason}"},
+                            status_code=500)  # fmt: skip
+    if summary.status != "running":
+        return JSONResponse({"error": "the run has ended"}, status_code=409)
+    body = await request.body()  # the guard refused one over security.MAX_BODY bytes
+    try:
+        req = parse_control(body)
+    except ValueError as exc:
+        return bad_request(f"bad control request: {exc}")
+    try:
+        run_control.request(folder, req["action"], prompt=req["prompt"], yes=req["yes"])
+    except RigError as exc:
+        return JSONResponse({"error": str(exc)}, status_code=409)
+    return JSONResponse({"queued": req["action"]})
+
+
+async def cage_page(site: Site, request: Request) -> Response:
+    return site.page(request, "cage.html", cage=cage_status(site.rig_config),
+                     running=[r for r in list_summaries(site.runs_dir)
+                              if r.status == "running"])  # fmt: skip
+
+
+async def lab_page(site: Site, request: Request) -> Response:
+    """/lab (runs), /lab/dut/SERIAL, /lab/<view>: the views of :data:`rig.web.lab_views.VIEWS`."""
+    if site.lab_url is None:
+        return site.page(request, "lab.html", 404, view=None)
+    from rig.web.lab_views import VIEWS, tabs
+
+    name = "dut" if "serial" in request.path_params else request.path_params.get("view", "runs")
+    view = VIEWS.get(name)
+    if view is None:
+        return site.page(request, "lab.html", 404, view=None)
+    query = dict(request.query_params)
+    try:
+        data = await asyncio.to_thread(view.load, site.lab_url, query | request.path_params)
+    except RigError as exc:  # the index is down or refused: say so, the runs stay local
+        return site.page(request, "lab.html", 503, view=name, tabs=tabs(), error=str(exc))
+    return site.page(request, "lab.html", view=name, tabs=tabs(), data=data, query=query)
+
+
+async def lab_trend_png(site: Site, request: Request) -> Response:
+    if site.lab_url is None or not request.query_params.get("param"):
+        return text(404, "no lab index or no param")
+    from rig.web.lab_views.trend import lab_trend
+
+    tmp = Path(tempfile.mkdtemp(prefix="rig-trend-"))
+    png = tmp / "trend.png"
+    try:
+        data = await asyncio.to_thread(lab_trend, site.lab_url,
+                                       request.query_params["param"],
+                                       request.query_params.get("lot"), png)  # fmt: skip
+    except RigError as exc:
+        shutil.rmtree(tmp, True)
+        return text(503, str(exc))
+    if not data["found"]:
+        shutil.rmtree(tmp, True)
+        return text(404, "no values")
+    return FileResponse(png, media_type="image/png",
+                        background=BackgroundTask(shutil.rmtree, tmp, True))  # fmt: skip
+
+
+ROUTES: tuple[tuple[str, Callable[[Site, Request], Awaitable[Response]], str], ...] = (
+    ("/", runs_page, "GET"),
+    ("/api/runs", runs_api, "GET"),
+    ("/runs/{run_id}", run_page, "GET"),
+    ("/api/runs/{run_id}", run_api, "GET"),
+    ("/runs/{run_id}/files/{name}", run_file, "GET"),
+    ("/runs/{run_id}/export/{fmt}", run_export, "GET"),
+    ("/runs/{run_id}/live", live_stream, "GET"),
+    ("/runs/{run_id}/control", control, "POST"),
+    ("/cage", cage_page, "GET"),
+    ("/lab", lab_page, "GET"),
+    ("/lab/trend.png", lab_trend_png, "GET"),
+    ("/lab/dut/{serial:path}", lab_page, "GET"),
+    ("/lab/{view}", lab_page, "GET"),
+)
+"""Every route: path, handler (given the site and the request) and method, in match order."""
+
+
+def routes(site: Site) -> list[BaseRoute]:
+    """The application's routes for ``site``, and its static files."""
+    return [
+        *(
+            Route(path, partial(handler, site), methods=[method])
+            for path, handler, method in ROUTES
+        ),
+        Mount("/static", StaticFiles(directory=str(HERE / "static")), name="static"),
+    ]
+
+
 def create_app(runs_dir: Path, rig_config: Path | None = None, *, access_token: str,
                loopback_only: bool = True, csrf_secret: str | None = None,
                lab_url: str | None = None, token_hint: str = "") -> Guard:  # fmt: skip
@@ -143,183 +332,7 @@ def create_app(runs_dir: Path, rig_config: Path | None = None, *, access_token: 
     where its owner finds it)."""
     site = Site(runs_dir, rig_config, csrf_secret or new_secret(), lab_url)
 
-    async def runs_page(request: Request) -> Response:
-        return site.page(request, "runs.html", runs=list_summaries(site.runs_dir),
-                         runs_dir=str(site.runs_dir))  # fmt: skip
-
-    async def runs_api(request: Request) -> Response:
-        rows = [r.to_dict() for r in list_summaries(site.runs_dir)]
-        q = request.query_params.get("q", "").strip().lower()
-        if q:
-            rows = [r for r in rows if any(q in str(v).lower() for v in r.values())]
-        return JSONResponse(rows)
-
-    async def run_page(request: Request) -> Response:
-        folder = site.folder(request)
-        run_id = request.path_params["run_id"]
-        if folder is None:
-            return site.page(request, "message.html", 404, title=f"No run {run_id}",
-                             message="no such run in this runs folder")  # fmt: skip
-        try:
-            details = run_details(folder)
-        except Exception as exc:  # a damaged store: say so in one line, the list still works
-            return site.page(request, "message.html", 500, title=f"Run {run_id} is {DAMAGED}",
-                             message=damage(exc))  # fmt: skip
-        return site.page(request, "run.html", run=details)
-
-    async def run_api(request: Request) -> Response:
-        folder = site.folder(request)
-        if folder is None:
-            return JSONResponse({"error": "no such run"}, status_code=404)
-        try:
-            return JSONResponse(run_details(folder))
-        except Exception as exc:
-            return JSONResponse({"error": damage(exc), "status": DAMAGED}, status_code=500)
-
-    async def run_file(request: Request) -> Response:
-        folder = site.folder(request)
-        name = request.path_params["name"]
-        if folder is None or name not in downloads(folder):
-            return text(404, "no such file in this run")
-        try:  # opened without following a link, a regular file only (checked again on the fd)
-            fd = safe_files.open_fd(folder / name)
-        except (OSError, safe_files.UnsafeFileError):
-            return text(404, "no such file in this run")
-        headers = {"content-length": str(os.fstat(fd).st_size)}
-        if name in FRAMED_FILES:
-            headers |= {"content-security-policy": FRAMED_FILE_CSP,
-                        "x-frame-options": "SAMEORIGIN"}  # fmt: skip
-        if not name.endswith((".png", ".html")):
-            headers["content-disposition"] = f"attachment; filename*=utf-8''{quote(name)}"
-        return StreamingResponse(file_chunks(os.fdopen(fd, "rb")), media_type=media_type(name),
-                                 headers=headers)  # fmt: skip
-
-    async def run_export(request: Request) -> Response:
-        folder = site.folder(request)
-        fmt = request.path_params["fmt"]
-        if folder is None or fmt not in EXPORTS:
-            return text(404, "no such run or export format")
-        summary = summary_or_damaged(folder)
-        if summary.status == DAMAGED:
-            return text(500, f"run {folder.name} is {DAMAGED}: {summary.reason}")
-        if summary.status == "running":
-            return text(409, "the run is still recording; export it once it has ended")
-        tmp = tempfile.mkdtemp(prefix="rig-export-")
-        path, name, media = await asyncio.to_thread(export_file, folder, fmt, Path(tmp))
-        return FileResponse(path, media_type=media, filename=name,
-                            background=BackgroundTask(shutil.rmtree, tmp, True))  # fmt: skip
-
-    async def live_stream(request: Request) -> Response:
-        folder = site.folder(request)
-        if folder is None:
-            return text(404, "no such run")
-
-        async def events() -> AsyncIterator[str]:
-            last = None
-            while not await request.is_disconnected():
-                state = read_live(folder)
-                if state is not None and state != last:
-                    last = state
-                    yield f"data: {json.dumps(state, separators=(',', ':'))}\n\n"
-                    if state.get("status", "running") != "running":
-                        return  # the run has ended: its final state was the last word
-                await asyncio.sleep(LIVE_POLL_S)
-
-        return StreamingResponse(events(), media_type="text/event-stream",
-                                 headers={"cache-control": "no-store"})  # fmt: skip
-
-    async def control(request: Request) -> Response:
-        folder = site.folder(request)
-        if folder is None:
-            return JSONResponse({"error": "no such run"}, status_code=404)
-        summary = summary_or_damaged(folder)
-        if summary.status == DAMAGED:
-            return JSONResponse({"error": f"the run is {DAMAGED}: {summary.reason}"},
-                                status_code=500)  # fmt: skip
-        if summary.status != "running":
-            return JSONResponse({"error": "the run has ended"}, status_code=409)
-        body = await request.body()  # the guard refused one over security.MAX_BODY bytes
-        try:
-            req = parse_control(body)
-        except ValueError as exc:
-            return bad_request(f"bad control request: {exc}")
-        try:
-            run_control.request(folder, req["action"], prompt=req["prompt"], yes=req["yes"])
-        except RigError as exc:
-            return JSONResponse({"error": str(exc)}, status_code=409)
-        return JSONResponse({"queued": req["action"]})
-
-    async def cage_page(request: Request) -> Response:
-        return site.page(request, "cage.html", cage=cage_status(site.rig_config),
-                         running=[r for r in list_summaries(site.runs_dir)
-                                  if r.status == "running"])  # fmt: skip
-
-    async def lab_page(request: Request) -> Response:
-        """/lab (runs), /lab/dut/SERIAL, /lab/trend?param=&lot=, /lab/audit."""
-        if site.lab_url is None:
-            return site.page(request, "lab.html", 404, view=None)
-        from rig.web import lab_views
-
-        view = "dut" if "serial" in request.path_params else request.path_params.get("view", "runs")
-        q = request.query_params
-        try:
-            if view == "runs":
-                limit = int(q["limit"]) if q.get("limit", "").isdigit() else 100
-                data = await asyncio.to_thread(lab_views.lab_runs, site.lab_url, q.get("dut"),
-                                               q.get("status"), max(1, min(limit, 1000)))  # fmt: skip
-            elif view == "dut":
-                data = await asyncio.to_thread(lab_views.lab_dut, site.lab_url,
-                                               request.path_params["serial"])  # fmt: skip
-            elif view == "trend":
-                if not q.get("param"):
-                    return site.page(request, "lab.html", view="trend", data=None)
-                data = await asyncio.to_thread(lab_views.lab_trend, site.lab_url, q["param"],
-                                               q.get("lot"))  # fmt: skip
-            elif view == "audit":
-                data = await asyncio.to_thread(lab_views.lab_audit, site.lab_url)
-            else:
-                return site.page(request, "lab.html", 404, view=None)
-        except RigError as exc:  # the index is down or refused: say so, the runs stay local
-            return site.page(request, "lab.html", 503, view=view, error=str(exc))
-        return site.page(request, "lab.html", view=view, data=data, query=dict(q))
-
-    async def lab_trend_png(request: Request) -> Response:
-        if site.lab_url is None or not request.query_params.get("param"):
-            return text(404, "no lab index or no param")
-        from rig.web import lab_views
-
-        tmp = Path(tempfile.mkdtemp(prefix="rig-trend-"))
-        png = tmp / "trend.png"
-        try:
-            data = await asyncio.to_thread(lab_views.lab_trend, site.lab_url,
-                                           request.query_params["param"],
-                                           request.query_params.get("lot"), png)  # fmt: skip
-        except RigError as exc:
-            shutil.rmtree(tmp, True)
-            return text(503, str(exc))
-        if not data["found"]:
-            shutil.rmtree(tmp, True)
-            return text(404, "no values")
-        return FileResponse(png, media_type="image/png",
-                            background=BackgroundTask(shutil.rmtree, tmp, True))  # fmt: skip
-
-    routes = [
-        Route("/", runs_page),
-        Route("/api/runs", runs_api),
-        Route("/runs/{run_id}", run_page),
-        Route("/api/runs/{run_id}", run_api),
-        Route("/runs/{run_id}/files/{name}", run_file),
-        Route("/runs/{run_id}/export/{fmt}", run_export),
-        Route("/runs/{run_id}/live", live_stream),
-        Route("/runs/{run_id}/control", control, methods=["POST"]),
-        Route("/cage", cage_page),
-        Route("/lab", lab_page),
-        Route("/lab/trend.png", lab_trend_png),
-        Route("/lab/dut/{serial:path}", lab_page, name="lab_dut"),
-        Route("/lab/{view}", lab_page),
-        Mount("/static", StaticFiles(directory=str(HERE / "static")), name="static"),
-    ]
-    app = Starlette(routes=routes, exception_handlers={Exception: internal_error})
+    app = Starlette(routes=routes(site), exception_handlers={Exception: internal_error})
     return Guard(app, csrf_secret=site.csrf_secret, access_token=access_token,
                  loopback_only=loopback_only, token_hint=token_hint)  # fmt: skip
 
@@ -342,7 +355,7 @@ def cage_status(rig_config: Path | None) -> dict[str, Any] | None:
         return {"error": str(exc), "path": str(rig_config)}
     out: dict[str, Any] = {"path": str(rig_config), "devices": [
         {"name": d.name, "kind": d.kind, "protocol": d.protocol,
-         "where": str(d.params.get("port") or d.params.get("host") or d.params.get("bus") or "")}
+         "where": d.where}
         for d in cfg.devices.values()]}  # fmt: skip
     cage = cfg.cage
     if cage is not None:

@@ -88,13 +88,15 @@ path = "/dev/ttyUSB0"
         load_rig_config(write(tmp_path, text))
 
 
-def test_unknown_keys_pass_through(tmp_path: Path) -> None:
-    cfg = load_rig_config(write(tmp_path, """
+def test_unknown_keys_are_refused(tmp_path: Path) -> None:
+    """Issue 32: a key no kind declares is refused (it used to pass through unread)."""
+    with pytest.raises(
+        UserInputError, match=r"rig.toml:6: \[devices.ref\].line_format: unknown key"
+    ):
+        load_rig_config(write(tmp_path, """
 [devices.ref]
 kind = "ascii-mag"
 protocol = "serial"
 path = "/dev/ttyUSB0"
 line_format = "{x} {y} {z}"
-role = "reference"
 """))  # fmt: skip
-    assert cfg.devices["ref"].get("line_format") == "{x} {y} {z}"

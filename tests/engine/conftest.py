@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from rig.sim_rig import sim_rig_config
 from sim.cage import SimulatedCage
 from sim.config import load_config
+from tests.simcage import write_rig_toml
 
 
 @pytest.fixture(scope="module")
@@ -22,9 +22,7 @@ def cage() -> Iterator[SimulatedCage]:
 @pytest.fixture
 def rig_toml(cage: SimulatedCage, tmp_path: Path) -> Path:
     """A rig configuration naming the cage's endpoints."""
-    path = tmp_path / "rig.toml"
-    path.write_text(sim_rig_config(cage.endpoints_document(), load_config()))
-    return path
+    return write_rig_toml(cage, tmp_path)
 
 
 @pytest.fixture

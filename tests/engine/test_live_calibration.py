@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import time
 from pathlib import Path
 from typing import Any
 
@@ -64,10 +63,9 @@ def make(feed: Feed, **over: Any) -> LiveCalibration:
     return live
 
 
-def wait_idle(live: LiveCalibration, timeout_s: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not live._queue.empty() and time.monotonic() < deadline:
-        time.sleep(0.01)
+def wait_idle(live: LiveCalibration, timeout_s: float = 120.0) -> None:
+    """The filter's worker has finished with every sample fed so far."""
+    assert live.wait_caught_up(timeout_s), f"the filter's worker still busy after {timeout_s:g} s"
 
 
 def test_stops_on_target_with_the_truth_inside_its_sigmas(tmp_path: Path) -> None:

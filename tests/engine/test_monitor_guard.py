@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from rig.config import load_rig_config
-from rig.engine.runner import Runner
+from rig.engine.health import HealthMonitor
 from rig.errors import UserInputError
 from tests.simrun import run_on_sim
 
@@ -25,15 +25,15 @@ def test_a_monitor_that_fails_ends_the_run_safely(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     rounds = [0]
-    check = Runner._check_health
+    check = HealthMonitor.check
 
-    def failing(self: Runner, *args: object, **kwargs: object) -> None:
+    def failing(self: HealthMonitor, *args: object, **kwargs: object) -> None:
         rounds[0] += 1
         if rounds[0] == 5:  # a second into the run, with the coils on
             raise ValueError("invalid literal for int() with base 10: 'abc'")
         check(self, *args, **kwargs)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(Runner, "_check_health", failing)
+    monkeypatch.setattr(HealthMonitor, "check", failing)
     outcome = run_on_sim(tmp_path, HOLD)
     assert outcome.status == "error", outcome.reason
     assert outcome.reason.startswith("the health monitor stopped (ValueError: invalid literal")

@@ -8,7 +8,6 @@ import math
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -24,13 +23,13 @@ from rig.config import load_rig_config
 from rig.engine.runner import Runner
 from rig.procedure.language import parse_procedure
 from rig.procedure_files import find_procedure
-from rig.sim_rig import sim_rig_config
 from rig.steps import field_kinds
 from rig.store import RunReader
-from sim.cage import SimulatedCage
 from sim.config import load_config
+from tests.simcage import sim_cage
 from tests.simproc import LOAD_INPUT_STATE, LOAD_OFF, output_registers, outputs
 from tests.simproc import sim_process as start_sim
+from tests.waiting import in_background, wait_until
 
 
 @pytest.fixture(scope="module")
@@ -66,8 +65,8 @@ def test_interrupted_run_leaves_supplies_off_and_data_readable(
                 raise AssertionError(f"the run ended early: {proc.communicate()[1]}")
             assert time.monotonic() < deadline, "run did not reach the noise spectrum"
             time.sleep(0.2)
-        time.sleep(2.0)
-        assert any(v == 1 for v in outputs(devices, tcp_only=True).values())
+        wait_until(lambda: any(v == 1 for v in outputs(devices, tcp_only=True).values()), 30,
+                   "an output on (over its wire) during the noise spectrum")  # fmt: skip
         t_signal = time.monotonic()
         proc.send_signal(sig)
         while any(
@@ -105,22 +104,28 @@ def test_interrupted_run_leaves_supplies_off_and_data_readable(
 
 
 def test_a_device_that_stops_answering_ends_the_run_safely(tmp_path: Path) -> None:
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
-        rc = load_rig_config(tmp_path / "rig.toml")
+    with sim_cage(tmp_path) as (cage, rig_toml):
+        rc = load_rig_config(rig_toml)
         proc = parse_procedure(find_procedure("smoke"))
-        threading.Timer(4.0, lambda: setattr(cage.faults["coil_x"], "silent", True)).start()
+        coil_x = cage.physics.supplies["coil_x"]
+
+        def silence_coil_x() -> None:  # mid-run: once the run has switched coil_x on
+            wait_until(lambda: coil_x.output, 60, "the run to switch coil_x on")
+            cage.faults["coil_x"].silent = True
+
+        fault = in_background(silence_coil_x, "fault injection")
         outcome = Runner(
             proc, rc, tmp_path / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False
         ).run()
+        fault.result()
         cage.faults["coil_x"].silent = False
-        time.sleep(0.3)  # > 10 L/R: the coil currents of the switched-off supplies have decayed
         assert outcome.status == "error" and "coil_x" in outcome.reason, outcome.reason
-        for name, s in cage.physics.supplies.items():
-            if name != "coil_x":  # the dead one kept its last state, as real hardware would
-                assert not s.output, name
-                assert math.isclose(s.output_current(), 0.0, abs_tol=1e-3), name
+        others = {n: s for n, s in cage.physics.supplies.items() if n != "coil_x"}
+        # the dead one kept its last state, as real hardware would
+        assert not any(s.output for s in others.values()), others
+        wait_until(  # their coil currents decay with L/R once switched off
+            lambda: all(math.isclose(s.output_current(), 0.0, abs_tol=1e-3) for s in others.values()),
+            10, "the switched-off supplies' currents to decay")  # fmt: skip
         reader = RunReader(outcome.folder)
         assert reader.meta()["status"] == "error" and reader.count("samples") > 20
         reader.close()
@@ -133,17 +138,15 @@ def test_sigkill_mid_run_loses_at_most_half_a_second(
     tty_watch()  # what the kernel held back on its way to the rig was never the store's to lose
     proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "-q", "run", "smoke", "--rig", str(rig_toml),
                              "--yes", "--runs-dir", str(tmp_path)])  # fmt: skip
-    deadline = time.monotonic() + 30
-    while not any((p / "run.sqlite").exists() for p in tmp_path.iterdir()):
-        assert time.monotonic() < deadline
-        time.sleep(0.1)
-    time.sleep(4.0)
-    assert any(v == 1 for v in outputs(devices, tcp_only=True).values())  # RTU ports are the rig's
+    folder = wait_until(lambda: next((p for p in tmp_path.iterdir() if (p / "run.sqlite").exists()), None),
+                        60, "the run's folder")  # fmt: skip
+    wait_until(lambda: any(v == 1 for v in outputs(devices, tcp_only=True).values()), 60,
+               "the run to switch an output on (over its wire; RTU ports are the rig's)")  # fmt: skip
+    wait_until(lambda: samples_stored(folder) >= 100, 60, "100 samples in the store")
     t_kill = time.monotonic()
     proc.kill()
     proc.wait()
     # nothing in the killed process can act: the guardian it started switches everything off
-    folder = next(p for p in tmp_path.iterdir() if (p / "run.sqlite").exists())
     while any(v == 1 for v in outputs(devices, tcp_only=True).values()):
         if time.monotonic() - t_kill > 5.0:
             switch_off(devices)  # leave a safe rig for the following tests
@@ -152,14 +155,10 @@ def test_sigkill_mid_run_loses_at_most_half_a_second(
     t_safe = time.monotonic() - t_kill
     print(f"TCP outputs off {1000 * t_safe:.0f} ms after SIGKILL")
     assert t_safe < 2.0
-    deadline = time.monotonic() + 10.0
-    while True:  # the guardian records what it did once every output, RTU ones too, is off
-        reader = RunReader(folder)
-        events = [m for _, _, m in reader.events() if m.startswith("guardian")]
-        if events or time.monotonic() > deadline:
-            break
-        reader.close()
-    assert events and "switched off coil_x, coil_y, coil_z" in events[0], events
+    # the guardian records what it did once every output, RTU ones too, is off
+    events = wait_until(lambda: guardian_events(folder), 30, "the guardian's event in the store")
+    assert "switched off coil_x, coil_y, coil_z" in events[0], events
+    reader = RunReader(folder)
     assert reader.meta()["status"] == "incomplete"
     last = max(reader.samples(dev)[-1][0] for dev in reader.devices())
     reader.close()
@@ -167,6 +166,36 @@ def test_sigkill_mid_run_loses_at_most_half_a_second(
     held_back = tty_stall_s(last, t_kill)
     lost = t_kill - last - held_back
     assert lost <= 0.5, f"{lost:.3f} s of samples lost ({held_back:.3f} s more held in the kernel)"
+
+
+def samples_stored(folder: Path) -> int:
+    """Samples committed to the run's store so far."""
+    reader = RunReader(folder)
+    try:
+        return reader.count("samples")
+    finally:
+        reader.close()
+
+
+def guardian_events(folder: Path) -> list[str]:
+    """The guardian's events in the run's store."""
+    reader = RunReader(folder)
+    try:
+        return [m for _, _, m in reader.events() if m.startswith("guardian")]
+    finally:
+        reader.close()
+
+
+def operator_events(runs: Path) -> list[str]:
+    """Operator events (pause, resume, prompts) of the run being recorded under ``runs``."""
+    folders = [p for p in runs.iterdir() if (p / "run.sqlite").exists()] if runs.exists() else []
+    if not folders:
+        return []
+    reader = RunReader(folders[0])
+    try:
+        return [m for _, level, m in reader.events() if level == "operator"]
+    finally:
+        reader.close()
 
 
 def switch_off(devices: dict[str, Any]) -> None:
@@ -288,19 +317,25 @@ def test_live_calibration_stops_on_target_and_reports_convergence(
 def test_pause_and_resume_with_sigusr1(tmp_path: Path) -> None:
     import os
 
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
-        rc = load_rig_config(tmp_path / "rig.toml")
+    with sim_cage(tmp_path) as (cage, rig_toml):
+        rc = load_rig_config(rig_toml)
         proc = parse_procedure(find_procedure("smoke"))
-        pid = os.getpid()
-        threading.Timer(3.0, os.kill, (pid, signal.SIGUSR1)).start()
-        threading.Timer(5.0, os.kill, (pid, signal.SIGUSR1)).start()
+        supplies = cage.physics.supplies.values()
+
+        def pause_for_2_s() -> None:  # once the run drives the coils; resumed 2 s into the pause
+            wait_until(lambda: any(s.output for s in supplies), 60, "the run to switch a coil on")
+            os.kill(os.getpid(), signal.SIGUSR1)
+            wait_until(lambda: "paused" in operator_events(tmp_path / "runs"), 30, "the pause")
+            time.sleep(2.0)  # the pause itself (the scenario, not a wait for anything)
+            os.kill(os.getpid(), signal.SIGUSR1)
+
+        operator = in_background(pause_for_2_s, "the operator's SIGUSR1")
         t0 = time.monotonic()
         outcome = Runner(
             proc, rc, tmp_path / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False
         ).run()
         took = time.monotonic() - t0
+        operator.result()
     assert outcome.status == "complete", outcome.reason
     reader = RunReader(outcome.folder)
     messages = [m for _, level, m in reader.events() if level == "operator"]
@@ -310,13 +345,11 @@ def test_pause_and_resume_with_sigusr1(tmp_path: Path) -> None:
 
 
 def test_rig_safe_switches_everything_off(tmp_path: Path) -> None:
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+    with sim_cage(tmp_path) as (cage, rig_toml):
         for s in cage.physics.supplies.values():
             s.set_current(0.5)
             s.set_output(True)
-        assert main(["safe", "--rig", str(tmp_path / "rig.toml")]) == 0
+        assert main(["safe", "--rig", str(rig_toml)]) == 0
         assert not any(s.output for s in cage.physics.supplies.values())
         cage.faults["load_panel"].silent = True  # one that does not answer: named, exit 2
-        assert main(["safe", "--rig", str(tmp_path / "rig.toml"), "-q"]) == 2
+        assert main(["safe", "--rig", str(rig_toml), "-q"]) == 2

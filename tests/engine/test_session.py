@@ -11,17 +11,13 @@ import pytest
 from rig.config import load_rig_config
 from rig.engine.session import RigSession, switch_off_every_output
 from rig.errors import UserInputError
-from rig.sim_rig import sim_rig_config
-from sim.cage import SimulatedCage
-from sim.config import load_config
+from tests.simcage import sim_cage
 
 
 @pytest.mark.parametrize("ending", ["normal", "error", "ctrl-c"])
 def test_every_output_is_off_however_the_session_ends(tmp_path: Path, ending: str) -> None:
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
-        rc = load_rig_config(tmp_path / "rig.toml")
+    with sim_cage(tmp_path) as (cage, rig_toml):
+        rc = load_rig_config(rig_toml)
         supplies = cage.physics.supplies
         expect = (
             pytest.raises((RuntimeError, KeyboardInterrupt))
@@ -42,10 +38,8 @@ def test_every_output_is_off_however_the_session_ends(tmp_path: Path, ending: st
 
 
 def test_an_unknown_device_is_one_line_naming_the_file(tmp_path: Path) -> None:
-    cfg = load_config()
-    with SimulatedCage(cfg) as cage:
-        (tmp_path / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
-        rc = load_rig_config(tmp_path / "rig.toml")
+    with sim_cage(tmp_path) as (cage, rig_toml):
+        rc = load_rig_config(rig_toml)
         with (
             RigSession(rc) as rig,
             pytest.raises(UserInputError, match=r"rig.toml: no device 'load_bsu' for the load"),

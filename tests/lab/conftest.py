@@ -1,7 +1,7 @@
 """A real PostgreSQL server for the lab index tests (Debian's postgresql package; never a mock).
 
-Without the server binaries the tests skip, unless RIG_REQUIRE_POSTGRES is set (``.ci/run``): then
-they fail.
+Without the server binaries the tests skip, unless RIG_REQUIRE_TOOLS is set (``.ci/run``): then
+they fail (tests.tools).
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from collections.abc import Iterator
 import pytest
 
 from bench.labfixture import PgServer, pg_server, postgres_bin
+from tests.tools import require_tool
 
 _dbs = itertools.count(1)
 
@@ -20,11 +21,7 @@ _dbs = itertools.count(1)
 @pytest.fixture(scope="session")
 def pg() -> Iterator[PgServer]:
     """One throwaway cluster for the session, stopped at its end."""
-    if postgres_bin() is None:
-        why = "PostgreSQL server binaries are needed for the lab index tests: apt-get install postgresql"
-        if os.environ.get("RIG_REQUIRE_POSTGRES"):  # .ci/run: these tests never skip there
-            pytest.fail(why)
-        pytest.skip(why + " (.ci/run installs it)")
+    require_tool("postgresql", postgres_bin(), what="the lab index tests (its server binaries)")
     with pg_server() as server:
         yield server
 

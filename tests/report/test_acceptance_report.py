@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -15,6 +14,7 @@ from rig.calibration.synthetic import cage_like
 from rig.report.acceptance import build_report
 from rig.steps import field_kinds
 from rig.store import RunReader, new_run
+from tests.tools import require_tool
 
 CRITERIA = [
     {"result": "cal", "value": "residual_rms_nt", "max": 60.0, "name": "fit residual"},
@@ -98,8 +98,7 @@ def test_html_is_self_contained_and_has_every_section(tmp_path: Path) -> None:
 
 
 def test_pdf_renders_with_pdftoppm(tmp_path: Path) -> None:
-    if shutil.which("pdftoppm") is None:
-        pytest.skip("pdftoppm not installed (.ci/run installs poppler-utils)")
+    require_tool("pdftoppm", what="rendering the report's PDF")
     _, pdf_path = build_report(synthetic_run(tmp_path))
     subprocess.run(
         ["pdftoppm", "-r", "40", "-png", str(pdf_path), str(tmp_path / "page")], check=True

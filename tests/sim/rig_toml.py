@@ -6,6 +6,9 @@ from __future__ import annotations
 import json
 from typing import Any
 
+NOT_CONFIG_KEYS = ("role", "stopbits", "line_format", "unit")
+"""Endpoint entries that are no rig configuration keys (unknown keys are refused)."""
+
 
 def rig_toml(endpoints: dict[str, Any], nominal_k: list[list[float]]) -> str:
     """The cage section (coil supplies by role, relays, the ASCII reference, nominal constants)
@@ -27,6 +30,7 @@ def rig_toml(endpoints: dict[str, Any], nominal_k: list[list[float]]) -> str:
     ]
     for name, dev in devices.items():
         lines.append(f"[devices.{name}]")
-        lines += [f"{key} = {json.dumps(value)}" for key, value in dev.items()]
+        lines += [f"{key} = {json.dumps(value)}" for key, value in dev.items()
+                  if key not in NOT_CONFIG_KEYS]  # fmt: skip
         lines.append("")
     return "\n".join(lines)

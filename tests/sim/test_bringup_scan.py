@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import tty
 from collections.abc import Iterator
 from contextlib import ExitStack
@@ -14,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from rig.bringup import add_arguments, parse_tcp, run, scan, skeleton, table
+from rig.bringup import add_arguments, device_names, parse_tcp, run, scan, skeleton, table
 from rig.config import load_rig_config
 from rig.devices import build_cage
 from rig.errors import UserInputError
@@ -84,9 +85,14 @@ def test_the_skeleton_loads_and_opens_the_cage(
         f'\n[devices.polarity1]\nkind = "regmap-relay"\nregmap = "relay-h-bridge"\n'
         f'protocol = "modbus-tcp"\nhost = "{relay.params["host"]}"\nport = {relay.params["port"]}\n'
     )
+    # the scan never guesses which magnetometer is the reference (it once named the DUT): the
+    # user names it, here the simulated reference (an ASCII line magnetometer)
+    assert not re.search(r"^reference\s*=", text, re.M)
+    ref = next(n for n, f in zip(device_names(found), found, strict=True) if f.kind == "ascii-mag")
+    text = re.sub(r'^# reference = "\w+"', f'reference = "{ref}"', text, flags=re.M)
     path.write_text(text.replace('# polarity = "polarity1"', 'polarity = "polarity1"'))
     cfg = load_rig_config(path)
-    assert cfg.cage is not None and cfg.cage.reference is not None
+    assert cfg.cage is not None and cfg.cage.reference == ref
     assert {d.kind for d in cfg.devices.values()} >= {"riden-rd60xx", "hmr2300", "rm3100"}
     with ExitStack() as stack:
         controller = build_cage(cfg, stack, cage.i2c_bus)

@@ -14,11 +14,17 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
 from sim.cage import SimulatedCage
+from tests.tools import require_tool
 
 MBPOLL = shutil.which("mbpoll")
-needs_mbpoll = pytest.mark.skipif(
-    MBPOLL is None, reason="mbpoll not installed (.ci/run installs it)"
-)
+
+
+@pytest.fixture
+def _mbpoll() -> str:
+    return require_tool("mbpoll", what="the Modbus wire tests")
+
+
+needs_mbpoll = pytest.mark.usefixtures("_mbpoll")
 
 
 def mbpoll(

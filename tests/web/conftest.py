@@ -20,6 +20,7 @@ import httpx
 import pytest
 
 from rig.child_process import start_child, stop_child
+from tests.tools import require_tool
 
 REPO = Path(__file__).resolve().parents[2]
 SCREENSHOTS = REPO / "build" / "screenshots"
@@ -30,13 +31,9 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networki
 
 
 def chromium_path() -> str:
+    """Debian's chromium (or ``RIG_CHROMIUM``); skips or fails without it (tests.tools)."""
     path = os.environ.get("RIG_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
-    if not Path(path).exists():
-        why = "Debian's chromium is needed for the page tests: apt-get install chromium"
-        if os.environ.get("RIG_REQUIRE_BROWSER"):  # .ci/run: a browser test never skips there
-            pytest.fail(why)
-        pytest.skip(why + " (.ci/run installs it)")
-    return path
+    return require_tool("chromium", path, what="the page tests")
 
 
 @pytest.fixture(scope="module")

@@ -46,6 +46,26 @@ class _LinearFit:
     keep: Array
 
 
+def _weighted_sums(
+    build: Callable[[slice], Array], n: int, w: Array, shift: Array | None
+) -> tuple[Array, Array]:
+    """The weighted Gram matrix ``A^T W A`` and column sums ``sqrt(w) @ sqrt(w) A`` of the rows
+    of ``build`` (less ``shift`` when given), block by block."""
+    gram = np.zeros((0, 0))
+    total = np.zeros(0)
+    for rows in row_blocks(n):
+        a = build(rows)  # a fresh array: scaled in place
+        if shift is not None:
+            a -= shift
+        if gram.size == 0:
+            gram, total = np.zeros((a.shape[1], a.shape[1])), np.zeros(a.shape[1])
+        sw = np.sqrt(w[rows])
+        a *= sw[:, None]
+        gram += a.T @ a
+        total += sw @ a
+    return gram, total
+
+
 def _linear_fit(
     build: Callable[[slice], Array],
     n: int,
@@ -73,18 +93,7 @@ def _linear_fit(
     if intercept:
         a = build(sample)
         shift = (w[sample] @ a) / max(float(np.sum(w[sample])), 1e-300)
-    gram = np.zeros((0, 0))
-    total = np.zeros(0)
-    for rows in row_blocks(n):
-        a = build(rows)  # a fresh array: scaled in place
-        if intercept:
-            a -= shift
-        if gram.size == 0:
-            gram, total = np.zeros((a.shape[1], a.shape[1])), np.zeros(a.shape[1])
-        sw = np.sqrt(w[rows])
-        a *= sw[:, None]
-        gram += a.T @ a
-        total += sw @ a
+    gram, total = _weighted_sums(build, n, w, shift if intercept else None)
     w_sum = float(np.sum(w))
     d = total / w_sum
     centered = gram - w_sum * np.outer(d, d)

@@ -9,11 +9,10 @@ states and resets them to zero mean and covariance ``Sigma`` before every update
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
-from rig.calibration.estimators import SequentialMethod
 from rig.calibration.params import Array
 from rig.calibration.sequential.filters import UpdateInfo
 from rig.calibration.sequential.zmodel import ZModel, ZSample, bias_energy
@@ -27,7 +26,7 @@ class FilterpyFilter:
         model: ZModel,
         x0: Array,
         P0: Array,
-        method: SequentialMethod,
+        method: Literal["ekf", "ukf"],
         augmented: bool,
         process_noise: Array | None,
     ) -> None:

@@ -1,7 +1,7 @@
 """Real-time calibration: build a sequential filter, run it over samples, report its estimate.
 
-Methods (``rig calibrate --method``, the sequential rows of :mod:`rig.calibration.estimators`):
-``centered-seq`` (sequential centered, eqs. 19-22), ``ekf`` and ``ukf``. Variants: ``energy``
+Methods (``rig calibrate --method``): the modules registered in :data:`rig.calibration.sequential.KINDS`,
+each building its own filter. Variants: ``energy``
 (default; :mod:`rig.calibration.sequential.energy_filter`, converges from a zero start), ``paper``
 (the paper's filters as published: EKF eqs. 25-27, 9-state UKF) and ``paper-augmented`` (12-state
 UKF, eq. 47). Backends: ``numpy`` (in-house) and ``filterpy`` (the paper variants, through
@@ -10,106 +10,29 @@ filterpy's ``ExtendedKalmanFilter`` and ``UnscentedKalmanFilter``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Literal, Protocol
+from typing import Any
 
 import numpy as np
 
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
-from rig.calibration.estimators import SequentialMethod
 from rig.calibration.params import Array
 from rig.calibration.residuals import Samples, p_from_theta
-from rig.calibration.sequential.energy_filter import EnergyFilter
-from rig.calibration.sequential.filters import (
-    ExtendedKalman,
-    UnscentedKalman,
-    UpdateInfo,
-    initial_covariance,
-)
+from rig.calibration.sequential import sequential_kind
+from rig.calibration.sequential.filters import initial_covariance
 from rig.calibration.sequential.guard import DivergenceWatch, GuardReport, check_final
-from rig.calibration.sequential.zmodel import ZModel, ZSample, z_sample
+from rig.calibration.sequential.kind import FilterOptions, SequentialFilter
+
+__all__ = ["FilterOptions", "SequentialFilter", "filter_estimate", "make_filter", "run_filter"]
+from rig.calibration.sequential.zmodel import ZModel, z_sample
 from rig.errors import CalibrationError
-
-FilterMethod = SequentialMethod
-Variant = Literal["energy", "paper", "paper-augmented"]
-VARIANTS: tuple[Variant, ...] = ("energy", "paper", "paper-augmented")
-Backend = Literal["numpy", "filterpy"]
-
-
-class SequentialFilter(Protocol):
-    """What the run loop and the live view need from a filter."""
-
-    ready: bool
-
-    @property
-    def x(self) -> Array: ...
-
-    @property
-    def P(self) -> Array: ...  # noqa: N802 - the covariance is P in every filter
-
-    @property
-    def mean_nis(self) -> float: ...
-
-    def update(self, s: ZSample, dt_s: float = 0.0) -> UpdateInfo | None: ...
-
-    def reset(self, x: Array, P: Array) -> None: ...
-
-
-@dataclass(frozen=True)
-class FilterOptions:
-    """How to build a filter. Sigmas are the 1-sigma of the zero start (uT, 1, uT per unit).
-
-    ``forgetting_time_s`` (energy and centered) and ``process_noise`` (paper variants, variance
-    per second for every state) let slowly varying parameters be tracked; both off by default.
-    """
-
-    method: FilterMethod = "ukf"
-    variant: Variant = "energy"
-    backend: Backend = "numpy"
-    bias_sigma_ut: float = 20.0
-    e_sigma: float = 0.0316
-    k_sigma_ut_per_unit: float = 2.0
-    forgetting_time_s: float | None = None
-    process_noise: float | None = None
 
 
 def make_filter(opts: FilterOptions, n_channels: int, noise_ut: float) -> SequentialFilter:
-    """A filter for ``n_channels`` telemetry channels and raw noise ``noise_ut`` (uT, 1-sigma)."""
+    """A filter for ``n_channels`` telemetry channels and raw noise ``noise_ut`` (uT, 1-sigma):
+    the one the options' method builds (its module in this package)."""
     model = ZModel(n_channels, noise_ut)
     p0 = initial_covariance(n_channels, opts.bias_sigma_ut, opts.e_sigma, opts.k_sigma_ut_per_unit)
-    x0 = np.zeros(model.n)
-    if opts.method == "centered-seq":
-        if opts.variant != "energy" or opts.backend != "numpy":
-            raise CalibrationError(
-                "centered-seq has one form and runs on the numpy backend: drop --filter-variant"
-                " and --backend"
-            )
-        return EnergyFilter(model, projection=None, forgetting_time_s=opts.forgetting_time_s)
-    if opts.variant == "energy":
-        if opts.backend != "numpy":
-            raise CalibrationError(
-                "the filterpy backend runs the paper's filters: add --filter-variant paper"
-            )
-        projection: Literal["jacobian", "unscented"] = (
-            "jacobian" if opts.method == "ekf" else "unscented"
-        )
-        return EnergyFilter(
-            model, x0, p0, projection=projection, forgetting_time_s=opts.forgetting_time_s
-        )
-    q = None if opts.process_noise is None else np.full(model.n, opts.process_noise)
-    if opts.method == "ekf" and opts.variant == "paper-augmented":
-        raise CalibrationError(
-            "paper-augmented is a UKF form: use --method ukf or --filter-variant paper"
-        )
-    if opts.backend == "filterpy":
-        from rig.calibration.sequential.filters_filterpy import FilterpyFilter
-
-        return FilterpyFilter(model, x0, p0, opts.method, opts.variant == "paper-augmented", q)
-    if opts.method == "ekf":
-        return ExtendedKalman(model, x0, p0, order=1, process_noise=q)
-    return UnscentedKalman(
-        model, x0, p0, augmented=opts.variant == "paper-augmented", process_noise=q
-    )
+    return sequential_kind(opts.method).build(opts, model, p0)
 
 
 def noise_from_second_differences(measured_ut: Array) -> float:
@@ -147,8 +70,9 @@ def run_filter(
     diverged is re-initialized from the batch estimate of the samples so far, and a final answer
     far worse than the batch estimate of all samples is refused (:mod:`.guard`).
     """
+    kind = sequential_kind(opts.method)
     f = make_filter(opts, s.n_channels, noise_ut)
-    guarded = opts.method != "centered-seq"  # linear: the batch centered estimate at every step
+    guarded = kind.guarded
     watch = DivergenceWatch()
     every = max(1, s.n // max(history_rows, 1))
     idx: list[int] = []
@@ -181,8 +105,7 @@ def run_filter(
             progress(k)
     if not f.ready:
         raise CalibrationError(
-            f"{opts.method}: the data never made the calibration observable (the field magnitude"
-            " must vary for centered-seq): cover more directions and magnitudes"
+            f"{opts.method}: the data never made the calibration observable: {kind.needs}"
         )
     if guarded:
         check_final(np.asarray(f.x[: 9 + 3 * s.n_channels], float), s, noise_ut, opts.method,

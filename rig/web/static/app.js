@@ -74,6 +74,22 @@ function fieldPlot(el) {
   return { plot, data };
 }
 
+// The panels a step kind may name for its live values (StepKind.live_panel): the page draws the
+// one the running step's values name, never a step kind by name.
+const PANELS = {
+  "sigma-targets": (p) => {  // each value (a 1-sigma) against its target
+    const cal = document.getElementById("cal"); cal.hidden = false;
+    const body = cal.tBodies[0]; body.innerHTML = "";
+    for (const [k, v] of Object.entries(p.values || {})) {
+      const t = (p.targets || {})[k];
+      const tr = body.insertRow(); tr.insertCell().textContent = k;
+      tr.insertCell().textContent = Number(v).toPrecision(3);
+      tr.insertCell().textContent = t === undefined ? "-" : `target ${t}`;
+      tr.insertCell().textContent = t !== undefined && v <= t ? "met" : "";
+    }
+  },
+};
+
 const MAX_POINTS = 2400;  // 20 min at two points a second
 
 function rigRunPage(running) {
@@ -119,17 +135,7 @@ function rigRunPage(running) {
     const box = document.getElementById("prompt");
     if (s.prompt) { promptId = s.prompt.id; document.getElementById("prompt-text").textContent = s.prompt.text; box.hidden = false; }
     else { promptId = null; box.hidden = true; }
-    if (s.calibration) {
-      const cal = document.getElementById("cal"); cal.hidden = false;
-      const body = cal.tBodies[0]; body.innerHTML = "";
-      for (const [k, v] of Object.entries(s.calibration.sigmas || {})) {
-        const t = (s.calibration.targets || {})[k];
-        const tr = body.insertRow(); tr.insertCell().textContent = k;
-        tr.insertCell().textContent = Number(v).toPrecision(3);
-        tr.insertCell().textContent = t === undefined ? "-" : `target ${t}`;
-        tr.insertCell().textContent = t !== undefined && v <= t ? "met" : "";
-      }
-    }
+    if (s.panel && PANELS[s.panel.name]) PANELS[s.panel.name](s.panel);  // the running step's own
     if (s.field_cmd_ut && s.reference_ut) {
       const d = fp.data;
       d[0].push(s.t);

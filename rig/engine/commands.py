@@ -1,0 +1,92 @@
+"""The run's ``field`` and ``load`` commands: carried out, logged with the time each was issued and
+done, and told to the change listeners (a live calibration) as they start and end."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from drivers.protocols import Load
+from rig.steps.base import ChangeListener
+from rig.store.run_store import RunWriter
+
+
+@dataclass
+class LoadBook:
+    """The run's load channels: what was commanded, what was read back, and when each changed."""
+
+    loads: dict[str, Load] = field(default_factory=dict)
+    commanded: dict[str, float] = field(default_factory=dict)  # A
+    measured: dict[str, tuple[float, float]] = field(default_factory=dict)  # name -> (time, A)
+    changing: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """The last change of each: (start, end) monotonic s; end is inf while it is written."""
+
+
+class Commands:
+    """Carries out field and load commands on one run's cage controller and loads."""
+
+    def __init__(self, writer: RunWriter, loads: LoadBook, change_listeners: list[ChangeListener],
+                 event: Callable[[str, str], None]) -> None:  # fmt: skip
+        self.writer = writer
+        self.event = event
+        self.loads = loads
+        self.change_listeners = change_listeners
+        self.controller: Any = None  # the cage controller, once the devices are open
+
+    def command(self, step_idx: int, kind: str, payload: dict[str, Any], now: float) -> None:
+        """Carry out a ``field`` or ``load`` command; change listeners are told when it starts
+        and ends."""
+        listeners = list(self.change_listeners)
+        for listener in listeners:
+            listener.change_started(now)
+        try:
+            if kind == "field":
+                self._set_field(step_idx, payload, now)
+            elif kind == "load":
+                self._set_load(step_idx, payload, now)
+            else:
+                raise AssertionError(kind)
+        finally:
+            for listener in listeners:
+                listener.change_ended(time.monotonic())
+
+    def _set_field(self, step_idx: int, payload: dict[str, Any], now: float) -> None:
+        w = self.writer
+        target = np.array(payload["field_ut"])
+        issued = now
+        if payload.get("track"):
+            # One tracked set-point moves the field by a slew-limited step that the reference
+            # follows (interpolated): no interval to leave out. A ramp through zero is one.
+            ramped = self.controller.track(target)
+            payload = payload | {"ramped": ramped}
+            if not ramped:
+                issued = time.monotonic()
+        elif payload.get("trim"):
+            result = self.controller.trim(target)
+            if not result.settled:
+                self.event("warning", f"trim did not settle: {result.error_nt:.1f} nT")
+        else:
+            self.controller.set_field(target)
+        # Logged when the ramp has finished: analysis counts settling from here.
+        done = time.monotonic()
+        w.add_command(done, step_idx, "field", payload | {"t_issued": min(issued, done)})
+        for ax, amps in enumerate(self.controller.currents):
+            w.add_channel(time.monotonic(), f"coil_{'xyz'[ax]}", float(amps), None)
+
+    def _set_load(self, step_idx: int, payload: dict[str, Any], now: float) -> None:
+        w, book = self.writer, self.loads
+        name, amps = payload["channel"], float(payload["current_a"])
+        book.changing[name] = (now, math.inf)
+        try:
+            book.loads[name].set_current(amps)
+        finally:
+            done = time.monotonic()  # logged once written, like a field: settling counts from here
+            book.changing[name] = (now, done)
+        book.commanded[name] = amps
+        w.add_command(done, step_idx, "load", payload | {"t_issued": min(now, done)})
+        w.add_channel(done, name, amps, None)

@@ -1,0 +1,97 @@
+"""The run's record: its folder opened with what it runs and on what, closed with its status and the
+figures of how it ran, then the report and the lab index (each best effort: the folder is the
+record)."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import sys
+from array import array
+from pathlib import Path
+
+import numpy as np
+
+from rig import __version__
+from rig.config import RigConfig
+from rig.engine.sampling import SensorSampler
+from rig.procedure.language import Procedure
+from rig.store.run_states import RunStatus
+from rig.store.run_store import RunWriter, new_run
+
+LAB_TIMEOUT_S = 5.0
+"""Longest wait for the lab index at run close (s); then the run is synced later."""
+
+
+def open_record(runs_dir: Path, proc: Procedure, cfg: RigConfig) -> RunWriter:
+    """A new run folder for ``proc`` on ``cfg``'s rig, with copies of both files."""
+    params = proc.parameters
+    w = new_run(
+        runs_dir, params.get("dut_serial") or proc.path.stem,
+        procedure=proc.title, procedure_file=proc.path.name, parameters=params,
+        operator=params.get("operator", ""), dut_serial=params.get("dut_serial", ""),
+        software_version=__version__, rig_config=str(cfg.path), host=socket.gethostname(),
+        magnetometers=proc.magnetometers, loads=list(proc.loads),
+    )  # fmt: skip
+    (w.folder / "procedure.yaml").write_text(proc.text, encoding="utf-8")
+    shutil.copy(cfg.path, w.folder / "rig.toml")
+    return w
+
+
+def close_record(w: RunWriter, status: RunStatus, reason: str,
+                 samplers: dict[str, SensorSampler], lateness_s: array[float]) -> None:  # fmt: skip
+    """Store how the run went (samples per sensor, command lateness) and close it as ``status``;
+    a problem closing it is one warning line (the data committed before it are kept)."""
+    for name, s in samplers.items():
+        w.set_meta(**{f"samples_{name}": s.count, f"retried_{name}": s.retried})
+    if lateness_s:
+        lat = np.frombuffer(lateness_s, dtype=float)
+        w.set_meta(command_lateness_p50_ms=float(1000 * np.percentile(lat, 50)),
+                   command_lateness_p99_ms=float(1000 * np.percentile(lat, 99)),
+                   command_lateness_max_ms=float(1000 * lat.max()),
+                   commands_scheduled=int(lat.size))  # fmt: skip
+    for problem in w.close(status, reason):
+        print(f"rig: WARNING: {problem}; the data committed before it is kept", file=sys.stderr)
+
+
+def write_report(folder: Path, quiet: bool) -> None:
+    """The acceptance report of the closed run; a failure leaves the run as recorded."""
+    from rig.report.acceptance import build_report
+
+    if not quiet:
+        print("rig: writing the report ...", file=sys.stderr)
+    try:
+        build_report(folder)
+    except Exception as exc:  # the run and its data stand; the report can be rebuilt
+        print(f"rig: WARNING: the report could not be written ({type(exc).__name__}: {exc});"
+              f" rebuild it with 'rig report {folder}'", file=sys.stderr)  # fmt: skip
+
+
+def sync_lab(url: str, folder: Path, quiet: bool) -> None:
+    """Push the closed run to the lab index; best effort: a failure is one warning line and the
+    run stays as recorded ('rig lab sync' pushes it later)."""
+    from rig.lab.sync import sync_runs
+    from rig.lab.url import masked
+
+    try:
+        report = sync_runs(url, [folder], timeout_s=LAB_TIMEOUT_S)
+        if report.added and not quiet:
+            print(f"rig: run added to the lab index {masked(url)}", file=sys.stderr)
+        for why in report.refused + report.not_stored + report.unreadable:
+            print(f"rig: WARNING: the lab index did not take this run: {why}", file=sys.stderr)
+    except Exception as exc:  # never a failed run: the folder is the record
+        print(f"rig: WARNING: the run was not added to the lab index ({masked(str(exc))});"
+              " 'rig lab sync' adds it later", file=sys.stderr)  # fmt: skip
+
+
+def outputs_note(opened: bool, unsafe: list[str], cfg_path: Path) -> str:
+    """One line on the outputs after the session's safe path ('' if none was opened)."""
+    if not opened:
+        return ""
+    if unsafe:
+        return (f"outputs: {len(unsafe)} may still be on ({unsafe[0]}); switch them"
+                f" off by hand or with 'rig safe --rig {cfg_path}'")  # fmt: skip
+    return (
+        "outputs: safe - coils ramped down and off, every supply and load off, polarity"
+        " relays normal"
+    )

@@ -1,0 +1,116 @@
+"""Opening a run's devices inside its ``RigSession``: a sampler per magnetometer, the procedure's
+loads, every thermometer of the rig, and the instruments' identities for the record. Whatever is
+started here stops through the session (``RigSession.on_close``): after its safe state, before
+the links close."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from typing import Any
+
+from drivers.errors import DeviceError
+from rig.config import RigConfig
+from rig.devices import thermometer_names
+from rig.engine.commands import LoadBook
+from rig.engine.sampling import BufferedSensor, SensorSampler
+from rig.engine.session import RigSession
+from rig.engine.temperature_log import TemperatureLog
+from rig.errors import RigError
+from rig.procedure.language import Procedure
+from rig.steps import KINDS
+from rig.store.run_store import RunWriter
+
+Event = Callable[[str, str], None]
+
+
+def _identity(device: Any) -> str | None:
+    """'model serial' of ``device``, None if it cannot say (an identity is for the record only)."""
+    with contextlib.suppress(Exception):
+        ident = device.identify()
+        return f"{ident.model} {ident.serial}".strip()
+    return None
+
+
+def start_samplers(rig: RigSession, proc: Procedure, cfg: RigConfig, writer: RunWriter,
+                   samplers: dict[str, SensorSampler], instruments: dict[str, str],
+                   event: Event) -> None:  # fmt: skip
+    """One sampler per magnetometer device, whatever its roles, into ``samplers``; the cage's
+    reference is read through its sampler."""
+    for role, dev_name in proc.magnetometers.items():
+        if dev_name not in cfg.devices:
+            raise RigError(f"{proc.path}: magnetometer role '{role}' names '{dev_name}',"
+                           f" which is not in {cfg.path}")  # fmt: skip
+    cage_reference = cfg.cage.reference if cfg.cage is not None else None
+    for dev_name in dict.fromkeys(proc.magnetometers.values()):
+        driver = rig.magnetometer(dev_name)
+        if (ident := _identity(driver)) is not None:
+            instruments[dev_name] = ident
+        rate = float(cfg.devices[dev_name].get("rate_hz", 20.0))
+        sampler = SensorSampler(dev_name, driver, writer.add_sample, rate,
+                                on_warning=lambda m: event("warning", m))  # fmt: skip
+        sampler.start()
+        rig.on_close(sampler.stop)
+        samplers[dev_name] = sampler
+        if dev_name == cage_reference:
+            rig.cage().reference = BufferedSensor(sampler)
+
+
+def open_loads(rig: RigSession, proc: Procedure, cfg: RigConfig, book: LoadBook,
+               instruments: dict[str, str]) -> None:  # fmt: skip
+    """The procedure's load channels, at 0 A with their outputs on (off when the session ends)."""
+    for name in proc.loads:
+        if name not in cfg.devices:
+            raise RigError(f"{proc.path}: load '{name}' is not a device in {cfg.path}")
+        load = rig.load(name)
+        book.loads[name] = load
+        book.commanded[name] = 0.0
+        if (ident := _identity(load)) is not None:
+            instruments[name] = ident
+
+
+def record_thermometers(rig: RigSession, cfg: RigConfig, writer: RunWriter,
+                        instruments: dict[str, str], event: Event) -> list[str]:  # fmt: skip
+    """Start recording every thermometer of the rig (channels in degrees C, one reading a
+    second); one that cannot be opened is a warning, never the end of the run. Returns the
+    names being recorded."""
+    recorded = []
+    for name in thermometer_names(cfg):
+        try:
+            thermometer = rig.thermometer(name)
+            if (ident := _identity(thermometer)) is not None:
+                instruments[name] = ident
+        except (DeviceError, OSError, RigError) as exc:
+            event("warning", f"{exc}; the run goes on without recording {name}")
+            continue
+        log = TemperatureLog(name, thermometer, writer.add_channel, event)
+        log.start()
+        rig.on_close(log.stop)
+        recorded.append(name)
+    return recorded
+
+
+def check_thermometers(proc: Procedure, cfg: RigConfig, recorded: list[str]) -> None:
+    """Every thermometer a step reads is one this run records."""
+    for step in proc.steps:
+        for name in KINDS[step.kind].thermometers(step):
+            if name not in recorded:
+                raise RigError(
+                    f"{proc.path}: step '{step.name}' reads thermometer '{name}', which"
+                    f" this run does not record (recording: {', '.join(recorded) or 'none'});"
+                    f" add it to {cfg.path} or fix the name"
+                )
+
+
+def reference_correction(proc: Procedure, cfg: RigConfig) -> dict[str, Any] | None:
+    """The reference magnetometer's certificate (matrix and offset), None without one."""
+    ref_name = proc.magnetometers.get("reference")
+    if not ref_name or ref_name not in cfg.devices:
+        return None
+    dev = cfg.devices[ref_name]
+    if dev.get("correction_matrix") is None:
+        return None
+    return {
+        "matrix": dev.get("correction_matrix"),
+        "offset_ut": dev.get("correction_offset_ut", [0, 0, 0]),
+    }

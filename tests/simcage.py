@@ -1,0 +1,38 @@
+"""The simulated cage in this process with a rig configuration naming its endpoints: the setup
+every test driving the rig on the simulator starts from (fixture ``sim_rig`` in tests/conftest.py,
+or :func:`sim_cage` for a fixture of wider scope)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import NamedTuple
+
+from rig.sim_rig import sim_rig_config
+from sim.cage import SimulatedCage
+from sim.config import SimConfig, load_config
+
+
+class SimRig(NamedTuple):
+    """A started simulated cage and the rig configuration (TOML file) that opens it."""
+
+    cage: SimulatedCage
+    rig_toml: Path
+
+
+def write_rig_toml(cage: SimulatedCage, folder: Path, cfg: SimConfig | None = None) -> Path:
+    """``folder/rig.toml``: a rig configuration naming ``cage``'s endpoints (``cfg``: the cage's
+    configuration, the default one if not given)."""
+    path = folder / "rig.toml"
+    path.write_text(sim_rig_config(cage.endpoints_document(), cfg or load_config()))
+    return path
+
+
+@contextmanager
+def sim_cage(folder: Path, cfg: SimConfig | None = None) -> Iterator[SimRig]:
+    """A fresh simulated cage (``cfg``, else the default) and ``folder/rig.toml`` for it; the
+    cage stops on leaving."""
+    cfg = cfg or load_config()
+    with SimulatedCage(cfg) as cage:
+        yield SimRig(cage, write_rig_toml(cage, folder, cfg))

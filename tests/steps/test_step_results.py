@@ -1,0 +1,340 @@
+"""Each step kind carried out on a fake run context: what it asks and records, and its result on
+synthetic data with known truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from rig.calibration.params import Calibration, Springmann
+from rig.errors import RigError, RunAborted
+from rig.steps import KINDS
+from rig.steps.geometry import sphere_fields
+from tests.steps.fake_context import (
+    FakeContext,
+    Recording,
+    carry_out,
+    held_fields,
+    make_procedure,
+    make_step,
+)
+
+
+def context(tmp_path: Path, *steps: Any, **kw: Any) -> FakeContext:
+    return FakeContext(make_procedure(*steps), tmp_path, **kw)
+
+
+# --- the operator's and the run's steps ----------------------------------------------------------
+
+
+def test_prompt_asks_and_goes_on_when_confirmed(tmp_path: Path) -> None:
+    step = make_step("prompt", "Mount the DUT")
+    ctx = context(tmp_path, step)
+    carry_out(ctx, step)
+    assert ctx.questions == ["Mount the DUT"]
+    assert ctx.events == [("operator", "prompt 'Mount the DUT': confirmed")]
+
+
+def test_prompt_declined_aborts_the_run(tmp_path: Path) -> None:
+    step = make_step("prompt", "Mount the DUT")
+    ctx = context(tmp_path, step, answer=False)
+    with pytest.raises(RunAborted, match="the operator declined: Mount the DUT"):
+        carry_out(ctx, step)
+    assert ctx.events == [("operator", "prompt 'Mount the DUT': declined")]
+
+
+def test_report_asks_for_the_report_at_close(tmp_path: Path) -> None:
+    step = make_step("report")
+    ctx = context(tmp_path, step)
+    carry_out(ctx, step)
+    assert ctx.report_requested and not ctx.results
+
+
+CRITERIA = [
+    {"result": "floor", "value": "dut_noise_nt", "max": 50, "name": "DUT noise"},
+    {"result": "fit", "value": "springmann.a", "min": 0.9, "max": 1.1},
+]
+
+
+@pytest.mark.parametrize(
+    ("results", "overall", "verdicts"),
+    [
+        (
+            {"floor": {"dut_noise_nt": 20.0}, "fit": {"springmann": {"a": 1.02}}},
+            "PASS",
+            ["PASS", "PASS"],
+        ),
+        (
+            {"floor": {"dut_noise_nt": 60.0}, "fit": {"springmann": {"a": 1.02}}},
+            "FAIL",
+            ["FAIL", "PASS"],
+        ),
+        ({"floor": {"dut_noise_nt": 20.0}}, "FAIL", ["PASS", "FAIL"]),
+    ],
+    ids=["pass", "over-limit", "missing-result"],
+)
+def test_check_judges_the_results_so_far(
+    tmp_path: Path, results: dict[str, Any], overall: str, verdicts: list[str]
+) -> None:
+    step = make_step("check", {"criteria": [dict(c) for c in CRITERIA]})
+    ctx = context(tmp_path, step, results=dict(results))
+    verdict = ctx.results
+    carry_out(ctx, step)
+    verdict = ctx.results["verdict"]
+    assert verdict["overall"] == overall
+    assert [r["verdict"] for r in verdict["criteria"]] == verdicts
+    assert [lvl for lvl, _ in ctx.events] == [
+        "info" if v == "PASS" else "warning" for v in verdicts
+    ]
+    first = verdict["criteria"][0]
+    assert first["name"] == "DUT noise" and first["unit"] == "nT"
+    assert first["margin"] == pytest.approx(50.0 - results["floor"]["dut_noise_nt"])
+    if "fit" not in results:
+        assert "no result 'fit'" in verdict["criteria"][1]["reason"]
+
+
+# --- steps that measure: synthetic recordings with known truth -----------------------------------
+
+
+def test_null_field_reports_each_magnetometers_noise_floor(tmp_path: Path) -> None:
+    step = make_step("null_field", {"hold_s": 60})
+    ctx = context(tmp_path, step)
+    rng = np.random.default_rng(3)
+    t = np.arange(100.0, 160.0, 0.05)
+    common = 0.02 * rng.standard_normal((t.size, 3))  # field noise both see at once
+    ctx.recording.add_field(100.0, [0, 0, 0])
+    ctx.recording.add_samples("reference", t, common + 0.01 * rng.standard_normal((t.size, 3)))
+    ctx.recording.add_samples("dut", t + 0.001, common + 0.05 * rng.standard_normal((t.size, 3)))
+    result = carry_out(ctx, step, (100.0, 160.0))
+    assert result["dut_noise_nt"] == pytest.approx(1000 * np.hypot(0.02, 0.05), rel=0.05)
+    assert result["reference_noise_nt"] == pytest.approx(1000 * np.hypot(0.02, 0.01), rel=0.05)
+    assert result["dut_paired_noise_nt"] == pytest.approx(1000 * np.hypot(0.05, 0.01), rel=0.05)
+
+
+def test_null_field_leaves_out_the_settling_after_a_change(tmp_path: Path) -> None:
+    step = make_step("null_field", {"hold_s": 10})
+    ctx = context(tmp_path, step)
+    t = np.arange(0.0, 10.0, 0.05)
+    ramp = np.where(t < 0.3, 5.0, 0.0)[:, None] * np.ones(3)  # a transient inside NOISE_SETTLE_S
+    ctx.recording.add_field(0.0, [0, 0, 0])
+    for dev in ("dut", "reference"):
+        ctx.recording.add_samples(dev, t, ramp)
+    assert carry_out(ctx, step, (0.0, 10.0))["dut_noise_nt"] == 0.0
+
+
+def test_noise_spectrum_measures_a_known_white_noise_density(tmp_path: Path) -> None:
+    step = make_step("noise_spectrum", {"hold_s": 200, "band_hz": [0.1, 5]})
+    ctx = context(tmp_path, step)
+    rate, sigma_ut = 50.0, 0.1
+    t = 100.0 + np.arange(0.0, 200.0, 1.0 / rate)
+    rng = np.random.default_rng(5)
+    ctx.recording.add_field(100.0, [0, 0, 0])
+    ctx.recording.add_samples("dut", t, sigma_ut * rng.standard_normal((t.size, 3)))
+    result = carry_out(ctx, step, (100.0, 300.0))
+    truth_nt = 1000.0 * sigma_ut * np.sqrt(2.0 / rate)  # one-sided density of white noise
+    assert result["band_density_nt_per_rthz"] == pytest.approx(truth_nt, rel=0.1)
+    assert result["density_1hz_nt_per_rthz"] == pytest.approx(truth_nt, rel=0.3)
+    assert result["rate_hz"] == pytest.approx(rate)
+    assert result["device"] == "dut"
+
+
+def test_noise_spectrum_refuses_too_few_samples_and_a_band_past_nyquist(tmp_path: Path) -> None:
+    step = make_step("noise_spectrum", {"hold_s": 20, "band_hz": [1, 8]})
+    ctx = context(tmp_path, step)
+    ctx.recording.add_samples("dut", np.arange(0.0, 20.0, 1.0), np.zeros((20, 3)))
+    with pytest.raises(RigError, match=r"only 20 settled samples of 'dut'.*lengthen hold_s"):
+        carry_out(ctx, step, (0.0, 20.0))
+    ctx = context(tmp_path, step)
+    ctx.recording.add_samples("dut", np.arange(0.0, 20.0, 0.1), np.zeros((200, 3)))
+    with pytest.raises(RigError, match=r"band_hz reaches 8 Hz, above half the 10\.0 Hz"):
+        carry_out(ctx, step, (0.0, 20.0))
+
+
+def linearity_recording(ctx: FakeContext, points: int, dut: Any) -> tuple[float, float]:
+    fields = np.concatenate(
+        [np.eye(3)[a] * np.linspace(-100, 100, points)[:, None] for a in range(3)]
+    )
+    return held_fields(ctx.recording, fields, 1.0, dut, t0=0.0, step=(0, "lin", "linearity"))
+
+
+def test_linearity_finds_a_known_quadratic_departure(tmp_path: Path) -> None:
+    step = make_step("linearity", {"points": 9, "dwell_s": 1}, name="lin")
+    ctx = context(tmp_path, step)
+    quad = 2e-4  # 1/uT: 2 uT at 100 uT
+    window = linearity_recording(ctx, 9, lambda b: 5.0 + 1.01 * b + quad * b**2)
+    result = carry_out(ctx, step, window)
+    applied = np.linspace(-100, 100, 9)
+    line = np.polyval(np.polyfit(applied, quad * applied**2, 1), applied)
+    truth_ppm = 1e6 * np.max(np.abs(quad * applied**2 - line)) / 100.0
+    assert result["full_scale_ut"] == 100.0
+    for axis in "xyz":
+        assert result["axis_nonlinearity_ppm"][axis] == pytest.approx(truth_ppm, rel=1e-6)
+        assert result["points"][axis]["gain"][0] == pytest.approx(1.01, abs=1e-9)
+    assert result["nonlinearity_ppm"] == pytest.approx(truth_ppm, rel=1e-6)
+
+
+def test_linearity_of_a_linear_dut_is_zero_and_needs_a_reference(tmp_path: Path) -> None:
+    step = make_step("linearity", {"points": 5, "dwell_s": 1}, name="lin")
+    ctx = context(tmp_path, step)
+    window = linearity_recording(ctx, 5, lambda b: 0.98 * b - 3.0)
+    assert carry_out(ctx, step, window)["nonlinearity_ppm"] == pytest.approx(0.0, abs=1e-6)
+    alone = FakeContext(make_procedure(step, magnetometers={"dut": "dut"}), tmp_path)
+    with pytest.raises(RigError, match="linearity needs a 'reference'"):
+        carry_out(alone, step, window)
+
+
+def test_linearity_says_when_dwells_are_too_short_to_settle(tmp_path: Path) -> None:
+    step = make_step("linearity", {"points": 5, "dwell_s": 1, "settle_s": 0.9}, name="lin")
+    ctx = context(tmp_path, step)
+    window = linearity_recording(ctx, 5, lambda b: b)
+    with pytest.raises(RigError, match="only 0 settled points on axis x"):
+        carry_out(ctx, step, window)
+
+
+TRUTH = Springmann(
+    1.02, 0.97, 1.05, 2.5, -1.2, 0.8, np.radians(0.8), np.radians(-0.6), np.radians(1.1)
+)
+
+
+def test_calibrate_recovers_a_known_scale_and_offset_within_its_sigma(tmp_path: Path) -> None:
+    truth = Calibration.from_springmann(TRUTH, np.zeros((0, 3)), ())
+    step = make_step("calibrate", {"steps": ["sweep"], "noise_nt": 50}, index=1, name="fit")
+    ctx = context(tmp_path, make_step("sphere_sweep"), step)
+    fields = sphere_fields(120, (20.0, 60.0), 4)
+    held_fields(ctx.recording, fields, 1.0, lambda b: truth.predict(b, None), noise_ut=0.05)
+    result = carry_out(ctx, step)
+    sp, sigma = result["springmann"], result["sigma"]["springmann"]
+    for key, true in (
+        ("a", 1.02),
+        ("b", 0.97),
+        ("c", 1.05),
+        ("x0_ut", 2.5),
+        ("y0_ut", -1.2),
+        ("z0_ut", 0.8),
+    ):
+        assert 0 < sigma[key] < 0.01, (key, sigma[key])
+        assert abs(sp[key] - true) < 4 * sigma[key], (key, sp[key], true, sigma[key])
+    assert result["samples"] > 600 and result["unresolved_field_samples"] == 0
+
+
+def test_calibrate_without_settled_samples_says_what_to_do(tmp_path: Path) -> None:
+    from rig.errors import CalibrationError
+
+    step = make_step("calibrate", {"steps": ["sweep"], "settle_s": 5}, name="fit")
+    ctx = context(tmp_path, step)
+    held_fields(ctx.recording, sphere_fields(10, (30.0, 30.0), 1), 1.0, lambda b: b)
+    with pytest.raises(CalibrationError, match="hold each field longer than settle_s"):
+        carry_out(ctx, step)
+
+
+class LinearCage:
+    """A controller over a cage ``B = K I + B0`` read by a reference with white noise."""
+
+    def __init__(self, k: np.ndarray, b0: np.ndarray, noise_ut: float) -> None:
+        self.k, self.b0, self.noise_ut = k, b0, noise_ut
+        self.currents = np.zeros(3)
+        self.rng = np.random.default_rng(8)
+        self.model: Any = None
+        self.peak_a = 0.0
+
+    def set_currents(self, amps: np.ndarray) -> None:
+        self.currents = np.asarray(amps, float)
+        self.peak_a = max(self.peak_a, float(np.abs(self.currents).max()))
+
+    def sleep(self, seconds: float) -> None:
+        pass
+
+    def measure_ut(self, samples: int) -> np.ndarray:
+        noise = self.noise_ut * self.rng.standard_normal((samples, 3)).mean(axis=0)
+        return np.asarray(self.k @ self.currents + self.b0 + noise)
+
+    def instruments(self) -> dict[str, Any]:
+        return {"reference": "fake"}
+
+
+def test_characterize_cage_measures_a_known_cage_within_its_sigma(tmp_path: Path) -> None:
+    k = np.array([[42.0, 0.4, -0.3], [0.2, 39.5, 0.6], [-0.5, 0.1, 44.0]])
+    b0 = np.array([18.0, -2.5, 41.0])
+    cage = LinearCage(k, b0, noise_ut=0.05)
+    step = make_step(
+        "characterize_cage", {"amplitude_a": 1.5, "samples": 10, "repeats": 3}, name="cage"
+    )
+    ctx = context(tmp_path, step, controller=cage, cfg=SimpleNamespace(cage=None))
+    result = carry_out(ctx, step)
+    k_fit, k_sigma = np.array(result["k_ut_per_a"]), np.array(result["k_sigma_ut_per_a"])
+    assert np.all(np.abs(k_fit - k) < 4 * k_sigma) and k_sigma.max() < 0.05
+    b0_fit, b0_sigma = np.array(result["b0_ut"]), np.array(result["b0_sigma_ut"])
+    assert np.all(np.abs(b0_fit - b0) < 4 * b0_sigma)
+    assert cage.model is not None and ctx.meta["cage_model"]["k_ut_per_a"] == result["k_ut_per_a"]
+    assert cage.peak_a == 1.5 and not cage.currents.any()  # its amplitude, back to zero
+
+
+# --- live calibration: how it hooks into the run ------------------------------------------------
+
+
+LIVE = {"targets": {"bias_nt": 30}}
+
+
+def test_live_calibrate_takes_its_noise_from_the_newest_null_field(tmp_path: Path) -> None:
+    step = make_step("live_calibrate", LIVE, name="live")
+    results = {
+        "old floor": {"dut_noise_nt": 90.0},
+        "floor": {"dut_noise_nt": 30.0, "reference_noise_nt": 40.0},
+    }
+    ctx = context(tmp_path, step, results=results)
+    execution = KINDS["live_calibrate"].execution(ctx, step)
+    try:
+        assert "at 50 nT noise" in ctx.events[-1][1]  # root sum square of 30 and 40
+    finally:
+        execution.abort()
+    ctx = context(
+        tmp_path, step, results={"floor": {"dut_paired_noise_nt": 23.0, "dut_noise_nt": 30.0}}
+    )
+    execution = KINDS["live_calibrate"].execution(ctx, step)
+    execution.abort()
+    assert "at 23 nT noise" in ctx.events[-1][1]
+
+
+def test_live_calibrate_attaches_to_the_run_and_lets_go_on_abort(tmp_path: Path) -> None:
+    step = make_step("live_calibrate", {**LIVE, "noise_nt": 20}, name="live")
+    ctx = context(tmp_path, step)
+    execution = KINDS["live_calibrate"].execution(ctx, step)
+    hooked = [
+        len(ctx.samplers["dut"].listeners),
+        len(ctx.samplers["reference"].listeners),
+        len(ctx.change_listeners),
+        len(ctx.status_sources),
+        len(ctx.live_sources),
+    ]
+    execution.abort()
+    assert hooked == [1, 1, 1, 1, 1]
+    assert execution.stop is not None and not execution.stop.is_set()
+    assert not ctx.samplers["dut"].listeners and not ctx.samplers["reference"].listeners
+    assert not ctx.change_listeners and not ctx.status_sources and not ctx.live_sources
+
+
+def test_live_calibrate_needs_a_noise_and_both_magnetometers(tmp_path: Path) -> None:
+    step = make_step("live_calibrate", LIVE, name="live")
+    with pytest.raises(RigError, match="put a null_field step before it, or give noise_nt"):
+        KINDS["live_calibrate"].execution(context(tmp_path, step), step)
+    alone = FakeContext(make_procedure(step, magnetometers={"dut": "dut"}), tmp_path)
+    with pytest.raises(RigError, match="needs the 'dut' and 'reference' magnetometers"):
+        KINDS["live_calibrate"].execution(alone, step)
+
+
+def test_field_steps_without_their_own_work_record_nothing(tmp_path: Path) -> None:
+    for kind, body in (
+        ("set_field", {"field_ut": [1, 2, 3]}),
+        ("hold", {"hold_s": 1}),
+        ("sphere_sweep", None),
+        ("axis_sweep", None),
+        ("rotate", None),
+    ):
+        step = make_step(kind, body)
+        ctx = context(tmp_path, step, recording=Recording())
+        assert carry_out(ctx, step) is None
+        assert not ctx.events and not ctx.sent and not ctx.readers
