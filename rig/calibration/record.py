@@ -84,6 +84,17 @@ class LiveBlock:
                    str(d.get("history_file", "")))  # fmt: skip
 
 
+CALIBRATION_VALUES = (
+    "residual_rms_nt", "residual_mean_nt", "residual_max_nt", "samples", "iterations",
+    "noise_nt", "noise_floor_nt", "noise_estimated_nt", "unresolved_field_samples",
+    "misdated_samples", "timing_error_s", "springmann.*", "sigma.*", "crlb_ratio.*",
+    "crlb_sigma.*", "crassidis.*", "chi2.*", "angular_uncertainty_deg.*", "correlations.*",
+    "temperature.*", "mounting.*", "correction.*", "covariance.*",
+)  # fmt: skip
+"""The values a calibration result holds, as a check criterion names them (dotted paths,
+``fnmatch`` patterns)."""
+
+
 @dataclass(frozen=True)
 class CalibrationRecord:
     """One stored calibration: model, method, correction, parameters with 1-sigma, residuals, the

@@ -113,7 +113,7 @@ class SensorSampler:
                         self.on_warning(f"{self.name}: {exc}; retrying")
                     next_t = time.monotonic()
                     clock.reset()  # samples may have been lost: count from the next one
-        except (DeviceError, OSError) as exc:
+        except Exception as exc:  # a device error, or a bug in a sink: never a silent end
             self.error = exc
             with self._cond:
                 self._cond.notify_all()

@@ -521,7 +521,7 @@ def _parse_steps(raw_steps: list[Any], path: Path, top: Where, names: dict[str, 
                  origin: dict[str, str], loads: tuple[str, ...]) -> list[Step]:  # fmt: skip
     """Every step bound and validated, the procedure's duration and each step's load set-points
     within their limits."""
-    steps = []
+    steps: list[Step] = []
     total_s = 0.0
     for i, raw in enumerate(raw_steps):
         try:
@@ -538,6 +538,7 @@ def _parse_steps(raw_steps: list[Any], path: Path, top: Where, names: dict[str, 
                 " shorten it or split it into several procedures"
             )
         _check_setpoints(step, where, duration_s, path)
+        KINDS[step.kind].check_against(step, steps)
         steps.append(step)
     return steps
 

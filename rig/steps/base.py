@@ -9,6 +9,7 @@ the report find every kind there; none of them names a kind.
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
@@ -111,6 +112,15 @@ class StepKind:
     hold_from_field: ClassVar[bool] = False
     """Each field is held for its planned time from when it is reached: the timeline after a field
     command shifts by the time the ramp took (a slow link lengthens the step, never the dwell)."""
+    result_values: ClassVar[tuple[str, ...] | None] = None
+    """The values its result holds, as dotted paths a ``check`` criterion names (``fnmatch``
+    patterns: ``springmann.*``); checked when the procedure is read, so a misspelt value fails
+    before the run, not after it. None: not declared (not checked); (): it records no result."""
+
+    def check_against(self, step: Step, earlier: Sequence[Step]) -> None:
+        """Refuse (ProcedureError) what ``step`` says about the steps before it (``earlier``),
+        when the procedure is read; most kinds say nothing about other steps."""
+
     asks_operator: ClassVar[bool] = False
     """It asks the operator a question: a run without --yes needs a terminal or the page to answer
     it, checked before the run starts."""

@@ -6,6 +6,7 @@ from typing import Any, ClassVar
 
 from rig.analysis import calibrate_run
 from rig.calibration.estimators import method_names
+from rig.calibration.record import CALIBRATION_VALUES
 from rig.steps.base import StepExecution, StepKind
 from rig.steps.vocabulary import Param
 
@@ -13,6 +14,7 @@ from rig.steps.vocabulary import Param
 class Calibrate(StepKind):
     name = "calibrate"
     summary = "fit the DUT from the recorded steps (batch)"
+    result_values = CALIBRATION_VALUES
     params: ClassVar[dict[str, Param]] = {
         "model": Param("str", "vector", choices=("vector", "scalar")),
         "method": Param("str", "", choices=("", *method_names(kind="batch"))),

@@ -37,6 +37,7 @@ def characterization_duration_s(
 class CharacterizeCage(StepKind):
     name = "characterize_cage"
     summary = "measure the cage's uT per A on every axis (the cage model)"
+    result_values = ("residual_rms_nt", "condition_number")
     measures_cage_model = True
     params: ClassVar[dict[str, Param]] = {
         "amplitude_a": Param("float", 1.0, 0.01, 100.0),

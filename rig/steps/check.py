@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from fnmatch import fnmatchcase
 from typing import Any, ClassVar
 
 from rig.analysis import evaluate_criteria
@@ -11,7 +13,9 @@ from rig.steps.vocabulary import (
     NotFiniteError,
     Param,
     ProcedureError,
+    Step,
     finite_number,
+    suggest,
 )
 from rig.store.run_states import Verdict
 
@@ -38,6 +42,33 @@ class Check(StepKind):
 
     def execution(self, ctx: Any, step: Any) -> StepExecution:
         return Judge(ctx, step)
+
+    def check_against(self, step: Step, earlier: Sequence[Step]) -> None:
+        """Each criterion names a step before this one and a value that step's kind records
+        (its ``result_values``), or the procedure is refused with the valid names."""
+        from rig.steps import KINDS
+
+        by_name = {s.name: s for s in earlier}
+        for c in step.params["criteria"]:
+            at = f"{step.where.path}:{c.get('__line__', step.where.line)}: step {step.index + 1} (check)"
+            what = f"criterion '{c.get('name') or c['result']}'"
+            source = by_name.get(str(c["result"]))
+            if source is None:
+                raise ProcedureError(
+                    f"{at}: {what}: no step named '{c['result']}' before it"
+                    f"{suggest(str(c['result']), by_name)} (steps before it:"
+                    f" {', '.join(by_name) or 'none'})"
+                )
+            values = KINDS[source.kind].result_values
+            if values is None or any(fnmatchcase(str(c["value"]), v) for v in values):
+                continue
+            records = ", ".join(values) or "no result"
+            literal = [v for v in values if "*" not in v]
+            raise ProcedureError(
+                f"{at}: {what}: step '{source.name}' ({source.kind}) records no"
+                f" '{c['value']}'{suggest(str(c['value']), literal)}; it records: {records}"
+                + (" (* stands for any name)" if len(literal) < len(values) else "")
+            )
 
 
 def _limit(value: Any, key: str, at: str) -> int | float:

@@ -39,6 +39,7 @@ def nonlinearity(applied_ut: Array, reading_ut: Array) -> tuple[Array, float, fl
 class Linearity(FieldStepKind):
     name = "linearity"
     summary = "sweep each axis to the field limit; deviation from linear in ppm of full scale"
+    result_values = ("nonlinearity_ppm", "axis_nonlinearity_ppm.*", "full_scale_ut")
     params: ClassVar[dict[str, Param]] = {
         "max_ut": Param("float", 0.0, 0.0, 1000.0),
         "points": Param("int", 9, 5, 1001),

@@ -10,6 +10,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rig.calibration.estimators import method_names
+from rig.calibration.record import CALIBRATION_VALUES
 from rig.errors import RigError
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.geometry import sphere_fields
@@ -28,6 +29,7 @@ from rig.steps.vocabulary import (
 class LiveCalibrate(FieldStepKind):
     name = "live_calibrate"
     summary = "sweep while a sequential filter calibrates; stop when the target sigmas are met"
+    result_values = (*CALIBRATION_VALUES, "live.*", "filter.*")
     live_panel = LIVE_PANEL
     params: ClassVar[dict[str, Param]] = {
         "method": Param("str", "ukf", choices=method_names(kind="sequential")),

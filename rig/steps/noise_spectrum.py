@@ -43,6 +43,8 @@ def band_mean(f: Array, asd: Array, band: tuple[float, float]) -> Array:
 class NoiseSpectrum(FieldStepKind):
     name = "noise_spectrum"
     summary = "DUT noise spectral density in a nulled field (nT/rtHz at 1 Hz and over a band)"
+    result_values = ("density_1hz_nt_per_rthz", "band_density_nt_per_rthz", "rate_hz", "samples",
+                     "settle_s")  # fmt: skip
     params: ClassVar[dict[str, Param]] = {
         "hold_s": Param("float", 20.0, 5.0, 86400.0),
         "band_hz": Param("range2", [0.1, 5.0], 0.001, 10000.0),

@@ -65,6 +65,7 @@ def latest_noise_floor(results: Mapping[str, Any]) -> NoiseFloorResult | None:
 class NullField(FieldStepKind):
     name = "null_field"
     summary = "cancel the ambient field, hold, measure every magnetometer's noise floor"
+    result_values = ("*_noise_nt", "*_paired_noise_nt")  # per magnetometer role
     params: ClassVar[dict[str, Param]] = {
         "hold_s": Param("float", 2.0, 0.0, 86400.0),
         "trim": Param("str", "no", choices=("yes", "no")),

@@ -20,7 +20,7 @@ from rig.store.run_states import (
 
 def test_the_stored_strings_stay_the_same() -> None:
     assert [s.value for s in RunStatus] == [
-        "running", "paused", "complete", "failed", "aborted", "error", "incomplete"
+        "running", "paused", "complete", "failed", "re-run", "aborted", "error", "incomplete"
     ]  # fmt: skip
     assert [v.value for v in Verdict] == ["PASS", "FAIL", "RE-RUN"]
     assert json.dumps({"status": RunStatus.ABORTED}) == '{"status": "aborted"}'

@@ -67,7 +67,13 @@ def test_the_driver_picks_its_sampling_mode(
 ) -> None:
     mag = open_magnetometer(device(devices, name), cage.i2c_bus)
     got: list[tuple[float, str, tuple[float, float, float]]] = []
-    sampler = SensorSampler(name, mag, lambda t, n, xyz: got.append((t, n, xyz)), rate)
+    uncertainty: list[float] = []
+
+    def sink(t: float, n: str, xyz: tuple[float, float, float], t_unc_s: float) -> None:
+        got.append((t, n, xyz))
+        uncertainty.append(t_unc_s)
+
+    sampler = SensorSampler(name, mag, sink, rate)
     try:
         sampler.start()
         assert sampler.rate_hz == expected  # the HMR2300 runs at a datasheet rate >= the asked one
@@ -79,6 +85,9 @@ def test_the_driver_picks_its_sampling_mode(
     assert 0.4 * expected * 0.6 <= len(got) <= 1.5 * expected * 0.6 + 2
     times = [t for t, _, _ in got]
     assert times == sorted(times)
+    # every sample says how well its date is known: a stream within a period, a polled one
+    # within its exchange (ADR 0020)
+    assert all(0.0 < u <= 1.0 / expected + 0.05 for u in uncertainty[5:]), uncertainty
 
 
 def test_sim_rig_configuration_still_loads(
