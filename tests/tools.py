@@ -16,7 +16,7 @@ import pytest
 REQUIRE_TOOLS = "RIG_REQUIRE_TOOLS"
 OLD_VARIABLES = {"chromium": "RIG_REQUIRE_BROWSER", "postgresql": "RIG_REQUIRE_POSTGRES"}
 """Older variables that require one tool each (still honoured)."""
-PACKAGES = {"mbpoll": "mbpoll", "pdftoppm": "poppler-utils", "chromium": "chromium",
+PACKAGES = {"mbpoll": "mbpoll", "pdftoppm": "poppler-utils", "pdftotext": "poppler-utils", "chromium": "chromium",
             "postgresql": "postgresql"}  # fmt: skip
 """The Debian package of each tool (what ``.ci/run`` installs)."""
 

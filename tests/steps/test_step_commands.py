@@ -135,6 +135,15 @@ def test_orbit_replay_tracks_the_orbit_field_and_drives_the_panels() -> None:
     assert all(0.0 <= a <= 1.0 for a in loads) and loads[-1] == 0.0
 
 
+def test_orbit_replay_field_scale_scales_the_field_not_its_direction() -> None:
+    """A cage the full orbit field (plus the ambient to cancel) would take to its limits replays
+    it scaled: the same directions and panel currents, the magnitude times field_scale."""
+    base = {**ORBIT, "duration_s": 10, "rate_hz": 1}
+    _, full = fields_of(compile_step(make_step("orbit_replay", base))[0])
+    _, half = fields_of(compile_step(make_step("orbit_replay", {**base, "field_scale": 0.6}))[0])
+    assert np.asarray(half) == pytest.approx(0.6 * np.asarray(full))
+
+
 def test_live_calibrate_plans_fields_for_its_longest_time() -> None:
     step = make_step("live_calibrate", {"targets": {"bias_nt": 30}, "max_s": 10, "dwell_s": 0.75})
     cmds, duration = compile_step(step)
