@@ -156,11 +156,13 @@ def phase_locked_interval_s(commands: Array, t_s: Array) -> float | None:
     """The interval (s) of load ``commands`` (:func:`load_commands`) when the DUT samples ``t_s``
     (s) fall at nearly the same phase of it (resultant length of the phases above 0.5): every
     sample then sees the same part of each step, and a delay is known only to within that
-    interval. None otherwise."""
+    interval. None otherwise. Commands sent only when the value changes (a panel current) are
+    multiples of their schedule's step: the interval is that step (the tenth percentile of the
+    gaps), not the typical gap."""
     starts = commands[:, 1]
     if starts.size < 10 or t_s.size < 10:
         return None
-    interval = float(np.median(np.diff(starts)))
+    interval = float(np.percentile(np.diff(starts), 10))
     if not interval > 0:
         return None
     locked = abs(np.mean(np.exp(2j * np.pi * t_s / interval))) > 0.5

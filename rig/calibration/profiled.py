@@ -22,7 +22,7 @@ better. The same machinery serves any parameter that acts by transforming the sa
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -71,6 +71,17 @@ class ProfileFit:
     crlb_sigma: Array
     estimate: Estimate
     samples: Samples
+
+
+def with_resolution(fit: ProfileFit, group: str, resolution_s: dict[str, float]) -> ProfileFit:
+    """``fit`` with the sigma of each parameter of ``group`` named in ``resolution_s`` widened by
+    a resolution it cannot see (s, the width of an interval the value is only known within:
+    uniform, sigma width / sqrt(12), added in quadrature). A delay whose channel was commanded
+    in step with the DUT's samples is known only to within the command interval, whatever the
+    profile's curvature says (issue 30: an orbit replay's delays 4-6 of their sigma off)."""
+    extra = np.array([resolution_s.get(p.key, 0.0) if p.group == group else 0.0
+                      for p in fit.params]) / np.sqrt(12.0)  # fmt: skip
+    return replace(fit, sigma=np.sqrt(fit.sigma**2 + extra**2))
 
 
 def shifted(times_s: Array, u: Array, tau_s: float) -> Array:

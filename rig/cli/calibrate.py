@@ -369,9 +369,11 @@ def _constant_magnitude(args: argparse.Namespace) -> float | None:
 
 def _fit_and_emit(
     samples: Any, args: argparse.Namespace, times_s: Any = None, temperature: Any = None,
-    series: Any = None,
+    series: Any = None, delay_resolution_s: dict[str, float] | None = None,
 ) -> int:  # fmt: skip
-    """Fit, write the result file, C header and autopilot parameters if asked, print the table."""
+    """Fit, write the result file, C header and autopilot parameters if asked, print the table.
+    ``delay_resolution_s``: channels whose delay is known only to within an interval (s), which
+    their sigma then includes."""
     from rig.calibration import calibrate
     from rig.report.tables import calibration_table
 
@@ -387,6 +389,13 @@ def _fit_and_emit(
                        filter_options=opts, times_s=times_s, delays=tuple(args.delay),
                        max_delay_s=args.max_delay_s, temperature=temperature,
                        temperature_ref=args.temperature_ref, telemetry_series=series)  # fmt: skip
+    if delay_resolution_s and result.profiled is not None:
+        from dataclasses import replace
+
+        from rig.calibration.profiled import with_resolution
+
+        fit = with_resolution(result.profiled, "delay_s", delay_resolution_s)
+        result = replace(result, profiled=fit)
     autopilot = _autopilot_files(result, args)  # before any file: a refusal writes nothing
     if args.history is not None and result.history is not None:
         write_text(args.history, _history_csv(result))
@@ -491,12 +500,13 @@ def _calibrate_run(args: argparse.Namespace) -> int:
     for ch, interval in locked.items():
         if interval is not None and not args.quiet:
             print(f"note: the DUT sampled in step with the {1 / interval:.3g} Hz commands of {ch}:"
-                  f" its delay is known only to within {1000 * interval:.0f} ms, whatever its"
-                  " sigma says", file=sys.stderr)  # fmt: skip
+                  f" its delay is known only to within {1000 * interval:.0f} ms; its sigma"
+                  " includes that (width / sqrt 12)", file=sys.stderr)  # fmt: skip
     if unresolved and not args.quiet:
         print(f"note: {unresolved_note(unresolved, samples.n + unresolved)}", file=sys.stderr)
     if misdated and not args.quiet:
         judged = samples.n + unresolved + sum(m.samples for m in misdated)
         print(f"note: {misdated_note(misdated, judged)}", file=sys.stderr)
+    resolution = {ch: interval for ch, interval in locked.items() if interval is not None}
     return _fit_and_emit(samples, args, times_s=t_s if args.delay else None, series=series,
-                         temperature=temperature)  # fmt: skip
+                         temperature=temperature, delay_resolution_s=resolution)  # fmt: skip

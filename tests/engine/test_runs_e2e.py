@@ -267,6 +267,12 @@ def refit_with_delays(folder: Path, out: Path) -> None:
     tau = doc["delay_s"]
     assert all(abs(tau[ch] - truth[ch]) < 0.05 + window[ch] + jitter for ch in tau), (
         tau, doc["sigma"]["delay_s"], window, jitter)  # fmt: skip
+    # a reported sigma is a promise: a locked channel's includes the command interval's width
+    sigma = doc["sigma"]["delay_s"]
+    for ch, interval in zip(truth, locked, strict=True):
+        if interval is not None:
+            assert sigma[ch] >= interval / np.sqrt(12.0), (ch, sigma[ch], interval)
+            assert abs(tau[ch] - truth[ch]) <= 3.0 * sigma[ch], (ch, tau[ch], sigma[ch])
     assert doc["residual_rms_nt"] < 150, doc["residual_rms_nt"]
 
 
