@@ -4,8 +4,9 @@ Our correction (uT) is ``h = W (m - o - sum_j k_j u_j)``. Both autopilots take a
 matrix, so ``W`` is split by its polar decomposition ``W = R S`` (``R`` a rotation, ``S`` symmetric
 positive definite; ``S`` is ``I + D`` of the result's Crassidis block). ``S`` is exported and ``R``
 is left out: the autopilot's output is ``R^T h``, the same magnitude and, up to that fixed rotation,
-the same direction. ``R`` is a mounting/frame rotation (and, for a scalar fit, the arbitrary frame
-of the triangular ``W``), which the autopilot's orientation parameter handles.
+the same direction. For a vector fit ``R`` is the mounting/frame rotation the data show, which the
+autopilot's orientation parameter handles; for a scalar fit it is the arbitrary frame of the
+triangular ``W`` (the mounting is unobservable), and the file says not to set orientation from it.
 
 ArduPilot, as applied in ``AP_Compass_Backend::correct_field`` (field in mGauss)::
 
@@ -124,13 +125,21 @@ def _num(value: float) -> str:
     return "0" if text in ("-0", "0") else text
 
 
-def _rotation_comment(split: _Split, orientation: str) -> str:
+def _rotation_comment(split: _Split, orientation: str, model: str) -> str:
+    """The left-out rotation: for a vector fit the mounting the data show; for a scalar fit an
+    arbitrary by-product of the triangular ``W`` (the mounting is unobservable), never a mounting."""
     from scipy.spatial.transform import Rotation
 
     rotvec = Rotation.from_matrix(split.r).as_rotvec()
     angle = math.degrees(float(np.linalg.norm(rotvec)))
     axis = rotvec / np.linalg.norm(rotvec) if angle > 0 else np.array([1.0, 0.0, 0.0])
     about = ", ".join(f"{a:+.4f}" for a in axis)
+    if model == "scalar":
+        return (
+            f"# left out: rotation R of W = R S, {angle:.3f} deg about ({about}): the arbitrary"
+            " frame of a scalar (attitude-independent) fit, not the mounting: do not set"
+            f" {orientation.split()[0]} from it"
+        )
     return (
         f"# left out: rotation R of W = R S, {angle:.3f} deg about ({about}): a mounting/frame"
         f" rotation, set with {orientation} if it matters"
@@ -222,7 +231,7 @@ def ardupilot_params(
         "# axes: raw is the field after COMPASS_ORIENT/AHRS_ORIENTATION (vehicle body axes),"
         " the axes of the calibration data; OFS = -10 * o (ArduPilot adds offsets)",
         f"# compass {compass} is the slot whose COMPASS_DEV_ID{n} is this magnetometer",
-        _rotation_comment(split, f"COMPASS_ORIENT{n} (custom rotation)"),
+        _rotation_comment(split, f"COMPASS_ORIENT{n} (custom rotation)", result.model),
     ]
     if ofs_len > ARDUPILOT_OFFS_MAX_DEFAULT_MGAUSS:
         lines.append(
@@ -287,7 +296,9 @@ def px4_params(
         "# axes: raw is the driver's sensor_mag frame (before CAL_MAGn_ROT and the board"
         " rotation), the axes of the calibration data; OFF = 0.01 * o (PX4 subtracts offsets)",
         f"# instance {instance} is the slot whose {p}ID is this magnetometer (not written here)",
-        _rotation_comment(split, f"{p}ROT (custom Euler angles, external magnetometers)"),
+        _rotation_comment(
+            split, f"{p}ROT (custom Euler angles, external magnetometers)", result.model
+        ),
     ]
     if comp is not None:
         lines.append(

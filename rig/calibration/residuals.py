@@ -274,6 +274,12 @@ def scalar_normal_equations(
     return NormalEquations(jtj, jtr, cost, s.n, gain)
 
 
+def scalar_jacobian_rows(p: Array, s: Samples) -> tuple[Array, Array, Array]:
+    """Residuals (uT), Jacobian (N, P) and noise gains of the samples ``s`` at ``p``, unweighted,
+    in memory: call it on a block of rows (:meth:`Samples.rows`)."""
+    return _scalar_block(p, s, _ScalarModel.at(p), None)
+
+
 def scalar_residuals_only(p: Array, s: Samples) -> Array:
     """The residuals of :func:`scalar_residuals` without the Jacobian (uT)."""
     return scalar_residuals_and_gain(p, s)[0]

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from rig.calibration.correlated import NoiseCheck, fit_noise_check
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
 from rig.calibration.params import Array, Calibration
 from rig.calibration.residuals import (
@@ -85,6 +86,9 @@ class CalibrationResult:
     history: FilterHistory | None = None
     profiled: ProfileFit | None = None
     temperature_ref: float | None = None
+    noise_check: NoiseCheck | None = None
+    """The residuals' whiteness and tails; when correlated, ``covariance`` and ``crlb`` hold for
+    that noise (ADR 0025)."""
 
     @property
     def sigma(self) -> Array:
@@ -218,7 +222,9 @@ class CalibrationResult:
 
     def _add_extras(self, out: dict[str, Any]) -> None:
         """The profiled parameters (delays, temperature) with their sigma, the temperature
-        reference and a filter's summary, into the result file ``out``."""
+        reference, a filter's summary and the residuals' whiteness, into the result file ``out``."""
+        if self.noise_check is not None:
+            out["residual_whiteness"] = self.noise_check.to_dict()
         if self.profiled is not None:
             fit = self.profiled
             for prm, v, sig, crlb in zip(fit.params, fit.values, fit.sigma, fit.crlb_sigma,
@@ -320,6 +326,7 @@ def summarize(
         raw, jac = vector_residuals(est.p, s, est.rotation_ref)
         weighted = raw * np.repeat(np.sqrt(robust_w), 3)
         fisher = jac.T @ jac
+        vector_rows: tuple[Array, Array] | None = (raw, jac)
         corrected = cal.apply(s.measured_ut, s.telemetry if s.n_channels else None) - s.field_ut
         residuals_nt = 1000.0 * corrected.reshape(-1)
         floor_gain = float(np.linalg.norm(cal.correction_matrix) / np.sqrt(3.0))
@@ -329,13 +336,14 @@ def summarize(
         ne = scalar_normal_equations(est.p, s, noise_weighted=True, residuals_out=r)
         assert ne.gain is not None
         fisher, gain = ne.jtj, ne.gain
+        vector_rows = None
         weighted = r * np.sqrt(robust_w) / gain
         residuals_nt = 1000.0 * r
         floor_gain = float(np.sqrt(np.mean(gain**2)))
     n_eff = float(np.sum(robust_w > 0)) * (3 if vector else 1)
     sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - est.p.size, 1.0)))
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
-    crlb = covariance_from_normal(fisher, noise_ut**2)
+    check, covariance, crlb = _noise_model(est, s, vector_rows, sigma_hat, noise_ut, fisher)
     sd = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
     corr = est.covariance / np.outer(sd, sd) - np.eye(sd.size)
     degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if sd.size > 1 else False
@@ -347,7 +355,7 @@ def summarize(
         calibration=cal,
         names=names,
         p=est.p,
-        covariance=est.covariance,
+        covariance=covariance,
         crlb=crlb,
         residuals_nt=residuals_nt,
         noise_nt=noise_nt,
@@ -357,10 +365,50 @@ def summarize(
         warnings=(),
         iterations=est.iterations,
         history=est.history,
+        noise_check=check,
     )
-    warnings = list(extra_warnings) + list(est.notes)
+    warnings = list(extra_warnings) + list(est.notes) + check.notes(est.sample_weights is not None)
     warnings += _warnings(result, s, est, noise_nt)
     return _replace_warnings(result, tuple(warnings))
+
+
+NEAR_ZERO = 0.05
+"""A channel value counts as near zero below this fraction of the channel's largest |value|."""
+
+
+def _offset_channel_advice(channel: str, u: Array) -> str:
+    """Why an offset and the coefficient of ``channel`` (values ``u``) correlate, as the data show
+    it: the channel's mean is large against its spread (the offset and ``k u`` then move alike)."""
+    top = float(np.max(np.abs(u)))
+    near = np.abs(u) <= NEAR_ZERO * top
+    spread = f"mean {float(np.mean(u)):.3g}, standard deviation {float(np.std(u)):.3g}"
+    if not np.any(near):
+        return (
+            f"channel '{channel}' never returns near zero (min |u| = {float(np.min(np.abs(u))):.3g},"
+            f" {spread}); record a segment with it at zero to separate offset and coefficient"
+        )
+    return (
+        f"channel '{channel}' is near zero in {100 * float(np.mean(near)):.0f} % of the samples"
+        f" ({spread}); more samples with it at zero (or of the opposite sign) separate offset and"
+        " coefficient"
+    )
+
+
+def _noise_model(
+    est: Estimate,
+    s: Samples,
+    vector_rows: tuple[Array, Array] | None,
+    sigma_hat: float,
+    noise_ut: float,
+    fisher: Array,
+) -> tuple[NoiseCheck, Array, Array]:
+    """The residuals' whiteness test, the covariance (HAC sigmas when correlated) and the
+    Cramer-Rao bound for the same noise (white, or an AR model of it) (ADR 0025)."""
+    check, info, ratio = fit_noise_check(est.p, s, est.sample_weights, vector_rows, sigma_hat**2)
+    covariance = est.covariance * np.outer(check.inflation, check.inflation)
+    if info is None:
+        return check, covariance, covariance_from_normal(fisher, noise_ut**2)
+    return check, covariance, covariance_from_normal(info, noise_ut**2 * ratio)
 
 
 def _replace_warnings(result: CalibrationResult, warnings: tuple[str, ...]) -> CalibrationResult:
@@ -398,11 +446,7 @@ def _warnings(
         other = a if k_name == b else b
         if k_name is not None and other in ("x0", "y0", "z0"):
             ch = k_name[2 : k_name.index("]")]
-            low = float(np.min(np.abs(s.telemetry[:, s.channels.index(ch)])))
-            msg += (
-                f": channel '{ch}' never returns near zero (min |u| = {low:.3g}); record a"
-                " segment with that channel at zero to separate offset and coefficient"
-            )
+            msg += ": " + _offset_channel_advice(ch, s.telemetry[:, s.channels.index(ch)])
         elif result.names.index(a) < ks and result.names.index(b) < ks:
             msg += ": cover more field directions and magnitudes"
         out.append(msg)

@@ -72,6 +72,10 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
         " or uT when --unit is a counts factor",
     )
     cal.add_argument(
+        "--allow-implausible-field", action="store_true",
+        help="accept a reference or readings far from any calibration field in the units given",
+    )  # fmt: skip
+    cal.add_argument(
         "--columns", type=columns, metavar="NAME1,NAME2,...",
         help="the file has no header row: these are its columns, in order",
     )  # fmt: skip
@@ -315,6 +319,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     table = _read_columns(args, wanted)
     cols = {c: table[:, j] for j, c in enumerate(wanted)}
     samples = _csv_samples(args, table, wanted, constant, (measured_ut_per, field_ut_per))
+    from rig.cli.field_sanity import check_plausible_fields
+
+    check_plausible_fields(samples, args)
     times_s = np.asarray(cols[args.time], float) if args.time is not None else None
     temperature = np.asarray(cols[args.temperature], float) if args.temperature else None
     return _fit_and_emit(samples, args, times_s, temperature)

@@ -1,0 +1,312 @@
+"""Residual whiteness, and sigmas and a Cramer-Rao bound that hold for correlated residuals.
+
+Every fit's covariance assumes independent residuals. Here (ADR 0025):
+
+* **Whiteness**: the Ljung-Box portmanteau statistic (Ljung and Box 1978) of the residual series in
+  sample order (one series for a scalar fit, one per axis for a vector fit), at
+  :data:`LJUNG_BOX_LAGS` lags, and the excess kurtosis of the standardized residuals.
+* **Sigmas when correlated**: the sandwich ``H^-1 (N S) H^-1`` with ``H`` the (noise-weighted)
+  normal matrix and ``S`` the long-run covariance of the per-sample scores ``g_k = J_k^T r_k``,
+  estimated from overlapping block sums of ``b`` samples. That is the Bartlett-kernel
+  (Newey-West 1987) estimator with bandwidth ``b`` up to edge terms (Kuensch 1989: the moving-block
+  bootstrap's variance is this estimator); ``b`` from Andrews' (1991) AR(1) plug-in rule with the
+  residuals' lag-1 autocorrelation. Each parameter's sigma is multiplied by its factor
+  ``sqrt(sandwich / white)``, never below 1; correlations stay the estimator's own.
+* **Cramer-Rao bound for the same noise**: an AR(p) model of the residuals (Yule-Walker by
+  Levinson-Durbin, order by AIC up to :data:`MAX_AR_ORDER`) whitens the Jacobian column by column;
+  the bound is ``sigma_e^2 (J_w^T J_w)^-1`` with ``sigma_e^2`` the innovation variance.
+
+Pure numpy; the scores and Jacobian rows come in blocks of rows (bounded memory, ADR 0017).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from rig.calibration.params import Array
+from rig.calibration.residuals import (
+    Samples,
+    row_blocks,
+    scalar_jacobian_rows,
+    scalar_residuals_and_gain,
+)
+from rig.calibration.stats import chi2_sf
+
+LJUNG_BOX_LAGS = 20
+"""Lags of the Ljung-Box statistic (fewer on short series: a fifth of the samples)."""
+WHITE_P_VALUE = 0.01
+"""Residuals count as correlated when the Ljung-Box p-value (Bonferroni over the series) is below
+this."""
+HEAVY_TAIL_EXCESS_KURTOSIS = 1.0
+"""Excess kurtosis above this (and five standard errors, ``5 sqrt(24 / N)``) counts as heavy tails
+(a Gaussian has 0, Student t with 5 dof 6)."""
+MAX_AR_ORDER = 10
+"""Highest order of the autoregressive noise model behind the Cramer-Rao bound."""
+
+RowsFunction = Callable[[slice], Array]
+"""Rows ``rows`` of a per-sample array (scores (B, P), or Jacobian rows (B, S, P) per series)."""
+
+
+@dataclass(frozen=True)
+class NoiseCheck:
+    """What the residuals say about the noise model, and what was done about it.
+
+    ``lag1``: lag-1 autocorrelation (the largest over the series); ``ljung_box``/``p_value``: the
+    portmanteau statistic at ``lags`` lags and its (Bonferroni) p-value; ``inflation``: per
+    parameter, reported sigma / white-noise sigma (all 1 when white); ``bandwidth``: block length
+    of the long-run covariance (samples, 0 when white); ``ar_order``: order of the noise model of
+    the Cramer-Rao bound (0: white).
+    """
+
+    lag1: float
+    ljung_box: float
+    lags: int
+    p_value: float
+    excess_kurtosis: float
+    correlated: bool
+    heavy_tailed: bool
+    inflation: Array
+    bandwidth: int = 0
+    ar_order: int = 0
+
+    @property
+    def method(self) -> str:
+        """How the reported sigmas were obtained."""
+        if not self.correlated:
+            return "white-noise least squares"
+        return f"Newey-West (HAC) sandwich, Bartlett bandwidth {self.bandwidth} samples"
+
+    def notes(self, robust: bool) -> list[str]:
+        """The one-line statements for the output (empty when white and light-tailed)."""
+        out = []
+        if self.correlated:
+            lo, hi = float(np.min(self.inflation)), float(np.max(self.inflation))
+            out.append(
+                f"residuals correlated (Ljung-Box p {_p_text(self.p_value)} at {self.lags} lags),"
+                f" lag-1 r = {self.lag1:.2f}: sigmas from a {self.method}, inflation factor"
+                f" {lo:.2f}-{hi:.2f}; Cramer-Rao bound for an AR({self.ar_order}) noise"
+                " (correlated residuals can also mean a missing term: a channel, a delay)"
+            )
+        if self.heavy_tailed:
+            out.append(
+                f"residuals heavy-tailed (excess kurtosis {self.excess_kurtosis:.1f}, 0 for"
+                " Gaussian noise): outliers weigh in the fit"
+                + ("" if robust else "; try --robust huber")
+            )
+        return out
+
+    def to_dict(self) -> dict[str, object]:
+        """The ``residual_whiteness`` block of the result file."""
+        return {
+            "correlated": self.correlated,
+            "lag1_autocorrelation": self.lag1,
+            "ljung_box": self.ljung_box,
+            "lags": self.lags,
+            "p_value": self.p_value,
+            "excess_kurtosis": self.excess_kurtosis,
+            "heavy_tailed": self.heavy_tailed,
+            "sigma_method": self.method,
+            "bandwidth_samples": self.bandwidth,
+            "inflation": {
+                "min": float(np.min(self.inflation)),
+                "max": float(np.max(self.inflation)),
+            },
+            "crlb_noise_model": f"AR({self.ar_order})" if self.ar_order else "white",
+        }
+
+
+def _p_text(p: float) -> str:
+    """``= 0.0012`` or ``< 1e-16`` (below double precision's resolution of 1 - p)."""
+    return f"= {p:.2g}" if p >= 1e-16 else "< 1e-16"
+
+
+def autocovariance(x: Array, lags: int) -> Array:
+    """Biased autocovariances of the columns of ``x`` (N, S) about their means at lags 0..lags,
+    shape (lags + 1, S), by direct products (no N-sized temporaries beyond the centred copy)."""
+    xc = x - x.mean(axis=0)
+    n = x.shape[0]
+    return np.array([np.einsum("ij,ij->j", xc[: n - k], xc[k:]) / n for k in range(lags + 1)])
+
+
+def ljung_box(x: Array, lags: int) -> tuple[Array, Array, Array]:
+    """Ljung-Box ``Q = N (N + 2) sum_k r_k^2 / (N - k)`` of each column of ``x`` (N, S); returns
+    ``Q`` (S,), its chi-square p-values (S,) and the autocorrelations (lags + 1, S)."""
+    n = x.shape[0]
+    acov = autocovariance(x, lags)
+    r = acov / np.maximum(acov[0], 1e-300)
+    k = np.arange(1, lags + 1)[:, None]
+    q = n * (n + 2.0) * np.sum(r[1:] ** 2 / (n - k), axis=0)
+    return q, np.array([chi2_sf(float(v), lags) for v in q]), r
+
+
+def andrews_bandwidth(rho: float, n: int) -> int:
+    """Bartlett-kernel bandwidth (samples) of Andrews (1991) eq. 6.2 for AR(1) scores with lag-1
+    autocorrelation ``rho``: ``1.1447 (alpha N)^(1/3)``, ``alpha = 4 rho^2 / ((1-rho)^2
+    (1+rho)^2)``; at least 2, at most ``N / 8``."""
+    rho = min(max(rho, 0.0), 0.995)
+    alpha = 4.0 * rho**2 / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
+    return int(min(max(math.ceil(1.1447 * (alpha * n) ** (1.0 / 3.0)), 2), max(n // 8, 2)))
+
+
+def long_run_covariance(scores: RowsFunction, n: int, bandwidth: int) -> Array:
+    """Long-run covariance per sample ``lim Var(sum g_k) / N`` of the score rows (P,) from the
+    centred sums of every window of ``bandwidth`` consecutive rows, divided by the window length;
+    blockwise with the cumulative sum carried over."""
+    b = bandwidth
+    tail: Array | None = None  # cumulative sums C_j for the last b + 1 indices j (C_0 = 0)
+    outer: Array | None = None
+    total: Array | None = None
+    count = 0
+    first = 0  # the index j of tail[0]
+    for rows in row_blocks(n):
+        g = scores(rows)
+        if tail is None:
+            tail = np.zeros((1, g.shape[1]))
+            outer = np.zeros((g.shape[1], g.shape[1]))
+            total = np.zeros(g.shape[1])
+        cum = np.vstack([tail, tail[-1] + np.cumsum(g, axis=0)])
+        ends = np.arange(max(rows.start + 1, b), rows.stop + 1)
+        if ends.size:
+            w = cum[ends - first] - cum[ends - b - first]
+            assert outer is not None and total is not None
+            outer += w.T @ w
+            total += w.sum(axis=0)
+            count += ends.size
+        tail = cum[-(b + 1) :]
+        first = rows.stop - (tail.shape[0] - 1)
+    assert outer is not None and total is not None and count > 0
+    mean = total / count
+    return (outer / count - np.outer(mean, mean)) / b
+
+
+def ar_model(acov: Array, max_order: int = MAX_AR_ORDER, n: int = 0) -> tuple[Array, float]:
+    """AR coefficients ``phi`` (p,) and the innovation/marginal variance ratio of the series with
+    autocovariances ``acov`` (lags 0..), by Levinson-Durbin, the order minimizing AIC
+    ``n ln(v_p) + 2 p`` (``n``: the series length)."""
+    order = min(max_order, acov.size - 1)
+    phi = np.zeros(0)
+    v = float(acov[0])
+    best = (n * math.log(1.0), np.zeros(0), 1.0)
+    for p in range(1, order + 1):
+        k = (acov[p] - phi @ acov[1:p][::-1]) / v
+        phi = np.concatenate([phi - k * phi[::-1], [k]])
+        v *= 1.0 - k * k
+        if v <= 0:
+            break
+        aic = n * math.log(v / acov[0]) + 2 * p
+        if aic < best[0]:
+            best = (aic, phi.copy(), v / float(acov[0]))
+    return best[1], best[2]
+
+
+def whitened_information(jac_rows: RowsFunction, n: int, phi: Array) -> Array:
+    """``J_w^T J_w`` with ``J_w[k] = J[k] - sum_i phi_i J[k-i]`` per series, the Jacobian rows
+    (B, S, P) filtered by the AR model (the first rows of each series taken as they are)."""
+    p = phi.size
+    info: Array | None = None
+    carry: Array | None = None
+    for rows in row_blocks(n):
+        jac = jac_rows(rows)
+        ext = jac if carry is None else np.concatenate([carry, jac])
+        off = ext.shape[0] - jac.shape[0]
+        w = jac.copy()
+        for i in range(1, p + 1):
+            lo = max(i - off, 0)  # rows of this block with a predecessor i rows back
+            w[lo:] -= phi[i - 1] * ext[off + lo - i : ext.shape[0] - i]
+        flat = w.reshape(-1, w.shape[-1])
+        info = flat.T @ flat if info is None else info + flat.T @ flat
+        carry = ext[-p:] if p else None
+    assert info is not None
+    return info
+
+
+def check_noise(
+    series: Array,
+    scores: RowsFunction,
+    jac_rows: RowsFunction,
+    normal: Callable[[], Array],
+    white_variance: float,
+    n_params: int,
+) -> tuple[NoiseCheck, Array | None, float]:
+    """Test the residual ``series`` (N, S; noise-normalized, in sample order) for whiteness; when
+    correlated, the sigma factors from the sandwich of ``scores`` (per-sample ``J_k^T r_k``, the
+    same weighting as ``normal()``, the normal matrix ``H``) over the white covariance
+    ``white_variance H^-1``, and the information ``J_w^T J_w`` of the AR-whitened ``jac_rows``
+    with the AR model's innovation/marginal variance ratio (None, 1 when white)."""
+    n, n_series = series.shape
+    lags = max(min(LJUNG_BOX_LAGS, n // 5), 1)
+    q, p_values, r = ljung_box(series, lags)
+    worst = int(np.argmin(p_values))
+    p_value = min(1.0, float(p_values[worst]) * n_series)
+    lag1 = float(r[1, int(np.argmax(np.abs(r[1])))])
+    z = (series - series.mean(axis=0)) / np.maximum(series.std(axis=0), 1e-300)
+    excess = float(np.mean(z**4) - 3.0)
+    heavy = excess > max(HEAVY_TAIL_EXCESS_KURTOSIS, 5.0 * math.sqrt(24.0 / (n * n_series)))
+    ones = np.ones(n_params)
+    if p_value >= WHITE_P_VALUE:
+        return (
+            NoiseCheck(lag1, float(q[worst]), lags, p_value, excess, False, heavy, ones),
+            None,
+            1.0,
+        )
+    bandwidth = andrews_bandwidth(float(np.mean(r[1])), n)
+    h_inv = np.linalg.pinv(normal())
+    sandwich = h_inv @ (n * long_run_covariance(scores, n, bandwidth)) @ h_inv
+    white = white_variance * np.diag(h_inv)
+    inflation = np.sqrt(np.maximum(np.diag(sandwich) / np.maximum(white, 1e-300), 1.0))
+    acov = autocovariance(series, MAX_AR_ORDER).mean(axis=1)
+    phi, ratio = ar_model(acov, MAX_AR_ORDER, n)
+    info = whitened_information(jac_rows, n, phi)
+    check = NoiseCheck(lag1, float(q[worst]), lags, p_value, excess, True, heavy, inflation,
+                       bandwidth, phi.size)  # fmt: skip
+    return check, info, ratio
+
+
+def fit_noise_check(
+    p: Array,
+    s: Samples,
+    sample_weights: Array | None,
+    vector_rows: tuple[Array, Array] | None,
+    white_variance: float,
+) -> tuple[NoiseCheck, Array | None, float]:
+    """:func:`check_noise` for a fit at ``p`` of ``s`` (robust ``sample_weights`` or None):
+    ``vector_rows`` are the vector fit's residuals (3N,) and Jacobian (3N, P), None for a scalar
+    fit (its rows are recomputed block by block, in the ML fit's noise-weighted form)."""
+    w = np.ones(s.n) if sample_weights is None else sample_weights
+    if vector_rows is not None:
+        raw, jac = vector_rows
+        jac3 = jac.reshape(s.n, 3, -1)
+        res3 = raw.reshape(s.n, 3)
+
+        def vector_scores(rows: slice) -> Array:
+            return np.asarray(np.einsum("nap,na->np", jac3[rows], res3[rows]) * w[rows, None])
+
+        def normal() -> Array:
+            return np.asarray(np.einsum("nap,naq,n->pq", jac3, jac3, w))
+
+        return check_noise(res3 * np.sqrt(w)[:, None], vector_scores, lambda rows: jac3[rows],
+                           normal, white_variance, p.size)  # fmt: skip
+    r, gain = scalar_residuals_and_gain(p, s)
+
+    def scalar_scores(rows: slice) -> Array:
+        rb, jac, gb = scalar_jacobian_rows(p, s.rows(rows))
+        return np.asarray(jac * (rb * w[rows] / gb**2)[:, None])
+
+    def scalar_jac(rows: slice) -> Array:
+        _, jac, gb = scalar_jacobian_rows(p, s.rows(rows))
+        return np.asarray(jac / gb[:, None])
+
+    def scalar_normal() -> Array:
+        total = np.zeros((p.size, p.size))
+        for rows in row_blocks(s.n):
+            jac = scalar_jac(rows)
+            total += (jac * w[rows, None]).T @ jac
+        return total
+
+    series = (r * np.sqrt(w) / gain)[:, None]
+    return check_noise(series, scalar_scores, lambda rows: scalar_jac(rows)[:, None, :],
+                       scalar_normal, white_variance, p.size)  # fmt: skip
