@@ -9,6 +9,8 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import pytest
+
 from rig.report.acceptance import build_report
 from rig.store import RunReader
 from rig.store.seal import data_digest
@@ -19,11 +21,18 @@ EDGE_PT = 1.0
 """How far (pt) a word's box may reach past its page's edge: font-box rounding, not cut text."""
 
 
-def test_the_pdf_holds_everything_a_filing_copy_needs(tmp_path: Path) -> None:
+@pytest.fixture
+def built(tmp_path: Path) -> tuple[str, Path]:
+    """pdftotext's path, and a copy of the evidence run with its report built afresh."""
     pdftotext = require_tool("pdftotext", what="reading the report's PDF back")
     folder = tmp_path / RUN.name
     shutil.copytree(RUN, folder)
     build_report(folder)
+    return pdftotext, folder
+
+
+def test_the_pdf_holds_everything_a_filing_copy_needs(built: tuple[str, Path]) -> None:
+    pdftotext, folder = built
     pdf = folder / "report.pdf"
     raw = subprocess.run([pdftotext, "-layout", str(pdf), "-"], capture_output=True, text=True,
                          check=True).stdout  # fmt: skip
@@ -47,11 +56,8 @@ def test_the_pdf_holds_everything_a_filing_copy_needs(tmp_path: Path) -> None:
     assert "more in report.html" not in text
 
 
-def test_no_word_lies_outside_its_page(tmp_path: Path) -> None:
-    pdftotext = require_tool("pdftotext", what="reading the report's PDF back")
-    folder = tmp_path / RUN.name
-    shutil.copytree(RUN, folder)
-    build_report(folder)
+def test_no_word_lies_outside_its_page(built: tuple[str, Path], tmp_path: Path) -> None:
+    pdftotext, folder = built
     boxes = tmp_path / "boxes.html"
     subprocess.run([pdftotext, "-bbox", str(folder / "report.pdf"), str(boxes)], check=True)
     html = boxes.read_text(encoding="utf-8")
