@@ -14,6 +14,7 @@ Usage: python bench/bench_verdict_under_load.py [--runs 10] [--hogs 2] [--skip-i
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import subprocess
@@ -93,6 +94,8 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=10, help="rounds per phase (default 10)")
     ap.add_argument("--hogs", type=int, default=os.cpu_count() or 2, help="CPU hogs under load")
     ap.add_argument("--skip-idle", action="store_true", help="no idle-machine runs")
+    ap.add_argument("--skip-record", action="store_true",
+                    help="do not write bench/results/demo_time.json")  # fmt: skip
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="verdict-under-load-"))
     idle: list[dict[str, Any]] = []
@@ -118,7 +121,28 @@ def main() -> int:
     print(f"  misdated samples left out under load: {sum(f['misdated'] for f in loaded)}"
           f" (worst timing error {max((f['timing_ms'] for f in loaded), default=0):.0f} ms)")  # fmt: skip
     print(f"  wrong verdicts {len(wrong)}, runs that did not complete {len(flagged)}")
+    if idle and loaded and not args.skip_record:
+        record_demo_time(idle, loaded)
     return 0 if not wrong else 1
+
+
+RECORD = Path(__file__).resolve().parent / "results" / "demo_time.json"
+"""The demo's wall times as last measured here: the README states them and a test holds the two
+together (tests/test_readme.py)."""
+
+
+def record_demo_time(idle: list[dict[str, Any]], loaded: list[dict[str, Any]]) -> None:
+    """Write :data:`RECORD` (s, whole seconds) and print the README line's figures."""
+
+    def span(runs: list[dict[str, Any]]) -> list[int]:
+        walls = [round(f["wall_s"]) for f in runs if f.get("status") == "complete"]
+        return [min(walls), max(walls)] if walls else []
+
+    record = {"date": time.strftime("%Y-%m-%d"), "idle_s": span(idle), "loaded_s": span(loaded),
+              "runs": {"idle": len(idle), "loaded": len(loaded)}}  # fmt: skip
+    RECORD.parent.mkdir(exist_ok=True)
+    RECORD.write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
+    print(f"  recorded in {RECORD}: update README's demo time to match (a test checks it)")
 
 
 if __name__ == "__main__":

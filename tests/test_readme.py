@@ -11,7 +11,8 @@ import pytest
 
 from rig.cli import main
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
 
 
 def _block(marker: str) -> str:
@@ -69,3 +70,17 @@ def test_the_readme_states_the_number_of_tests_there_are() -> None:
     assert int(stated.group(1)) == int(collected.group(1)), (
         f"README says {stated.group(1)} tests, pytest collects {collected.group(1)}: update it"
     )
+
+
+def test_the_demo_time_the_readme_states_is_the_one_last_measured() -> None:
+    """README's demo time comes from bench/bench_verdict_under_load.py's record
+    (bench/results/demo_time.json), idle and beside a second demo and two CPU hogs: a figure
+    that cannot drift from its measurement."""
+    import json
+
+    record = json.loads((ROOT / "bench" / "results" / "demo_time.json").read_text())
+    (lo, hi), (llo, lhi) = record["idle_s"], record["loaded_s"]
+    stated = (f"About {lo}-{hi} s on an idle 2-core machine (measured {record['date']} by"
+              f" bench/bench_verdict_under_load.py; {llo}-{lhi} s beside a second demo and two"
+              " CPU hogs)")  # fmt: skip
+    assert stated in " ".join(README.read_text().split()), stated
