@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Collection
 from dataclasses import replace
 from typing import Any, NamedTuple
@@ -31,15 +32,27 @@ class PairedSamples(NamedTuple):
     t_s: Array
     """Monotonic time of each sample (s)."""
     unresolved: int
-    """DUT samples left out because the field moved faster than the reference could follow."""
+    """DUT samples left out because the field moved faster than the reference could follow (a
+    jump between its samples, or a tracked timeline that ran late: :func:`late_intervals`)."""
     misdated: tuple[MisdatedHold, ...] = ()
     """Holds where the DUT moved while the reference and every command held still: those samples
     are left out (:func:`rig.timing.misdated_samples`)."""
+    late: int = 0
+    """Of ``unresolved``, those taken while a tracked timeline ran irregularly
+    (:func:`late_intervals`)."""
 
 
 TRACK_RAMP_S = 0.01
 """A tracked set-point logged without ``ramped`` (runs before it was recorded) that took longer
 than this (s) from issue to done counts as having ramped."""
+
+
+LATE_LIMIT_PERIODS = 0.6
+"""A tracked command sent sooner after the previous one on the same output than planned, by more
+than this many reference sample periods (30 ms at 20 Hz), was part of a burst."""
+LATE_MARGIN_PERIODS = 3.0
+"""DUT samples up to this many reference periods after an irregular tracked command was done are
+left out with it: the field and currents catch up over the next few reference samples."""
 
 
 def change_times(reader: RunReader) -> Array:
@@ -62,6 +75,29 @@ def _is_change(kind: str, t: float, payload: dict[str, Any]) -> bool:
         return True
     issued = float(payload.get("t_issued", t))
     return kind == "field" and bool(payload.get("ramped", t - issued > TRACK_RAMP_S))
+
+
+def late_intervals(reader: RunReader, limit_s: float) -> Array:
+    """(start, end) of every burst on a tracked timeline (an orbit replay's set-points, each load
+    channel's currents): a command sent sooner after its predecessor on the same output than
+    their due times are apart, by more than ``limit_s`` (s), from the predecessor's issue to this
+    one's done. The computer held the timeline back and then caught up: the output moved faster
+    than planned, faster than the reference's samples resolve (issue 30: delays 4 sigma off, a
+    scalar residual over its limit). A timeline that is late by a steady or growing amount (a
+    slow link) only holds each set-point longer, which the reference follows. Runs recorded
+    before commands carried their due time have none."""
+    series: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
+    for t, _, kind, p in reader.commands():
+        if kind in ("field", "load") and p.get("track") and "t_due" in p:
+            series.setdefault((kind, str(p.get("channel", ""))), []).append(
+                (float(p["t_due"]), float(p.get("t_issued", t)), t)
+            )
+    rows = []
+    for cmds in series.values():
+        for (due0, issued0, _), (due1, issued1, done1) in itertools.pairwise(cmds):
+            if (due1 - due0) - (issued1 - issued0) > limit_s:
+                rows.append((issued0, done1))
+    return np.array(rows, float).reshape(-1, 2)
 
 
 def settled(
@@ -257,6 +293,7 @@ def calibration_data(
     settle_s: float,
     correction: dict[str, Any] | None,
     field_kinds: Collection[str] = (),
+    leave_out_late: bool = True,
 ) -> PairedSamples:
     """DUT readings with the reference field (cage frame) and load currents at the same times.
 
@@ -283,6 +320,8 @@ def calibration_data(
     keep = _in_windows(t, step_windows(reader, steps, field_kinds))
     keep &= settled(t, changes, settle_s, t_unc if settle_s > 0 else None)
     keep &= (t >= ref[0, 0]) & (t <= ref[-1, 0])
+    late = _in_bursts(reader, t, t_unc, ref[:, 0]) & keep if leave_out_late else np.zeros_like(keep)
+    keep &= ~late
     if keep.sum() == 0:
         raise CalibrationError(
             "no settled DUT samples in the selected steps: hold each field longer than settle_s"
@@ -298,11 +337,37 @@ def calibration_data(
         wrong, misdated = misdated_samples(t, rows[:, 1:], keep, ref[:, 0], ref[:, 1:], issued_s)
         keep &= ~wrong
     t = t[keep]
-    field = np.column_stack([np.interp(t, ref[:, 0], ref[:, 1 + i]) for i in range(3)])
-    field = to_cage_frame(field, correction)
+    field = interpolated_field(ref, t, correction)
     u = np.column_stack([hold_values(reader, ch, t) for ch in telemetry]) if telemetry else None
     samples = Samples.build(rows[keep, 1:], field_ut=field, telemetry=u, channels=tuple(telemetry))
-    return PairedSamples(samples, t, int(jumps.sum()), tuple(misdated))
+    return PairedSamples(
+        samples, t, int(jumps.sum() + late.sum()), tuple(misdated), int(late.sum())
+    )
+
+
+def interpolated_field(ref: Array, t_s: Array, correction: dict[str, Any] | None) -> Array:
+    """Reference readings (rows t s, x, y, z uT) interpolated at ``t_s`` (s) and taken through
+    the reference's certificate: the field in the cage frame (N, 3) uT."""
+    field = np.column_stack([np.interp(t_s, ref[:, 0], ref[:, 1 + i]) for i in range(3)])
+    return to_cage_frame(field, correction)
+
+
+def reference_field_series(reader: RunReader) -> Callable[[Array], Array]:
+    """The run's reference field (cage frame, uT, (N, 3)) at any times (s), interpolated as
+    :func:`calibration_data` does at the DUT's dates."""
+    meta = reader.meta()
+    name = meta.get("magnetometers", {}).get("reference", "reference")
+    ref = np.array(reader.samples(name), float).reshape(-1, 4)
+    correction = meta.get("reference_correction")
+    return lambda t_s: interpolated_field(ref, np.asarray(t_s, float), correction)
+
+
+def _in_bursts(reader: RunReader, t: Array, t_unc: Array, ref_t: Array) -> npt.NDArray[np.bool_]:
+    """True for the DUT samples (dates ``t`` +- ``t_unc``, s) taken in or just after a burst of
+    a tracked timeline (:func:`late_intervals`), judged in the reference's periods (``ref_t``)."""
+    ref_period_s = float(np.median(np.diff(ref_t)))
+    bursts = late_intervals(reader, LATE_LIMIT_PERIODS * ref_period_s)
+    return ~settled(t, bursts, LATE_MARGIN_PERIODS * ref_period_s, t_unc)
 
 
 def unresolved_field(ref: Array, t_s: Array) -> npt.NDArray[np.bool_]:
@@ -369,9 +434,14 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
     reference = magnetometers.get("reference", "reference")
     steps = [n for _, n, k, _, t1 in reader.steps() if t1 is not None
              and ((params["steps"] and n in params["steps"]) or (not params["steps"] and k in field_kinds))]  # fmt: skip
-    samples, t_s, unresolved, misdated = calibration_data(
+    samples, t_s, unresolved, misdated, late = calibration_data(
         reader, dut, reference, params["telemetry"], params["steps"], params["settle_s"],
         correction, field_kinds)  # fmt: skip
+    late_fault = late_timeline_fault(late, samples.n + unresolved)
+    if late_fault is not None:  # numbers from every sample, shown but not judged
+        samples, t_s, unresolved, misdated, late = calibration_data(
+            reader, dut, reference, params["telemetry"], params["steps"], params["settle_s"],
+            correction, field_kinds, leave_out_late=False)  # fmt: skip
     method = params["method"] or DEFAULT_METHOD[params["model"]]
     if params["model"] == "scalar" and estimator(method).model == "vector":
         raise CalibrationError(f"a scalar calibration cannot use method '{method}'")
@@ -384,6 +454,7 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
                     temperature_ref=params.get("temperature_ref_c"))  # fmt: skip
     n_misdated = int(sum(m.samples for m in misdated))
     fault = timing_fault(misdated, samples.n + unresolved + n_misdated) if misdated else None
+    fault = late_fault or fault
     selection = SampleSelection(tuple(steps), float(params["settle_s"]), tuple(params["telemetry"]),
                                 dut, reference, unresolved, n_misdated,
                                 float(max((abs(m.early_s) for m in misdated), default=0.0)),
@@ -402,6 +473,22 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
     return replace(record, selection=selection, warnings=tuple(warnings)).to_dict()
 
 
+def late_timeline_fault(late: int, total: int) -> str | None:
+    """Why a calibration on a tracked timeline cannot be judged, or None: more than
+    :data:`MAX_LATE_FRACTION` of its ``total`` DUT samples were taken while the timeline ran
+    irregularly (:func:`late_intervals`), so what is left is no longer the planned data."""
+    if late <= MAX_LATE_FRACTION * max(total, 1):
+        return None
+    return (f"timing fault: {late} of {total} DUT samples were taken while this computer ran the"
+            " tracked timeline irregularly (commands held back, then sent in bursts); the data"
+            " cannot be trusted for a verdict: re-run the step on a less busy computer")  # fmt: skip
+
+
+MAX_LATE_FRACTION = 0.5
+"""A tracked timeline that ran irregularly for more than this fraction of the DUT samples makes
+its calibration a timing fault (a re-run), not a fit on the remaining few."""
+CLOCK_OFFSET_MIN_BOUND_S = 0.05
+"""The offset between a DUT's and the reference's dates is searched within at least this (s)."""
 MAX_TEMPERATURE_GAP_S = 3.0
 """A sample further than this from every reading of the thermometer (3 of its periods) has no
 temperature to speak of: it is left out of a temperature fit, and the count said."""

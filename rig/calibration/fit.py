@@ -29,8 +29,11 @@ from rig.errors import CalibrationError
 if TYPE_CHECKING:
     # Imported where used: delays, temperature and the filters pull in modules (and scipy) that a
     # plain batch fit does not need.
-    from rig.calibration.profiled import Profiled, Series
+    from rig.calibration.profiled import FieldSeries, Profiled, Series
     from rig.calibration.sequential.realtime import FilterOptions
+
+    ClockOffset = tuple[FieldSeries, float]
+    """The reference field at any time and the offset's bound (s)."""
 
 METHODS: tuple[Method, ...] = method_names()
 
@@ -81,18 +84,23 @@ def _profiled_parameters(
     max_delay_s: float,
     telemetry_series: Mapping[str, Series] | None,
     temperature: bool,
+    clock_offset: ClockOffset | None = None,
 ) -> tuple[Profiled, ...]:
-    """The parameters fitted by profiling: each delayed channel's delay (s) and, with a
+    """The parameters fitted by profiling: each delayed channel's delay (s), with a reference
+    field series the offset between the DUT's and the reference's dates, and, with a
     temperature, the scale per kelvin."""
     profiled: tuple[Profiled, ...] = ()
     if delays:
-        from rig.calibration.profiled import delay_parameter
+        from rig.calibration.profiled import clock_offset_parameter, delay_parameter
 
         if times_s is None:
             raise CalibrationError("--delay needs the sample times: give --time COL (seconds)")
         series = telemetry_series or {}
         profiled = tuple(delay_parameter(data, times_s, c, max_delay_s, series.get(c))
                          for c in delays)  # fmt: skip
+        if clock_offset is not None:
+            field_at, bound_s = clock_offset
+            profiled += (clock_offset_parameter(data, times_s, field_at, bound_s),)
     if temperature:
         from rig.calibration.temperature import scale_parameter
 
@@ -113,6 +121,7 @@ def calibrate(
     temperature: Array | None = None,
     temperature_ref: float | None = None,
     telemetry_series: Mapping[str, Series] | None = None,
+    clock_offset: ClockOffset | None = None,
 ) -> CalibrationResult:
     """Fit the measurement model to ``s`` and summarize.
 
@@ -129,7 +138,9 @@ def calibrate(
         delays: telemetry channels whose delay ``tau_j`` to estimate (s, within ``+-max_delay_s``;
             batch methods, needs ``times_s``); see :mod:`rig.calibration.profiled`.
         telemetry_series: per delayed channel, its value at any time (s) when known better than
-            by interpolating the column (a run's command log); default: the column interpolated.
+            by interpolating the column (a run's command log).
+        clock_offset: with delays, the reference field at any time (s -> (N, 3) uT) and the bound
+            (s) of the DUT-reference date offset fitted with them (``clock_offset_parameter``).
         temperature: DUT temperature per sample (K or degrees C) for the offset and scale
             coefficients per kelvin about ``temperature_ref`` (default: the mean); see
             :mod:`rig.calibration.temperature`.
@@ -144,14 +155,12 @@ def calibrate(
     start = _check_coverage(data, est.name) if not vector else None
     if est.kind == "sequential" and noise_ut is None:
         noise_ut = _batch_noise_ut(data, None if start is None else start.p)
-        notes += (
-            f"raw noise {1000 * noise_ut:.3g} nT estimated from a batch maximum-likelihood fit"
-            " (give --noise-nt to set it)",
-        )
+        notes += (f"raw noise {1000 * noise_ut:.3g} nT estimated from a batch maximum-likelihood"
+                  " fit (give --noise-nt to set it)",)  # fmt: skip
     if est.kind == "batch" and not vector and s.field_ut is not None:
         notes = ("field vector given but a scalar method chosen: only |h| was used",)
     profiled = _profiled_parameters(data, times_s, delays, max_delay_s, telemetry_series,
-                                    temperature is not None)  # fmt: skip
+                                    temperature is not None, clock_offset)  # fmt: skip
     if profiled:
         result = _profiled(data, est, noise_ut, robust, times_s, profiled, notes)
         return replace(result, temperature_ref=reference)

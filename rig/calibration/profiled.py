@@ -58,6 +58,16 @@ class Profiled:
     step: float
     """Central-difference step of its information column (inside the data's resolution)."""
     apply: Apply
+    label: str = ""
+    """Its name in the parameter table (default ``group[key]``)."""
+    shown_unit: str = ""
+    """The unit the table shows it in (default ``unit``), ``shown_scale`` times the value."""
+    shown_scale: float = 1.0
+
+    @property
+    def table_label(self) -> str:
+        """Its name in the parameter table."""
+        return self.label or f"{self.group}[{self.key}]"
 
 
 @dataclass(frozen=True)
@@ -91,6 +101,8 @@ def shifted(times_s: Array, u: Array, tau_s: float) -> Array:
 
 Series = Callable[[Array], Array]
 """A telemetry channel's value at any times (s)."""
+FieldSeries = Callable[[Array], Array]
+"""The reference field (uT, (N, 3) in the cage frame) at any times (s, (N,))."""
 
 
 def delay_parameter(
@@ -122,7 +134,34 @@ def delay_parameter(
 
     # inside one sample interval: the local slope of the interpolated series
     step = 0.25 * float(np.median(np.diff(t)))
-    return Profiled("delay_s", channel, "s", (-max_delay_s, max_delay_s), step, apply)
+    return Profiled(
+        "delay_s", channel, "s", (-max_delay_s, max_delay_s), step, apply, label=f"delay[{channel}]"
+    )
+
+
+def clock_offset_parameter(
+    s: Samples, times_s: Array, field_at: FieldSeries, bound_s: float, step_s: float = 1e-3
+) -> Profiled:
+    """The offset (s, within ``+-bound_s``) between the DUT's sample dates and the reference's:
+    the DUT sample dated ``t`` saw the field the reference recorded at ``t + offset``.
+
+    Each stream is dated from its own arrivals (rig.engine.stream_clock), so their latencies can
+    differ by a few ms on a busy computer; in a moving field (an orbit replay) that offset
+    correlates with the load currents' delays (one ms of it moved a delay by several ms on a
+    tumbling run). Fitting it with the delays carries that into their sigma (issue 30).
+    ``field_at(t)``: the reference field (cage frame, uT, (N, 3)) at any times (s)."""
+    t = np.asarray(times_s, float)
+    if t.shape != (s.n,):
+        raise CalibrationError("a clock offset needs one sample time per sample")
+
+    def apply(data: Samples, offset_s: float) -> Samples:
+        field = np.asarray(field_at(t + offset_s), float)
+        magnitude = np.linalg.norm(field, axis=1)
+        vector = field if data.field_ut is not None else None
+        return Samples(data.measured_ut, magnitude, data.telemetry, data.channels, vector)
+
+    return Profiled("clock_offset_s", "dut", "s", (-bound_s, bound_s), step_s, apply,
+                    label="DUT vs reference dates")  # fmt: skip
 
 
 def profile_fit(
@@ -196,7 +235,8 @@ def _uncertainty(
 ) -> tuple[Array, Array]:
     """1-sigma and Cramer-Rao 1-sigma of the profiled parameters from the whole model's
     information (their columns by central differences at the other parameters' estimate)."""
-    r, jac_p = weighted_residuals(est, samples_at(values))
+    at = samples_at(values)
+    r, jac_p = weighted_residuals(est, at)
     cols = []
     for i, prm in enumerate(params):
         up, down = values.copy(), values.copy()
@@ -219,4 +259,31 @@ def _uncertainty(
     sigma_hat2 = float(r @ r) / max(r.size - jac.shape[1], 1)
     crlb_scale = noise_ut**2 if noise_ut is not None else sigma_hat2
     diag = np.maximum(np.diag(inv)[k:], 0.0)
-    return np.sqrt(sigma_hat2 * diag), np.sqrt(crlb_scale * diag)
+    inflation, info, ratio = _correlation(r, jac, at.n, sigma_hat2)
+    sigma = np.sqrt(sigma_hat2 * diag) * inflation[k:]
+    if info is None:
+        return sigma, np.sqrt(crlb_scale * diag)
+    crlb = np.maximum(np.diag(np.linalg.pinv(info))[k:], 0.0)
+    return sigma, np.sqrt(crlb_scale * ratio * crlb)
+
+
+def _correlation(
+    r: Array, jac: Array, n: int, sigma_hat2: float
+) -> tuple[Array, Array | None, float]:
+    """The residuals' whiteness test over the whole model (the profiled columns included): per
+    parameter the factor of its HAC sigma over the white one (all 1 when white), and the
+    AR-whitened information with its variance ratio for the Cramer-Rao bound (None, 1 when
+    white); rig.calibration.correlated, ADR 0025. A delay's profile is as blind to correlated
+    residuals as any other parameter's information."""
+    from rig.calibration.correlated import check_noise
+
+    per = r.size // n
+    res = r.reshape(n, per)
+    rows = jac.reshape(n, per, -1)
+
+    def scores(sl: slice) -> Array:
+        return np.asarray(np.einsum("nap,na->np", rows[sl], res[sl]))
+
+    check, info, ratio = check_noise(res, scores, lambda sl: rows[sl], lambda: jac.T @ jac,
+                                     sigma_hat2, jac.shape[1])  # fmt: skip
+    return check.inflation, info, ratio

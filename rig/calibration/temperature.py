@@ -58,4 +58,4 @@ def scale_parameter(s: Samples) -> Profiled:
         return Samples(data.measured_ut, magnitude * gain, data.telemetry, data.channels, scaled)
 
     return Profiled("temperature", "scale_per_k", "1/K", (-MAX_SCALE_PER_K, MAX_SCALE_PER_K),
-                    1e-6, apply)  # fmt: skip
+                    1e-6, apply, label="scale per kelvin", shown_unit="ppm/K", shown_scale=1e6)  # fmt: skip

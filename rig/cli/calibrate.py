@@ -370,10 +370,12 @@ def _constant_magnitude(args: argparse.Namespace) -> float | None:
 def _fit_and_emit(
     samples: Any, args: argparse.Namespace, times_s: Any = None, temperature: Any = None,
     series: Any = None, delay_resolution_s: dict[str, float] | None = None,
+    clock_offset: Any = None,
 ) -> int:  # fmt: skip
     """Fit, write the result file, C header and autopilot parameters if asked, print the table.
     ``delay_resolution_s``: channels whose delay is known only to within an interval (s), which
-    their sigma then includes."""
+    their sigma then includes; ``clock_offset``: the reference field series and bound (s) of the
+    offset between the DUT's and the reference's dates, fitted with the delays."""
     from rig.calibration import calibrate
     from rig.report.tables import calibration_table
 
@@ -388,7 +390,8 @@ def _fit_and_emit(
     result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust,
                        filter_options=opts, times_s=times_s, delays=tuple(args.delay),
                        max_delay_s=args.max_delay_s, temperature=temperature,
-                       temperature_ref=args.temperature_ref, telemetry_series=series)  # fmt: skip
+                       temperature_ref=args.temperature_ref, telemetry_series=series,
+                       clock_offset=clock_offset)  # fmt: skip
     if delay_resolution_s and result.profiled is not None:
         from dataclasses import replace
 
@@ -441,6 +444,35 @@ def _autopilot_files(result: Any, args: argparse.Namespace) -> list[tuple[Path, 
     return out
 
 
+def _delay_inputs(reader: Any, channels: list[str], t_s: Any) -> tuple[Any, ...]:
+    """What a delay fit of a stored run needs: each channel's commanded series, the interval it
+    was commanded in step with the DUT at (or None), the resolution its sigma must include (s),
+    and the reference field series with the bound of the DUT-reference date offset."""
+    import numpy as np
+
+    from rig.analysis import (
+        CLOCK_OFFSET_MIN_BOUND_S,
+        load_commands,
+        phase_locked_interval_s,
+        reference_field_series,
+        telemetry_series,
+    )
+
+    width_s = 2.0 * float(np.median(np.diff(t_s))) if t_s.size > 1 else 0.1
+    series = {ch: telemetry_series(reader, ch, width_s) for ch in channels}
+    commands = {ch: load_commands(reader, ch) for ch in channels}
+    locked = {ch: phase_locked_interval_s(commands[ch], t_s) for ch in channels}
+    # when a command took effect is known only to within its write (issued .. answered): wide
+    # on a busy computer; that width enters the delay's sigma too (ADR 0020)
+    writes = {ch: float(np.median(np.diff(c[:, :2]))) if len(c) else 0.0
+              for ch, c in commands.items()}  # fmt: skip
+    resolution = {ch: float(np.hypot(locked[ch] or 0.0, writes[ch])) for ch in channels}
+    # the DUT's and the reference's dates may differ by their streams' latencies: with delays,
+    # that offset is fitted too (within two DUT periods, at least 50 ms; issue 30)
+    clock_offset = (reference_field_series(reader), max(width_s, CLOCK_OFFSET_MIN_BOUND_S))
+    return series, locked, resolution, clock_offset
+
+
 def _history_csv(result: Any) -> str:
     """The filter history as CSV: sample number, every parameter, then every 1-sigma."""
     import io
@@ -459,16 +491,12 @@ def _history_csv(result: Any) -> str:
 def _calibrate_run(args: argparse.Namespace) -> int:
     """Re-fit the DUT from a stored run (its procedure's magnetometers and loads by default);
     ``--method ml`` (or another scalar method) fits attitude-independently from the same data."""
-    import numpy as np
-
     from rig.analysis import (
         MAX_TEMPERATURE_GAP_S,
-        load_commands,
-        phase_locked_interval_s,
+        late_timeline_fault,
         recorded_thermometer,
         run_temperature,
         stored_run_data,
-        telemetry_series,
         unresolved_note,
     )
     from rig.steps import field_kinds
@@ -482,17 +510,13 @@ def _calibrate_run(args: argparse.Namespace) -> int:
         if args.temperature:
             recorded_thermometer(reader, args.temperature)
         telemetry = list(args.telemetry) if args.telemetry else list(reader.meta().get("loads", []))
-        samples, t_s, unresolved, misdated = stored_run_data(
+        samples, t_s, unresolved, misdated, late = stored_run_data(
             reader, telemetry, field_kinds=field_kinds()
         )
-        width_s = 2.0 * float(np.median(np.diff(t_s))) if t_s.size > 1 else 0.1
-        series = {ch: telemetry_series(reader, ch, width_s) for ch in args.delay}
-        commands = {ch: load_commands(reader, ch) for ch in args.delay}
-        locked = {ch: phase_locked_interval_s(commands[ch], t_s) for ch in args.delay}
-        # when a command took effect is known only to within its write (issued .. answered):
-        # wide on a busy computer; that width enters the delay's sigma too (ADR 0020)
-        writes = {ch: float(np.median(np.diff(c[:, :2]))) if len(c) else 0.0
-                  for ch, c in commands.items()}  # fmt: skip
+        fault = late_timeline_fault(late, samples.n + unresolved)
+        if fault is not None:
+            raise UserInputError(fault)
+        delays = _delay_inputs(reader, args.delay, t_s)
         temperature = None
         if args.temperature:
             samples, temperature, left_out = run_temperature(reader, args.temperature, samples, t_s)
@@ -502,6 +526,7 @@ def _calibrate_run(args: argparse.Namespace) -> int:
                       file=sys.stderr)  # fmt: skip
     finally:
         reader.close()
+    series, locked, resolution, clock_offset = delays
     for ch, interval in locked.items():
         if interval is not None and not args.quiet:
             print(f"note: the DUT sampled in step with the {1 / interval:.3g} Hz commands of {ch}:"
@@ -512,6 +537,6 @@ def _calibrate_run(args: argparse.Namespace) -> int:
     if misdated and not args.quiet:
         judged = samples.n + unresolved + sum(m.samples for m in misdated)
         print(f"note: {misdated_note(misdated, judged)}", file=sys.stderr)
-    resolution = {ch: float(np.hypot(locked[ch] or 0.0, writes[ch])) for ch in args.delay}
     return _fit_and_emit(samples, args, times_s=t_s if args.delay else None, series=series,
-                         temperature=temperature, delay_resolution_s=resolution)  # fmt: skip
+                         temperature=temperature, delay_resolution_s=resolution,
+                         clock_offset=clock_offset)  # fmt: skip

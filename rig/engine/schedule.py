@@ -99,7 +99,9 @@ class StepScheduler:
             now = time.monotonic()
             if cmd.kind in ("field", "load"):
                 self.lateness_s.append(now - (t0 + cmd.t_s))
-                self.commands.command(step.index, cmd.kind, cmd.payload, now)
+                # logged with when it was due: analysis leaves out what a late timeline moved
+                due = {"t_due": t0 + cmd.t_s}
+                self.commands.command(step.index, cmd.kind, cmd.payload | due, now)
                 if cmd.kind == "field" and hold_from_field:
                     t0 = time.monotonic() - cmd.t_s  # its dwell starts once the field is there
             elif cmd.kind != "end":

@@ -51,13 +51,11 @@ def _parameter_rows(result: CalibrationResult) -> list[str]:
         fit = result.profiled
         for prm, v, sig, crlb_sig in zip(fit.params, fit.values, fit.sigma, fit.crlb_sigma,
                                          strict=True):  # fmt: skip
-            per_k = prm.unit == "1/K"  # shown in ppm/K
-            scale = 1e6 if per_k else 1.0
+            scale = prm.shown_scale
             val, sig_text = _fmt(float(v) * scale, float(sig) * scale)
             _, crlb_text = _fmt(float(v) * scale, float(crlb_sig) * scale)
             ratio = float(sig / crlb_sig) if crlb_sig > 0 else float("nan")
-            label = "scale per kelvin" if per_k else f"delay[{prm.key}]"
-            unit = "ppm/K" if per_k else prm.unit
+            label, unit = prm.table_label, prm.shown_unit or prm.unit
             out.append(f"  {label:<22}{unit:>8}{val:>14}{sig_text:>12}{crlb_text:>14}{ratio:>7.2f}")
     return out
 

@@ -110,7 +110,7 @@ def test_a_slow_supply_link_does_not_cost_the_tracked_samples(tmp_path: Path) ->
             t - float(p["t_issued"]) for t, _, kind, p in reader.commands() if kind == "field"
         )
         in_step = sum(t0 <= s[0] <= t1 for s in reader.samples("dut"))
-        samples, _, unresolved, _ = calibration_data(reader, "dut", "reference", [], ["orbit"], 0.0,
+        samples, _, unresolved, *_ = calibration_data(reader, "dut", "reference", [], ["orbit"], 0.0,
                                                   None)  # fmt: skip
     finally:
         reader.close()
