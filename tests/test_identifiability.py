@@ -11,10 +11,13 @@ import numpy as np
 import pytest
 
 from rig.calibration import Samples, calibrate
+from rig.calibration.batch.nonlinear import ml_fit, scalar_start
 from rig.calibration.diagnostics import direction_coverage
 from rig.calibration.identifiability import (
     combination_words,
     hypothetical_samples,
+    information,
+    noise_bias,
     worst_combination,
 )
 from rig.calibration.params import Calibration, Springmann
@@ -125,15 +128,20 @@ def test_the_worst_combination_is_the_least_informed_scaled_direction() -> None:
     assert worst_combination(singular, scales)[0] == float("inf")
 
 
-def test_the_noise_bias_on_one_side_is_predicted_and_named() -> None:
+def test_a_noise_bias_beyond_three_sigma_is_refused_and_it_is_the_one_predicted() -> None:
     """Within 75 deg of -z at 0.2 uT: the scalar ML estimate of z0 sits several sigma off the
-    truth, by the amount the bias warning predicts (ADR 0026)."""
-    result = calibrate(cap_of_constant_field(75.0), "ml")
-    found = [w for w in result.warnings if w.startswith("the raw noise biases")]
-    assert len(found) == 1, result.warnings
-    z0 = re.search(r"z0 ([+-][\d.]+) uT \(([+-][\d.]+) sigma\)", found[0])
-    assert z0 is not None, found[0]
-    off = result.p[5] - TRUTH.z0
-    assert off > 3.0 * result.sigma[5]  # the bias the sigmas do not hold
-    assert abs(off - float(z0[1])) < 1.0 * result.sigma[5], (off, found[0])
-    assert float(z0[2]) > 3.0 and found[0].endswith("record +z")
+    truth, by the amount :func:`noise_bias` predicts (ADR 0026); no sigma covers that, so the
+    fit is refused, naming the bias and what to record."""
+    s = cap_of_constant_field(75.0)
+    with pytest.raises(CalibrationError, match=r"the raw noise biases a scalar \(ml\) fit") as exc:
+        calibrate(s, "ml")
+    z0 = re.search(r"z0 ([+-][\d.]+) uT \(([+-][\d.]+) sigma\)", str(exc.value))
+    assert z0 is not None and float(z0[2]) > 3.0, str(exc.value)
+    assert "record +z" in str(exc.value)
+    start = scalar_start(s.as_scalar(), quick=True).p
+    info = information(s.as_scalar(), start)
+    fit = ml_fit(s.as_scalar(), start=start)  # the estimator itself, unchecked
+    off = fit.p[5] - TRUTH.z0
+    sigma = float(np.sqrt(fit.covariance[5, 5]))
+    assert off > 3.0 * sigma  # the bias the sigmas do not hold
+    assert abs(off - noise_bias(s.as_scalar(), info)[5]) < sigma, (off, str(exc.value))

@@ -53,6 +53,9 @@ CAP_SHARE = 0.25
 the same length puts 1 - cos(60 deg) over 2 = 25 % of its samples within 60 deg of each axis."""
 BIAS_REPORTED = 1.0
 """A parameter's predicted noise bias is named in a warning when it reaches this many sigmas."""
+BIAS_REFUSED = 3.0
+"""... and the fit is refused when it reaches this many: the estimate would sit further from the
+truth than its sigma could cover (a cap within 60 deg of -z at 0.2 uT: z0 about 19 sigma off)."""
 SHRINK_REPORTED = 1.5
 """A parameter's sigma is named in the warning when the missing caps would shrink it this much."""
 WORDS = {"a": "x scale", "b": "y scale", "c": "z scale", "x0": "x0 offset", "y0": "y0 offset",
@@ -137,7 +140,7 @@ def check_identifiable(s: Samples, start: Array, method: str) -> tuple[str, ...]
     if info.converged and rel_sigma <= RELATIVE_SIGMA_LIMIT:
         if not missing:
             return ()
-        bias = bias_warning(s, info, ", ".join(missing))
+        bias = bias_warning(s, info, ", ".join(missing), method)
         return (coverage_warning(s, info, coverage, missing),) + ((bias,) if bias else ())
     why = "the fit runs off along it" if not info.converged else _sigma_words(rel_sigma)
     fix = f"record directions with {', '.join(missing)}" if missing else "record more directions"
@@ -227,8 +230,9 @@ def noise_bias(s: Samples, info: Information) -> Array:
     return np.asarray(-np.linalg.solve(info.fisher, score * (s.n / sub.n)))
 
 
-def bias_warning(s: Samples, info: Information, caps: str) -> str | None:
-    """The parameters whose :func:`noise_bias` reaches :data:`BIAS_REPORTED` of their sigma."""
+def bias_warning(s: Samples, info: Information, caps: str, method: str = "ml") -> str | None:
+    """The parameters whose :func:`noise_bias` reaches :data:`BIAS_REPORTED` of their sigma;
+    CalibrationError when one reaches :data:`BIAS_REFUSED`: no sigma could promise that fit."""
     bias = noise_bias(s, info)
     sigma = np.sqrt(np.diag(np.linalg.inv(info.fisher)))
     names = parameter_names(s.channels, vector=False)
@@ -236,6 +240,12 @@ def bias_warning(s: Samples, info: Information, caps: str) -> str | None:
              for i in range(bias.size) if abs(bias[i]) >= BIAS_REPORTED * sigma[i]]  # fmt: skip
     if not large:
         return None
+    if np.any(np.abs(bias) >= BIAS_REFUSED * sigma):
+        raise CalibrationError(
+            f"the raw noise biases a scalar ({method}) fit on these one-sided field directions by"
+            f" about {', '.join(large)}, beyond what its sigma can cover: record {caps} (turn the"
+            " sensor through every attitude), or calibrate against a field vector (--field)"
+        )
     return (
         "the raw noise biases a scalar fit on one-sided field directions, here by about "
         + ", ".join(large)
