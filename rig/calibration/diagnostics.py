@@ -87,10 +87,8 @@ def check_telemetry_rank(u: Array, channels: tuple[str, ...]) -> None:
 COVERAGE_CONE_DEG = 60.0
 """A field direction covers an axis direction (+x, -x, ...) when within this angle of it (deg)."""
 COVERAGE_MIN_FRACTION = 0.01
-"""An axis direction with fewer of the samples than this (fraction) counts as not covered."""
-SCALE_PRIOR_REL_SIGMA = 0.05
-"""Prior 1-sigma (relative) of an uncovered axis's scale around the mean of the covered axes'
-scales: the spread of axis gains within one three-axis magnetometer is typically a few percent."""
+"""An axis direction with fewer of the samples than this (fraction) counts as not covered: the
+words of the identifiability warning and refusal (rig.calibration.identifiability), not a rule."""
 CAPS = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 
@@ -111,13 +109,6 @@ def direction_coverage(field: Array, centre: Array | None = None) -> dict[str, f
         out[f"+{axis}"] = float(share[i, 0])
         out[f"-{axis}"] = float(share[i, 1])
     return out
-
-
-def one_sided_axes(coverage: dict[str, float]) -> list[int]:
-    """Axes (0, 1, 2) covered on one side only: a scalar fit cannot tell their scale from their
-    offset (stretching the sphere and moving its centre fit the same one-sided cap)."""
-    covered = {c for c, f in coverage.items() if f >= COVERAGE_MIN_FRACTION}
-    return [i for i, ax in enumerate("xyz") if (f"+{ax}" in covered) != (f"-{ax}" in covered)]
 
 
 def coverage_text(coverage: dict[str, float]) -> str:

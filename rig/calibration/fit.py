@@ -152,13 +152,14 @@ def calibrate(
     data = s if vector else s.as_scalar()
     notes: tuple[str, ...] = ()
     noise_ut = noise_nt / 1000.0 if noise_nt is not None else None
-    start = _check_coverage(data, est.name) if not vector else None
+    start, coverage = _check_coverage(data, est.name) if not vector else (None, ())
     if est.kind == "sequential" and noise_ut is None:
         noise_ut = _batch_noise_ut(data, None if start is None else start.p)
         notes += (f"raw noise {1000 * noise_ut:.3g} nT estimated from a batch maximum-likelihood"
                   " fit (give --noise-nt to set it)",)  # fmt: skip
     if est.kind == "batch" and not vector and s.field_ut is not None:
         notes = ("field vector given but a scalar method chosen: only |h| was used",)
+    notes += coverage
     profiled = _profiled_parameters(data, times_s, delays, max_delay_s, telemetry_series,
                                     temperature is not None, clock_offset)  # fmt: skip
     if profiled:
@@ -199,29 +200,19 @@ def _profiled(
     return replace(summarize(fit.estimate, fit.samples, noise_nt, notes), profiled=fit)
 
 
-def _check_coverage(s: Samples, method: str) -> Estimate | None:
-    """Field-direction coverage of a scalar fit, measured before fitting from the linear start's
-    centre: an axis covered on one side only leaves its scale and offset indistinguishable, and
-    the fit is refused with what is covered and what to record. Returns the linear start."""
+def _check_coverage(s: Samples, method: str) -> tuple[Estimate | None, tuple[str, ...]]:
+    """Identifiability of a scalar fit on ``s``, from the Fisher information at the linear
+    start's maximum-likelihood fit (docs/adr/0026): CalibrationError naming a combination the data
+    cannot determine; else the linear start and a warning when field directions are missing."""
     from rig.calibration.batch.nonlinear import scalar_start
-    from rig.calibration.diagnostics import coverage_text, direction_coverage, one_sided_axes
+    from rig.calibration.identifiability import check_identifiable
 
     try:
         # Only the linear estimators report their start as their answer: the others need a start.
         start = scalar_start(s, quick=method not in ("centered", "ellipsoid", "twostep"))
     except (CalibrationError, np.linalg.LinAlgError):
-        return None
-    coverage = direction_coverage(s.measured_ut, start.p[3:6])
-    axes = one_sided_axes(coverage)
-    if not axes:
-        return start
-    pairs = ", ".join(f"{'abc'[i]} from {'xyz'[i]}0" for i in axes)
-    raise CalibrationError(
-        f"field directions: {coverage_text(coverage)}. A scalar ({method}) fit cannot tell {pairs}"
-        " on this data (any method: the magnitude of a one-sided cap fits a stretched sphere as"
-        " well as a moved one). Record the missing directions (turn the sensor through every"
-        " attitude), or calibrate against a field vector (--field) in a cage"
-    )
+        return None, ()
+    return start, check_identifiable(s, start.p, method)
 
 
 def _batch_noise_ut(s: Samples, start: Array | None = None) -> float:
