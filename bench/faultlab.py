@@ -76,6 +76,8 @@ TARGETS: dict[str, str] = {
 step kind that drives outputs."""
 STEP_KINDS = tuple(TARGETS)
 INJECT_AFTER_S = 1.5
+SECOND_RUN_HOLD_S = 20.0
+"""How long the first run holds the rig after its target step while a second run tries it (s)."""
 """Seconds into the target step when the fault is injected."""
 
 
@@ -540,7 +542,12 @@ def run_extra(fault: Fault, workdir: Path) -> Measured:
 
 def _second_run(fault: Fault, cage: SimulatedCage, workdir: Path, rig_toml: Path) -> Measured:
     proc_path = workdir / "faults.yaml"
-    proc_path.write_text(procedure("sphere_sweep"))
+    # a hold after the target keeps the first run on the rig while the second starts: a second
+    # `rig run` takes seconds to import on a busy computer, and one that finds the rig free
+    # because the first had finished is right to run (seen beside two suites and CPU hogs)
+    text = procedure("sphere_sweep")
+    proc_path.write_text(text.replace(CHECK, f"  - hold: {{hold_s: {SECOND_RUN_HOLD_S:g}}}\n"
+                                              "    name: keep the rig\n" + CHECK))  # fmt: skip
     runs, runs_b = workdir / "runs", workdir / "runs-b"
     runs.mkdir()
     t0 = time.monotonic()
