@@ -15,8 +15,11 @@ from rig.config import DeviceConfig, RigConfig
 from rig.devices import open_device
 from rig.engine.wire_address import wire_link
 
-ATTEMPTS = 3
-"""Tries per device when switching everything off (a port may still be held by a dying process)."""
+RETRY_FOR_S = 3.0
+"""How long a device that cannot be opened is tried again when switching everything off (s): its
+port may still be held by a dying rig process, which on a busy computer takes seconds to go (the
+guardian once found coil_y's pty still held 0.6 s after the kill, beside two CPU hogs)."""
+RETRY_PAUSE_S = 0.2
 COIL_DECAY_S = 2.0
 """Longest wait for a coil's current to decay before its polarity relay is switched."""
 
@@ -55,9 +58,10 @@ def switch_off_every_output(cfg: RigConfig) -> tuple[list[str], list[str]]:
 
 
 def _switch_off(dev: DeviceConfig) -> str | None:
-    """Open ``dev``, call its ``safe()`` and close it, up to ATTEMPTS times: None when it is
-    safe, else the last error."""
-    for attempt in range(ATTEMPTS):
+    """Open ``dev``, call its ``safe()`` and close it, tried again for :data:`RETRY_FOR_S`: None
+    when it is safe, else the last error."""
+    deadline = time.monotonic() + RETRY_FOR_S
+    while True:
         try:
             driver = open_device(dev)
             try:
@@ -66,10 +70,9 @@ def _switch_off(dev: DeviceConfig) -> str | None:
                 driver.close()
             return None
         except Exception as exc:  # one dead link must not stop the others going safe
-            if attempt == ATTEMPTS - 1:
+            if time.monotonic() >= deadline:
                 return str(exc)
-            time.sleep(0.3)  # a port still held by someone else
-    return "not tried"
+            time.sleep(RETRY_PAUSE_S)  # a port still held by someone else
 
 
 def _coil_currents_above(cfg: RigConfig, threshold_a: float) -> str:
