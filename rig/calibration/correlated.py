@@ -266,6 +266,26 @@ def check_noise(
     return check, info, ratio
 
 
+def rows_noise_check(
+    r: Array, jac: Array, n: int, white_variance: float, weights: Array | None = None
+) -> tuple[NoiseCheck, Array | None, float]:
+    """:func:`check_noise` for residuals ``r`` (n S,) and their Jacobian ``jac`` (n S, P) held
+    in full, S rows per sample in sample order (a vector fit's three axes; one for a scalar fit's
+    noise-weighted residuals), with per-sample ``weights`` (robust, default 1)."""
+    w = np.ones(n) if weights is None else weights
+    res = r.reshape(n, -1)
+    rows = jac.reshape(n, res.shape[1], -1)
+
+    def scores(sl: slice) -> Array:
+        return np.asarray(np.einsum("nap,na->np", rows[sl], res[sl]) * w[sl, None])
+
+    def normal() -> Array:
+        return np.asarray(np.einsum("nap,naq,n->pq", rows, rows, w))
+
+    return check_noise(res * np.sqrt(w)[:, None], scores, lambda sl: rows[sl], normal,
+                       white_variance, jac.shape[1])  # fmt: skip
+
+
 def fit_noise_check(
     p: Array,
     s: Samples,
@@ -278,18 +298,7 @@ def fit_noise_check(
     fit (its rows are recomputed block by block, in the ML fit's noise-weighted form)."""
     w = np.ones(s.n) if sample_weights is None else sample_weights
     if vector_rows is not None:
-        raw, jac = vector_rows
-        jac3 = jac.reshape(s.n, 3, -1)
-        res3 = raw.reshape(s.n, 3)
-
-        def vector_scores(rows: slice) -> Array:
-            return np.asarray(np.einsum("nap,na->np", jac3[rows], res3[rows]) * w[rows, None])
-
-        def normal() -> Array:
-            return np.asarray(np.einsum("nap,naq,n->pq", jac3, jac3, w))
-
-        return check_noise(res3 * np.sqrt(w)[:, None], vector_scores, lambda rows: jac3[rows],
-                           normal, white_variance, p.size)  # fmt: skip
+        return rows_noise_check(*vector_rows, s.n, white_variance, w)
     r, gain = scalar_residuals_and_gain(p, s)
 
     def scalar_scores(rows: slice) -> Array:

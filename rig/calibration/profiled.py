@@ -259,31 +259,13 @@ def _uncertainty(
     sigma_hat2 = float(r @ r) / max(r.size - jac.shape[1], 1)
     crlb_scale = noise_ut**2 if noise_ut is not None else sigma_hat2
     diag = np.maximum(np.diag(inv)[k:], 0.0)
-    inflation, info, ratio = _correlation(r, jac, at.n, sigma_hat2)
-    sigma = np.sqrt(sigma_hat2 * diag) * inflation[k:]
+    # the whiteness test over the whole model, the profiled columns included: a delay's profile
+    # is as blind to correlated residuals as any other parameter's information (ADR 0025)
+    from rig.calibration.correlated import rows_noise_check
+
+    check, info, ratio = rows_noise_check(r, jac, at.n, sigma_hat2)
+    sigma = np.sqrt(sigma_hat2 * diag) * check.inflation[k:]
     if info is None:
         return sigma, np.sqrt(crlb_scale * diag)
     crlb = np.maximum(np.diag(np.linalg.pinv(info))[k:], 0.0)
     return sigma, np.sqrt(crlb_scale * ratio * crlb)
-
-
-def _correlation(
-    r: Array, jac: Array, n: int, sigma_hat2: float
-) -> tuple[Array, Array | None, float]:
-    """The residuals' whiteness test over the whole model (the profiled columns included): per
-    parameter the factor of its HAC sigma over the white one (all 1 when white), and the
-    AR-whitened information with its variance ratio for the Cramer-Rao bound (None, 1 when
-    white); rig.calibration.correlated, ADR 0025. A delay's profile is as blind to correlated
-    residuals as any other parameter's information."""
-    from rig.calibration.correlated import check_noise
-
-    per = r.size // n
-    res = r.reshape(n, per)
-    rows = jac.reshape(n, per, -1)
-
-    def scores(sl: slice) -> Array:
-        return np.asarray(np.einsum("nap,na->np", rows[sl], res[sl]))
-
-    check, info, ratio = check_noise(res, scores, lambda sl: rows[sl], lambda: jac.T @ jac,
-                                     sigma_hat2, jac.shape[1])  # fmt: skip
-    return check.inflation, info, ratio
