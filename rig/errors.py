@@ -32,3 +32,8 @@ class StoreWriteError(RigError):
 
 class RunAborted(RigError):  # noqa: N818 - an outcome, not a fault
     """The operator (Ctrl-C, SIGTERM, a declined prompt) stopped the run."""
+
+
+class StoredResultError(RigError):
+    """A stored step result cannot be read as its kind's record: a key is missing or holds a
+    value of the wrong type (a run folder written by hand, or damaged)."""

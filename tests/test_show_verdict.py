@@ -4,10 +4,12 @@ aborted, no check step only for a finished run without one."""
 from __future__ import annotations
 
 from rig.cli.show import verdict_line
+from rig.steps.check import CheckVerdict
+from rig.store.run_states import Verdict
 
 
 def test_verdict_line_says_why_there_is_none() -> None:
     assert verdict_line("running", None) == "VERDICT: not yet judged (running)"
     assert verdict_line("aborted", None) == "VERDICT: not judged (aborted)"
     assert verdict_line("complete", None) == "VERDICT: - (no check step)"
-    assert verdict_line("aborted", {"overall": "FAIL"}) == "VERDICT: FAIL"
+    assert verdict_line("aborted", CheckVerdict((), Verdict.FAIL)) == "VERDICT: FAIL"

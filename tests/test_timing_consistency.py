@@ -145,8 +145,8 @@ def test_a_run_whose_data_failed_the_timing_checks_ends_re_run() -> None:
     from rig.report.text_report import overall_verdict
     from rig.store.run_states import ENDED, EXIT_CODES, RunStatus
 
-    verdict = {"overall": "RE-RUN", "rerun": [{"result": "vector calibration",
-                                                "why": "timing fault: 40 of 1260 samples"}]}  # fmt: skip
+    verdict = {"criteria": [], "overall": "RE-RUN",
+               "rerun": [{"result": "vector calibration", "why": "timing fault: 40 of 1260 samples"}]}  # fmt: skip
     text = overall_verdict({"status": "re-run"}, {"verdict": verdict})
     assert text.startswith("RE-RUN - NOT JUDGED, RUN AGAIN"), text
     assert "vector calibration: timing fault: 40 of 1260 samples" in text

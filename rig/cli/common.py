@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any, TypeAlias
+from typing import TYPE_CHECKING, TypeAlias
 
 from rig.errors import UserInputError
+
+if TYPE_CHECKING:
+    from rig.steps.check import CriterionResult
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -73,15 +76,15 @@ def resolve_run(run: str, runs_dir: Path) -> Path:
     raise UserInputError(f"no run '{run}' (looked at {p} and {q}); list runs with 'rig runs'")
 
 
-def criterion_value(row: dict[str, Any]) -> str:
+def criterion_value(row: CriterionResult) -> str:
     """A verdict row's value with its unit and limits, or why it has none."""
-    if "value" not in row:
-        return str(row.get("reason", ""))
-    unit = f" {row['unit']}" if row.get("unit") else ""
-    lo, hi = row.get("min"), row.get("max")
+    if row.value is None:
+        return row.reason
+    unit = f" {row.unit}" if row.unit else ""
+    lo, hi = row.min, row.max
     limits = (
         f"{lo:g}..{hi:g}"
         if lo is not None and hi is not None
         else (f"max {hi:g}" if hi is not None else (f"min {lo:g}" if lo is not None else ""))
     )
-    return f"{row['value']:.4g}{unit}" + (f"  ({limits})" if limits else "")
+    return f"{row.value:.4g}{unit}" + (f"  ({limits})" if limits else "")

@@ -96,16 +96,13 @@ def auto_confirm(quiet: bool) -> Callable[[str], bool]:
 def summarize(outcome: Any, quiet: bool) -> None:
     """A short terminal summary of a finished run. With ``quiet`` only a run that did not complete
     says so: one line on stderr with its status and reason (``-q`` means errors only, not nothing)."""
-    from rig.store.run_states import RunStatus, Verdict  # here: building the parser stays light
+    from rig.steps.check import check_verdict  # here: building the parser stays light
+    from rig.store.run_states import RunStatus
 
-    verdict = outcome.results.get("verdict")
+    verdict = check_verdict(outcome.results)
     if quiet:
         if outcome.status != RunStatus.COMPLETE:
-            failed = [
-                r["name"]
-                for r in (verdict or {}).get("criteria", [])
-                if r["verdict"] != Verdict.PASS
-            ]
+            failed = verdict.failed if verdict is not None else []
             what = (
                 f" ({', '.join(failed)})" if outcome.status == RunStatus.FAILED and failed else ""
             )
@@ -120,10 +117,10 @@ def summarize(outcome: Any, quiet: bool) -> None:
     print(f"run {outcome.folder.name}: {outcome.status} ({outcome.reason})")
     if outcome.outputs:
         print(outcome.outputs)
-    if verdict:
-        for row in verdict["criteria"]:
-            print(f"  {row['verdict']:<4} {row['name']:<28} {criterion_value(row)}")
-        print(f"VERDICT: {verdict['overall']}")
+    if verdict is not None:
+        for row in verdict.criteria:
+            print(f"  {row.verdict:<4} {row.name:<28} {criterion_value(row)}")
+        print(f"VERDICT: {verdict.overall}")
     reports = [outcome.folder / n for n in ("report.html", "report.pdf")]
     for path in reports:
         if path.exists():

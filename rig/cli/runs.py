@@ -19,15 +19,22 @@ def _cmd_runs(args: argparse.Namespace) -> int:
 
 
 def run_verdict(folder: Path) -> str | None:
-    """The overall verdict (PASS/FAIL) stored by a run's check step, None without one."""
+    """The overall verdict (PASS/FAIL/RE-RUN) stored by a run's check step, None without one,
+    "?" when the stored verdict cannot be read (``rig show`` says why)."""
+    from rig.errors import StoredResultError
+    from rig.steps.check import check_verdict
     from rig.store import RunReader
 
     reader = RunReader(folder)
     try:
-        verdict = reader.results().get("verdict")
+        results = reader.results()
     finally:
         reader.close()
-    return str(verdict["overall"]) if isinstance(verdict, dict) and "overall" in verdict else None
+    try:
+        verdict = check_verdict(results)
+    except StoredResultError:
+        return "?"
+    return str(verdict.overall) if verdict is not None else None
 
 
 def list_runs_cmd(runs_dir: Path, quiet: bool) -> int:

@@ -6,9 +6,12 @@ import argparse
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rig.cli.common import Parser, Subparsers, add_run, add_runs_dir, criterion_value, resolve_run
+
+if TYPE_CHECKING:
+    from rig.steps.check import CheckVerdict
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
@@ -69,10 +72,10 @@ def _result_summary(value: Any) -> str:
     return ", ".join(parts[:8]) + (", ..." if len(parts) > 8 else "") if parts else "(see --json)"
 
 
-def verdict_line(status: str, verdict: Any) -> str:
+def verdict_line(status: str, verdict: CheckVerdict | None) -> str:
     """The last line of ``rig show``: the verdict, or why there is none yet or none at all."""
-    if isinstance(verdict, dict):
-        return f"VERDICT: {verdict.get('overall')}"
+    if verdict is not None:
+        return f"VERDICT: {verdict.overall}"
     if status == "running":
         return "VERDICT: not yet judged (running)"
     if status in ("aborted", "failed", "error", "incomplete", "damaged"):
@@ -132,25 +135,29 @@ def _print_header(folder: Path, meta: dict[str, Any], counts: dict[str, int]) ->
 
 
 def _print_results(steps: list[Any], results: dict[str, Any]) -> None:
+    from rig.steps.check import VERDICT_RESULT, check_verdict
+
     print("steps")
     for idx, name, kind, t0, t1 in steps:
         took_s = f"{t1 - t0:7.1f} s" if t1 is not None else "not finished"
         print(f"  {idx + 1:2d} {name:<28} {kind:<18} {took_s}")
-    others = {k: v for k, v in results.items() if k != "verdict"}
+    others = {k: v for k, v in results.items() if k != VERDICT_RESULT}
     if others:
         print("results")
         for name, value in others.items():
             print(f"  {name:<28} {_result_summary(value)}")
-    verdict = results.get("verdict")
-    if isinstance(verdict, dict):
+    verdict = check_verdict(results)
+    if verdict is not None:
         print("criteria")
-        for row in verdict.get("criteria", []):
-            print(f"  {row['verdict']:<4} {row['name']:<32} {criterion_value(row)}")
+        for row in verdict.criteria:
+            print(f"  {row.verdict:<4} {row.name:<32} {criterion_value(row)}")
 
 
 def show_run(run: str, runs_dir: Path, as_json: bool = False) -> int:
     """``rig show``: a summary of one run; ``as_json`` prints everything stored as one JSON
     document (meta, samples per device, steps, results) and nothing else."""
+    from rig.steps.check import check_verdict
+
     folder = resolve_run(run, runs_dir)
     meta, results, counts, steps = _read(folder)
     if as_json:
@@ -158,6 +165,6 @@ def show_run(run: str, runs_dir: Path, as_json: bool = False) -> int:
         return 0
     _print_header(folder, meta, counts)
     _print_results(steps, results)
-    print(verdict_line(str(meta.get("status", "incomplete")), results.get("verdict")))
+    print(verdict_line(str(meta.get("status", "incomplete")), check_verdict(results)))
     print(f"everything stored: rig show {folder} --json")
     return 0

@@ -26,6 +26,7 @@ import numpy as np
 
 from drivers.errors import DeviceError
 from rig.analysis import apply_correction
+from rig.calibration.record import latest_calibration
 from rig.config import RigConfig
 from rig.engine.commands import Commands, LoadBook
 from rig.engine.health import HealthMonitor
@@ -60,6 +61,7 @@ from rig.output_limits import refuse_cage_devices_as_loads
 from rig.procedure.language import Procedure
 from rig.procedure.plan import compile_plan, rig_timing, step_duration
 from rig.steps.base import ChangeListener
+from rig.steps.check import check_verdict
 from rig.store.run_control import run_page_url
 from rig.store.run_states import EXIT_CODES, RunStatus, Verdict
 from rig.store.run_store import RunReader, RunWriter
@@ -174,12 +176,13 @@ class Runner:
     def _ended_status(self) -> tuple[RunStatus, str]:
         """Every step done: re-run if the data a check judged failed the timing checks, failed
         if an acceptance check failed, else complete."""
-        verdict = self.results.get("verdict", {})
-        if verdict.get("overall") == Verdict.RERUN:
-            steps = ", ".join(r["result"] for r in verdict.get("rerun", []))
+        verdict = check_verdict(self.results)
+        overall = verdict.overall if verdict is not None else None
+        if verdict is not None and overall == Verdict.RERUN:
+            steps = ", ".join(result for result, _ in verdict.rerun)
             return RunStatus.RERUN, (f"not judged: the data of {steps} failed the timing checks;"
                                      " run the procedure again on a less busy computer")  # fmt: skip
-        if verdict.get("overall") == Verdict.FAIL:
+        if overall == Verdict.FAIL:
             return RunStatus.FAILED, "acceptance checks failed"
         return RunStatus.COMPLETE, "all steps done"
 
@@ -282,17 +285,15 @@ class Runner:
 
     def corrected_dut(self, raw_ut: Any) -> Any:
         """The DUT reading ``raw_ut`` (uT) corrected by the newest calibration this run has
-        fitted (loads at their commanded currents), None before the first one."""
-        if raw_ut is None:
+        fitted (``latest_calibration``; loads at their commanded currents), None before the first
+        one."""
+        latest = latest_calibration(self.results) if raw_ut is not None else None
+        if latest is None:
             return None
-        for value in reversed(list(self.results.values())):
-            corr = value.get("correction") if isinstance(value, dict) else None
-            if isinstance(corr, dict) and "matrix" in corr:
-                channels = list(corr.get("k_ut_per_unit", {}))
-                loads = np.array([[self.commanded_loads.get(ch, 0.0) for ch in channels]])
-                return apply_correction(corr, np.asarray(raw_ut, float)[None, :], loads,
-                                        channels)[0]  # fmt: skip
-        return None
+        corr = latest[1].correction
+        channels = list(corr.get("k_ut_per_unit", {}))
+        loads = np.array([[self.commanded_loads.get(ch, 0.0) for ch in channels]])
+        return apply_correction(corr, np.asarray(raw_ut, float)[None, :], loads, channels)[0]
 
     # --- what a step may use (rig.steps.base.RunContext) ------------------------------------------
 

@@ -14,7 +14,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from rig.errors import StoredResultError
 from rig.lab.url import rig_name
+from rig.steps.check import CheckVerdict, check_verdict
 from rig.store import safe_files
 from rig.store.run_states import RunStatus
 from rig.store.run_store import RunReader
@@ -122,7 +124,7 @@ def summarize(folder: Path) -> RunSummary | None:
     given = meta.get("parameters")
     params: dict[str, Any] = given if isinstance(given, dict) else {}
     started = _str(meta.get("start_time"))
-    verdict = results.get("verdict")
+    verdict = stored_verdict(results)
     return RunSummary(
         run_id=folder.name,
         data_sha256=sha if isinstance(sha, str) and len(sha) == 64 else None,
@@ -133,7 +135,7 @@ def summarize(folder: Path) -> RunSummary | None:
         lot=_str(params.get("lot")),
         operator=_str(meta.get("operator")) or _str(params.get("operator")),
         status=status,
-        verdict=_str(verdict.get("overall")) if isinstance(verdict, dict) else None,
+        verdict=str(verdict.overall) if verdict is not None else None,
         started_at=started,
         sealed_at=_str(seal.get("sealed_at")),
         software_version=_str(meta.get("software_version")),
@@ -195,18 +197,24 @@ def _number(value: Any) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-def criteria(verdict: Any) -> list[Criterion]:
-    """The acceptance criteria of the ``verdict`` result, with the margin to the nearest limit."""
-    rows = verdict.get("criteria") if isinstance(verdict, dict) else None
+def stored_verdict(results: dict[str, Any]) -> CheckVerdict | None:
+    """The run's check verdict; None without one, or when it cannot be read as one (a run folder
+    from elsewhere is indexed without it rather than refused)."""
+    try:
+        return check_verdict(results)
+    except StoredResultError:
+        return None
+
+
+def criteria(verdict: CheckVerdict | None) -> list[Criterion]:
+    """The acceptance criteria of the run's verdict, with the margin to the nearest limit."""
     out = []
-    for row in rows if isinstance(rows, list) else []:
-        if not isinstance(row, dict) or "name" not in row:
-            continue
-        value, lo, hi = _number(row.get("value")), _number(row.get("min")), _number(row.get("max"))
+    for row in verdict.criteria if verdict is not None else ():
+        value, lo, hi = _number(row.value), _number(row.min), _number(row.max)
         gaps = [] if value is None else [g for g in (
             None if lo is None else value - lo, None if hi is None else hi - value) if g is not None]  # fmt: skip
-        out.append(Criterion(str(row["name"]), value, str(row.get("unit") or ""), lo, hi,
-                             min(gaps) if gaps else None, str(row.get("verdict", ""))))  # fmt: skip
+        out.append(Criterion(row.name, value, row.unit or "", lo, hi,
+                             min(gaps) if gaps else None, str(row.verdict)))  # fmt: skip
     return out
 
 

@@ -16,6 +16,7 @@ from rig.calibration.record import CalibrationRecord, calibrations
 from rig.report.model import Image, Para, Section, Table
 from rig.report.text_report import limit_text, overall_verdict, seal_note
 from rig.steps import KINDS
+from rig.steps.check import CheckVerdict, check_verdict
 
 SPRINGMANN_UNITS = {"a": "", "b": "", "c": "", "x0_ut": "uT", "y0_ut": "uT", "z0_ut": "uT",
                     "rho_deg": "deg", "phi_deg": "deg", "lambda_deg": "deg"}  # fmt: skip
@@ -61,17 +62,17 @@ def header_section(run: RunFacts) -> Section:
     return Section("", (Table(("", ""), tuple((k, str(v)) for k, v in rows), row_heads=True),))
 
 
-def criteria_section(verdict: dict[str, Any] | None) -> Section:
+def criteria_section(verdict: CheckVerdict | None) -> Section:
     """The acceptance criteria: value, limits, margin and verdict per row."""
     title = "Acceptance criteria"
-    if not verdict:
+    if verdict is None:
         return Section(title, (Para("No acceptance criteria were evaluated in this run."),))
     rows = []
-    for row in verdict["criteria"]:
-        if "value" in row:
-            rows.append((str(row["name"]), *limit_text(row), str(row["verdict"])))
+    for row in verdict.criteria:
+        if row.value is not None:
+            rows.append((row.name, *limit_text(row), str(row.verdict)))
         else:
-            rows.append((str(row["name"]), str(row["reason"]), "", "", "FAIL"))
+            rows.append((row.name, row.reason, "", "", "FAIL"))
     header = ("criterion", "measured", "limits", "margin", "verdict")
     return Section(title, (Table(header, tuple(rows), verdict_col=4),))
 
@@ -235,7 +236,7 @@ def report_sections(
     t_start = float(run.meta.get("start_monotonic", run.events[0][0] if run.events else 0.0))
     return [
         header_section(run),
-        criteria_section(run.results.get("verdict")),
+        criteria_section(check_verdict(run.results)),
         step_results_section(run),
         *(calibration_section(n, r, plain.get(n)) for n, r in calibrations(run.results).items()),
         plots_section(figs),

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from rig.analysis import value_unit
+from rig.steps.check import CriterionResult, check_verdict
 from rig.store.run_states import ACCEPTANCE, RunStatus, Verdict
 from rig.store.seal import data_digest, read_seal
 
@@ -30,31 +31,33 @@ def overall_verdict(meta: dict[str, Any], results: dict[str, Any]) -> str:
     """PASS, FAIL, RE-RUN or NO VERDICT for a closed run; a run that did not finish is never an
     acceptance, and one whose data failed the timing checks is judged neither way."""
     status = meta.get("status", RunStatus.INCOMPLETE)
+    verdict = check_verdict(results)
     if status == RunStatus.RERUN:
-        rerun = (results.get("verdict") or {}).get("rerun") or []
-        why = "; ".join(f"{r['result']}: {r['why']}" for r in rerun) or meta.get("reason", "")
+        rerun = verdict.rerun if verdict is not None else ()
+        why = "; ".join(f"{result}: {why}" for result, why in rerun) or meta.get("reason", "")
         return f"{Verdict.RERUN} - NOT JUDGED, RUN AGAIN ({why})"
     if status not in ACCEPTANCE:
         return f"{str(status).upper()} RUN - NOT A VALID ACCEPTANCE"
-    verdict = results.get("verdict")
-    return str(verdict["overall"]) if verdict else "NO VERDICT"
+    return str(verdict.overall) if verdict is not None else "NO VERDICT"
 
 
-def limit_text(row: dict[str, Any]) -> tuple[str, str, str]:
-    """(value, limits, margin) of one criterion row, with its unit."""
-    unit = row.get("unit")
+def limit_text(row: CriterionResult) -> tuple[str, str, str]:
+    """(value, limits, margin) of one criterion row with a value, with its unit."""
+    unit = row.unit
     if unit is None:  # recorded before rows carried their unit
-        unit = value_unit(str(row.get("name", "")))
+        unit = value_unit(row.name)
     u = f" {unit}" if unit else ""
-    lo, hi = row.get("min"), row.get("max")
-    bounds = [f"{what} {v:g}{u}" for what, v in (("min", lo), ("max", hi)) if v is not None]
+    bounds = [
+        f"{what} {v:g}{u}" for what, v in (("min", row.min), ("max", row.max)) if v is not None
+    ]
     limits = ", ".join(bounds) or "no limit"
-    return f"{row['value']:.4g}{u}", limits, f"{row['margin']:.3g}{u}"
+    margin = "" if row.margin is None else f"{row.margin:.3g}{u}"
+    return f"{row.value:.4g}{u}", limits, margin
 
 
-def criterion_line(row: dict[str, Any]) -> str:
+def criterion_line(row: CriterionResult) -> str:
     """One criterion as a line: verdict, name, value with unit, limits, margin."""
-    if "value" not in row:
-        return f"{row['verdict']:<4}  {row['name']}: {row['reason']}"
+    if row.value is None:
+        return f"{row.verdict:<4}  {row.name}: {row.reason}"
     value, limits, margin = limit_text(row)
-    return f"{row['verdict']:<4}  {row['name']}: {value} ({limits}; margin {margin})"
+    return f"{row.verdict:<4}  {row.name}: {value} ({limits}; margin {margin})"

@@ -3,12 +3,69 @@ magnetometer (the cage model), save it and use it for the rest of the run."""
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
+from rig.steps import stored
 from rig.steps.base import StepExecution, StepKind
 from rig.steps.vocabulary import Param, RigTiming, Step
+
+if TYPE_CHECKING:
+    from rig.cage.model import CageModel
+
+Matrix3 = tuple[tuple[float, ...], ...]
+
+
+@dataclass(frozen=True)
+class CageCharacterizationResult:
+    """A cage characterization's result: the cage model ``B = K I + B0`` with 1-sigma, as the rest
+    of the run uses it (the full model, with its date and instruments, is the run's ``cage_model``
+    meta and the saved calibration file)."""
+
+    k_ut_per_a: Matrix3
+    """K: the field per coil current (uT/A), rows the field axes, columns the coils."""
+    b0_ut: tuple[float, ...]
+    """B0: the ambient field in the cage with the coils off (uT)."""
+    k_sigma_ut_per_a: Matrix3
+    """1-sigma of each element of K (uT/A)."""
+    b0_sigma_ut: tuple[float, ...]
+    """1-sigma of B0 (uT)."""
+    residual_rms_nt: float
+    """RMS of the fit's residuals (nT)."""
+    condition_number: float
+    """Of K (ratio): how well the three coils span the three field axes."""
+
+    @classmethod
+    def from_model(cls, model: CageModel) -> CageCharacterizationResult:
+        """The result of a freshly characterized model."""
+        return cls(
+            tuple(tuple(row) for row in model.k_ut_per_a.tolist()), tuple(model.b0_ut.tolist()),
+            tuple(tuple(row) for row in model.k_sigma.tolist()), tuple(model.b0_sigma_ut.tolist()),
+            model.meta["residual_rms_nt"], model.meta["condition_number"],
+        )  # fmt: skip
+
+    def to_dict(self) -> dict[str, Any]:
+        """The stored mapping."""
+        return {
+            "k_ut_per_a": [list(row) for row in self.k_ut_per_a], "b0_ut": list(self.b0_ut),
+            "k_sigma_ut_per_a": [list(row) for row in self.k_sigma_ut_per_a],
+            "b0_sigma_ut": list(self.b0_sigma_ut),
+            "residual_rms_nt": self.residual_rms_nt, "condition_number": self.condition_number,
+        }  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, d: Any) -> CageCharacterizationResult:
+        """Read a stored characterization result; a :class:`~rig.errors.StoredResultError` names
+        what is wrong."""
+        what = "cage characterization result"
+        d = stored.mapping(d, what)
+        return cls(
+            stored.matrix3(d, "k_ut_per_a", what), stored.numbers(d, "b0_ut", what, 3),
+            stored.matrix3(d, "k_sigma_ut_per_a", what), stored.numbers(d, "b0_sigma_ut", what, 3),
+            stored.number(d, "residual_rms_nt", what), stored.number(d, "condition_number", what),
+        )  # fmt: skip
 
 
 def characterization_duration_s(
@@ -68,12 +125,7 @@ class Characterize(StepExecution):
             version = model.save(ctx.cfg.cage.calibration)
             model.meta["file"] = str(version)
         ctx.set_meta(cage_model=model.to_dict())
-        ctx.record_result(self.step.name, {
-            "k_ut_per_a": model.k_ut_per_a.tolist(), "b0_ut": model.b0_ut.tolist(),
-            "k_sigma_ut_per_a": model.k_sigma.tolist(), "b0_sigma_ut": model.b0_sigma_ut.tolist(),
-            "residual_rms_nt": model.meta["residual_rms_nt"],
-            "condition_number": model.meta["condition_number"],
-        })  # fmt: skip
+        ctx.record_result(self.step.name, CageCharacterizationResult.from_model(model).to_dict())
 
 
 KIND = CharacterizeCage()

@@ -9,12 +9,14 @@ residuals are the non-linearity.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 
 from rig.analysis import change_times, settled_samples, to_cage_frame
-from rig.errors import RigError
+from rig.errors import RigError, StoredResultError
+from rig.steps import stored
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.vocabulary import DEFAULT_FIELD_LIMIT_UT, Param, RigTiming, Step
 
@@ -34,6 +36,75 @@ def nonlinearity(applied_ut: Array, reading_ut: Array) -> tuple[Array, float, fl
     design = np.column_stack([np.ones_like(applied_ut), applied_ut])
     coef, *_ = np.linalg.lstsq(design, reading_ut, rcond=None)
     return reading_ut - design @ coef, float(coef[1]), float(coef[0])
+
+
+@dataclass(frozen=True)
+class AxisLinearity:
+    """One axis's sweep: per settled point the applied field (uT, the reference's component along
+    the axis) and the DUT's departure from its straight line (uT); the line's gain and offset."""
+
+    applied_ut: tuple[float, ...]
+    residual_ut: tuple[float, ...]
+    gain: float
+    """DUT reading per applied field (ratio); stored as a one-element list."""
+    offset_ut: float
+    """The line's DUT reading at zero applied field (uT); stored as a one-element list."""
+
+    def to_dict(self) -> dict[str, list[float]]:
+        """The stored mapping of one axis."""
+        return {"applied_ut": list(self.applied_ut), "residual_ut": list(self.residual_ut),
+                "gain": [self.gain], "offset_ut": [self.offset_ut]}  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, d: Any, what: str) -> AxisLinearity:
+        """Read one axis's stored mapping (``what`` names it in an error)."""
+        d = stored.mapping(d, what)
+        applied = stored.numbers(d, "applied_ut", what)
+        residual = stored.numbers(d, "residual_ut", what, len(applied))
+        (gain,) = stored.numbers(d, "gain", what, 1)
+        (offset,) = stored.numbers(d, "offset_ut", what, 1)
+        return cls(applied, residual, gain, offset)
+
+
+@dataclass(frozen=True)
+class LinearityResult:
+    """A linearity sweep's result: the largest departure from a straight line in ppm of full scale
+    (worst axis, and per axis x, y, z), the full scale (uT) and each axis's points."""
+
+    nonlinearity_ppm: float
+    axis_nonlinearity_ppm: dict[str, float]
+    full_scale_ut: float
+    """The sweep's largest commanded field (uT), the scale the ppm are of."""
+    points: dict[str, AxisLinearity]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The stored mapping."""
+        return {"nonlinearity_ppm": self.nonlinearity_ppm,
+                "axis_nonlinearity_ppm": dict(self.axis_nonlinearity_ppm),
+                "full_scale_ut": self.full_scale_ut,
+                "points": {a: p.to_dict() for a, p in self.points.items()}}  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, d: Any) -> LinearityResult:
+        """Read a stored linearity result; a :class:`StoredResultError` names what is wrong."""
+        what = "linearity result"
+        d = stored.mapping(d, what)
+        points = stored.mapping(stored.entry(d, "points", what), f"{what} 'points'")
+        return cls(
+            stored.number(d, "nonlinearity_ppm", what),
+            stored.number_map(d, "axis_nonlinearity_ppm", what),
+            stored.number(d, "full_scale_ut", what),
+            {str(a): AxisLinearity.from_dict(p, f"{what} axis {a}") for a, p in points.items()},
+        )
+
+
+def read_linearity(result: Any) -> LinearityResult | None:
+    """A stored result as a linearity result; None when it is not one (the report then lists the
+    result's numbers, as for any result its kind does not describe)."""
+    try:
+        return LinearityResult.from_dict(result)
+    except StoredResultError:
+        return None
 
 
 class Linearity(FieldStepKind):
@@ -64,28 +135,30 @@ class Linearity(FieldStepKind):
         return MeasureLinearity(ctx, step)
 
     def figures(self, reader: Any, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
-        if not isinstance(result, dict) or "points" not in result:
+        found = read_linearity(result)
+        if found is None:
             return []
         fig, ax = plt.subplots(figsize=(7.0, 3.6))
-        for axis, pts in result["points"].items():
-            applied = np.array(pts["applied_ut"])
-            ax.plot(applied, 1000.0 * np.array(pts["residual_ut"]), "o-", ms=3, lw=0.8,
-                    label=f"{axis}: {result['axis_nonlinearity_ppm'][axis]:.0f} ppm")  # fmt: skip
+        for axis, pts in found.points.items():
+            ppm = found.axis_nonlinearity_ppm.get(axis, float("nan"))
+            ax.plot(np.array(pts.applied_ut), 1000.0 * np.array(pts.residual_ut), "o-", ms=3,
+                    lw=0.8, label=f"{axis}: {ppm:.0f} ppm")  # fmt: skip
         ax.axhline(0.0, color="k", lw=0.6)
         ax.set_xlabel("applied field along the axis (uT, reference)")
         ax.set_ylabel("DUT minus straight line (nT)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes
         fig.tight_layout()
-        return [(f"Linearity '{name}' (full scale {result['full_scale_ut']:g} uT)", fig)]
+        return [(f"Linearity '{name}' (full scale {found.full_scale_ut:g} uT)", fig)]
 
     def report_lines(self, name: str, result: Any) -> list[str]:
-        if not isinstance(result, dict) or "nonlinearity_ppm" not in result:
+        found = read_linearity(result)
+        if found is None:
             return []
-        axes = ", ".join(f"{a} {v:.0f}" for a, v in result["axis_nonlinearity_ppm"].items())
+        axes = ", ".join(f"{a} {v:.0f}" for a, v in found.axis_nonlinearity_ppm.items())
         return [
-            f"Linearity {name}: {result['nonlinearity_ppm']:.0f} ppm of"
-            f" {result['full_scale_ut']:g} uT full scale (worst axis; per axis {axes} ppm)."
+            f"Linearity {name}: {found.nonlinearity_ppm:.0f} ppm of"
+            f" {found.full_scale_ut:g} uT full scale (worst axis; per axis {axes} ppm)."
         ]
 
 
@@ -107,7 +180,7 @@ class MeasureLinearity(StepExecution):
             ref_rows = settled_samples(reader, ref, (t_start, t_end), p["settle_s"], changes)
         finally:
             reader.close()
-        points: dict[str, dict[str, list[float]]] = {}
+        points: dict[str, AxisLinearity] = {}
         ppm: dict[str, float] = {}
         scale = float(max(abs(v) for _, pl in fields for v in pl["field_ut"])) if fields else 0.0
         for axis, name in enumerate("xyz"):
@@ -128,12 +201,9 @@ class MeasureLinearity(StepExecution):
                 )
             residual, gain, offset = nonlinearity(np.array(applied), np.array(reading))
             ppm[name] = float(1e6 * np.max(np.abs(residual)) / scale)
-            points[name] = {"applied_ut": applied, "residual_ut": residual.tolist(),
-                            "gain": [gain], "offset_ut": [offset]}  # fmt: skip
-        ctx.record_result(self.step.name, {
-            "nonlinearity_ppm": max(ppm.values()), "axis_nonlinearity_ppm": ppm,
-            "full_scale_ut": scale, "points": points,
-        })  # fmt: skip
+            points[name] = AxisLinearity(tuple(applied), tuple(residual.tolist()), gain, offset)
+        result = LinearityResult(max(ppm.values()), ppm, scale, points)
+        ctx.record_result(self.step.name, result.to_dict())
 
 
 KIND = Linearity()

@@ -7,12 +7,14 @@ is detrended and its density estimated by Welch's method (Hann window, 50 % over
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 
 from rig.analysis import settled_samples
-from rig.errors import RigError
+from rig.errors import RigError, StoredResultError
+from rig.steps import stored
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.vocabulary import Param, ProcedureError, RigTiming, Step
 
@@ -38,6 +40,65 @@ def band_mean(f: Array, asd: Array, band: tuple[float, float]) -> Array:
     """Per axis, the RMS of the density over ``band`` (Hz): power averaged, then its root."""
     sel = (f >= band[0]) & (f <= band[1])
     return np.asarray(np.sqrt(np.mean(asd[sel] ** 2, axis=0)))
+
+
+@dataclass(frozen=True)
+class NoiseSpectrumResult:
+    """A noise spectrum's result: the DUT's amplitude spectral density (nT/rtHz, one-sided) at
+    1 Hz (the mean over 0.8-1.25 Hz) and over ``band_hz``, worst axis and per axis (x, y, z)."""
+
+    density_1hz_nt_per_rthz: float
+    band_density_nt_per_rthz: float
+    axis_density_1hz_nt_per_rthz: tuple[float, ...]
+    axis_band_density_nt_per_rthz: tuple[float, ...]
+    band_hz: tuple[float, float]
+    """The band's low and high edge (Hz)."""
+    rate_hz: float
+    """The samples' median rate (Hz), the grid they were put on."""
+    samples: int
+    """Settled samples used."""
+    device: str
+    """The magnetometer measured (its rig configuration name)."""
+    settle_s: float
+    """Samples this long (s) after a field or load change were left out."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """The stored mapping."""
+        return {
+            "density_1hz_nt_per_rthz": self.density_1hz_nt_per_rthz,
+            "band_density_nt_per_rthz": self.band_density_nt_per_rthz,
+            "axis_density_1hz_nt_per_rthz": list(self.axis_density_1hz_nt_per_rthz),
+            "axis_band_density_nt_per_rthz": list(self.axis_band_density_nt_per_rthz),
+            "band_hz": list(self.band_hz), "rate_hz": self.rate_hz, "samples": self.samples,
+            "device": self.device, "settle_s": self.settle_s,
+        }  # fmt: skip
+
+    @classmethod
+    def from_dict(cls, d: Any) -> NoiseSpectrumResult:
+        """Read a stored noise spectrum result; a :class:`StoredResultError` names what is wrong."""
+        what = "noise spectrum result"
+        d = stored.mapping(d, what)
+        lo, hi = stored.numbers(d, "band_hz", what, 2)
+        return cls(
+            stored.number(d, "density_1hz_nt_per_rthz", what),
+            stored.number(d, "band_density_nt_per_rthz", what),
+            stored.numbers(d, "axis_density_1hz_nt_per_rthz", what, 3),
+            stored.numbers(d, "axis_band_density_nt_per_rthz", what, 3),
+            (lo, hi),
+            stored.number(d, "rate_hz", what),
+            stored.integer(d, "samples", what),
+            stored.text(d, "device", what),
+            stored.number(d, "settle_s", what),
+        )
+
+
+def read_noise_spectrum(result: Any) -> NoiseSpectrumResult | None:
+    """A stored result as a noise spectrum; None when it is not one (the report then lists the
+    result's numbers, as for any result its kind does not describe)."""
+    try:
+        return NoiseSpectrumResult.from_dict(result)
+    except StoredResultError:
+        return None
 
 
 class NoiseSpectrum(FieldStepKind):
@@ -74,19 +135,20 @@ class NoiseSpectrum(FieldStepKind):
 
     def figures(self, reader: Any, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
         window = next(((t0, t1) for _, n, _, t0, t1 in reader.steps() if n == name and t1), None)
-        if window is None or not isinstance(result, dict) or "device" not in result:
+        found = read_noise_spectrum(result)
+        if window is None or found is None:
             return []
-        rows = settled_samples(reader, result["device"], window, float(result["settle_s"]))
+        rows = settled_samples(reader, found.device, window, found.settle_s)
         if len(rows) < MIN_SAMPLES:
             return []
         f, asd, _ = amplitude_density(rows[:, 0], rows[:, 1:])
         fig, ax = plt.subplots(figsize=(7.0, 3.6))
         for i, axis in enumerate("xyz"):
             ax.loglog(f[1:], 1000.0 * asd[1:, i], lw=0.9, label=axis)
-        lo, hi = result["band_hz"]
+        lo, hi = found.band_hz
         ax.axvspan(lo, hi, color="0.9", zorder=0, label="band")
-        ax.axhline(result["band_density_nt_per_rthz"], color="k", ls="--", lw=0.8,
-                   label=f"band mean {result['band_density_nt_per_rthz']:.3g} nT/rtHz")  # fmt: skip
+        ax.axhline(found.band_density_nt_per_rthz, color="k", ls="--", lw=0.8,
+                   label=f"band mean {found.band_density_nt_per_rthz:.3g} nT/rtHz")  # fmt: skip
         ax.set_xlabel("frequency (Hz)")
         ax.set_ylabel("noise density (nT/rtHz)")
         ax.grid(True, which="both", alpha=0.3)
@@ -95,13 +157,14 @@ class NoiseSpectrum(FieldStepKind):
         return [(f"Noise spectrum '{name}'", fig)]
 
     def report_lines(self, name: str, result: Any) -> list[str]:
-        if not isinstance(result, dict) or "density_1hz_nt_per_rthz" not in result:
+        found = read_noise_spectrum(result)
+        if found is None:
             return []
-        lo, hi = result["band_hz"]
+        lo, hi = found.band_hz
         return [
-            f"Noise spectrum {name}: {result['density_1hz_nt_per_rthz']:.3g} nT/rtHz"
-            f" at 1 Hz, {result['band_density_nt_per_rthz']:.3g} nT/rtHz over {lo:g}-{hi:g} Hz"
-            f" ({result['samples']} samples at {result['rate_hz']:.1f} Hz, worst axis)."
+            f"Noise spectrum {name}: {found.density_1hz_nt_per_rthz:.3g} nT/rtHz"
+            f" at 1 Hz, {found.band_density_nt_per_rthz:.3g} nT/rtHz over {lo:g}-{hi:g} Hz"
+            f" ({found.samples} samples at {found.rate_hz:.1f} Hz, worst axis)."
         ]
 
 
@@ -128,14 +191,11 @@ class MeasureSpectrum(StepExecution):
             )
         at_1hz = 1000.0 * band_mean(f, asd, AROUND_1HZ)
         band = 1000.0 * band_mean(f, asd, (lo, hi))
-        self.ctx.record_result(self.step.name, {
-            "density_1hz_nt_per_rthz": float(at_1hz.max()),
-            "band_density_nt_per_rthz": float(band.max()),
-            "axis_density_1hz_nt_per_rthz": at_1hz.tolist(),
-            "axis_band_density_nt_per_rthz": band.tolist(),
-            "band_hz": [lo, hi], "rate_hz": rate_hz, "samples": len(rows),
-            "device": device, "settle_s": p["settle_s"],
-        })  # fmt: skip
+        result = NoiseSpectrumResult(
+            float(at_1hz.max()), float(band.max()), tuple(at_1hz.tolist()), tuple(band.tolist()),
+            (lo, hi), rate_hz, len(rows), device, p["settle_s"],
+        )  # fmt: skip
+        self.ctx.record_result(self.step.name, result.to_dict())
 
 
 KIND = NoiseSpectrum()

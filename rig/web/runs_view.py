@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rig.steps.check import check_verdict
 from rig.store import RunReader, safe_files
 from rig.store.run_control import LIVE_FILE, read_live
 
@@ -82,10 +83,10 @@ def summarize_run(folder: Path) -> RunSummary:
     reader = RunReader(folder)
     try:
         meta = reader.meta()
-        verdict = reader.results().get("verdict")
+        verdict = check_verdict(reader.results())  # malformed: listed damaged, with the reason
     finally:
         reader.close()
-    overall = verdict.get("overall") if isinstance(verdict, dict) else None
+    overall = str(verdict.overall) if verdict is not None else None
     start = str(meta.get("start_time", ""))
     try:
         started = dt.datetime.fromisoformat(start).strftime("%Y-%m-%d %H:%M:%S UTC")
@@ -124,6 +125,7 @@ def run_details(folder: Path) -> dict[str, Any]:
     finally:
         reader.close()
     t0 = float(meta.get("start_monotonic", 0.0) or 0.0)
+    verdict = check_verdict(results)
     return {
         "summary": summarize_run(folder).to_dict(),
         "meta": {k: v for k, v in meta.items() if not isinstance(v, dict | list)},
@@ -138,7 +140,7 @@ def run_details(folder: Path) -> dict[str, Any]:
             for i, n, k, a, b in steps
         ],
         "events": [{"t": round(t - t0, 2), "level": lv, "message": m} for t, lv, m in events],
-        "verdict": results.get("verdict"),
+        "verdict": verdict.to_dict() if verdict is not None else None,
         "files": downloads(folder),
         "plots": [name for name in downloads(folder) if name.endswith(".png")],
         "live": read_live(folder),
