@@ -85,12 +85,16 @@ def late_intervals(reader: RunReader, limit_s: float) -> Array:
     than planned, faster than the reference's samples resolve (issue 30: delays 4 sigma off, a
     scalar residual over its limit). A timeline that is late by a steady or growing amount (a
     slow link) only holds each set-point longer, which the reference follows. Runs recorded
-    before commands carried their due time have none."""
+    before commands carried their due time have none. Since a late tracked timeline slips
+    instead of catching up (rig.engine.schedule.TrackPace), runs recorded since find none unless
+    the computer stalled inside a set-point's group."""
     series: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     for t, _, kind, p in reader.commands():
         if kind in ("field", "load") and p.get("track") and "t_due" in p:
+            # the plan's spacing where recorded (a slipped timeline's due times embed its slips)
+            planned = float(p.get("t_plan", p["t_due"]))
             series.setdefault((kind, str(p.get("channel", ""))), []).append(
-                (float(p["t_due"]), float(p.get("t_issued", t)), t)
+                (planned, float(p.get("t_issued", t)), t)
             )
     rows = []
     for cmds in series.values():

@@ -58,14 +58,12 @@ class Commands:
     def _set_field(self, step_idx: int, payload: dict[str, Any], now: float) -> None:
         w = self.writer
         target = np.array(payload["field_ut"])
-        issued = now
         if payload.get("track"):
             # One tracked set-point moves the field by a slew-limited step that the reference
-            # follows (interpolated): no interval to leave out. A ramp through zero is one.
+            # follows (interpolated): no interval to leave out (rig.analysis.change_times). A
+            # ramp through zero is one. Its window (issued .. done) is when the axes were written.
             ramped = self.controller.track(target)
             payload = payload | {"ramped": ramped}
-            if not ramped:
-                issued = time.monotonic()
         elif payload.get("trim"):
             result = self.controller.trim(target)
             if not result.settled:
@@ -74,7 +72,7 @@ class Commands:
             self.controller.set_field(target)
         # Logged when the ramp has finished: analysis counts settling from here.
         done = time.monotonic()
-        w.add_command(done, step_idx, "field", payload | {"t_issued": min(issued, done)})
+        w.add_command(done, step_idx, "field", payload | {"t_issued": min(now, done)})
         for ax, amps in enumerate(self.controller.currents):
             w.add_channel(time.monotonic(), f"coil_{'xyz'[ax]}", float(amps), None)
 

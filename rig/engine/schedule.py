@@ -21,6 +21,12 @@ CATCH_UP_S = 2.0
 """Longest wait at the end of a step for each sensor's samples up to that moment (s): they may sit
 in a buffer while a busy computer runs something else (a null step's noise floor was once judged
 on 3 of its 14 samples)."""
+TRACK_SPACING_TOLERANCE = 0.1
+"""A tracked set-point (an orbit replay's field and currents) is never sent sooner after the
+previous one than their planned spacing less this fraction of it: a timeline held back by a busy
+computer slips instead of catching up in a burst (which moves the field faster than the
+reference's samples resolve and left half an orbit replay unusable, issue 30); the fraction
+absorbs the scheduler's ordinary wake-up jitter."""
 
 
 class StepScheduler:
@@ -92,17 +98,55 @@ class StepScheduler:
         step's set-point once its field is there)."""
         step, stop = plan.step, execution.stop
         hold_from_field = KINDS[step.kind].hold_from_field
+        pace = TrackPace()
         for cmd in plan.commands:
+            t0 = pace.slipped(t0, cmd.t_s, bool(cmd.payload.get("track")))
             t0 += self.wait_until(t0 + cmd.t_s, stop)
             if stop is not None and stop.is_set():
                 break
             now = time.monotonic()
+            pace.issued(cmd.t_s, now, bool(cmd.payload.get("track")))
             if cmd.kind in ("field", "load"):
                 self.lateness_s.append(now - (t0 + cmd.t_s))
-                # logged with when it was due: analysis leaves out what a late timeline moved
-                due = {"t_due": t0 + cmd.t_s}
+                # logged with when it was due (the timeline slipped) and its time in the plan (s
+                # from the step's start): analysis judges a tracked timeline's spacing by the plan
+                due = {"t_due": t0 + cmd.t_s, "t_plan": cmd.t_s}
                 self.commands.command(step.index, cmd.kind, cmd.payload | due, now)
                 if cmd.kind == "field" and hold_from_field:
                     t0 = time.monotonic() - cmd.t_s  # its dwell starts once the field is there
             elif cmd.kind != "end":
                 execution.run(cmd.payload)
+        if pace.slip_s > 0.0:
+            self.event("warning" if pace.slip_s > 1.0 else "info",
+                       f"step {step.index + 1}: its tracked set-points ran {pace.slip_s:.2f} s behind"
+                       " the plan (the computer was busy); each kept its planned spacing, none was"
+                       " sent in a burst")  # fmt: skip
+
+
+class TrackPace:
+    """The pace of a step's tracked set-points: each group (the commands at one plan time) at
+    least its planned spacing after the previous group was issued, less
+    :data:`TRACK_SPACING_TOLERANCE` of it; what that adds is the timeline's slip (s)."""
+
+    def __init__(self) -> None:
+        self.slip_s = 0.0
+        self._last: tuple[float, float] | None = None  # (plan time s, issued monotonic s)
+
+    def slipped(self, t0: float, t_s: float, track: bool) -> float:
+        """The step's start ``t0`` (monotonic s), moved on so that a tracked command at plan time
+        ``t_s`` is not due sooner than its spacing after the previous group allows."""
+        if not track or self._last is None or t_s <= self._last[0]:
+            return t0
+        spacing = t_s - self._last[0]
+        earliest = self._last[1] + (1.0 - TRACK_SPACING_TOLERANCE) * spacing
+        if t0 + t_s >= earliest:
+            return t0
+        # late: the rest of the timeline moves on by as much, so nothing catches up later
+        shift = self._last[1] + spacing - (t0 + t_s)
+        self.slip_s += shift
+        return t0 + shift
+
+    def issued(self, t_s: float, now: float, track: bool) -> None:
+        """A command at plan time ``t_s`` was issued at ``now``; a group starts with its first."""
+        if track and (self._last is None or t_s > self._last[0]):
+            self._last = (t_s, now)
