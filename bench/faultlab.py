@@ -205,6 +205,8 @@ class Measured:
     rig_cpu_wait_ms: float = 0.0  # longest wait for a CPU of a rig thread in the 2 s before a kill
     # the guardian's own wait for a CPU while it acted (its account)
     guardian_cpu_wait_ms: float = 0.0
+    # longest wait for a CPU of a rig thread from the fault until the rig ended (its safe path)
+    rig_cpu_wait_after_ms: float = 0.0
 
     @property
     def safe_after_detection_ms(self) -> float | None:
@@ -234,9 +236,10 @@ class Measured:
         if f.detect_within_ms:
             # a busy computer's kernel holding serial bytes back, or keeping the guardian from a
             # CPU, delays what no rig can hasten; both are measured, not guessed
-            busy = self.kernel_stall_ms + self.guardian_cpu_wait_ms
+            busy = self.kernel_stall_ms + self.guardian_cpu_wait_ms + self.rig_cpu_wait_after_ms
             why = (f"{self.kernel_stall_ms:.0f} ms of kernel serial stall,"
-                   f" {self.guardian_cpu_wait_ms:.0f} ms of the guardian waiting for a CPU")  # fmt: skip
+                   f" {self.guardian_cpu_wait_ms:.0f} ms of the guardian and"
+                   f" {self.rig_cpu_wait_after_ms:.0f} ms of the rig waiting for a CPU")  # fmt: skip
             bound = f.detect_within_ms + SAFE_AFTER_DETECTION_MS + busy
             if self.time_to_safe_ms is None or self.time_to_safe_ms > bound:
                 out.append(f"time to safe {self.time_to_safe_ms} ms, bound {bound:g} ms ({why})")
@@ -448,7 +451,8 @@ def _child_run(fault: Fault, kind: str, cage: SimulatedCage, workdir: Path, proc
         folder = next(p for p in runs.iterdir() if (p / "run.sqlite").exists())
         size = max(p.stat().st_size for p in folder.iterdir() if p.is_file())
         resource.prlimit(child.pid, resource.RLIMIT_FSIZE, (size, size))
-    _, err = child.communicate(timeout=60)
+    _, err = _communicate_noting(child, waits)
+    rig_cpu_wait_after_ms = 1000.0 * waits.waited_since(t_fault)
     took = time.monotonic() - t0
     deadline = time.monotonic() + 10  # the guardian finishes writing its record
     while watch.on() and time.monotonic() < deadline:
@@ -485,7 +489,25 @@ def _child_run(fault: Fault, kind: str, cage: SimulatedCage, workdir: Path, proc
         status = "error" if child.returncode == 2 else status  # the status row could not be written
     return Measured(fault, kind, status, child.returncode, reason, time_to_safe, detected_ms, stored,
                     None, data_lost_ms, took, left_on, watch.kernel_stall_ms,
-                    rig_cpu_wait_ms, guardian_cpu_wait_ms(reason))  # fmt: skip
+                    rig_cpu_wait_ms, guardian_cpu_wait_ms(reason), rig_cpu_wait_after_ms)  # fmt: skip
+
+
+def _communicate_noting(child: subprocess.Popen[str], waits: CpuWaitLog) -> tuple[str, str]:
+    """``child.communicate`` (60 s at most) while ``waits`` notes the child's threads' waits for
+    a CPU every 0.1 s: its safe path on a busy computer is slow by what no rig can hasten."""
+    done = threading.Event()
+
+    def note() -> None:
+        while not done.wait(0.1) and child.poll() is None:
+            waits.note(time.monotonic())
+
+    noter = threading.Thread(target=note, daemon=True)
+    noter.start()
+    try:
+        return child.communicate(timeout=60)
+    finally:
+        done.set()
+        noter.join()
 
 
 def edit_config(text: str) -> str:
