@@ -73,7 +73,7 @@ def test_orbit_procedure_plans_field_and_panel_commands() -> None:
     plan = next(p for p in compile_plan(proc) if p.step.kind == "orbit_replay")
     fields = [c for c in plan.commands if c.kind == "field"]
     loads = [c for c in plan.commands if c.kind == "load"]
-    assert len(fields) == 90 * 20 and all(c.payload["track"] for c in fields)
+    assert len(fields) == 90 * 50 and all(c.payload["track"] for c in fields)
     assert {c.payload["channel"] for c in loads} == {"load_bus", "load_panel"}
     assert loads and max(c.payload["current_a"] for c in loads) <= 2.0
 
