@@ -138,10 +138,12 @@ def test_abort_from_the_page_leaves_every_output_off(
         wait_js(page, "/noise floor|noise spectrum|linearity|sweep/.test("
                       "document.getElementById('step-line').textContent)", 60)  # fmt: skip
         page.click("#pause")
-        page.wait_for_selector("#paused-flag:not([hidden])", timeout=5_000)
+        # held at the step's next scheduled command: up to a whole action away (a noise record,
+        # a sweep point), longer on a busy computer (5 s was once too short beside CPU hogs)
+        page.wait_for_selector("#paused-flag:not([hidden])", timeout=60_000)
         time.sleep(1.0)
         page.click("#resume")
-        page.wait_for_selector("#paused-flag", state="hidden", timeout=5_000)
+        page.wait_for_selector("#paused-flag", state="hidden", timeout=30_000)
         t_click = time.monotonic()
         page.click("#abort")
         while any(v == 1 for v in outputs(devices, tcp_only=True).values()):
