@@ -15,6 +15,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ import pytest
 
 from rig.cli import EXIT_CLOSED_PIPE, main
 from rig.config import load_rig_config
+from rig.engine.cpu_wait import CpuWaitLog
 from rig.procedure.language import parse_procedure
 from rig.procedure.plan import (
     characterization_duration_s,
@@ -146,9 +148,30 @@ def sim_runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, P
             "    name: cage model\n"
             "  - sphere_sweep: {directions: 16, magnitude_ut: [20, 40], dwell_s: 0.8}\n"
         )
+        waits = [CpuWaitLog(), *(CpuWaitLog(pid=pid) for pid in _children())]  # rig, simulator
+        t_start = time.monotonic()
+        for log in waits:
+            log.note(t_start)
         assert main(["-q", "run", str(proc), "--rig", str(rig_toml), "--yes",
                      "--runs-dir", str(runs)]) == 0  # fmt: skip
+        for log in waits:
+            log.note(time.monotonic())
+        waited_s = sum(log.waited_since(t_start) for log in waits)
+        (folder / "cpu_wait_s").write_text(f"{waited_s}\n", encoding="utf-8")
         yield rig_toml, runs
+
+
+def _children() -> list[int]:
+    """Process ids of this process's children (the simulator), from /proc."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[1]) == os.getpid():
+            pids.append(int(stat.parent.name))
+    return pids
 
 
 def run_folder(runs: Path, label: str) -> Path:
@@ -214,8 +237,13 @@ def test_characterization_estimate_within_20_percent_of_the_simulator(
     assert kind == "characterize_cage" and t1 is not None
     proc = parse_procedure(folder / "procedure.yaml")
     estimate = next(compile_plan(proc, rig_timing(load_rig_config(rig_toml)))).duration_s
-    print(f"characterization: measured {t1 - t0:.2f} s, estimated {estimate:.2f} s")
-    assert abs(estimate - (t1 - t0)) < 0.2 * (t1 - t0)
+    # on a busy computer the step also waits for this process and the simulator to get a CPU
+    # (readings arrive late, replies come late): that time is the computer's, not the plan's
+    waited_s = float((runs.parent / "cpu_wait_s").read_text())
+    print(f"characterization: measured {t1 - t0:.2f} s, estimated {estimate:.2f} s"
+          f" ({waited_s:.2f} s of the run waiting for a CPU)")  # fmt: skip
+    assert estimate < 1.2 * (t1 - t0)
+    assert t1 - t0 - waited_s < 1.2 * estimate
 
 
 # --- 2. rig check without a rig -----------------------------------------------------------------
