@@ -209,6 +209,27 @@ def phase_locked_interval_s(commands: Array, t_s: Array) -> float | None:
     return interval if locked else None
 
 
+def write_window_s(commands: Array, t_s: Array, ramp_s: float) -> float:
+    """The width (s) within which a load channel's ``commands`` (:func:`load_commands`) took
+    effect, as it bears on the channel's delay: each command's write (issued .. answered)
+    weighted by its share of the delay's information, its current step squared times the DUT
+    samples ``t_s`` (s) within ``ramp_s`` of it (the series' ramp, :func:`staircase_series`).
+    Where in its write a command acted is one unknown for them all, not one each (on a busy
+    computer the answer comes late while the device acted early), so it is their weighted mean,
+    not a width that averages down; a median let a few wide writes on large steps (an eclipse
+    entry) bias an orbit replay's delay by 2 of its sigma (issue 30)."""
+    if commands.shape[0] == 0:
+        return 0.0
+    widths = commands[:, 1] - commands[:, 0]
+    mid = 0.5 * (commands[:, 0] + commands[:, 1])
+    steps = np.abs(np.diff(np.r_[0.0, commands[:, 2]]))
+    near = np.searchsorted(t_s, mid + 0.5 * ramp_s) - np.searchsorted(t_s, mid - 0.5 * ramp_s)
+    weight = steps**2 * near
+    if not weight.sum() > 0:
+        return float(np.median(widths))
+    return float(weight @ widths / weight.sum())
+
+
 def staircase_series(starts_s: Array, values: Array, width_s: float) -> Callable[[Array], Array]:
     """Values that each hold from their start (s, increasing) to the next one's, as a function of
     time: each step a linear ramp ``width_s`` (s) wide centred on it (steps closer than that: the

@@ -456,6 +456,7 @@ def _delay_inputs(reader: Any, channels: list[str], t_s: Any) -> tuple[Any, ...]
         phase_locked_interval_s,
         reference_field_series,
         telemetry_series,
+        write_window_s,
     )
 
     width_s = 2.0 * float(np.median(np.diff(t_s))) if t_s.size > 1 else 0.1
@@ -464,8 +465,7 @@ def _delay_inputs(reader: Any, channels: list[str], t_s: Any) -> tuple[Any, ...]
     locked = {ch: phase_locked_interval_s(commands[ch], t_s) for ch in channels}
     # when a command took effect is known only to within its write (issued .. answered): wide
     # on a busy computer; that width enters the delay's sigma too (ADR 0020)
-    writes = {ch: float(np.median(np.diff(c[:, :2]))) if len(c) else 0.0
-              for ch, c in commands.items()}  # fmt: skip
+    writes = {ch: write_window_s(c, t_s, width_s) for ch, c in commands.items()}
     resolution = {ch: float(np.hypot(locked[ch] or 0.0, writes[ch])) for ch in channels}
     # the DUT's and the reference's dates may differ by their streams' latencies: with delays,
     # that offset is fitted too (within two DUT periods, at least 50 ms; issue 30)
