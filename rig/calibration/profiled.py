@@ -264,8 +264,24 @@ def _uncertainty(
     from rig.calibration.correlated import rows_noise_check
 
     check, info, ratio = rows_noise_check(r, jac, at.n, sigma_hat2)
-    sigma = np.sqrt(sigma_hat2 * diag) * check.inflation[k:]
+    sigma = np.sqrt(sigma_hat2 * diag) * np.maximum(check.inflation[k:],
+                                                    _misfit_inflation(r, jac, at.n, inv, k))  # fmt: skip
     if info is None:
         return sigma, np.sqrt(crlb_scale * diag)
     crlb = np.maximum(np.diag(np.linalg.pinv(info))[k:], 0.0)
     return sigma, np.sqrt(crlb_scale * ratio * crlb)
+
+
+def _misfit_inflation(r: Array, jac: Array, n: int, inv: Array, k: int) -> Array:
+    """Per profiled parameter (columns ``k:``), ``sqrt(sandwich / white)`` of its variance, at
+    least 1: the heteroskedasticity-consistent sandwich ``H^-1 (sum_i s_i s_i^T) H^-1`` of the
+    per-sample scores ``s_i`` (White 1980) over the white ``sigma^2 H^-1``. A step-like current
+    in a CSV column is a ramp to the model, so every step leaves a misfit where the delay's column
+    is large: those residuals carry the step's unknown time within its sample interval, which the
+    white sigma averages away over all samples (issue 34 audit: step currents at random times
+    gave rms z 11 without it)."""
+    res = r.reshape(n, -1)
+    scores = np.einsum("nap,na->np", jac.reshape(n, res.shape[1], -1), res)
+    sandwich = np.diag(inv @ (scores.T @ scores) @ inv)[k:]
+    white = float(r @ r) / max(r.size - jac.shape[1], 1) * np.diag(inv)[k:]
+    return np.asarray(np.sqrt(np.maximum(sandwich / np.maximum(white, 1e-300), 1.0)))
