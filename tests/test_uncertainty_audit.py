@@ -104,17 +104,18 @@ def test_delays_have_honest_sigmas(client: Client, name: str) -> None:
 
 @pytest.mark.slow
 def test_temperature_coefficients_have_honest_sigmas(client: Client) -> None:
-    rms, _ = rms_by_name(client, "temperature", 10)
+    rms, _ = rms_by_name(client, "temperature", 20)
     names = ("scale per kelvin", "k[temperature].x", "k[temperature].y", "k[temperature].z")
     assert_rms_within(rms, names)
 
 
 def test_the_dask_path_gives_the_plain_loops_draws(client: Client) -> None:
     """The bench's draws on the one-worker local cluster, in chunks, equal the plain loop's for
-    the same seeds: a scenario whose data are scattered and one whose draws make their own."""
+    the same seeds (the data scattered once; the delay tests above run the scenarios whose draws
+    make their own data on the worker)."""
     from bench.bench_uncertainty_audit import run_on_dask
 
-    for name, draws in (("scalar fit with telemetry", 3), ("delays, smooth currents", 1)):
+    for name, draws in (("scalar fit with telemetry", 3), ("white", 2)):
         sc = scenario(name)
         names, z, cpu = run_on_dask(client, sc, draws, chunk=2)
         plain_names, plain = audit(sc, draws)

@@ -29,6 +29,7 @@ from rig.calibration.synthetic import (
     thermal_soak,
     trmm_like,
 )
+from rig.errors import CalibrationError
 
 Data = Literal[
     "cage sweep", "cage sweep, |h| only", "TRMM orbit", "hemisphere", "smooth currents",
@@ -180,9 +181,21 @@ def draw_chunk(
     case: SyntheticCase | None, sc: Scenario, seeds: Sequence[int]
 ) -> tuple[tuple[str, ...], Array]:
     """Names and ``z`` (len(seeds), P) of the draws ``seeds`` of scenario ``sc`` on ``case``
-    (None for a scenario with ``fresh_data``): one task of the bench's Dask run."""
-    rows = [draw_z(case, sc, k) for k in seeds]
-    return rows[0][0], np.array([z for _, z in rows])
+    (None for a scenario with ``fresh_data``): one task of the bench's Dask run. A draw that
+    ``calibrate`` refuses (a CalibrationError: e.g. a one-sided fit whose noise bias reaches three
+    sigma) is a row of NaN; all refused: no names, shape (len(seeds), 0)."""
+    rows: list[tuple[tuple[str, ...], Array] | None] = []
+    for k in seeds:
+        try:
+            rows.append(draw_z(case, sc, k))
+        except CalibrationError:
+            rows.append(None)
+    done = [row for row in rows if row is not None]
+    names = done[0][0] if done else ()
+    blank = np.full(len(names), np.nan)
+    return names, np.array([blank if row is None else row[1] for row in rows]).reshape(
+        len(rows), len(names)
+    )
 
 
 def audit(
@@ -195,6 +208,13 @@ def audit(
 
 
 def summary(z: Array) -> tuple[Array, Array, Array]:
-    """Per parameter: rms of ``z``, 95th percentile of ``|z|``, fraction of ``|z| > 4``."""
+    """Per parameter: rms of ``z``, 95th percentile of ``|z|``, fraction of ``|z| > 4``, over
+    the draws that were fitted (refused ones, rows of NaN, left out)."""
+    z = z[~np.all(np.isnan(z), axis=1)]
     return (np.sqrt(np.mean(z**2, axis=0)), np.percentile(np.abs(z), 95, axis=0),
             np.mean(np.abs(z) > 4.0, axis=0))  # fmt: skip
+
+
+def refused(z: Array) -> int:
+    """How many draws ``calibrate`` refused (rows of NaN)."""
+    return int(np.sum(np.all(np.isnan(z), axis=1))) if z.shape[1] else z.shape[0]

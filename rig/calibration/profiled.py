@@ -12,10 +12,12 @@ by bounded Brent around the best grid point, channel by channel, in sweeps until
 Uncertainty: the Fisher information of the whole model with the delays appended - the batch
 estimator's own residual Jacobian for the other parameters, and central differences for the delay
 columns (``k_j du_j/dt`` at ``t - tau_j``) - so sigma and the Cramer-Rao bound include the
-correlation of ``tau_j`` with ``k_j``. A channel that never changes has no observable delay and is
-refused. Linear interpolation turns a step recorded between two samples into a ramp: for
-step-like currents the delay is resolved to a fraction of the telemetry's sample interval, not
-better. The same machinery serves any parameter that acts by transforming the samples (see
+correlation of ``tau_j`` with ``k_j``; a sandwich of the per-sample scores widens it where the
+residuals grow with the parameter's column (the misfit of step-like currents at their steps). A
+channel that never changes has no observable delay and is refused. Linear interpolation turns a
+step recorded between two samples into a ramp: for step-like currents the delay is resolved to a
+fraction of the telemetry's sample interval, not better (steps at the sample times: to the
+interval, see ``rig.calibration.fit``). The same machinery serves any parameter that acts by transforming the samples (see
 :mod:`rig.calibration.temperature`).
 """
 
