@@ -7,29 +7,22 @@ import numpy as np
 import pytest
 
 from rig.calibration.estimators import FitRequest, estimator
-from rig.calibration.profiled import ProfileFit, delay_parameter, profile_fit, shifted
+from rig.calibration.profiled import ProfileFit, delay_parameter, profile_fit
 from rig.calibration.residuals import Samples
+from rig.calibration.synthetic import DELAY_K_UT_PER_A, delayed_currents
 from rig.errors import CalibrationError
 
 TRUE_DELAYS_S = (0.35, -0.12)
-K_TRUE = np.array([[0.8, -0.5, 1.2], [-1.5, 0.4, 0.9]])  # uT per A
+K_TRUE = DELAY_K_UT_PER_A  # uT per A
 NOISE_UT = 0.05
 
 
 def cage_with_delayed_currents(seed: int, n: int = 3000, rate_hz: float = 20.0):
     """A cage run at ``rate_hz``: the field steps through directions, two harness currents vary
     smoothly (sinusoids and a ramp), and their bias reaches the DUT ``TRUE_DELAYS_S`` late."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(n) / rate_hz
-    dirs = rng.standard_normal((n // 100 + 1, 3))
-    h = np.repeat(40.0 * dirs / np.linalg.norm(dirs, axis=1)[:, None], 100, axis=0)[:n]
-    u = np.column_stack([1.0 + np.sin(2 * np.pi * t / 7.3) + 0.3 * np.sin(2 * np.pi * t / 1.9),
-                         0.8 * np.cos(2 * np.pi * t / 5.1) + 0.02 * t])  # fmt: skip
-    lower = np.array([[1.02, 0, 0], [0.01, 0.98, 0], [-0.02, 0.015, 1.01]])
-    offset = np.array([3.0, -2.0, 5.0])
-    late = np.column_stack([shifted(t, u[:, j], TRUE_DELAYS_S[j]) for j in range(2)])
-    m = h @ lower.T + offset + late @ K_TRUE + NOISE_UT * rng.standard_normal((n, 3))
-    return Samples.build(m, field_ut=h, telemetry=u, channels=("i_a", "i_b")), t
+    case = delayed_currents(n, seed=seed, rate_hz=rate_hz, noise_ut=NOISE_UT,
+                            delays_s=TRUE_DELAYS_S)  # fmt: skip
+    return case.samples, case.time_s
 
 
 def estimate_delays(s, t, channels, refit, max_delay_s=2.0, noise_ut=None) -> ProfileFit:

@@ -20,24 +20,18 @@ from rig.calibration.identifiability import (
     noise_bias,
     worst_combination,
 )
-from rig.calibration.params import Calibration, Springmann
+from rig.calibration.params import Calibration
 from rig.calibration.residuals import parameter_names
+from rig.calibration.synthetic import CAP_TRUTH, constant_field_cap
 from rig.errors import CalibrationError
 
-TRUTH = Springmann(1.02, 0.98, 1.05, -3.0, 5.0, 8.0, 0.01, -0.02, 0.015)
+TRUTH = CAP_TRUTH
 FIELD_UT = 47.0
 
 
 def cap_of_constant_field(cap_deg: float, n: int = 5000, noise_ut: float = 0.2) -> Samples:
     """Field directions uniform within ``cap_deg`` of -z (90: a hemisphere), |h| constant."""
-    rng = np.random.default_rng(1)
-    z = -rng.uniform(np.cos(np.radians(cap_deg)), 1.0, n)
-    azimuth = rng.uniform(0.0, 2.0 * np.pi, n)
-    r = np.sqrt(1.0 - z**2)
-    field = FIELD_UT * np.column_stack([r * np.cos(azimuth), r * np.sin(azimuth), z])
-    m = Calibration.from_springmann(TRUTH).predict(field)
-    m += noise_ut * rng.standard_normal(m.shape)
-    return Samples.build(m, field_magnitude_ut=np.full(n, FIELD_UT))
+    return constant_field_cap(cap_deg, n, noise_ut=noise_ut, field_ut=FIELD_UT).samples
 
 
 def _coverage_warning(warnings: tuple[str, ...]) -> str:

@@ -11,25 +11,19 @@ import pytest
 
 from rig.calibration import calibrate
 from rig.calibration.residuals import Samples
+from rig.calibration.synthetic import THERMAL_OFFSET_PER_K, THERMAL_SCALE_PER_K
+from rig.calibration.synthetic import thermal_soak as soak
 from rig.errors import CalibrationError
 
-OFFSET_PER_K = np.array([0.04, -0.025, 0.06])  # uT/K
-SCALE_PER_K = 300e-6  # 1/K
+OFFSET_PER_K = THERMAL_OFFSET_PER_K  # uT/K
+SCALE_PER_K = THERMAL_SCALE_PER_K  # 1/K
 NOISE_UT = 0.05
 
 
 def thermal_soak(seed: int, n: int = 4000):
     """A sphere of field directions (20-50 uT) recorded while the DUT warms from 10 to 40 C."""
-    rng = np.random.default_rng(seed)
-    u = rng.standard_normal((n, 3))
-    h = u / np.linalg.norm(u, axis=1)[:, None] * rng.uniform(20.0, 50.0, (n, 1))
-    temp_c = np.linspace(10.0, 40.0, n) + 0.2 * rng.standard_normal(n)
-    d_t = temp_c - temp_c.mean()
-    lower = np.array([[1.02, 0, 0], [0.01, 0.98, 0], [-0.02, 0.015, 1.01]])
-    offset = np.array([3.0, -2.0, 5.0])
-    m = (1 + SCALE_PER_K * d_t)[:, None] * (h @ lower.T) + offset + np.outer(d_t, OFFSET_PER_K)
-    m += NOISE_UT * rng.standard_normal((n, 3))
-    return m, h, temp_c
+    case = soak(n, seed=seed, noise_ut=NOISE_UT)
+    return case.samples.measured_ut, case.field_ut, case.temperature
 
 
 @pytest.mark.parametrize("model", ["vector", "ml"])

@@ -163,7 +163,7 @@ def calibrate(
     profiled = _profiled_parameters(data, times_s, delays, max_delay_s, telemetry_series,
                                     temperature is not None, clock_offset)  # fmt: skip
     if profiled:
-        result = _profiled(data, est, noise_ut, robust, times_s, profiled, notes)
+        result = _profiled(data, est, noise_ut, robust, times_s, profiled, notes, telemetry_series)
         return replace(result, temperature_ref=reference)
     request = FitRequest(est.name, noise_ut, robust, filter_options, times_s, start)
     estimate = est.run(data, request)
@@ -178,8 +178,10 @@ def _profiled(
     times_s: Array | None,
     params: tuple[Profiled, ...],
     notes: tuple[str, ...],
+    series: Mapping[str, Series] | None,
 ) -> CalibrationResult:
-    """Find ``params`` (delays, temperature scale) by refitting with ``est``, then summarize."""
+    """Find ``params`` (delays, temperature scale) by refitting with ``est``, then summarize;
+    ``series``: the delayed channels given as series (a run's), not as their column."""
     if est.kind != "batch":
         raise CalibrationError(
             f"--delay and --temperature need a batch method (the refit at every trial value), not"
@@ -197,7 +199,58 @@ def _profiled(
         "delays and temperature scale found by refitting at trial values; the other parameters'"
         " sigmas hold them at their estimate",
     )
-    return replace(summarize(fit.estimate, fit.samples, noise_nt, notes), profiled=fit)
+    result = replace(summarize(fit.estimate, fit.samples, noise_nt, notes), profiled=fit)
+    return _delays_on_the_sample_grid(result, data, times_s, series or {})
+
+
+ON_GRID = 0.01
+"""A delay within this fraction of the sample interval of a whole number of intervals is on the
+sample grid (:func:`_delays_on_the_sample_grid`)."""
+
+
+def _delays_on_the_sample_grid(
+    result: CalibrationResult, data: Samples, times_s: Array | None, series: Mapping[str, Series]
+) -> CalibrationResult:
+    """``result`` with the delays of step-like columns that the fit put on the sample grid
+    moved to the middle of the sample interval before, with that interval in their sigma.
+
+    A column held between rows and jumping between two (a current switched in step with the
+    samples, recorded at the sample times) is a ramp between those rows to the model. When the
+    current really stepped at a sample time, every delay in ``(tau - dt, tau]`` gives the DUT the
+    same data, and the model's ramps make a sharp optimum at ``tau`` that the data do not hold:
+    the fit lands on a whole number of intervals, its profile sigma a fraction of a millisecond,
+    the truth anywhere in the interval before (issue 34 audit: rms z 40). Steps at random times
+    leave the estimate anywhere in the interval (their ramps' misfit enters the sigma, see
+    ``rig.calibration.profiled``); its sigma is at least ``dt / sqrt(12 n)`` for ``n`` steps
+    (near the grid the misfit at the estimate vanishes: 4 of 200 audit draws were 4-7 sigma off
+    without that floor). A run's channels come as command series, not here."""
+    fit = result.profiled
+    if fit is None or times_s is None:
+        return result
+    from rig.calibration.profiled import with_resolution
+
+    dt = float(np.median(np.diff(times_s)))
+    values, widths, notes = fit.values.copy(), {}, []
+    floors = np.zeros(values.size)
+    for i, prm in enumerate(fit.params):
+        if prm.group != "delay_s" or prm.key in series:
+            continue
+        jumps = np.flatnonzero(np.diff(data.telemetry[:, data.channels.index(prm.key)]))
+        if jumps.size < 2 or not np.all(np.diff(jumps) > 1):
+            continue
+        if abs(values[i] / dt - round(values[i] / dt)) > ON_GRID:
+            # each step's time is known only within its interval: n steps at independent
+            # times pin the delay to dt / sqrt(12 n) at best, whatever the misfit at the estimate
+            floors[i] = dt / np.sqrt(12.0 * jumps.size)
+            continue
+        values[i] -= dt / 2.0
+        widths[prm.key] = dt
+        notes.append(f"delay[{prm.key}]: its steps fall on the sample grid, so it is known only to"
+                     f" within the {1000 * dt:.3g} ms interval before {1000 * fit.values[i]:.4g}"
+                     " ms: its middle is given, its sigma includes that interval")  # fmt: skip
+    fit = with_resolution(replace(fit, values=values, sigma=np.maximum(fit.sigma, floors)),
+                          "delay_s", widths)  # fmt: skip
+    return replace(result, profiled=fit, warnings=(*result.warnings, *notes))
 
 
 def _check_coverage(s: Samples, method: str) -> tuple[Estimate | None, tuple[str, ...]]:

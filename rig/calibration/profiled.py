@@ -12,10 +12,12 @@ by bounded Brent around the best grid point, channel by channel, in sweeps until
 Uncertainty: the Fisher information of the whole model with the delays appended - the batch
 estimator's own residual Jacobian for the other parameters, and central differences for the delay
 columns (``k_j du_j/dt`` at ``t - tau_j``) - so sigma and the Cramer-Rao bound include the
-correlation of ``tau_j`` with ``k_j``. A channel that never changes has no observable delay and is
-refused. Linear interpolation turns a step recorded between two samples into a ramp: for
-step-like currents the delay is resolved to a fraction of the telemetry's sample interval, not
-better. The same machinery serves any parameter that acts by transforming the samples (see
+correlation of ``tau_j`` with ``k_j``; a sandwich of the per-sample scores widens it where the
+residuals grow with the parameter's column (the misfit of step-like currents at their steps). A
+channel that never changes has no observable delay and is refused. Linear interpolation turns a
+step recorded between two samples into a ramp: for step-like currents the delay is resolved to a
+fraction of the telemetry's sample interval, not better (steps at the sample times: to the
+interval, see ``rig.calibration.fit``). The same machinery serves any parameter that acts by transforming the samples (see
 :mod:`rig.calibration.temperature`).
 """
 
@@ -264,8 +266,24 @@ def _uncertainty(
     from rig.calibration.correlated import rows_noise_check
 
     check, info, ratio = rows_noise_check(r, jac, at.n, sigma_hat2)
-    sigma = np.sqrt(sigma_hat2 * diag) * check.inflation[k:]
+    sigma = np.sqrt(sigma_hat2 * diag) * np.maximum(check.inflation[k:],
+                                                    _misfit_inflation(r, jac, at.n, inv, k))  # fmt: skip
     if info is None:
         return sigma, np.sqrt(crlb_scale * diag)
     crlb = np.maximum(np.diag(np.linalg.pinv(info))[k:], 0.0)
     return sigma, np.sqrt(crlb_scale * ratio * crlb)
+
+
+def _misfit_inflation(r: Array, jac: Array, n: int, inv: Array, k: int) -> Array:
+    """Per profiled parameter (columns ``k:``), ``sqrt(sandwich / white)`` of its variance, at
+    least 1: the heteroskedasticity-consistent sandwich ``H^-1 (sum_i s_i s_i^T) H^-1`` of the
+    per-sample scores ``s_i`` (White 1980) over the white ``sigma^2 H^-1``. A step-like current
+    in a CSV column is a ramp to the model, so every step leaves a misfit where the delay's column
+    is large: those residuals carry the step's unknown time within its sample interval, which the
+    white sigma averages away over all samples (issue 34 audit: step currents at random times
+    gave rms z 11 without it)."""
+    res = r.reshape(n, -1)
+    scores = np.einsum("nap,na->np", jac.reshape(n, res.shape[1], -1), res)
+    sandwich = np.diag(inv @ (scores.T @ scores) @ inv)[k:]
+    white = float(r @ r) / max(r.size - jac.shape[1], 1) * np.diag(inv)[k:]
+    return np.asarray(np.sqrt(np.maximum(sandwich / np.maximum(white, 1e-300), 1.0)))

@@ -36,9 +36,16 @@ class SyntheticCase:
     noise_ut: float
     field_ut: Array
     """True field in the field (reference) frame, (N, 3) uT."""
+    temperature: Array | None = None
+    """DUT temperature per sample (degrees C), when the truth has temperature coefficients."""
+    profiled_truth: tuple[tuple[str, float], ...] = ()
+    """True values of the parameters ``calibrate`` profiles (delays, the scale per kelvin), by
+    their parameter-table label; the readings then do not follow ``truth.predict`` alone."""
 
     def with_noise(self, seed: int) -> SyntheticCase:
-        """Same truth and field, a new noise draw."""
+        """Same truth and field, a new noise draw (cases without profiled parameters)."""
+        if self.profiled_truth:
+            raise ValueError("with_noise: the readings of this case are not truth.predict")
         rng = np.random.default_rng(seed)
         clean = self.truth.predict(self.field_ut, self.samples.telemetry)
         m = clean + self.noise_ut * rng.standard_normal(clean.shape)
@@ -173,3 +180,128 @@ def cage_like(
     m = truth.predict(field, telemetry) + noise_ut * rng.standard_normal((n_samples, 3))
     samples = Samples(m, magnitude, telemetry, names, field)
     return SyntheticCase(np.arange(n_samples, dtype=float), samples, truth, noise_ut, field)
+
+
+CAP_TRUTH = Springmann(1.02, 0.98, 1.05, -3.0, 5.0, 8.0, 0.01, -0.02, 0.015)
+"""The sensor of the one-sided coverage cases (docs/adr/0026)."""
+
+
+def constant_field_cap(
+    cap_deg: float, n_samples: int = 5000, *, noise_ut: float = 0.2, field_ut: float = 47.0,
+    seed: int = 1,
+) -> SyntheticCase:  # fmt: skip
+    """Field directions uniform within ``cap_deg`` of -z (90: a uniform hemisphere), |h| constant:
+    a sensor turned by hand in the Earth's field, one side only. Magnitude only (no vector)."""
+    rng = np.random.default_rng(seed)
+    z = -rng.uniform(np.cos(np.radians(cap_deg)), 1.0, n_samples)
+    azimuth = rng.uniform(0.0, 2.0 * np.pi, n_samples)
+    r = np.sqrt(1.0 - z**2)
+    field = field_ut * np.column_stack([r * np.cos(azimuth), r * np.sin(azimuth), z])
+    truth = Calibration.from_springmann(CAP_TRUTH)
+    m = truth.predict(field) + noise_ut * rng.standard_normal((n_samples, 3))
+    samples = Samples.build(m, field_magnitude_ut=np.full(n_samples, field_ut))
+    return SyntheticCase(np.arange(n_samples, dtype=float), samples, truth, noise_ut, field)
+
+
+TRMM_BIAS_UT = np.array([5.0, 3.0, 6.0])
+TRMM_D = np.array([[0.05, 0.05, 0.05], [0.05, 0.10, 0.05], [0.05, 0.05, 0.05]])
+"""Crassidis, Lai and Harman's Table 1 truth: ``B = (I + D)^-1 (H + b)`` (50, 30, 60 mG)."""
+
+
+def trmm_like(field_body_ut: Array, *, noise_ut: float = 0.05, seed: int = 3) -> SyntheticCase:
+    """Crassidis, Lai and Harman's real-time paper scenario on a body-frame field along the orbit
+    (``rig.steps.orbit.circular_orbit_track``: 402 km, 35 deg, Earth pointing, IGRF, a sample
+    every 10 s for 8 h; |B| 19.6-42.6 uT): their truth ``T = (I + D)^-1``, offset
+    ``(I + D)^-1 b``, raw noise ``noise_ut`` per axis (0.5 mG). Magnitude only (no vector)."""
+    field = np.asarray(field_body_ut, float)
+    t_matrix = np.linalg.inv(np.eye(3) + TRMM_D)
+    truth = Calibration.from_t_matrix(t_matrix, t_matrix @ TRMM_BIAS_UT)
+    truth = Calibration(truth.sensor, truth.offset_ut, truth.k_ut_per_unit)  # |h| only: no R
+    n = field.shape[0]
+    m = field @ t_matrix.T + t_matrix @ TRMM_BIAS_UT
+    m = m + noise_ut * np.random.default_rng(seed).standard_normal((n, 3))
+    samples = Samples.build(m, field_magnitude_ut=np.linalg.norm(field, axis=1))
+    return SyntheticCase(10.0 * np.arange(n, dtype=float), samples, truth, noise_ut, field)
+
+
+DELAY_K_UT_PER_A = np.array([[0.8, -0.5, 1.2], [-1.5, 0.4, 0.9]])
+DELAY_SENSOR = np.array([[1.02, 0, 0], [0.01, 0.98, 0], [-0.02, 0.015, 1.01]])
+DELAY_OFFSET_UT = np.array([3.0, -2.0, 5.0])
+CURRENTS = ("smooth", "steps at random times", "steps on the sample grid")
+"""How :func:`delayed_currents` makes its two harness currents."""
+
+
+def delayed_currents(
+    n_samples: int = 3000, *, seed: int = 1, rate_hz: float = 20.0, noise_ut: float = 0.05,
+    currents: str = "smooth", delays_s: tuple[float, float] = (0.35, -0.12),
+) -> SyntheticCase:  # fmt: skip
+    """A cage run at ``rate_hz`` whose two harness currents reach the DUT ``delays_s`` late: the
+    field steps through 40 uT directions every 100 samples; the currents (``CURRENTS``) are smooth
+    (sinusoids and a ramp), or hold levels of 0-3 A for 0.25-2.25 s and step at random times (the
+    telemetry column is the current at the sample times) or at sample times. The DUT at ``t``
+    sees the currents at ``t - tau``; ``profiled_truth`` holds ``delay[i_a]``, ``delay[i_b]``."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n_samples) / rate_hz
+    dirs = rng.standard_normal((n_samples // 100 + 1, 3))
+    h = np.repeat(40.0 * dirs / np.linalg.norm(dirs, axis=1)[:, None], 100, axis=0)[:n_samples]
+    if currents == "smooth":
+        u = np.column_stack([1.0 + np.sin(2 * np.pi * t / 7.3) + 0.3 * np.sin(2 * np.pi * t / 1.9),
+                             0.8 * np.cos(2 * np.pi * t / 5.1) + 0.02 * t])  # fmt: skip
+        late = np.column_stack([np.interp(t - d, t, u[:, j]) for j, d in enumerate(delays_s)])
+    elif currents in CURRENTS:
+        on_grid = currents == "steps on the sample grid"
+        u, late = _step_currents(rng, t, delays_s, on_grid)
+    else:
+        raise ValueError(f"currents: one of {CURRENTS}, not {currents!r}")
+    channels = ("i_a", "i_b")
+    truth = Calibration(DELAY_SENSOR, DELAY_OFFSET_UT, DELAY_K_UT_PER_A, channels)
+    m = h @ DELAY_SENSOR.T + DELAY_OFFSET_UT + late @ DELAY_K_UT_PER_A
+    m = m + noise_ut * rng.standard_normal((n_samples, 3))
+    samples = Samples.build(m, field_ut=h, telemetry=u, channels=channels)
+    truths = tuple((f"delay[{c}]", float(d)) for c, d in zip(channels, delays_s, strict=True))
+    return SyntheticCase(t, samples, truth, noise_ut, h, profiled_truth=truths)
+
+
+def _step_currents(
+    rng: np.random.Generator, t: Array, delays_s: tuple[float, ...], on_grid: bool
+) -> tuple[Array, Array]:
+    """Per channel: the current at the sample times ``t`` (the telemetry) and at ``t - delay``
+    (what the DUT sees); levels 0-3 A held 0.25-2.25 s, steps at random times (``on_grid``: at
+    sample times)."""
+    dt = float(t[1] - t[0])
+    recorded, late = [], []
+    for delay in delays_s:
+        holds = rng.uniform(0.25, 2.25, size=int(t[-1] / 0.25) + 2)
+        starts = t[0] - 1.0 + np.cumsum(holds)
+        if on_grid:
+            starts = t[0] + dt * np.ceil((starts - t[0]) / dt)
+        levels = rng.integers(0, 4, size=starts.size + 1).astype(float)
+        # the level held at a time: the one after the last step at or before it (a step at a
+        # sample time, to rounding, is seen by that sample)
+        recorded.append(levels[np.searchsorted(starts, t + 1e-6 * dt, side="right")])
+        late.append(levels[np.searchsorted(starts, t - delay + 1e-6 * dt, side="right")])
+    return np.column_stack(recorded), np.column_stack(late)
+
+
+THERMAL_OFFSET_PER_K = np.array([0.04, -0.025, 0.06])
+"""Offset coefficients of :func:`thermal_soak` (uT/K per axis)."""
+THERMAL_SCALE_PER_K = 300e-6
+"""Scale coefficient of :func:`thermal_soak` (1/K)."""
+
+
+def thermal_soak(n_samples: int = 4000, *, seed: int = 1, noise_ut: float = 0.05) -> SyntheticCase:
+    """A sphere of field directions (20-50 uT) recorded while the DUT warms from 10 to 40 C
+    (0.2 K jitter): ``m = (1 + s_T dT) L h + o + o_T dT`` about the mean temperature."""
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((n_samples, 3))
+    h = u / np.linalg.norm(u, axis=1)[:, None] * rng.uniform(20.0, 50.0, (n_samples, 1))
+    temp_c = np.linspace(10.0, 40.0, n_samples) + 0.2 * rng.standard_normal(n_samples)
+    d_t = temp_c - temp_c.mean()
+    gain = 1 + THERMAL_SCALE_PER_K * d_t
+    m = gain[:, None] * (h @ DELAY_SENSOR.T) + DELAY_OFFSET_UT + np.outer(d_t, THERMAL_OFFSET_PER_K)
+    m += noise_ut * rng.standard_normal((n_samples, 3))
+    truth = Calibration(DELAY_SENSOR, DELAY_OFFSET_UT, THERMAL_OFFSET_PER_K[None, :],
+                        ("temperature",))  # fmt: skip
+    return SyntheticCase(np.arange(n_samples, dtype=float), Samples.build(m, field_ut=h), truth,
+                         noise_ut, h, temperature=temp_c,
+                         profiled_truth=(("scale per kelvin", THERMAL_SCALE_PER_K),))  # fmt: skip
