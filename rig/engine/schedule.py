@@ -100,12 +100,13 @@ class StepScheduler:
         hold_from_field = KINDS[step.kind].hold_from_field
         pace = TrackPace()
         for cmd in plan.commands:
-            t0 = pace.slipped(t0, cmd.t_s, bool(cmd.payload.get("track")))
+            track = bool(cmd.payload.get("track"))
+            t0 = pace.slipped(t0, cmd.t_s, track)
             t0 += self.wait_until(t0 + cmd.t_s, stop)
             if stop is not None and stop.is_set():
                 break
             now = time.monotonic()
-            pace.issued(cmd.t_s, now, bool(cmd.payload.get("track")))
+            pace.issued(cmd.t_s, now, track)
             if cmd.kind in ("field", "load"):
                 self.lateness_s.append(now - (t0 + cmd.t_s))
                 # logged with when it was due (the timeline slipped) and its time in the plan (s

@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rig.analysis import change_times, settled_samples, to_cage_frame
-from rig.errors import RigError, StoredResultError
+from rig.errors import RigError
 from rig.steps import stored
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.vocabulary import DEFAULT_FIELD_LIMIT_UT, Param, RigTiming, Step
@@ -101,10 +101,7 @@ class LinearityResult:
 def read_linearity(result: Any) -> LinearityResult | None:
     """A stored result as a linearity result; None when it is not one (the report then lists the
     result's numbers, as for any result its kind does not describe)."""
-    try:
-        return LinearityResult.from_dict(result)
-    except StoredResultError:
-        return None
+    return stored.read_or_none(LinearityResult.from_dict, result)
 
 
 class Linearity(FieldStepKind):

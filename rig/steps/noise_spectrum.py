@@ -13,7 +13,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rig.analysis import settled_samples
-from rig.errors import RigError, StoredResultError
+from rig.errors import RigError
 from rig.steps import stored
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.vocabulary import Param, ProcedureError, RigTiming, Step
@@ -95,10 +95,7 @@ class NoiseSpectrumResult:
 def read_noise_spectrum(result: Any) -> NoiseSpectrumResult | None:
     """A stored result as a noise spectrum; None when it is not one (the report then lists the
     result's numbers, as for any result its kind does not describe)."""
-    try:
-        return NoiseSpectrumResult.from_dict(result)
-    except StoredResultError:
-        return None
+    return stored.read_or_none(NoiseSpectrumResult.from_dict, result)
 
 
 class NoiseSpectrum(FieldStepKind):

@@ -7,10 +7,21 @@ back the very mapping it was read from (``to_dict``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any, cast
+from collections.abc import Callable, Mapping
+from typing import Any, TypeVar, cast
 
 from rig.errors import StoredResultError
+
+R = TypeVar("R")
+
+
+def read_or_none(from_dict: Callable[[Any], R], result: Any) -> R | None:
+    """``from_dict(result)``, or None when the stored result is not that record (the report then
+    lists the result's numbers, as for any result its kind does not describe)."""
+    try:
+        return from_dict(result)
+    except StoredResultError:
+        return None
 
 
 def mapping(value: Any, what: str) -> Mapping[str, Any]:
