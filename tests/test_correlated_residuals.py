@@ -13,7 +13,12 @@ import pytest
 
 from rig.calibration import Samples, calibrate
 from rig.calibration.batch.nonlinear import ml_fit
-from rig.calibration.correlated import autocovariance, ljung_box, long_run_covariance
+from rig.calibration.correlated import (
+    ar_long_run_information,
+    autocovariance,
+    ljung_box,
+    long_run_covariance,
+)
 from rig.calibration.residuals import scalar_residuals_only
 from rig.calibration.synthetic import cage_like
 from rig.cli import main
@@ -47,6 +52,34 @@ def test_statistics_match_statsmodels() -> None:
         ref_s = S_hac_simple(scores, nlags=b - 1)  # differs by edge terms of order b / N
         assert ours == pytest.approx(ref_s, abs=0.05 * float(np.max(np.diag(ref_s))))
     assert autocovariance(x, 0)[0] == pytest.approx(np.var(x, axis=0))
+
+
+def test_ar_model_sandwich_is_the_covariance_under_that_noise(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``sigma_e^2 Y^T Y`` against ``J^T Sigma J`` with the AR(2) noise's Toeplitz covariance
+    written out (its autocovariances from the Yule-Walker recursion), blocks small enough that
+    the filter state crosses several block boundaries."""
+    import rig.calibration.correlated as correlated
+    from rig.calibration import residuals
+
+    n, phi = 1500, np.array([1.2, -0.35])  # a stationary AR(2), lag-1 r 0.89
+    rng = np.random.default_rng(5)
+    jac = rng.standard_normal((n, 2, 3)) + np.linspace(0.0, 2.0, n)[:, None, None]
+    weights = rng.uniform(0.5, 1.0, n)
+    gamma = np.zeros(n)  # autocovariances for unit innovations
+    r1 = phi[0] / (1.0 - phi[1])
+    gamma[0] = 1.0 / (1.0 - phi[0] * r1 - phi[1] * (phi[0] * r1 + phi[1]))
+    gamma[1] = r1 * gamma[0]
+    for k in range(2, n):
+        gamma[k] = phi[0] * gamma[k - 1] + phi[1] * gamma[k - 2]
+    sigma = gamma[np.abs(np.arange(n)[:, None] - np.arange(n)[None, :])]
+    wj = jac * weights[:, None, None]
+    dense = sum(wj[:, a].T @ sigma @ wj[:, a] for a in range(2))
+    monkeypatch.setattr(correlated, "row_blocks", lambda m: residuals.row_blocks(m, rows=97))
+    ours = ar_long_run_information(lambda rows: jac[rows], n, phi, weights)
+    # equal up to the start of the backward recursion (the last samples' predecessors unknown)
+    assert ours == pytest.approx(dense, rel=0.01)
 
 
 def test_the_real_file_reports_bootstrap_sized_offset_sigmas(tmp_path: Path) -> None:

@@ -61,7 +61,7 @@ class Scenario:
 
     name: str
     data: Data = "cage sweep"
-    method: Literal["vector", "ml"] = "vector"
+    method: Literal["vector", "ml", "twostep", "ekf", "ukf"] = "vector"
     tau: float = 0.0
     dof: float | None = None
     noise_ut: float = 0.05
@@ -85,6 +85,9 @@ SCENARIOS = (
     Scenario("Student t, 3 dof", dof=3.0),
     Scenario("scalar fit with telemetry", "cage sweep, |h| only", "ml"),
     Scenario("TRMM orbit", "TRMM orbit", "ml", samples=TRMM_TIMES_S.size),
+    Scenario("TRMM orbit, twostep", "TRMM orbit", "twostep", samples=TRMM_TIMES_S.size),
+    Scenario("TRMM orbit, ekf", "TRMM orbit", "ekf", samples=TRMM_TIMES_S.size),
+    Scenario("TRMM orbit, ukf", "TRMM orbit", "ukf", samples=TRMM_TIMES_S.size),
     Scenario("one-sided (hemisphere)", "hemisphere", "ml", noise_ut=0.2, samples=5000),
     Scenario("delays, smooth currents", "smooth currents", samples=1200, delays=True),
     Scenario("delays, steps at random times", "steps at random times", samples=2000, delays=True),
@@ -155,7 +158,8 @@ def draw_z(case: SyntheticCase | None, sc: Scenario, seed: int) -> tuple[tuple[s
     vector = sc.method == "vector"
     field = s.field_ut if vector else None
     noisy = Samples(m, s.field_magnitude_ut, s.telemetry, s.channels, field)
-    result = calibrate(noisy, sc.method, times_s=case.time_s if sc.delays else None,
+    timed = sc.delays or sc.method in ("ekf", "ukf")  # as a CSV with a time column gives them
+    result = calibrate(noisy, sc.method, times_s=case.time_s if timed else None,
                        delays=s.channels if sc.delays else (), max_delay_s=MAX_DELAY_S,
                        temperature=case.temperature if sc.temperature else None)  # fmt: skip
     error = result.p - p_from_calibration(case.truth, vector=vector)

@@ -5,13 +5,18 @@ Every fit's covariance assumes independent residuals. Here (ADR 0025):
 * **Whiteness**: the Ljung-Box portmanteau statistic (Ljung and Box 1978) of the residual series in
   sample order (one series for a scalar fit, one per axis for a vector fit), at
   :data:`LJUNG_BOX_LAGS` lags, and the excess kurtosis of the standardized residuals.
-* **Sigmas when correlated**: the sandwich ``H^-1 (N S) H^-1`` with ``H`` the (noise-weighted)
-  normal matrix and ``S`` the long-run covariance of the per-sample scores ``g_k = J_k^T r_k``,
-  estimated from overlapping block sums of ``b`` samples. That is the Bartlett-kernel
-  (Newey-West 1987) estimator with bandwidth ``b`` up to edge terms (Kuensch 1989: the moving-block
-  bootstrap's variance is this estimator); ``b`` from Andrews' (1991) AR(1) plug-in rule with the
-  residuals' lag-1 autocorrelation. Each parameter's sigma is multiplied by its factor
-  ``sqrt(sandwich / white)``, never below 1; correlations stay the estimator's own.
+* **Sigmas when correlated**: per parameter the larger of two sandwiches ``H^-1 M H^-1`` (``H``
+  the noise-weighted normal matrix). Model-free: ``M = N S``, ``S`` the long-run covariance of
+  the per-sample scores ``g_k = J_k^T r_k`` from overlapping block sums of ``b`` samples, the
+  Bartlett-kernel (Newey-West 1987) estimator with bandwidth ``b`` up to edge terms (Kuensch 1989:
+  the moving-block bootstrap's variance is this estimator), ``b`` from Andrews' (1991) AR(1)
+  plug-in rule; it runs low when the correlation time is a sizeable part of ``b``. Model-based:
+  ``M = J^T Sigma J`` with ``Sigma`` the covariance of the residuals' AR(p) model (the same model
+  as the bound below; Berk 1974's autoregressive spectral estimate at frequency zero, taken
+  through the regressors), computed by filtering the Jacobian backward through the model's
+  inverse; it runs low when the correlation is not autoregressive (a missing term). Each
+  parameter's sigma is multiplied by its factor ``sqrt(sandwich / white)``, never below 1;
+  correlations stay the estimator's own.
 * **Cramer-Rao bound for the same noise**: an AR(p) model of the residuals (Yule-Walker by
   Levinson-Durbin, order by AIC up to :data:`MAX_AR_ORDER`) whitens the Jacobian column by column;
   the bound is ``sigma_e^2 (J_w^T J_w)^-1`` with ``sigma_e^2`` the innovation variance.
@@ -78,7 +83,10 @@ class NoiseCheck:
         """How the reported sigmas were obtained."""
         if not self.correlated:
             return "white-noise least squares"
-        return f"Newey-West (HAC) sandwich, Bartlett bandwidth {self.bandwidth} samples"
+        return (
+            f"the larger of a Newey-West (HAC) sandwich, Bartlett bandwidth {self.bandwidth}"
+            f" samples, and the sandwich under an AR({self.ar_order}) noise model"
+        )
 
     def notes(self, robust: bool) -> list[str]:
         """The one-line statements for the output (empty when white and light-tailed)."""
@@ -87,7 +95,7 @@ class NoiseCheck:
             lo, hi = float(np.min(self.inflation)), float(np.max(self.inflation))
             out.append(
                 f"residuals correlated (Ljung-Box p {_p_text(self.p_value)} at {self.lags} lags),"
-                f" lag-1 r = {self.lag1:.2f}: sigmas from a {self.method}, inflation factor"
+                f" lag-1 r = {self.lag1:.2f}: sigmas from {self.method}, inflation factor"
                 f" {lo:.2f}-{hi:.2f}; Cramer-Rao bound for an AR({self.ar_order}) noise"
                 " (correlated residuals can also mean a missing term: a channel, a delay)"
             )
@@ -224,19 +232,48 @@ def whitened_information(jac_rows: RowsFunction, n: int, phi: Array) -> Array:
     return info
 
 
+def ar_long_run_information(jac_rows: RowsFunction, n: int, phi: Array, weights: Array) -> Array:
+    """``Y^T Y`` with ``Y = L^-T (W J)``: the Jacobian rows (B, S, P) times per-sample
+    ``weights`` (n,), filtered backward in time by the AR model's inverse ``y_k = x_k + sum_i
+    phi_i y_(k+i)`` per series; ``sigma_e^2 Y^T Y`` is ``J^T W Sigma W J`` for AR noise of
+    innovation variance ``sigma_e^2`` (blocks from the last, the filter state carried)."""
+    from scipy.signal import lfilter
+
+    den = np.concatenate([[1.0], -phi])
+    out: Array | None = None
+    state: Array | None = None
+    for rows in reversed(list(row_blocks(n))):
+        x = (jac_rows(rows) * weights[rows, None, None])[::-1]
+        if state is None:
+            state = np.zeros((phi.size, *x.shape[1:]))
+        if phi.size:
+            y, state = lfilter([1.0], den, x, axis=0, zi=state)
+        else:
+            y = x
+        flat = np.asarray(y).reshape(-1, x.shape[-1])
+        out = flat.T @ flat if out is None else out + flat.T @ flat
+    assert out is not None
+    return out
+
+
 def check_noise(
     series: Array,
     scores: RowsFunction,
     jac_rows: RowsFunction,
     normal: Callable[[], Array],
-    white_variance: float,
+    white_variance: float | Array,
     n_params: int,
+    weights: Array | None = None,
 ) -> tuple[NoiseCheck, Array | None, float]:
     """Test the residual ``series`` (N, S; noise-normalized, in sample order) for whiteness; when
-    correlated, the sigma factors from the sandwich of ``scores`` (per-sample ``J_k^T r_k``, the
-    same weighting as ``normal()``, the normal matrix ``H``) over the white covariance
-    ``white_variance H^-1``, and the information ``J_w^T J_w`` of the AR-whitened ``jac_rows``
-    with the AR model's innovation/marginal variance ratio (None, 1 when white)."""
+    correlated, the sigma factors over the white covariance ``H^-1 (sum_s v_s H_s) H^-1`` (``H``
+    = ``normal()``, ``H_s`` its part from series ``s``, ``v_s`` its ``white_variance``, one for
+    all or one per series; ``v H^-1`` when they agree): the larger, per parameter, of the Bartlett sandwich of ``scores`` (per-sample
+    ``J_k^T r_k``, weighted as ``H``) and the sandwich under the residuals' AR model of the
+    ``jac_rows`` times the square root of the per-sample ``weights`` (robust, default 1; as in
+    the ``series``); and the information
+    ``J_w^T J_w`` of the AR-whitened ``jac_rows`` with the AR model's innovation/marginal
+    variance ratio (None, 1 when white)."""
     n, n_series = series.shape
     lags = max(min(LJUNG_BOX_LAGS, n // 5), 1)
     q, p_values, r = ljung_box(series, lags)
@@ -255,11 +292,18 @@ def check_noise(
         )
     bandwidth = andrews_bandwidth(float(np.mean(r[1])), n)
     h_inv = np.linalg.pinv(normal())
-    sandwich = h_inv @ (n * long_run_covariance(scores, n, bandwidth)) @ h_inv
-    white = white_variance * np.diag(h_inv)
-    inflation = np.sqrt(np.maximum(np.diag(sandwich) / np.maximum(white, 1e-300), 1.0))
-    acov = autocovariance(series, MAX_AR_ORDER).mean(axis=1)
-    phi, ratio = ar_model(acov, MAX_AR_ORDER, n)
+    hac = np.diag(h_inv @ (n * long_run_covariance(scores, n, bandwidth)) @ h_inv)
+    acov = autocovariance(series, MAX_AR_ORDER)
+    phi, ratio = ar_model((acov / np.maximum(acov[0], 1e-300)).mean(axis=1), MAX_AR_ORDER, n)
+    variance = np.broadcast_to(np.asarray(white_variance, dtype=np.float64), (n_series,))
+    root_w = np.sqrt(np.ones(n) if weights is None else weights)
+
+    def scaled(rows: slice) -> Array:  # each series' rows times its noise 1-sigma
+        return np.asarray(jac_rows(rows) * np.sqrt(variance)[None, :, None])
+
+    white = np.diag(h_inv @ ar_long_run_information(scaled, n, np.zeros(0), root_w) @ h_inv)
+    modelled = ratio * np.diag(h_inv @ ar_long_run_information(scaled, n, phi, root_w) @ h_inv)
+    inflation = np.sqrt(np.maximum(np.maximum(hac, modelled) / np.maximum(white, 1e-300), 1.0))
     info = whitened_information(jac_rows, n, phi)
     check = NoiseCheck(lag1, float(q[worst]), lags, p_value, excess, True, heavy, inflation,
                        bandwidth, phi.size)  # fmt: skip
@@ -267,7 +311,7 @@ def check_noise(
 
 
 def rows_noise_check(
-    r: Array, jac: Array, n: int, white_variance: float, weights: Array | None = None
+    r: Array, jac: Array, n: int, white_variance: float | Array, weights: Array | None = None
 ) -> tuple[NoiseCheck, Array | None, float]:
     """:func:`check_noise` for residuals ``r`` (n S,) and their Jacobian ``jac`` (n S, P) held
     in full, S rows per sample in sample order (a vector fit's three axes; one for a scalar fit's
@@ -283,7 +327,7 @@ def rows_noise_check(
         return np.asarray(np.einsum("nap,naq,n->pq", rows, rows, w))
 
     return check_noise(res * np.sqrt(w)[:, None], scores, lambda sl: rows[sl], normal,
-                       white_variance, jac.shape[1])  # fmt: skip
+                       white_variance, jac.shape[1], w)  # fmt: skip
 
 
 def fit_noise_check(
@@ -291,7 +335,7 @@ def fit_noise_check(
     s: Samples,
     sample_weights: Array | None,
     vector_rows: tuple[Array, Array] | None,
-    white_variance: float,
+    white_variance: float | Array,
 ) -> tuple[NoiseCheck, Array | None, float]:
     """:func:`check_noise` for a fit at ``p`` of ``s`` (robust ``sample_weights`` or None):
     ``vector_rows`` are the vector fit's residuals (3N,) and Jacobian (3N, P), None for a scalar
@@ -318,4 +362,4 @@ def fit_noise_check(
 
     series = (r * np.sqrt(w) / gain)[:, None]
     return check_noise(series, scalar_scores, lambda rows: scalar_jac(rows)[:, None, :],
-                       scalar_normal, white_variance, p.size)  # fmt: skip
+                       scalar_normal, white_variance, p.size, w)  # fmt: skip

@@ -152,7 +152,7 @@ def calibrate(
     data = s if vector else s.as_scalar()
     notes: tuple[str, ...] = ()
     noise_ut = noise_nt / 1000.0 if noise_nt is not None else None
-    start, coverage = _check_coverage(data, est.name) if not vector else (None, ())
+    start, coverage = _check_coverage(data, est.name, robust) if not vector else (None, ())
     if est.kind == "sequential" and noise_ut is None:
         noise_ut = _batch_noise_ut(data, None if start is None else start.p)
         notes += (f"raw noise {1000 * noise_ut:.3g} nT estimated from a batch maximum-likelihood"
@@ -166,8 +166,17 @@ def calibrate(
         result = _profiled(data, est, noise_ut, robust, times_s, profiled, notes, telemetry_series)
         return replace(result, temperature_ref=reference)
     request = FitRequest(est.name, noise_ut, robust, filter_options, times_s, start)
+    return summarize(_estimate(est, data, request, bool(coverage)), data, noise_nt, notes)
+
+
+def _estimate(est: Estimator, data: Samples, request: FitRequest, one_sided: bool) -> Estimate:
+    """``est`` run on ``data``; on ``one_sided`` directions without the noise bias it can remove."""
     estimate = est.run(data, request)
-    return summarize(estimate, data, noise_nt, notes)
+    if one_sided and _removes_noise_bias(est.name, request.robust):
+        from rig.calibration.identifiability import without_noise_bias
+
+        return without_noise_bias(estimate, data)
+    return estimate
 
 
 def _profiled(
@@ -253,10 +262,19 @@ def _delays_on_the_sample_grid(
     return replace(result, profiled=fit, warnings=(*result.warnings, *notes))
 
 
-def _check_coverage(s: Samples, method: str) -> tuple[Estimate | None, tuple[str, ...]]:
+def _removes_noise_bias(method: str, robust: RobustLoss | None) -> bool:
+    """Whether ``method``'s estimate on one-sided data gets its noise bias removed (ADR 0026)."""
+    from rig.calibration.identifiability import NOISE_BIAS_REMOVED
+
+    return method in NOISE_BIAS_REMOVED and robust is None
+
+
+def _check_coverage(
+    s: Samples, method: str, robust: RobustLoss | None = None
+) -> tuple[Estimate | None, tuple[str, ...]]:
     """Identifiability of a scalar fit on ``s``, from the Fisher information at the linear
     start's maximum-likelihood fit (docs/adr/0026): CalibrationError naming a combination the data
-    cannot determine; else the linear start and a warning when field directions are missing."""
+    cannot determine; else the linear start and warnings when field directions are missing."""
     from rig.calibration.batch.nonlinear import scalar_start
     from rig.calibration.identifiability import check_identifiable
 
@@ -265,7 +283,7 @@ def _check_coverage(s: Samples, method: str) -> tuple[Estimate | None, tuple[str
         start = scalar_start(s, quick=method not in ("centered", "ellipsoid", "twostep"))
     except (CalibrationError, np.linalg.LinAlgError):
         return None, ()
-    return start, check_identifiable(s, start.p, method)
+    return start, check_identifiable(s, start.p, method, _removes_noise_bias(method, robust))
 
 
 def _batch_noise_ut(s: Samples, start: Array | None = None) -> float:

@@ -19,7 +19,7 @@ precision, and the warning says how much (sigmas with hypothetical samples in th
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -30,6 +30,7 @@ from rig.calibration.diagnostics import (
     coverage_text,
     direction_coverage,
 )
+from rig.calibration.estimate import Estimate
 from rig.calibration.params import Array
 from rig.calibration.residuals import (
     Samples,
@@ -124,10 +125,13 @@ def missing_caps(coverage: dict[str, float]) -> list[str]:
     return [c for c in CAPS if coverage[c] < COVERAGE_MIN_FRACTION]
 
 
-def check_identifiable(s: Samples, start: Array, method: str) -> tuple[str, ...]:
+def check_identifiable(
+    s: Samples, start: Array, method: str, bias_removed: bool = False
+) -> tuple[str, ...]:
     """Raise CalibrationError (one line) when a combination of the scalar parameters is not
     determined by ``s``; else, when field directions are missing, warnings: what recording them
-    would do to the sigmas, and the noise bias when it reaches a sigma (none on a full sphere)."""
+    would do to the sigmas, and the noise bias when it reaches a sigma (none on a full sphere)
+    and the fit will not remove it (``bias_removed``)."""
     info = information(s, start)
     scales = parameter_scales(s)
     names = parameter_names(s.channels, vector=False)
@@ -140,7 +144,7 @@ def check_identifiable(s: Samples, start: Array, method: str) -> tuple[str, ...]
     if info.converged and rel_sigma <= RELATIVE_SIGMA_LIMIT:
         if not missing:
             return ()
-        bias = bias_warning(s, info, ", ".join(missing), method)
+        bias = bias_warning(s, info, ", ".join(missing), method, bias_removed)
         return (coverage_warning(s, info, coverage, missing),) + ((bias,) if bias else ())
     why = "the fit runs off along it" if not info.converged else _sigma_words(rel_sigma)
     fix = f"record directions with {', '.join(missing)}" if missing else "record more directions"
@@ -230,22 +234,51 @@ def noise_bias(s: Samples, info: Information) -> Array:
     return np.asarray(-np.linalg.solve(info.fisher, score * (s.n / sub.n)))
 
 
-def bias_warning(s: Samples, info: Information, caps: str, method: str = "ml") -> str | None:
-    """The parameters whose :func:`noise_bias` reaches :data:`BIAS_REPORTED` of their sigma;
-    CalibrationError when one reaches :data:`BIAS_REFUSED`: no sigma could promise that fit."""
+def without_noise_bias(est: Estimate, s: Samples) -> Estimate:
+    """``est``, a scalar ML estimate of the one-sided samples ``s``, with its
+    :func:`noise_bias` at the estimate subtracted (a first-order correction: on the audit's TRMM
+    orbit and hemisphere it takes the mean error from +1 to +2 sigma to within 0.1 sigma) and a
+    note naming the largest shift in sigmas."""
+    sub = _check_rows(s)
+    normal = scalar_normal_equations(est.p, sub, noise_weighted=True)
+    noise2 = max(normal.cost / max(sub.n - est.p.size, 1), 1e-300)
+    fisher = normal.jtj / noise2 * (s.n / sub.n)
+    bias = noise_bias(s, Information(est.p, fisher, float(np.sqrt(noise2)), True))
+    sigma = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
+    worst = int(np.argmax(np.abs(bias) / sigma))
+    name = parameter_names(s.channels, vector=False)[worst]
+    note = (
+        "the raw noise's bias on one-sided field directions is removed from the estimate"
+        f" (largest shift {_value(name, -bias[worst], signed=True)},"
+        f" {abs(bias[worst]) / sigma[worst]:.1f} sigma; docs/adr/0026)"
+    )
+    return replace(est, p=est.p - bias, notes=(*est.notes, note))
+
+
+NOISE_BIAS_REMOVED = frozenset({"ml"})
+"""Scalar methods whose estimate on one-sided data has :func:`noise_bias` removed
+(:func:`without_noise_bias`; without a robust loss, whose weights the bias does not model)."""
+
+
+def bias_warning(
+    s: Samples, info: Information, caps: str, method: str = "ml", removed: bool = False
+) -> str | None:
+    """The parameters whose :func:`noise_bias` reaches :data:`BIAS_REPORTED` of their sigma
+    (None when the fit will remove it, ``removed``); CalibrationError when one reaches
+    :data:`BIAS_REFUSED`: beyond what a first-order correction or a sigma can promise."""
     bias = noise_bias(s, info)
     sigma = np.sqrt(np.diag(np.linalg.inv(info.fisher)))
     names = parameter_names(s.channels, vector=False)
     large = [f"{_value(names[i], bias[i], signed=True)} ({bias[i] / sigma[i]:+.1f} sigma)"
              for i in range(bias.size) if abs(bias[i]) >= BIAS_REPORTED * sigma[i]]  # fmt: skip
-    if not large:
-        return None
     if np.any(np.abs(bias) >= BIAS_REFUSED * sigma):
         raise CalibrationError(
             f"the raw noise biases a scalar ({method}) fit on these one-sided field directions by"
             f" about {', '.join(large)}, beyond what its sigma can cover: record {caps} (turn the"
             " sensor through every attitude), or calibrate against a field vector (--field)"
         )
+    if not large or removed:
+        return None
     return (
         "the raw noise biases a scalar fit on one-sided field directions, here by about "
         + ", ".join(large)

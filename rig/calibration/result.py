@@ -20,7 +20,7 @@ from rig.calibration.residuals import (
     scalar_normal_equations,
     vector_residuals,
 )
-from rig.calibration.solver import covariance_from_normal
+from rig.calibration.solver import axis_variances, covariance_from_normal
 from rig.calibration.stats import chi2_sf
 from rig.errors import CalibrationError
 
@@ -343,7 +343,8 @@ def summarize(
     n_eff = float(np.sum(robust_w > 0)) * (3 if vector else 1)
     sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - est.p.size, 1.0)))
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
-    check, covariance, crlb = _noise_model(est, s, vector_rows, sigma_hat, noise_ut, fisher)
+    check, covariance, crlb = _noise_model(est, s, vector_rows, weighted, sigma_hat, noise_ut,
+                                           fisher)  # fmt: skip
     sd = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
     corr = est.covariance / np.outer(sd, sd) - np.eye(sd.size)
     degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if sd.size > 1 else False
@@ -398,13 +399,16 @@ def _noise_model(
     est: Estimate,
     s: Samples,
     vector_rows: tuple[Array, Array] | None,
+    weighted: Array,
     sigma_hat: float,
     noise_ut: float,
     fisher: Array,
 ) -> tuple[NoiseCheck, Array, Array]:
     """The residuals' whiteness test, the covariance (HAC sigmas when correlated) and the
     Cramer-Rao bound for the same noise (white, or an AR model of it) (ADR 0025)."""
-    check, info, ratio = fit_noise_check(est.p, s, est.sample_weights, vector_rows, sigma_hat**2)
+    # a vector fit's axes each have their own residual variance (as its covariance, ADR 0025)
+    variance = sigma_hat**2 if vector_rows is None else axis_variances(weighted, est.p.size)
+    check, info, ratio = fit_noise_check(est.p, s, est.sample_weights, vector_rows, variance)
     covariance = est.covariance * np.outer(check.inflation, check.inflation)
     if info is None:
         return check, covariance, covariance_from_normal(fisher, noise_ut**2)

@@ -130,3 +130,22 @@ def covariance_from_normal(jtj: Array, variance: float) -> Array:
     normed = jtj / np.outer(scale, scale)
     inv = np.linalg.pinv(normed, rcond=1e-14, hermitian=True)
     return np.asarray(variance * inv / np.outer(scale, scale))
+
+
+def axis_variances(residuals: Array, n_params: int) -> Array:
+    """Residual variance per axis (3,) of a vector fit's residuals (3N,; x, y, z per sample), each
+    axis charged a third of the ``n_params`` fitted."""
+    per_axis = residuals.reshape(-1, 3)
+    dof = max(per_axis.shape[0] - n_params / 3.0, 1.0)
+    return np.asarray(np.sum(per_axis**2, axis=0) / dof)
+
+
+def per_axis_covariance(jac: Array, residuals: Array) -> Array:
+    """Least-squares covariance ``H^-1 (sum_a v_a J_a^T J_a) H^-1`` of a vector fit whose axes
+    have their own noise variance ``v_a`` (:func:`axis_variances`), from its Jacobian (3N, P) and
+    residuals (3N,), both already weighted; ``v (J^T J)^-1`` when the axes agree."""
+    v = axis_variances(residuals, jac.shape[1])
+    h_inv = covariance_from_normal(jac.T @ jac, 1.0)
+    rows = jac.reshape(-1, 3, jac.shape[1])
+    middle = np.einsum("nap,naq,a->pq", rows, rows, v)
+    return np.asarray(h_inv @ middle @ h_inv)

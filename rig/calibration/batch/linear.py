@@ -25,7 +25,7 @@ from rig.calibration.residuals import (
     z_linear_design,
     z_observation,
 )
-from rig.calibration.solver import covariance_from_jacobian
+from rig.calibration.solver import per_axis_covariance
 from rig.errors import CalibrationError
 
 SHIFT_ROWS = 4096
@@ -129,7 +129,9 @@ def vector_fit(s: Samples, weights: Array | None = None) -> Estimate:
     """Cage calibration: ``m = T h + o + K^T u`` by linear least squares, all three axes at once.
 
     Exact maximum likelihood for isotropic Gaussian noise on ``m``; ``T`` is then split into the
-    mounting rotation and the Springmann-Cutler sensor matrix.
+    mounting rotation and the Springmann-Cutler sensor matrix. The covariance takes each axis's
+    residual variance (the estimate is the same whatever the axes' variances: each axis's
+    coefficients come from that axis's rows alone).
     """
     if s.field_ut is None:
         raise CalibrationError("vector calibration needs the field vector: give --field X,Y,Z")
@@ -147,11 +149,10 @@ def vector_fit(s: Samples, weights: Array | None = None) -> Estimate:
             " order of the --measured columns against the --field columns"
         )
     p = p_from_calibration(cal, vector=True)
-    _, jac = vector_residuals(p, s, cal.rotation)
-    wr = np.ones(3 * s.n) if weights is None else np.repeat(weights, 3)
-    dof = max(3 * s.n - p.size, 1)
-    variance = fit.rss / dof
-    cov = covariance_from_jacobian(jac * np.sqrt(wr)[:, None], variance)
+    r, jac = vector_residuals(p, s, cal.rotation)
+    sw = np.ones(3 * s.n) if weights is None else np.sqrt(np.repeat(weights, 3))
+    # each axis its own noise variance (the axes of a sensor, or a model's misfit, differ)
+    cov = per_axis_covariance(jac * sw[:, None], r * sw)
     return Estimate("vector", p, cov, rotation_ref=cal.rotation, sample_weights=weights)
 
 
