@@ -59,6 +59,27 @@ def test_twostep_has_no_errors_in_variables_bias() -> None:
     assert np.all((spread > 0.6) & (spread < 1.5)), spread
 
 
+def test_twostep_without_the_noise_given_is_not_over_compensated() -> None:
+    """The TRMM orbit (0.05 uT): without the noise, TWOSTEP took it from the centered start's
+    residuals, which hold that start's model error too (0.08 uT), and the compensation, which goes
+    as the noise squared, overshot: mean z -1.6 and -1.8 on b and y0 (issue 34 audit). It now
+    takes the noise from its own converged residuals."""
+    from bench.bench_uncertainty_audit import orbit_field
+    from rig.calibration.audit import coloured_noise, make_case, scenario
+    from rig.calibration.residuals import p_from_calibration
+
+    sc = scenario("TRMM orbit, twostep")
+    case = make_case(sc, 0, orbit_field)
+    s, truth = case.samples, p_from_calibration(case.truth, vector=False)
+    z = []
+    for k in range(16):
+        m = s.measured_ut + coloured_noise(np.random.default_rng([k, 34]), (s.n, 3), sc)
+        est = twostep_fit(Samples.build(m, field_magnitude_ut=s.field_magnitude_ut))
+        z.append((est.p - truth) / np.sqrt(np.diag(est.covariance)))
+    mean = np.array(z).mean(axis=0)
+    assert np.all(np.abs(mean) < 0.8), mean  # 3 standard errors of a mean of 16
+
+
 def test_the_compensation_is_the_mean_correlation_of_regressor_and_residual() -> None:
     """At the truth, ``dmodel * (z - model)`` averaged over many noise draws of one set of samples
     equals :func:`z_eiv_correlation` evaluated on the noisy readings, averaged the same way."""
