@@ -46,6 +46,41 @@ def test_delays_recovered_within_three_sigma_with_the_crlb() -> None:
     np.testing.assert_allclose(k, K_TRUE, atol=0.01)
 
 
+def test_the_other_parameters_carry_the_delays_uncertainty() -> None:
+    """A refit at the found delays gives the others' covariance with the delays held; the result
+    adds what the delays' own uncertainty moves them by (``C + G S G^T``). With the delays'
+    white-noise sigma that is exactly the whole model's covariance block, assembled here from
+    the Jacobian with the delay columns appended and inverted whole."""
+    from dataclasses import replace
+
+    from rig.calibration.profiled import weighted_residuals
+
+    s, t = cage_with_delayed_currents(2, n=1500)
+    fit = estimate_delays(s, t, ("i_a", "i_b"), _vector_refit, max_delay_s=1.0)
+    est = fit.estimate
+    r, jac_p = weighted_residuals(est, fit.samples)
+    cols = []
+    for j, prm in enumerate(fit.params):
+        shifted = []
+        for sign in (1.0, -1.0):
+            trial = fit.values.copy()
+            trial[j] += sign * prm.step
+            data = s
+            for q, v in zip(fit.params, trial, strict=True):
+                data = q.apply(data, float(v))
+            shifted.append(weighted_residuals(est, data)[0])
+        cols.append((shifted[0] - shifted[1]) / (2.0 * prm.step))
+    jac = np.column_stack([jac_p, *cols])
+    variance = float(r @ r) / (r.size - jac.shape[1])
+    whole = variance * np.linalg.inv(jac.T @ jac)
+    k = jac_p.shape[1]
+    held = variance * np.linalg.inv(jac_p.T @ jac_p)
+    white = replace(fit, sigma=np.sqrt(np.diag(whole)[k:]))
+    np.testing.assert_allclose(white.marginal_covariance(held), whole[:k, :k],
+                               rtol=1e-6, atol=1e-9 * float(np.max(np.abs(whole[:k, :k]))))  # fmt: skip
+    assert np.all(np.diag(whole[:k, :k]) >= np.diag(held) * (1.0 - 1e-9))
+
+
 @pytest.mark.slow
 def test_delay_sigma_matches_the_monte_carlo_spread() -> None:
     errs, sigmas = [], []

@@ -83,6 +83,21 @@ class ProfileFit:
     crlb_sigma: Array
     estimate: Estimate
     samples: Samples
+    coupling: Array | None = None
+    """How every other parameter moves with the profiled ones, ``d p / d values`` (P, M), from
+    the whole model's information; None: not known (the others then hold them fixed)."""
+    correlation: Array | None = None
+    """The profiled parameters' correlation matrix (M, M), from the same information."""
+
+    def marginal_covariance(self, conditional: Array) -> Array:
+        """The other parameters' covariance ``conditional`` on the profiled values (as the refit
+        at those values gives it) plus what the profiled parameters' own uncertainty moves them
+        by: ``C + G S G^T``, ``G`` the :attr:`coupling`, ``S`` the profiled covariance from
+        their reported sigma (widened by misfit and resolution as reported)."""
+        if self.coupling is None or self.correlation is None:
+            return conditional
+        s = self.correlation * np.outer(self.sigma, self.sigma)
+        return np.asarray(conditional + self.coupling @ s @ self.coupling.T)
 
 
 def with_resolution(fit: ProfileFit, group: str, resolution_s: dict[str, float]) -> ProfileFit:
@@ -214,8 +229,8 @@ def profile_fit(
             break
     data = samples_at(values)
     est = refit(data)
-    sigma, crlb = _uncertainty(est, params, samples_at, values, noise_ut)
-    return ProfileFit(params, values, sigma, crlb, est, data)
+    sigma, crlb, coupling, correlation = _uncertainty(est, params, samples_at, values, noise_ut)
+    return ProfileFit(params, values, sigma, crlb, est, data, coupling, correlation)
 
 
 def weighted_residuals(est: Estimate, s: Samples) -> tuple[Array, Array]:
@@ -234,9 +249,10 @@ def _uncertainty(
     samples_at: Callable[[Array], Samples],
     values: Array,
     noise_ut: float | None,
-) -> tuple[Array, Array]:
+) -> tuple[Array, Array, Array, Array]:
     """1-sigma and Cramer-Rao 1-sigma of the profiled parameters from the whole model's
-    information (their columns by central differences at the other parameters' estimate)."""
+    information (their columns by central differences at the other parameters' estimate), and
+    from the same information the others' coupling to them (P, M) and their correlation (M, M)."""
     at = samples_at(values)
     r, jac_p = weighted_residuals(est, at)
     cols = []
@@ -268,10 +284,14 @@ def _uncertainty(
     check, info, ratio = rows_noise_check(r, jac, at.n, sigma_hat2)
     sigma = np.sqrt(sigma_hat2 * diag) * np.maximum(check.inflation[k:],
                                                     _misfit_inflation(r, jac, at.n, inv, k))  # fmt: skip
+    inv_tt = inv[k:, k:]
+    coupling = inv[:k, k:] @ np.linalg.pinv(inv_tt)  # regression of the others on the profiled
+    sd = np.sqrt(np.maximum(np.diag(inv_tt), 1e-300))
+    correlation = inv_tt / np.outer(sd, sd)
     if info is None:
-        return sigma, np.sqrt(crlb_scale * diag)
+        return sigma, np.sqrt(crlb_scale * diag), coupling, correlation
     crlb = np.maximum(np.diag(np.linalg.pinv(info))[k:], 0.0)
-    return sigma, np.sqrt(crlb_scale * ratio * crlb)
+    return sigma, np.sqrt(crlb_scale * ratio * crlb), coupling, correlation
 
 
 def _misfit_inflation(r: Array, jac: Array, n: int, inv: Array, k: int) -> Array:
