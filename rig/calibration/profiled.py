@@ -88,15 +88,20 @@ class ProfileFit:
     the whole model's information; None: not known (the others then hold them fixed)."""
     correlation: Array | None = None
     """The profiled parameters' correlation matrix (M, M), from the same information."""
+    coupled_sigma: Array | None = None
+    """The profiled parameters' 1-sigma as the profile gives it (information, misfit, correlated
+    residuals), before any resolution the model cannot see (:func:`with_resolution`): what moves
+    the others. Within a resolution interval the data are the same whatever the value, so the
+    others' estimate does not depend on where in it the truth lies."""
 
     def marginal_covariance(self, conditional: Array) -> Array:
         """The other parameters' covariance ``conditional`` on the profiled values (as the refit
         at those values gives it) plus what the profiled parameters' own uncertainty moves them
         by: ``C + G S G^T``, ``G`` the :attr:`coupling`, ``S`` the profiled covariance from
-        their reported sigma (widened by misfit and resolution as reported)."""
-        if self.coupling is None or self.correlation is None:
+        :attr:`coupled_sigma`."""
+        if self.coupling is None or self.correlation is None or self.coupled_sigma is None:
             return conditional
-        s = self.correlation * np.outer(self.sigma, self.sigma)
+        s = self.correlation * np.outer(self.coupled_sigma, self.coupled_sigma)
         return np.asarray(conditional + self.coupling @ s @ self.coupling.T)
 
 
@@ -230,7 +235,7 @@ def profile_fit(
     data = samples_at(values)
     est = refit(data)
     sigma, crlb, coupling, correlation = _uncertainty(est, params, samples_at, values, noise_ut)
-    return ProfileFit(params, values, sigma, crlb, est, data, coupling, correlation)
+    return ProfileFit(params, values, sigma, crlb, est, data, coupling, correlation, sigma)
 
 
 def weighted_residuals(est: Estimate, s: Samples) -> tuple[Array, Array]:
