@@ -13,6 +13,8 @@ import tty
 
 import pytest
 
+from tests.waiting import wait_until
+
 READER = r"""
 import sys, time
 from drivers.transport.serial_port import SerialPort
@@ -170,6 +172,14 @@ def test_a_late_reply_to_an_earlier_request_is_recognized_and_the_request_repeat
     assert out.strip() == f"{[0x1234, 0x5678]} 1"
 
 
+def arrived(client: object, size: int) -> None:
+    """Until ``size`` bytes written to the master side are readable on the client's side: the
+    kernel hands pty bytes over on a worker thread, and on a loaded machine that took over 50 ms
+    (a fixed sleep here failed beside a second copy of the suite, load 11)."""
+    port = client.socket  # type: ignore[attr-defined]
+    wait_until(lambda: int(port.in_waiting) >= size, 10.0, f"{size} bytes at the client's port")
+
+
 def test_a_late_reply_answers_the_retry_of_the_same_request(pty_pair: tuple[int, str]) -> None:
     """A reply that arrives after the client gave up and before it sends the same request again
     is that request's answer: it is taken and the request is not sent a second time (a second
@@ -192,14 +202,14 @@ def test_a_late_reply_answers_the_retry_of_the_same_request(pty_pair: tuple[int,
         assert client.recv(None) == b""  # the deadline passes
         body = bytes([1, 3, 4, 0x12, 0x34, 0x56, 0x78])
         os.write(master, body + _crc16(body))  # the answer, late
-        time.sleep(0.05)
+        arrived(client, len(body) + 2)
         client.retrying = True
         client.send(request)  # the retry
         assert client.recv(None) == body + _crc16(body)
         assert _read_request(master, 1, timeout_s=0.3) == b""  # not sent again
         # a different request never takes an earlier request's late bytes
         os.write(master, body + _crc16(body))
-        time.sleep(0.05)
+        arrived(client, len(body) + 2)
         other = bytes([1, 3, 0, 0, 0, 4]) + _crc16(bytes([1, 3, 0, 0, 0, 4]))
         client.send(other)
         assert _read_request(master, 8) == other
