@@ -268,12 +268,12 @@ def check_noise(
     """Test the residual ``series`` (N, S; noise-normalized, in sample order) for whiteness; when
     correlated, the sigma factors over the white covariance ``H^-1 (sum_s v_s H_s) H^-1`` (``H``
     = ``normal()``, ``H_s`` its part from series ``s``, ``v_s`` its ``white_variance``, one for
-    all or one per series; ``v H^-1`` when they agree): the larger, per parameter, of the Bartlett sandwich of ``scores`` (per-sample
-    ``J_k^T r_k``, weighted as ``H``) and the sandwich under the residuals' AR model of the
-    ``jac_rows`` times the square root of the per-sample ``weights`` (robust, default 1; as in
-    the ``series``); and the information
-    ``J_w^T J_w`` of the AR-whitened ``jac_rows`` with the AR model's innovation/marginal
-    variance ratio (None, 1 when white)."""
+    all or one per series; ``v H^-1`` when they agree): per parameter the larger of the Bartlett
+    sandwich of ``scores`` (per-sample ``J_k^T r_k``, weighted as ``H``) and the sandwich under
+    the residuals' AR model of the ``jac_rows`` times the square root of the per-sample
+    ``weights`` (robust, default 1; as in the ``series``); and the information ``J_w^T J_w`` of
+    the AR-whitened ``jac_rows`` with the AR model's innovation/marginal variance ratio (None, 1
+    when white)."""
     n, n_series = series.shape
     lags = max(min(LJUNG_BOX_LAGS, n // 5), 1)
     q, p_values, r = ljung_box(series, lags)

@@ -93,11 +93,18 @@ def information(s: Samples, start: Array) -> Information:
     sub = _check_rows(s)
     w = 1.0 / scalar_noise_gain(start, sub) ** 2
     sol = levenberg_marquardt(lambda x: scalar_normal_equations(x, sub, w), start)
-    normal = scalar_normal_equations(sol.x, sub, noise_weighted=True)
+    return _information_at(s, sol.x, sol.converged)
+
+
+def _information_at(s: Samples, p: Array, converged: bool) -> Information:
+    """The scalar ML problem's information at ``p`` over all of ``s`` (from at most
+    :data:`CHECK_ROWS` rows), the noise from the residuals there."""
+    sub = _check_rows(s)
+    normal = scalar_normal_equations(p, sub, noise_weighted=True)
     floor = 1e-9 * float(np.mean(sub.field_magnitude_ut))  # noise-free data: no division by 0
-    noise2 = max(normal.cost / max(sub.n - start.size, 1), floor**2)
+    noise2 = max(normal.cost / max(sub.n - p.size, 1), floor**2)
     fisher = normal.jtj / noise2 * (s.n / sub.n)
-    return Information(sol.x, fisher, float(np.sqrt(noise2)), sol.converged)
+    return Information(p, fisher, float(np.sqrt(noise2)), converged)
 
 
 def worst_combination(fisher: Array, scales: Array) -> tuple[float, Array]:
@@ -239,11 +246,7 @@ def without_noise_bias(est: Estimate, s: Samples) -> Estimate:
     :func:`noise_bias` at the estimate subtracted (a first-order correction: on the audit's TRMM
     orbit and hemisphere it takes the mean error from +1 to +2 sigma to within 0.1 sigma) and a
     note naming the largest shift in sigmas."""
-    sub = _check_rows(s)
-    normal = scalar_normal_equations(est.p, sub, noise_weighted=True)
-    noise2 = max(normal.cost / max(sub.n - est.p.size, 1), 1e-300)
-    fisher = normal.jtj / noise2 * (s.n / sub.n)
-    bias = noise_bias(s, Information(est.p, fisher, float(np.sqrt(noise2)), True))
+    bias = noise_bias(s, _information_at(s, est.p, True))
     sigma = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
     worst = int(np.argmax(np.abs(bias) / sigma))
     name = parameter_names(s.channels, vector=False)[worst]
