@@ -22,16 +22,26 @@ with ``--scheduler tcp://HOST:8786`` (its workers need this repository installed
 delay scenarios make theirs per draw, on the workers). Draw ``k`` has seed ``k`` whatever the
 chunking, so the figures are the same as ``rig.calibration.audit.audit`` gives in one process.
 
+With ``--cli`` the TRMM scenarios (``ml``, ``twostep``, ``ekf``, ``ukf``) are fitted as a
+technician fits them: each draw written to a CSV and calibrated by ``rig calibrate`` in a process
+of its own, the estimates and sigmas read back from its ``--out`` result file; a draw the command
+refuses (non-zero exit) is counted and printed, never dropped silently.
+
 Run: ``nice -n 19 .venv/bin/python bench/bench_uncertainty_audit.py [--draws 200]
-[--scenario NAME ...] [--scheduler ADDRESS] [--workers N] [--chunk 10]``.
+[--scenario NAME ...] [--scheduler ADDRESS] [--workers N] [--chunk 10] [--cli]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime as dt
+import json
 import os
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -40,11 +50,16 @@ from rig.calibration.audit import (
     SCENARIOS,
     Scenario,
     draw_chunk,
+    draw_z,
     make_case,
+    noisy_draw,
     refused,
     scenario,
     summary,
+    timed,
 )
+from rig.calibration.result import SPRINGMANN_JSON
+from rig.errors import CalibrationError
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -62,16 +77,18 @@ def orbit_field(altitude_km: float, inclination_deg: float, t_s: np.ndarray) -> 
 
 
 def run_on_dask(
-    client: Client, sc: Scenario, draws: int, chunk: int = 10
+    client: Client, sc: Scenario, draws: int, chunk: int = 10, via_cli: bool = False
 ) -> tuple[tuple[str, ...], np.ndarray, float]:
     """Names, ``z`` (draws, P) and the summed task compute time (s) of ``draws`` draws of ``sc``
-    on the cluster of ``client``, ``chunk`` draws per task (draw ``k`` has seed ``k``)."""
+    on the cluster of ``client``, ``chunk`` draws per task (draw ``k`` has seed ``k``); with
+    ``via_cli`` each draw through ``rig calibrate`` (:func:`cli_draw_z`; the compute time is then
+    the workers' own, the CLI processes' not counted)."""
     case = None if sc.fresh_data else make_case(sc, 0, orbit_field)
     # hash=False: a key of its own (scenarios with the same data would share one, and the
     # previous scenario releasing it could drop it under this one)
     shared: Any = None if case is None else client.scatter(case, broadcast=True, hash=False)
     seeds = [list(range(k, min(k + chunk, draws))) for k in range(0, draws, chunk)]
-    futures = [client.submit(_timed_chunk, shared, sc, s, pure=False) for s in seeds]
+    futures = [client.submit(_timed_chunk, shared, sc, s, via_cli, pure=False) for s in seeds]
     parts = client.gather(futures)
     names = next((n for n, _, _ in parts if n), ())
     # a chunk whose draws were all refused has no columns: rows of NaN
@@ -80,10 +97,46 @@ def run_on_dask(
     return names, z, float(sum(t for _, _, t in parts))
 
 
-def _timed_chunk(case: Any, sc: Scenario, seeds: list[int]) -> tuple[tuple[str, ...], Any, float]:
+def _timed_chunk(
+    case: Any, sc: Scenario, seeds: list[int], via_cli: bool = False
+) -> tuple[tuple[str, ...], Any, float]:
     start = time.process_time()
-    names, z = draw_chunk(case, sc, seeds)
+    names, z = draw_chunk(case, sc, seeds, cli_draw_z if via_cli else draw_z)
     return names, z, time.process_time() - start
+
+
+CLI_SCENARIOS = ("TRMM orbit", "TRMM orbit, twostep", "TRMM orbit, ekf", "TRMM orbit, ukf")
+"""Scenarios ``--cli`` can run: scalar fits of |h| without telemetry, delays or temperature."""
+
+
+def cli_draw_z(case: Any, sc: Scenario, seed: int) -> tuple[tuple[str, ...], np.ndarray]:
+    """One draw as a technician makes it: the draw's samples written to a CSV (time, raw x, y, z,
+    reference |h|; uT, s), ``rig calibrate CSV --method M [--time t_s] --out RESULT.json`` run as
+    its own process, and ``(estimate - truth) / sigma`` per Springmann parameter read back from
+    the result file (angles in degrees there). A non-zero exit is a refused draw (its last line
+    raised as a CalibrationError: counted, never silent)."""
+    case, noisy = noisy_draw(case, sc, seed)
+    rig = Path(sys.executable).with_name("rig")
+    with tempfile.TemporaryDirectory(prefix="audit-cli-") as tmp:
+        data, out = Path(tmp) / "draw.csv", Path(tmp) / "result.json"
+        table = np.column_stack([case.time_s, noisy.measured_ut, noisy.field_magnitude_ut])
+        np.savetxt(data, table, fmt="%.10g", delimiter=",", header="t_s,mx,my,mz,bmag",
+                   comments="")  # fmt: skip
+        cmd = [str(rig), "calibrate", str(data), "--measured", "mx,my,mz", "--field-magnitude",
+               "bmag", "--method", sc.method, "--out", str(out), "-q"]  # fmt: skip
+        if timed(sc):
+            cmd += ["--time", "t_s"]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=1800, check=False)
+        if done.returncode != 0:
+            lines = (done.stderr or done.stdout).strip().splitlines() or [f"exit {done.returncode}"]
+            raise CalibrationError(lines[-1])
+        result = json.loads(out.read_text(encoding="utf-8"))
+    keys = tuple(SPRINGMANN_JSON.values())
+    truth = case.truth.springmann.as_vector()
+    truth[6:] = np.degrees(truth[6:])
+    estimate = np.array([result["springmann"][k] for k in keys])
+    sigma = np.array([result["sigma"]["springmann"][k] for k in keys])
+    return tuple(SPRINGMANN_JSON), (estimate - truth) / sigma
 
 
 def local_cluster(workers: int) -> Any:
@@ -126,10 +179,18 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                     help="local cluster: worker processes (default: the cores)")  # fmt: skip
     ap.add_argument("--chunk", type=int, default=10, help="draws per task")
+    ap.add_argument("--cli", action="store_true",
+                    help="fit each draw with 'rig calibrate' on a CSV, as its own process (the"
+                         f" scalar scenarios without telemetry: {', '.join(CLI_SCENARIOS)})")  # fmt: skip
     args = ap.parse_args()
     from distributed import Client
 
     chosen = [scenario(n) for n in args.scenario] if args.scenario else list(SCENARIOS)
+    if args.cli:
+        other = [sc.name for sc in chosen if sc.name not in CLI_SCENARIOS]
+        if other and args.scenario:
+            ap.error(f"--cli runs only {', '.join(CLI_SCENARIOS)}, not {', '.join(other)}")
+        chosen = [sc for sc in chosen if sc.name in CLI_SCENARIOS]
     cluster = None if args.scheduler else local_cluster(args.workers)
     outside = []
     with Client(args.scheduler or cluster) as client:
@@ -137,7 +198,7 @@ def main() -> int:
               f" {client.scheduler.address}")  # fmt: skip
         for sc in chosen:
             start = time.perf_counter()
-            names, z, cpu = run_on_dask(client, sc, args.draws, args.chunk)
+            names, z, cpu = run_on_dask(client, sc, args.draws, args.chunk, args.cli)
             if not report(sc, names, z, time.perf_counter() - start, cpu):
                 outside.append(sc.name)
     if cluster is not None:

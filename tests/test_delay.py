@@ -75,10 +75,17 @@ def test_the_other_parameters_carry_the_delays_uncertainty() -> None:
     whole = variance * np.linalg.inv(jac.T @ jac)
     k = jac_p.shape[1]
     held = variance * np.linalg.inv(jac_p.T @ jac_p)
-    white = replace(fit, coupled_sigma=np.sqrt(np.diag(whole)[k:]))
+    white = replace(fit, coupled_sigma=np.sqrt(np.diag(whole)[k:]), others_covariance=None)
     np.testing.assert_allclose(white.marginal_covariance(held), whole[:k, :k],
                                rtol=1e-6, atol=1e-9 * float(np.max(np.abs(whole[:k, :k]))))  # fmt: skip
     assert np.all(np.diag(whole[:k, :k]) >= np.diag(held) * (1.0 - 1e-9))
+    # with white residuals the result takes the whole model's sandwich of each sample's score
+    inv = np.linalg.inv(jac.T @ jac)
+    scores = np.einsum("nap,na->np", jac.reshape(s.n, 3, -1), r.reshape(s.n, 3))
+    sandwich = inv @ scores.T @ scores @ inv
+    assert fit.others_covariance is not None
+    np.testing.assert_allclose(fit.marginal_covariance(held), sandwich[:k, :k], rtol=1e-6,
+                               atol=1e-9 * float(np.max(np.abs(sandwich[:k, :k]))))  # fmt: skip
 
 
 @pytest.mark.slow

@@ -145,21 +145,36 @@ def coloured_noise(rng: np.random.Generator, shape: tuple[int, int], sc: Scenari
     return sc.noise_ut * e
 
 
-def draw_z(case: SyntheticCase | None, sc: Scenario, seed: int) -> tuple[tuple[str, ...], Array]:
-    """Parameter names and ``(estimate - truth) / reported sigma`` of one draw: new noise on
-    ``case`` (None, or any case, for a scenario with ``fresh_data``: its own data from ``seed``)."""
-    from rig.calibration.fit import calibrate
-
+def noisy_draw(
+    case: SyntheticCase | None, sc: Scenario, seed: int
+) -> tuple[SyntheticCase, Samples]:
+    """Draw ``seed`` of scenario ``sc``: its case (``case``, or its own from ``seed`` for a
+    scenario with ``fresh_data``) and the samples with the draw's noise (no field vector for a
+    scalar fit)."""
     if sc.fresh_data or case is None:
         case = make_case(sc, seed)
     s = case.samples
     rng = np.random.default_rng([seed, 34])
     m = s.measured_ut + coloured_noise(rng, (s.n, 3), sc)
+    field = s.field_ut if sc.method == "vector" else None
+    return case, Samples(m, s.field_magnitude_ut, s.telemetry, s.channels, field)
+
+
+def timed(sc: Scenario) -> bool:
+    """Whether scenario ``sc`` is fitted with its sample times (as a CSV's time column gives
+    them): delays, and the filters."""
+    return sc.delays or sc.method in ("ekf", "ukf")
+
+
+def draw_z(case: SyntheticCase | None, sc: Scenario, seed: int) -> tuple[tuple[str, ...], Array]:
+    """Parameter names and ``(estimate - truth) / reported sigma`` of one draw: new noise on
+    ``case`` (None, or any case, for a scenario with ``fresh_data``: its own data from ``seed``)."""
+    from rig.calibration.fit import calibrate
+
+    case, noisy = noisy_draw(case, sc, seed)
+    s = case.samples
     vector = sc.method == "vector"
-    field = s.field_ut if vector else None
-    noisy = Samples(m, s.field_magnitude_ut, s.telemetry, s.channels, field)
-    timed = sc.delays or sc.method in ("ekf", "ukf")  # as a CSV with a time column gives them
-    result = calibrate(noisy, sc.method, times_s=case.time_s if timed else None,
+    result = calibrate(noisy, sc.method, times_s=case.time_s if timed(sc) else None,
                        delays=s.channels if sc.delays else (), max_delay_s=MAX_DELAY_S,
                        temperature=case.temperature if sc.temperature else None)  # fmt: skip
     error = result.p - p_from_calibration(case.truth, vector=vector)
@@ -181,17 +196,22 @@ def _rotation_error(fitted: Array, truth: Array) -> Array:
     return np.array([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]]) / 2.0
 
 
+Draw = Callable[[SyntheticCase | None, Scenario, int], tuple[tuple[str, ...], Array]]
+"""One draw: names and ``(estimate - truth) / sigma`` (:func:`draw_z`, or the bench's CLI draw)."""
+
+
 def draw_chunk(
-    case: SyntheticCase | None, sc: Scenario, seeds: Sequence[int]
+    case: SyntheticCase | None, sc: Scenario, seeds: Sequence[int], draw: Draw = draw_z
 ) -> tuple[tuple[str, ...], Array]:
     """Names and ``z`` (len(seeds), P) of the draws ``seeds`` of scenario ``sc`` on ``case``
-    (None for a scenario with ``fresh_data``): one task of the bench's Dask run. A draw that
-    ``calibrate`` refuses (a CalibrationError: e.g. a one-sided fit whose noise bias reaches three
-    sigma) is a row of NaN; all refused: no names, shape (len(seeds), 0)."""
+    (None for a scenario with ``fresh_data``) by ``draw`` (default :func:`draw_z`): one task of
+    the bench's Dask run. A draw that ``calibrate`` refuses (a CalibrationError: e.g. a one-sided
+    fit whose noise bias reaches three sigma) is a row of NaN; all refused: no names, shape
+    (len(seeds), 0)."""
     rows: list[tuple[tuple[str, ...], Array] | None] = []
     for k in seeds:
         try:
-            rows.append(draw_z(case, sc, k))
+            rows.append(draw(case, sc, k))
         except CalibrationError:
             rows.append(None)
     done = [row for row in rows if row is not None]

@@ -93,12 +93,19 @@ class ProfileFit:
     residuals), before any resolution the model cannot see (:func:`with_resolution`): what moves
     the others. Within a resolution interval the data are the same whatever the value, so the
     others' estimate does not depend on where in it the truth lies."""
+    others_covariance: Array | None = None
+    """The other parameters' covariance (P, P) from the whole model's sandwich with each
+    sample's own residuals (the profiled parameters' uncertainty included); None where it does
+    not apply (correlated residuals, robust weights)."""
 
     def marginal_covariance(self, conditional: Array) -> Array:
-        """The other parameters' covariance ``conditional`` on the profiled values (as the refit
-        at those values gives it) plus what the profiled parameters' own uncertainty moves them
-        by: ``C + G S G^T``, ``G`` the :attr:`coupling`, ``S`` the profiled covariance from
-        :attr:`coupled_sigma`."""
+        """The other parameters' covariance, their uncertainty about the profiled values
+        included: :attr:`others_covariance` where the residuals are white, else ``conditional``
+        (the refit's at the profiled values, correlated residuals counted) plus what the profiled
+        parameters' own uncertainty moves them by: ``C + G S G^T``, ``G`` the :attr:`coupling`,
+        ``S`` the profiled covariance from :attr:`coupled_sigma`."""
+        if self.others_covariance is not None:
+            return self.others_covariance
         if self.coupling is None or self.correlation is None or self.coupled_sigma is None:
             return conditional
         s = self.correlation * np.outer(self.coupled_sigma, self.coupled_sigma)
@@ -234,8 +241,9 @@ def profile_fit(
             break
     data = samples_at(values)
     est = refit(data)
-    sigma, crlb, coupling, correlation = _uncertainty(est, params, samples_at, values, noise_ut)
-    return ProfileFit(params, values, sigma, crlb, est, data, coupling, correlation, sigma)
+    sigma, crlb, coupling, correlation, others = _uncertainty(est, params, samples_at, values,
+                                                              noise_ut)  # fmt: skip
+    return ProfileFit(params, values, sigma, crlb, est, data, coupling, correlation, sigma, others)
 
 
 def weighted_residuals(est: Estimate, s: Samples) -> tuple[Array, Array]:
@@ -254,10 +262,12 @@ def _uncertainty(
     samples_at: Callable[[Array], Samples],
     values: Array,
     noise_ut: float | None,
-) -> tuple[Array, Array, Array, Array]:
+) -> tuple[Array, Array, Array, Array, Array | None]:
     """1-sigma and Cramer-Rao 1-sigma of the profiled parameters from the whole model's
     information (their columns by central differences at the other parameters' estimate), and
-    from the same information the others' coupling to them (P, M) and their correlation (M, M)."""
+    from the same information the others' coupling to them (P, M), their correlation (M, M) and,
+    with white residuals and no robust weights, the others' covariance from the whole model's
+    sandwich (:attr:`ProfileFit.others_covariance`)."""
     at = samples_at(values)
     r, jac_p = weighted_residuals(est, at)
     cols = []
@@ -287,28 +297,31 @@ def _uncertainty(
     from rig.calibration.correlated import rows_noise_check
 
     check, info, ratio = rows_noise_check(r, jac, at.n, sigma_hat2)
-    sigma = np.sqrt(sigma_hat2 * diag) * np.maximum(check.inflation[k:],
-                                                    _misfit_inflation(r, jac, at.n, inv, k))  # fmt: skip
+    sandwich = _sample_sandwich(r, jac, at.n, inv)
+    white = sigma_hat2 * np.diag(inv)
+    misfit = np.sqrt(np.maximum(np.diag(sandwich) / np.maximum(white, 1e-300), 1.0))[k:]
+    sigma = np.sqrt(sigma_hat2 * diag) * np.maximum(check.inflation[k:], misfit)
+    others = None if check.correlated or est.sample_weights is not None else sandwich[:k, :k]
     inv_tt = inv[k:, k:]
     coupling = inv[:k, k:] @ np.linalg.pinv(inv_tt)  # regression of the others on the profiled
     sd = np.sqrt(np.maximum(np.diag(inv_tt), 1e-300))
     correlation = inv_tt / np.outer(sd, sd)
     if info is None:
-        return sigma, np.sqrt(crlb_scale * diag), coupling, correlation
+        return sigma, np.sqrt(crlb_scale * diag), coupling, correlation, others
     crlb = np.maximum(np.diag(np.linalg.pinv(info))[k:], 0.0)
-    return sigma, np.sqrt(crlb_scale * ratio * crlb), coupling, correlation
+    return sigma, np.sqrt(crlb_scale * ratio * crlb), coupling, correlation, others
 
 
-def _misfit_inflation(r: Array, jac: Array, n: int, inv: Array, k: int) -> Array:
-    """Per profiled parameter (columns ``k:``), ``sqrt(sandwich / white)`` of its variance, at
-    least 1: the heteroskedasticity-consistent sandwich ``H^-1 (sum_i s_i s_i^T) H^-1`` of the
-    per-sample scores ``s_i`` (White 1980) over the white ``sigma^2 H^-1``. A step-like current
-    in a CSV column is a ramp to the model, so every step leaves a misfit where the delay's column
-    is large: those residuals carry the step's unknown time within its sample interval, which the
-    white sigma averages away over all samples (issue 34 audit: step currents at random times
-    gave rms z 11 without it)."""
+def _sample_sandwich(r: Array, jac: Array, n: int, inv: Array) -> Array:
+    """The heteroskedasticity-consistent covariance ``H^-1 (sum_i s_i s_i^T) H^-1`` of the whole
+    model (White 1980), ``s_i`` sample ``i``'s score over its rows (a vector fit's three axes).
+
+    A step-like current in a CSV column is a ramp to the model, so every step leaves a misfit
+    where its delay's column (and its coefficient's) is large: those residuals carry the step's
+    unknown time within its sample interval. The white covariance spreads them over all samples:
+    it averages the delay's share away (issue 34 audit: steps at random times gave the delay rms
+    z 11) and charges the coefficients' information from the held levels with it (their sigmas
+    1.4 times too wide: rms z 0.70). Each profiled sigma is at least its white one."""
     res = r.reshape(n, -1)
     scores = np.einsum("nap,na->np", jac.reshape(n, res.shape[1], -1), res)
-    sandwich = np.diag(inv @ (scores.T @ scores) @ inv)[k:]
-    white = float(r @ r) / max(r.size - jac.shape[1], 1) * np.diag(inv)[k:]
-    return np.asarray(np.sqrt(np.maximum(sandwich / np.maximum(white, 1e-300), 1.0)))
+    return np.asarray(inv @ (scores.T @ scores) @ inv)
