@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterator
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -138,3 +139,19 @@ def test_the_dask_path_gives_the_plain_loops_draws(client: Client) -> None:
         plain_names, plain = audit(sc, draws)
         assert names == plain_names and z.shape == (draws, len(names)) and cpu > 0
         np.testing.assert_allclose(z, plain, rtol=1e-6, atol=1e-6)
+
+
+def test_the_cli_path_fits_a_draw_as_rig_calibrate_does(client: Client) -> None:
+    """``--cli``: a TRMM draw written to a CSV and fitted by ``rig calibrate`` in its own process
+    gives the library's z (the file keeps 10 significant digits); a draw the command refuses is
+    a refused row (NaN), not a dropped one."""
+    from bench.bench_uncertainty_audit import orbit_field, run_on_dask
+
+    sc = scenario("TRMM orbit, twostep")
+    names, z, _ = run_on_dask(client, sc, 1, via_cli=True)
+    plain_names, plain = audit(sc, 1, orbit_field=orbit_field)
+    assert names == plain_names[:9] == ("a", "b", "c", "x0", "y0", "z0", "rho", "phi", "lambda")
+    np.testing.assert_allclose(z, plain, atol=1e-3)
+    unknown = replace(sc, method="no-such-method")
+    names, z, _ = run_on_dask(client, unknown, 2, via_cli=True)
+    assert names == () and z.shape == (2, 0)
