@@ -76,9 +76,23 @@ def start_suite(repo: Path, log: Path) -> tuple[subprocess.Popen[bytes], float]:
     return proc, time.monotonic()
 
 
-def finish_suite(proc: subprocess.Popen[bytes], started: float, log: Path) -> dict[str, Any]:
+def wait_all(procs: list[subprocess.Popen[bytes]]) -> list[float]:
+    """Wait for every process; the monotonic time (s) each was seen to end, within 0.5 s (two
+    copies end at their own times, not when the first one waited for has)."""
+    ended: list[float | None] = [None] * len(procs)
+    while any(t is None for t in ended):
+        for i, proc in enumerate(procs):
+            if ended[i] is None and proc.poll() is not None:
+                ended[i] = time.monotonic()
+        time.sleep(0.5)
+    return [t for t in ended if t is not None]
+
+
+def finish_suite(
+    proc: subprocess.Popen[bytes], started: float, ended: float, log: Path
+) -> dict[str, Any]:
     code = proc.wait()
-    wall_s = time.monotonic() - started
+    wall_s = ended - started
     text = log.read_text(encoding="utf-8", errors="replace")
     tail = text.strip().splitlines()[-1] if text.strip() else ""
     counts = {kind.rstrip("s") if kind.startswith("error") else kind: int(n)
@@ -91,8 +105,10 @@ def finish_suite(proc: subprocess.Popen[bytes], started: float, log: Path) -> di
 def run_once(repo: Path, label: str, logs: Path, copies: int = 1) -> list[dict[str, Any]]:
     with LoadSampler() as load:
         started = [start_suite(repo, logs / f"{label}-{i}.log") for i in range(copies)]
+        ended = wait_all([p for p, _ in started])
         results = [
-            finish_suite(p, t, logs / f"{label}-{i}.log") for i, (p, t) in enumerate(started)
+            finish_suite(p, t, end, logs / f"{label}-{i}.log")
+            for i, ((p, t), end) in enumerate(zip(started, ended, strict=True))
         ]
     for r in results:
         r["label"], r["load_mean"] = label, round(load.mean, 1)
