@@ -59,7 +59,7 @@ from rig.calibration.audit import (
     summary,
     timed,
 )
-from rig.calibration.result import SPRINGMANN_JSON
+from rig.calibration.result import SPRINGMANN_JSON, springmann_json
 from rig.errors import CalibrationError
 
 if TYPE_CHECKING:
@@ -132,12 +132,11 @@ def cli_draw_z(case: Any, sc: Scenario, seed: int) -> tuple[tuple[str, ...], np.
             lines = (done.stderr or done.stdout).strip().splitlines() or [f"exit {done.returncode}"]
             raise CalibrationError(lines[-1])
         result = json.loads(out.read_text(encoding="utf-8"))
-    keys = tuple(SPRINGMANN_JSON.values())
-    truth = case.truth.springmann.as_vector()
-    truth[6:] = np.degrees(truth[6:])
+    truth = springmann_json(case.truth.springmann)  # in the result file's keys and units
+    keys = tuple(truth)
     estimate = np.array([result["springmann"][k] for k in keys])
     sigma = np.array([result["sigma"]["springmann"][k] for k in keys])
-    return tuple(SPRINGMANN_JSON), (estimate - truth) / sigma
+    return tuple(SPRINGMANN_JSON), (estimate - np.array([truth[k] for k in keys])) / sigma
 
 
 def local_cluster(workers: int) -> Any:

@@ -10,7 +10,7 @@ import numpy as np
 
 from rig.calibration.correlated import NoiseCheck, fit_noise_check
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
-from rig.calibration.params import Array, Calibration
+from rig.calibration.params import Array, Calibration, Springmann
 from rig.calibration.residuals import (
     AXES,
     Samples,
@@ -37,6 +37,13 @@ SPRINGMANN_JSON = {
     "a": "a", "b": "b", "c": "c", "x0": "x0_ut", "y0": "y0_ut", "z0": "z0_ut",
     "rho": "rho_deg", "phi": "phi_deg", "lambda": "lambda_deg",
 }  # fmt: skip
+
+
+def springmann_json(sp: Springmann) -> dict[str, float]:
+    """The result file's ``springmann`` block: the nine values under their :data:`SPRINGMANN_JSON`
+    keys, angles in degrees."""
+    return {SPRINGMANN_JSON[k]: float(math.degrees(v) if k in ANGLE_KEYS else v)
+            for k, v in zip(SPRINGMANN_JSON, sp.as_vector(), strict=True)}  # fmt: skip
 
 
 Verdict = Literal[
@@ -168,8 +175,6 @@ class CalibrationResult:
         cal = self.calibration
         sp = cal.springmann
         cr = cal.crassidis
-        names = ("a", "b", "c", "x0", "y0", "z0", "rho", "phi", "lambda")
-        spv = dict(zip(names, sp.as_vector(), strict=True))
         out: dict[str, Any] = {
             "model": self.model,
             "method": self.method,
@@ -183,10 +188,7 @@ class CalibrationResult:
                 },
                 "equation": "h = matrix @ (m - offset_ut - sum_j k_j * u_j)",
             },
-            "springmann": {
-                SPRINGMANN_JSON[k]: float(math.degrees(v) if k in ANGLE_KEYS else v)
-                for k, v in spv.items()
-            },
+            "springmann": springmann_json(sp),
             "crassidis": {
                 "b_ut": cr.b_ut.tolist(),
                 "D": cr.d_matrix.tolist(),
