@@ -135,11 +135,15 @@ class EnergyFilter:
         self.info = np.zeros((self.size, self.size))
         self.info_vec = np.zeros(self.size)
         self.has_prior = P0 is not None
+        # the start's information on theta, faded with the data's: taken out by final()
+        self.start_info: Array = np.zeros((n, n))
+        self.start_vec: Array = np.zeros(n)
         if P0 is not None:
             x0 = np.zeros(n) if x0 is None else np.asarray(x0, float)
-            p_inv = np.linalg.inv(P0)
-            self.info[:n, :n] = p_inv
-            self.info_vec[:n] = p_inv @ x0
+            self.start_info = np.asarray(np.linalg.inv(P0), float)
+            self.start_vec = self.start_info @ x0
+            self.info[:n, :n] = self.start_info
+            self.info_vec[:n] = self.start_vec
             self.info[n:, n:] += np.eye(m) / energy_sigma_ut2**2
         self.x = np.zeros(n) if x0 is None else np.asarray(x0, float).copy()
         self.P = np.full((n, n), np.nan) if P0 is None else np.asarray(P0, float).copy()
@@ -185,6 +189,8 @@ class EnergyFilter:
             fade = math.exp(-dt_s / self.forgetting_time_s)
             self.info *= fade
             self.info_vec *= fade
+            self.start_info = self.start_info * fade
+            self.start_vec = self.start_vec * fade
         a = self.regressor(s)
         # eq. 5b with the reference |h| for the size of M (m - o): a weight from the noisy
         # reading would correlate with the noise and bias the estimate (ADR 0014)
@@ -204,6 +210,52 @@ class EnergyFilter:
         elif self.ready:
             self._project()
         return info
+
+    def final(self) -> tuple[Array, Array, str | None]:
+        """The estimate from the data alone: the start's information on theta taken out and the
+        projection repeated from the running estimate.
+
+        The start (zero, :func:`~.filters.initial_covariance`) keeps the first samples' projection
+        in a plausible region; once the data determine every parameter it only pulls the answer
+        toward zero, by a bias its covariance does not cover (TRMM orbit, 200 draws: the scale
+        factors 0.42 sigma, y0 0.30 sigma). Where the data alone do not determine theta (or
+        the projection fails) the running estimate stands, and the note says so.
+        """
+        n = self.model.n
+        if not self.has_prior or self.projection is None or not self.ready:
+            return self.x, self.P, None
+        kept = (self.info, self.info_vec, self.x, self.P, self.last_iterations)
+        self.info = self.info.copy()
+        self.info[:n, :n] -= self.start_info
+        self.info_vec = self.info_vec.copy()
+        self.info_vec[:n] -= self.start_vec
+        try:
+            running_p = self.P = self.P.copy()
+            self.x = self.x.copy()
+            self._project()
+            if self.P is running_p:  # no projection step solved: no data-only covariance
+                raise np.linalg.LinAlgError("singular")
+            x, cov = self.x, 0.5 * (self.P + self.P.T)
+            np.linalg.cholesky(cov)
+        except np.linalg.LinAlgError:
+            x, cov = kept[2], np.full((n, n), np.nan)
+        finally:
+            self.info, self.info_vec, self.x, self.P, self.last_iterations = kept
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(cov))):
+            return (
+                self.x,
+                self.P,
+                (
+                    "the data alone do not determine every parameter: the estimate keeps the"
+                    " filter's zero start"
+                ),
+            )
+        pull = float(np.max(np.abs(self.x - x) / np.sqrt(np.diag(cov))))
+        return (
+            x,
+            cov,
+            f"reported from the data alone (the zero start's pull, {pull:.2f} sigma at most, taken out)",
+        )
 
     # --- sequential centered (no prior, no projection) ------------------------------------------
 

@@ -88,6 +88,10 @@ class FilterBase:
         """Restart from state ``x`` and covariance ``P`` (a re-initialization)."""
         self.x, self.P = np.array(x, float), np.array(P, float)
 
+    def final(self) -> tuple[Array, Array, str | None]:
+        """The running estimate as it is: the paper's filters report their own state."""
+        return self.x, self.P, None
+
 
 class ExtendedKalman(FilterBase):
     """EKF on the z model (eqs. 25-27); ``order=2`` adds the Gaussian second-order terms."""

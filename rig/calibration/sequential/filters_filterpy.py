@@ -72,6 +72,10 @@ class FilterpyFilter:
         """Covariance of ``theta``."""
         return np.asarray(self._kf.P, float)[: self._n, : self._n]
 
+    def final(self) -> tuple[Array, Array, str | None]:
+        """The running estimate as it is: the paper's filters report their own state."""
+        return self.x, self.P, None
+
     def reset(self, x: Array, P: Array) -> None:
         """Restart from state ``x`` and covariance ``P`` (a re-initialization)."""
         n = self._n

@@ -42,6 +42,11 @@ class SequentialFilter(Protocol):
 
     def reset(self, x: Array, P: Array) -> None: ...
 
+    def final(self) -> tuple[Array, Array, str | None]:
+        """The state and covariance to report once every sample is in, and a note saying how
+        they differ from ``x`` and ``P`` (None: they are ``x`` and ``P``)."""
+        ...
+
 
 @dataclass(frozen=True)
 class FilterOptions:

@@ -130,14 +130,17 @@ def filter_estimate(
     (sample index, theta, covariance) rows kept along the way.
     """
     n_theta = 9 + 3 * n_channels
-    theta = np.asarray(f.x[:n_theta], float)
-    cov_theta = np.asarray(f.P[:n_theta, :n_theta], float)
+    x, big_p, final_note = f.final()
+    theta = np.asarray(x[:n_theta], float)
+    cov_theta = np.asarray(big_p[:n_theta, :n_theta], float)
     p, cov = delta_method(p_from_theta, theta, cov_theta, opts.method)
     mean_nis = float(np.nanmean(nis)) if np.any(np.isfinite(nis)) else float("nan")
     note: tuple[str, ...] = (
         f"{opts.method} ({opts.variant}, {opts.backend}) over {nis.size} samples at"
         f" {1000 * noise_ut:.3g} nT raw noise; mean NIS {mean_nis:.2f} (1 when consistent)",
     )
+    if final_note is not None:
+        note += (final_note,)
     if guard is not None and guard.recoveries:
         note += (
             f"diverged and was re-initialized from the batch estimate at sample(s)"

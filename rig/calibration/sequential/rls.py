@@ -68,6 +68,10 @@ class RecursiveLeastSquares:
         """Average normalized innovation squared (1 when consistent)."""
         return self.nis_sum / self.updates if self.updates else math.nan
 
+    def final(self) -> tuple[Array, Array, str | None]:
+        """The running estimate as it is (linear: the start only adds its diffuse prior)."""
+        return self.x, self.P, None
+
     def reset(self, x: Array, P: Array) -> None:
         """Restart theta at ``x`` with covariance ``P`` (phi kept, uncorrelated with it)."""
         n = self.model.n
