@@ -34,18 +34,25 @@ def _mat(d: dict[str, Any], key: str, where: str) -> tuple[tuple[float, ...], ..
 
 @dataclass(frozen=True)
 class CageConfig:
-    """Coils: field = coil_matrix @ currents + ambient."""
+    """Coils: field at the centre = coil_matrix @ currents + ambient; over the volume shaped by
+    the coil pairs' geometry (``coil_shape`` "square" or "circular", side or diameter
+    ``coil_size_m`` and plane spacing ``coil_spacing_m`` per axis; no shape: a uniform field)."""
 
     coil_matrix_ut_per_a: tuple[tuple[float, ...], ...]
     resistance_ohm: tuple[float, ...]
     inductance_h: tuple[float, ...]
     polarity: str  # "relay" (H-bridge relays per axis) or "bipolar"
     hot_switch_limit_a: float = 0.05
+    coil_shape: str | None = None
+    coil_size_m: tuple[float, ...] = (2.0, 2.0, 2.0)
+    coil_spacing_m: tuple[float, ...] = (1.089, 1.089, 1.089)
 
 
 @dataclass(frozen=True)
 class AmbientConfig:
-    """Lab field: constant + slow sinusoidal drift + mains ripple + white noise."""
+    """Lab field at the cage centre: constant + slow sinusoidal drift + mains ripple + white
+    noise; and by position and time since start (``sim.lab_field``): a static gradient (uT/m), a
+    daily variation, 1/f noise, traffic; the lab temperature's daily swing (K, the supplies')."""
 
     field_ut: tuple[float, ...]
     drift_amplitude_ut: tuple[float, ...] = (0.0, 0.0, 0.0)
@@ -53,6 +60,15 @@ class AmbientConfig:
     ripple_amplitude_ut: tuple[float, ...] = (0.0, 0.0, 0.0)
     ripple_hz: float = 50.0
     noise_ut: float = 0.0
+    gradient_ut_per_m: tuple[tuple[float, ...], ...] = ((0.0,) * 3,) * 3
+    diurnal_amplitude_ut: tuple[float, ...] = (0.0, 0.0, 0.0)
+    diurnal_period_s: float = 86400.0
+    flicker_ut: float = 0.0  # rms of the 1/f noise per axis, 1e-5 to 1 Hz
+    traffic_rate_per_h: float = 0.0
+    traffic_field_ut: float = 0.02  # a vehicle's typical field at the cage centre
+    traffic_distance_m: float = 30.0  # from the cage centre to the street (+y)
+    traffic_duration_s: float = 300.0  # mean stay
+    lab_temperature_swing_c: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -78,6 +94,9 @@ class SupplyConfig:
     resistance_ohm: float = 5.0
     tau_s: float = 0.002
     input_voltage_v: float = 48.0
+    gain_ppm: float = 0.0  # coil supplies: output current / set current - 1, at the start
+    gain_drift_ppm_per_h: float = 0.0  # ageing and warm-up, from the start
+    gain_ppm_per_k: float = 0.0  # with the lab temperature (its daily swing)
 
 
 @dataclass(frozen=True)
@@ -91,7 +110,8 @@ class RelayConfig:
 
 @dataclass(frozen=True)
 class MagnetometerConfig:
-    """A magnetometer at the DUT position with its truth (Springmann-Cutler form, rad inside)."""
+    """A magnetometer with its truth (Springmann-Cutler form, rad inside) at ``position_m`` (m
+    from the cage centre, cage frame; the DUT's place is the centre)."""
 
     name: str
     kind: str  # "hmr2300", "ascii-mag", "rm3100"
@@ -110,6 +130,7 @@ class MagnetometerConfig:
     temperature_ref_c: float = 25.0  # the temperature its scale and offset refer to
     scale_per_k: float = 0.0  # common scale coefficient (1/K): m = (1 + s dT) T h + ...
     offset_ut_per_k: tuple[float, ...] = (0.0, 0.0, 0.0)  # offset coefficient (uT/K, per axis)
+    position_m: tuple[float, ...] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -201,10 +222,31 @@ def _cage(c: dict[str, Any]) -> CageConfig:
         inductance_h=_vec(c, "inductance_h", "cage"),
         polarity=str(c.get("polarity", "relay")),
         hot_switch_limit_a=float(c.get("hot_switch_limit_a", 0.05)),
+        **_geometry(c),
     )
     if cage.polarity not in ("relay", "bipolar"):
         raise SimConfigError("cage.polarity must be 'relay' or 'bipolar'")
     return cage
+
+
+HELMHOLTZ_SPACING = {"square": 0.5445, "circular": 0.5}
+"""Plane spacing per unit side (square) or diameter (circular) of the most uniform pair (square:
+0.5445 a, where the second derivative at the centre vanishes; circular: the radius)."""
+
+
+def _geometry(c: dict[str, Any]) -> dict[str, Any]:
+    shape = c.get("coil_shape")
+    if shape is None:
+        return {}
+    if shape not in HELMHOLTZ_SPACING:
+        raise SimConfigError("cage.coil_shape must be 'square' or 'circular' (or absent: uniform)")
+    size = _vec(c, "coil_size_m", "cage")
+    spacing = _vec_or(
+        c, "coil_spacing_m", "cage", tuple(HELMHOLTZ_SPACING[shape] * v for v in size)
+    )
+    if min(size) <= 0 or min(spacing) <= 0:
+        raise SimConfigError("cage.coil_size_m and cage.coil_spacing_m must be positive")
+    return {"coil_shape": str(shape), "coil_size_m": size, "coil_spacing_m": spacing}
 
 
 def _ambient(a: dict[str, Any]) -> AmbientConfig:
@@ -215,6 +257,17 @@ def _ambient(a: dict[str, Any]) -> AmbientConfig:
         ripple_amplitude_ut=_vec(a, "ripple_amplitude_ut", "ambient"),
         ripple_hz=float(a.get("ripple_hz", 50.0)),
         noise_ut=float(a.get("noise_ut", 0.0)),
+        gradient_ut_per_m=_mat(a, "gradient_ut_per_m", "ambient")
+        if "gradient_ut_per_m" in a
+        else ((0.0,) * 3,) * 3,
+        diurnal_amplitude_ut=_vec_or(a, "diurnal_amplitude_ut", "ambient", (0.0, 0.0, 0.0)),
+        diurnal_period_s=float(a.get("diurnal_period_s", 86400.0)),
+        flicker_ut=float(a.get("flicker_ut", 0.0)),
+        traffic_rate_per_h=float(a.get("traffic_rate_per_h", 0.0)),
+        traffic_field_ut=float(a.get("traffic_field_ut", 0.02)),
+        traffic_distance_m=float(a.get("traffic_distance_m", 30.0)),
+        traffic_duration_s=float(a.get("traffic_duration_s", 300.0)),
+        lab_temperature_swing_c=float(a.get("lab_temperature_swing_c", 0.0)),
     )
 
 
@@ -233,6 +286,9 @@ def _supply(s: dict[str, Any], where: str) -> SupplyConfig:
         resistance_ohm=float(s.get("resistance_ohm", 5.0)),
         tau_s=float(s.get("tau_s", 0.002)),
         input_voltage_v=float(s.get("input_voltage_v", 48.0)),
+        gain_ppm=float(s.get("gain_ppm", 0.0)),
+        gain_drift_ppm_per_h=float(s.get("gain_drift_ppm_per_h", 0.0)),
+        gain_ppm_per_k=float(s.get("gain_ppm_per_k", 0.0)),
     )
 
 
@@ -273,6 +329,7 @@ def _magnetometer(m: dict[str, Any], where: str, loads: set[str]) -> Magnetomete
         temperature_ref_c=float(m.get("temperature_ref_c", 25.0)),
         scale_per_k=float(m.get("scale_per_k", 0.0)),
         offset_ut_per_k=_vec_or(m, "offset_ut_per_k", where, zero),
+        position_m=_vec_or(m, "position_m", where, zero),
     )
     for ch in mag.k_ut_per_a:
         if ch not in loads:

@@ -6,7 +6,12 @@ threads see one consistent, continuously evolving cage. The DUT model is the pro
 model (ARCHITECTURE.md, contract)::
 
     m(t) = (1 + s_T dT) L R h(t) + o + o_T dT + sum_j k_j u_j(t - tau_j) + n(t),
-    h = K I(t) + B_ambient(t),   dT = T(t) - T_ref
+    h = K(r) G(t) I(t) + B_ambient(r, t),   dT = T(t) - T_ref
+
+at the magnetometer's position ``r``: ``K(r)`` the coils' field per ampere there (``K`` at the
+centre, shaped by Biot-Savart of the coil pairs, :mod:`sim.coils`), ``G(t)`` the coil supplies'
+gains (an error, a drift in time and with the lab's temperature: the current the supply reports
+stays the one it was set to) and ``B_ambient`` the lab field there (:mod:`sim.lab_field`).
 
 with the DUT's temperature ``T`` a first-order thermal mass warmed by a heater load channel
 (``[thermal]`` of the configuration; constant at 25 C without one).
@@ -23,7 +28,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from sim.coils import CageCoils, CoilPair
 from sim.config import MagnetometerConfig, SimConfig, SimConfigError, SupplyConfig
+from sim.lab_field import LabField
 from sim.signals import FirstOrderSignal
 
 Array = npt.NDArray[np.float64]
@@ -286,10 +293,19 @@ class Magnetometer:
 class CagePhysics:
     """The cage: supplies drive coils through polarity relays; loads bias the magnetometers."""
 
-    def __init__(self, cfg: SimConfig) -> None:
+    def __init__(self, cfg: SimConfig, start_s: float | None = None) -> None:
         self.cfg = cfg
         self.rng = np.random.default_rng(cfg.seed)
+        self.start_s = now_s() if start_s is None else start_s
+        """The simulator's start (its clock; default now): the lab field's and the gains' time
+        origin, so one seed gives one lab field from the start whenever it starts."""
         self.coil_matrix = np.array(cfg.cage.coil_matrix_ut_per_a)
+        self.lab = LabField(cfg.ambient, cfg.seed)
+        c = cfg.cage
+        self.coils = None if c.coil_shape is None else CageCoils(
+            tuple(CoilPair(c.coil_shape, c.coil_size_m[j], c.coil_spacing_m[j]) for j in range(3)),
+            self.coil_matrix,
+        )  # fmt: skip
         self.supplies: dict[str, Supply] = {}
         self.coil_supply: list[Supply] = [None, None, None]  # type: ignore[list-item]
         for s in cfg.supplies:
@@ -316,6 +332,10 @@ class CagePhysics:
             m.name: Magnetometer(m, np.random.default_rng([cfg.seed, i]))
             for i, m in enumerate(cfg.magnetometers)
         }
+        self.coil_matrix_at = {
+            m.name: self.coil_matrix_at_m(m.position_m) for m in cfg.magnetometers
+        }
+        """Per magnetometer, the coils' field per ampere (uT/A) at its position."""
         ph = np.random.default_rng([cfg.seed, 99]).uniform(0, 2 * np.pi, size=6)
         self._drift_phase, self._ripple_phase = ph[:3], ph[3:]
         self._ambient_rng = np.random.default_rng([cfg.seed, 100])
@@ -397,31 +417,64 @@ class CagePhysics:
 
     # --- field ----------------------------------------------------------------------------------
 
+    def coil_matrix_at_m(self, position_m: tuple[float, ...] | Array) -> Array:
+        """The coils' field per ampere (uT/A, 3x3) at ``position_m`` (m from the centre)."""
+        if self.coils is None:
+            return self.coil_matrix.copy()
+        return self.coils.matrix_at(np.asarray(position_m, float))
+
+    def coil_gains(self, t_s: float | None = None) -> Array:
+        """Per coil axis, the current flowing per ampere the supply reports (its gain error, its
+        drift since the start and with the lab's temperature)."""
+        t = (now_s() if t_s is None else t_s) - self.start_s
+        lab_k = self.lab.lab_temperature_c(t)
+        ppm = [s.cfg.gain_ppm + s.cfg.gain_drift_ppm_per_h * t / 3600.0 + s.cfg.gain_ppm_per_k * lab_k
+               for s in self.coil_supply]  # fmt: skip
+        return 1.0 + 1e-6 * np.array(ppm)
+
     def coil_currents(self, t_s: float | None = None) -> Array:
-        """Signed coil currents (A), polarity included."""
+        """Signed coil currents (A) as the supplies report them, polarity included."""
         t = now_s() if t_s is None else t_s
         signs = self.relays.sign if self.cfg.cage.polarity == "relay" else self.bipolar_sign
         return np.array([signs[i] * self.coil_supply[i].output_current(t) for i in range(3)])
 
-    def ambient_ut(self, t_s: float, noise: bool = True) -> Array:
-        """Lab field at the DUT (uT): constant, drift, mains ripple and (optionally) noise."""
+    def true_coil_currents(self, t_s: float | None = None) -> Array:
+        """Signed coil currents (A) that flow: the reported ones times the supplies' gains."""
+        t = now_s() if t_s is None else t_s
+        return self.coil_currents(t) * self.coil_gains(t)
+
+    def ambient_ut(
+        self, t_s: float, noise: bool = True, position_m: tuple[float, ...] | None = None
+    ) -> Array:
+        """Lab field (uT) at ``position_m`` (default: the centre): constant, drift, mains ripple,
+        the lab field's daily, 1/f, gradient and traffic terms and (optionally) white noise."""
         a = self.cfg.ambient
+        since = t_s - self.start_s
+        where = np.zeros((1, 3)) if position_m is None else np.asarray([position_m], float)
         b = np.array(a.field_ut)
         b = b + np.array(a.drift_amplitude_ut) * np.sin(
-            2 * np.pi * t_s / np.array(a.drift_period_s) + self._drift_phase
+            2 * np.pi * since / np.array(a.drift_period_s) + self._drift_phase
         )
         b = b + np.array(a.ripple_amplitude_ut) * np.sin(
-            2 * np.pi * a.ripple_hz * t_s + self._ripple_phase
+            2 * np.pi * a.ripple_hz * since + self._ripple_phase
         )
+        b = b + self.lab.uniform_ut(since) + self.lab.local_ut(since, where)[0]
         if noise and a.noise_ut > 0:
             with self._lock:
                 b = b + a.noise_ut * self._ambient_rng.standard_normal(3)
         return np.asarray(b)
 
     def field_ut(self, t_s: float | None = None, noise: bool = True) -> Array:
-        """True field at the DUT in the cage frame: ``K I + B_ambient`` (uT)."""
+        """True field at the centre (the DUT's place) in the cage frame: ``K G I + B_ambient``."""
         t = now_s() if t_s is None else t_s
-        return np.asarray(self.coil_matrix @ self.coil_currents(t) + self.ambient_ut(t, noise))
+        return np.asarray(self.coil_matrix @ self.true_coil_currents(t) + self.ambient_ut(t, noise))
+
+    def field_at_ut(self, name: str, t_s: float | None = None, noise: bool = True) -> Array:
+        """True field (uT, cage frame) where magnetometer ``name`` sits."""
+        t = now_s() if t_s is None else t_s
+        position = self.magnetometers[name].cfg.position_m
+        coils = self.coil_matrix_at[name] @ self.true_coil_currents(t)
+        return np.asarray(coils + self.ambient_ut(t, noise, position))
 
     def load_currents(
         self, t_s: float, delays_s: dict[str, float] | None = None
@@ -443,7 +496,7 @@ class CagePhysics:
         """One noisy reading of a magnetometer (uT, its own frame, before quantization)."""
         t = now_s() if t_s is None else t_s
         mag = self.magnetometers[name]
-        return mag.sample(self.field_ut(t), self.load_currents(t, mag.cfg.delay_s),
+        return mag.sample(self.field_at_ut(name, t), self.load_currents(t, mag.cfg.delay_s),
                           self.dut_temperature_c(t))  # fmt: skip
 
     def safe(self) -> None:

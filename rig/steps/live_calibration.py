@@ -180,8 +180,9 @@ class LiveCalibration:
         if not self.filter.ready:
             return
         n_theta = 9 + 3 * len(self.channels)
-        theta = np.asarray(self.filter.x[:n_theta], float)
-        cov_theta = np.asarray(self.filter.P[:n_theta, :n_theta], float)
+        x, big_p, _ = self.filter.final()  # as the result will report it: the data's alone
+        theta = np.asarray(x[:n_theta], float)
+        cov_theta = np.asarray(big_p[:n_theta, :n_theta], float)
         try:
             p, cov = delta_method(p_from_theta, theta, cov_theta, self.opts.method)
         except CalibrationError:

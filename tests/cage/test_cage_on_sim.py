@@ -71,13 +71,14 @@ def test_characterization_recovers_k_and_b0(
 ) -> None:
     cage, _ = sim_and_config
     model = characterize(controller, 1.0, samples=10, repeats=2, instruments={"reference": "sim"})
-    k_true = np.array(cage.cfg.cage.coil_matrix_ut_per_a)
-    mid = model.meta[
-        "mid_time_monotonic_s"
-    ]  # B0 is the lab field at mid-sweep, ripple averaged out
+    physics = cage.physics
+    mid = model.meta["mid_time_monotonic_s"]
+    # what the reference sees: the coils' field per ampere where it sits, times the current per
+    # reported ampere (the supplies' gains), and the lab field there at mid-sweep (ripple averaged)
+    k_true = physics.coil_matrix_at["reference"] * physics.coil_gains(mid)
+    where = cage.cfg.magnetometer("reference").position_m
     b0_true = np.mean(
-        [cage.physics.ambient_ut(t, noise=False) for t in mid + np.linspace(-0.5, 0.5, 1001)],
-        axis=0,
+        [physics.ambient_ut(t, False, where) for t in mid + np.linspace(-0.5, 0.5, 1001)], axis=0
     )
     z_k = (model.k_ut_per_a - k_true) / model.k_sigma
     z_b = (model.b0_ut - b0_true) / model.b0_sigma_ut

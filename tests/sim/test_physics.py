@@ -18,7 +18,7 @@ T0 = 1000.0  # explicit times: the physics is evaluated at any given instant
 
 @pytest.fixture()
 def physics() -> CagePhysics:
-    return CagePhysics(load_config())
+    return CagePhysics(load_config(), start_s=0.0)
 
 
 def drive(p: CagePhysics, currents_a: list[float], t_s: float) -> None:
@@ -37,9 +37,14 @@ def test_field_is_coil_matrix_times_current_plus_ambient(physics: CagePhysics) -
     drive(physics, currents, T0)
     tau = [cfg.inductance_h[i] / cfg.resistance_ohm[i] for i in range(3)]
     t_settled = T0 + 20 * max(tau)  # e^-20: settled to 1e-9
-    expected = np.array(cfg.coil_matrix_ut_per_a) @ currents + physics.ambient_ut(
-        t_settled, noise=False
-    )
+    # the supplies' gains written out from the configuration: error, drift, lab temperature
+    lab_k = physics.lab.lab_temperature_c(t_settled - physics.start_s)
+    gains = [1 + 1e-6 * (s.gain_ppm + s.gain_drift_ppm_per_h * t_settled / 3600
+                         + s.gain_ppm_per_k * lab_k)
+             for s in sorted((s for s in physics.cfg.supplies if s.axis is not None),
+                             key=lambda s: s.axis)]  # fmt: skip
+    expected = np.array(cfg.coil_matrix_ut_per_a) @ (np.array(currents) * gains)
+    expected += physics.ambient_ut(t_settled, noise=False)
     np.testing.assert_allclose(physics.field_ut(t_settled, noise=False), expected, atol=1e-3)
     # one time constant into the step: 1 - 1/e of the way, per axis
     for axis in range(3):
@@ -112,8 +117,12 @@ def test_stuck_sensor_repeats(physics: CagePhysics) -> None:
 
 
 def test_same_seed_same_cage() -> None:
-    a, b = CagePhysics(load_config()), CagePhysics(load_config())
+    a, b = CagePhysics(load_config(), start_s=0.0), CagePhysics(load_config(), start_s=0.0)
     np.testing.assert_array_equal(a.read_magnetometer("dut", T0), b.read_magnetometer("dut", T0))
+    later = CagePhysics(load_config(), start_s=500.0)  # the same lab field from its own start
+    np.testing.assert_allclose(
+        later.ambient_ut(T0 + 500.0, noise=False), a.ambient_ut(T0, noise=False), atol=1e-9
+    )
 
 
 def test_config_errors_name_the_key(tmp_path) -> None:  # type: ignore[no-untyped-def]
