@@ -1,0 +1,225 @@
+"""Coil constants and axis directions from a reference sensor turned on a fixture (vector method).
+
+A reference magnetometer sits on a rotation fixture at the cage centre. In each fixture position
+``k`` (nominally the rotation ``R_k`` of the sensor from its base position) every coil is driven
+at ``+I`` and ``-I``; the half difference per ampere cancels the ambient field and the sensor's
+offset::
+
+    d_jk = (m(+I) - m(-I)) / (2 I) = T A_k^T K_j,    A_k = R_k exp([delta_k]x)
+
+``K_j`` (uT/A) is coil j's field per ampere in the fixture's base frame (the cage frame), ``T =
+L M`` the sensor (``L`` lower triangular: its scales and non-orthogonality, known from its
+certificate within ``sigma``; ``M`` its rotation on the fixture, free) and ``delta_k`` each
+position's small rotation error (prior 1-sigma ``fixture_sigma_rad``; the base position defines
+the frame). With positions about two different fixture axes (the default: base, +90 deg about z,
+about x and about y: 12 vectors, after McPherron and Snare's UCLA procedure) everything but the
+common scale of ``T`` and ``K`` is determined by the turns; the certificate's scale fixes that,
+so its uncertainty is part of the coil constants' sigma. Fitted by weighted least squares
+(``scipy.optimize.least_squares``) with the priors as pseudo-observations; covariance from the
+Jacobian at the solution, inflated by the Birge ratio when the chi-square says the misfit is real.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from rig.errors import UserInputError
+
+Array = npt.NDArray[np.float64]
+ARCSEC_PER_RAD = 180.0 / math.pi * 3600.0
+MISFIT_P = 0.01
+"""Chi-square p-value below which the misfit is taken as real and the covariance inflated."""
+
+
+def rotation(rotvec_rad: Array) -> Array:
+    """Rotation matrix of a rotation vector (rad)."""
+    angle = float(np.linalg.norm(rotvec_rad))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = np.asarray(rotvec_rad, float) / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.asarray(np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * kx @ kx)
+
+
+DEFAULT_POSITIONS: tuple[tuple[str, Array], ...] = (
+    ("base", np.eye(3)),
+    ("+90 about z", rotation(np.array([0.0, 0.0, math.pi / 2]))),
+    ("+90 about x", rotation(np.array([math.pi / 2, 0.0, 0.0]))),
+    ("+90 about y", rotation(np.array([0.0, math.pi / 2, 0.0]))),
+)
+"""The fixture positions: name and nominal rotation of the sensor from its base position."""
+
+
+@dataclass(frozen=True)
+class SensorPrior:
+    """What the reference's certificate says of it: ``l_matrix`` (lower triangular, the sensor
+    matrix without its mounting; ``lower_triangular_part`` of the certificate's inverse correction)
+    with 1-sigma ``scale_sigma`` (relative, diagonal) and ``skew_sigma_rad`` (off-diagonal), and
+    the fixture's rotation error per position and axis, ``fixture_sigma_rad``."""
+
+    l_matrix: Array
+    scale_sigma: float = 5e-5
+    skew_sigma_rad: float = 20.0 / ARCSEC_PER_RAD
+    fixture_sigma_rad: float = 30.0 / ARCSEC_PER_RAD
+
+
+@dataclass(frozen=True)
+class CoilResponse:
+    """One fixture position and coil: the sensor's reading change per ampere (uT/A, sensor frame)
+    and its 1-sigma per axis."""
+
+    position: int
+    coil: int
+    per_amp_ut: Array
+    sigma_ut: Array
+
+
+@dataclass(frozen=True)
+class CoilAxes:
+    """The fitted coil matrix and what follows from it, each with its 1-sigma.
+
+    ``k_ut_per_a`` (3x3, columns: each coil's field per ampere in the cage frame), ``k_cov``
+    (9x9, column-major: K_x, K_y, K_z), ``constants_ut_per_a`` = |K_j|, ``skew_arcsec`` = the
+    angle between each pair of coil axes minus 90 deg (xy, xz, yz), ``fixture_error_arcsec`` per
+    non-base position, ``chi2`` and ``dof`` of the fit, and whether the covariance was inflated.
+    """
+
+    k_ut_per_a: Array
+    k_cov: Array
+    constants_ut_per_a: Array
+    constants_sigma: Array
+    skew_arcsec: Array
+    skew_sigma_arcsec: Array
+    fixture_error_arcsec: Array
+    chi2: float
+    dof: int
+    inflated: bool
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+def lower_triangular_part(t_matrix: Array) -> Array:
+    """``L`` of ``T = L M`` (``M`` a rotation, ``L`` lower triangular with a positive diagonal)."""
+    _, r = np.linalg.qr(np.asarray(t_matrix, float).T)  # T^T = M^T L^T: QR
+    signs = np.sign(np.diag(r))
+    return np.asarray((signs[:, None] * r).T)
+
+
+_TRIL = np.tril_indices(3)
+
+
+def _unpack(p: Array, n_pos: int) -> tuple[Array, Array, Array, Array]:
+    k = p[:9].reshape(3, 3).T  # columns K_x, K_y, K_z
+    l_matrix = np.zeros((3, 3))
+    l_matrix[_TRIL] = p[9:15]
+    m = rotation(p[15:18])
+    deltas = np.vstack([np.zeros(3), p[18:].reshape(n_pos - 1, 3)])
+    return k, l_matrix, m, deltas
+
+
+def _residuals(
+    p: Array, data: list[CoilResponse], nominal: list[Array], prior: SensorPrior
+) -> Array:
+    k, l_matrix, m, deltas = _unpack(p, len(nominal))
+    t = l_matrix @ m
+    out = []
+    for r in data:
+        a = nominal[r.position] @ rotation(deltas[r.position])
+        out.append((r.per_amp_ut - t @ a.T @ k[:, r.coil]) / r.sigma_ut)
+    diag = np.diag(prior.l_matrix)
+    l_sigma = np.where(_TRIL[0] == _TRIL[1], prior.scale_sigma * diag[_TRIL[0]],
+                       prior.skew_sigma_rad * diag[_TRIL[0]])  # fmt: skip
+    out.append((p[9:15] - prior.l_matrix[_TRIL]) / l_sigma)
+    out.append(p[18:] / prior.fixture_sigma_rad)
+    return np.concatenate(out)
+
+
+def fit_coil_axes(
+    data: list[CoilResponse],
+    prior: SensorPrior,
+    positions: tuple[tuple[str, Array], ...] = DEFAULT_POSITIONS,
+) -> CoilAxes:
+    """Fit the coil matrix to the responses of every coil in every fixture position.
+
+    Raises UserInputError when a coil or position is missing (the turns would not determine the
+    axes) or the fit does not converge.
+    """
+    from scipy.optimize import least_squares
+    from scipy.stats import chi2 as chi2_dist
+
+    n_pos = len(positions)
+    seen = {(r.position, r.coil) for r in data}
+    missing = [(positions[k][0], "xyz"[j]) for k in range(n_pos) for j in range(3)
+               if (k, j) not in seen]  # fmt: skip
+    if missing:
+        raise UserInputError(
+            "coil axes: no response for "
+            + ", ".join(f"coil {c} in position '{p}'" for p, c in missing)
+            + "; every coil must be driven in every fixture position"
+        )
+    nominal = [rot for _, rot in positions]
+    base = [r for r in data if r.position == 0]
+    k0 = np.zeros((3, 3))
+    for r in base:
+        k0[:, r.coil] = np.linalg.solve(prior.l_matrix, r.per_amp_ut)
+    p0 = np.concatenate(
+        [k0.T.reshape(-1), prior.l_matrix[_TRIL], np.zeros(3), np.zeros(3 * (n_pos - 1))]
+    )
+    fit = least_squares(_residuals, p0, args=(data, nominal, prior), method="lm", x_scale="jac")
+    if not fit.success:
+        raise UserInputError(f"coil axes: the fit did not converge ({fit.message})")
+    jac = fit.jac
+    cov = np.linalg.pinv(jac.T @ jac)
+    n_data = 3 * len(data)
+    chi2 = float(np.sum(fit.fun[:n_data] ** 2))
+    dof = int(fit.fun.size - p0.size)
+    inflated = dof > 0 and float(chi2_dist.sf(float(np.sum(fit.fun**2)), dof)) < MISFIT_P
+    notes: tuple[str, ...] = ()
+    if inflated:
+        ratio = float(np.sum(fit.fun**2)) / dof
+        cov = cov * ratio
+        notes = (f"the responses scatter {math.sqrt(ratio):.2f} times their sigmas (chi-square"
+                 f" {np.sum(fit.fun**2):.1f} for {dof} dof): sigmas inflated by that",)  # fmt: skip
+    return _summarize(fit.x, cov, n_pos, chi2, dof, inflated, notes)
+
+
+def _derived(k_flat: Array) -> Array:
+    """Coil constants (3) and skews (rad: xy, xz, yz) from K (column-major)."""
+    k = k_flat.reshape(3, 3).T
+    norms = np.linalg.norm(k, axis=0)
+    skews = []
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        cos = float(k[:, i] @ k[:, j] / (norms[i] * norms[j]))
+        skews.append(math.pi / 2 - math.acos(max(-1.0, min(1.0, cos))))
+    return np.concatenate([norms, skews])
+
+
+def _summarize(x: Array, cov: Array, n_pos: int, chi2: float, dof: int, inflated: bool,
+               notes: tuple[str, ...]) -> CoilAxes:  # fmt: skip
+    k_cov = cov[:9, :9]
+    value = _derived(x[:9])
+    jac = np.empty((6, 9))
+    for i in range(9):
+        step = 1e-7 * max(1.0, abs(x[i]))
+        up, down = x[:9].copy(), x[:9].copy()
+        up[i] += step
+        down[i] -= step
+        jac[:, i] = (_derived(up) - _derived(down)) / (2 * step)
+    sigma = np.sqrt(np.clip(np.diag(jac @ k_cov @ jac.T), 0.0, None))
+    fixture = x[18:].reshape(n_pos - 1, 3) * ARCSEC_PER_RAD
+    return CoilAxes(
+        k_ut_per_a=x[:9].reshape(3, 3).T.copy(),
+        k_cov=k_cov,
+        constants_ut_per_a=value[:3],
+        constants_sigma=sigma[:3],
+        skew_arcsec=value[3:] * ARCSEC_PER_RAD,
+        skew_sigma_arcsec=sigma[3:] * ARCSEC_PER_RAD,
+        fixture_error_arcsec=fixture,
+        chi2=chi2,
+        dof=dof,
+        inflated=inflated,
+        notes=notes,
+    )
