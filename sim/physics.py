@@ -259,6 +259,8 @@ class Magnetometer:
         self.sensor = springmann_matrix(cfg.scale, tuple(math.radians(v) for v in cfg.nonorth_deg))
         self.rotation = rotation_matrix(np.radians(np.array(cfg.mounting_deg)))
         self.t_matrix = self.sensor @ self.rotation
+        self.turn = np.eye(3)
+        """How the sensor is turned from its mounting (a rotation fixture), cage frame."""
         self.offset_ut = np.array(cfg.offset_ut)
         self.offset_ut_per_k = np.array(cfg.offset_ut_per_k)
         self.faults = Faults()
@@ -272,11 +274,17 @@ class Magnetometer:
         """Noise-free reading for a field (cage frame), delayed load currents (uT) and the
         sensor's temperature (C; None: at its reference temperature)."""
         d_t = 0.0 if temperature_c is None else temperature_c - self.cfg.temperature_ref_c
-        m = (1.0 + self.cfg.scale_per_k * d_t) * (self.t_matrix @ field_ut)
+        m = (1.0 + self.cfg.scale_per_k * d_t) * (self.t_matrix @ (self.turn.T @ field_ut))
         m = m + self.offset_ut + self.offset_ut_per_k * d_t
         for ch, k in self.cfg.k_ut_per_a.items():
             m = m + np.asarray(k) * loads_a.get(ch, 0.0)
         return np.asarray(m)
+
+    def set_turn(self, rotation: Array) -> None:
+        """Turn the sensor on its fixture: ``rotation`` (cage frame) from its mounting (what an
+        operator does when a procedure asks; tests play the operator)."""
+        with self._lock:
+            self.turn = np.array(rotation, float)
 
     def sample(
         self, field_ut: Array, loads_a: dict[str, float], temperature_c: float | None = None

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from rig.config import load_rig_config
 from rig.engine.runner import Runner, RunOutcome
 from rig.procedure.language import parse_procedure
+from sim.cage import SimulatedCage
 from sim.config import SimConfig
 from tests.simcage import sim_cage
 
@@ -14,17 +16,23 @@ from tests.simcage import sim_cage
 def run_on_sim(
     folder: Path, procedure: str, reply_delay_s: dict[str, float] | None = None,
     sim_config: SimConfig | None = None,
+    operator: Callable[[SimulatedCage, str], bool] | None = None,
 ) -> RunOutcome:  # fmt: skip
     """Write ``procedure`` (YAML text) to ``folder``, run it on a fresh simulated cage with every
     prompt confirmed and no live view, and return the outcome. ``reply_delay_s`` slows devices'
     replies (device name -> seconds), as a slow link would; ``sim_config`` replaces the default
-    simulated cage."""
+    simulated cage; ``operator(cage, question)`` answers the prompts instead (and may act on the
+    simulated cage, as an operator turning a fixture does)."""
     (folder / "procedure.yaml").write_text(procedure)
     with sim_cage(folder, sim_config) as (cage, rig_toml):
         for name, delay in (reply_delay_s or {}).items():
             cage.faults[name].reply_delay_s = delay
+
+        def confirm(question: str) -> bool:
+            return True if operator is None else operator(cage, question)
+
         return Runner(parse_procedure(folder / "procedure.yaml"), load_rig_config(rig_toml),
-                      folder / "runs", i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False).run()  # fmt: skip
+                      folder / "runs", i2c_bus=cage.i2c_bus, confirm=confirm, live=False).run()  # fmt: skip
 
 
 TINY_PROCEDURE = """

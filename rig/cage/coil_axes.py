@@ -16,13 +16,19 @@ about x and about y: 12 vectors, after McPherron and Snare's UCLA procedure) eve
 common scale of ``T`` and ``K`` is determined by the turns; the certificate's scale fixes that,
 so its uncertainty is part of the coil constants' sigma. Fitted by weighted least squares
 (``scipy.optimize.least_squares``) with the priors as pseudo-observations; covariance from the
-Jacobian at the solution, inflated by the Birge ratio when the chi-square says the misfit is real.
+Jacobian at the solution. The responses' own sigmas (from the readings' scatter) only weight them:
+their common scale comes from the fit's residuals (the data's chi-square over their degrees of
+freedom: their count less the trace of their hat matrix, about 10 with four positions), because a reading's scatter can misstate its mean's error both
+ways - mains ripple aliased by the sampling averages out of the mean (scatter too large), a lab
+field that moves between the +I and -I readings does not (too small) - while the priors keep
+theirs.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -31,8 +37,9 @@ from rig.errors import UserInputError
 
 Array = npt.NDArray[np.float64]
 ARCSEC_PER_RAD = 180.0 / math.pi * 3600.0
-MISFIT_P = 0.01
-"""Chi-square p-value below which the misfit is taken as real and the covariance inflated."""
+MAX_SCALE_ITERATIONS = 8
+NOISE_NOTE = (0.8, 1.25)
+"""Scale of the responses' sigmas outside which the result says how far they were off."""
 
 
 def rotation(rotvec_rad: Array) -> Array:
@@ -85,7 +92,8 @@ class CoilAxes:
     ``k_ut_per_a`` (3x3, columns: each coil's field per ampere in the cage frame), ``k_cov``
     (9x9, column-major: K_x, K_y, K_z), ``constants_ut_per_a`` = |K_j|, ``skew_arcsec`` = the
     angle between each pair of coil axes minus 90 deg (xy, xz, yz), ``fixture_error_arcsec`` per
-    non-base position, ``chi2`` and ``dof`` of the fit, and whether the covariance was inflated.
+    non-base position, ``chi2`` and ``dof`` of the data (at the stated sigmas) and
+    ``noise_scale``, the factor the fit's residuals put on the stated sigmas.
     """
 
     k_ut_per_a: Array
@@ -97,7 +105,7 @@ class CoilAxes:
     fixture_error_arcsec: Array
     chi2: float
     dof: int
-    inflated: bool
+    noise_scale: float
     notes: tuple[str, ...] = field(default_factory=tuple)
 
 
@@ -148,7 +156,6 @@ def fit_coil_axes(
     axes) or the fit does not converge.
     """
     from scipy.optimize import least_squares
-    from scipy.stats import chi2 as chi2_dist
 
     n_pos = len(positions)
     seen = {(r.position, r.coil) for r in data}
@@ -169,21 +176,32 @@ def fit_coil_axes(
         [k0.T.reshape(-1), prior.l_matrix[_TRIL], np.zeros(3), np.zeros(3 * (n_pos - 1))]
     )
     fit = least_squares(_residuals, p0, args=(data, nominal, prior), method="lm", x_scale="jac")
-    if not fit.success:
-        raise UserInputError(f"coil axes: the fit did not converge ({fit.message})")
-    jac = fit.jac
-    cov = np.linalg.pinv(jac.T @ jac)
     n_data = 3 * len(data)
     chi2 = float(np.sum(fit.fun[:n_data] ** 2))
-    dof = int(fit.fun.size - p0.size)
-    inflated = dof > 0 and float(chi2_dist.sf(float(np.sum(fit.fun**2)), dof)) < MISFIT_P
+    scale, dof = 1.0, n_data
+    for _ in range(MAX_SCALE_ITERATIONS):
+        # the data's degrees of freedom: their count less what they determine (the trace of their
+        # hat matrix), the rest being the priors'
+        jac = fit.jac
+        hat = jac[:n_data] @ np.linalg.pinv(jac.T @ jac) @ jac[:n_data].T
+        dof = max(1, round(n_data - float(np.trace(hat))))
+        factor = math.sqrt(float(np.sum(fit.fun[:n_data] ** 2)) / dof)
+        scale *= factor
+        scaled = [CoilResponse(r.position, r.coil, r.per_amp_ut, scale * r.sigma_ut) for r in data]
+        fit = least_squares(_residuals, fit.x, args=(scaled, nominal, prior), method="lm",
+                            x_scale="jac")  # fmt: skip
+        if abs(factor - 1.0) < 0.01:
+            break
+    if not fit.success:
+        raise UserInputError(f"coil axes: the fit did not converge ({fit.message})")
+    # a scale estimated from dof degrees of freedom leaves t-distributed errors: their variance is
+    # dof / (dof - 2) times the estimate's (the sigma is a promise about the rms error)
+    cov = np.linalg.pinv(fit.jac.T @ fit.jac) * (dof / (dof - 2.0) if dof > 4 else 3.0)
     notes: tuple[str, ...] = ()
-    if inflated:
-        ratio = float(np.sum(fit.fun**2)) / dof
-        cov = cov * ratio
-        notes = (f"the responses scatter {math.sqrt(ratio):.2f} times their sigmas (chi-square"
-                 f" {np.sum(fit.fun**2):.1f} for {dof} dof): sigmas inflated by that",)  # fmt: skip
-    return _summarize(fit.x, cov, n_pos, chi2, dof, inflated, notes)
+    if not NOISE_NOTE[0] <= scale <= NOISE_NOTE[1]:
+        notes = (f"the responses scatter about the fit {scale:.2f} times their readings' sigmas"
+                 f" (chi-square {chi2:.1f} for {dof} dof): the sigmas are the fit's",)  # fmt: skip
+    return _summarize(fit.x, cov, n_pos, chi2, dof, scale, notes)
 
 
 def _derived(k_flat: Array) -> Array:
@@ -197,7 +215,7 @@ def _derived(k_flat: Array) -> Array:
     return np.concatenate([norms, skews])
 
 
-def _summarize(x: Array, cov: Array, n_pos: int, chi2: float, dof: int, inflated: bool,
+def _summarize(x: Array, cov: Array, n_pos: int, chi2: float, dof: int, noise_scale: float,
                notes: tuple[str, ...]) -> CoilAxes:  # fmt: skip
     k_cov = cov[:9, :9]
     value = _derived(x[:9])
@@ -220,6 +238,41 @@ def _summarize(x: Array, cov: Array, n_pos: int, chi2: float, dof: int, inflated
         fixture_error_arcsec=fixture,
         chi2=chi2,
         dof=dof,
-        inflated=inflated,
+        noise_scale=noise_scale,
         notes=notes,
     )
+
+
+class Controller(Protocol):
+    """What the measurement needs of the cage controller."""
+
+    def set_currents(self, target_a: npt.ArrayLike) -> Array: ...
+
+    def sleep(self, seconds: float) -> None: ...
+
+    def reference_readings(self, samples: int, *, fresh: bool = True) -> Array: ...
+
+
+def measure_position(
+    controller: Controller, position: int, amplitude_a: float, samples: int, transient_s: float
+) -> list[CoilResponse]:
+    """Drive each coil at ``+I, -I, +I`` (``amplitude_a``), reading the reference ``samples``
+    times at each after ``transient_s``; the half difference per ampere of the mean of the two
+    ``+I`` readings and the ``-I`` one (a linear drift of the lab field cancels) with its 1-sigma
+    from the readings' scatter. Leaves the coils at zero."""
+    out = []
+    for coil in range(3):
+        means, variances = [], []
+        for sign in (1.0, -1.0, 1.0):
+            target = np.zeros(3)
+            target[coil] = sign * amplitude_a
+            controller.set_currents(target)
+            controller.sleep(transient_s)
+            readings = controller.reference_readings(samples)
+            means.append(readings.mean(axis=0))
+            variances.append(readings.var(axis=0, ddof=1) / samples)
+        d = (0.5 * (means[0] + means[2]) - means[1]) / (2.0 * amplitude_a)
+        var = (0.25 * (variances[0] + variances[2]) + variances[1]) / (2.0 * amplitude_a) ** 2
+        out.append(CoilResponse(position, coil, d, np.sqrt(var)))
+    controller.set_currents(np.zeros(3))
+    return out

@@ -292,6 +292,15 @@ class CageController:
         ``fresh`` discards what a streaming sensor buffered before this call (readings from
         before the last command).
         """
+        raw = np.mean(self.reference_readings(samples, fresh=fresh), axis=0)
+        if self.reference_to_cage is not None:
+            matrix, offset = self.reference_to_cage
+            return np.asarray(matrix @ (raw - offset))
+        return np.asarray(raw)
+
+    def reference_readings(self, samples: int, *, fresh: bool = True) -> Array:
+        """``samples`` consecutive raw reference readings ((N, 3) uT, the sensor's own frame,
+        uncorrected); ``fresh`` as for :meth:`measure_ut`."""
         if self.reference is None:
             raise RigError(
                 "no reference magnetometer configured: trim and characterization need one"
@@ -304,11 +313,7 @@ class CageController:
         for _ in range(samples):
             self.sleep(0)  # a fault reported meanwhile ends the measurement
             readings.append(self.reference.read())
-        raw = np.mean(readings, axis=0)
-        if self.reference_to_cage is not None:
-            matrix, offset = self.reference_to_cage
-            return np.asarray(matrix @ (raw - offset))
-        return np.asarray(raw)
+        return np.asarray(readings, float)
 
     def wait_settled(
         self,

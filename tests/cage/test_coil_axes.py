@@ -102,12 +102,20 @@ def test_a_missing_position_is_named() -> None:
         fit_coil_axes([r for r in data if not (r.position == 2 and r.coil == 1)], prior)
 
 
-def test_a_misfit_inflates_the_sigmas_and_says_so() -> None:
+def test_the_sigmas_follow_the_residuals_not_the_readings_scatter() -> None:
+    """Responses five times noisier than their sigmas say, or with sigmas five times too large
+    (a scatter of mains ripple that averages out): the fit's residuals set the scale, and the
+    result says so."""
     prior = SensorPrior(certificate_l())
     data, _ = procedure(2, prior)
     rng = np.random.default_rng(9)
     noisy = [CoilResponse(r.position, r.coil, r.per_amp_ut + 5 * NOISE_UT_PER_A
                           * rng.standard_normal(3), r.sigma_ut) for r in data]  # fmt: skip
-    plain, inflated = fit_coil_axes(data, prior), fit_coil_axes(noisy, prior)
-    assert not plain.inflated and inflated.inflated and "inflated" in inflated.notes[0]
-    assert np.all(inflated.skew_sigma_arcsec > 2 * plain.skew_sigma_arcsec)
+    timid = [CoilResponse(r.position, r.coil, r.per_amp_ut, 5 * r.sigma_ut) for r in data]
+    plain = fit_coil_axes(data, prior)
+    worse, same = fit_coil_axes(noisy, prior), fit_coil_axes(timid, prior)
+    assert 0.7 < plain.noise_scale < 1.3 and not plain.notes
+    assert worse.noise_scale > 3 and "the sigmas are the fit's" in worse.notes[0]
+    assert np.all(worse.skew_sigma_arcsec > 2 * plain.skew_sigma_arcsec)
+    assert same.noise_scale == pytest.approx(plain.noise_scale / 5, rel=1e-3) and same.notes
+    np.testing.assert_allclose(same.skew_sigma_arcsec, plain.skew_sigma_arcsec, rtol=1e-3)

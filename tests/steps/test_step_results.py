@@ -338,3 +338,88 @@ def test_field_steps_without_their_own_work_record_nothing(tmp_path: Path) -> No
         ctx = context(tmp_path, step, recording=Recording())
         assert carry_out(ctx, step) is None
         assert not ctx.events and not ctx.sent and not ctx.readers
+
+
+# --- coil axes: the reference turned on a fixture -------------------------------------------------
+
+
+class TurnedReferenceCage:
+    """A cage ``B = K I + B0`` read by a reference ``T = L M`` (certificate: ``L`` within its
+    sigma) on a fixture the operator turns when asked, each turn off by tens of arcseconds."""
+
+    def __init__(self, k: np.ndarray, seed: int = 4) -> None:
+        from rig.cage.coil_axes import DEFAULT_POSITIONS, rotation
+
+        self.rng = np.random.default_rng(seed)
+        self.k, self.b0 = k, np.array([18.0, -2.5, 41.0])
+        self.l_cert = np.array([[1.0004, 0.0, 0.0], [2e-4, 0.9997, 0.0], [-1e-4, 3e-4, 1.0002]])
+        l_true = self.l_cert + np.diag(5e-5 * self.rng.standard_normal(3))
+        self.t = l_true @ rotation(np.radians([0.4, -0.3, 0.7]))
+        self.offset = np.array([0.01, -0.008, 0.005])
+        self.reference_to_cage = (np.linalg.inv(self.l_cert), self.offset)
+        arcsec = np.radians(1 / 3600)
+        self.turns = [nominal @ rotation(30 * arcsec * self.rng.standard_normal(3)) if i else nominal
+                      for i, (_, nominal) in enumerate(DEFAULT_POSITIONS)]  # fmt: skip
+        self.position = -1
+        self.currents = np.zeros(3)
+        self.peak_a = 0.0
+
+    def turn(self) -> None:
+        self.position += 1
+
+    def set_currents(self, amps: np.ndarray) -> np.ndarray:
+        self.currents = np.asarray(amps, float)
+        self.peak_a = max(self.peak_a, float(np.abs(self.currents).max()))
+        return self.currents
+
+    def sleep(self, seconds: float) -> None:
+        pass
+
+    def reference_readings(self, samples: int, *, fresh: bool = True) -> np.ndarray:
+        a = self.turns[self.position]
+        m = self.t @ a.T @ (self.k @ self.currents + self.b0) + self.offset
+        return m + 0.005 * self.rng.standard_normal((samples, 3))
+
+
+class OperatorContext(FakeContext):
+    """The operator turns the fixture whenever asked."""
+
+    def ask_operator(self, text: str) -> bool:
+        self.controller.turn()
+        return super().ask_operator(text)
+
+
+def test_coil_axes_finds_the_skews_and_constants_of_a_known_cage(tmp_path: Path) -> None:
+    from tests.cage.test_coil_axes import CONSTANTS, skews_arcsec, true_coil_matrix
+
+    k = true_coil_matrix()
+    cage = TurnedReferenceCage(k)
+    step = make_step("coil_axes", {"amplitude_a": 1.0, "samples": 40}, name="axes")
+    ctx = OperatorContext(make_procedure(step), tmp_path, controller=cage)
+    result = carry_out(ctx, step)
+    assert [q.split(":")[0] for q in ctx.questions] == [
+        f"Fixture position {i} of 4" for i in (1, 2, 3, 4)
+    ]
+    assert "'+90 about x'" in ctx.questions[2]
+    skews = np.array([result["skew_arcsec"][p] for p in ("xy", "xz", "yz")])
+    sigma = np.array([result["skew_sigma_arcsec"][p] for p in ("xy", "xz", "yz")])
+    assert np.all(np.abs(skews - skews_arcsec(k)) < 4 * sigma) and sigma.max() < 30.0
+    consts = np.array([result["constants_ut_per_a"][a] for a in "xyz"])
+    rel_sigma = 1e-6 * np.array([result["constants_sigma_ppm"][a] for a in "xyz"])
+    assert np.all(np.abs(consts / CONSTANTS - 1) < 4 * rel_sigma) and rel_sigma.max() < 2e-4
+    assert cage.peak_a == 1.0 and not cage.currents.any()
+    assert (
+        "Coil axes 'axes': constants x 40.2" in KINDS["coil_axes"].report_lines("axes", result)[0]
+    )
+
+
+def test_coil_axes_needs_the_certificate_and_a_willing_operator(tmp_path: Path) -> None:
+    step = make_step("coil_axes", {}, name="axes")
+    cage = TurnedReferenceCage(np.diag([40.0, 40.0, 40.0]))
+    cage.reference_to_cage = None  # type: ignore[assignment]
+    with pytest.raises(RigError, match="reference's certificate"):
+        carry_out(OperatorContext(make_procedure(step), tmp_path, controller=cage), step)
+    declining = OperatorContext(make_procedure(step), tmp_path,
+                                controller=TurnedReferenceCage(np.diag([40.0] * 3)), answer=False)  # fmt: skip
+    with pytest.raises(RunAborted, match="Fixture position 1 of 4"):
+        carry_out(declining, step)
