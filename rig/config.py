@@ -72,6 +72,11 @@ CAGE_KEYS: tuple[Param, ...] = (
     Param("reference", TEXT, help="the magnetometer for trim and characterization"),
     Param("calibration", TEXT, help="the cage model file (relative to the rig configuration),"
           " written by rig cage characterize"),
+    Param("calibration_valid_days", NUMBER, False, 90.0, "how long a cage characterization holds:"
+          " rig check warns about an older one", above=0.0,
+          fix="write the validity, e.g. calibration_valid_days = 90", unit="days"),
+    Param("ambient", TEXT, help="a magnetometer outside the coils, recorded in every run: the"
+          " lab field's changes"),
     Param("max_current_a", LIST, True, help="coil current limit per axis [x, y, z]", unit="A"),
     Param("max_field_ut", NUMBER, True, help="largest field magnitude a procedure may ask for",
           above=0.0, fix="write the cage's field limit, e.g. max_field_ut = 150.0", unit="uT"),
@@ -143,6 +148,8 @@ class CageConfig:
     compliance_v: float
     step_s: float = 0.05
     nominal_k_ut_per_a: tuple[tuple[float, ...], ...] | None = None
+    calibration_valid_days: float = 90.0
+    ambient: str | None = None
 
 
 @dataclass(frozen=True)
@@ -436,6 +443,9 @@ def _cage(path: Path, c: dict[str, Any], devices: dict[str, DeviceConfig]) -> Ca
         _device_with_role(path, "polarity", polarity, devices, "relay", "a relay device")
     if reference is not None:
         _device_with_role(path, "reference", reference, devices, "magnetometer", "a magnetometer")
+    ambient = c.get("ambient")
+    if ambient is not None:
+        _device_with_role(path, "ambient", ambient, devices, "magnetometer", "a magnetometer")
     calibration = c.get("calibration")
     max_current = _numbers(path, "[cage].max_current_a", c["max_current_a"], 3)
     return CageConfig(
@@ -449,6 +459,8 @@ def _cage(path: Path, c: dict[str, Any], devices: dict[str, DeviceConfig]) -> Ca
         compliance_v=float(c["compliance_v"]),
         step_s=float(c["step_s"]),
         nominal_k_ut_per_a=_nominal(path, c.get("nominal_k_ut_per_a")),
+        calibration_valid_days=float(c["calibration_valid_days"]),
+        ambient=ambient,
     )
 
 

@@ -36,7 +36,9 @@ def rig_config_toml(
     devices = endpoints["devices"]
     roles = {dev.get("role"): name for name, dev in devices.items()}
     if all(f"coil_{ax}" in roles for ax in "xyz"):
-        reference = next((n for n, d in devices.items() if d["kind"] == "ascii-mag"), None)
+        reference = roles.get("reference") or next(
+            (n for n, d in devices.items() if d["kind"] == "ascii-mag" and "role" not in d), None
+        )
         lines += [
             "[cage]",
             "axes = { " + ", ".join(f'{ax} = "{roles[f"coil_{ax}"]}"' for ax in "xyz") + " }",
@@ -45,6 +47,8 @@ def rig_config_toml(
             lines.append(f'polarity = "{roles["polarity"]}"')
         if reference:
             lines.append(f'reference = "{reference}"')
+        if "ambient" in roles:
+            lines.append(f'ambient = "{roles["ambient"]}"')
         lines += [
             'calibration = "cage-calibration.json"',
             "max_current_a = [2.5, 2.5, 2.5]",

@@ -80,8 +80,9 @@ def _start(host: CageHost, m: MagnetometerConfig, index: int) -> dict[str, Any]:
                             rate_hz=m.rate_hz, baudrate=m.endpoint.baudrate,
                             line_format=m.line_format, seed=host.cfg.seed + index)  # fmt: skip
     host.add_serial(m.name, dev)
-    return {"kind": "ascii-mag", "protocol": "serial", "path": dev.path,
-            "baudrate": m.endpoint.baudrate, "line_format": m.line_format, "unit": "uT"}  # fmt: skip
+    endpoint = {"kind": "ascii-mag", "protocol": "serial", "path": dev.path,
+                "baudrate": m.endpoint.baudrate, "line_format": m.line_format, "unit": "uT"}  # fmt: skip
+    return endpoint | ({"role": m.role} if m.role else {})
 
 
 KIND = SimKind("ascii-mag", "magnetometers", _start)

@@ -131,6 +131,7 @@ class MagnetometerConfig:
     scale_per_k: float = 0.0  # common scale coefficient (1/K): m = (1 + s dT) T h + ...
     offset_ut_per_k: tuple[float, ...] = (0.0, 0.0, 0.0)  # offset coefficient (uT/K, per axis)
     position_m: tuple[float, ...] = (0.0, 0.0, 0.0)
+    role: str | None = None  # "reference" (the cage's, inside) or "ambient" (outside the coils)
 
 
 @dataclass(frozen=True)
@@ -330,7 +331,10 @@ def _magnetometer(m: dict[str, Any], where: str, loads: set[str]) -> Magnetomete
         scale_per_k=float(m.get("scale_per_k", 0.0)),
         offset_ut_per_k=_vec_or(m, "offset_ut_per_k", where, zero),
         position_m=_vec_or(m, "position_m", where, zero),
+        role=None if m.get("role") is None else str(m["role"]),
     )
+    if mag.role not in (None, "reference", "ambient"):
+        raise SimConfigError(f"{where}.role must be 'reference' or 'ambient' (or absent)")
     for ch in mag.k_ut_per_a:
         if ch not in loads:
             raise SimConfigError(f"{where}.k_ut_per_a names '{ch}', which is no load channel")

@@ -89,3 +89,30 @@ def test_a_characterization_with_its_uncertainty_decides(
     out = capsys.readouterr().out
     assert "LIMIT:" in out and "+-0.11 A at 3 sigma of the cage model" in out
     assert "z 2.400 +-0.113 A" in out
+
+
+def test_an_old_characterization_is_flagged_not_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import datetime as dt
+
+    cal = {"k_ut_per_a": (40.0 * np.eye(3)).tolist(), "b0_ut": [0.0, 0.0, 0.0],
+           "k_sigma_ut_per_a": np.zeros((3, 3)).tolist(), "b0_sigma_ut": [0.0, 0.0, 0.0],
+           "date": "2025-01-10T10:00:00+00:00"}  # fmt: skip
+    proc, cfg = write(tmp_path, HOLD_Z_80, cal)
+    assert main(["check", str(proc), "--rig", str(cfg)]) == 0  # a warning, not a refusal
+    warning = [line for line in capsys.readouterr().out.splitlines() if line.startswith("WARNING")]
+    assert len(warning) == 1 and "the cage model of 2025-01-10 is" in warning[0]
+    assert "calibration_valid_days = 90" in warning[0] and "cage-characterization" in warning[0]
+    # a lab that trusts its cage for two years, or a fresh characterization: no warning
+    cfg.write_text(cfg.read_text().replace("[cage]\n", "[cage]\ncalibration_valid_days = 730\n"))
+    assert main(["check", str(proc), "--rig", str(cfg)]) == 0
+    assert "WARNING" not in capsys.readouterr().out
+    cal["date"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+    proc, cfg = write(tmp_path, HOLD_Z_80, cal)
+    assert main(["check", str(proc), "--rig", str(cfg)]) == 0
+    assert "WARNING" not in capsys.readouterr().out
+    del cal["date"]
+    proc, cfg = write(tmp_path, HOLD_Z_80, cal)
+    main(["check", str(proc), "--rig", str(cfg)])
+    assert "has no date: characterize the cage" in capsys.readouterr().out

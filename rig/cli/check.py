@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -54,6 +55,30 @@ def cage_model_arrays(cfg: RigConfig | None) -> tuple[Any, Any, Any, str]:
             f" ({cfg.cage.calibration}), currents at {MODEL_SIGMAS:g} sigma of it")  # fmt: skip
 
 
+def stale_cage_model(cfg: RigConfig | None, now: dt.datetime | None = None) -> str | None:
+    """A warning when the cage's characterization is older than ``[cage]
+    calibration_valid_days`` (or undated), None when it is fresh or there is none."""
+    from rig.output_limits import cage_model
+
+    m = cage_model(cfg) if cfg is not None else None
+    if m is None or cfg is None or cfg.cage is None or m.meta.get("nominal"):
+        return None
+    valid = cfg.cage.calibration_valid_days
+    try:
+        date = dt.datetime.fromisoformat(str(m.meta["date"]))
+    except (KeyError, ValueError):
+        return (f"the cage model {cfg.cage.calibration} has no date: characterize the cage"
+                " (rig run cage-characterization) before trusting it")  # fmt: skip
+    if date.tzinfo is None:
+        date = date.replace(tzinfo=dt.UTC)
+    age_days = ((now or dt.datetime.now(dt.UTC)) - date).total_seconds() / 86400.0
+    if age_days <= valid:
+        return None
+    return (f"the cage model of {date.date()} is {age_days:.0f} days old, past its validity"
+            f" ([cage] calibration_valid_days = {valid:g}): characterize the cage again"
+            " (rig run cage-characterization, and cage-metrology for its axes)")  # fmt: skip
+
+
 def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: bool) -> int:
     """Dry run: timeline, duration, peaks against limits. Exit 0 only when every limit was checked
     and holds; 1 on a violation or when limits could not be checked (no ``--rig``, no cage model).
@@ -79,6 +104,8 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
         print(f"AT RISK: {r}")
     for u in unchecked:
         print(f"NOT CHECKED: {u}")
+    if (stale := stale_cage_model(cfg)) is not None:
+        print(f"WARNING: {stale}")
     if not quiet:
         print(_verdict(dr, unchecked, cfg))
     return 0 if not dr.violations and not unchecked else 1

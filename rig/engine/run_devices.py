@@ -35,14 +35,16 @@ def _identity(device: Any) -> str | None:
 def start_samplers(rig: RigSession, proc: Procedure, cfg: RigConfig, writer: RunWriter,
                    samplers: dict[str, SensorSampler], instruments: dict[str, str],
                    event: Event) -> None:  # fmt: skip
-    """One sampler per magnetometer device, whatever its roles, into ``samplers``; the cage's
+    """One sampler per magnetometer device, whatever its roles, and the cage's ``ambient``
+    magnetometer (outside the coils: recorded in every run), into ``samplers``; the cage's
     reference is read through its sampler."""
     for role, dev_name in proc.magnetometers.items():
         if dev_name not in cfg.devices:
             raise RigError(f"{proc.path}: magnetometer role '{role}' names '{dev_name}',"
                            f" which is not in {cfg.path}")  # fmt: skip
     cage_reference = cfg.cage.reference if cfg.cage is not None else None
-    for dev_name in dict.fromkeys(proc.magnetometers.values()):
+    ambient = [cfg.cage.ambient] if cfg.cage is not None and cfg.cage.ambient else []
+    for dev_name in dict.fromkeys([*proc.magnetometers.values(), *ambient]):
         driver = rig.magnetometer(dev_name)
         if (ident := _identity(driver)) is not None:
             instruments[dev_name] = ident

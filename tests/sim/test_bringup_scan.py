@@ -55,6 +55,7 @@ def test_every_identifiable_device_is_found(
         "load_panel": ("regmap-eload", "Maynuo M9711"),
         "dut": ("hmr2300", "HMR2300"),
         "reference": ("ascii-mag", "ASCII line magnetometer"),
+        "outside": ("ascii-mag", "ASCII line magnetometer"),
     }
     for name, (kind, model) in expect.items():
         f = by_where[where(devices, name)]
@@ -73,8 +74,9 @@ def test_every_identifiable_device_is_found(
 
 
 def test_the_skeleton_loads_and_opens_the_cage(
-    scanned: tuple[list[Any], list[Any]], cage: SimulatedCage, tmp_path: Path
-) -> None:
+    scanned: tuple[list[Any], list[Any]], cage: SimulatedCage, devices: dict[str, Any],
+    tmp_path: Path,
+) -> None:  # fmt: skip
     found, unknown = scanned
     text = skeleton(found, unknown)
     assert "FILL IN" in text and "[cage]" in text
@@ -88,7 +90,8 @@ def test_the_skeleton_loads_and_opens_the_cage(
     # the scan never guesses which magnetometer is the reference (it once named the DUT): the
     # user names it, here the simulated reference (an ASCII line magnetometer)
     assert not re.search(r"^reference\s*=", text, re.M)
-    ref = next(n for n, f in zip(device_names(found), found, strict=True) if f.kind == "ascii-mag")
+    ref = next(n for n, f in zip(device_names(found), found, strict=True)
+               if f.where == where(devices, "reference"))  # fmt: skip
     text = re.sub(r'^# reference = "\w+"', f'reference = "{ref}"', text, flags=re.M)
     path.write_text(text.replace('# polarity = "polarity1"', 'polarity = "polarity1"'))
     cfg = load_rig_config(path)
