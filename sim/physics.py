@@ -340,6 +340,8 @@ class CagePhysics:
             m.name: Magnetometer(m, np.random.default_rng([cfg.seed, i]))
             for i, m in enumerate(cfg.magnetometers)
         }
+        self.position_m = {m.name: tuple(m.position_m) for m in cfg.magnetometers}
+        """Per magnetometer, where it sits (m from the centre, cage frame)."""
         self.coil_matrix_at = {
             m.name: self.coil_matrix_at_m(m.position_m) for m in cfg.magnetometers
         }
@@ -431,6 +433,12 @@ class CagePhysics:
             return self.coil_matrix.copy()
         return self.coils.matrix_at(np.asarray(position_m, float))
 
+    def move(self, name: str, position_m: tuple[float, ...]) -> None:
+        """Move magnetometer ``name`` to ``position_m`` (m from the centre: what an operator does
+        when a field map asks; tests play the operator)."""
+        self.coil_matrix_at[name] = self.coil_matrix_at_m(position_m)
+        self.position_m[name] = tuple(float(v) for v in position_m)
+
     def coil_gains(self, t_s: float | None = None) -> Array:
         """Per coil axis, the current flowing per ampere the supply reports (its gain error, its
         drift since the start and with the lab's temperature)."""
@@ -480,7 +488,7 @@ class CagePhysics:
     def field_at_ut(self, name: str, t_s: float | None = None, noise: bool = True) -> Array:
         """True field (uT, cage frame) where magnetometer ``name`` sits."""
         t = now_s() if t_s is None else t_s
-        position = self.magnetometers[name].cfg.position_m
+        position = self.position_m[name]
         coils = self.coil_matrix_at[name] @ self.true_coil_currents(t)
         return np.asarray(coils + self.ambient_ut(t, noise, position))
 

@@ -30,6 +30,7 @@ def fields_of(cmds: list[Command]) -> tuple[list[float], np.ndarray]:
         ("check", {"criteria": [{"result": "a", "value": "b", "max": 1}]}),
         ("characterize_cage", {"amplitude_a": 0.5}),
         ("coil_axes", {"amplitude_a": 0.5}),
+        ("field_map", {"amplitude_a": 0.5}),
     ],
 )
 def test_an_action_step_is_one_command_of_its_own_carrying_its_parameters(

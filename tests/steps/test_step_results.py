@@ -423,3 +423,63 @@ def test_coil_axes_needs_the_certificate_and_a_willing_operator(tmp_path: Path) 
                                 controller=TurnedReferenceCage(np.diag([40.0] * 3)), answer=False)  # fmt: skip
     with pytest.raises(RunAborted, match="Fixture position 1 of 4"):
         carry_out(declining, step)
+
+
+# --- field map: the reference moved over a grid ------------------------------------------------
+
+
+class MovedReferenceCage:
+    """The simulated cage's coils (Biot-Savart, the physics without a wire) read by a reference
+    with a certificate; the operator moves it to the position each prompt names."""
+
+    def __init__(self) -> None:
+        from sim.config import load_config
+        from sim.physics import CagePhysics
+
+        self.physics = CagePhysics(load_config(), start_s=0.0)
+        self.rng = np.random.default_rng(5)
+        self.reference_to_cage = (np.eye(3), np.zeros(3))
+        self.where = np.zeros(3)
+        self.currents = np.zeros(3)
+        self.moves = 0
+
+    def move(self, text: str) -> None:
+        import re
+
+        cm = [float(v) for v in re.findall(r"[xyz] ([+-][\d.]+) cm", text)]
+        self.where = np.array(cm) / 100.0
+        self.moves += 1
+
+    def set_currents(self, amps: np.ndarray) -> np.ndarray:
+        self.currents = np.asarray(amps, float)
+        return self.currents
+
+    def sleep(self, seconds: float) -> None:
+        pass
+
+    def reference_readings(self, samples: int, *, fresh: bool = True) -> np.ndarray:
+        b = self.physics.coil_matrix_at_m(self.where) @ self.currents + np.array([18.0, -2.5, 41.0])
+        return b + 0.005 * self.rng.standard_normal((samples, 3))
+
+
+class MovingOperator(FakeContext):
+    """The operator moves the reference wherever asked."""
+
+    def ask_operator(self, text: str) -> bool:
+        self.controller.move(text)
+        return super().ask_operator(text)
+
+
+def test_field_map_finds_the_coils_error_where_the_reference_sits(tmp_path: Path) -> None:
+    cage = MovedReferenceCage()
+    step = make_step("field_map", {"samples": 20}, name="map")
+    ctx = MovingOperator(make_procedure(step), tmp_path, controller=cage)
+    result = carry_out(ctx, step)
+    assert cage.moves == 27 and "move the reference to x -10.0 cm, y -10.0 cm" in ctx.questions[0]
+    truth = 1000 * (cage.physics.coil_matrix_at_m((0.0, 0.0, -0.08)) - cage.physics.coil_matrix)
+    found = np.array(result["reference_error_nt_per_a"])
+    sigma = np.array(result["reference_error_sigma_nt_per_a"])
+    assert np.all(np.abs(found - truth) < 4 * sigma + 1e-3), (found, truth, sigma)
+    assert np.abs(truth).max() > 1.0  # a real error: 2 nT/A on the z coil
+    assert all(50 < v < 5000 for v in result["volume_error_ppm"].values()), result
+    assert "Field map 'map'" in KINDS["field_map"].report_lines("map", result)[0]
