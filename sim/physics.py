@@ -316,24 +316,7 @@ class CagePhysics:
         )  # fmt: skip
         self.supplies: dict[str, Supply] = {}
         self.coil_supply: list[Supply] = [None, None, None]  # type: ignore[list-item]
-        for s in cfg.supplies:
-            if s.axis is not None:
-                r = cfg.cage.resistance_ohm[s.axis]
-                tau = cfg.cage.inductance_h[s.axis] / r
-            else:
-                r, tau = s.resistance_ohm, s.tau_s
-            v_max, i_max = self._limits(s)
-            supply = Supply(s, r, tau, v_max, i_max)
-            self.supplies[s.name] = supply
-            if s.axis is not None:
-                self.coil_supply[s.axis] = supply
-        if cfg.cage.polarity == "bipolar":
-            for s in cfg.supplies:
-                if s.axis is not None and not (s.kind == "regmap" and self._bipolar(s)):
-                    raise SimConfigError(
-                        f"supply '{s.name}': cage.polarity = 'bipolar' needs a bipolar"
-                        " register-map supply on every coil axis"
-                    )
+        self._open_supplies(cfg)
         self.relays = PolarityRelays(cfg.cage.hot_switch_limit_a)
         self.bipolar_sign = [1, 1, 1]
         self.magnetometers = {
@@ -362,6 +345,27 @@ class CagePhysics:
                 self._warming.set_target(t_s, thermal.k_per_w * amps**2 * heater.resistance_ohm)
 
             heater.on_change = heater_changed
+
+    def _open_supplies(self, cfg: SimConfig) -> None:
+        """Every supply and load channel; a bipolar cage needs bipolar coil supplies."""
+        for s in cfg.supplies:
+            if s.axis is not None:
+                r = cfg.cage.resistance_ohm[s.axis]
+                tau = cfg.cage.inductance_h[s.axis] / r
+            else:
+                r, tau = s.resistance_ohm, s.tau_s
+            v_max, i_max = self._limits(s)
+            supply = Supply(s, r, tau, v_max, i_max)
+            self.supplies[s.name] = supply
+            if s.axis is not None:
+                self.coil_supply[s.axis] = supply
+        if cfg.cage.polarity == "bipolar":
+            for s in cfg.supplies:
+                if s.axis is not None and not (s.kind == "regmap" and self._bipolar(s)):
+                    raise SimConfigError(
+                        f"supply '{s.name}': cage.polarity = 'bipolar' needs a bipolar"
+                        " register-map supply on every coil axis"
+                    )
 
     @staticmethod
     def _bipolar(s: SupplyConfig) -> bool:
