@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from rig.errors import RunAborted
 from rig.steps.load_profiles import load_profile
 from rig.steps.vocabulary import Command, Param, RigTiming, Step
 
@@ -72,6 +73,15 @@ class RunContext(Protocol):
         ...
 
     def request_report(self) -> None: ...
+
+
+def ask_or_abort(ctx: RunContext, text: str) -> None:
+    """Ask the operator ``text``; the answer goes to the run's log, and a "no" aborts the run
+    (:class:`~rig.errors.RunAborted`)."""
+    ok = ctx.ask_operator(text)
+    ctx.event("operator", f"prompt {text!r}: {'confirmed' if ok else 'declined'}")
+    if not ok:
+        raise RunAborted(f"the operator declined: {text}")
 
 
 class StepExecution:

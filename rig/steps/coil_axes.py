@@ -9,9 +9,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.errors import RigError, RunAborted
+from rig.errors import RigError
 from rig.steps import stored
-from rig.steps.base import StepExecution, StepKind
+from rig.steps.base import StepExecution, StepKind, ask_or_abort
 from rig.steps.vocabulary import Param, RigTiming, Step
 
 AXES = ("x", "y", "z")
@@ -158,11 +158,7 @@ class TurnedReference(StepExecution):
         data = []
         positions = method.DEFAULT_POSITIONS
         for index, (position, _) in enumerate(positions):
-            text = position_prompt(index, len(positions), position)
-            ok = ctx.ask_operator(text)
-            ctx.event("operator", f"prompt {text!r}: {'confirmed' if ok else 'declined'}")
-            if not ok:
-                raise RunAborted(f"the operator declined: {text}")
+            ask_or_abort(ctx, position_prompt(index, len(positions), position))
             data += method.measure_position(controller, index, payload["amplitude_a"],
                                             payload["samples"], TRANSIENT_S)  # fmt: skip
         fit = method.fit_coil_axes(data, prior)

@@ -9,9 +9,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.errors import RigError, RunAborted
+from rig.errors import RigError
 from rig.steps import stored
-from rig.steps.base import StepExecution, StepKind
+from rig.steps.base import StepExecution, StepKind, ask_or_abort
 from rig.steps.vocabulary import Param, RigTiming, Step
 
 AXES = ("x", "y", "z")
@@ -123,11 +123,7 @@ class MoveReference(StepExecution):
         fields = np.zeros((3, len(positions), 3))
         sigmas = np.zeros((3, len(positions), 3))
         for index, where_m in enumerate(positions):
-            text = position_prompt(index, len(positions), where_m)
-            ok = ctx.ask_operator(text)
-            ctx.event("operator", f"prompt {text!r}: {'confirmed' if ok else 'declined'}")
-            if not ok:
-                raise RunAborted(f"the operator declined: {text}")
+            ask_or_abort(ctx, position_prompt(index, len(positions), where_m))
             for r in measure_position(controller, index, payload["amplitude_a"],
                                       payload["samples"], TRANSIENT_S):  # fmt: skip
                 fields[r.coil, index] = correction @ r.per_amp_ut

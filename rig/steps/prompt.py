@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
-from rig.errors import RunAborted
-from rig.steps.base import StepExecution, StepKind
+from rig.steps.base import StepExecution, StepKind, ask_or_abort
 from rig.steps.vocabulary import Param
 
 
@@ -24,11 +23,7 @@ class Prompt(StepKind):
 
 class Ask(StepExecution):
     def run(self, payload: dict[str, Any]) -> None:
-        text = payload["text"]
-        ok = self.ctx.ask_operator(text)
-        self.ctx.event("operator", f"prompt {text!r}: {'confirmed' if ok else 'declined'}")
-        if not ok:
-            raise RunAborted(f"the operator declined: {text}")
+        ask_or_abort(self.ctx, payload["text"])
 
 
 KIND = Prompt()
