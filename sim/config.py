@@ -7,7 +7,7 @@ the rig never does). ``seed`` drives every random draw, so a file always gives t
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -262,14 +262,16 @@ def _ambient(a: dict[str, Any]) -> AmbientConfig:
         if "gradient_ut_per_m" in a
         else ((0.0,) * 3,) * 3,
         diurnal_amplitude_ut=_vec_or(a, "diurnal_amplitude_ut", "ambient", (0.0, 0.0, 0.0)),
-        diurnal_period_s=float(a.get("diurnal_period_s", 86400.0)),
-        flicker_ut=float(a.get("flicker_ut", 0.0)),
-        traffic_rate_per_h=float(a.get("traffic_rate_per_h", 0.0)),
-        traffic_field_ut=float(a.get("traffic_field_ut", 0.02)),
-        traffic_distance_m=float(a.get("traffic_distance_m", 30.0)),
-        traffic_duration_s=float(a.get("traffic_duration_s", 300.0)),
-        lab_temperature_swing_c=float(a.get("lab_temperature_swing_c", 0.0)),
-    )
+        **_floats(a, AmbientConfig, ("diurnal_period_s", "flicker_ut", "traffic_rate_per_h",
+                                     "traffic_field_ut", "traffic_distance_m",
+                                     "traffic_duration_s", "lab_temperature_swing_c")),
+    )  # fmt: skip
+
+
+def _floats(d: dict[str, Any], cls: type, names: tuple[str, ...]) -> dict[str, float]:
+    """The numbers ``names`` of a table, each defaulting to its field's default in ``cls``."""
+    defaults = {f.name: f.default for f in fields(cls)}
+    return {name: float(d.get(name, defaults[name])) for name in names}
 
 
 def _supply(s: dict[str, Any], where: str) -> SupplyConfig:
@@ -287,9 +289,7 @@ def _supply(s: dict[str, Any], where: str) -> SupplyConfig:
         resistance_ohm=float(s.get("resistance_ohm", 5.0)),
         tau_s=float(s.get("tau_s", 0.002)),
         input_voltage_v=float(s.get("input_voltage_v", 48.0)),
-        gain_ppm=float(s.get("gain_ppm", 0.0)),
-        gain_drift_ppm_per_h=float(s.get("gain_drift_ppm_per_h", 0.0)),
-        gain_ppm_per_k=float(s.get("gain_ppm_per_k", 0.0)),
+        **_floats(s, SupplyConfig, ("gain_ppm", "gain_drift_ppm_per_h", "gain_ppm_per_k")),
     )
 
 
