@@ -24,6 +24,7 @@ from rig.steps import (
     rotate,
     set_field,
     sphere_sweep,
+    supply_stability,
 )
 from rig.steps.base import StepKind
 
@@ -44,6 +45,7 @@ KINDS: dict[str, StepKind] = {
         characterize_cage,
         coil_axes,
         field_map,
+        supply_stability,
         calibrate,
         check,
         report,

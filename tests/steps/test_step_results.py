@@ -483,3 +483,44 @@ def test_field_map_finds_the_coils_error_where_the_reference_sits(tmp_path: Path
     assert np.abs(truth).max() > 1.0  # a real error: 2 nT/A on the z coil
     assert all(50 < v < 5000 for v in result["volume_error_ppm"].values()), result
     assert "Field map 'map'" in KINDS["field_map"].report_lines("map", result)[0]
+
+
+# --- supply stability: the coils' drift with the lab field's changes taken out -----------------
+
+
+def test_supply_stability_finds_the_coils_drift_under_a_moving_lab_field(tmp_path: Path) -> None:
+    """The coils' z field drifts 30 nT/h (a supply's gain); the lab field wanders 200 nT/h with a
+    10 nT vehicle on top, seen alike inside and outside (8 m apart, offset 0.3 uT); the inner
+    reference alone would report the lab's drift, the difference reports the coils'."""
+    rng = np.random.default_rng(3)
+    t_in, t_out = np.arange(0.0, 600.0, 0.05), np.arange(0.0, 600.0, 0.1)
+
+    def lab(t: np.ndarray) -> np.ndarray:
+        wander = 200.0 / 3.6e6 * t[:, None] * np.array([1.0, -0.5, 0.8])
+        vehicle = 0.010 * ((t > 250) & (t < 420))[:, None] * np.array([0.6, 0.3, -0.7])
+        return wander + vehicle
+
+    coils = np.array([0.0, 0.0, 40.0]) + 30.0 / 3.6e6 * t_in[:, None] * np.array([0.0, 0.0, 1.0])
+    rec = Recording()
+    rec.add_samples(
+        "reference", t_in, coils + lab(t_in) + 0.005 * rng.standard_normal((t_in.size, 3))
+    )
+    rec.add_samples("outside", t_out, np.array([19.6, 1.5, -44.5]) + lab(t_out)
+                    + 0.005 * rng.standard_normal((t_out.size, 3)))  # fmt: skip
+    step = make_step("supply_stability", {"hold_s": 600}, name="drift")
+    ctx = context(tmp_path, step, recording=rec,
+                  cfg=SimpleNamespace(cage=SimpleNamespace(ambient="outside")))  # fmt: skip
+    result = carry_out(ctx, step, window=(0.0, 600.0))
+    drift, sigma = result["drift_nt_per_h"], result["drift_sigma_nt_per_h"]
+    assert abs(drift["z"] - 30.0) < 3 * sigma["z"] and sigma["z"] < 5.0, (drift, sigma)
+    assert abs(drift["x"]) < 3 * sigma["x"] and abs(drift["y"]) < 3 * sigma["y"]
+    assert result["reference_drift_nt_per_h"]["x"] > 150.0  # the lab's wander, unsubtracted
+    assert result["residual_nt"]["z"] < 0.5 * result["reference_residual_nt"]["z"]
+    assert "Supply stability 'drift'" in KINDS["supply_stability"].report_lines("drift", result)[0]
+
+
+def test_supply_stability_needs_an_outside_reference(tmp_path: Path) -> None:
+    step = make_step("supply_stability", {"hold_s": 60}, name="drift")
+    ctx = context(tmp_path, step, cfg=SimpleNamespace(cage=SimpleNamespace(ambient=None)))
+    with pytest.raises(RigError, match=r"\[cage\] ambient"):
+        carry_out(ctx, step, window=(0.0, 60.0))
