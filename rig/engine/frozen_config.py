@@ -38,6 +38,8 @@ def freeze(cfg: RigConfig) -> str:
             "nominal_k_ut_per_a": None
             if c.nominal_k_ut_per_a is None
             else [list(r) for r in c.nominal_k_ut_per_a],
+            "calibration_valid_days": c.calibration_valid_days,
+            "ambient": c.ambient,
         }
     devices = {
         n: {"kind": d.kind, "protocol": d.protocol, "params": d.params}
@@ -77,6 +79,8 @@ def thaw(text: str) -> RigConfig:
                 nominal_k_ut_per_a=None
                 if nominal is None
                 else tuple(tuple(float(v) for v in row) for row in nominal),
+                calibration_valid_days=float(c.get("calibration_valid_days", 90.0)),
+                ambient=c.get("ambient"),
             )
         return RigConfig(Path(doc["path"]), devices, cage, {})
     except (ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
