@@ -600,6 +600,12 @@ MAG_PARAMS: tuple[Param, ...] = (
           fix="write the samples per second, e.g. rate_hz = 20", unit="Hz"),
     Param("correction_matrix", LIST, help="calibration certificate: 3x3 matrix"),
     Param("correction_offset_ut", LIST, help="calibration certificate: offset", unit="uT"),
+    Param("correction_scale_sigma", NUMBER, False, 5e-5, "calibration certificate: 1-sigma of"
+          " each scale factor, relative", above=0.0,
+          fix="write the certificate's scale uncertainty, e.g. correction_scale_sigma = 5e-5"),
+    Param("correction_angle_sigma_arcsec", NUMBER, False, 20.0, "calibration certificate: 1-sigma"
+          " of each axis angle", above=0.0, unit="arcsec",
+          fix="write the certificate's angle uncertainty, e.g. correction_angle_sigma_arcsec = 20"),
     Param("stuck_after", WHOLE, False, 60, "identical readings in a row that mean a frozen"
           " sensor (0 = never judged)", low=0, high=1_000_000,
           fix="write a whole number of readings, e.g. stuck_after = 60 (3 s at 20 Hz)"),

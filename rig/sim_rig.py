@@ -103,6 +103,9 @@ def reference_certificate(mag: MagnetometerConfig) -> dict[str, Any]:
     return {
         "correction_matrix": np.linalg.inv(t).tolist(),
         "correction_offset_ut": [float(v) for v in mag.offset_ut],
+        # the simulator knows its reference exactly: its certificate says so (to print precision)
+        "correction_scale_sigma": 1e-6,
+        "correction_angle_sigma_arcsec": 0.2,
     }
 
 

@@ -151,8 +151,14 @@ class TurnedReference(StepExecution):
                 " certificate: give its correction_matrix in the rig configuration"
             )
         correction, _ = controller.reference_to_cage
+        cage = ctx.cfg.cage if ctx.cfg is not None else None
+        reference = ctx.cfg.devices.get(cage.reference or "") if cage is not None else None
+        certificate = reference.params if reference is not None else {}
         prior = method.SensorPrior(
             method.lower_triangular_part(np.linalg.inv(correction)),
+            scale_sigma=float(certificate.get("correction_scale_sigma", 5e-5)),
+            skew_sigma_rad=float(certificate.get("correction_angle_sigma_arcsec", 20.0))
+            / method.ARCSEC_PER_RAD,
             fixture_sigma_rad=payload["fixture_sigma_arcsec"] / method.ARCSEC_PER_RAD,
         )
         data = []
