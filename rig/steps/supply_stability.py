@@ -25,7 +25,8 @@ from rig.steps.vocabulary import Param, RigTiming, Step
 
 AXES = ("x", "y", "z")
 SETTLE_S = 2.0
-"""Samples this long after the field is reached are left out (s): coil and trim transients."""
+"""Samples this long after the field (or a load) changed are left out (s): coil and trim
+transients (:func:`rig.analysis.settled_samples`)."""
 BLOCK_S = 10.0
 """The residual scatter is of means over this long (s): the slow error that holding a field
 suffers, not the sensors' white noise (which the subtraction can only add to)."""
@@ -126,7 +127,7 @@ class DriftWatch(StepExecution):
     """After the hold: the drift of the inner reference less the outside one."""
 
     def finish(self, t_start: float, t_end: float) -> None:
-        from rig.analysis import to_cage_frame
+        from rig.analysis import change_times, settled_samples, to_cage_frame
 
         cage = self.ctx.cfg.cage
         inner = self.ctx.proc.magnetometers.get("reference")
@@ -137,8 +138,9 @@ class DriftWatch(StepExecution):
                            " in the rig configuration)")  # fmt: skip
         reader = self.ctx.open_reader()
         try:
-            rows = [np.array([r for r in reader.samples(dev) if t_start + SETTLE_S <= r[0] <= t_end],
-                             dtype=np.float64).reshape(-1, 4) for dev in (inner, outside)]  # fmt: skip
+            changes = change_times(reader)
+            rows = [settled_samples(reader, dev, (t_start, t_end), SETTLE_S, changes)
+                    for dev in (inner, outside)]  # fmt: skip
         finally:
             reader.close()
         ref, out = rows
