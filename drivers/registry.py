@@ -606,6 +606,12 @@ MAG_PARAMS: tuple[Param, ...] = (
     Param("correction_angle_sigma_arcsec", NUMBER, False, 20.0, "calibration certificate: 1-sigma"
           " of each axis angle", above=0.0, unit="arcsec",
           fix="write the certificate's angle uncertainty, e.g. correction_angle_sigma_arcsec = 20"),
+    Param("correction_mounting_sigma_arcsec", NUMBER, False, 30.0, "calibration certificate and"
+          " fixture: 1-sigma of the sensor's rotation about each cage axis", above=0.0,
+          unit="arcsec", fix="write how well the reference is aligned to the cage, e.g."
+          " correction_mounting_sigma_arcsec = 30"),
+    Param("position_m", LIST, help="where the sensor sits: m from the cage centre (the DUT's place),"
+          " cage frame; a reference's place sets the budget's homogeneity terms", unit="m"),
     Param("stuck_after", WHOLE, False, 60, "identical readings in a row that mean a frozen"
           " sensor (0 = never judged)", low=0, high=1_000_000,
           fix="write a whole number of readings, e.g. stuck_after = 60 (3 s at 20 Hz)"),

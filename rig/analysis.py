@@ -11,8 +11,10 @@ import numpy as np
 import numpy.typing as npt
 
 from rig.calibration import Samples, calibrate
+from rig.calibration.budget import CageTerms, UncertaintyBudget, corrected, propagate
 from rig.calibration.estimators import DEFAULT_METHOD, estimator
 from rig.calibration.record import CalibrationRecord, SampleSelection
+from rig.calibration.result import CalibrationResult
 from rig.errors import CalibrationError, UserInputError
 from rig.store.run_states import Verdict
 from rig.store.run_store import RunReader
@@ -452,9 +454,12 @@ def selected_data(
 
 
 def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict[str, str],
-                  correction: dict[str, Any] | None, field_kinds: Collection[str]) -> dict[str, Any]:  # fmt: skip
+                  correction: dict[str, Any] | None, field_kinds: Collection[str],
+                  cage: CageTerms | None = None) -> dict[str, Any]:  # fmt: skip
     """The ``calibrate`` step: fit the DUT from the run so far (the named steps, or every step of
-    ``field_kinds``); returns the result file content, with the selection it was fitted on."""
+    ``field_kinds``); returns the result file content, with the selection it was fitted on and,
+    given the ``cage``'s terms, the reference field corrected to the DUT's place and the
+    uncertainty budget (``combined_sigma``, ``uncertainty_budget``; ADR 0028)."""
     dut = magnetometers.get(params["magnetometer"], params["magnetometer"])
     reference = magnetometers.get("reference", "reference")
     steps = [n for _, n, k, _, t1 in reader.steps() if t1 is not None
@@ -475,8 +480,13 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
         samples, temperature, no_temperature = run_temperature(
             reader, params["temperature"], samples, t_s
         )
-    fit = calibrate(samples, method, noise_nt=params["noise_nt"] or None, temperature=temperature,
-                    temperature_ref=params.get("temperature_ref_c"))  # fmt: skip
+    samples = corrected(samples, cage.correction if cage is not None else None)
+
+    def refit(s: Samples) -> CalibrationResult:
+        return calibrate(s, method, noise_nt=params["noise_nt"] or None, temperature=temperature,
+                         temperature_ref=params.get("temperature_ref_c"))  # fmt: skip
+
+    fit = refit(samples)
     n_misdated = int(sum(m.samples for m in misdated))
     fault = timing_fault(misdated, samples.n + unresolved + n_misdated) if misdated else None
     fault = late_fault or fault
@@ -495,7 +505,32 @@ def calibrate_run(reader: RunReader, params: dict[str, Any], magnetometers: dict
     if fault is not None:
         warnings.insert(0, fault)
     record = CalibrationRecord.from_dict(fit.to_dict())
-    return replace(record, selection=selection, warnings=tuple(warnings)).to_dict()
+    out = replace(record, selection=selection, warnings=tuple(warnings)).to_dict()
+    if cage is not None:
+        out |= budget_block(fit, propagate(samples, lambda s: refit(s).reported(), fit.reported(),
+                                           fit.reported_sigma(), cage.terms, cage.left_out))  # fmt: skip
+    return out
+
+
+def budget_block(fit: CalibrationResult, budget: UncertaintyBudget) -> dict[str, Any]:
+    """The result's ``combined_sigma`` (as ``sigma``) and ``uncertainty_budget``: each term's
+    contribution, each group's, what was left out and how it was propagated."""
+    return {
+        "combined_sigma": fit.grouped(budget.combined_sigma),
+        "uncertainty_budget": {
+            "propagation": PROPAGATION,
+            "statistical": fit.grouped(budget.statistical),
+            "groups": {g: fit.grouped(c) for g, c in budget.groups().items()},
+            "terms": [{"name": t.name, "group": t.group, "contribution": fit.grouped(t.contribution)}
+                      for t in budget.terms],
+            "left_out": list(budget.left_out),
+        },
+    }  # fmt: skip
+
+
+PROPAGATION = ("GUM linear propagation: each cage term's sensitivity by refitting the data with the"
+               " reference field moved by its 1-sigma; terms independent, combined in quadrature"
+               " with the statistical covariance (ADR 0028)")  # fmt: skip
 
 
 def late_timeline_fault(late: int, total: int) -> str | None:
@@ -600,11 +635,13 @@ def evaluate_criteria(results: dict[str, Any], criteria: list[dict[str, Any]]) -
             rows.append({"name": name, "verdict": Verdict.FAIL, "reason": str(exc).strip("'\"")})
             continue
         lo, hi = c.get("min"), c.get("max")
-        ok = (lo is None or value >= lo) and (hi is None or value <= hi)
+        expanded = expanded_uncertainty(results, c["result"], str(c["value"]))
         margins = [value - lo] if lo is not None else []
         margins += [hi - value] if hi is not None else []
-        rows.append({"name": name, "value": value, "unit": value_unit(str(c["value"])), "min": lo,
-                     "max": hi, "margin": min(margins), "verdict": Verdict.PASS if ok else Verdict.FAIL})  # fmt: skip
+        margin = min(margins) - (expanded or 0.0)
+        row = {"name": name, "value": value, "unit": value_unit(str(c["value"])), "min": lo,
+               "max": hi, "margin": margin, "verdict": Verdict.PASS if margin >= 0 else Verdict.FAIL}  # fmt: skip
+        rows.append(row | ({} if expanded is None else {"uncertainty": expanded}))
     overall = (
         Verdict.PASS if rows and all(r["verdict"] == Verdict.PASS for r in rows) else Verdict.FAIL
     )
@@ -615,6 +652,18 @@ def evaluate_criteria(results: dict[str, Any], criteria: list[dict[str, Any]]) -
     return verdict
 
 
+def expanded_uncertainty(results: dict[str, Any], result: str, path: str) -> float | None:
+    """The expanded uncertainty (``COVERAGE_K`` times the combined 1-sigma of the uncertainty
+    budget) of a judged value, None when its result has no budget for it: a criterion then passes
+    only when the value is inside its limits by at least this (guarded acceptance, ILAC-G8)."""
+    try:
+        return COVERAGE_K * lookup(results, result, f"combined_sigma.{path}")
+    except KeyError:
+        return None
+
+
+COVERAGE_K = 2.0
+"""Coverage factor of the expanded uncertainty a criterion is judged with (about 95 %)."""
 RERUN = Verdict.RERUN
 """The overall verdict of a run whose timing checks failed in a result a criterion judges: neither
 PASS nor FAIL can be given from it (ADR 0020)."""

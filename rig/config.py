@@ -77,6 +77,11 @@ CAGE_KEYS: tuple[Param, ...] = (
           fix="write the validity, e.g. calibration_valid_days = 90", unit="days"),
     Param("ambient", TEXT, help="a magnetometer outside the coils, recorded in every run: the"
           " lab field's changes"),
+    Param("ambient_gradient_nt_per_m", NUMBER, False, 15.0, "1-sigma of each component of the"
+          " lab field's gradient at the DUT: the uncertainty budget's term for the reference"
+          " sitting elsewhere", low=0.0,
+          fix="write the gradient's uncertainty, e.g. ambient_gradient_nt_per_m = 15",
+          unit="nT/m"),
     Param("max_current_a", LIST, True, help="coil current limit per axis [x, y, z]", unit="A"),
     Param("max_field_ut", NUMBER, True, help="largest field magnitude a procedure may ask for",
           above=0.0, fix="write the cage's field limit, e.g. max_field_ut = 150.0", unit="uT"),
@@ -150,6 +155,7 @@ class CageConfig:
     nominal_k_ut_per_a: tuple[tuple[float, ...], ...] | None = None
     calibration_valid_days: float = 90.0
     ambient: str | None = None
+    ambient_gradient_nt_per_m: float = 15.0
 
 
 @dataclass(frozen=True)
@@ -461,6 +467,7 @@ def _cage(path: Path, c: dict[str, Any], devices: dict[str, DeviceConfig]) -> Ca
         nominal_k_ut_per_a=_nominal(path, c.get("nominal_k_ut_per_a")),
         calibration_valid_days=float(c["calibration_valid_days"]),
         ambient=ambient,
+        ambient_gradient_nt_per_m=float(c["ambient_gradient_nt_per_m"]),
     )
 
 

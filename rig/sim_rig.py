@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import zlib
 from typing import Any
 
 import numpy as np
@@ -93,19 +94,27 @@ def device_lines(name: str, dev: dict[str, Any]) -> list[str]:
     return [f"[devices.{name}]", *(f"{k} = {_toml_value(dev[k])}" for k in keys), ""]
 
 
-def reference_certificate(mag: MagnetometerConfig) -> dict[str, Any]:
-    """The reference magnetometer's calibration certificate: its small errors are known, as a
-    calibrated fluxgate's are (``h = correction_matrix @ (m - correction_offset_ut)``)."""
+def reference_certificate(mag: MagnetometerConfig, seed: int = 0) -> dict[str, Any]:
+    """The reference magnetometer's calibration certificate (``h = correction_matrix @ (m -
+    correction_offset_ut)``): its truth off by an error drawn (seeded by ``seed`` and the name)
+    within the 1-sigma it states, as a real certificate is; exact, and saying so to print
+    precision, when the simulator gives it no sigma."""
     from sim.physics import rotation_matrix, springmann_matrix
 
-    t = springmann_matrix(mag.scale, tuple(math.radians(v) for v in mag.nonorth_deg))
-    t = t @ rotation_matrix(np.radians(np.array(mag.mounting_deg)))
+    rng = np.random.default_rng([seed, zlib.crc32(mag.name.encode())])
+    scale_sigma = mag.certificate_scale_sigma
+    angle_sigma, mount_sigma = (math.radians(s / 3600.0) for s in (
+        mag.certificate_angle_sigma_arcsec, mag.certificate_mounting_sigma_arcsec))  # fmt: skip
+    scale = np.array(mag.scale) * (1.0 + scale_sigma * rng.standard_normal(3))
+    nonorth = np.radians(np.array(mag.nonorth_deg)) + angle_sigma * rng.standard_normal(3)
+    mounting = np.radians(np.array(mag.mounting_deg)) + mount_sigma * rng.standard_normal(3)
+    t = springmann_matrix(tuple(scale), tuple(nonorth)) @ rotation_matrix(mounting)
     return {
         "correction_matrix": np.linalg.inv(t).tolist(),
         "correction_offset_ut": [float(v) for v in mag.offset_ut],
-        # the simulator knows its reference exactly: its certificate says so (to print precision)
-        "correction_scale_sigma": 1e-6,
-        "correction_angle_sigma_arcsec": 0.2,
+        "correction_scale_sigma": scale_sigma or 1e-6,
+        "correction_angle_sigma_arcsec": mag.certificate_angle_sigma_arcsec or 0.2,
+        "correction_mounting_sigma_arcsec": mag.certificate_mounting_sigma_arcsec or 0.2,
     }
 
 
@@ -114,8 +123,10 @@ def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig) -> str:
     certificate and the coil constants as nameplate values."""
     devices = {name: dict(dev) for name, dev in endpoints["devices"].items()}
     for mag in cfg.magnetometers:
+        if mag.name in devices and any(mag.position_m):
+            devices[mag.name]["position_m"] = [float(v) for v in mag.position_m]
         if mag.kind == "ascii-mag" and mag.name in devices:
-            devices[mag.name] |= reference_certificate(mag)
+            devices[mag.name] |= reference_certificate(mag, cfg.seed)
             devices[mag.name]["rate_hz"] = mag.rate_hz
         elif mag.name in devices:
             devices[mag.name]["rate_hz"] = mag.rate_hz

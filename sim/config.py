@@ -132,6 +132,11 @@ class MagnetometerConfig:
     offset_ut_per_k: tuple[float, ...] = (0.0, 0.0, 0.0)  # offset coefficient (uT/K, per axis)
     position_m: tuple[float, ...] = (0.0, 0.0, 0.0)
     role: str | None = None  # "reference" (the cage's, inside) or "ambient" (outside the coils)
+    # the certificate the rig is given (a reference's): its 1-sigma, and the error drawn within it
+    # (seeded) -- scale (relative), axis angles and mounting (arcsec); zeros: an exact certificate
+    certificate_scale_sigma: float = 0.0
+    certificate_angle_sigma_arcsec: float = 0.0
+    certificate_mounting_sigma_arcsec: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -332,6 +337,9 @@ def _magnetometer(m: dict[str, Any], where: str, loads: set[str]) -> Magnetomete
         offset_ut_per_k=_vec_or(m, "offset_ut_per_k", where, zero),
         position_m=_vec_or(m, "position_m", where, zero),
         role=None if m.get("role") is None else str(m["role"]),
+        certificate_scale_sigma=float(m.get("certificate_scale_sigma", 0.0)),
+        certificate_angle_sigma_arcsec=float(m.get("certificate_angle_sigma_arcsec", 0.0)),
+        certificate_mounting_sigma_arcsec=float(m.get("certificate_mounting_sigma_arcsec", 0.0)),
     )
     if mag.role not in (None, "reference", "ambient"):
         raise SimConfigError(f"{where}.role must be 'reference' or 'ambient' (or absent)")

@@ -116,3 +116,41 @@ def test_an_old_characterization_is_flagged_not_refused(
     proc, cfg = write(tmp_path, HOLD_Z_80, cal)
     main(["check", str(proc), "--rig", str(cfg)])
     assert "has no date: characterize the cage" in capsys.readouterr().out
+
+
+def test_an_old_metrology_result_in_the_record_is_flagged(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A fresh characterization with a field map of two years ago: rig check names the map and
+    the procedure that measures it again."""
+    import datetime as dt
+
+    now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+    cal = {"k_ut_per_a": (40.0 * np.eye(3)).tolist(), "b0_ut": [0.0, 0.0, 0.0], "date": now,
+           "metrology": {"field_map": {"date": "2024-11-01T09:00:00+00:00", "run": "r1"},
+                         "coil_axes": {"date": now, "run": "r2"}}}  # fmt: skip
+    proc, cfg = write(tmp_path, HOLD_Z_80, cal)
+    assert main(["check", str(proc), "--rig", str(cfg)]) == 0
+    warning = [line for line in capsys.readouterr().out.splitlines() if line.startswith("WARNING")]
+    assert len(warning) == 1 and "its field map result of 2024-11-01 is" in warning[0], warning
+    assert "cage-field-map.yaml" in warning[0] and "coil axes" not in warning[0]
+
+
+def test_a_metrology_result_saves_a_new_version_and_keeps_the_old(tmp_path: Path) -> None:
+    """Each result added to the cage record is a new dated version file; the record's path points
+    at the newest; no version is overwritten, even two within one second."""
+    from rig.cage.model import CageModel
+
+    path = tmp_path / "cage.json"
+    model = CageModel(40.0 * np.eye(3), np.zeros(3), meta={"date": "2026-11-01T10:00:00+00:00"})
+    first = model.save(path)
+    entry = {"date": "2026-11-20T08:00:00+00:00", "run": "run-7", "result": {"x": 1.0}}
+    updated = model.with_metrology("field_map", entry)
+    second, third = updated.save(path), updated.save(path)
+    assert first.name == "cage.20261101T100000.json" and second.name == "cage.20261120T080000.json"
+    assert third.name == "cage.20261120T080000-2.json"
+    loaded = CageModel.load(path)
+    assert loaded.metrology()["field_map"]["run"] == "run-7" and loaded.meta["date"].startswith(
+        "2026-11-01"
+    )
+    assert "metrology" not in CageModel.load(first).meta

@@ -52,16 +52,37 @@ class CageModel:
             **self.meta,
         }
 
-    def save(self, path: str | Path) -> Path:
-        """Write a new version next to ``path`` (``name.YYYYMMDDTHHMMSS.json``) and point ``path`` at it.
+    def with_metrology(self, kind: str, entry: dict[str, Any]) -> CageModel:
+        """This model with a metrology result added under ``kind`` (a step kind: ``coil_axes``,
+        ``field_map``, ``supply_stability``), replacing an older one of that kind; ``entry``
+        carries its ``date`` (ISO UTC) and ``run`` (the run folder it came from)."""
+        metrology = dict(self.meta.get("metrology") or {})
+        metrology[kind] = entry
+        meta = {**self.meta, "metrology": metrology, "updated": entry.get("date")}
+        return CageModel(self.k_ut_per_a, self.b0_ut, self.k_sigma, self.b0_sigma_ut, meta)
 
-        Old versions are never overwritten; ``path`` itself is replaced atomically.
+    def metrology(self) -> dict[str, dict[str, Any]]:
+        """The metrology results the record holds, by step kind (empty for none)."""
+        found = self.meta.get("metrology")
+        return dict(found) if isinstance(found, dict) else {}
+
+    def save(self, path: str | Path) -> Path:
+        """Write a new version next to ``path`` (``name.YYYYMMDDTHHMMSS.json``, stamped with the
+        latest of its date and its metrology's) and point ``path`` at it.
+
+        Old versions are never overwritten (a second version of the same second gets ``-2``, ...);
+        ``path`` itself is replaced atomically.
         """
         path = Path(path)
-        stamp = self.meta.get("date", dt.datetime.now(dt.UTC).isoformat(timespec="seconds"))
-        version = path.with_name(
-            f"{path.stem}.{stamp.replace(':', '').replace('-', '')[:15]}{path.suffix}"
-        )
+        now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+        stamp = max((str(d) for d in (self.meta.get("date"), self.meta.get("updated")) if d),
+                    default=now)  # fmt: skip
+        base = f"{path.stem}.{stamp.replace(':', '').replace('-', '')[:15]}"
+        version = path.with_name(f"{base}{path.suffix}")
+        n = 1
+        while version.exists():
+            n += 1
+            version = path.with_name(f"{base}-{n}{path.suffix}")
         text = json.dumps(self.to_dict(), indent=2) + "\n"
         path.parent.mkdir(parents=True, exist_ok=True)
         version.write_text(text, encoding="utf-8")

@@ -273,6 +273,37 @@ class CalibrationResult:
             "angle_deg": float(np.degrees(rot.magnitude())),
         }
 
+    def reported(self) -> Array:
+        """The values the result reports, flat in the ``sigma`` block's order and units
+        (:meth:`grouped` gives them their shape): the nine Springmann values (angles in degrees),
+        the current-to-bias coefficients (uT per unit) and, for a vector fit, the mounting
+        rotation vector (deg)."""
+        cal = self.calibration
+        values = list(springmann_json(cal.springmann).values())
+        values += [float(v) for j in range(len(cal.channels)) for v in cal.k_ut_per_unit[j]]
+        if self.model == "vector":
+            values += [float(v) for v in self._mounting()["rotation_vector_deg"]]
+        return np.asarray(values, float)
+
+    def reported_sigma(self) -> Array:
+        """1-sigma of :meth:`reported`, same order and units."""
+        block = self._by_group(self.sigma)
+        values = list(block["springmann"].values())
+        values += [v for ch in self.calibration.channels for v in block["k_ut_per_unit"][ch]]
+        return np.asarray(values + list(block.get("mounting_deg", [])), float)
+
+    def grouped(self, values: Array) -> dict[str, Any]:
+        """Flat values in :meth:`reported`'s order and units given the result file's groups (the
+        ``sigma`` block's shape)."""
+        v = [float(x) for x in np.asarray(values, float)]
+        channels = self.calibration.channels
+        out: dict[str, Any] = {"springmann": dict(zip(SPRINGMANN_JSON.values(), v[:9], strict=True)),
+                               "k_ut_per_unit": {ch: v[9 + 3 * j: 12 + 3 * j]
+                                                 for j, ch in enumerate(channels)}}  # fmt: skip
+        if self.model == "vector":
+            out["mounting_deg"] = v[9 + 3 * len(channels) : 12 + 3 * len(channels)]
+        return out
+
     def _by_group(self, values: Array, *, ratio: bool = False) -> dict[str, Any]:
         def conv(name: str, v: float) -> float:
             return float(math.degrees(v) if (name in ANGLE_KEYS and not ratio) else v)

@@ -56,27 +56,43 @@ def cage_model_arrays(cfg: RigConfig | None) -> tuple[Any, Any, Any, str]:
 
 
 def stale_cage_model(cfg: RigConfig | None, now: dt.datetime | None = None) -> str | None:
-    """A warning when the cage's characterization is older than ``[cage]
-    calibration_valid_days`` (or undated), None when it is fresh or there is none."""
+    """A warning when the cage's characterization or one of its metrology results (coil axes,
+    field map, supply stability) is older than ``[cage] calibration_valid_days`` (or undated),
+    None when all are fresh or there is no record."""
     from rig.output_limits import cage_model
 
     m = cage_model(cfg) if cfg is not None else None
     if m is None or cfg is None or cfg.cage is None or m.meta.get("nominal"):
         return None
     valid = cfg.cage.calibration_valid_days
+    now = now or dt.datetime.now(dt.UTC)
+    parts = [_stale("the cage model", m.meta.get("date"), valid, now,
+                    "characterize the cage (rig run cage-characterization)")]  # fmt: skip
+    parts += [_stale(f"its {kind.replace('_', ' ')} result", entry.get("date"), valid, now,
+                     f"measure it again ({METROLOGY_PROCEDURES.get(kind, 'its procedure')})")
+              for kind, entry in m.metrology().items()]  # fmt: skip
+    said = [p for p in parts if p is not None]
+    return "; ".join(said) if said else None
+
+
+METROLOGY_PROCEDURES = {"coil_axes": "procedures/cage-metrology.yaml",
+                        "field_map": "procedures/cage-field-map.yaml",
+                        "supply_stability": "procedures/cage-supply-stability.yaml"}  # fmt: skip
+"""The shipped procedure that measures each metrology result of the cage record."""
+
+
+def _stale(what: str, when: Any, valid: float, now: dt.datetime, fix: str) -> str | None:
     try:
-        date = dt.datetime.fromisoformat(str(m.meta["date"]))
-    except (KeyError, ValueError):
-        return (f"the cage model {cfg.cage.calibration} has no date: characterize the cage"
-                " (rig run cage-characterization) before trusting it")  # fmt: skip
+        date = dt.datetime.fromisoformat(str(when))
+    except ValueError:
+        return f"{what} has no date: {fix} before trusting it"
     if date.tzinfo is None:
         date = date.replace(tzinfo=dt.UTC)
-    age_days = ((now or dt.datetime.now(dt.UTC)) - date).total_seconds() / 86400.0
+    age_days = (now - date).total_seconds() / 86400.0
     if age_days <= valid:
         return None
-    return (f"the cage model of {date.date()} is {age_days:.0f} days old, past its validity"
-            f" ([cage] calibration_valid_days = {valid:g}): characterize the cage again"
-            " (rig run cage-characterization, and cage-metrology for its axes)")  # fmt: skip
+    return (f"{what} of {date.date()} is {age_days:.0f} days old, past its validity"
+            f" ([cage] calibration_valid_days = {valid:g}): {fix}")  # fmt: skip
 
 
 def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: bool) -> int:

@@ -40,6 +40,7 @@ def freeze(cfg: RigConfig) -> str:
             else [list(r) for r in c.nominal_k_ut_per_a],
             "calibration_valid_days": c.calibration_valid_days,
             "ambient": c.ambient,
+            "ambient_gradient_nt_per_m": c.ambient_gradient_nt_per_m,
         }
     devices = {
         n: {"kind": d.kind, "protocol": d.protocol, "params": d.params}
@@ -81,6 +82,7 @@ def thaw(text: str) -> RigConfig:
                 else tuple(tuple(float(v) for v in row) for row in nominal),
                 calibration_valid_days=float(c.get("calibration_valid_days", 90.0)),
                 ambient=c.get("ambient"),
+                ambient_gradient_nt_per_m=float(c.get("ambient_gradient_nt_per_m", 15.0)),
             )
         return RigConfig(Path(doc["path"]), devices, cage, {})
     except (ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:

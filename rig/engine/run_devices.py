@@ -105,7 +105,8 @@ def check_thermometers(proc: Procedure, cfg: RigConfig, recorded: list[str]) -> 
 
 
 def reference_correction(proc: Procedure, cfg: RigConfig) -> dict[str, Any] | None:
-    """The reference magnetometer's certificate (matrix and offset), None without one."""
+    """The reference magnetometer's certificate (matrix and offset, with their 1-sigma) and its
+    place in the cage (``position_m``, when given), None without one."""
     ref_name = proc.magnetometers.get("reference")
     if not ref_name or ref_name not in cfg.devices:
         return None
@@ -115,4 +116,10 @@ def reference_correction(proc: Procedure, cfg: RigConfig) -> dict[str, Any] | No
     return {
         "matrix": dev.get("correction_matrix"),
         "offset_ut": dev.get("correction_offset_ut", [0, 0, 0]),
+        **{k: dev.get(k) for k in CERTIFICATE_KEYS if dev.get(k) is not None},
     }
+
+
+CERTIFICATE_KEYS = ("correction_scale_sigma", "correction_angle_sigma_arcsec",
+                    "correction_mounting_sigma_arcsec", "position_m")  # fmt: skip
+"""The reference's keys the run records beside its correction (the uncertainty budget's)."""

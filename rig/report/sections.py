@@ -55,11 +55,25 @@ def header_section(run: RunFacts) -> Section:
         ("Status", f"{meta.get('status', 'incomplete')} ({meta.get('reason', '')})"),
         ("Software", f"rig {meta.get('software_version', '')}"),
         ("Rig configuration", meta.get("rig_config", "")),
-        ("Cage calibration", meta.get("cage_model", {}).get("date", "nominal (not characterized)")),
+        ("Cage calibration", cage_record_text(meta.get("cage_model") or {})),
         ("Instruments", "; ".join(f"{k}: {v}" for k, v in instruments.items())),
         ("Data SHA-256", f"data sha256 {run.digest} ({seal_note(run.folder, run.digest)})"),
     ]  # fmt: skip
     return Section("", (Table(("", ""), tuple((k, str(v)) for k, v in rows), row_heads=True),))
+
+
+def cage_record_text(record: dict[str, Any]) -> str:
+    """The cage calibration record a run used, cited: its date and file, and each metrology
+    result's date and the run it came from."""
+    if not record.get("date"):
+        return "nominal (not characterized)"
+    text = f"{record['date']}"
+    if record.get("file"):
+        text += f" ({Path(str(record['file'])).name})"
+    for kind, entry in sorted((record.get("metrology") or {}).items()):
+        if isinstance(entry, dict):
+            text += f"; {kind.replace('_', ' ')} of {entry.get('date', '?')} (run {entry.get('run', '?')})"
+    return text
 
 
 def criteria_section(verdict: CheckVerdict | None) -> Section:
@@ -99,7 +113,9 @@ def step_results_section(run: RunFacts) -> Section:
 
 
 def _parameter_table(res: CalibrationRecord, alt: CalibrationRecord | None) -> Table:
+    combined = res.stored.get("combined_sigma", {}).get("springmann")
     header: tuple[str, ...] = ("parameter", "with telemetry", "unit", "sigma / CRLB")
+    header += ("combined 1-sigma",) if combined else ()
     header += ("without telemetry",) if alt else ()
     rows: list[tuple[str, ...]] = []
     for key, unit in SPRINGMANN_UNITS.items():
@@ -109,9 +125,11 @@ def _parameter_table(res: CalibrationRecord, alt: CalibrationRecord | None) -> T
             unit,
             f"{res.ratio_of(key):.2f}",
         )
+        row += (f"{float(combined.get(key, math.nan)):.2g}",) if combined else ()
         row += (num(alt.springmann[key], alt.sigma_of(key)),) if alt else ()
         rows.append(row)
     rms: tuple[str, ...] = ("residual rms", f"{res.residual_rms_nt:.1f}", "nT", "")
+    rms += ("",) if combined else ()
     rows.append(rms + ((f"{alt.residual_rms_nt:.1f}",) if alt else ()))
     return Table(header, tuple(rows))
 
@@ -171,6 +189,42 @@ def _live_blocks(res: CalibrationRecord) -> list[Para | Table]:
     ]
 
 
+def _share(value: float, statistical: float) -> str:
+    """A budget entry: two digits, or 0 for one a million times below the statistical term."""
+    return "0" if abs(value) < 1e-6 * abs(statistical) else f"{value:.2g}"
+
+
+def _budget_blocks(res: CalibrationRecord) -> list[Para | Table]:
+    """The uncertainty budget: per parameter its statistical 1-sigma, each cage group's
+    contribution, the combined 1-sigma and the term that limits it (ADR 0028)."""
+    budget = res.stored.get("uncertainty_budget")
+    if not isinstance(budget, dict):
+        return [Para("No uncertainty budget: the cage's terms are not in these sigmas (a result"
+                     " recorded before budgets, or the calibration was refitted without them)",
+                     "note")]  # fmt: skip
+    groups = budget.get("groups", {})
+    combined = res.stored.get("combined_sigma", {}).get("springmann", {})
+    stat = budget.get("statistical", {}).get("springmann", {})
+    rows = []
+    for key, unit in SPRINGMANN_UNITS.items():
+        parts = {"statistical": float(stat.get(key, math.nan))}
+        parts |= {g: float(c.get("springmann", {}).get(key, math.nan)) for g, c in groups.items()}
+        top = max(budget.get("terms", []), default=None,
+                  key=lambda t: abs(t["contribution"]["springmann"].get(key, 0.0)))  # fmt: skip
+        limiting = max(parts, key=lambda g: parts[g])
+        if top is not None and limiting != "statistical":
+            limiting = f"{top['group']}: {top['name']}"
+        rows.append((key, unit, *(_share(v, parts["statistical"]) for v in parts.values()),
+                     f"{float(combined.get(key, math.nan)):.2g}", limiting))  # fmt: skip
+    header = ("parameter", "unit", "statistical", *groups, "combined", "limited by")
+    blocks: list[Para | Table] = [
+        Para("Uncertainty budget (1-sigma): " + str(budget.get("propagation", ""))),
+        Table(header, tuple(rows)),
+    ]
+    blocks += [Para(f"Not in the budget: {why}", "note") for why in budget.get("left_out", [])]
+    return blocks
+
+
 def calibration_section(
     name: str, res: CalibrationRecord, alt: CalibrationRecord | None
 ) -> Section:
@@ -183,6 +237,8 @@ def calibration_section(
     if res.k_ut_per_unit:
         blocks.append(_coefficient_table(res))
     blocks += _fit_lines(res)
+    if res.live is None:
+        blocks += _budget_blocks(res)
     blocks += _live_blocks(res)
     blocks += [Para(w, "note") for w in res.warnings]
     return Section(title, tuple(blocks))

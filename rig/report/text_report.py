@@ -52,7 +52,9 @@ def limit_text(row: CriterionResult) -> tuple[str, str, str]:
     ]
     limits = ", ".join(bounds) or "no limit"
     margin = "" if row.margin is None else f"{row.margin:.3g}{u}"
-    return f"{row.value:.4g}{u}", limits, margin
+    if row.uncertainty is None:
+        return f"{row.value:.4g}{u}", limits, margin
+    return f"{row.value:.6g} +- {row.uncertainty:.2g}{u} (k=2)", limits, f"{margin} after U"
 
 
 def criterion_line(row: CriterionResult) -> str:

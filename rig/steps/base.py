@@ -84,6 +84,30 @@ def ask_or_abort(ctx: RunContext, text: str) -> None:
         raise RunAborted(f"the operator declined: {text}")
 
 
+def record_cage_metrology(ctx: RunContext, kind: str, entry: dict[str, Any]) -> str | None:
+    """Add a cage metrology result (``kind``: the step kind; ``entry``: what later runs use) to
+    the cage calibration record in use: dated, citing this run, saved as a new version of the
+    record file when the rig configuration names one (its path returned) and recorded in this
+    run's ``cage_model``. Every later run uses and cites it."""
+    import datetime as dt
+
+    model = getattr(ctx.controller, "model", None)
+    if model is None:
+        ctx.event("warning", f"no cage calibration record in use: the {kind} result is not kept")
+        return None
+    dated = {**entry, "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+             "run": ctx.folder.name}  # fmt: skip
+    model = model.with_metrology(kind, dated)
+    version = None
+    cage = ctx.cfg.cage if ctx.cfg is not None else None
+    if cage is not None and cage.calibration is not None:
+        version = str(model.save(cage.calibration))
+        model.meta["file"] = version
+    ctx.controller.model = model
+    ctx.set_meta(cage_model=model.to_dict())
+    return version
+
+
 class StepExecution:
     """One step being carried out; the runner calls, in order: :meth:`run` for each of the step's
     own commands (between its field and load set-points), :meth:`wind_down` when the commands are

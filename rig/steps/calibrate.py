@@ -37,12 +37,18 @@ class Calibrate(StepKind):
 
 class Fit(StepExecution):
     def run(self, payload: dict[str, Any]) -> None:
+        from rig.cage_budget import cage_terms
         from rig.steps import field_kinds
 
-        reader = self.ctx.open_reader()
+        ctx = self.ctx
+        model = getattr(ctx.controller, "model", None)
+        cage_cfg = ctx.cfg.cage if ctx.cfg is not None else None
+        cage = cage_terms(ctx.correction, model.to_dict() if model is not None else None,
+                          cage_cfg.ambient_gradient_nt_per_m if cage_cfg is not None else 0.0)  # fmt: skip
+        reader = ctx.open_reader()
         try:
-            result = calibrate_run(reader, payload, self.ctx.proc.magnetometers,
-                                   self.ctx.correction, field_kinds())  # fmt: skip
+            result = calibrate_run(reader, payload, ctx.proc.magnetometers, ctx.correction,
+                                   field_kinds(), cage)  # fmt: skip
         finally:
             reader.close()
         self.ctx.record_result(self.step.name, result)

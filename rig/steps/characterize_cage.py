@@ -120,6 +120,9 @@ class Characterize(StepExecution):
         ctx = self.ctx
         model = characterize(ctx.controller, payload["amplitude_a"], samples=payload["samples"],
                              repeats=payload["repeats"])  # fmt: skip
+        previous = getattr(ctx.controller, "model", None)
+        for kind, entry in (previous.metrology() if previous else {}).items():  # kept in the record
+            model = model.with_metrology(kind, entry)
         ctx.controller.model = model
         if ctx.cfg.cage is not None and ctx.cfg.cage.calibration is not None:
             version = model.save(ctx.cfg.cage.calibration)

@@ -53,14 +53,18 @@ class CriterionResult:
     max: float | None = None
     margin: float | None = None
     reason: str = ""
+    uncertainty: float | None = None
+    """The value's expanded uncertainty (k = 2, same unit) when its result has a budget: the
+    margin is then what is left beyond it (guarded acceptance)."""
 
     def to_dict(self) -> dict[str, Any]:
         """The stored row."""
         if self.value is None:
             return {"name": self.name, "verdict": self.verdict, "reason": self.reason}
         unit = {} if self.unit is None else {"unit": self.unit}
-        return {"name": self.name, "value": self.value, **unit, "min": self.min, "max": self.max,
-                "margin": self.margin, "verdict": self.verdict}  # fmt: skip
+        u = {} if self.uncertainty is None else {"uncertainty": self.uncertainty}
+        return {"name": self.name, "value": self.value, **unit, **u, "min": self.min,
+                "max": self.max, "margin": self.margin, "verdict": self.verdict}  # fmt: skip
 
     @classmethod
     def from_dict(cls, d: Any) -> CriterionResult:
@@ -75,7 +79,8 @@ class CriterionResult:
         unit = None if "unit" not in d else stored.text(d, "unit", what)
         return cls(name, verdict, stored.number(d, "value", what), unit,
                    stored.optional_number(d, "min", what), stored.optional_number(d, "max", what),
-                   stored.optional_number(d, "margin", what))  # fmt: skip
+                   stored.optional_number(d, "margin", what), "",
+                   stored.optional_number(d, "uncertainty", what))  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ import numpy as np
 
 from rig.errors import RigError
 from rig.steps import stored
-from rig.steps.base import StepExecution, StepKind, ask_or_abort
+from rig.steps.base import StepExecution, StepKind, ask_or_abort, record_cage_metrology
 from rig.steps.vocabulary import Param, RigTiming, Step
 
 AXES = ("x", "y", "z")
@@ -168,7 +168,9 @@ class TurnedReference(StepExecution):
             data += method.measure_position(controller, index, payload["amplitude_a"],
                                             payload["samples"], TRANSIENT_S)  # fmt: skip
         fit = method.fit_coil_axes(data, prior)
-        ctx.record_result(self.step.name, CoilAxesResult.from_fit(fit).to_dict())
+        result = CoilAxesResult.from_fit(fit).to_dict()
+        ctx.record_result(self.step.name, result)
+        record_cage_metrology(ctx, self.step.kind, {"result": result})
 
 
 KIND = CoilAxes()

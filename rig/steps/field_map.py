@@ -11,7 +11,7 @@ import numpy as np
 
 from rig.errors import RigError
 from rig.steps import stored
-from rig.steps.base import StepExecution, StepKind, ask_or_abort
+from rig.steps.base import StepExecution, StepKind, ask_or_abort, record_cage_metrology
 from rig.steps.vocabulary import Param, RigTiming, Step
 
 AXES = ("x", "y", "z")
@@ -128,23 +128,31 @@ class MoveReference(StepExecution):
                                       payload["samples"], TRANSIENT_S):  # fmt: skip
                 fields[r.coil, index] = correction @ r.per_amp_ut
                 sigmas[r.coil, index] = np.sqrt((correction**2) @ r.sigma_ut**2)
-        ctx.record_result(self.step.name, _result(homogeneity, positions, fields, sigmas, payload))
+        result, maps = _result(homogeneity, positions, fields, sigmas, payload)
+        ctx.record_result(self.step.name, result)
+        record_cage_metrology(ctx, self.step.kind, {"result": result, "maps": maps})
 
 
 def _result(homogeneity: Any, positions: Any, fields: Any, sigmas: Any,
-            payload: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
+            payload: dict[str, Any]) -> tuple[dict[str, Any], list[dict[str, Any]]]:  # fmt: skip
+    """The step's result and, per coil, the map the cage calibration record keeps (degree,
+    coefficients and covariance of :class:`rig.cage.homogeneity.FieldMap`, uT/A)."""
     degree = int(payload["degree"])
     volume, ref, ref_sigma, scales = {}, np.zeros((3, 3)), np.zeros((3, 3)), {}
+    maps = []
     for coil in range(3):
         fitted = homogeneity.fit_field_map(positions, fields[coil], sigmas[coil], degree)
+        maps.append({"degree": degree, "coefficients": fitted.coefficients.tolist(),
+                     "covariance": fitted.covariance.tolist()})  # fmt: skip
         centre, _ = fitted.field_ut(np.zeros((1, 3)))
         errors, _ = fitted.error_ut(positions)
         volume[AXES[coil]] = float(1e6 * np.abs(errors).max() / np.linalg.norm(centre))
         value, sigma = fitted.error_ut(np.asarray(payload["reference_m"], float))
         ref[:, coil], ref_sigma[:, coil] = 1000.0 * value[0], 1000.0 * sigma[0]
         scales[AXES[coil]] = fitted.noise_scale
-    return FieldMapResult(volume, tuple(map(tuple, ref.tolist())),
-                          tuple(map(tuple, ref_sigma.tolist())), float(degree), scales).to_dict()  # fmt: skip
+    found = FieldMapResult(volume, tuple(map(tuple, ref.tolist())),
+                           tuple(map(tuple, ref_sigma.tolist())), float(degree), scales)  # fmt: skip
+    return found.to_dict(), maps
 
 
 KIND = FieldMap()

@@ -20,7 +20,7 @@ import numpy as np
 
 from rig.errors import RigError
 from rig.steps import stored
-from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution, record_cage_metrology
 from rig.steps.vocabulary import Param, RigTiming, Step
 
 AXES = ("x", "y", "z")
@@ -150,8 +150,9 @@ class DriftWatch(StepExecution):
         t = ref[:, 0]
         inner_ut = to_cage_frame(ref[:, 1:], self.ctx.correction)
         outside_ut = np.column_stack([np.interp(t, out[:, 0], out[:, 1 + i]) for i in range(3)])
-        self.ctx.record_result(self.step.name,
-                               _result(t, inner_ut, outside_ut, t_end - t_start).to_dict())  # fmt: skip
+        result = _result(t, inner_ut, outside_ut, t_end - t_start).to_dict()
+        self.ctx.record_result(self.step.name, result)
+        record_cage_metrology(self.ctx, self.step.kind, {"result": result})
 
 
 def _result(t: Array, inner_ut: Array, outside_ut: Array, hold_s: float) -> SupplyStabilityResult:

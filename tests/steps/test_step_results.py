@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from rig.cage.model import CageModel
 from rig.calibration.params import Calibration, Springmann
 from rig.errors import RigError, RunAborted
 from rig.steps import KINDS
@@ -260,6 +261,8 @@ def test_characterize_cage_measures_a_known_cage_within_its_sigma(tmp_path: Path
     k = np.array([[42.0, 0.4, -0.3], [0.2, 39.5, 0.6], [-0.5, 0.1, 44.0]])
     b0 = np.array([18.0, -2.5, 41.0])
     cage = LinearCage(k, b0, noise_ut=0.05)
+    field_map = {"date": "2026-11-20T08:00:00+00:00", "run": "map-run", "maps": []}
+    cage.model = CageModel(40.0 * np.eye(3), np.zeros(3)).with_metrology("field_map", field_map)
     step = make_step(
         "characterize_cage", {"amplitude_a": 1.5, "samples": 10, "repeats": 3}, name="cage"
     )
@@ -270,6 +273,7 @@ def test_characterize_cage_measures_a_known_cage_within_its_sigma(tmp_path: Path
     b0_fit, b0_sigma = np.array(result["b0_ut"]), np.array(result["b0_sigma_ut"])
     assert np.all(np.abs(b0_fit - b0) < 4 * b0_sigma)
     assert cage.model is not None and ctx.meta["cage_model"]["k_ut_per_a"] == result["k_ut_per_a"]
+    assert ctx.meta["cage_model"]["metrology"]["field_map"] == field_map  # the record keeps it
     assert cage.peak_a == 1.5 and not cage.currents.any()  # its amplitude, back to zero
 
 
@@ -357,6 +361,7 @@ class TurnedReferenceCage:
         self.t = l_true @ rotation(np.radians([0.4, -0.3, 0.7]))
         self.offset = np.array([0.01, -0.008, 0.005])
         self.reference_to_cage = (np.linalg.inv(self.l_cert), self.offset)
+        self.model = CageModel(k, self.b0)
         arcsec = np.radians(1 / 3600)
         self.turns = [nominal @ rotation(30 * arcsec * self.rng.standard_normal(3)) if i else nominal
                       for i, (_, nominal) in enumerate(DEFAULT_POSITIONS)]  # fmt: skip
@@ -411,6 +416,8 @@ def test_coil_axes_finds_the_skews_and_constants_of_a_known_cage(tmp_path: Path)
     assert (
         "Coil axes 'axes': constants x 40.2" in KINDS["coil_axes"].report_lines("axes", result)[0]
     )
+    kept = ctx.meta["cage_model"]["metrology"]["coil_axes"]  # the record later runs use and cite
+    assert kept["result"] == result and kept["run"] == tmp_path.name and kept["date"]
 
 
 def test_coil_axes_needs_the_certificate_and_a_willing_operator(tmp_path: Path) -> None:
@@ -439,6 +446,7 @@ class MovedReferenceCage:
         self.physics = CagePhysics(load_config(), start_s=0.0)
         self.rng = np.random.default_rng(5)
         self.reference_to_cage = (np.eye(3), np.zeros(3))
+        self.model = CageModel(self.physics.coil_matrix_at["reference"], np.zeros(3))
         self.where = np.zeros(3)
         self.currents = np.zeros(3)
         self.moves = 0
@@ -483,6 +491,21 @@ def test_field_map_finds_the_coils_error_where_the_reference_sits(tmp_path: Path
     assert np.abs(truth).max() > 1.0  # a real error: 2 nT/A on the z coil
     assert all(50 < v < 5000 for v in result["volume_error_ppm"].values()), result
     assert "Field map 'map'" in KINDS["field_map"].report_lines("map", result)[0]
+    # the record keeps the maps; a DUT run corrects its reference field to the centre with them
+    from rig.cage_budget import HOMOGENEITY, cage_terms
+
+    record = ctx.meta["cage_model"]
+    assert len(record["metrology"]["field_map"]["maps"]) == 3
+    terms = cage_terms({"matrix": np.eye(3).tolist(), "position_m": [0.0, 0.0, -0.08]}, record, 0.0)
+    currents = np.array([0.3, -0.8, 0.5])
+    at_reference = cage.physics.coil_matrix_at_m((0.0, 0.0, -0.08)) @ currents
+    assert terms.correction is not None
+    moved = terms.correction.applied(at_reference[None])[0]
+    spread = np.sqrt(sum((t.applied(at_reference[None])[0] - at_reference) ** 2
+                         for t in terms.terms if t.group == HOMOGENEITY))  # fmt: skip
+    error = moved - cage.physics.coil_matrix @ currents
+    assert np.all(np.abs(error) < 4 * spread), (error, spread)
+    assert np.abs(at_reference - cage.physics.coil_matrix @ currents).max() > 3 * spread.max()
 
 
 # --- supply stability: the coils' drift with the lab field's changes taken out -----------------
