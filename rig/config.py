@@ -82,6 +82,10 @@ CAGE_KEYS: tuple[Param, ...] = (
           " sitting elsewhere", low=0.0,
           fix="write the gradient's uncertainty, e.g. ambient_gradient_nt_per_m = 15",
           unit="nT/m"),
+    Param("trim", TABLE, help='the supplies of trim windings, one per coil axis (the ambient'
+          ' servo\'s fine stage): { x = "...", y = "...", z = "..." }'),
+    Param("trim_ut_per_a", LIST, help="each trim winding's field per ampere along its coil's"
+          " axis [x, y, z]", unit="uT/A"),
     Param("max_current_a", LIST, True, help="coil current limit per axis [x, y, z]", unit="A"),
     Param("max_field_ut", NUMBER, True, help="largest field magnitude a procedure may ask for",
           above=0.0, fix="write the cage's field limit, e.g. max_field_ut = 150.0", unit="uT"),
@@ -156,6 +160,8 @@ class CageConfig:
     calibration_valid_days: float = 90.0
     ambient: str | None = None
     ambient_gradient_nt_per_m: float = 15.0
+    trim: tuple[str, str, str] | None = None
+    trim_ut_per_a: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -420,15 +426,17 @@ def _device_with_role(path: Path, key: str, name: Any, devices: dict[str, Device
                    f"'{name}' is not {what} in [devices] (kinds: {', '.join(kinds)})")  # fmt: skip
 
 
-def _axes(path: Path, axes: Any, devices: dict[str, DeviceConfig]) -> tuple[str, str, str]:
+def _axes(
+    path: Path, axes: Any, devices: dict[str, DeviceConfig], key: str = "axes"
+) -> tuple[str, str, str]:
     if not isinstance(axes, dict) or set(axes) != {"x", "y", "z"}:
         raise _err(
             path,
-            "[cage].axes",
-            'must name a supply for x, y and z: axes = { x = "...", y = "...", z = "..." }',
+            f"[cage].{key}",
+            f'must name a supply for x, y and z: {key} = {{ x = "...", y = "...", z = "..." }}',
         )
     for ax, name in axes.items():
-        _device_with_role(path, f"axes.{ax}", name, devices, "supply", "a supply")
+        _device_with_role(path, f"{key}.{ax}", name, devices, "supply", "a supply")
     return axes["x"], axes["y"], axes["z"]
 
 
@@ -468,7 +476,22 @@ def _cage(path: Path, c: dict[str, Any], devices: dict[str, DeviceConfig]) -> Ca
         calibration_valid_days=float(c["calibration_valid_days"]),
         ambient=ambient,
         ambient_gradient_nt_per_m=float(c["ambient_gradient_nt_per_m"]),
+        **_trim(path, c, devices),
     )
+
+
+def _trim(path: Path, c: dict[str, Any], devices: dict[str, DeviceConfig]) -> dict[str, Any]:
+    """``[cage] trim`` (a supply per axis) and ``trim_ut_per_a`` (three numbers), both or none."""
+    if c.get("trim") is None and c.get("trim_ut_per_a") is None:
+        return {}
+    if c.get("trim") is None or c.get("trim_ut_per_a") is None:
+        raise _err(path, "[cage].trim", "needs trim_ut_per_a beside it (and the other way round):"
+                   " the trim windings' supplies and their field per ampere")  # fmt: skip
+    trim = _axes(path, c["trim"], devices, "trim")
+    per_a = _numbers(path, "[cage].trim_ut_per_a", c["trim_ut_per_a"], 3)
+    if any(v <= 0 for v in per_a):
+        raise _err(path, "[cage].trim_ut_per_a", "must be three positive numbers (uT/A)")
+    return {"trim": trim, "trim_ut_per_a": (per_a[0], per_a[1], per_a[2])}
 
 
 # --- the key tables of docs/devices.md, from the declarations ------------------------------------

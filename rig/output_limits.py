@@ -204,6 +204,10 @@ def cage_role(cfg: RigConfig, name: str) -> str | None:
         return "the cage's polarity relays"
     if name == c.reference:
         return "the cage's reference magnetometer"
+    if c.trim is not None and name in c.trim:
+        return f"the cage's {'xyz'[c.trim.index(name)]} trim supply"
+    if name == c.ambient:
+        return "the cage's outside reference magnetometer"
     return None
 
 

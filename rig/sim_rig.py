@@ -22,7 +22,10 @@ _XYZ = re.compile(r"\{x[^{}]*\}\s+\{y[^{}]*\}\s+\{z[^{}]*\}")
 
 
 def rig_config_toml(
-    endpoints: dict[str, Any], sim_config: str, nominal_k: list[list[float]] | None = None
+    endpoints: dict[str, Any],
+    sim_config: str,
+    nominal_k: list[list[float]] | None = None,
+    trim_ut_per_a: list[float] | None = None,
 ) -> str:
     """A rig configuration (TOML) that points at the simulated devices.
 
@@ -50,6 +53,10 @@ def rig_config_toml(
             lines.append(f'reference = "{reference}"')
         if "ambient" in roles:
             lines.append(f'ambient = "{roles["ambient"]}"')
+        if trim_ut_per_a is not None and all(f"trim_{ax}" in roles for ax in "xyz"):
+            lines.append("trim = { " + ", ".join(f'{ax} = "{roles[f"trim_{ax}"]}"' for ax in "xyz")
+                         + " }")  # fmt: skip
+            lines.append(f"trim_ut_per_a = {json.dumps([round(v, 1) for v in trim_ut_per_a])}")
         lines += [
             'calibration = "cage-calibration.json"',
             "max_current_a = [2.5, 2.5, 2.5]",
@@ -131,4 +138,5 @@ def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig) -> str:
         elif mag.name in devices:
             devices[mag.name]["rate_hz"] = mag.rate_hz
     nominal = [[float(v) for v in row] for row in cfg.cage.coil_matrix_ut_per_a]
-    return rig_config_toml({"devices": devices}, cfg.source, nominal)
+    trims = [float(v) for v in cfg.cage.trim_ut_per_a] if any(cfg.cage.trim_ut_per_a) else None
+    return rig_config_toml({"devices": devices}, cfg.source, nominal, trims)

@@ -46,6 +46,9 @@ class CageConfig:
     coil_shape: str | None = None
     coil_size_m: tuple[float, ...] = (2.0, 2.0, 2.0)
     coil_spacing_m: tuple[float, ...] = (1.089, 1.089, 1.089)
+    # trim windings: a few turns on each coil's frame, driven by their own supplies (``trim``):
+    # field per ampere at the centre along their coil's axis (uT/A), shaped as the coil's field
+    trim_ut_per_a: tuple[float, ...] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -88,6 +91,7 @@ class SupplyConfig:
     kind: str  # "riden-rd60xx" or "regmap"
     endpoint: EndpointConfig
     axis: int | None = None  # coil axis 0-2, None for a load channel
+    trim: int | None = None  # the trim winding of coil axis 0-2 it drives (cage.trim_ut_per_a)
     model_id: int = 60125
     current_range: int = 0  # Riden RD6012P register 20: 0 = 6 A range (0.1 mA), 1 = 12 A (1 mA)
     regmap: str = ""
@@ -228,6 +232,7 @@ def _cage(c: dict[str, Any]) -> CageConfig:
         inductance_h=_vec(c, "inductance_h", "cage"),
         polarity=str(c.get("polarity", "relay")),
         hot_switch_limit_a=float(c.get("hot_switch_limit_a", 0.05)),
+        trim_ut_per_a=_vec_or(c, "trim_ut_per_a", "cage", (0.0, 0.0, 0.0)),
         **_geometry(c),
     )
     if cage.polarity not in ("relay", "bipolar"):
@@ -280,14 +285,17 @@ def _floats(d: dict[str, Any], cls: type, names: tuple[str, ...]) -> dict[str, f
 
 
 def _supply(s: dict[str, Any], where: str) -> SupplyConfig:
-    axis = s.get("axis")
+    axis, trim = s.get("axis"), s.get("trim")
     if axis is not None and axis not in AXES:
         raise SimConfigError(f"{where}.axis must be x, y or z")
+    if trim is not None and (trim not in AXES or axis is not None):
+        raise SimConfigError(f"{where}.trim must be x, y or z, on a supply with no axis")
     return SupplyConfig(
         name=str(s["name"]),
         kind=str(s["kind"]),
         endpoint=_endpoint(s, where),
         axis=None if axis is None else AXES[axis],
+        trim=None if trim is None else AXES[trim],
         model_id=int(s.get("model_id", 60125)),
         current_range=int(s.get("current_range", 0)),
         regmap=str(s.get("regmap", "")),
@@ -382,7 +390,7 @@ def _parse(raw: dict[str, Any], source: str) -> SimConfig:
     cage = _cage(raw["cage"])
     ambient = _ambient(raw["ambient"])
     supplies = _supplies(raw)
-    loads = {s.name for s in supplies if s.axis is None}
+    loads = {s.name for s in supplies if s.axis is None and s.trim is None}
     relay = None
     if "relay" in raw:
         r = raw["relay"]

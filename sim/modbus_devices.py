@@ -365,6 +365,8 @@ def unserved_ids() -> SimDevice:
 
 
 def _role(s: SupplyConfig) -> str:
+    if s.trim is not None:
+        return f"trim_{'xyz'[s.trim]}"
     return f"coil_{'xyz'[s.axis]}" if s.axis is not None else "load"
 
 

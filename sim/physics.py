@@ -316,6 +316,7 @@ class CagePhysics:
         )  # fmt: skip
         self.supplies: dict[str, Supply] = {}
         self.coil_supply: list[Supply] = [None, None, None]  # type: ignore[list-item]
+        self.trim_supply: list[Supply | None] = [None, None, None]
         self._open_supplies(cfg)
         self.relays = PolarityRelays(cfg.cage.hot_switch_limit_a)
         self.bipolar_sign = [1, 1, 1]
@@ -359,6 +360,10 @@ class CagePhysics:
             self.supplies[s.name] = supply
             if s.axis is not None:
                 self.coil_supply[s.axis] = supply
+            if s.trim is not None:
+                self.trim_supply[s.trim] = supply
+        constants = np.linalg.norm(np.array(cfg.cage.coil_matrix_ut_per_a, float), axis=0)
+        self._trim_scale = np.array(cfg.cage.trim_ut_per_a, float) / constants
         if cfg.cage.polarity == "bipolar":
             for s in cfg.supplies:
                 if s.axis is not None and not (s.kind == "regmap" and self._bipolar(s)):
@@ -459,9 +464,17 @@ class CagePhysics:
         return np.array([signs[i] * self.coil_supply[i].output_current(t) for i in range(3)])
 
     def true_coil_currents(self, t_s: float | None = None) -> Array:
-        """Signed coil currents (A) that flow: the reported ones times the supplies' gains."""
+        """Signed coil currents (A) that flow: the reported ones times the supplies' gains, plus
+        each trim winding's current as the coil current that makes its field (the trim's field
+        per ampere over the coil's)."""
         t = now_s() if t_s is None else t_s
-        return self.coil_currents(t) * self.coil_gains(t)
+        trims = self._trim_scale * self.trim_currents(t)
+        return np.asarray(self.coil_currents(t) * self.coil_gains(t) + trims)
+
+    def trim_currents(self, t_s: float | None = None) -> Array:
+        """Currents (A) in the trim windings (zeros without them)."""
+        t = now_s() if t_s is None else t_s
+        return np.array([0.0 if s is None else s.output_current(t) for s in self.trim_supply])
 
     def ambient_ut(
         self, t_s: float, noise: bool = True, position_m: tuple[float, ...] | None = None
@@ -504,7 +517,7 @@ class CagePhysics:
         return {
             name: s.output_current(t_s - delays.get(name, 0.0))
             for name, s in self.supplies.items()
-            if s.cfg.axis is None
+            if s.cfg.axis is None and s.cfg.trim is None
         }
 
     def dut_temperature_c(self, t_s: float | None = None) -> float:

@@ -46,6 +46,25 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
         "--hold", type=float, metavar="S", help="hold for S seconds (default: until Ctrl-C)"
     )
     sf.set_defaults(func=_cmd_cage_set_field)
+    hd = cage_sub.add_parser(
+        "hold", parents=parents,
+        help="hold a field, measuring it (inner and outside references); --servo holds it against"
+             " the lab field's changes with the trim windings",
+    )  # fmt: skip
+    for axis in "xyz":
+        hd.add_argument(f"b{axis}", type=float, metavar=f"B{axis.upper()}",
+                        help=f"field {axis} in uT, cage frame")  # fmt: skip
+    hd.add_argument("--rig", "--rig-config", dest="rig_config", type=Path, required=True,
+                    metavar="FILE.toml", help="the rig configuration: [cage] ambient and trim needed")  # fmt: skip
+    hd.add_argument("--servo", action="store_true",
+                    help="feed-forward from the outside reference, feedback from the inner one")  # fmt: skip
+    hd.add_argument("--duration", type=float, metavar="S", help="hold for S seconds (default: until Ctrl-C)")  # fmt: skip
+    hd.add_argument("--period", type=float, default=0.5, metavar="S",
+                    help="servo period (s; default: %(default)s)")  # fmt: skip
+    hd.add_argument("--report-s", type=float, default=10.0, metavar="S",
+                    help="the rms is of S-second means (default: %(default)s)")  # fmt: skip
+    hd.add_argument("--csv", type=Path, metavar="FILE", help="write each period's readings here")
+    hd.set_defaults(func=_cmd_cage_hold)
 
 
 def _cmd_cage_characterize(args: argparse.Namespace) -> int:
@@ -57,6 +76,13 @@ def _cmd_cage_set_field(args: argparse.Namespace) -> int:
     return run_set_field(
         args.rig_config, field, args.trim, args.tolerance_nt, args.hold, args.quiet
     )
+
+
+def _cmd_cage_hold(args: argparse.Namespace) -> int:
+    from rig.cli.cage_hold import run_hold
+
+    return run_hold(args.rig_config, [args.bx, args.by, args.bz], args.servo, args.duration,
+                    args.period, args.report_s, args.csv, args.quiet)  # fmt: skip
 
 
 def _progress(done: int, total: int) -> None:

@@ -41,6 +41,8 @@ def freeze(cfg: RigConfig) -> str:
             "calibration_valid_days": c.calibration_valid_days,
             "ambient": c.ambient,
             "ambient_gradient_nt_per_m": c.ambient_gradient_nt_per_m,
+            "trim": None if c.trim is None else list(c.trim),
+            "trim_ut_per_a": None if c.trim_ut_per_a is None else list(c.trim_ut_per_a),
         }
     devices = {
         n: {"kind": d.kind, "protocol": d.protocol, "params": d.params}
@@ -83,6 +85,14 @@ def thaw(text: str) -> RigConfig:
                 calibration_valid_days=float(c.get("calibration_valid_days", 90.0)),
                 ambient=c.get("ambient"),
                 ambient_gradient_nt_per_m=float(c.get("ambient_gradient_nt_per_m", 15.0)),
+                trim=None if c.get("trim") is None else (c["trim"][0], c["trim"][1], c["trim"][2]),
+                trim_ut_per_a=None
+                if c.get("trim_ut_per_a") is None
+                else (
+                    float(c["trim_ut_per_a"][0]),
+                    float(c["trim_ut_per_a"][1]),
+                    float(c["trim_ut_per_a"][2]),
+                ),
             )
         return RigConfig(Path(doc["path"]), devices, cage, {})
     except (ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:

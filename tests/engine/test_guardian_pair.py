@@ -135,7 +135,7 @@ def test_config_edited_then_sigkill_outputs_off_within_1_s(
     _, err = child.communicate(timeout=60)  # the guardian holds the rig's stderr until it ends
     assert "Traceback" not in err, err
     assert re.search(r"rig guardian: the rig process died without going safe; switched off"
-                     r" coil_x, coil_y, coil_z, load_bus", err), err  # fmt: skip
+                     r" coil_x, coil_y, coil_z, trim_x, trim_y, trim_z, load_bus", err), err  # fmt: skip
     assert cage.physics.relays.sign == [1, 1, 1]
     read_back_off(cage)
     print(f"{command}, {edit}: outputs off {1000 * took:.0f} ms after SIGKILL")

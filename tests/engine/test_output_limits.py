@@ -42,7 +42,8 @@ pytestmark = pytest.mark.usefixtures("own_lock_dir")
 
 
 @pytest.mark.parametrize(("device", "role"), [("coil_x", "x coil supply"), ("polarity", "polarity relays"),
-                                              ("reference", "reference magnetometer")])  # fmt: skip
+                                              ("reference", "reference magnetometer"),
+                                              ("trim_y", "y trim supply")])  # fmt: skip
 def test_rig_check_refuses_a_cage_device_as_a_load(
     rig_toml: Path, tmp_path: Path, device: str, role: str
 ) -> None:
