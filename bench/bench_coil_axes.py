@@ -29,6 +29,8 @@ from typing import Any
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench.dask_runs
+
 PROCEDURE = Path(__file__).resolve().parents[1] / "procedures" / "cage-metrology.yaml"
 FIXTURE_ERROR_ARCSEC = 30.0
 NAMES = ("constant x", "constant y", "constant z", "skew xy", "skew xz", "skew yz")
@@ -88,21 +90,15 @@ def one_procedure(seed: int) -> dict[str, Any]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--procedures", type=int, default=50, help="simulated procedures")
-    parser.add_argument("--workers", type=int, default=2, help="local cluster: worker processes")
-    parser.add_argument("--scheduler", help="a Dask scheduler's address (default: a local cluster)")
+    from bench.dask_runs import add_dask_arguments, map_on_dask
+
+    add_dask_arguments(parser)
     args = parser.parse_args()
-    from distributed import Client, LocalCluster, progress
 
     start = time.monotonic()
-    cluster = None if args.scheduler else LocalCluster(
-        n_workers=args.workers, threads_per_worker=1, processes=True, dashboard_address=None,
-        env={"OPENBLAS_NUM_THREADS": "1"})  # fmt: skip
-    with Client(args.scheduler or cluster) as client:
-        futures = client.map(one_procedure, range(args.procedures), pure=False)
-        progress(futures, notebook=False)
-        results = client.gather(futures)
-    if cluster is not None:
-        cluster.close()
+    results = map_on_dask(
+        one_procedure, range(args.procedures), workers=args.workers, scheduler=args.scheduler
+    )
     wall = time.monotonic() - start
     z = np.array([r["z"] for r in results])
     rel = np.array([r["relative"] for r in results])
