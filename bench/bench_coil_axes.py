@@ -74,7 +74,7 @@ def one_procedure(seed: int) -> dict[str, Any]:
         outcome = Runner(parse_procedure(PROCEDURE), load_rig_config(rig_toml), folder / "runs",
                          i2c_bus=cage.i2c_bus, confirm=operator, live=False).run()  # fmt: skip
     if outcome.exit_code not in (0, 1):
-        raise RuntimeError(f"procedure {seed}: {outcome.reason}")
+        return {"failed": f"procedure {seed}: {outcome.reason}"}  # counted, not fitted
     r = outcome.results["coil axes"]
     k = truth["k"]
     consts = np.array([r["constants_ut_per_a"][a] for a in "xyz"])
@@ -100,6 +100,10 @@ def main() -> int:
         one_procedure, range(args.procedures), workers=args.workers, scheduler=args.scheduler
     )
     wall = time.monotonic() - start
+    failed = [r["failed"] for r in results if "failed" in r]
+    results = [r for r in results if "failed" not in r]
+    for why in failed:
+        print(f"left out (the run did not finish): {why}")
     z = np.array([r["z"] for r in results])
     rel = np.array([r["relative"] for r in results])
     print(f"\n{len(results)} procedures on the simulated cage in {wall:.0f} s")

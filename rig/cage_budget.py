@@ -185,3 +185,19 @@ def cage_terms(
         )
     terms += lab_field_terms(gradient_sigma_nt_per_m, ref_m, DUT_M)
     return CageTerms(correction, tuple(terms), tuple(left_out))
+
+
+def run_cage_terms(meta: Mapping[str, Any], rig_toml_text: str | None) -> CageTerms:
+    """The cage's terms of a recorded run, for a refit of it (``rig calibrate RUN``): the
+    reference's certificate and the cage record the run recorded (``reference_correction``,
+    ``cage_model``) and the lab gradient's 1-sigma of the run's copy of its rig configuration."""
+    import tomllib
+
+    gradient = 15.0
+    if rig_toml_text is not None:
+        try:
+            cage = tomllib.loads(rig_toml_text).get("cage", {})
+            gradient = float(cage.get("ambient_gradient_nt_per_m", gradient))
+        except (tomllib.TOMLDecodeError, TypeError, ValueError):
+            pass  # the run's copy was checked when the run started; the default then
+    return cage_terms(meta.get("reference_correction"), meta.get("cage_model"), gradient)

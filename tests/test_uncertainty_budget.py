@@ -144,3 +144,18 @@ def test_the_simulated_reference_certificate_is_off_by_a_draw_within_what_it_sta
                                           certificate_mounting_sigma_arcsec=0.0), 3)  # fmt: skip
     assert np.allclose(np.array(exact["correction_matrix"]) @ truth, np.eye(3), atol=1e-12)
     assert exact["correction_scale_sigma"] == 1e-6
+
+
+def test_a_refit_of_a_run_takes_the_terms_the_run_recorded() -> None:
+    """``rig calibrate RUN``: the run's certificate and cage record from its metadata, the lab
+    gradient's sigma from its copy of the rig configuration (default 15 nT/m without one)."""
+    from rig.cage_budget import run_cage_terms
+
+    meta = {"reference_correction": {"matrix": np.eye(3).tolist(), "position_m": [0, 0, -0.1]},
+            "cage_model": {"k_ut_per_a": (40 * np.eye(3)).tolist(), "b0_ut": [0, 0, 0]}}  # fmt: skip
+    lab = [t for t in run_cage_terms(meta, "[cage]\nambient_gradient_nt_per_m = 30\n").terms
+           if t.group == LAB_FIELD]  # fmt: skip
+    assert lab[2].offset_ut[2] == pytest.approx(30.0 * 0.1 / 1000.0)
+    default = [t for t in run_cage_terms(meta, None).terms if t.group == LAB_FIELD]
+    assert default[0].offset_ut[0] == pytest.approx(15.0 * 0.1 / 1000.0)
+    assert run_cage_terms(meta, "not [valid toml").terms  # the default, not a crash

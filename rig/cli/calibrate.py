@@ -6,12 +6,15 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rig.calibration.estimators import DEFAULT_METHOD, method_names, spoken
 from rig.cli.common import EXIT_OK, Parser, Subparsers, columns, write_text
 from rig.errors import UserInputError
 from rig.io.field_units import UNIT_HELP
+
+if TYPE_CHECKING:
+    from rig.calibration.budget import CageTerms  # numpy: loaded only when a command runs
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
@@ -370,7 +373,7 @@ def _constant_magnitude(args: argparse.Namespace) -> float | None:
 def _fit_and_emit(
     samples: Any, args: argparse.Namespace, times_s: Any = None, temperature: Any = None,
     series: Any = None, delay_resolution_s: dict[str, float] | None = None,
-    clock_offset: Any = None,
+    clock_offset: Any = None, cage: CageTerms | None = None,
 ) -> int:  # fmt: skip
     """Fit, write the result file, C header and autopilot parameters if asked, print the table.
     ``delay_resolution_s``: channels whose delay is known only to within an interval (s), which
@@ -387,23 +390,35 @@ def _fit_and_emit(
         from rig.calibration.sequential.realtime import FilterOptions
 
         opts = FilterOptions(args.method, args.filter_variant, args.backend)
-    result = calibrate(samples, args.method, noise_nt=args.noise_nt, robust=args.robust,
-                       filter_options=opts, times_s=times_s, delays=tuple(args.delay),
-                       max_delay_s=args.max_delay_s, temperature=temperature,
-                       temperature_ref=args.temperature_ref, telemetry_series=series,
-                       clock_offset=clock_offset)  # fmt: skip
+
+    def fit(s: Any) -> Any:
+        return calibrate(s, args.method, noise_nt=args.noise_nt, robust=args.robust,
+                         filter_options=opts, times_s=times_s, delays=tuple(args.delay),
+                         max_delay_s=args.max_delay_s, temperature=temperature,
+                         temperature_ref=args.temperature_ref, telemetry_series=series,
+                         clock_offset=clock_offset)  # fmt: skip
+
+    result = fit(samples)
     if delay_resolution_s and result.profiled is not None:
         from dataclasses import replace
 
         from rig.calibration.profiled import with_resolution
 
-        fit = with_resolution(result.profiled, "delay_s", delay_resolution_s)
-        result = replace(result, profiled=fit)
+        widened = with_resolution(result.profiled, "delay_s", delay_resolution_s)
+        result = replace(result, profiled=widened)
     autopilot = _autopilot_files(result, args)  # before any file: a refusal writes nothing
     if args.history is not None and result.history is not None:
         write_text(args.history, _history_csv(result))
+    content = result.to_dict()
+    if cage is not None and args.method not in filter_methods:
+        from rig.analysis import budget_block
+        from rig.calibration.budget import propagate
+
+        budget = propagate(samples, lambda s: fit(s).reported(), result.reported(),
+                           result.reported_sigma(), cage.terms, cage.left_out)  # fmt: skip
+        content |= budget_block(result, budget)
     if args.out is not None:
-        write_text(args.out, json.dumps(result.to_dict(), indent=2) + "\n")
+        write_text(args.out, json.dumps(content, indent=2) + "\n")
     if args.c_header is not None:
         from rig.calibration.export_c import c_header
 
@@ -414,10 +429,25 @@ def _fit_and_emit(
         write_text(path, text)
     if not args.quiet:
         print(calibration_table(result, source=str(args.data), verbose=args.verbose))
+        if "combined_sigma" in content:
+            print(combined_line(content))
         for path in (args.out, args.c_header, args.ardupilot, args.px4, args.history):
             if path is not None:
                 print(f"wrote {path}")
     return EXIT_OK
+
+
+def combined_line(content: dict[str, Any]) -> str:
+    """The combined 1-sigma of the Springmann values with the cage's terms, and what the budget
+    left out, for the terminal (the --out file has every term)."""
+    combined = content["combined_sigma"]["springmann"]
+    budget = content["uncertainty_budget"]
+    line = ("combined 1-sigma with the cage's terms ("
+            + ", ".join(budget["groups"]) + "): "
+            + ", ".join(f"{k} {v:.2g}" for k, v in combined.items()))  # fmt: skip
+    if budget["left_out"]:
+        line += "; not in it: " + "; ".join(budget["left_out"])
+    return line
 
 
 def _autopilot_files(result: Any, args: argparse.Namespace) -> list[tuple[Path, str]]:
@@ -499,6 +529,7 @@ def _calibrate_run(args: argparse.Namespace) -> int:
         stored_run_data,
         unresolved_note,
     )
+    from rig.calibration.budget import corrected
     from rig.steps import field_kinds
     from rig.store import RunReader
     from rig.timing import misdated_note
@@ -524,6 +555,8 @@ def _calibrate_run(args: argparse.Namespace) -> int:
                 print(f"note: left out {left_out} of {left_out + samples.n} samples with no"
                       f" {args.temperature} reading within {MAX_TEMPERATURE_GAP_S:g} s",
                       file=sys.stderr)  # fmt: skip
+        cage = _run_cage_terms(reader, args.data)
+        samples = corrected(samples, cage.correction)  # to the DUT's place, as the run's fit
     finally:
         reader.close()
     series, locked, resolution, clock_offset = delays
@@ -539,4 +572,15 @@ def _calibrate_run(args: argparse.Namespace) -> int:
         print(f"note: {misdated_note(misdated, judged)}", file=sys.stderr)
     return _fit_and_emit(samples, args, times_s=t_s if args.delay else None, series=series,
                          temperature=temperature, delay_resolution_s=resolution,
-                         clock_offset=clock_offset)  # fmt: skip
+                         clock_offset=clock_offset, cage=cage)  # fmt: skip
+
+
+def _run_cage_terms(reader: Any, folder: Path) -> CageTerms:
+    """The cage's terms the run recorded (its reference certificate, cage record and rig
+    configuration's copy): a refit carries the same uncertainty budget as the run's own fit."""
+    from rig.cage_budget import run_cage_terms
+
+    copy = Path(folder) / "rig.toml"
+    return run_cage_terms(
+        reader.meta(), copy.read_text(encoding="utf-8") if copy.exists() else None
+    )

@@ -273,6 +273,9 @@ def refit_with_delays(folder: Path, out: Path) -> None:
             assert sigma[ch] >= interval / np.sqrt(12.0), (ch, sigma[ch], interval)
             assert abs(tau[ch] - truth[ch]) <= 3.0 * sigma[ch], (ch, tau[ch], sigma[ch])
     assert doc["residual_rms_nt"] < 150, doc["residual_rms_nt"]
+    # the refit carries the run's uncertainty budget (its certificate, its cage record)
+    assert "reference certificate" in doc["uncertainty_budget"]["groups"], doc.keys()
+    assert "combined 1-sigma with the cage's terms" in proc.stdout
 
 
 @pytest.mark.slow
