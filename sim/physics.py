@@ -488,14 +488,21 @@ class CagePhysics:
         b = b + np.array(a.drift_amplitude_ut) * np.sin(
             2 * np.pi * since / np.array(a.drift_period_s) + self._drift_phase
         )
-        b = b + np.array(a.ripple_amplitude_ut) * np.sin(
-            2 * np.pi * a.ripple_hz * since + self._ripple_phase
-        )
+        b = b + self.mains_ripple_ut(t_s)
         b = b + self.lab.uniform_ut(since) + self.lab.local_ut(since, where)[0]
         if noise and a.noise_ut > 0:
             with self._lock:
                 b = b + a.noise_ut * self._ambient_rng.standard_normal(3)
         return np.asarray(b)
+
+    def mains_ripple_ut(self, t_s: float) -> Array:
+        """The lab field's mains ripple at ``t_s`` (uT, the same everywhere)."""
+        a = self.cfg.ambient
+        since = t_s - self.start_s
+        return np.asarray(
+            np.array(a.ripple_amplitude_ut)
+            * np.sin(2 * np.pi * a.ripple_hz * since + self._ripple_phase)
+        )
 
     def field_ut(self, t_s: float | None = None, noise: bool = True) -> Array:
         """True field at the centre (the DUT's place) in the cage frame: ``K G I + B_ambient``."""
