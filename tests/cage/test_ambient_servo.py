@@ -79,7 +79,8 @@ def test_the_servo_holds_the_inner_field_through_drift_and_a_vehicle() -> None:
     assert np.all(free > 10.0) and np.all(held < 1.0), (held, free)
     applied = np.asarray(record.applied_ut)
     unservoed = np.asarray(record.inner_ut) - applied
-    assert np.sqrt(np.mean((unservoed - truth) ** 2)) < 0.01  # within the readings' noise
+    # within the readings' noise over a period (5 nT / sqrt 10 = 1.6 nT)
+    assert np.sqrt(np.mean((unservoed - truth) ** 2)) < 0.0025
     assert record.saturated == 0 and len(t) == pytest.approx(600 / 0.5, abs=3)
 
 
