@@ -239,6 +239,10 @@ def calibration_section(
     blocks += _fit_lines(res)
     if res.live is None:
         blocks += _budget_blocks(res)
+    else:
+        blocks.append(Para("The live calibration's sigmas are its filter's (statistical): the"
+                           " cage's terms are in the batch calibrations' budgets (ADR 0028)",
+                           "note"))  # fmt: skip
     blocks += _live_blocks(res)
     blocks += [Para(w, "note") for w in res.warnings]
     return Section(title, tuple(blocks))

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from rig.analysis import calibrate_run, evaluate_criteria
+from rig.cage_budget import cage_terms
 from rig.calibration.synthetic import cage_like
 from rig.report.acceptance import build_report
 from rig.steps import field_kinds
@@ -64,9 +65,9 @@ def synthetic_run(runs: Path, status: str = "complete") -> Path:
     reader = RunReader(w.folder)
     params = {"model": "vector", "method": "", "magnetometer": "dut", "telemetry": list(s.channels),
               "steps": [], "noise_nt": 20.0, "settle_s": 0.0}  # fmt: skip
-    cal = calibrate_run(
-        reader, params, {"dut": "dut", "reference": "reference"}, None, field_kinds()
-    )
+    reference = {"matrix": np.eye(3).tolist(), "position_m": [0.0, 0.0, -0.08]}
+    cal = calibrate_run(reader, params, {"dut": "dut", "reference": "reference"}, None,
+                        field_kinds(), cage_terms(reference, {}, 15.0))  # fmt: skip
     reader.close()
     w.set_result("cal", cal)
     w.set_result("verdict", evaluate_criteria({"cal": cal}, CRITERIA))
@@ -86,6 +87,12 @@ def test_html_is_self_contained_and_has_every_section(tmp_path: Path) -> None:
         "without telemetry",
         "angular uncertainty",
         "Crassidis form",
+        "Uncertainty budget (1-sigma)",  # the cage's terms (ADR 0028)
+        "reference certificate",
+        "limited by",
+        "combined 1-sigma",
+        "(k=2)",  # the scale criteria judged against the expanded uncertainty
+        "Not in the budget: the cage&#x27;s homogeneity",
     ):
         assert needle in text, needle
     assert text.count("<img") >= 4 and "prompt" in text
