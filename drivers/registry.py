@@ -84,6 +84,8 @@ class Param:
     why: str = ""
     fix: str = ""
     unit: str = ""
+    shape: tuple[int, ...] = ()
+    """For a list: its shape of finite numbers ((3,): three; (3, 3): three rows of three)."""
 
     @property
     def wanted(self) -> str:
@@ -117,6 +119,12 @@ class Param:
             return f"must be {self.wanted}, got {value!r}"
         fix = f"; {self.fix}" if self.fix else ""
         why = f" ({self.why})" if self.why else ""
+        if isinstance(value, list):
+            if self.shape and not _has_shape(value, self.shape):
+                what = (f"a list of {self.shape[0]} finite numbers" if len(self.shape) == 1 else
+                        f"{' x '.join(map(str, self.shape))} finite numbers (a list of lists)")  # fmt: skip
+                return f"must be {what}, got {value!r}{fix}"
+            return None
         if isinstance(value, str):
             if self.nonempty and not value.strip():
                 return f"must not be empty{fix}"
@@ -137,6 +145,15 @@ class Param:
         if self.above is not None and value <= self.above:
             return f"must be {self.accepted}, got {_num(value)}{why}{fix}"
         return None
+
+
+def _has_shape(value: Any, shape: tuple[int, ...]) -> bool:
+    """True when ``value`` is nested lists of ``shape`` holding finite numbers (not booleans)."""
+    if not shape:
+        return (isinstance(value, int | float) and not isinstance(value, bool)
+                and math.isfinite(value))  # fmt: skip
+    return (isinstance(value, list) and len(value) == shape[0]
+            and all(_has_shape(v, shape[1:]) for v in value))  # fmt: skip
 
 
 def _num(value: float) -> str:
@@ -598,8 +615,10 @@ CURRENT_RANGE = Param(
 MAG_PARAMS: tuple[Param, ...] = (
     Param("rate_hz", NUMBER, False, 20.0, "sample rate", above=0.0,
           fix="write the samples per second, e.g. rate_hz = 20", unit="Hz"),
-    Param("correction_matrix", LIST, help="calibration certificate: 3x3 matrix"),
-    Param("correction_offset_ut", LIST, help="calibration certificate: offset", unit="uT"),
+    Param("correction_matrix", LIST, help="calibration certificate: 3x3 matrix", shape=(3, 3),
+          fix="write the certificate's matrix, e.g. [[1, 0, 0], [0, 1, 0], [0, 0, 1]]"),
+    Param("correction_offset_ut", LIST, help="calibration certificate: offset", unit="uT",
+          shape=(3,), fix="write the certificate's offset, e.g. [0.0, 0.0, 0.0]"),
     Param("correction_scale_sigma", NUMBER, False, 5e-5, "calibration certificate: 1-sigma of"
           " each scale factor, relative", above=0.0,
           fix="write the certificate's scale uncertainty, e.g. correction_scale_sigma = 5e-5"),
@@ -611,7 +630,8 @@ MAG_PARAMS: tuple[Param, ...] = (
           unit="arcsec", fix="write how well the reference is aligned to the cage, e.g."
           " correction_mounting_sigma_arcsec = 30"),
     Param("position_m", LIST, help="where the sensor sits: m from the cage centre (the DUT's place),"
-          " cage frame; a reference's place sets the budget's homogeneity terms", unit="m"),
+          " cage frame; a reference's place sets the budget's homogeneity terms", unit="m",
+          shape=(3,), fix="write x, y, z in metres, e.g. position_m = [0.0, 0.0, -0.08]"),
     Param("stuck_after", WHOLE, False, 60, "identical readings in a row that mean a frozen"
           " sensor (0 = never judged)", low=0, high=1_000_000,
           fix="write a whole number of readings, e.g. stuck_after = 60 (3 s at 20 Hz)"),

@@ -94,6 +94,22 @@ def test_a_wrong_type_is_refused(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
+    ("line", "key", "said"),
+    [("correction_matrix = [[1, 2], [3]]", "correction_matrix", "3 x 3 finite numbers"),
+     ("correction_matrix = [[1, 0, 0], [0, 1, 0], [0, 0, nan]]", "correction_matrix", "3 x 3"),
+     ("correction_offset_ut = [0.0, 0.0]", "correction_offset_ut", "a list of 3 finite numbers"),
+     ("position_m = [0, 0, true]", "position_m", "e.g. position_m = [0.0, 0.0, -0.08]")],
+)  # fmt: skip
+def test_a_certificate_or_place_of_the_wrong_shape_is_refused(
+    tmp_path: Path, line: str, key: str, said: str
+) -> None:
+    """A malformed certificate or place would crash the fit or the budget mid-run: refused when
+    the configuration loads, naming the key and the shape wanted."""
+    message = refusal(tmp_path, HMR + line + "\n")
+    assert f"[devices.dut].{key}: must be" in message and said in message, message
+
+
+@pytest.mark.parametrize(
     ("text", "line", "where", "near"),
     [
         ('[devices]\ndut = { kind = "hmr2300", protocol = "serial", path = "/dev/x",'
