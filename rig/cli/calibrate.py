@@ -411,12 +411,7 @@ def _fit_and_emit(
         write_text(args.history, _history_csv(result))
     content = result.to_dict()
     if cage is not None and args.method not in filter_methods:
-        from rig.analysis import budget_block
-        from rig.calibration.budget import propagate
-
-        budget = propagate(samples, lambda s: fit(s).reported(), result.reported(),
-                           result.reported_sigma(), cage.terms, cage.left_out)  # fmt: skip
-        content |= budget_block(result, budget)
+        content |= _budget(result, samples, fit, cage)
     if args.out is not None:
         write_text(args.out, json.dumps(content, indent=2) + "\n")
     if args.c_header is not None:
@@ -435,6 +430,17 @@ def _fit_and_emit(
             if path is not None:
                 print(f"wrote {path}")
     return EXIT_OK
+
+
+def _budget(result: Any, samples: Any, fit: Any, cage: CageTerms) -> dict[str, Any]:
+    """The result's ``combined_sigma`` and ``uncertainty_budget``: ``fit`` (the same options)
+    refitted once per cage term (ADR 0028)."""
+    from rig.analysis import budget_block
+    from rig.calibration.budget import propagate
+
+    budget = propagate(samples, lambda s: fit(s).reported(), result.reported(),
+                       result.reported_sigma(), cage.terms, cage.left_out)  # fmt: skip
+    return budget_block(result, budget)
 
 
 def combined_line(content: dict[str, Any]) -> str:
