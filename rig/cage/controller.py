@@ -292,7 +292,12 @@ class CageController:
         ``fresh`` discards what a streaming sensor buffered before this call (readings from
         before the last command).
         """
-        raw = np.mean(self.reference_readings(samples, fresh=fresh), axis=0)
+        return self.to_cage(np.mean(self.reference_readings(samples, fresh=fresh), axis=0))
+
+    def to_cage(self, raw: npt.ArrayLike) -> Array:
+        """A raw reference reading (uT, its own frame) in the cage frame by its certificate
+        (unchanged without one)."""
+        raw = np.asarray(raw, float)
         if self.reference_to_cage is not None:
             matrix, offset = self.reference_to_cage
             return np.asarray(matrix @ (raw - offset))

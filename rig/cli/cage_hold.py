@@ -58,7 +58,7 @@ def run_hold(rig_config: Path, field_ut: list[float], servo: bool, duration_s: f
             sensor.start_sampling(float(cfg.devices[name].get("rate_hz", 20.0)))
         settings = ServoSettings(cage.trim_ut_per_a or (1.0, 1.0, 1.0), period_s,
                                  0.25 if servo else 0.0, BIAS_A)  # fmt: skip
-        loop = AmbientServo(inner, lambda raw: _to_cage(controller, raw), outside,
+        loop = AmbientServo(inner, controller.to_cage, outside,
                             trims if servo else [], settings, rig.sleep)  # fmt: skip
         if not quiet:
             print(f"holding {np.round(target, 3).tolist()} uT (trimmed to {result.error_nt:.1f} nT)"
@@ -68,13 +68,6 @@ def run_hold(rig_config: Path, field_ut: list[float], servo: bool, duration_s: f
         _write_csv(csv_path, record)
     _summary(record, target, report_s, servo, quiet)
     return 130 if stop.is_set() else 0
-
-
-def _to_cage(controller: Any, raw: Any) -> Any:
-    if controller.reference_to_cage is None:
-        return np.asarray(raw, float)
-    matrix, offset = controller.reference_to_cage
-    return matrix @ (np.asarray(raw, float) - offset)
 
 
 def _progress(duration_s: float | None) -> Any:
