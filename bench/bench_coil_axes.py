@@ -99,17 +99,22 @@ def main() -> int:
     results = map_on_dask(
         one_procedure, range(args.procedures), workers=args.workers, scheduler=args.scheduler
     )
-    wall = time.monotonic() - start
+    return summarize(results, time.monotonic() - start, NAMES)
+
+
+def summarize(results: list[dict[str, Any]], wall_s: float, names: tuple[str, ...]) -> int:
+    """Print per parameter the rms of z, the 95th percentile of |z|, the share within 1.96 and the
+    median sigma; 0 when every rms z is within 0.8-1.25."""
     failed = [r["failed"] for r in results if "failed" in r]
     results = [r for r in results if "failed" not in r]
     for why in failed:
         print(f"left out (the run did not finish): {why}")
     z = np.array([r["z"] for r in results])
     rel = np.array([r["relative"] for r in results])
-    print(f"\n{len(results)} procedures on the simulated cage in {wall:.0f} s")
+    print(f"\n{len(results)} procedures on the simulated cage in {wall_s:.0f} s")
     print(f"  {'parameter':<12} {'rms z':>6} {'p95 |z|':>8} {'<=1.96':>7} {'median sigma':>14}")
     ok = True
-    for i, name in enumerate(NAMES):
+    for i, name in enumerate(names):
         rms = float(np.sqrt(np.mean(z[:, i] ** 2)))
         unit = "ppm" if i < 3 else "arcsec"
         flag = "" if 0.8 <= rms <= 1.25 else "  <- outside 0.8-1.25"

@@ -92,6 +92,21 @@ class Magnetometer(Protocol):
     def close(self) -> None: ...
 
 
+class ScalarMagnetometer(Protocol):
+    """A total-field magnetometer (cesium, Overhauser) returning nT: its scale is a physical
+    constant, so it needs no calibration certificate. Streams at the rate :meth:`set_cycle` sets;
+    :meth:`read_total_nt` returns the next reading, None when the sensor had no signal (a cesium
+    cell's dead zones, a field outside its range)."""
+
+    name: str
+
+    def identify(self) -> Identity: ...
+    def set_cycle(self, rate_hz: float) -> float: ...
+    def flush(self) -> None: ...
+    def read_total_nt(self) -> float | None: ...
+    def close(self) -> None: ...
+
+
 class Thermometer(Protocol):
     """A temperature reading (degrees C), e.g. an RTD on the DUT's mount: recorded through a run
     so that the DUT's temperature coefficients can be fitted (``rig calibrate RUN --temperature``)."""

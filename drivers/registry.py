@@ -25,10 +25,12 @@ from typing import TYPE_CHECKING, Any, Literal
 from drivers.errors import DeviceError
 from drivers.identity import Identity
 from drivers.mag.ascii_line import AsciiLineMagnetometer, LineFormat
+from drivers.mag.geometrics_counter import GeometricsCounter
+from drivers.mag.geometrics_counter import parse_line as parse_counter_line
 from drivers.mag.hmr2300 import Hmr2300
 from drivers.mag.lis3mdl import WHO_AM_I, WHO_AM_I_VALUE, Lis3mdl
 from drivers.mag.rm3100 import REVID, REVID_VALUE, Rm3100
-from drivers.protocols import Load, Magnetometer, Relay, Supply, Thermometer
+from drivers.protocols import Load, Magnetometer, Relay, ScalarMagnetometer, Supply, Thermometer
 from drivers.psu.regmap_device import MappedSupply, MappedThermometer, PolarityRelay
 from drivers.psu.riden import RidenSupply, riden_model
 from drivers.regmap import RegisterMap, load_map, shipped_maps
@@ -36,7 +38,7 @@ from drivers.transport.i2c import I2CDevice
 from drivers.transport.modbus import ModbusLink
 from drivers.transport.serial_port import SerialPort
 
-Role = Literal["supply", "load", "relay", "magnetometer", "thermometer"]
+Role = Literal["supply", "load", "relay", "magnetometer", "scalar", "thermometer"]
 OUTPUT_ROLES: frozenset[Role] = frozenset({"supply", "load", "relay"})
 
 TEXT: tuple[type, ...] = (str,)
@@ -698,9 +700,64 @@ def _magnetometer_kinds() -> Iterator[DeviceKind]:
     )  # fmt: skip
 
 
+SCALAR_PARAMS: tuple[Param, ...] = (
+    Param("rate_hz", NUMBER, False, 10.0, "cycle rate the counter is set to", low=0.01,
+          high=100.0, fix="write the readings per second, e.g. rate_hz = 10", unit="Hz"),
+    Param("min_signal", WHOLE, False, 500, "the Larmor signal level (0-9999) below which a reading"
+          " is not a measurement (a dead zone, a field out of range)", low=0, high=9999,
+          fix="write the level, e.g. min_signal = 500 (locked readings show about 1200)"),
+    Param("optical_axis", LIST, help="the cesium sensor's optical axis in the cage frame: the"
+          " field directions within its dead zones are left out", shape=(3,),
+          fix="write the axis as three numbers, e.g. optical_axis = [0.0, 0.5, 1.0]"),
+    Param("dead_zone_deg", NUMBER, False, 15.0, "how far from the optical axis and from the plane"
+          " normal to it a field must point to be measured", low=0.0, high=44.0, unit="deg",
+          fix="write the sensor's dead zone with a margin, e.g. dead_zone_deg = 15"),
+    Param("offset_sigma_nt", NUMBER, False, 3.0, "the sensor's stated absolute accuracy (1-sigma)",
+          above=0.0, unit="nT", fix="write the accuracy, e.g. offset_sigma_nt = 3"),
+    Param("position_m", LIST, help="where the sensor sits: m from the cage centre, cage frame",
+          unit="m", shape=(3,), fix="write x, y, z in metres, e.g. position_m = [0.0, 0.0, 0.0]"),
+)  # fmt: skip
+"""A scalar magnetometer's keys."""
+
+
+def _probe_counter(target: ProbeTarget) -> list[Found]:
+    """Listen (send nothing): two consecutive lines in the counter's format."""
+    baud = int(target.params["baudrate"])
+    try:
+        port = SerialPort(str(target.params["path"]), baud, timeout_s=max(target.timeout_s, 0.3),
+                          name="scan:geometrics-cm201")  # fmt: skip
+    except DeviceError:
+        return []
+    try:
+        port.drain_input(quiet_s=0.0)
+        port.read_until(b"\n")  # the partial line in flight
+        for _ in range(2):
+            parse_counter_line(port.read_until(b"\n"))
+    except DeviceError:
+        return []
+    finally:
+        port.close()
+    params = {"path": target.params["path"], "baudrate": baud}
+    return [Found("geometrics-cm201", "serial", "Geometrics CM-201 counter (cesium)", "", params,
+                  target.where)]  # fmt: skip
+
+
+def _scalar_kinds() -> Iterator[DeviceKind]:
+    """Total-field magnetometers."""
+    yield DeviceKind(
+        "geometrics-cm201", frozenset({"scalar"}), ("serial",), SCALAR_PARAMS,
+        lambda s: GeometricsCounter(str(s.get("path")), baudrate=int(s.get("baudrate")),
+                                    min_signal=int(s.get("min_signal")), name=s.name),
+        "cesium total-field magnetometer behind a Geometrics CM-201/CM-221 counter (G-858, G-882)",
+        _probe_counter, (9600, 19200), probe_first=True,
+        transport_keys={"baudrate": replace(BAUDRATE, default=9600)},
+    )  # fmt: skip
+
+
 def _iter_registered() -> Iterator[DeviceKind]:
     yield from _modbus_kinds()
     yield from _magnetometer_kinds()
+    yield from _scalar_kinds()
 
 
 for _kind in _iter_registered():
@@ -712,11 +769,12 @@ if TYPE_CHECKING:  # mypy checks that every driver satisfies the Protocols of it
     def _satisfies(
         riden: RidenSupply, mapped: MappedSupply, relay: PolarityRelay, hmr: Hmr2300,
         ascii_mag: AsciiLineMagnetometer, rm3100: Rm3100, lis3mdl: Lis3mdl,
-        thermo: MappedThermometer,
+        thermo: MappedThermometer, counter: GeometricsCounter,
     ) -> None:  # fmt: skip
         supplies: list[Supply] = [riden, mapped]
         loads: list[Load] = [riden, mapped]
         relays: list[Relay] = [relay]
         mags: list[Magnetometer] = [hmr, ascii_mag, rm3100, lis3mdl]
         thermometers: list[Thermometer] = [thermo]
-        del supplies, loads, relays, mags, thermometers
+        scalars: list[ScalarMagnetometer] = [counter]
+        del supplies, loads, relays, mags, thermometers, scalars

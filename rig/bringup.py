@@ -33,7 +33,7 @@ from rig.errors import UserInputError
 
 MODBUS = ("modbus-rtu", "modbus-tcp")
 NAME_PREFIX = {"supply": "psu", "load": "load", "relay": "polarity", "magnetometer": "mag",
-               "thermometer": "temp"}  # fmt: skip
+               "scalar": "scalar", "thermometer": "temp"}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -237,7 +237,8 @@ def device_names(found: list[Found]) -> list[str]:
     return names
 
 
-def _cage_lines(supplies: list[str], relays: list[str], mags: list[str]) -> list[str]:
+def _cage_lines(supplies: list[str], relays: list[str], mags: list[str],
+                scalars: list[str] | None = None) -> list[str]:  # fmt: skip
     """The ``[cage]`` section of a skeleton, commented out when fewer than three supplies
     answered (keys as declared in :data:`rig.config.CAGE_KEYS`)."""
     cage = [
@@ -254,6 +255,11 @@ def _cage_lines(supplies: list[str], relays: list[str], mags: list[str]) -> list
         "# tell them apart: uncomment this line and name the reference"
         + (f" ({' or '.join(mags)} answered)." if mags else "."),
         f'# reference = "{mags[0] if mags else "mag1"}"',
+        *(
+            [f'scalar = "{scalars[0]}"   # the total-field sensor (the coil_scalar step)']
+            if scalars
+            else []
+        ),
         'calibration = "cage-calibration.json"   # written by `rig cage characterize`',
         "# FILL IN: the limits of your coils and supplies (these are conservative placeholders)",
         "max_current_a = [1.0, 1.0, 1.0]",
@@ -321,7 +327,7 @@ def skeleton(found: list[Found], unknown: Iterable[Unknown] = ()) -> str:
         f"# Rig configuration written by `rig devices scan` on {stamp}.",
         "# The devices below answered; check the names and which one does what.",
         "",
-        *_cage_lines(named("supply"), named("relay"), named("magnetometer")),
+        *_cage_lines(named("supply"), named("relay"), named("magnetometer"), named("scalar")),
     ]
     for name, f in zip(names, found, strict=True):
         lines += _found_lines(name, f)

@@ -77,6 +77,8 @@ CAGE_KEYS: tuple[Param, ...] = (
           fix="write the validity, e.g. calibration_valid_days = 90", unit="days"),
     Param("ambient", TEXT, help="a magnetometer outside the coils, recorded in every run: the"
           " lab field's changes"),
+    Param("scalar", TEXT, help="a total-field (scalar) magnetometer at the cage centre: the coil"
+          " constants and axis angles without a certificate (the coil_scalar step)"),
     Param("ambient_gradient_nt_per_m", NUMBER, False, 15.0, "1-sigma of each component of the"
           " lab field's gradient at the DUT: the uncertainty budget's term for the reference"
           " sitting elsewhere", low=0.0,
@@ -159,6 +161,7 @@ class CageConfig:
     nominal_k_ut_per_a: tuple[tuple[float, ...], ...] | None = None
     calibration_valid_days: float = 90.0
     ambient: str | None = None
+    scalar: str | None = None
     ambient_gradient_nt_per_m: float = 15.0
     trim: tuple[str, str, str] | None = None
     trim_ut_per_a: tuple[float, float, float] | None = None
@@ -460,6 +463,9 @@ def _cage(path: Path, c: dict[str, Any], devices: dict[str, DeviceConfig]) -> Ca
     ambient = c.get("ambient")
     if ambient is not None:
         _device_with_role(path, "ambient", ambient, devices, "magnetometer", "a magnetometer")
+    scalar = c.get("scalar")
+    if scalar is not None:
+        _device_with_role(path, "scalar", scalar, devices, "scalar", "a scalar magnetometer")
     calibration = c.get("calibration")
     max_current = _numbers(path, "[cage].max_current_a", c["max_current_a"], 3)
     return CageConfig(
@@ -475,6 +481,7 @@ def _cage(path: Path, c: dict[str, Any], devices: dict[str, DeviceConfig]) -> Ca
         nominal_k_ut_per_a=_nominal(path, c.get("nominal_k_ut_per_a")),
         calibration_valid_days=float(c["calibration_valid_days"]),
         ambient=ambient,
+        scalar=scalar,
         ambient_gradient_nt_per_m=float(c["ambient_gradient_nt_per_m"]),
         **_trim(path, c, devices),
     )

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.protocols import Load, Magnetometer, Relay, Supply, Thermometer
+from drivers.protocols import Load, Magnetometer, Relay, ScalarMagnetometer, Supply, Thermometer
 from drivers.registry import KINDS, OpenSpec, Role
 from drivers.regmap import RegisterMapError
 from rig.cage.controller import AxisDrive, CageController
@@ -73,6 +73,13 @@ def open_magnetometer(dev: DeviceConfig, i2c_bus: Any | None = None) -> Magnetom
     _check_role(dev, "magnetometer")
     mag: Magnetometer = open_device(dev, i2c_bus)
     return mag
+
+
+def open_scalar_magnetometer(dev: DeviceConfig) -> ScalarMagnetometer:
+    """A total-field magnetometer (a kind with the ``scalar`` role)."""
+    _check_role(dev, "scalar")
+    scalar: ScalarMagnetometer = open_device(dev, None)
+    return scalar
 
 
 def open_thermometer(dev: DeviceConfig, i2c_bus: Any | None = None) -> Thermometer:

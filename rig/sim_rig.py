@@ -53,6 +53,8 @@ def rig_config_toml(
             lines.append(f'reference = "{reference}"')
         if "ambient" in roles:
             lines.append(f'ambient = "{roles["ambient"]}"')
+        if "scalar" in roles:
+            lines.append(f'scalar = "{roles["scalar"]}"')
         if trim_ut_per_a is not None and all(f"trim_{ax}" in roles for ax in "xyz"):
             lines.append("trim = { " + ", ".join(f'{ax} = "{roles[f"trim_{ax}"]}"' for ax in "xyz")
                          + " }")  # fmt: skip

@@ -141,6 +141,13 @@ class MagnetometerConfig:
     certificate_scale_sigma: float = 0.0
     certificate_angle_sigma_arcsec: float = 0.0
     certificate_mounting_sigma_arcsec: float = 0.0
+    # a scalar (total-field) sensor's own (kind "geometrics-cm201"): its optical axis (cage frame),
+    # absolute offset, heading error (nT times the cosine of the field's angle to the axis) and
+    # dead zones (degrees about the axis and about the plane normal to it)
+    optical_axis: tuple[float, ...] = (0.0, 0.0, 1.0)
+    scalar_offset_nt: float = 0.0
+    heading_error_nt: float = 0.0
+    dead_zone_deg: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -348,9 +355,15 @@ def _magnetometer(m: dict[str, Any], where: str, loads: set[str]) -> Magnetomete
         certificate_scale_sigma=float(m.get("certificate_scale_sigma", 0.0)),
         certificate_angle_sigma_arcsec=float(m.get("certificate_angle_sigma_arcsec", 0.0)),
         certificate_mounting_sigma_arcsec=float(m.get("certificate_mounting_sigma_arcsec", 0.0)),
+        optical_axis=_vec_or(m, "optical_axis", where, (0.0, 0.0, 1.0)),
+        scalar_offset_nt=float(m.get("scalar_offset_nt", 0.0)),
+        heading_error_nt=float(m.get("heading_error_nt", 0.0)),
+        dead_zone_deg=float(m.get("dead_zone_deg", 10.0)),
     )
-    if mag.role not in (None, "reference", "ambient"):
-        raise SimConfigError(f"{where}.role must be 'reference' or 'ambient' (or absent)")
+    if mag.role not in (None, "reference", "ambient", "scalar"):
+        raise SimConfigError(f"{where}.role must be 'reference', 'ambient' or 'scalar' (or absent)")
+    if not any(mag.optical_axis):
+        raise SimConfigError(f"{where}.optical_axis must not be zero")
     for ch in mag.k_ut_per_a:
         if ch not in loads:
             raise SimConfigError(f"{where}.k_ut_per_a names '{ch}', which is no load channel")

@@ -4,7 +4,7 @@ and add it to the tuple below (docs/architecture.md)."""
 
 from __future__ import annotations
 
-from sim import ascii_mag, hmr2300, lis3mdl, modbus_devices, rm3100
+from sim import ascii_mag, cesium, hmr2300, lis3mdl, modbus_devices, rm3100
 from sim.device_kind import Section, SimKind
 
 KINDS: dict[tuple[Section, str], SimKind] = {
@@ -14,6 +14,7 @@ KINDS: dict[tuple[Section, str], SimKind] = {
         modbus_devices.REGMAP,
         hmr2300.KIND,
         ascii_mag.KIND,
+        cesium.KIND,
         rm3100.KIND,
         lis3mdl.KIND,
     )

@@ -16,12 +16,13 @@ about x and about y: 12 vectors, after McPherron and Snare's UCLA procedure) eve
 common scale of ``T`` and ``K`` is determined by the turns; the certificate's scale fixes that,
 so its uncertainty is part of the coil constants' sigma. Fitted by weighted least squares
 (``scipy.optimize.least_squares``) with the priors as pseudo-observations; covariance from the
-Jacobian at the solution. The responses' own sigmas (from the readings' scatter) only weight them:
-their common scale comes from the fit's residuals (the data's chi-square over their degrees of
-freedom: their count less the trace of their hat matrix, about 10 with four positions), because a reading's scatter can misstate its mean's error both
-ways - mains ripple aliased by the sampling averages out of the mean (scatter too large), a lab
-field that moves between the +I and -I readings does not (too small) - while the priors keep
-theirs.
+Jacobian at the solution. A reading's scatter misstates its mean's error both ways - mains
+ripple aliased by the sampling averages out of the mean (scatter too large), a lab field that moves
+between the +I and -I readings does not (too small) - and by a different factor per axis (the
+ripple is largest on the vertical axis). So the responses are weighted per sensor axis by how well
+their two +I readings repeat (pooled over every response), and their common scale comes from the
+fit's residuals (the data's chi-square over their degrees of freedom: their count less the trace
+of their hat matrix, about 10 with four positions), while the priors keep theirs.
 """
 
 from __future__ import annotations
@@ -77,12 +78,14 @@ class SensorPrior:
 @dataclass(frozen=True)
 class CoilResponse:
     """One fixture position and coil: the sensor's reading change per ampere (uT/A, sensor frame)
-    and its 1-sigma per axis."""
+    and its 1-sigma per axis from the readings' scatter; ``repeat_ut``, when measured, the
+    difference of the two ``+I`` readings per ampere (what the mean readings really repeat to)."""
 
     position: int
     coil: int
     per_amp_ut: Array
     sigma_ut: Array
+    repeat_ut: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -158,15 +161,8 @@ def fit_coil_axes(
     from scipy.optimize import least_squares
 
     n_pos = len(positions)
-    seen = {(r.position, r.coil) for r in data}
-    missing = [(positions[k][0], "xyz"[j]) for k in range(n_pos) for j in range(3)
-               if (k, j) not in seen]  # fmt: skip
-    if missing:
-        raise UserInputError(
-            "coil axes: no response for "
-            + ", ".join(f"coil {c} in position '{p}'" for p, c in missing)
-            + "; every coil must be driven in every fixture position"
-        )
+    _require_every_response(data, positions)
+    data = repeatability_weights(data)
     nominal = [rot for _, rot in positions]
     base = [r for r in data if r.position == 0]
     k0 = np.zeros((3, 3))
@@ -195,8 +191,11 @@ def fit_coil_axes(
     if not fit.success:
         raise UserInputError(f"coil axes: the fit did not converge ({fit.message})")
     # a scale estimated from dof degrees of freedom leaves t-distributed errors: their variance is
-    # dof / (dof - 2) times the estimate's (the sigma is a promise about the rms error)
-    cov = np.linalg.pinv(fit.jac.T @ fit.jac) * (dof / (dof - 2.0) if dof > 4 else 3.0)
+    # dof / (dof - 2) times the estimate's (the sigma is a promise about the rms error); the
+    # data's, not the priors' (the certificate states its own)
+    jac = fit.jac.copy()
+    jac[:n_data] /= math.sqrt(dof / (dof - 2.0) if dof > 4 else 3.0)
+    cov = np.linalg.pinv(jac.T @ jac)
     notes: tuple[str, ...] = ()
     if not NOISE_NOTE[0] <= scale <= NOISE_NOTE[1]:
         notes = (f"the responses scatter about the fit {scale:.2f} times their readings' sigmas"
@@ -204,8 +203,38 @@ def fit_coil_axes(
     return _summarize(fit.x, cov, n_pos, chi2, dof, scale, notes)
 
 
-def _derived(k_flat: Array) -> Array:
-    """Coil constants (3) and skews (rad: xy, xz, yz) from K (column-major)."""
+def _require_every_response(data: list[CoilResponse], positions: tuple[tuple[str, Array], ...]
+                            ) -> None:  # fmt: skip
+    """UserInputError naming every coil and position without a response."""
+    seen = {(r.position, r.coil) for r in data}
+    missing = [(positions[k][0], "xyz"[j]) for k in range(len(positions)) for j in range(3)
+               if (k, j) not in seen]  # fmt: skip
+    if missing:
+        raise UserInputError(
+            "coil axes: no response for "
+            + ", ".join(f"coil {c} in position '{p}'" for p, c in missing)
+            + "; every coil must be driven in every fixture position"
+        )
+
+
+def repeatability_weights(data: list[CoilResponse]) -> list[CoilResponse]:
+    """The responses with the sigma each sensor axis's mean readings really repeat to: from the
+    two ``+I`` readings of every response, pooled per axis (``var(d) = 3/4 var(repeat)`` for
+    independent means). A reading's scatter misstates its mean's error by axis (mains ripple that
+    the sampling aliases inflates the scatter and averages out of the mean), which would weight
+    the axes wrongly; the common scale still comes from the fit's residuals. Unchanged when a
+    response has no repeat."""
+    if not data or any(r.repeat_ut is None for r in data):
+        return data
+    repeats = np.array([r.repeat_ut for r in data], float)
+    sigma = np.sqrt(0.75 * np.mean(repeats**2, axis=0))
+    floor = 1e-3 * float(np.max(sigma)) + 1e-12
+    sigma = np.maximum(sigma, floor)
+    return [CoilResponse(r.position, r.coil, r.per_amp_ut, sigma, r.repeat_ut) for r in data]
+
+
+def derived_constants_and_skews(k_flat: Array) -> Array:
+    """Coil constants (3, uT/A) and skews (rad: xy, xz, yz) from K (column-major)."""
     k = k_flat.reshape(3, 3).T
     norms = np.linalg.norm(k, axis=0)
     skews = []
@@ -215,18 +244,26 @@ def _derived(k_flat: Array) -> Array:
     return np.concatenate([norms, skews])
 
 
+def derived_sigmas(k_flat: Array, k_cov: Array) -> Array:
+    """1-sigma of :func:`derived_constants_and_skews` from K's covariance (9x9, column-major),
+    by linear propagation (central differences)."""
+    jac = np.empty((6, 9))
+    for i in range(9):
+        step = 1e-7 * max(1.0, abs(k_flat[i]))
+        up, down = k_flat.copy(), k_flat.copy()
+        up[i] += step
+        down[i] -= step
+        jac[:, i] = (derived_constants_and_skews(up) - derived_constants_and_skews(down)) / (
+            2 * step
+        )
+    return np.sqrt(np.clip(np.diag(jac @ k_cov @ jac.T), 0.0, None))
+
+
 def _summarize(x: Array, cov: Array, n_pos: int, chi2: float, dof: int, noise_scale: float,
                notes: tuple[str, ...]) -> CoilAxes:  # fmt: skip
     k_cov = cov[:9, :9]
-    value = _derived(x[:9])
-    jac = np.empty((6, 9))
-    for i in range(9):
-        step = 1e-7 * max(1.0, abs(x[i]))
-        up, down = x[:9].copy(), x[:9].copy()
-        up[i] += step
-        down[i] -= step
-        jac[:, i] = (_derived(up) - _derived(down)) / (2 * step)
-    sigma = np.sqrt(np.clip(np.diag(jac @ k_cov @ jac.T), 0.0, None))
+    value = derived_constants_and_skews(x[:9])
+    sigma = derived_sigmas(x[:9], k_cov)
     fixture = x[18:].reshape(n_pos - 1, 3) * ARCSEC_PER_RAD
     return CoilAxes(
         k_ut_per_a=x[:9].reshape(3, 3).T.copy(),
@@ -273,6 +310,7 @@ def measure_position(
             variances.append(readings.var(axis=0, ddof=1) / samples)
         d = (0.5 * (means[0] + means[2]) - means[1]) / (2.0 * amplitude_a)
         var = (0.25 * (variances[0] + variances[2]) + variances[1]) / (2.0 * amplitude_a) ** 2
-        out.append(CoilResponse(position, coil, d, np.sqrt(var)))
+        repeat = (means[0] - means[2]) / (2.0 * amplitude_a)
+        out.append(CoilResponse(position, coil, d, np.sqrt(var), repeat))
     controller.set_currents(np.zeros(3))
     return out

@@ -40,6 +40,7 @@ def freeze(cfg: RigConfig) -> str:
             else [list(r) for r in c.nominal_k_ut_per_a],
             "calibration_valid_days": c.calibration_valid_days,
             "ambient": c.ambient,
+            "scalar": c.scalar,
             "ambient_gradient_nt_per_m": c.ambient_gradient_nt_per_m,
             "trim": None if c.trim is None else list(c.trim),
             "trim_ut_per_a": None if c.trim_ut_per_a is None else list(c.trim_ut_per_a),
@@ -84,6 +85,7 @@ def thaw(text: str) -> RigConfig:
                 else tuple(tuple(float(v) for v in row) for row in nominal),
                 calibration_valid_days=float(c.get("calibration_valid_days", 90.0)),
                 ambient=c.get("ambient"),
+                scalar=c.get("scalar"),
                 ambient_gradient_nt_per_m=float(c.get("ambient_gradient_nt_per_m", 15.0)),
                 trim=None if c.get("trim") is None else (c["trim"][0], c["trim"][1], c["trim"][2]),
                 trim_ut_per_a=None

@@ -319,6 +319,11 @@ class Runner:
         self.writer.flush()
         return RunReader(self.writer.folder)
 
+    def scalar_magnetometer(self, name: str) -> Any:
+        """Total-field magnetometer ``name`` of the rig, opened for this run (closed with it)."""
+        assert self.rig is not None
+        return self.rig.scalar_magnetometer(name)
+
     def set_meta(self, **values: Any) -> None:
         """Store run metadata."""
         assert self.writer is not None

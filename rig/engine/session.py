@@ -37,10 +37,16 @@ from types import TracebackType
 from typing import Any, cast
 
 from drivers.errors import DeviceError
-from drivers.protocols import Load, Magnetometer, Thermometer
+from drivers.protocols import Load, Magnetometer, ScalarMagnetometer, Thermometer
 from rig.cage.controller import SAFE_TIMEOUT_S, CageController
 from rig.config import RigConfig
-from rig.devices import build_cage, open_load, open_magnetometer, open_thermometer
+from rig.devices import (
+    build_cage,
+    open_load,
+    open_magnetometer,
+    open_scalar_magnetometer,
+    open_thermometer,
+)
 from rig.engine.cpu_wait import run_delay_s
 from rig.engine.guardian import HEARTBEAT_PERIOD_S, Guardian
 from rig.engine.interlock import RigLock
@@ -267,6 +273,12 @@ class RigSession:
             self._stack.callback(mag.close)
             self.magnetometers[name] = mag
         return self.magnetometers[name]
+
+    def scalar_magnetometer(self, name: str) -> ScalarMagnetometer:
+        """Total-field magnetometer ``name`` (closed when the session ends)."""
+        scalar = open_scalar_magnetometer(self._device(name, "scalar"))
+        self._stack.callback(scalar.close)
+        return scalar
 
     def thermometer(self, name: str) -> Thermometer:
         """Thermometer ``name`` (closed when the session ends)."""

@@ -66,6 +66,11 @@ class RunContext(Protocol):
 
     def set_meta(self, **values: Any) -> None: ...
 
+    def scalar_magnetometer(self, name: str) -> Any:
+        """Total-field magnetometer ``name`` (drivers.protocols.ScalarMagnetometer), opened for
+        the run and closed with it."""
+        ...
+
     def ask_operator(self, text: str) -> bool: ...
 
     def command(self, step_index: int, kind: str, payload: dict[str, Any], now: float) -> None:

@@ -59,6 +59,7 @@ def test_every_identifiable_device_is_found(
         "dut": ("hmr2300", "HMR2300"),
         "reference": ("ascii-mag", "ASCII line magnetometer"),
         "outside": ("ascii-mag", "ASCII line magnetometer"),
+        "cesium": ("geometrics-cm201", "Geometrics CM-201 counter (cesium)"),
     }
     for name, (kind, model) in expect.items():
         f = by_where[where(devices, name)]
@@ -99,6 +100,7 @@ def test_the_skeleton_loads_and_opens_the_cage(
     path.write_text(text.replace('# polarity = "polarity1"', 'polarity = "polarity1"'))
     cfg = load_rig_config(path)
     assert cfg.cage is not None and cfg.cage.reference == ref
+    assert cfg.cage.scalar == "scalar1"  # a total-field sensor is unambiguous: named for the user
     assert {d.kind for d in cfg.devices.values()} >= {"riden-rd60xx", "hmr2300", "rm3100"}
     with ExitStack() as stack:
         controller = build_cage(cfg, stack, cage.i2c_bus)

@@ -199,6 +199,8 @@ class FakeContext:
     meta: dict[str, Any] = field(default_factory=dict)
     report_requested: bool = False
     readers: list[FakeReader] = field(default_factory=list)
+    scalars: dict[str, Any] = field(default_factory=dict)
+    """Total-field magnetometers by name (what :meth:`scalar_magnetometer` opens)."""
 
     def __post_init__(self) -> None:
         if not self.samplers:
@@ -217,6 +219,9 @@ class FakeContext:
 
     def set_meta(self, **values: Any) -> None:
         self.meta.update(values)
+
+    def scalar_magnetometer(self, name: str) -> Any:
+        return self.scalars[name]
 
     def ask_operator(self, text: str) -> bool:
         self.questions.append(text)

@@ -30,6 +30,7 @@ def fields_of(cmds: list[Command]) -> tuple[list[float], np.ndarray]:
         ("check", {"criteria": [{"result": "a", "value": "b", "max": 1}]}),
         ("characterize_cage", {"amplitude_a": 0.5}),
         ("coil_axes", {"amplitude_a": 0.5}),
+        ("coil_scalar", {"directions": 20}),
         ("field_map", {"amplitude_a": 0.5}),
     ],
 )

@@ -432,6 +432,94 @@ def test_coil_axes_needs_the_certificate_and_a_willing_operator(tmp_path: Path) 
         carry_out(declining, step)
 
 
+# --- coil constants by the scalar method -----------------------------------------------------
+
+
+class ScalarCage:
+    """A cage ``B = K I + B0`` and a total-field sensor at its centre reading ``|B|`` (nT) plus
+    its offset and noise; the sensor has no signal in its dead zones (about the z axis)."""
+
+    def __init__(self, k: np.ndarray, seed: int = 5) -> None:
+        from rig.cage.limits import CageLimits
+
+        self.rng = np.random.default_rng(seed)
+        self.k, self.b0 = k, np.array([19.6, 1.2, -44.8])
+        self.model = CageModel(np.diag([40.0, 40.0, 40.0]), self.b0)
+        self.limits = CageLimits((2.5, 2.5, 2.5), 120.0, 10.0)
+        self.currents = np.zeros(3)
+        self.cycle_hz = 0.0
+
+    def set_currents(self, amps: np.ndarray) -> np.ndarray:
+        self.currents = np.asarray(amps, float)
+        return self.currents
+
+    def sleep(self, seconds: float) -> None:
+        pass
+
+    # the sensor's side (drivers.protocols.ScalarMagnetometer)
+    def set_cycle(self, rate_hz: float) -> float:
+        self.cycle_hz = rate_hz
+        return rate_hz
+
+    def flush(self) -> None:
+        pass
+
+    def read_total_nt(self) -> float | None:
+        b = self.k @ self.currents + self.b0
+        if abs(b[2]) / np.linalg.norm(b) > np.cos(np.radians(12)):  # near its optical axis
+            return None
+        return float(1e3 * np.linalg.norm(b) + 1.2 + 0.05 * self.rng.standard_normal())
+
+
+def scalar_rig(optical_axis: list[float] | None) -> Any:
+    params = {"rate_hz": 10.0, "dead_zone_deg": 15.0, "offset_sigma_nt": 3.0}
+    if optical_axis is not None:
+        params["optical_axis"] = optical_axis
+    cage = SimpleNamespace(scalar="cesium", max_field_ut=120.0, reference=None, calibration=None)
+    return SimpleNamespace(cage=cage, devices={"cesium": SimpleNamespace(params=params)})
+
+
+def test_coil_scalar_finds_the_skews_and_constants_of_a_known_cage(tmp_path: Path) -> None:
+    from tests.cage.test_coil_axes import CONSTANTS, skews_arcsec, true_coil_matrix
+
+    k = true_coil_matrix()
+    cage = ScalarCage(k)
+    step = make_step("coil_scalar", {"directions": 50, "samples": 5}, name="scalar")
+    ctx = FakeContext(make_procedure(step), tmp_path, controller=cage, cfg=scalar_rig(None),
+                      scalars={"cesium": cage})  # fmt: skip
+    result = carry_out(ctx, step)
+    skews = np.array([result["skew_arcsec"][p] for p in ("xy", "xz", "yz")])
+    sigma = np.array([result["skew_sigma_arcsec"][p] for p in ("xy", "xz", "yz")])
+    assert np.all(np.abs(skews - skews_arcsec(k)) < 4 * sigma) and sigma.max() < 5.0
+    consts = np.array([result["constants_ut_per_a"][a] for a in "xyz"])
+    rel_sigma = 1e-6 * np.array([result["constants_sigma_ppm"][a] for a in "xyz"])
+    assert np.all(np.abs(consts / CONSTANTS - 1) < 4 * rel_sigma) and rel_sigma.max() < 2e-5
+    assert cage.cycle_hz == 10.0 and not cage.currents.any()  # the coils left at zero
+    assert result["points_lost"] > 0  # the fields along the z axis had no signal: left out
+    assert result["points"] + result["points_lost"] + result["points_beyond_limits"] == 100
+    assert any("no signal from the scalar sensor" in m for _, m in ctx.events)
+    assert (
+        "Coil constants by the scalar method 'scalar'"
+        in (KINDS["coil_scalar"].report_lines("scalar", result)[0])
+    )
+    assert ctx.meta["cage_model"]["metrology"]["coil_scalar"]["result"] == result
+    # a configured optical axis keeps the sweep out of the dead zones: nothing lost
+    ctx = FakeContext(make_procedure(step), tmp_path, controller=ScalarCage(k),
+                      cfg=scalar_rig([0.0, 0.0, 1.0]), scalars={"cesium": ScalarCage(k)})  # fmt: skip
+    ctx.scalars["cesium"] = ctx.controller
+    assert carry_out(ctx, step)["points_lost"] == 0
+
+
+def test_coil_scalar_needs_a_scalar_sensor(tmp_path: Path) -> None:
+    step = make_step("coil_scalar", {}, name="scalar")
+    rig = scalar_rig(None)
+    rig.cage.scalar = None
+    ctx = FakeContext(make_procedure(step), tmp_path, controller=ScalarCage(np.diag([40.0] * 3)),
+                      cfg=rig)  # fmt: skip
+    with pytest.raises(RigError, match=r"\[cage\] scalar"):
+        carry_out(ctx, step)
+
+
 # --- field map: the reference moved over a grid ------------------------------------------------
 
 

@@ -1,0 +1,192 @@
+"""Coil constants and axis angles from a scalar (total-field) magnetometer: the scalar method.
+
+A total-field magnetometer (cesium, Overhauser) at the cage centre measures ``F = |B|`` with an
+absolute accuracy no vector sensor has: its scale is a physical constant (the Larmor frequency),
+so it needs no certificate. The cage sets the total field to magnitudes ``F_n`` in directions
+``u_n``; the reading is modelled as::
+
+    F_n = |K I_n + b0 + b1 (t_n - t_mid)| + f0
+
+``K`` (uT/A, columns: each coil's field per ampere), ``b0`` the lab field at the sensor, ``b1``
+its linear drift over the sweep (uT/s) and ``f0`` the sensor's own offset (prior 1-sigma
+``offset_sigma_nt``, its stated absolute accuracy). A total field does not change when
+everything is turned, so only ``K`` up to a rotation is found: ``K`` is parametrized upper
+triangular (coil x along the frame's first axis, coil y in its first plane), which leaves the coil
+constants ``|K_j|`` and the angles between the coil axes, the quantities sought, untouched. Two
+shells of field magnitude separate the sensor's offset from the constants' scale.
+
+Fitted by least squares (``scipy.optimize.least_squares``); the readings' sigmas (from their
+scatter) weight them, their common scale comes from the residuals (the data's chi-square over
+their degrees of freedom), as in :mod:`rig.cage.coil_axes`; the covariance from the Jacobian.
+After Merayo et al. (the DTU scalar calibration) and Olsen et al., applied to the coils instead of
+the sensor.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from rig.cage.coil_axes import ARCSEC_PER_RAD, derived_constants_and_skews, derived_sigmas
+from rig.errors import UserInputError
+
+Array = npt.NDArray[np.float64]
+MIN_POINTS = 16
+"""Fewer readings than this cannot determine 13 unknowns with a residual check."""
+_UPPER = np.triu_indices(3)
+
+
+@dataclass(frozen=True)
+class ScalarReading:
+    """One field set-point: the coil currents (A), the time (s from the sweep's start) and the
+    scalar reading's mean and its 1-sigma (uT)."""
+
+    currents_a: Array
+    t_s: float
+    total_ut: float
+    sigma_ut: float
+
+
+@dataclass(frozen=True)
+class ScalarCoilFit:
+    """What the scalar method found, each with its 1-sigma: the coil constants (uT/A), the skews
+    (the angle between each pair of coil axes minus 90 deg: xy, xz, yz; arcsec), ``k_ut_per_a``
+    (upper triangular: its rotation is not observable), the lab field and drift at the sensor, the
+    sensor's offset (nT), the fit's chi-square and degrees of freedom at the stated sigmas and the
+    factor the residuals put on them."""
+
+    k_ut_per_a: Array
+    constants_ut_per_a: Array
+    constants_sigma: Array
+    skew_arcsec: Array
+    skew_sigma_arcsec: Array
+    lab_field_ut: Array
+    drift_nt_per_min: Array
+    offset_nt: float
+    offset_sigma_nt: float
+    chi2: float
+    dof: int
+    noise_scale: float
+    residuals_nt: Array
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+def _k_matrix(p: Array) -> Array:
+    k = np.zeros((3, 3))
+    k[_UPPER] = p[:6]
+    return k
+
+
+def _model(p: Array, currents: Array, t_s: Array) -> Array:
+    field_ut = currents @ _k_matrix(p).T + p[6:9] + np.outer(t_s, p[9:12])
+    return np.asarray(np.linalg.norm(field_ut, axis=1) + p[12] * 1e-3)
+
+
+def _residuals(p: Array, currents: Array, t_s: Array, total: Array, sigma: Array,
+               offset_sigma_nt: float) -> Array:  # fmt: skip
+    data = (total - _model(p, currents, t_s)) / sigma
+    return np.append(data, p[12] / offset_sigma_nt)
+
+
+def fit_scalar_coils(
+    readings: list[ScalarReading], k_nominal: Array, offset_sigma_nt: float
+) -> ScalarCoilFit:
+    """Fit the coils to the scalar readings. ``k_nominal`` (uT/A) starts the fit.
+
+    Raises UserInputError when there are too few readings or the currents do not span the three
+    coils (the method would not determine them) or the fit does not converge.
+    """
+    from scipy.optimize import least_squares
+
+    if len(readings) < MIN_POINTS:
+        raise UserInputError(
+            f"scalar coil fit: {len(readings)} readings, at least {MIN_POINTS} are needed;"
+            " give more directions (points)"
+        )
+    currents = np.array([r.currents_a for r in readings], float)
+    if np.linalg.matrix_rank(currents - currents.mean(axis=0), tol=1e-6) < 3:
+        raise UserInputError("scalar coil fit: the currents do not drive all three coils")
+    t_s = np.array([r.t_s for r in readings], float)
+    t_s = t_s - 0.5 * (t_s.min() + t_s.max())
+    total = np.array([r.total_ut for r in readings], float)
+    sigma = np.array([max(r.sigma_ut, 1e-6) for r in readings], float)
+    _, upper = np.linalg.qr(np.asarray(k_nominal, float))
+    upper = upper * np.sign(np.diag(upper))[:, None]  # a positive diagonal
+    b0 = _start_lab_field(currents, total, upper)
+    p0 = np.concatenate([upper[_UPPER], b0, np.zeros(3), [0.0]])
+    args = (currents, t_s, total, sigma, offset_sigma_nt)
+    fit = least_squares(_residuals, p0, args=args, method="lm", x_scale="jac")
+    n = len(readings)
+    chi2 = float(np.sum(fit.fun[:n] ** 2))
+    dof = max(1, n - 12)  # the offset is the prior's
+    scale = math.sqrt(chi2 / dof)
+    fit = least_squares(_residuals, fit.x, method="lm", x_scale="jac",
+                        args=(currents, t_s, total, scale * sigma, offset_sigma_nt))  # fmt: skip
+    if not fit.success:
+        raise UserInputError(f"scalar coil fit: the fit did not converge ({fit.message})")
+    cov = np.linalg.pinv(fit.jac.T @ fit.jac) * (dof / (dof - 2.0) if dof > 4 else 3.0)
+    return _summarize(fit.x, cov, total - _model(fit.x, currents, t_s), chi2, dof, scale)
+
+
+def _start_lab_field(currents: Array, total: Array, k: Array) -> Array:
+    """A first lab field: the mean of ``F^2 - |K I|^2 = 2 (K I) . b0 + |b0|^2`` over the readings
+    solved linearly for ``b0`` (the constant term left free)."""
+    field_ut = currents @ k.T
+    design = np.column_stack([2.0 * field_ut, np.ones(len(total))])
+    solution, *_ = np.linalg.lstsq(design, total**2 - np.sum(field_ut**2, axis=1), rcond=None)
+    return np.asarray(solution[:3])
+
+
+def _summarize(x: Array, cov: Array, residual_ut: Array, chi2: float, dof: int,
+               scale: float) -> ScalarCoilFit:  # fmt: skip
+    k = _k_matrix(x)
+    k_flat = k.T.reshape(-1)  # column-major, as coil_axes
+    jac_k = np.zeros((9, 13))
+    for i, (row, col) in enumerate(zip(*_UPPER, strict=True)):
+        jac_k[3 * col + row, i] = 1.0
+    value = derived_constants_and_skews(k_flat)
+    sigma = derived_sigmas(k_flat, jac_k @ cov @ jac_k.T)
+    notes: tuple[str, ...] = ()
+    if not 0.8 <= scale <= 1.25:
+        notes = (f"the readings scatter about the fit {scale:.2f} times their own sigmas"
+                 f" (chi-square {chi2:.1f} for {dof} dof): the sigmas are the fit's",)  # fmt: skip
+    return ScalarCoilFit(
+        k_ut_per_a=k,
+        constants_ut_per_a=value[:3],
+        constants_sigma=sigma[:3],
+        skew_arcsec=value[3:] * ARCSEC_PER_RAD,
+        skew_sigma_arcsec=sigma[3:] * ARCSEC_PER_RAD,
+        lab_field_ut=x[6:9].copy(),
+        drift_nt_per_min=x[9:12] * 1e3 * 60.0,
+        offset_nt=float(x[12]),
+        offset_sigma_nt=float(math.sqrt(max(cov[12, 12], 0.0))),
+        chi2=chi2,
+        dof=dof,
+        noise_scale=scale,
+        residuals_nt=residual_ut * 1e3,
+        notes=notes,
+    )
+
+
+def sphere_directions(count: int) -> Array:
+    """``count`` unit vectors spread evenly over the sphere (the Fibonacci lattice), (N, 3)."""
+    i = np.arange(count) + 0.5
+    polar = np.arccos(1.0 - 2.0 * i / count)
+    azimuth = math.pi * (1.0 + math.sqrt(5.0)) * i
+    return np.column_stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth),
+                            np.cos(polar)])  # fmt: skip
+
+
+def outside_dead_zones(directions: Array, sensor_axis: Array | None, margin_deg: float) -> Array:
+    """The directions at least ``margin_deg`` away from a cesium sensor's dead zones (its optical
+    ``sensor_axis`` and the plane normal to it, cage frame); all of them when no axis is given
+    (an Overhauser sensor has none)."""
+    if sensor_axis is None:
+        return directions
+    axis = np.asarray(sensor_axis, float) / np.linalg.norm(sensor_axis)
+    angle = np.degrees(np.arccos(np.clip(np.abs(directions @ axis), 0.0, 1.0)))
+    keep = (angle >= margin_deg) & (angle <= 90.0 - margin_deg)
+    return np.asarray(directions[keep])
