@@ -75,8 +75,12 @@ def one_procedure(seed: int) -> dict[str, Any]:
                          i2c_bus=cage.i2c_bus, confirm=operator, live=False).run()  # fmt: skip
     if outcome.exit_code not in (0, 1):
         return {"failed": f"procedure {seed}: {outcome.reason}"}  # counted, not fitted
-    r = outcome.results["coil axes"]
-    k = truth["k"]
+    return z_of(outcome.results["coil axes"], truth["k"])
+
+
+def z_of(r: dict[str, Any], k: np.ndarray) -> dict[str, Any]:
+    """``(estimate - truth) / sigma`` of the constants and skews of result ``r`` against the true
+    coil matrix ``k`` (columns: uT/A per coil), with the sigmas and errors."""
     consts = np.array([r["constants_ut_per_a"][a] for a in "xyz"])
     const_sigma = 1e-6 * consts * np.array([r["constants_sigma_ppm"][a] for a in "xyz"])
     skews = np.array([r["skew_arcsec"][p] for p in ("xy", "xz", "yz")])

@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench.*
 
-from bench.bench_coil_axes import NAMES, skews_arcsec, summarize
+from bench.bench_coil_axes import NAMES, summarize, z_of
 
 PROCEDURE = Path(__file__).resolve().parents[1] / "procedures" / "cage-metrology-scalar.yaml"
 
@@ -59,16 +59,7 @@ def one_procedure(seed: int) -> dict[str, Any]:
     if outcome.exit_code not in (0, 1):
         return {"failed": f"procedure {seed}: {outcome.reason}"}
     r = outcome.results["scalar coils"]
-    k = truths[-1]
-    consts = np.array([r["constants_ut_per_a"][a] for a in "xyz"])
-    const_sigma = 1e-6 * consts * np.array([r["constants_sigma_ppm"][a] for a in "xyz"])
-    skews = np.array([r["skew_arcsec"][p] for p in ("xy", "xz", "yz")])
-    skew_sigma = np.array([r["skew_sigma_arcsec"][p] for p in ("xy", "xz", "yz")])
-    error = np.concatenate([consts - np.linalg.norm(k, axis=0), skews - skews_arcsec(k)])
-    sigma = np.concatenate([const_sigma, skew_sigma])
-    return {"z": error / sigma, "sigma": sigma, "error": error,
-            "relative": np.concatenate([1e6 * const_sigma / consts, skew_sigma]),
-            "chi2": r["chi2_per_dof"], "points": r["points"]}  # fmt: skip
+    return z_of(r, truths[-1]) | {"chi2": r["chi2_per_dof"], "points": r["points"]}
 
 
 def main() -> int:

@@ -544,26 +544,34 @@ def _open_ascii(spec: OpenSpec) -> AsciiLineMagnetometer:
                                  fmt=fmt, name=spec.name)  # fmt: skip
 
 
-def _probe_ascii(target: ProbeTarget) -> list[Found]:
-    """Listen (send nothing): two consecutive lines of three or more numbers."""
-    baud = int(target.params["baudrate"])
-    try:
-        port = SerialPort(str(target.params["path"]), baud, timeout_s=max(target.timeout_s, 0.3),
-                          name="scan:ascii-mag")  # fmt: skip
-    except DeviceError:
-        return []
-    fmt = LineFormat()
-    try:
-        port.drain_input(quiet_s=0.0)
-        port.read_until(b"\n")  # the partial line in flight
-        for _ in range(2):
-            fmt.parse(port.read_until(b"\n"))
-    except DeviceError:
-        return []
-    finally:
-        port.close()
-    params = {"path": target.params["path"], "baudrate": baud}
-    return [Found("ascii-mag", "serial", "ASCII line magnetometer", "", params, target.where)]
+def _listening_probe(kind: str, model: str, parse: Callable[[bytes], Any]) -> Prober:
+    """Recognize a streaming sensor by listening (sending nothing): two consecutive lines that
+    ``parse`` accepts (it raises a DeviceError otherwise)."""
+
+    def probe(target: ProbeTarget) -> list[Found]:
+        baud = int(target.params["baudrate"])
+        try:
+            port = SerialPort(str(target.params["path"]), baud,
+                              timeout_s=max(target.timeout_s, 0.3), name=f"scan:{kind}")  # fmt: skip
+        except DeviceError:
+            return []
+        try:
+            port.drain_input(quiet_s=0.0)
+            port.read_until(b"\n")  # the partial line in flight
+            for _ in range(2):
+                parse(port.read_until(b"\n"))
+        except DeviceError:
+            return []
+        finally:
+            port.close()
+        params = {"path": target.params["path"], "baudrate": baud}
+        return [Found(kind, "serial", model, "", params, target.where)]
+
+    return probe
+
+
+_probe_ascii = _listening_probe("ascii-mag", "ASCII line magnetometer", LineFormat().parse)
+"""Two consecutive lines of three or more numbers."""
 
 
 def _i2c_bus(spec: OpenSpec) -> Any:
@@ -720,26 +728,10 @@ SCALAR_PARAMS: tuple[Param, ...] = (
 """A scalar magnetometer's keys."""
 
 
-def _probe_counter(target: ProbeTarget) -> list[Found]:
-    """Listen (send nothing): two consecutive lines in the counter's format."""
-    baud = int(target.params["baudrate"])
-    try:
-        port = SerialPort(str(target.params["path"]), baud, timeout_s=max(target.timeout_s, 0.3),
-                          name="scan:geometrics-cm201")  # fmt: skip
-    except DeviceError:
-        return []
-    try:
-        port.drain_input(quiet_s=0.0)
-        port.read_until(b"\n")  # the partial line in flight
-        for _ in range(2):
-            parse_counter_line(port.read_until(b"\n"))
-    except DeviceError:
-        return []
-    finally:
-        port.close()
-    params = {"path": target.params["path"], "baudrate": baud}
-    return [Found("geometrics-cm201", "serial", "Geometrics CM-201 counter (cesium)", "", params,
-                  target.where)]  # fmt: skip
+_probe_counter = _listening_probe(
+    "geometrics-cm201", "Geometrics CM-201 counter (cesium)", parse_counter_line
+)
+"""Two consecutive lines in the counter's format."""
 
 
 def _scalar_kinds() -> Iterator[DeviceKind]:
