@@ -642,6 +642,9 @@ MAG_PARAMS: tuple[Param, ...] = (
     Param("position_m", LIST, help="where the sensor sits: m from the cage centre (the DUT's place),"
           " cage frame; a reference's place sets the budget's homogeneity terms", unit="m",
           shape=(3,), fix="write x, y, z in metres, e.g. position_m = [0.0, 0.0, -0.08]"),
+    Param("noise_nt", NUMBER, help="white noise per reading, per axis (the datasheet's, or what a"
+          " null_field step measured): rig check --predict uses it until a run has measured the"
+          " noise", above=0.0, unit="nT", fix="write the noise per reading, e.g. noise_nt = 20"),
     Param("stuck_after", WHOLE, False, 60, "identical readings in a row that mean a frozen"
           " sensor (0 = never judged)", low=0, high=1_000_000,
           fix="write a whole number of readings, e.g. stuck_after = 60 (3 s at 20 Hz)"),

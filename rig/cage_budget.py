@@ -26,6 +26,7 @@ import numpy.typing as npt
 
 from rig.cage.coil_axes import ARCSEC_PER_RAD, lower_triangular_part, rotation
 from rig.calibration.budget import CageTerms, FieldTerm
+from rig.config import RigConfig
 
 Array = npt.NDArray[np.float64]
 AXES = ("x", "y", "z")
@@ -185,6 +186,26 @@ def cage_terms(
         )
     terms += lab_field_terms(gradient_sigma_nt_per_m, ref_m, DUT_M)
     return CageTerms(correction, tuple(terms), tuple(left_out))
+
+
+CERTIFICATE_KEYS = ("correction_scale_sigma", "correction_angle_sigma_arcsec",
+                    "correction_mounting_sigma_arcsec", "position_m")  # fmt: skip
+"""The reference's keys the run records beside its correction (the uncertainty budget's)."""
+
+
+def certificate_of(cfg: RigConfig, reference: str | None) -> dict[str, Any] | None:
+    """Device ``reference``'s certificate (matrix and offset, with their 1-sigma) and its place in
+    the cage (``position_m``, when given) as a run records them; None without one."""
+    if not reference or reference not in cfg.devices:
+        return None
+    dev = cfg.devices[reference]
+    if dev.get("correction_matrix") is None:
+        return None
+    return {
+        "matrix": dev.get("correction_matrix"),
+        "offset_ut": dev.get("correction_offset_ut", [0, 0, 0]),
+        **{k: dev.get(k) for k in CERTIFICATE_KEYS if dev.get(k) is not None},
+    }
 
 
 def run_cage_terms(meta: Mapping[str, Any], rig_toml_text: str | None) -> CageTerms:

@@ -132,6 +132,8 @@ def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig) -> str:
     certificate and the coil constants as nameplate values."""
     devices = {name: dict(dev) for name, dev in endpoints["devices"].items()}
     for mag in cfg.magnetometers:
+        if mag.name in devices and mag.noise_ut > 0 and mag.kind != "geometrics-cm201":
+            devices[mag.name]["noise_nt"] = round(1e3 * mag.noise_ut, 3)  # its datasheet's
         if mag.name in devices and any(mag.position_m):
             devices[mag.name]["position_m"] = [float(v) for v in mag.position_m]
         if mag.kind == "ascii-mag" and mag.name in devices:

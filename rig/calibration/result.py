@@ -140,6 +140,14 @@ class CalibrationResult:
         return float(np.sqrt(np.mean(self.residuals_nt**2)))
 
     @property
+    def residual_rms_axes_nt(self) -> list[float] | None:
+        """A vector fit's residual rms per DUT axis (nT, x y z); None for a scalar fit."""
+        n = self.residuals_nt.size // 3
+        if self.model != "vector" or self.residuals_nt.size != 3 * n or n == 0:
+            return None
+        return [float(v) for v in np.sqrt(np.mean(self.residuals_nt.reshape(n, 3) ** 2, axis=0))]
+
+    @property
     def residual_mean_nt(self) -> float:
         """Mean corrected-field residual (nT)."""
         return float(np.mean(self.residuals_nt))
@@ -200,6 +208,11 @@ class CalibrationResult:
             "crlb_sigma": self._by_group(self.crlb_sigma),
             "crlb_ratio": self._by_group(self.crlb_ratio, ratio=True),
             "residual_rms_nt": self.residual_rms_nt,
+            **(
+                {"residual_rms_axes_nt": self.residual_rms_axes_nt}
+                if self.residual_rms_axes_nt is not None
+                else {}
+            ),
             "residual_mean_nt": self.residual_mean_nt,
             "residual_max_nt": self.residual_max_nt,
             "noise_nt": self.noise_nt,

@@ -29,11 +29,28 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     )
     chk.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                      help="give a procedure parameter a value (repeat for several)")  # fmt: skip
+    chk.add_argument("--predict", action="store_true",
+                     help="predict the sigma of every parameter each calibrate step will report,"
+                          " what limits it, and whether each criterion can pass (exit 1 if one"
+                          " cannot)")  # fmt: skip
+    chk.add_argument("--noise-nt", type=float, metavar="NT",
+                     help="with --predict: the DUT's noise paired with the reference (nT per"
+                          " axis; default: the newest a null_field step measured in --runs-dir,"
+                          " else the devices' noise_nt)")  # fmt: skip
+    chk.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR",
+                     help="with --predict: where earlier runs are, for their measured noise floor"
+                          " (default: runs)")  # fmt: skip
     chk.set_defaults(func=_cmd_check)
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
-    return run_check(args.procedure, args.rig, args.set, args.quiet)
+    code = run_check(args.procedure, args.rig, args.set, args.quiet)
+    if args.predict:
+        from rig.cli.prediction_view import run_prediction
+
+        code = max(code, run_prediction(args.procedure, args.rig, args.set, args.runs_dir,
+                                        args.noise_nt, args.quiet))  # fmt: skip
+    return code
 
 
 def cage_model_arrays(cfg: RigConfig | None) -> tuple[Any, Any, Any, str]:

@@ -10,6 +10,7 @@ from collections.abc import Callable
 from typing import Any
 
 from drivers.errors import DeviceError
+from rig.cage_budget import certificate_of
 from rig.config import RigConfig
 from rig.devices import thermometer_names
 from rig.engine.commands import LoadBook
@@ -105,21 +106,6 @@ def check_thermometers(proc: Procedure, cfg: RigConfig, recorded: list[str]) -> 
 
 
 def reference_correction(proc: Procedure, cfg: RigConfig) -> dict[str, Any] | None:
-    """The reference magnetometer's certificate (matrix and offset, with their 1-sigma) and its
-    place in the cage (``position_m``, when given), None without one."""
-    ref_name = proc.magnetometers.get("reference")
-    if not ref_name or ref_name not in cfg.devices:
-        return None
-    dev = cfg.devices[ref_name]
-    if dev.get("correction_matrix") is None:
-        return None
-    return {
-        "matrix": dev.get("correction_matrix"),
-        "offset_ut": dev.get("correction_offset_ut", [0, 0, 0]),
-        **{k: dev.get(k) for k in CERTIFICATE_KEYS if dev.get(k) is not None},
-    }
-
-
-CERTIFICATE_KEYS = ("correction_scale_sigma", "correction_angle_sigma_arcsec",
-                    "correction_mounting_sigma_arcsec", "position_m")  # fmt: skip
-"""The reference's keys the run records beside its correction (the uncertainty budget's)."""
+    """The reference magnetometer's certificate and place (:func:`rig.cage_budget.certificate_of`),
+    None without one."""
+    return certificate_of(cfg, proc.magnetometers.get("reference"))

@@ -1,0 +1,51 @@
+"""``rig check --predict``: the prediction printed (what each calibrate step will report, what
+limits it, which criteria cannot pass)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from rig.cli.common import parse_sets
+
+
+def run_prediction(procedure: str, rig_config: Path | None, sets: list[str], runs_dir: Path,
+                   noise_nt: float | None, quiet: bool) -> int:  # fmt: skip
+    """Print the prediction; 1 when a criterion cannot pass with this plan, else 0."""
+    from rig.config import load_rig_config
+    from rig.prediction.procedure import predict_procedure
+    from rig.procedure.language import parse_procedure
+    from rig.procedure.plan import rig_timing
+    from rig.procedure_files import find_procedure
+    from rig.steps.vocabulary import RigTiming
+
+    start = time.perf_counter()
+    proc = parse_procedure(find_procedure(procedure), parse_sets(sets))
+    cfg = load_rig_config(rig_config) if rig_config else None
+    pred = predict_procedure(proc, cfg, rig_timing(cfg) or RigTiming(), runs_dir, noise_nt)
+    if not quiet:
+        print(f"\nprediction (noise {pred.noise.pair_nt:.1f} nT per axis, DUT less reference:"
+              f" {pred.noise.source}; {time.perf_counter() - start:.2f} s):")  # fmt: skip
+        for step in pred.steps:
+            _print_step(step)
+    for c in pred.criteria:
+        if c.verdict != "can pass" or not quiet:
+            print(f"{'CANNOT PASS' if c.verdict == 'CANNOT PASS' else '  ' + c.verdict}:"
+                  f" '{c.name}': {c.text}")  # fmt: skip
+    return 1 if pred.cannot_pass else 0
+
+
+def _print_step(step: object) -> None:
+    from rig.prediction.predict import StepPrediction
+
+    assert isinstance(step, StepPrediction)
+    print(f"  '{step.step}' ({step.method}): {step.samples} samples from"
+          f" {', '.join(step.steps) or 'no step'} ({step.seconds:.0f} s planned)")  # fmt: skip
+    if step.problem is not None:
+        print(f"    cannot be fitted: {step.problem}")
+        return
+    print(f"    {'value':<30} {'1-sigma':>10} {'statistical':>12}  limited by")
+    for p in step.parameters:
+        print(f"    {p.path:<30} {p.combined:10.3g} {p.statistical:12.3g}  {p.limited_by}")
+    for why in step.left_out:
+        print(f"    not counted: {why}")

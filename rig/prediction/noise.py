@@ -1,0 +1,112 @@
+"""The noise a calibration will see: the DUT's readings less the reference field, per DUT axis.
+
+Measured beats stated, and measured where it matters beats measured at rest: the residuals of a
+vector calibration of the same DUT (per axis: ``residual_rms_axes_nt``) are that noise at the
+fields and currents of a sweep (a coil carrying more current may add noise to its axis, which a
+hold at null field does not show); a ``null_field`` step's ``dut_paired_noise_nt`` is the noise at
+rest (the DUT's own, the reference's, and whatever the two sample differently, such as mains
+ripple at different instants). So the floor is, in order: given on the command line; the newest
+run of the same DUT in the runs folder (its vector calibration's residuals, else its null-field
+noise); the root sum square of the two devices' stated ``noise_nt`` (rig configuration); else
+unknown.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rig.config import RigConfig
+from rig.errors import UserInputError
+from rig.steps.null_field import NoiseFloorResult
+from rig.steps.vocabulary import Procedure
+from rig.store.run_store import RunReader, list_runs
+
+RUNS_LOOKED_AT = 50
+"""The newest runs searched for a measured noise floor."""
+
+
+@dataclass(frozen=True)
+class NoiseFloor:
+    """Per DUT axis the rms of the DUT less the reference field (nT) and where it comes from."""
+
+    axes_nt: tuple[float, float, float]
+    source: str
+
+    @property
+    def pair_nt(self) -> float:
+        """The rms over the axes (nT)."""
+        return math.sqrt(sum(v * v for v in self.axes_nt) / 3.0)
+
+
+def even(nt: float, source: str) -> NoiseFloor:
+    """The same noise ``nt`` on every axis."""
+    return NoiseFloor((nt, nt, nt), source)
+
+
+def noise_floor(proc: Procedure, cfg: RigConfig | None, runs_dir: Path | None,
+                given_nt: float | None) -> NoiseFloor:  # fmt: skip
+    """The noise floor the prediction uses (see the module's order); UserInputError naming the
+    fixes when none is known."""
+    dut = proc.magnetometers.get("dut", "dut")
+    if given_nt is not None:
+        if not given_nt > 0:
+            raise UserInputError(f"--noise-nt must be positive, got {given_nt:g}")
+        return even(given_nt, "given (--noise-nt)")
+    measured = measured_floor(runs_dir, dut) if runs_dir is not None else None
+    if measured is not None:
+        return measured
+    stated = _stated(cfg, dut, proc.magnetometers.get("reference"))
+    if stated is not None:
+        return stated
+    raise UserInputError(
+        f"no noise floor known for '{dut}': run a procedure with a null_field step on it once,"
+        f" give its noise_nt (and the reference's) in the rig configuration, or --noise-nt"
+    )
+
+
+def measured_floor(runs_dir: Path, dut: str) -> NoiseFloor | None:
+    """The newest noise a run of device ``dut`` measured (None if none): its last vector
+    calibration's residuals per axis, else its last null-field noise paired with the reference."""
+    for info in list_runs(runs_dir)[:RUNS_LOOKED_AT]:
+        if (info.meta.get("magnetometers") or {}).get("dut") != dut:
+            continue
+        reader = RunReader(info.folder)
+        try:
+            results = reader.results()
+        finally:
+            reader.close()
+        found = _from_results(results, info.run_id)
+        if found is not None:
+            return found
+    return None
+
+
+def _from_results(results: Mapping[str, Any], run_id: str) -> NoiseFloor | None:
+    items = list(reversed(list(results.items())))
+    for name, value in items:
+        axes = value.get("residual_rms_axes_nt") if isinstance(value, dict) else None
+        if isinstance(axes, list) and len(axes) == 3 and all(v > 0 for v in axes):
+            return NoiseFloor((float(axes[0]), float(axes[1]), float(axes[2])),
+                              f"the residuals of '{name}' in run {run_id}")  # fmt: skip
+    for name, value in items:
+        found = NoiseFloorResult.from_dict(value) if isinstance(value, dict) else None
+        pair = found.pair_noise_nt("dut") if found is not None else None
+        if pair is not None and pair > 0:
+            return even(pair, f"measured at null field by '{name}' of run {run_id}")
+    return None
+
+
+def _stated(cfg: RigConfig | None, dut: str, reference: str | None) -> NoiseFloor | None:
+    if cfg is None or dut not in cfg.devices:
+        return None
+    own = cfg.devices[dut].get("noise_nt")
+    if own is None:
+        return None
+    ref = cfg.devices[reference].get("noise_nt") if reference in cfg.devices else None
+    what = "and the reference's " if ref is not None else ""
+    return even(math.hypot(float(own), float(ref or 0.0)),
+                f"stated: the DUT's {what}noise_nt in {cfg.path} (none measured yet)")  # fmt: skip

@@ -1,0 +1,112 @@
+"""A whole procedure predicted: every calibrate step and every acceptance criterion that judges a
+predicted value (``rig check --predict``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rig.cage_budget import cage_terms, certificate_of
+from rig.calibration.budget import CageTerms
+from rig.config import RigConfig
+from rig.prediction.noise import NoiseFloor, noise_floor
+from rig.prediction.planned import planned_data
+from rig.prediction.predict import StepPrediction, predict_step
+from rig.steps.vocabulary import Procedure, RigTiming
+
+COVERAGE_K = 2.0
+"""The coverage factor the run judges criteria with (``rig.analysis.COVERAGE_K``)."""
+DEFAULT_DUT_RATE_HZ = 20.0
+
+
+@dataclass(frozen=True)
+class CriterionPrediction:
+    """A criterion judged on the prediction: ``verdict`` is ``can pass``, ``CANNOT PASS`` or
+    ``not predicted``; ``text`` says why, naming the limiting term."""
+
+    name: str
+    verdict: str
+    text: str
+
+
+@dataclass(frozen=True)
+class ProcedurePrediction:
+    """The noise floor used, each calibrate step's prediction and the criteria judged on them."""
+
+    noise: NoiseFloor
+    steps: tuple[StepPrediction, ...]
+    criteria: tuple[CriterionPrediction, ...]
+
+    @property
+    def cannot_pass(self) -> list[CriterionPrediction]:
+        """The criteria this plan cannot pass whatever the DUT."""
+        return [c for c in self.criteria if c.verdict == "CANNOT PASS"]
+
+
+def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
+                      runs_dir: Path | None, noise_nt: float | None,
+                      seed: int = 0) -> ProcedurePrediction:  # fmt: skip
+    """Predict every calibrate step of ``proc`` on the rig ``cfg`` (None: no cage terms)."""
+    noise = noise_floor(proc, cfg, runs_dir, noise_nt)
+    dut = proc.magnetometers.get("dut", "dut")
+    rate = DEFAULT_DUT_RATE_HZ
+    if cfg is not None and dut in cfg.devices and cfg.devices[dut].get("rate_hz"):
+        rate = float(cfg.devices[dut].get("rate_hz"))
+    cage = _cage_terms(proc, cfg)
+    steps = tuple(
+        predict_step(s.name, s.params, planned_data(proc, s, timing, rate), noise, cage, seed)
+        for s in proc.steps
+        if s.kind == "calibrate"
+    )
+    criteria = [c for s in proc.steps if s.kind == "check" for c in s.params.get("criteria", [])]
+    by_name = {p.step: p for p in steps}
+    return ProcedurePrediction(noise, steps, tuple(judge(c, by_name) for c in criteria))
+
+
+def _cage_terms(proc: Procedure, cfg: RigConfig | None) -> CageTerms | None:
+    """The cage's terms as the run will have them: the reference's certificate and place, the
+    cage calibration record in use, the lab's gradient."""
+    if cfg is None or cfg.cage is None:
+        return None
+    from rig.output_limits import cage_model
+
+    model = cage_model(cfg)
+    return cage_terms(certificate_of(cfg, proc.magnetometers.get("reference")),
+                      model.to_dict() if model is not None else None,
+                      cfg.cage.ambient_gradient_nt_per_m)  # fmt: skip
+
+
+def judge(criterion: dict[str, Any], steps: dict[str, StepPrediction]) -> CriterionPrediction:
+    """One criterion on the prediction: a ``sigma.*`` limit against the predicted statistical
+    sigma; a limit on a calibrated value against the guard band ``2 x combined sigma`` the run
+    will judge it with (both limits: the band must fit between them)."""
+    name = str(criterion.get("name") or f"{criterion['result']}.{criterion['value']}")
+    step = steps.get(str(criterion["result"]))
+    if step is None:
+        return CriterionPrediction(name, "not predicted", "not the result of a calibrate step")
+    if step.problem is not None:
+        return CriterionPrediction(name, "CANNOT PASS", f"'{step.step}' cannot be fitted:"
+                                   f" {step.problem}")  # fmt: skip
+    path = str(criterion["value"])
+    lo, hi = criterion.get("min"), criterion.get("max")
+    rows = step.by_path()
+    if path.startswith("sigma.") and path.removeprefix("sigma.") in rows:
+        row = rows[path.removeprefix("sigma.")]
+        if hi is not None and row.statistical > hi:
+            return CriterionPrediction(name, "CANNOT PASS", f"predicted sigma {row.statistical:.3g}"
+                                       f" > limit {hi:g}; limited by {row.limited_by}")  # fmt: skip
+        return CriterionPrediction(name, "can pass", f"predicted sigma {row.statistical:.3g}"
+                                   f" (limit {hi}); limited by {row.limited_by}")  # fmt: skip
+    if path not in rows:
+        return CriterionPrediction(name, "not predicted", f"'{path}' is not a predicted value")
+    row = rows[path]
+    band = COVERAGE_K * row.combined
+    if lo is not None and hi is not None and 2 * band >= hi - lo:
+        return CriterionPrediction(name, "CANNOT PASS", f"the guard band +-{band:.3g} (2 x the"
+                                   f" predicted combined sigma) does not fit within {lo:g}-{hi:g};"
+                                   f" limited by {row.limited_by}")  # fmt: skip
+    inside = " and ".join(x for x in (f">= {lo + band:.6g}" if lo is not None else "",
+                                      f"<= {hi - band:.6g}" if hi is not None else "") if x)  # fmt: skip
+    return CriterionPrediction(name, "can pass", f"passes when the DUT's value is {inside}"
+                               f" (guard band +-{band:.3g}); limited by {row.limited_by}")  # fmt: skip

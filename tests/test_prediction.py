@@ -1,0 +1,195 @@
+"""Accuracy known before the run (issue 36): the samples a calibrate step will be given follow from
+the plan; the predicted sigma is the spread a DUT's fits really have (Monte Carlo against
+synthetic truth, a DUT far from ideal); criteria a plan cannot pass are named with what limits
+them; the noise floor comes from what the rig measured, else what the devices state."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.calibration.fit import calibrate
+from rig.calibration.params import Calibration, Springmann
+from rig.calibration.residuals import Samples
+from rig.cli import main
+from rig.errors import UserInputError
+from rig.prediction.noise import NoiseFloor, even, noise_floor
+from rig.prediction.planned import planned_data
+from rig.prediction.predict import predict_step
+from rig.prediction.procedure import judge, predict_procedure
+from rig.procedure.language import parse_procedure
+from rig.steps.vocabulary import RigTiming
+from rig.store.run_store import new_run
+
+SWEEP = """
+procedure: Predicted
+magnetometers: {{dut: dut, reference: reference}}
+loads: [bus]
+steps:
+  - sphere_sweep: {{directions: {n}, magnitude_ut: [15, 45], dwell_s: 1.0, seed: 3}}
+    name: sweep
+    loads:
+      bus: {{steps: {{levels_a: [0.0, 1.0, 2.0], dwell_s: 2.5}}}}
+  - calibrate: {{model: {model}, telemetry: [bus], steps: [sweep]}}
+    name: fit
+  - check:
+      criteria:
+        - {{result: fit, value: sigma.springmann.x0_ut, max: {x0_max}, name: offset known}}
+        - {{result: fit, value: springmann.a, min: 0.9999, max: 1.0001, name: scale x}}
+"""
+RIG = """
+[devices.dut]
+kind = "hmr2300"
+protocol = "serial"
+path = "/dev/null"
+rate_hz = 20
+noise_nt = 20.0
+
+[devices.reference]
+kind = "ascii-mag"
+protocol = "serial"
+path = "/dev/null"
+noise_nt = 5.0
+
+[devices.bus]
+kind = "riden-rd60xx"
+protocol = "modbus-tcp"
+host = "127.0.0.1"
+port = 9
+max_current_a = 3.0
+"""
+
+
+def procedure(tmp_path: Path, n: int = 40, model: str = "vector", x0_max: float = 1.0) -> Path:
+    path = tmp_path / "p.yaml"
+    path.write_text(SWEEP.format(n=n, model=model, x0_max=x0_max))
+    return path
+
+
+def test_the_plan_gives_the_samples_a_run_keeps(tmp_path: Path) -> None:
+    proc = parse_procedure(procedure(tmp_path, n=10))
+    fit = next(s for s in proc.steps if s.kind == "calibrate")
+    data = planned_data(proc, fit, RigTiming(reference_rate_hz=20.0), 20.0)
+    # per 1 s set-point, DUT samples at 0.025 + 0.05 k are kept from 0.25 s after its start to
+    # 1.5 reference periods (0.075 s) before the next change: 0.275 ... 0.875 s, 13 samples; the
+    # load steps (every 2.5 s, mid set-point at 2.5 and 7.5 s) take their own windows out
+    t = np.arange(0.025, 10.0, 0.05)  # 20 Hz
+    changes = np.union1d(np.arange(11.0), [2.5, 5.0, 7.5])  # 10: the loads back to 0 A
+    keep = np.ones(t.size, bool)
+    for c in changes:
+        keep &= ~((t >= c - 0.075) & (t < c + 0.25))
+    assert data.n == int(keep.sum()) and data.steps == ("sweep",) and data.seconds == 10.0
+    bus = data.telemetry[:, 0]
+    levels = np.array([0.0, 1.0, 2.0, 0.0])[np.floor(t[keep] / 2.5).astype(int)]
+    assert np.array_equal(bus, levels)
+    assert np.allclose(np.linalg.norm(data.field_ut, axis=1).min(), 15.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("model", ["vector", "scalar"])
+def test_the_predicted_sigma_is_the_spread_of_real_fits(tmp_path: Path, model: str) -> None:
+    """200 DUT fits with the planned fields, a DUT far from ideal (scale 3 %, offsets 2 uT, 1 deg
+    angles, current-to-bias 0.3 uT/A) and noise of 25 nT on x and y, 35 on z: the spread of
+    each estimate over the draws against the predicted sigma (an ideal DUT, one draw)."""
+    proc = parse_procedure(procedure(tmp_path, n=40, model=model))
+    step = next(s for s in proc.steps if s.kind == "calibrate")
+    data = planned_data(proc, step, RigTiming(), 20.0)
+    noise = NoiseFloor((25.0, 25.0, 35.0), "test")
+    predicted = predict_step("fit", step.params, data, noise, None)
+    truth = Calibration.from_springmann(
+        Springmann(1.03, 0.98, 1.01, 2.0, -1.5, 0.8, math.radians(1.0), math.radians(-0.7),
+                   math.radians(0.5)),
+        channels=("bus",), k_ut_per_unit=np.array([[0.3, -0.2, 0.1]]),
+    )  # fmt: skip
+    rng = np.random.default_rng(7)
+    estimates = []
+    for _ in range(200):
+        measured = truth.predict(data.field_ut, data.telemetry)
+        measured += 1e-3 * np.array(noise.axes_nt) * rng.standard_normal(measured.shape)
+        s = Samples.build(measured, field_ut=data.field_ut, telemetry=data.telemetry,
+                          channels=("bus",))  # fmt: skip
+        estimates.append(calibrate(s, predicted.method).reported()[:12])
+    spread = np.std(estimates, axis=0, ddof=1)
+    sigma = np.array([p.statistical for p in predicted.parameters[:12]])
+    ratio = spread / sigma
+    assert np.all((ratio > 0.8) & (ratio < 1.2)), dict(
+        zip([p.path for p in predicted.parameters], ratio, strict=False)
+    )
+
+
+def test_criteria_the_plan_cannot_pass_are_named_with_their_limit(tmp_path: Path) -> None:
+    proc = parse_procedure(procedure(tmp_path, n=20, x0_max=0.0005))
+    pred = predict_procedure(proc, None, RigTiming(), None, 20.0)
+    verdicts = {c.name: c for c in pred.criteria}
+    offset = verdicts["offset known"]
+    assert offset.verdict == "CANNOT PASS" and "> limit 0.0005" in offset.text
+    assert "noise (20.0 nT over" in offset.text  # the limiting term named
+    scale = verdicts["scale x"]  # +-1e-4: narrower than twice the guard band of 20 directions
+    assert scale.verdict == "CANNOT PASS" and "does not fit within 0.9999-1.0001" in scale.text
+    easy = parse_procedure(procedure(tmp_path, n=40, x0_max=0.5))
+    pred = predict_procedure(easy, None, RigTiming(), None, 20.0)
+    assert {c.name: c.verdict for c in pred.criteria}["offset known"] == "can pass"
+    fit = pred.steps[0]
+    assert judge({"result": "nothing", "value": "x"}, {fit.step: fit}).verdict == "not predicted"
+
+
+def test_a_step_that_cannot_be_fitted_says_so(tmp_path: Path) -> None:
+    text = procedure(tmp_path).read_text()  # the bus never carries current: its k is not there
+    (tmp_path / "idle.yaml").write_text(
+        text.replace("levels_a: [0.0, 1.0, 2.0]", "levels_a: [0.0]")
+    )
+    proc = parse_procedure(tmp_path / "idle.yaml")
+    pred = predict_procedure(proc, None, RigTiming(), None, 20.0)
+    assert "telemetry channel 'bus' is constant" in (pred.steps[0].problem or "")
+    assert pred.cannot_pass  # and every criterion on it cannot pass
+
+
+def test_the_noise_floor_is_what_the_rig_measured_else_what_the_devices_state(
+    tmp_path: Path,
+) -> None:
+    from rig.config import load_rig_config
+
+    (tmp_path / "rig.toml").write_text(RIG)
+    cfg = load_rig_config(tmp_path / "rig.toml")
+    proc = parse_procedure(procedure(tmp_path))
+    runs = tmp_path / "runs"
+    stated = noise_floor(proc, cfg, runs, None)
+    assert stated.pair_nt == pytest.approx(math.hypot(20.0, 5.0)) and "stated" in stated.source
+    rest = new_run(runs, "rest", magnetometers={"dut": "dut", "reference": "reference"})
+    rest.set_result("floor", {"dut_noise_nt": 21.0, "reference_noise_nt": 6.0,
+                              "dut_paired_noise_nt": 23.5})  # fmt: skip
+    rest.close("complete", "")
+    measured = noise_floor(proc, cfg, runs, None)
+    assert measured.axes_nt == (23.5, 23.5, 23.5) and "at null field by 'floor'" in measured.source
+    swept = new_run(runs, "swept", magnetometers={"dut": "dut", "reference": "reference"})
+    swept.set_result("fit", {"residual_rms_axes_nt": [22.0, 21.0, 30.0]})
+    swept.close("complete", "")
+    assert noise_floor(proc, cfg, runs, None).axes_nt == (22.0, 21.0, 30.0)
+    other = new_run(runs, "other", magnetometers={"dut": "another", "reference": "reference"})
+    other.set_result("fit", {"residual_rms_axes_nt": [99.0, 99.0, 99.0]})
+    other.close("complete", "")  # another DUT's noise is not this one's
+    assert noise_floor(proc, cfg, runs, None).axes_nt == (22.0, 21.0, 30.0)
+    assert noise_floor(proc, cfg, runs, 12.0) == even(12.0, "given (--noise-nt)")
+    with pytest.raises(UserInputError, match="no noise floor known for 'dut'"):
+        noise_floor(proc, None, tmp_path / "nothing", None)
+
+
+def test_rig_check_predict_prints_the_sigmas_and_fails_an_impossible_plan(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "rig.toml").write_text(RIG)
+    path = procedure(tmp_path, n=20, x0_max=0.0005)
+    code = main(["check", str(path), "--rig", str(tmp_path / "rig.toml"), "--predict",
+                 "--runs-dir", str(tmp_path / "runs")])  # fmt: skip
+    out = capsys.readouterr().out
+    assert code == 1
+    assert "prediction (noise 20.6 nT per axis" in out and "stated: the DUT's" in out
+    assert "springmann.x0_ut" in out and "k_ut_per_unit.bus[x]" in out
+    assert "CANNOT PASS: 'offset known': predicted sigma" in out
+    path = procedure(tmp_path, n=40, x0_max=0.5)
+    code = main(["check", str(path), "--predict", "--noise-nt", "20"])
+    out, err = capsys.readouterr()
+    assert code == 1, err  # no --rig: the limits are not checked
+    assert "can pass: 'offset known'" in out
