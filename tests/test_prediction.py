@@ -193,3 +193,25 @@ def test_rig_check_predict_prints_the_sigmas_and_fails_an_impossible_plan(
     out, err = capsys.readouterr()
     assert code == 1, err  # no --rig: the limits are not checked
     assert "can pass: 'offset known'" in out
+
+
+def test_the_duration_counts_ramps_flips_and_trims(tmp_path: Path) -> None:
+    from rig.cage.limits import CageLimits
+    from rig.cage.model import CageModel
+    from rig.prediction.duration import FLIP_S, TRIM_S, predicted_duration
+
+    path = tmp_path / "d.yaml"
+    path.write_text(
+        "procedure: D\nsteps:\n"
+        "  - set_field: {field_ut: [40, 0, 0], hold_s: 2}\n"  # 0 -> 1 A: 2 set-points of 0.5 A
+        "  - set_field: {field_ut: [-40, 0, 0], hold_s: 2}\n"  # 1 -> 0 -> -1 A: 4, a flip
+        "  - null_field: {hold_s: 1, trim: yes}\n"  # -1 -> 0 A: 2, trimmed
+    )
+    proc = parse_procedure(path)
+    limits = CageLimits((2.5, 2.5, 2.5), 120.0, 10.0, 0.05)
+    d = predicted_duration(proc, CageModel(40.0 * np.eye(3), np.zeros(3)), limits, RigTiming())
+    assert (d.planned_s, d.flips, d.trims, d.early_stop) == (5.0, 1, 1, False)
+    assert d.ramps_s == pytest.approx(8 * 0.05)
+    assert d.total_s == pytest.approx(5.0 + 0.4 + FLIP_S + TRIM_S)
+    bare = predicted_duration(proc, None, None, RigTiming())  # no cage model: the plan's time
+    assert bare.total_s == pytest.approx(5.0 + TRIM_S) and bare.ramps_s == 0.0

@@ -28,6 +28,11 @@ def run_prediction(procedure: str, rig_config: Path | None, sets: list[str], run
               f" {pred.noise.source}; {time.perf_counter() - start:.2f} s):")  # fmt: skip
         for step in pred.steps:
             _print_step(step)
+        d = pred.duration
+        print(f"  duration on the rig: {'at most ' if d.early_stop else 'about '}{d.total_s:.0f} s"
+              f" (planned {d.planned_s:.0f} s, ramps {d.ramps_s:.0f} s, {d.flips} polarity flips,"
+              f" {d.trims} trimmed fields)"
+              + ("; a live calibration may stop earlier" if d.early_stop else ""))  # fmt: skip
     for c in pred.criteria:
         if c.verdict != "can pass" or not quiet:
             print(f"{'CANNOT PASS' if c.verdict == 'CANNOT PASS' else '  ' + c.verdict}:"

@@ -10,6 +10,7 @@ from typing import Any
 from rig.cage_budget import cage_terms, certificate_of
 from rig.calibration.budget import CageTerms
 from rig.config import RigConfig
+from rig.prediction.duration import PredictedDuration, predicted_duration
 from rig.prediction.noise import NoiseFloor, noise_floor
 from rig.prediction.planned import planned_data
 from rig.prediction.predict import StepPrediction, predict_step
@@ -37,6 +38,7 @@ class ProcedurePrediction:
     noise: NoiseFloor
     steps: tuple[StepPrediction, ...]
     criteria: tuple[CriterionPrediction, ...]
+    duration: PredictedDuration
 
     @property
     def cannot_pass(self) -> list[CriterionPrediction]:
@@ -61,7 +63,20 @@ def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
     )
     criteria = [c for s in proc.steps if s.kind == "check" for c in s.params.get("criteria", [])]
     by_name = {p.step: p for p in steps}
-    return ProcedurePrediction(noise, steps, tuple(judge(c, by_name) for c in criteria))
+    return ProcedurePrediction(noise, steps, tuple(judge(c, by_name) for c in criteria),
+                               _duration(proc, cfg, timing))  # fmt: skip
+
+
+def _duration(proc: Procedure, cfg: RigConfig | None, timing: RigTiming) -> PredictedDuration:
+    """The procedure's time on the rig (ramps from the cage model in use)."""
+    from rig.cage.limits import CageLimits
+    from rig.output_limits import cage_model
+
+    if cfg is None or cfg.cage is None:
+        return predicted_duration(proc, None, None, timing)
+    c = cfg.cage
+    limits = CageLimits(c.max_current_a, c.max_field_ut, c.max_slew_a_per_s, c.step_s)
+    return predicted_duration(proc, cage_model(cfg), limits, timing)
 
 
 def _cage_terms(proc: Procedure, cfg: RigConfig | None) -> CageTerms | None:

@@ -25,30 +25,25 @@ GOOD_SHARE = 0.5
 def design(directions: int, shells_ut: list[float], axis: np.ndarray | None,
            dead_zone_deg: float, seed: int = 0) -> list[np.ndarray]:  # fmt: skip
     """The total fields to set (uT, cage frame): ``directions`` spread over the sphere, those in
-    the sensor's dead zones left out, on each shell; within a shell ordered by the octant of the
-    field (a Gray code: one coil's sign changes between groups, so few polarity flips) and the
-    second shell in reverse (a linear drift of the lab field then falls symmetrically in time)."""
+    the sensor's dead zones left out, on each shell, all in a random order (seeded): the lab
+    field's drift over the sweep then falls on the directions and magnitudes alike, as noise the
+    fit sees between points, instead of a pattern it would take for the coils."""
     from rig.cage.coil_scalar import outside_dead_zones, sphere_directions
 
     units = outside_dead_zones(sphere_directions(directions), axis, dead_zone_deg)
-    gray = {code ^ (code >> 1): rank for rank, code in enumerate(range(8))}
-    rng = np.random.default_rng(seed)
-    keys = [(gray[int((u[0] < 0) * 4 + (u[1] < 0) * 2 + (u[2] < 0))], rng.random()) for u in units]
-    ordered = units[sorted(range(len(units)), key=keys.__getitem__)]
-    fields = []
-    for index, shell in enumerate(shells_ut):
-        fields += [shell * u for u in (ordered if index % 2 == 0 else ordered[::-1])]
-    return fields
+    fields = [shell * u for shell in shells_ut for u in units]
+    order = np.random.default_rng(seed).permutation(len(fields))
+    return [fields[i] for i in order]
 
 
 def coil_scalar_duration_s(step: Step, timing: RigTiming) -> float:
-    """Cage time of the step (s): per point a ramp of about a second within the slew limit, the
-    transient and the readings; a polarity flip between octants counted as 2 s."""
+    """Cage time of the step (s): per point a ramp of about a second within the slew limit (a
+    coil's polarity flip included), the transient and the readings."""
     from rig.cage.characterize import TRANSIENT_S
 
     points = int(step.params["directions"]) * len(step.params["field_ut"])
     per_point = 1.0 + TRANSIENT_S + (int(step.params["samples"]) + 1) / SCALAR_RATE_HZ
-    return points * per_point + 2.0 * 7 * len(step.params["field_ut"])
+    return points * per_point
 
 
 class CoilScalar(StepKind):
@@ -159,7 +154,8 @@ def _result(fit: Any, readings: list[Any], lost: int, beyond: int) -> dict[str, 
         "lab_field_ut": fit.lab_field_ut.tolist(),
         "drift_nt_per_min": fit.drift_nt_per_min.tolist(),
         "sensor_offset_nt": fit.offset_nt, "sensor_offset_sigma_nt": fit.offset_sigma_nt,
-        "chi2_per_dof": fit.chi2 / max(fit.dof, 1), "points": len(readings), "points_lost": lost,
+        "chi2_per_dof": fit.chi2 / max(fit.dof, 1), "between_points_nt": fit.between_nt,
+        "points": len(readings), "points_lost": lost,
         "points_beyond_limits": beyond,
         "residual_rms_nt": float(np.sqrt(np.mean(fit.residuals_nt**2))),
         "readings": [{"currents_a": r.currents_a.tolist(), "t_s": r.t_s, "total_ut": r.total_ut,
