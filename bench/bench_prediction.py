@@ -1,0 +1,194 @@
+"""Predicted against achieved: does ``rig check --predict`` say what the runs then report (issue 36)?
+
+First one run of the procedure (default: the shipped ``dut-acceptance``) on a simulated cage, as a
+lab has run its procedure before: it leaves the measured noise floor (its vector calibration's
+residuals per axis) and the cage record. From those and the plan alone, every calibrate step's
+sigmas are predicted, once. Then ``--runs`` runs of the same procedure, each on a simulated cage of
+its own (a seed of its own: the noise, the lab field, the traffic, the supply drift, the
+reference's certificate drawn within what it states) through the real wire protocols, on Dask
+(``distributed``: a local cluster of ``--workers`` processes, or ``--scheduler ADDRESS``). Per
+calibrate step and parameter it prints the predicted statistical and combined sigma, the rms of
+the sigmas the runs reported (achieved), their ratio (goal 0.8-1.2), and the rms error against
+the simulator's truth over the predicted combined sigma; ``--out DIR`` writes the table (CSV) and a
+plot (predicted against achieved, every parameter, log-log with the +-20 % band).
+
+Each run takes about 2.5 minutes of cage time, bound by the simulated cage's real time rather
+than the CPU: ``--workers 5`` suits two cores (200 runs: about 100 minutes).
+
+Run: ``nice .venv/bin/python bench/bench_prediction.py [--runs 200] [--workers 5] [--out DIR]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_once(seed: int, procedure: str, folder: Path) -> tuple[Any, dict[str, Any]]:
+    """Run ``procedure`` on a fresh simulated cage (seed ``seed``) with runs and rig.toml in
+    ``folder``; (outcome, the simulator's DUT truth by calibrate step as flat arrays)."""
+    from bench.bench_cage_budget import truth_values
+    from rig.config import load_rig_config
+    from rig.engine.runner import Runner
+    from rig.procedure.language import parse_procedure
+    from rig.procedure_files import find_procedure
+    from rig.sim_rig import sim_rig_config
+    from sim.cage import SimulatedCage
+    from sim.config import load_config
+
+    cfg = replace(load_config(), seed=seed)
+    proc = parse_procedure(find_procedure(procedure))
+    with SimulatedCage(cfg) as cage:
+        (folder / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+        outcome = Runner(proc, load_rig_config(folder / "rig.toml"), folder / "runs",
+                         i2c_bus=cage.i2c_bus, confirm=lambda _q: True, live=False).run()  # fmt: skip
+    truth = {s.name: truth_values(cfg, list(s.params.get("telemetry") or []))
+             for s in proc.steps if s.kind == "calibrate"}  # fmt: skip
+    return outcome, truth
+
+
+def flat(block: dict[str, Any]) -> np.ndarray:
+    """A result's ``sigma``-shaped block (or its values), flat in the reported order."""
+    values = list(block["springmann"].values())
+    for ch in block.get("k_ut_per_unit", {}):
+        values += list(block["k_ut_per_unit"][ch])
+    return np.array([*values, *block.get("mounting_deg", [])], float)
+
+
+def one_run(seed: int, procedure: str) -> dict[str, Any]:
+    """One run on Dask: per calibrate step the sigmas reported and the errors against the truth."""
+    from rig.calibration.record import CalibrationRecord
+
+    with tempfile.TemporaryDirectory(prefix="prediction-") as tmp:
+        outcome, truth = run_once(3000 + seed, procedure, Path(tmp))
+    if outcome.exit_code not in (0, 1):
+        return {"failed": f"run {seed}: {outcome.reason}"}
+    out = {}
+    for name, true in truth.items():
+        r = outcome.results[name]
+        record = CalibrationRecord.from_dict(r)
+        values = flat({"springmann": record.springmann,
+                       "k_ut_per_unit": record.k_ut_per_unit,
+                       "mounting_deg": record.mounting_deg or []})  # fmt: skip
+        out[name] = {"sigma": flat(r["sigma"]), "combined": flat(r["combined_sigma"]),
+                     "error": values - true[: len(values)]}  # fmt: skip
+    return out
+
+
+def predicted(procedure: str, folder: Path) -> Any:
+    """The prediction from a first run's measured noise and the plan."""
+    from rig.config import load_rig_config
+    from rig.prediction.procedure import predict_procedure
+    from rig.procedure.language import parse_procedure
+    from rig.procedure.plan import rig_timing
+    from rig.procedure_files import find_procedure
+
+    outcome, _ = run_once(2999, procedure, folder)
+    if outcome.exit_code not in (0, 1):
+        raise RuntimeError(f"the first run failed: {outcome.reason}")
+    cfg = load_rig_config(folder / "rig.toml")
+    proc = parse_procedure(find_procedure(procedure))
+    return predict_procedure(proc, cfg, rig_timing(cfg), folder / "runs", None)
+
+
+def table(prediction: Any, runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per step and parameter: predicted, achieved, their ratio, rms error / predicted."""
+    rows = []
+    for step in prediction.steps:
+        got = [r[step.step] for r in runs]
+        sigma = np.array([g["sigma"] for g in got])
+        combined = np.array([g["combined"] for g in got])
+        error = np.array([g["error"] for g in got])
+        for i, p in enumerate(step.parameters):
+            achieved = float(np.sqrt(np.mean(sigma[:, i] ** 2)))
+            achieved_c = float(np.sqrt(np.mean(combined[:, i] ** 2)))
+            rows.append({"step": step.step, "parameter": p.path,
+                         "predicted": p.statistical, "achieved": achieved,
+                         "ratio": p.statistical / achieved,
+                         "predicted_combined": p.combined, "achieved_combined": achieved_c,
+                         "ratio_combined": p.combined / achieved_c,
+                         "error_over_predicted": float(np.sqrt(np.mean(error[:, i] ** 2))) / p.combined,
+                         "limited_by": p.limited_by})  # fmt: skip
+    return rows
+
+
+def plot(rows: list[dict[str, Any]], path: Path) -> None:
+    """Predicted against achieved sigma (relative to the achieved), every parameter."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    steps = sorted({r["step"] for r in rows})
+    for k, step in enumerate(steps):
+        mine = [r for r in rows if r["step"] == step]
+        x = np.arange(len(mine)) + 0.3 * k
+        ax.plot(x, [r["ratio"] for r in mine], "o", label=f"{step}: statistical")
+        ax.plot(x, [r["ratio_combined"] for r in mine], "x", label=f"{step}: combined")
+    ax.axhspan(0.8, 1.2, color="0.9", zorder=0)
+    ax.axhline(1.0, color="0.5", lw=0.8)
+    ax.set_xticks(np.arange(len([r for r in rows if r["step"] == steps[0]])))
+    ax.set_xticklabels([r["parameter"] for r in rows if r["step"] == steps[0]], rotation=75,
+                       fontsize=7)  # fmt: skip
+    ax.set_ylabel("predicted / achieved sigma")
+    ax.set_title("rig check --predict against the runs (band: +-20 %)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=200, help="simulated runs")
+    parser.add_argument("--procedure", default="dut-acceptance", help="procedure (file or name)")
+    parser.add_argument("--out", type=Path, help="write prediction.csv and prediction.png here")
+    from bench.dask_runs import add_dask_arguments, map_on_dask
+
+    add_dask_arguments(parser, workers=5)
+    args = parser.parse_args()
+    start = time.monotonic()
+    with tempfile.TemporaryDirectory(prefix="prediction-first-") as tmp:
+        prediction = predicted(args.procedure, Path(tmp))
+    print(f"noise floor: {prediction.noise.source} ({prediction.noise.pair_nt:.1f} nT)")
+    results = map_on_dask(one_run, range(args.runs), [args.procedure] * args.runs,
+                          workers=args.workers, scheduler=args.scheduler)  # fmt: skip
+    failed = [r["failed"] for r in results if "failed" in r]
+    runs = [r for r in results if "failed" not in r]
+    for why in failed:
+        print(f"left out (the run did not finish): {why}")
+    rows = table(prediction, runs)
+    print(f"\n{len(runs)} runs on the simulated cage in {time.monotonic() - start:.0f} s")
+    print(f"  {'step':<20} {'parameter':<28} {'predicted':>10} {'achieved':>10} {'ratio':>6}"
+          f" {'comb. ratio':>11} {'err/pred':>8}")  # fmt: skip
+    ok = True
+    for r in rows:
+        flag = "" if 0.8 <= r["ratio"] <= 1.2 else "  <- outside 0.8-1.2"
+        ok &= not flag
+        print(f"  {r['step']:<20} {r['parameter']:<28} {r['predicted']:10.3g} {r['achieved']:10.3g}"
+              f" {r['ratio']:6.2f} {r['ratio_combined']:11.2f} {r['error_over_predicted']:8.2f}{flag}")  # fmt: skip
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        with (args.out / "prediction.csv").open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        plot(rows, args.out / "prediction.png")
+        print(f"wrote {args.out / 'prediction.csv'} and {args.out / 'prediction.png'}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
