@@ -1,13 +1,13 @@
 """Predicted against achieved: does ``rig check --predict`` say what the runs then report (issue 36)?
 
-First one run of the procedure (default: the shipped ``dut-acceptance``) on a simulated cage, as a
-lab has run its procedure before: it leaves the measured noise floor (its vector calibration's
-residuals per axis) and the cage record. From those and the plan alone, every calibrate step's
-sigmas are predicted, once. Then ``--runs`` runs of the same procedure, each on a simulated cage of
-its own (a seed of its own: the noise, the lab field, the traffic, the supply drift, the
+``--runs`` runs of the procedure (default: the shipped ``dut-acceptance``), each on a simulated
+cage of its own (a seed of its own: the noise, the lab field, the traffic, the supply drift, the
 reference's certificate drawn within what it states) through the real wire protocols, on Dask
-(``distributed``: a local cluster of ``--workers`` processes, or ``--scheduler ADDRESS``). Per
-calibrate step and parameter it prints the predicted statistical and combined sigma, the rms of
+(``distributed``: a local cluster of ``--workers`` processes, or ``--scheduler ADDRESS``). The
+first ``--earlier`` runs play the lab's earlier runs: their vector calibrations' residuals per axis
+pooled are the noise floor (as ``rig check --predict`` pools a runs folder's), and from it and the
+plan alone every calibrate step's sigmas are predicted, once. The other runs are the ones
+predicted. Per calibrate step and parameter it prints the predicted statistical and combined sigma, the rms of
 the sigmas the runs reported (achieved), their ratio (goal 0.8-1.2), and the rms error against
 the simulator's truth over the predicted combined sigma; ``--out DIR`` writes the table (CSV) and a
 plot (predicted against achieved, every parameter, log-log with the +-20 % band).
@@ -83,24 +83,35 @@ def one_run(seed: int, procedure: str) -> dict[str, Any]:
                        "k_ut_per_unit": record.k_ut_per_unit,
                        "mounting_deg": record.mounting_deg or []})  # fmt: skip
         out[name] = {"sigma": flat(r["sigma"]), "combined": flat(r["combined_sigma"]),
-                     "error": values - true[: len(values)]}  # fmt: skip
+                     "error": values - true[: len(values)],
+                     "residual_axes": r.get("residual_rms_axes_nt")}  # fmt: skip
     return out
 
 
-def predicted(procedure: str, folder: Path) -> Any:
-    """The prediction from a first run's measured noise and the plan."""
+def predicted(procedure: str, earlier: list[dict[str, Any]]) -> Any:
+    """The prediction from the earlier runs' pooled residuals and the plan, on the simulated
+    rig's configuration (its certificate's sigmas, no field map: as the runs have)."""
     from rig.config import load_rig_config
+    from rig.prediction.noise import NoiseFloor
     from rig.prediction.procedure import predict_procedure
     from rig.procedure.language import parse_procedure
     from rig.procedure.plan import rig_timing
     from rig.procedure_files import find_procedure
+    from rig.sim_rig import sim_rig_config
+    from sim.cage import SimulatedCage
+    from sim.config import load_config
 
-    outcome, _ = run_once(2999, procedure, folder)
-    if outcome.exit_code not in (0, 1):
-        raise RuntimeError(f"the first run failed: {outcome.reason}")
-    cfg = load_rig_config(folder / "rig.toml")
+    axes = [step["residual_axes"] for run in earlier for step in run.values()
+            if step.get("residual_axes")]  # fmt: skip
+    pooled = np.sqrt(np.mean(np.square(axes), axis=0))
+    noise = NoiseFloor((float(pooled[0]), float(pooled[1]), float(pooled[2])),
+                       f"the residuals of {len(earlier)} earlier runs")  # fmt: skip
+    cfg = load_config()
+    with tempfile.TemporaryDirectory(prefix="prediction-rig-") as tmp, SimulatedCage(cfg) as cage:
+        (Path(tmp) / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
+        rig = load_rig_config(Path(tmp) / "rig.toml")
     proc = parse_procedure(find_procedure(procedure))
-    return predict_procedure(proc, cfg, rig_timing(cfg), folder / "runs", None)
+    return predict_procedure(proc, rig, rig_timing(rig), None, None, noise=noise)
 
 
 def table(prediction: Any, runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -154,19 +165,26 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=200, help="simulated runs")
     parser.add_argument("--procedure", default="dut-acceptance", help="procedure (file or name)")
+    parser.add_argument(
+        "--earlier",
+        type=int,
+        default=5,
+        help="the first runs, whose residuals are the noise floor (not judged)",
+    )
     parser.add_argument("--out", type=Path, help="write prediction.csv and prediction.png here")
     from bench.dask_runs import add_dask_arguments, map_on_dask
 
     add_dask_arguments(parser, workers=5)
     args = parser.parse_args()
     start = time.monotonic()
-    with tempfile.TemporaryDirectory(prefix="prediction-first-") as tmp:
-        prediction = predicted(args.procedure, Path(tmp))
-    print(f"noise floor: {prediction.noise.source} ({prediction.noise.pair_nt:.1f} nT)")
     results = map_on_dask(one_run, range(args.runs), [args.procedure] * args.runs,
                           workers=args.workers, scheduler=args.scheduler)  # fmt: skip
     failed = [r["failed"] for r in results if "failed" in r]
-    runs = [r for r in results if "failed" not in r]
+    done = [r for r in results if "failed" not in r]
+    prediction = predicted(args.procedure, done[: args.earlier])
+    runs = done[args.earlier :]
+    print(f"noise floor: {prediction.noise.source}"
+          f" ({', '.join(f'{v:.1f}' for v in prediction.noise.axes_nt)} nT)")  # fmt: skip
     for why in failed:
         print(f"left out (the run did not finish): {why}")
     rows = table(prediction, runs)

@@ -70,7 +70,7 @@ class AsciiMagnetometer:
     def close(self) -> None:
         """Stop streaming and close the pty."""
         self._stop.set()
-        self._thread.join(timeout=1.0)
+        self._thread.join(timeout=10.0)  # it must not touch the fds once they are closed
         self.pty.close()
 
 

@@ -182,6 +182,7 @@ class SimulatedCage:
             self.physics.safe()
         for dev in self._serial_devices:
             dev.close()
+        self._serial_devices.clear()  # closed once: a second stop must not close reused fds
         if self._started and self._loop.is_running():
             for proxy in self._proxies.values():
                 with contextlib.suppress(Exception):

@@ -142,7 +142,7 @@ class CesiumCounter:
     def close(self) -> None:
         """Stop sending and close the pty."""
         self._stop.set()
-        self._thread.join(timeout=1.0)
+        self._thread.join(timeout=10.0)  # it must not touch the fds once they are closed
         self.pty.close()
 
 

@@ -29,10 +29,13 @@ class Pty:
     path: str
 
     def close(self) -> None:
-        """Close both ends."""
+        """Close both ends, once: a second call must not close what now has the same numbers
+        (the next simulator's ptys in the same process)."""
         for fd in (self.master, self.slave):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self.master = self.slave = -1
 
 
 def open_pty() -> Pty:

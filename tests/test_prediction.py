@@ -171,6 +171,14 @@ def test_the_noise_floor_is_what_the_rig_measured_else_what_the_devices_state(
     other.set_result("fit", {"residual_rms_axes_nt": [99.0, 99.0, 99.0]})
     other.close("complete", "")  # another DUT's noise is not this one's
     assert noise_floor(proc, cfg, runs, None).axes_nt == (22.0, 21.0, 30.0)
+    again = new_run(runs, "again", magnetometers={"dut": "dut", "reference": "reference"})
+    again.set_result("fit", {"residual_rms_axes_nt": [24.0, 23.0, 20.0]})
+    again.close("complete", "")  # where a run's samples fall on the ripple varies: pooled
+    pooled = noise_floor(proc, cfg, runs, None)
+    assert pooled.axes_nt == pytest.approx(
+        (math.hypot(22, 24) / math.sqrt(2), math.hypot(21, 23) / math.sqrt(2), 25.495), abs=1e-3
+    )
+    assert "the newest 2 runs of 'dut'" in pooled.source
     assert noise_floor(proc, cfg, runs, 12.0) == even(12.0, "given (--noise-nt)")
     with pytest.raises(UserInputError, match="no noise floor known for 'dut'"):
         noise_floor(proc, None, tmp_path / "nothing", None)

@@ -6,8 +6,8 @@ fields and currents of a sweep (a coil carrying more current may add noise to it
 hold at null field does not show); a ``null_field`` step's ``dut_paired_noise_nt`` is the noise at
 rest (the DUT's own, the reference's, and whatever the two sample differently, such as mains
 ripple at different instants). So the floor is, in order: given on the command line; the newest
-run of the same DUT in the runs folder (its vector calibration's residuals, else its null-field
-noise); the root sum square of the two devices' stated ``noise_nt`` (rig configuration); else
+runs of the same DUT in the runs folder (their vector calibrations' residuals pooled, else the
+newest null-field noise); the root sum square of the two devices' stated ``noise_nt`` (rig configuration); else
 unknown.
 """
 
@@ -19,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from rig.config import RigConfig
 from rig.errors import UserInputError
 from rig.steps.null_field import NoiseFloorResult
@@ -27,6 +29,8 @@ from rig.store.run_store import RunReader, list_runs
 
 RUNS_LOOKED_AT = 50
 """The newest runs searched for a measured noise floor."""
+POOLED_RUNS = 5
+"""The newest runs whose calibration residuals are pooled into the floor."""
 
 
 @dataclass(frozen=True)
@@ -69,8 +73,12 @@ def noise_floor(proc: Procedure, cfg: RigConfig | None, runs_dir: Path | None,
 
 
 def measured_floor(runs_dir: Path, dut: str) -> NoiseFloor | None:
-    """The newest noise a run of device ``dut`` measured (None if none): its last vector
-    calibration's residuals per axis, else its last null-field noise paired with the reference."""
+    """The noise the newest runs of device ``dut`` measured (None if none): the residuals per
+    axis of their last vector calibrations, pooled over up to :data:`POOLED_RUNS` runs (rms: a
+    run's own figure varies with where its samples fall on the mains ripple), else the newest
+    null-field noise paired with the reference."""
+    residuals: list[tuple[float, ...]] = []
+    rest: NoiseFloor | None = None
     for info in list_runs(runs_dir)[:RUNS_LOOKED_AT]:
         if (info.meta.get("magnetometers") or {}).get("dut") != dut:
             continue
@@ -79,20 +87,33 @@ def measured_floor(runs_dir: Path, dut: str) -> NoiseFloor | None:
             results = reader.results()
         finally:
             reader.close()
-        found = _from_results(results, info.run_id)
-        if found is not None:
-            return found
+        axes = _residual_axes(results)
+        if axes is not None:
+            residuals.append(axes)
+            if len(residuals) == POOLED_RUNS:
+                break
+        elif rest is None:
+            rest = _null_field(results, info.run_id)
+    if residuals:
+        pooled = np.sqrt(np.mean(np.square(residuals), axis=0))
+        runs = f"{len(residuals)} run{'s' if len(residuals) > 1 else ''}"
+        return NoiseFloor((float(pooled[0]), float(pooled[1]), float(pooled[2])),
+                          f"the vector calibration residuals of the newest {runs} of '{dut}'")  # fmt: skip
+    return rest
+
+
+def _residual_axes(results: Mapping[str, Any]) -> tuple[float, ...] | None:
+    """The last vector calibration's residual rms per axis among a run's results."""
+    for value in reversed(list(results.values())):
+        axes = value.get("residual_rms_axes_nt") if isinstance(value, dict) else None
+        if isinstance(axes, list) and len(axes) == 3 and all(v > 0 for v in axes):
+            return tuple(float(v) for v in axes)
     return None
 
 
-def _from_results(results: Mapping[str, Any], run_id: str) -> NoiseFloor | None:
-    items = list(reversed(list(results.items())))
-    for name, value in items:
-        axes = value.get("residual_rms_axes_nt") if isinstance(value, dict) else None
-        if isinstance(axes, list) and len(axes) == 3 and all(v > 0 for v in axes):
-            return NoiseFloor((float(axes[0]), float(axes[1]), float(axes[2])),
-                              f"the residuals of '{name}' in run {run_id}")  # fmt: skip
-    for name, value in items:
+def _null_field(results: Mapping[str, Any], run_id: str) -> NoiseFloor | None:
+    """The last null-field noise paired with the reference among a run's results."""
+    for name, value in reversed(list(results.items())):
         found = NoiseFloorResult.from_dict(value) if isinstance(value, dict) else None
         pair = found.pair_noise_nt("dut") if found is not None else None
         if pair is not None and pair > 0:

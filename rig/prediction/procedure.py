@@ -47,10 +47,12 @@ class ProcedurePrediction:
 
 
 def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
-                      runs_dir: Path | None, noise_nt: float | None,
-                      seed: int = 0) -> ProcedurePrediction:  # fmt: skip
-    """Predict every calibrate step of ``proc`` on the rig ``cfg`` (None: no cage terms)."""
-    noise = noise_floor(proc, cfg, runs_dir, noise_nt)
+                      runs_dir: Path | None, noise_nt: float | None, seed: int = 0,
+                      noise: NoiseFloor | None = None) -> ProcedurePrediction:  # fmt: skip
+    """Predict every calibrate step of ``proc`` on the rig ``cfg`` (None: no cage terms); the
+    noise floor ``noise`` when given, else found (:func:`rig.prediction.noise.noise_floor`)."""
+    if noise is None:
+        noise = noise_floor(proc, cfg, runs_dir, noise_nt)
     dut = proc.magnetometers.get("dut", "dut")
     rate = DEFAULT_DUT_RATE_HZ
     if cfg is not None and dut in cfg.devices and cfg.devices[dut].get("rate_hz"):

@@ -38,11 +38,12 @@ def design(directions: int, shells_ut: list[float], axis: np.ndarray | None,
 
 def coil_scalar_duration_s(step: Step, timing: RigTiming) -> float:
     """Cage time of the step (s): per point a ramp of about a second within the slew limit (a
-    coil's polarity flip included), the transient and the readings."""
-    from rig.cage.characterize import TRANSIENT_S
-
+    coil's polarity flip included), the settling and the readings (one more than asked: the one in
+    flight when the flush came is left out)."""
     points = int(step.params["directions"]) * len(step.params["field_ut"])
-    per_point = 1.0 + TRANSIENT_S + (int(step.params["samples"]) + 1) / SCALAR_RATE_HZ
+    per_point = (
+        1.0 + float(step.params["settle_s"]) + (int(step.params["samples"]) + 2) / SCALAR_RATE_HZ
+    )
     return points * per_point
 
 
@@ -55,6 +56,7 @@ class CoilScalar(StepKind):
         "field_ut": Param("list_float", [22.0, 45.0], 17.0, 1000.0),
         "directions": Param("int", 30, 8, 500),
         "samples": Param("int", 10, 2, 1000),
+        "settle_s": Param("float", 0.5, 0.0, 60.0),
     }
 
     def duration_s(self, step: Step, timing: RigTiming) -> float:
@@ -96,7 +98,8 @@ class ScalarSweep(StepExecution):
         sensor = ctx.scalar_magnetometer(cage.scalar)
         sensor.set_cycle(float(device.params.get("rate_hz", SCALAR_RATE_HZ)))
         try:
-            readings, lost, beyond = self._sweep(sensor, fields, int(payload["samples"]))
+            readings, lost, beyond = self._sweep(sensor, fields, int(payload["samples"]),
+                                                 float(payload["settle_s"]))  # fmt: skip
         finally:
             controller.set_currents(np.zeros(3))
         fit = fit_scalar_coils(readings, controller.model.k_ut_per_a,
@@ -105,11 +108,10 @@ class ScalarSweep(StepExecution):
         ctx.record_result(self.step.name, result)
         record_cage_metrology(ctx, self.step.kind, {"result": result})
 
-    def _sweep(self, sensor: Any, fields: list[np.ndarray], samples: int
+    def _sweep(self, sensor: Any, fields: list[np.ndarray], samples: int, settle_s: float
                ) -> tuple[list[Any], int, int]:  # fmt: skip
         """Set each total field, read the sensor: the readings, how many points had no signal and
         how many needed more than the current limit."""
-        from rig.cage.characterize import TRANSIENT_S
         from rig.cage.coil_scalar import ScalarReading
 
         controller = self.ctx.controller
@@ -123,8 +125,9 @@ class ScalarSweep(StepExecution):
                 beyond += 1  # the lab field added: more current than the coils may carry
                 continue
             currents = controller.set_currents(target)
-            controller.sleep(TRANSIENT_S)
+            controller.sleep(settle_s)
             sensor.flush()
+            sensor.read_total_nt()  # its cycle may have begun before the flush
             values = [sensor.read_total_nt() for _ in range(samples)]
             good = np.array([v for v in values if v is not None], float) * 1e-3
             if len(good) < max(2, GOOD_SHARE * samples):
