@@ -17,6 +17,9 @@ from drivers.errors import DeviceProtocolError, DeviceRefusedError
 from drivers.identity import Identity
 from drivers.transport.serial_port import SerialPort
 
+CYCLES_WAITED = 10
+"""A reading is awaited for this many cycles (at least the port's timeout) before the counter
+counts as silent."""
 LINE = re.compile(rb"^\$([ 1])(\d{5}\.\d{3}),(\d{4})$")
 
 
@@ -34,7 +37,7 @@ class GeometricsCounter:
     """Total-field readings (nT) from a CM-201 counter on a serial line."""
 
     def __init__(self, url: str, *, baudrate: int = 9600, min_signal: int = 500,
-                 timeout_s: float = 0.5, max_bad_lines: int = 3,
+                 timeout_s: float = 1.0, max_bad_lines: int = 3,
                  name: str = "geometrics-cm201") -> None:  # fmt: skip
         self.name = name
         self.port = SerialPort(url, baudrate, timeout_s=timeout_s, name=name)
@@ -52,7 +55,9 @@ class GeometricsCounter:
         hundredths = min(max(round(200.0 / rate_hz) / 2.0, 1.0), 9999.0)
         whole, half = int(hundredths), hundredths % 1.0 >= 0.5
         self.port.write(f"C{whole:04d}{'5' if half else ''}\r".encode("ascii"))
-        return 100.0 / (whole + (0.5 if half else 0.0))
+        cycle_s = (whole + (0.5 if half else 0.0)) / 100.0
+        self.port.timeout_s = max(self.port.timeout_s, CYCLES_WAITED * cycle_s)
+        return 1.0 / cycle_s
 
     def flush(self) -> None:
         """Drop buffered lines and the partial line in flight."""
