@@ -223,3 +223,49 @@ def test_the_duration_counts_ramps_flips_and_trims(tmp_path: Path) -> None:
     assert d.total_s == pytest.approx(5.0 + 0.4 + FLIP_S + TRIM_S)
     bare = predicted_duration(proc, None, None, RigTiming())  # no cage model: the plan's time
     assert bare.total_s == pytest.approx(5.0 + TRIM_S) and bare.ramps_s == 0.0
+
+
+LIVE = """
+procedure: Live
+magnetometers: {{dut: dut, reference: reference}}
+loads: [bus]
+steps:
+  - live_calibrate:
+      method: ukf
+      telemetry: [bus]
+      targets: {{bias_nt: {bias}, scale: 0.002}}
+      min_s: 3
+      max_s: 20
+      magnitude_ut: [15, 45]
+      dwell_s: 0.8
+      seed: 5
+    name: live
+    loads:
+      bus: {{steps: {{levels_a: [0.0, 0.8, 1.6], dwell_s: 2.4}}}}
+  - check:
+      criteria:
+        - {{result: live, value: live.sigma_at_stop.bias_nt, max: {bias}, name: live offset}}
+"""
+
+
+def test_the_live_calibration_is_predicted_to_stop_when_its_targets_are_met(tmp_path: Path) -> None:
+    from rig.prediction.live import predict_live
+
+    path = tmp_path / "live.yaml"
+    path.write_text(LIVE.format(bias=30))
+    proc = parse_procedure(path)
+    step = proc.steps[0]
+    met = predict_live(proc, step, RigTiming(), 20.0, 24.0)
+    assert met.stop_s is not None and 3.0 <= met.stop_s < 20.0, met
+    assert all(met.sigmas[k] <= v for k, v in met.targets.items())
+    # the filter's sigma at the predicted stop: a run on the simulated cage reported 25-27 nT
+    # and 9.7e-4-1.06e-3 at its stop (the acceptance procedure's live step, same targets)
+    later = predict_live(proc, step, RigTiming(), 20.0, 48.0)  # twice the noise: later
+    assert later.stop_s is None or later.stop_s > met.stop_s
+    path.write_text(LIVE.format(bias=0.5))  # half a nT: not in 20 s of 24 nT readings
+    proc = parse_procedure(path)
+    never = predict_live(proc, proc.steps[0], RigTiming(), 20.0, 24.0)
+    assert never.stop_s is None and never.limited_by == "bias_nt"
+    pred = predict_procedure(proc, None, RigTiming(), None, 24.0)
+    (live_offset,) = pred.criteria
+    assert live_offset.verdict == "CANNOT PASS" and "'bias_nt' not met" in live_offset.text

@@ -28,6 +28,8 @@ def run_prediction(procedure: str, rig_config: Path | None, sets: list[str], run
               f" {pred.noise.source}; {time.perf_counter() - start:.2f} s):")  # fmt: skip
         for step in pred.steps:
             _print_step(step)
+        for live in pred.live:
+            _print_live(live)
         d = pred.duration
         print(f"  duration on the rig: {'at most ' if d.early_stop else 'about '}{d.total_s:.0f} s"
               f" (planned {d.planned_s:.0f} s, ramps {d.ramps_s:.0f} s, {d.flips} polarity flips,"
@@ -38,6 +40,21 @@ def run_prediction(procedure: str, rig_config: Path | None, sets: list[str], run
             print(f"{'CANNOT PASS' if c.verdict == 'CANNOT PASS' else '  ' + c.verdict}:"
                   f" '{c.name}': {c.text}")  # fmt: skip
     return 1 if pred.cannot_pass else 0
+
+
+def _print_live(live: object) -> None:
+    from rig.prediction.live import LivePrediction
+
+    assert isinstance(live, LivePrediction)
+    if live.problem is not None:
+        print(f"  '{live.step}' (live): {live.problem}")
+        return
+    when = (f"targets met after about {live.stop_s:.1f} s of dwell (of at most {live.max_s:g} s;"
+            f" '{live.limited_by}' decides)" if live.stop_s is not None
+            else f"targets NOT met by {live.max_s:g} s: '{live.limited_by}'")  # fmt: skip
+    sigmas = ", ".join(f"{k} {v:.3g} ({live.targets.get(k, float('nan')):g})"
+                       for k, v in live.sigmas.items())  # fmt: skip
+    print(f"  '{live.step}' (live, {live.noise_nt:.1f} nT): {when}; sigma (target): {sigmas}")
 
 
 def _print_step(step: object) -> None:

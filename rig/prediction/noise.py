@@ -102,6 +102,24 @@ def measured_floor(runs_dir: Path, dut: str) -> NoiseFloor | None:
     return rest
 
 
+def rest_floor(runs_dir: Path | None, dut: str) -> NoiseFloor | None:
+    """The newest null-field noise of device ``dut`` paired with the reference (what a live
+    calibration's filter is given), None if no run measured it."""
+    if runs_dir is None:
+        return None
+    for info in list_runs(runs_dir)[:RUNS_LOOKED_AT]:
+        if (info.meta.get("magnetometers") or {}).get("dut") != dut:
+            continue
+        reader = RunReader(info.folder)
+        try:
+            found = _null_field(reader.results(), info.run_id)
+        finally:
+            reader.close()
+        if found is not None:
+            return found
+    return None
+
+
 def _residual_axes(results: Mapping[str, Any]) -> tuple[float, ...] | None:
     """The last vector calibration's residual rms per axis among a run's results."""
     for value in reversed(list(results.values())):

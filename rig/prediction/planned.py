@@ -63,8 +63,8 @@ def planned_data(proc: Procedure, calibrate: Step, timing: RigTiming, dut_rate_h
     fields, loads, names, seconds = [], [], [], 0.0
     for step in selected_steps(proc, calibrate):
         plan = compile_step(step, base or proc.path.parent, timing)
-        f, u = _step_samples(plan.commands, plan.duration_s, channels, dut_rate_hz,
-                             settle_s, early_s)  # fmt: skip
+        _, f, u = step_samples(plan.commands, plan.duration_s, channels, dut_rate_hz,
+                               settle_s, early_s)  # fmt: skip
         fields.append(f)
         loads.append(u)
         names.append(step.name)
@@ -74,9 +74,10 @@ def planned_data(proc: Procedure, calibrate: Step, timing: RigTiming, dut_rate_h
     return PlannedData(np.vstack(fields), np.vstack(loads), channels, tuple(names), seconds)
 
 
-def _step_samples(commands: tuple[Command, ...], duration_s: float, channels: tuple[str, ...], rate_hz: float,
-                  settle_s: float, early_s: float) -> tuple[Array, Array]:  # fmt: skip
-    """One step's kept samples: (fields (N, 3), load currents (N, J))."""
+def step_samples(commands: tuple[Command, ...], duration_s: float, channels: tuple[str, ...],
+                 rate_hz: float, settle_s: float, early_s: float) -> tuple[Array, Array, Array]:  # fmt: skip
+    """One step's kept samples: (times s from the step's start (N,), fields (N, 3), load
+    currents (N, J))."""
     t = np.arange(0.5 / rate_hz, duration_s, 1.0 / rate_hz)
     field_times, field_values = [], []
     load_times: dict[str, list[float]] = {ch: [] for ch in channels}
@@ -92,7 +93,7 @@ def _step_samples(commands: tuple[Command, ...], duration_s: float, channels: tu
         if cmd.kind in ("field", "load") and not cmd.payload.get("track"):
             changes.append(cmd.t_s)
     if not field_times:
-        return np.zeros((0, 3)), np.zeros((0, len(channels)))
+        return np.zeros(0), np.zeros((0, 3)), np.zeros((0, len(channels)))
     keep = t >= field_times[0]
     for c in changes:
         keep &= ~((t >= c - early_s) & (t < c + settle_s))
@@ -103,4 +104,4 @@ def _step_samples(commands: tuple[Command, ...], duration_s: float, channels: tu
         if load_times[ch]:
             idx = np.searchsorted(load_times[ch], t, side="right") - 1
             loads[:, j] = np.where(idx >= 0, np.asarray(load_values[ch])[np.maximum(idx, 0)], 0.0)
-    return fields, loads
+    return t, fields, loads

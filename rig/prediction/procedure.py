@@ -11,7 +11,8 @@ from rig.cage_budget import cage_terms, certificate_of
 from rig.calibration.budget import CageTerms
 from rig.config import RigConfig
 from rig.prediction.duration import PredictedDuration, predicted_duration
-from rig.prediction.noise import NoiseFloor, noise_floor
+from rig.prediction.live import LivePrediction, predict_live
+from rig.prediction.noise import NoiseFloor, noise_floor, rest_floor
 from rig.prediction.planned import planned_data
 from rig.prediction.predict import StepPrediction, predict_step
 from rig.steps.vocabulary import Procedure, RigTiming
@@ -39,6 +40,7 @@ class ProcedurePrediction:
     steps: tuple[StepPrediction, ...]
     criteria: tuple[CriterionPrediction, ...]
     duration: PredictedDuration
+    live: tuple[LivePrediction, ...] = ()
 
     @property
     def cannot_pass(self) -> list[CriterionPrediction]:
@@ -63,10 +65,33 @@ def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
         for s in proc.steps
         if s.kind == "calibrate"
     )
+    rest = rest_floor(runs_dir, dut)
+    live = tuple(predict_live(proc, s, timing, rate, rest.pair_nt if rest else noise.pair_nt, seed)
+                 for s in proc.steps if s.kind == "live_calibrate")  # fmt: skip
     criteria = [c for s in proc.steps if s.kind == "check" for c in s.params.get("criteria", [])]
     by_name = {p.step: p for p in steps}
-    return ProcedurePrediction(noise, steps, tuple(judge(c, by_name) for c in criteria),
-                               _duration(proc, cfg, timing))  # fmt: skip
+    lives = {p.step: p for p in live}
+    judged = tuple(judge_live(c, lives[c["result"]]) if c["result"] in lives else judge(c, by_name)
+                   for c in criteria)  # fmt: skip
+    return ProcedurePrediction(noise, steps, judged, _duration(proc, cfg, timing), live)
+
+
+def judge_live(criterion: dict[str, Any], live: LivePrediction) -> CriterionPrediction:
+    """A criterion on a live step's ``live.sigma_at_stop.<group>`` against the predicted sigma of
+    that group when the step stops (or at ``max_s`` when its targets are not met by then)."""
+    name = str(criterion.get("name") or f"{criterion['result']}.{criterion['value']}")
+    path, hi = str(criterion["value"]), criterion.get("max")
+    group = path.removeprefix("live.sigma_at_stop.")
+    if live.problem is not None:
+        return CriterionPrediction(name, "CANNOT PASS", f"'{live.step}': {live.problem}")
+    if group == path or group not in live.sigmas or hi is None:
+        return CriterionPrediction(name, "not predicted", f"'{path}' is not a predicted value")
+    when = (f"when it stops after about {live.stop_s:.1f} s of dwell" if live.stop_s is not None
+            else f"at its {live.max_s:g} s limit, '{live.limited_by}' not met")  # fmt: skip
+    sigma = live.sigmas[group]
+    verdict = "can pass" if sigma <= hi else "CANNOT PASS"
+    return CriterionPrediction(name, verdict, f"predicted sigma {sigma:.3g} {when} (limit"
+                               f" {hi:g}; {live.noise_nt:.1f} nT noise)")  # fmt: skip
 
 
 def _duration(proc: Procedure, cfg: RigConfig | None, timing: RigTiming) -> PredictedDuration:
