@@ -193,15 +193,6 @@ def _summarize(x: Array, cov: Array, residual_ut: Array, chi2: float, dof: int,
     )
 
 
-def sphere_directions(count: int) -> Array:
-    """``count`` unit vectors spread evenly over the sphere (the Fibonacci lattice), (N, 3)."""
-    i = np.arange(count) + 0.5
-    polar = np.arccos(1.0 - 2.0 * i / count)
-    azimuth = math.pi * (1.0 + math.sqrt(5.0)) * i
-    return np.column_stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth),
-                            np.cos(polar)])  # fmt: skip
-
-
 def outside_dead_zones(directions: Array, sensor_axis: Array | None, margin_deg: float) -> Array:
     """The directions at least ``margin_deg`` away from a cesium sensor's dead zones (its optical
     ``sensor_axis`` and the plane normal to it, cage frame); all of them when no axis is given

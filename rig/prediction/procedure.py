@@ -59,7 +59,7 @@ def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
     rate = DEFAULT_DUT_RATE_HZ
     if cfg is not None and dut in cfg.devices and cfg.devices[dut].get("rate_hz"):
         rate = float(cfg.devices[dut].get("rate_hz"))
-    cage = _cage_terms(proc, cfg)
+    cage = cage_terms_for(proc, cfg)
     steps = tuple(
         predict_step(s.name, s.params, planned_data(proc, s, timing, rate), noise, cage, seed)
         for s in proc.steps
@@ -106,7 +106,7 @@ def _duration(proc: Procedure, cfg: RigConfig | None, timing: RigTiming) -> Pred
     return predicted_duration(proc, cage_model(cfg), limits, timing)
 
 
-def _cage_terms(proc: Procedure, cfg: RigConfig | None) -> CageTerms | None:
+def cage_terms_for(proc: Procedure, cfg: RigConfig | None) -> CageTerms | None:
     """The cage's terms as the run will have them: the reference's certificate and place, the
     cage calibration record in use, the lab's gradient."""
     if cfg is None or cfg.cage is None:

@@ -28,9 +28,10 @@ def design(directions: int, shells_ut: list[float], axis: np.ndarray | None,
     the sensor's dead zones left out, on each shell, all in a random order (seeded): the lab
     field's drift over the sweep then falls on the directions and magnitudes alike, as noise the
     fit sees between points, instead of a pattern it would take for the coils."""
-    from rig.cage.coil_scalar import outside_dead_zones, sphere_directions
+    from rig.cage.coil_scalar import outside_dead_zones
+    from rig.steps.geometry import fibonacci_directions
 
-    units = outside_dead_zones(sphere_directions(directions), axis, dead_zone_deg)
+    units = outside_dead_zones(fibonacci_directions(directions), axis, dead_zone_deg)
     fields = [shell * u for shell in shells_ut for u in units]
     order = np.random.default_rng(seed).permutation(len(fields))
     return [fields[i] for i in order]

@@ -97,7 +97,7 @@ class Where:
 class Param:
     """One named parameter of a step: type, default (None = required), bounds."""
 
-    kind: str  # "float", "int", "str", "vec3", "range2", "list_str", "list_float", "dict", "list_dict"
+    kind: str  # "float", "int", "str", "vec3", "range2", "list_str", "list_float", "list_vec3", "dict", "list_dict"
     default: Any = None
     minimum: float | None = None
     maximum: float | None = None
@@ -186,6 +186,11 @@ def coerce(value: Any, p: Param, key: str, where: str) -> Any:
         return _text(value, p, key, where)
     if p.kind in ("vec3", "range2", "list_float"):
         return _numbers(value, p, key, where)
+    if p.kind == "list_vec3":
+        if not isinstance(value, list) or not value:
+            raise _bad(where, key, f"must be a list of [x, y, z] points, got {value!r}")
+        vec3 = Param("vec3", minimum=p.minimum, maximum=p.maximum)
+        return [_numbers(v, vec3, f"{key}[{i}]", where) for i, v in enumerate(value)]
     if p.kind == "list_str":
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
             raise _bad(where, key, f"must be a list of names, got {value!r}")

@@ -10,14 +10,10 @@ import numpy as np
 import pytest
 
 from rig.cage.coil_axes import ARCSEC_PER_RAD, derived_constants_and_skews, rotation
-from rig.cage.coil_scalar import (
-    ScalarReading,
-    fit_scalar_coils,
-    outside_dead_zones,
-    sphere_directions,
-)
+from rig.cage.coil_scalar import ScalarReading, fit_scalar_coils, outside_dead_zones
 from rig.errors import UserInputError
 from rig.steps.coil_scalar import design
+from rig.steps.geometry import fibonacci_directions as sphere_directions
 
 LAB_UT = np.array([19.6, 1.2, -44.8])
 NOMINAL = np.diag([40.0, 40.0, 40.0])

@@ -1,0 +1,135 @@
+"""``rig design``: the shortest calibration procedure that meets given sigma targets."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from rig.cli.common import Parser, Subparsers
+
+if TYPE_CHECKING:
+    from rig.prediction.design import Targets
+    from rig.steps.vocabulary import Procedure
+
+
+def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
+    d = sub.add_parser("design", parents=parents,
+                       help="write the shortest calibration procedure that meets sigma targets")  # fmt: skip
+    d.add_argument("--targets", type=Path, required=True, metavar="FILE",
+                   help="the targets (YAML: model, loads and their levels, magnitude_ut, targets:"
+                        " result value -> largest combined 1-sigma), e.g."
+                        " procedures/targets/acceptance.yaml")  # fmt: skip
+    d.add_argument(
+        "--rig",
+        type=Path,
+        required=True,
+        metavar="CONFIG.toml",
+        help="the rig: its cage model, limits, reference certificate and DUT rate",
+    )
+    d.add_argument(
+        "--max-s",
+        type=float,
+        metavar="S",
+        help="the longest time on the rig the procedure may take (s)",
+    )
+    d.add_argument("--margin", type=float, default=0.25, metavar="FRACTION",
+                   help="size each predicted sigma this much below its target (default 0.25: a"
+                        " run's noise varies about the measured floor)")  # fmt: skip
+    d.add_argument(
+        "--out",
+        type=Path,
+        metavar="FILE",
+        help="write the procedure here (default: standard output)",
+    )
+    d.add_argument("--noise-nt", type=float, metavar="NT",
+                   help="the DUT's noise paired with the reference (nT per axis; default: the"
+                        " newest runs' in --runs-dir, else the devices' noise_nt)")  # fmt: skip
+    d.add_argument(
+        "--runs-dir",
+        type=Path,
+        default=Path("runs"),
+        metavar="DIR",
+        help="where earlier runs are, for their measured noise (default: runs)",
+    )
+    d.set_defaults(func=_cmd_design)
+
+
+def _cmd_design(args: argparse.Namespace) -> int:
+    return run_design(args.targets, args.rig, args.max_s, args.out, args.noise_nt, args.runs_dir,
+                      args.quiet, args.margin)  # fmt: skip
+
+
+def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: Path | None,
+               noise_nt: float | None, runs_dir: Path, quiet: bool, margin: float = 0.25) -> int:  # fmt: skip
+    """Write the designed procedure; 0 when it meets every target, 1 when none could (the best
+    one found is written, its header saying what it misses)."""
+    from rig.config import load_rig_config
+    from rig.errors import UserInputError
+    from rig.prediction.design import Targets, design_procedure
+    from rig.prediction.noise import noise_floor
+    from rig.prediction.procedure import cage_terms_for
+    from rig.procedure.plan import rig_timing
+    from rig.steps.vocabulary import RigTiming
+
+    if not 0.0 <= margin <= 4.0:
+        raise UserInputError(f"--margin must be 0-4 (a fraction), got {margin:g}")
+    targets = Targets.load(targets_path)
+    cfg = load_rig_config(rig_config)
+    if out is not None and out.exists():
+        raise UserInputError(f"{out}: exists; choose a new file name (it is not overwritten)")
+    probe = _probe_procedure(targets)
+    noise = noise_floor(probe, cfg, runs_dir, noise_nt)
+    timing = rig_timing(cfg) or RigTiming()
+    design = design_procedure(targets, cfg, timing, noise, cage_terms_for(probe, cfg), max_s,
+                              margin)  # fmt: skip
+    text = _with_header(design, targets, noise, margin)
+    if out is None:
+        sys.stdout.write(text)
+    else:
+        out.write_text(text, encoding="utf-8")
+    if not quiet:
+        verdict = "meets every target" if design.meets else "CANNOT meet: " + "; ".join(
+            f"{k}: {v}" for k, v in design.unmet.items())  # fmt: skip
+        print(f"rig design: {design.points} set-points of {design.dwell_s:g} s, about"
+              f" {design.seconds:.0f} s on the rig; {verdict}"
+              + (f"; written to {out}" if out is not None else ""), file=sys.stderr)  # fmt: skip
+    return 0 if design.meets else 1
+
+
+def _probe_procedure(targets: Targets) -> Procedure:
+    """A procedure naming the roles and loads the targets use (for the noise floor's lookup and
+    the cage's terms)."""
+    import tempfile
+
+    import numpy as np
+
+    from rig.prediction.design import procedure_text
+    from rig.procedure.language import parse_procedure
+
+    text = procedure_text(targets, np.eye(3) * targets.magnitude_ut[1], 1.0, False, [])
+    with tempfile.TemporaryDirectory(prefix="rig-design-") as tmp:
+        path = Path(tmp) / "probe.yaml"
+        path.write_text(text)
+        return parse_procedure(path)
+
+
+def _with_header(design: object, targets: object, noise: object, margin: float) -> str:
+    """The procedure with a comment block: how it was designed, what it is predicted to give."""
+    from rig.prediction.design import Design, Targets
+    from rig.prediction.noise import NoiseFloor
+
+    assert isinstance(design, Design) and isinstance(targets, Targets)
+    assert isinstance(noise, NoiseFloor)
+    lines = [f"Designed by rig design for {targets.source}: {design.points} field set-points"
+             f" (D-optimal, Fedorov exchange), {design.dwell_s:g} s each;"
+             f" about {design.seconds:.0f} s on the rig.",
+             f"Noise floor {noise.pair_nt:.1f} nT per axis ({noise.source}).",
+             f"Predicted combined 1-sigma against each target (sized {100 * margin:.0f} % below"
+             " it: a run's noise varies about the floor):"]  # fmt: skip
+    for path, (got, limit) in design.achieved.items():
+        lines.append(f"  {path}: {got:.3g} (target {limit:g})")
+    for what, why in design.unmet.items():
+        lines.append(f"NOT MET {what}: {why}")
+    return "".join(f"# {line}\n" for line in lines) + design.text
