@@ -6,7 +6,6 @@ device's seconds since start), at ``rate_hz``, paced at the baud rate like a rea
 
 from __future__ import annotations
 
-import os
 import random
 import threading
 import time
@@ -16,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sim.device_kind import CageHost, SimKind
-from sim.links import damage, open_pty
+from sim.links import open_pty, send_paced
 from sim.physics import Faults
 
 if TYPE_CHECKING:
@@ -59,13 +58,9 @@ class AsciiMagnetometer:
                 continue
             x, y, z = (float(v) for v in self.read_ut(sample_t))
             line = self.line_format.format(x=x, y=y, z=z, t=sample_t - self._t0) + "\n"
-            data = damage(line.encode("ascii"), self.faults, self._rng)
-            try:
-                os.write(self.pty.master, data)
-            except OSError:
-                continue  # nobody reading and the buffer is full: the line is lost, as on a UART
-            self.lines_sent += 1
-            self._stop.wait(len(data) * 10.0 / self.baudrate)
+            if send_paced(self.pty, line.encode("ascii"), self.faults, self._rng, self.baudrate,
+                          self._stop):  # fmt: skip
+                self.lines_sent += 1
 
     def close(self) -> None:
         """Stop streaming and close the pty."""

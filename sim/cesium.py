@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sim.device_kind import CageHost, SimKind
-from sim.links import damage, open_pty
+from sim.links import open_pty, send_paced
 from sim.physics import Faults
 
 if TYPE_CHECKING:
@@ -132,12 +132,7 @@ class CesiumCounter:
         return data[-64:]
 
     def _send(self, line: bytes) -> None:
-        data = damage(line, self.faults, self._rng)
-        try:
-            os.write(self.pty.master, data)
-        except OSError:
-            return  # nobody reading and the buffer full: lost, as on a UART
-        self._stop.wait(len(data) * 10.0 / self.baudrate)
+        send_paced(self.pty, line, self.faults, self._rng, self.baudrate, self._stop)
 
     def close(self) -> None:
         """Stop sending and close the pty."""

@@ -59,6 +59,21 @@ def damage(data: bytes, faults: Faults, rng: random.Random) -> bytes:
     return data
 
 
+def send_paced(
+    pty: Pty, line: bytes, faults: Faults, rng: random.Random, baudrate: int, stop: threading.Event
+) -> bool:
+    """Write ``line`` (damaged by ``faults``) to a device's pty and wait the time it takes on a
+    UART at ``baudrate`` (or until ``stop``); False when it was lost (nobody reading and the
+    buffer full, as on a UART)."""
+    data = damage(line, faults, rng)
+    try:
+        os.write(pty.master, data)
+    except OSError:
+        return False
+    stop.wait(len(data) * 10.0 / baudrate)
+    return True
+
+
 STALE_PARTIAL_S = 0.5
 """A partial request older than this (s) is dropped when new bytes arrive (Modbus RTU ends a frame
 after 3.5 character times of silence; this is generous for a busy computer)."""
