@@ -269,3 +269,18 @@ def test_the_live_calibration_is_predicted_to_stop_when_its_targets_are_met(tmp_
     pred = predict_procedure(proc, None, RigTiming(), None, 24.0)
     (live_offset,) = pred.criteria
     assert live_offset.verdict == "CANNOT PASS" and "'bias_nt' not met" in live_offset.text
+
+
+def test_a_batch_fit_of_a_live_step_gets_the_samples_up_to_its_predicted_stop(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "live.yaml"
+    path.write_text(LIVE.format(bias=30) + "  - calibrate: {model: vector, telemetry: [bus],"
+                    " steps: [live]}\n    name: batch\n")  # fmt: skip
+    proc = parse_procedure(path)
+    pred = predict_procedure(proc, None, RigTiming(), None, 24.0)
+    (live,) = pred.live
+    (batch,) = pred.steps
+    assert live.stop_s is not None and batch.seconds == pytest.approx(live.stop_s)
+    full = planned_data(proc, proc.steps[-1], RigTiming(), 20.0)
+    assert batch.samples < full.n  # the live step stops early: fewer samples than its max_s

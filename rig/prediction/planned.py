@@ -54,21 +54,23 @@ def selected_steps(proc: Procedure, calibrate: Step) -> list[Step]:
 
 
 def planned_data(proc: Procedure, calibrate: Step, timing: RigTiming, dut_rate_hz: float,
-                 base: Path | None = None) -> PlannedData:  # fmt: skip
+                 base: Path | None = None, stops_s: dict[str, float] | None = None) -> PlannedData:  # fmt: skip
     """The samples ``calibrate`` (a step of ``proc``) will be given by a run of the plan, the DUT
-    sampling at ``dut_rate_hz`` and the reference at ``timing.reference_rate_hz``."""
+    sampling at ``dut_rate_hz`` and the reference at ``timing.reference_rate_hz``; a step named in
+    ``stops_s`` ends that many seconds in (a live calibration stopping on its targets)."""
     channels = tuple(str(c) for c in calibrate.params.get("telemetry") or ())
     settle_s = float(calibrate.params.get("settle_s", 0.25))
     early_s = EARLY_REFERENCE_PERIODS / timing.reference_rate_hz
     fields, loads, names, seconds = [], [], [], 0.0
     for step in selected_steps(proc, calibrate):
         plan = compile_step(step, base or proc.path.parent, timing)
-        _, f, u = step_samples(plan.commands, plan.duration_s, channels, dut_rate_hz,
+        t, f, u = step_samples(plan.commands, plan.duration_s, channels, dut_rate_hz,
                                settle_s, early_s)  # fmt: skip
-        fields.append(f)
-        loads.append(u)
+        end = min(plan.duration_s, (stops_s or {}).get(step.name, plan.duration_s))
+        fields.append(f[t <= end])
+        loads.append(u[t <= end])
         names.append(step.name)
-        seconds += plan.duration_s
+        seconds += end
     if not fields:
         return PlannedData(np.zeros((0, 3)), np.zeros((0, len(channels))), channels, (), 0.0)
     return PlannedData(np.vstack(fields), np.vstack(loads), channels, tuple(names), seconds)
