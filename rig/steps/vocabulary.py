@@ -189,8 +189,12 @@ def coerce(value: Any, p: Param, key: str, where: str) -> Any:
     if p.kind == "list_vec3":
         if not isinstance(value, list) or not value:
             raise _bad(where, key, f"must be a list of [x, y, z] points, got {value!r}")
-        vec3 = Param("vec3", minimum=p.minimum, maximum=p.maximum)
-        return [_numbers(v, vec3, f"{key}[{i}]", where) for i, v in enumerate(value)]
+        points = [_numbers(v, Param("vec3"), f"{key}[{i}]", where) for i, v in enumerate(value)]
+        for i, point in enumerate(points):
+            if any((p.minimum is not None and v < p.minimum)
+                   or (p.maximum is not None and v > p.maximum) for v in point):  # fmt: skip
+                raise _bad(where, f"{key}[{i}]", f"must be {_bounds(p)}, got {point}")
+        return points
     if p.kind == "list_str":
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
             raise _bad(where, key, f"must be a list of names, got {value!r}")

@@ -10,7 +10,13 @@ import pytest
 from rig.steps import KINDS
 from rig.steps.characterize_cage import characterization_duration_s
 from rig.steps.load_profiles import LOAD_PROFILES
-from rig.steps.vocabulary import DEFAULT_FIELD_LIMIT_UT, Command, RigTiming, bind_params
+from rig.steps.vocabulary import (
+    DEFAULT_FIELD_LIMIT_UT,
+    Command,
+    ProcedureError,
+    RigTiming,
+    bind_params,
+)
 from tests.steps.fake_context import compile_step, make_step
 from tests.steps.test_step_params import ORBIT
 
@@ -93,6 +99,18 @@ def test_sphere_sweep_spreads_directions_and_magnitudes() -> None:
         make_step("sphere_sweep", {"directions": 200, "magnitude_ut": [20, 60]})
     )
     assert fields_of(again)[1] == pytest.approx(fields)  # the same seed, the same order
+
+
+def test_field_points_holds_each_listed_field_in_turn() -> None:
+    listed = [[45.0, 0.0, 0.0], [0.0, -45.0, 0.0], [0.0, 0.0, 30.0]]
+    cmds, duration = compile_step(make_step("field_points", {"fields_ut": listed, "dwell_s": 1.5}))
+    times, fields = fields_of(cmds)
+    assert duration == 4.5 and times == [0.0, 1.5, 3.0]
+    assert fields.tolist() == listed and cmds[-1] == Command(4.5, "end", {})
+    for bad, needle in (([], "must be a list of"), ([[1.0, 2.0]], "fields_ut\\[0\\]"),
+                        ([[1.0, 2.0, 2000.0]], "within -1000..1000")):  # fmt: skip
+        with pytest.raises(ProcedureError, match=needle):
+            make_step("field_points", {"fields_ut": bad})
 
 
 def test_axis_sweep_steps_evenly_along_its_axis() -> None:
