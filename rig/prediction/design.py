@@ -247,15 +247,14 @@ def design_procedure(targets: Targets, cfg: Any, timing: Any, noise: Any, cage: 
     from rig.prediction.duration import predicted_duration
     from rig.prediction.planned import planned_data
     from rig.prediction.predict import predict_step
+    from rig.prediction.procedure import cage_limits, dut_rate_hz
     from rig.procedure.language import parse_procedure
 
     model = cage_model(cfg) if cfg is not None else None
     characterize = model is None or bool(model.meta.get("nominal"))
-    limits = _limits(cfg)
+    limits = cage_limits(cfg)
     cands = candidates(targets.magnitude_ut)
-    rate = (
-        float(cfg.devices["dut"].get("rate_hz") or 20.0) if cfg and "dut" in cfg.devices else 20.0
-    )
+    rate = dut_rate_hz(cfg, "dut")
     tried: dict[tuple[int, float], Design] = {}
 
     def build(n: int, dwell: float) -> Design:
@@ -287,13 +286,3 @@ def design_procedure(targets: Targets, cfg: Any, timing: Any, noise: Any, cage: 
     if best is None:  # nothing meets them: the design with the fewest unmet, then the shortest
         best = min(tried.values(), key=lambda d: (len(d.unmet), d.seconds))
     return best
-
-
-def _limits(cfg: Any) -> Any:
-    """The cage's limits for the ramps (None without a cage)."""
-    from rig.cage.limits import CageLimits
-
-    if cfg is None or cfg.cage is None:
-        return None
-    c = cfg.cage
-    return CageLimits(c.max_current_a, c.max_field_ut, c.max_slew_a_per_s, c.step_s)

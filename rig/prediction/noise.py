@@ -14,7 +14,7 @@ unknown.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -79,21 +79,14 @@ def measured_floor(runs_dir: Path, dut: str) -> NoiseFloor | None:
     null-field noise paired with the reference."""
     residuals: list[tuple[float, ...]] = []
     rest: NoiseFloor | None = None
-    for info in list_runs(runs_dir)[:RUNS_LOOKED_AT]:
-        if (info.meta.get("magnetometers") or {}).get("dut") != dut:
-            continue
-        reader = RunReader(info.folder)
-        try:
-            results = reader.results()
-        finally:
-            reader.close()
+    for run_id, results in _results_of(runs_dir, dut):
         axes = _residual_axes(results)
         if axes is not None:
             residuals.append(axes)
             if len(residuals) == POOLED_RUNS:
                 break
         elif rest is None:
-            rest = _null_field(results, info.run_id)
+            rest = _null_field(results, run_id)
     if residuals:
         pooled = np.sqrt(np.mean(np.square(residuals), axis=0))
         runs = f"{len(residuals)} run{'s' if len(residuals) > 1 else ''}"
@@ -107,17 +100,25 @@ def rest_floor(runs_dir: Path | None, dut: str) -> NoiseFloor | None:
     calibration's filter is given), None if no run measured it."""
     if runs_dir is None:
         return None
+    for run_id, results in _results_of(runs_dir, dut):
+        found = _null_field(results, run_id)
+        if found is not None:
+            return found
+    return None
+
+
+def _results_of(runs_dir: Path, dut: str) -> Iterator[tuple[str, dict[str, Any]]]:
+    """(run id, results) of the newest runs of device ``dut`` (at most :data:`RUNS_LOOKED_AT`
+    runs looked at), newest first."""
     for info in list_runs(runs_dir)[:RUNS_LOOKED_AT]:
         if (info.meta.get("magnetometers") or {}).get("dut") != dut:
             continue
         reader = RunReader(info.folder)
         try:
-            found = _null_field(reader.results(), info.run_id)
+            results = reader.results()
         finally:
             reader.close()
-        if found is not None:
-            return found
-    return None
+        yield info.run_id, results
 
 
 def _residual_axes(results: Mapping[str, Any]) -> tuple[float, ...] | None:

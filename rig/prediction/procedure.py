@@ -7,6 +7,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from rig.analysis import COVERAGE_K
+from rig.cage.limits import CageLimits
 from rig.cage_budget import cage_terms, certificate_of
 from rig.calibration.budget import CageTerms
 from rig.config import RigConfig
@@ -17,8 +19,6 @@ from rig.prediction.planned import planned_data
 from rig.prediction.predict import StepPrediction, predict_step
 from rig.steps.vocabulary import Procedure, RigTiming
 
-COVERAGE_K = 2.0
-"""The coverage factor the run judges criteria with (``rig.analysis.COVERAGE_K``)."""
 DEFAULT_DUT_RATE_HZ = 20.0
 
 
@@ -56,9 +56,7 @@ def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
     if noise is None:
         noise = noise_floor(proc, cfg, runs_dir, noise_nt)
     dut = proc.magnetometers.get("dut", "dut")
-    rate = DEFAULT_DUT_RATE_HZ
-    if cfg is not None and dut in cfg.devices and cfg.devices[dut].get("rate_hz"):
-        rate = float(cfg.devices[dut].get("rate_hz"))
+    rate = dut_rate_hz(cfg, dut)
     cage = cage_terms_for(proc, cfg)
     rest = rest_floor(runs_dir, dut)
     live = tuple(predict_live(proc, s, timing, rate, rest.pair_nt if rest else noise.pair_nt, seed)
@@ -103,16 +101,28 @@ def judge_live(criterion: dict[str, Any], live: LivePrediction) -> CriterionPred
                                f" {hi:g}; {live.noise_nt:.1f} nT noise)")  # fmt: skip
 
 
+def dut_rate_hz(cfg: RigConfig | None, dut: str) -> float:
+    """The DUT's sample rate from the rig configuration (Hz; 20 when it gives none)."""
+    if cfg is not None and dut in cfg.devices and cfg.devices[dut].get("rate_hz"):
+        return float(cfg.devices[dut].get("rate_hz"))
+    return DEFAULT_DUT_RATE_HZ
+
+
+def cage_limits(cfg: RigConfig | None) -> CageLimits | None:
+    """The cage's limits the ramps keep to (None without a cage)."""
+    if cfg is None or cfg.cage is None:
+        return None
+    c = cfg.cage
+    return CageLimits(c.max_current_a, c.max_field_ut, c.max_slew_a_per_s, c.step_s)
+
+
 def _duration(proc: Procedure, cfg: RigConfig | None, timing: RigTiming) -> PredictedDuration:
     """The procedure's time on the rig (ramps from the cage model in use)."""
-    from rig.cage.limits import CageLimits
     from rig.output_limits import cage_model
 
-    if cfg is None or cfg.cage is None:
-        return predicted_duration(proc, None, None, timing)
-    c = cfg.cage
-    limits = CageLimits(c.max_current_a, c.max_field_ut, c.max_slew_a_per_s, c.step_s)
-    return predicted_duration(proc, cage_model(cfg), limits, timing)
+    limits = cage_limits(cfg)
+    model = cage_model(cfg) if cfg is not None and limits is not None else None
+    return predicted_duration(proc, model, limits, timing)
 
 
 def cage_terms_for(proc: Procedure, cfg: RigConfig | None) -> CageTerms | None:
