@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import pickle
 import sys
 import tempfile
 import time
@@ -34,6 +35,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 ROOT = Path(__file__).resolve().parents[1]
+FITTED = ("calibrate", "live_calibrate")
+"""The step kinds whose sigmas are predicted and compared."""
 
 
 def run_once(seed: int, procedure: str, folder: Path) -> tuple[Any, dict[str, Any]]:
@@ -50,12 +53,14 @@ def run_once(seed: int, procedure: str, folder: Path) -> tuple[Any, dict[str, An
 
     cfg = replace(load_config(), seed=seed)
     proc = parse_procedure(find_procedure(procedure))
+    # the report (plots, PDF: most of a run's CPU) changes no result: left out, the last step
+    proc = replace(proc, steps=tuple(s for s in proc.steps if s.kind != "report"))
     with SimulatedCage(cfg) as cage:
         (folder / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
         outcome = Runner(proc, load_rig_config(folder / "rig.toml"), folder / "runs",
                          i2c_bus=cage.i2c_bus, confirm=lambda _q: True, live=False).run()  # fmt: skip
     truth = {s.name: truth_values(cfg, list(s.params.get("telemetry") or []))
-             for s in proc.steps if s.kind == "calibrate"}  # fmt: skip
+             for s in proc.steps if s.kind in FITTED}  # fmt: skip
     return outcome, truth
 
 
@@ -68,7 +73,8 @@ def flat(block: dict[str, Any]) -> np.ndarray:
 
 
 def one_run(seed: int, procedure: str) -> dict[str, Any]:
-    """One run on Dask: per calibrate step the sigmas reported and the errors against the truth."""
+    """One run on Dask: per fitted step the sigmas reported, the errors against the truth and
+    (a live step) its ``live`` block; the null-field results as they are."""
     from rig.calibration.record import CalibrationRecord
 
     with tempfile.TemporaryDirectory(prefix="prediction-") as tmp:
@@ -82,43 +88,62 @@ def one_run(seed: int, procedure: str) -> dict[str, Any]:
         values = flat({"springmann": record.springmann,
                        "k_ut_per_unit": record.k_ut_per_unit,
                        "mounting_deg": record.mounting_deg or []})  # fmt: skip
-        out[name] = {"sigma": flat(r["sigma"]), "combined": flat(r["combined_sigma"]),
-                     "error": values - true[: len(values)],
+        out[name] = {"sigma": flat(r["sigma"]), "combined": flat(r.get("combined_sigma", r["sigma"])),
+                     "error": values - true[: len(values)], "live": r.get("live"),
                      "residual_axes": r.get("residual_rms_axes_nt")}  # fmt: skip
-    return out
+    nulls = {
+        k: v
+        for k, v in outcome.results.items()
+        if isinstance(v, dict) and "dut_paired_noise_nt" in v
+    }
+    return {"steps": out, "null_field": nulls}
 
 
 def predicted(procedure: str, earlier: list[dict[str, Any]]) -> Any:
-    """The prediction from the earlier runs' pooled residuals and the plan, on the simulated
-    rig's configuration (its certificate's sigmas, no field map: as the runs have)."""
+    """The prediction from the earlier runs and the plan, on the simulated rig's configuration
+    (its certificate's sigmas, no field map: as the runs have): their vector calibrations'
+    residuals pooled (the noise floor), their null fields' paired noise (a live filter's) and
+    the field their untrimmed nulls read (the nominal cage model's), as a runs folder gives them."""
     from rig.config import load_rig_config
-    from rig.prediction.noise import NoiseFloor
+    from rig.prediction.background import Background
+    from rig.prediction.noise import NoiseFloor, even
     from rig.prediction.procedure import predict_procedure
     from rig.procedure.language import parse_procedure
     from rig.procedure.plan import rig_timing
     from rig.procedure_files import find_procedure
     from rig.sim_rig import sim_rig_config
+    from rig.steps.null_field import NoiseFloorResult
     from sim.cage import SimulatedCage
     from sim.config import load_config
 
-    axes = [step["residual_axes"] for run in earlier for step in run.values()
+    axes = [step["residual_axes"] for run in earlier for step in run["steps"].values()
             if step.get("residual_axes")]  # fmt: skip
     pooled = np.sqrt(np.mean(np.square(axes), axis=0))
     noise = NoiseFloor((float(pooled[0]), float(pooled[1]), float(pooled[2])),
                        f"the residuals of {len(earlier)} earlier runs")  # fmt: skip
+    nulls = [f for run in earlier for v in run["null_field"].values()
+             if (f := NoiseFloorResult.from_dict(v)) is not None]  # fmt: skip
+    pairs = [p for f in nulls if (p := f.pair_noise_nt("dut")) is not None]
+    rest = even(float(np.sqrt(np.mean(np.square(pairs)))), "earlier null fields") if pairs else None
+    fields = [f.null_residual_ut for f in nulls if f.null_residual_ut is not None]
+    mean = np.mean(fields, axis=0) if fields else np.zeros(3)
+    background = Background((float(mean[0]), float(mean[1]), float(mean[2])),
+                            f"{len(fields)} earlier untrimmed nulls", bool(fields))  # fmt: skip
     cfg = load_config()
     with tempfile.TemporaryDirectory(prefix="prediction-rig-") as tmp, SimulatedCage(cfg) as cage:
         (Path(tmp) / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
         rig = load_rig_config(Path(tmp) / "rig.toml")
     proc = parse_procedure(find_procedure(procedure))
-    return predict_procedure(proc, rig, rig_timing(rig), None, None, noise=noise)
+    return predict_procedure(proc, rig, rig_timing(rig), None, None, noise=noise, rest=rest,
+                             background=background)  # fmt: skip
 
 
 def table(prediction: Any, runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per step and parameter: predicted, achieved, their ratio, rms error / predicted."""
+    """Per fitted step and parameter: predicted, achieved, their ratio, rms error / predicted;
+    a live step's settled samples at its stop too (predicted against the runs' mean)."""
     rows = []
-    for step in prediction.steps:
-        got = [r[step.step] for r in runs]
+    for step in [*prediction.steps, *prediction.live]:
+        got = [r["steps"][step.step] for r in runs]
         sigma = np.array([g["sigma"] for g in got])
         combined = np.array([g["combined"] for g in got])
         error = np.array([g["error"] for g in got])
@@ -132,6 +157,13 @@ def table(prediction: Any, runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                          "ratio_combined": p.combined / achieved_c,
                          "error_over_predicted": float(np.sqrt(np.mean(error[:, i] ** 2))) / p.combined,
                          "limited_by": p.limited_by})  # fmt: skip
+        if getattr(step, "samples", 0) and all(g.get("live") for g in got):
+            n = float(np.mean([g["live"]["updates"] for g in got]))
+            rows.append({"step": step.step, "parameter": "samples at the stop",
+                         "predicted": float(step.samples), "achieved": n,
+                         "ratio": step.samples / n, "predicted_combined": float(step.samples),
+                         "achieved_combined": n, "ratio_combined": step.samples / n,
+                         "error_over_predicted": float("nan"), "limited_by": step.limited_by})  # fmt: skip
     return rows
 
 
@@ -172,13 +204,20 @@ def main() -> int:
         help="the first runs, whose residuals are the noise floor (not judged)",
     )
     parser.add_argument("--out", type=Path, help="write prediction.csv and prediction.png here")
+    parser.add_argument("--save", type=Path, help="keep the runs' figures in this file (pickle)")
+    parser.add_argument("--load", type=Path, help="judge the runs kept by --save (no new runs)")
     from bench.dask_runs import add_dask_arguments, map_on_dask
 
     add_dask_arguments(parser, workers=5)
     args = parser.parse_args()
     start = time.monotonic()
-    results = map_on_dask(one_run, range(args.runs), [args.procedure] * args.runs,
-                          workers=args.workers, scheduler=args.scheduler)  # fmt: skip
+    if args.load is not None:
+        results = pickle.loads(args.load.read_bytes())
+    else:
+        results = map_on_dask(one_run, range(args.runs), [args.procedure] * args.runs,
+                              workers=args.workers, scheduler=args.scheduler)  # fmt: skip
+    if args.save is not None:
+        args.save.write_bytes(pickle.dumps(results))
     failed = [r["failed"] for r in results if "failed" in r]
     done = [r for r in results if "failed" not in r]
     prediction = predicted(args.procedure, done[: args.earlier])

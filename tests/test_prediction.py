@@ -284,3 +284,45 @@ def test_a_batch_fit_of_a_live_step_gets_the_samples_up_to_its_predicted_stop(
     assert live.stop_s is not None and batch.seconds == pytest.approx(live.stop_s)
     full = planned_data(proc, proc.steps[-1], RigTiming(), 20.0)
     assert batch.samples < full.n  # the live step stops early: fewer samples than its max_s
+
+
+def test_the_field_a_nominal_cage_model_leaves_is_on_every_planned_field(tmp_path: Path) -> None:
+    """A nominal cage model (B0 = 0) leaves the lab's field in the cage: the DUT sees set-point
+    plus that field (a live calibration on the simulated cage: the filter's offset sigma was 5
+    times the prediction's without it). It comes from an earlier untrimmed null with the same
+    model; a characterized model, or a characterization earlier in the procedure, nulls it."""
+    from rig.config import load_rig_config
+    from rig.prediction.background import background_field
+
+    (tmp_path / "rig.toml").write_text(
+        RIG + '\n[cage]\naxes = { x = "bus", y = "bus", z = "bus" }\nmax_current_a = [2.5, 2.5, 2.5]'
+        "\nmax_field_ut = 120.0\nmax_slew_a_per_s = 10.0\n"
+        "nominal_k_ut_per_a = [[40.0, 0.0, 0.0], [0.0, 40.0, 0.0], [0.0, 0.0, 40.0]]\n"
+    )
+    cfg = load_rig_config(tmp_path / "rig.toml")
+    runs = tmp_path / "runs"
+    unknown = background_field(cfg, runs, "dut")
+    assert not unknown.known and "nominal" in unknown.source and unknown.field_ut == (0, 0, 0)
+    rest = new_run(runs, "rest", magnetometers={"dut": "dut", "reference": "reference"})
+    rest.set_result("floor", {"dut_noise_nt": 21.0, "dut_paired_noise_nt": 23.5,
+                              "null_residual_ut": [19.6, 1.2, -44.7]})  # fmt: skip
+    rest.close("complete", "")
+    lab = background_field(cfg, runs, "dut")
+    assert lab.known and lab.field_ut == (19.6, 1.2, -44.7) and "'floor' of run" in lab.source
+    path = procedure(tmp_path)
+    proc = parse_procedure(path)
+    bare = planned_data(proc, proc.steps[-2], RigTiming(), 20.0)
+    moved = planned_data(proc, proc.steps[-2], RigTiming(), 20.0, background=lab)
+    assert np.allclose(moved.field_ut - bare.field_ut, [19.6, 1.2, -44.7])
+    path.write_text(path.read_text().replace("steps:\n", "steps:\n  - characterize_cage: {}\n", 1))
+    proc = parse_procedure(path)
+    after = planned_data(proc, proc.steps[-2], RigTiming(), 20.0, background=lab)
+    assert np.allclose(after.field_ut, bare.field_ut)  # the run's own model nulls it
+    from rig.cage.model import CageModel
+
+    CageModel(40.0 * np.eye(3), np.array([19.0, 1.0, -44.0])).save(tmp_path / "cage.json")
+    (tmp_path / "rig.toml").write_text(
+        (tmp_path / "rig.toml").read_text().replace("[cage]\n", '[cage]\ncalibration = "cage.json"\n')
+    )
+    recorded = background_field(load_rig_config(tmp_path / "rig.toml"), runs, "dut")
+    assert recorded.known and recorded.field_ut == (0, 0, 0) and "record" in recorded.source

@@ -26,6 +26,11 @@ def run_prediction(procedure: str, rig_config: Path | None, sets: list[str], run
     if not quiet:
         print(f"\nprediction (noise {pred.noise.pair_nt:.1f} nT per axis, DUT less reference:"
               f" {pred.noise.source}; {time.perf_counter() - start:.2f} s):")  # fmt: skip
+        bg = pred.background
+        if bg is not None and (not bg.known or any(bg.field_ut)):
+            field = ", ".join(f"{v:.1f}" for v in bg.field_ut)
+            print(f"  field at the cage's zero: ({field}) uT, on every set-point not after a"
+                  f" characterization: {bg.source}")  # fmt: skip
         for step in pred.steps:
             _print_step(step)
         for live in pred.live:

@@ -17,9 +17,12 @@ import numpy as np
 
 from rig.calibration.fit import calibrate
 from rig.calibration.residuals import Samples
+from rig.calibration.result import CalibrationResult
 from rig.calibration.targets import group_sigmas, unmet_targets
 from rig.errors import CalibrationError
+from rig.prediction.background import Background
 from rig.prediction.planned import EARLY_REFERENCE_PERIODS, step_samples
+from rig.prediction.predict import ParameterPrediction, flat_paths
 from rig.procedure.plan import compile_step
 from rig.steps.vocabulary import Procedure, RigTiming, Step
 
@@ -41,12 +44,17 @@ class LivePrediction:
     targets: dict[str, float]
     limited_by: str
     problem: str | None = None
+    parameters: tuple[ParameterPrediction, ...] = ()
+    """Every reported value's sigma when the step stops (or at ``max_s``)."""
+    samples: int = 0
+    """The filter's updates by then (settled samples)."""
 
 
 def predict_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: float,
-                 noise_nt: float, seed: int = 0) -> LivePrediction:  # fmt: skip
+                 noise_nt: float, seed: int = 0,
+                 background: Background | None = None) -> LivePrediction:  # fmt: skip
     """Predict live step ``step`` of ``proc`` (the filter's noise ``noise_nt`` unless the step
-    gives its own)."""
+    gives its own; the field the cage leaves at zero, ``background``, on every set-point)."""
     p = step.params
     noise = float(p.get("noise_nt") or noise_nt)
     targets = {str(k): float(v) for k, v in dict(p.get("targets") or {}).items()}
@@ -56,11 +64,13 @@ def predict_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: fl
     t, field, loads = step_samples(plan.commands, plan.duration_s, channels, dut_rate_hz,
                                    float(p["settle_s"]),
                                    EARLY_REFERENCE_PERIODS / timing.reference_rate_hz)  # fmt: skip
+    if background is not None:
+        field = field + background.for_step(proc, step)
     method = str(p.get("method") or "ukf")
     rng = np.random.default_rng([seed, len(t)])
     measured = field + 1e-3 * noise * rng.standard_normal(field.shape)
 
-    def sigmas_at(until_s: float) -> dict[str, float] | None:
+    def fit_at(until_s: float) -> _Fit | None:
         keep = t <= until_s
         if keep.sum() < 20:
             return None
@@ -70,28 +80,46 @@ def predict_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: fl
             fit = calibrate(s, method, noise_nt=noise)
         except CalibrationError:
             return None
-        return group_sigmas(fit.sigma, fit.names)
+        return _Fit(group_sigmas(fit.sigma, fit.names), _parameters(fit, noise), int(keep.sum()))
 
-    at_end = sigmas_at(max_s)
+    head = (step.name, noise)
+    at_end = fit_at(max_s)
     if at_end is None:
-        return LivePrediction(step.name, noise, None, max_s, {}, targets, "",
+        return LivePrediction(*head, None, max_s, {}, targets, "",
                               problem=f"too few samples in {max_s:g} s to fit")  # fmt: skip
-    unmet = unmet_targets(at_end, targets)
+    unmet = unmet_targets(at_end.sigmas, targets)
     if unmet:
-        return LivePrediction(step.name, noise, None, max_s, at_end, targets, unmet[0])
+        return LivePrediction(*head, None, max_s, at_end.sigmas, targets, unmet[0], None,
+                              at_end.parameters, at_end.samples)  # fmt: skip
     lo, hi = min_s, max_s
-    found = sigmas_at(lo)
-    if found is not None and not unmet_targets(found, targets):
-        return LivePrediction(step.name, noise, lo, max_s, found, targets, _last(found, targets))
-    while hi - lo > RESOLUTION_S:
-        mid = 0.5 * (lo + hi)
-        got = sigmas_at(mid)
-        if got is not None and not unmet_targets(got, targets):
-            hi = mid
-        else:
-            lo = mid
-    final = sigmas_at(hi) or at_end
-    return LivePrediction(step.name, noise, hi, max_s, final, targets, _last(final, targets))
+    found = fit_at(lo)
+    if found is None or unmet_targets(found.sigmas, targets):
+        while hi - lo > RESOLUTION_S:
+            mid = 0.5 * (lo + hi)
+            got = fit_at(mid)
+            if got is not None and not unmet_targets(got.sigmas, targets):
+                hi = mid
+            else:
+                lo = mid
+        found = fit_at(hi) or at_end
+        lo = hi
+    return LivePrediction(*head, lo, max_s, found.sigmas, targets, _last(found.sigmas, targets),
+                          None, found.parameters, found.samples)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _Fit:
+    sigmas: dict[str, float]
+    parameters: tuple[ParameterPrediction, ...]
+    samples: int
+
+
+def _parameters(fit: CalibrationResult, noise_nt: float) -> tuple[ParameterPrediction, ...]:
+    """Each reported value's sigma (the filter's own: a live result has no cage terms)."""
+    sigma = fit.reported_sigma()
+    why = f"noise ({noise_nt:.1f} nT, the filter's)"
+    return tuple(ParameterPrediction(path, float(v), float(v), why)
+                 for path, v in zip(flat_paths(fit.grouped(sigma)), sigma, strict=True))  # fmt: skip
 
 
 def _last(sigmas: dict[str, float], targets: dict[str, float]) -> str:

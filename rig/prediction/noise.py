@@ -79,7 +79,7 @@ def measured_floor(runs_dir: Path, dut: str) -> NoiseFloor | None:
     null-field noise paired with the reference."""
     residuals: list[tuple[float, ...]] = []
     rest: NoiseFloor | None = None
-    for run_id, results in _results_of(runs_dir, dut):
+    for run_id, results in results_of(runs_dir, dut):
         axes = _residual_axes(results)
         if axes is not None:
             residuals.append(axes)
@@ -100,14 +100,14 @@ def rest_floor(runs_dir: Path | None, dut: str) -> NoiseFloor | None:
     calibration's filter is given), None if no run measured it."""
     if runs_dir is None:
         return None
-    for run_id, results in _results_of(runs_dir, dut):
+    for run_id, results in results_of(runs_dir, dut):
         found = _null_field(results, run_id)
         if found is not None:
             return found
     return None
 
 
-def _results_of(runs_dir: Path, dut: str) -> Iterator[tuple[str, dict[str, Any]]]:
+def results_of(runs_dir: Path, dut: str) -> Iterator[tuple[str, dict[str, Any]]]:
     """(run id, results) of the newest runs of device ``dut`` (at most :data:`RUNS_LOOKED_AT`
     runs looked at), newest first."""
     for info in list_runs(runs_dir)[:RUNS_LOOKED_AT]:

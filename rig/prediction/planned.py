@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from rig.prediction.background import Background
 from rig.procedure.plan import compile_step
 from rig.steps import field_kinds
 from rig.steps.vocabulary import Command, Procedure, RigTiming, Step
@@ -54,10 +55,12 @@ def selected_steps(proc: Procedure, calibrate: Step) -> list[Step]:
 
 
 def planned_data(proc: Procedure, calibrate: Step, timing: RigTiming, dut_rate_hz: float,
-                 base: Path | None = None, stops_s: dict[str, float] | None = None) -> PlannedData:  # fmt: skip
+                 base: Path | None = None, stops_s: dict[str, float] | None = None,
+                 background: Background | None = None) -> PlannedData:  # fmt: skip
     """The samples ``calibrate`` (a step of ``proc``) will be given by a run of the plan, the DUT
     sampling at ``dut_rate_hz`` and the reference at ``timing.reference_rate_hz``; a step named in
-    ``stops_s`` ends that many seconds in (a live calibration stopping on its targets)."""
+    ``stops_s`` ends that many seconds in (a live calibration stopping on its targets); the field
+    the cage leaves at zero (``background``) added to each step's set-points."""
     channels = tuple(str(c) for c in calibrate.params.get("telemetry") or ())
     settle_s = float(calibrate.params.get("settle_s", 0.25))
     early_s = EARLY_REFERENCE_PERIODS / timing.reference_rate_hz
@@ -67,7 +70,8 @@ def planned_data(proc: Procedure, calibrate: Step, timing: RigTiming, dut_rate_h
         t, f, u = step_samples(plan.commands, plan.duration_s, channels, dut_rate_hz,
                                settle_s, early_s)  # fmt: skip
         end = min(plan.duration_s, (stops_s or {}).get(step.name, plan.duration_s))
-        fields.append(f[t <= end])
+        bg = background.for_step(proc, step) if background is not None else np.zeros(3)
+        fields.append(f[t <= end] + bg)
         loads.append(u[t <= end])
         names.append(step.name)
         seconds += end

@@ -12,6 +12,7 @@ from rig.cage.limits import CageLimits
 from rig.cage_budget import cage_terms, certificate_of
 from rig.calibration.budget import CageTerms
 from rig.config import RigConfig
+from rig.prediction.background import Background, background_field
 from rig.prediction.duration import PredictedDuration, predicted_duration
 from rig.prediction.live import LivePrediction, predict_live
 from rig.prediction.noise import NoiseFloor, noise_floor, rest_floor
@@ -41,6 +42,7 @@ class ProcedurePrediction:
     criteria: tuple[CriterionPrediction, ...]
     duration: PredictedDuration
     live: tuple[LivePrediction, ...] = ()
+    background: Background | None = None
 
     @property
     def cannot_pass(self) -> list[CriterionPrediction]:
@@ -50,20 +52,26 @@ class ProcedurePrediction:
 
 def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
                       runs_dir: Path | None, noise_nt: float | None, seed: int = 0,
-                      noise: NoiseFloor | None = None) -> ProcedurePrediction:  # fmt: skip
+                      noise: NoiseFloor | None = None, rest: NoiseFloor | None = None,
+                      background: Background | None = None) -> ProcedurePrediction:  # fmt: skip
     """Predict every calibrate step of ``proc`` on the rig ``cfg`` (None: no cage terms); the
-    noise floor ``noise`` when given, else found (:func:`rig.prediction.noise.noise_floor`)."""
+    noise floor ``noise``, the rest floor ``rest`` (a live filter's noise) and the field at the
+    cage's zero ``background`` when given, else found in ``runs_dir`` and ``cfg``
+    (:mod:`rig.prediction.noise`, :mod:`rig.prediction.background`)."""
     if noise is None:
         noise = noise_floor(proc, cfg, runs_dir, noise_nt)
     dut = proc.magnetometers.get("dut", "dut")
     rate = dut_rate_hz(cfg, dut)
     cage = cage_terms_for(proc, cfg)
-    rest = rest_floor(runs_dir, dut)
-    live = tuple(predict_live(proc, s, timing, rate, rest.pair_nt if rest else noise.pair_nt, seed)
+    rest = rest or rest_floor(runs_dir, dut)
+    background = background or background_field(cfg, runs_dir, dut)
+    live = tuple(predict_live(proc, s, timing, rate, rest.pair_nt if rest else noise.pair_nt, seed,
+                              background)
                  for s in proc.steps if s.kind == "live_calibrate")  # fmt: skip
     stops = {lp.step: lp.stop_s for lp in live if lp.stop_s is not None and _stops_early(proc, lp)}
     fits = [s for s in proc.steps if s.kind == "calibrate"]
-    data = [planned_data(proc, s, timing, rate, stops_s=stops) for s in fits]
+    data = [planned_data(proc, s, timing, rate, stops_s=stops, background=background)
+            for s in fits]  # fmt: skip
     steps = tuple(predict_step(s.name, s.params, d, noise, cage, seed)
                   for s, d in zip(fits, data, strict=True))  # fmt: skip
     criteria = [c for s in proc.steps if s.kind == "check" for c in s.params.get("criteria", [])]
@@ -71,7 +79,8 @@ def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
     lives = {p.step: p for p in live}
     judged = tuple(judge_live(c, lives[c["result"]]) if c["result"] in lives else judge(c, by_name)
                    for c in criteria)  # fmt: skip
-    return ProcedurePrediction(noise, steps, judged, _duration(proc, cfg, timing), live)
+    return ProcedurePrediction(noise, steps, judged, _duration(proc, cfg, timing), live,
+                               background)  # fmt: skip
 
 
 def _stops_early(proc: Procedure, live: LivePrediction) -> bool:

@@ -1,7 +1,10 @@
 """``null_field``: cancel the ambient field and hold; the noise floor of every sampled
 magnetometer over the hold is the step's result (``<role>_noise_nt``), and for each one besides
 the reference the noise of its pairs with the reference (``<role>_paired_noise_nt``, what a
-live calibration sees)."""
+live calibration sees). An untrimmed null with the rig's own cage model (no characterization
+earlier in the run) also records the field the reference read there (``null_residual_ut``): the
+field that model leaves at a commanded zero, which ``rig check --predict`` adds to the set-points
+of later runs with the same model."""
 
 from __future__ import annotations
 
@@ -11,7 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.analysis import noise_floor, paired_noise
+from rig.analysis import noise_floor, paired_noise, to_cage_frame
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.vocabulary import Param, RigTiming, Step
 
@@ -26,22 +29,31 @@ class NoiseFloorResult:
 
     noise_nt: dict[str, float]
     paired_noise_nt: dict[str, float]
+    null_residual_ut: tuple[float, float, float] | None = None
+    """The reference's mean field over the hold (uT, cage frame) when the rig's cage model set
+    the null untrimmed; None otherwise."""
 
-    def to_dict(self) -> dict[str, float]:
-        """The stored mapping: ``<role>_noise_nt`` and ``<role>_paired_noise_nt``."""
-        out = {f"{role}_noise_nt": v for role, v in self.noise_nt.items()}
-        return out | {f"{role}_paired_noise_nt": v for role, v in self.paired_noise_nt.items()}
+    def to_dict(self) -> dict[str, Any]:
+        """The stored mapping: ``<role>_noise_nt``, ``<role>_paired_noise_nt`` and (when
+        measured) ``null_residual_ut``."""
+        out: dict[str, Any] = {f"{role}_noise_nt": v for role, v in self.noise_nt.items()}
+        out |= {f"{role}_paired_noise_nt": v for role, v in self.paired_noise_nt.items()}
+        if self.null_residual_ut is not None:
+            out["null_residual_ut"] = list(self.null_residual_ut)
+        return out
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> NoiseFloorResult | None:
         """Read a stored result; None when it is not a noise floor."""
+        residual = _residual(d.get("null_residual_ut"))
+        d = {k: v for k, v in d.items() if k != "null_residual_ut"}
         paired = {k.removesuffix("_paired_noise_nt"): float(v) for k, v in d.items()
                   if k.endswith("_paired_noise_nt")}  # fmt: skip
         noise = {k.removesuffix("_noise_nt"): float(v) for k, v in d.items()
                  if k.endswith("_noise_nt") and not k.endswith("_paired_noise_nt")}  # fmt: skip
         if not noise or len(noise) + len(paired) != len(d):
             return None
-        return cls(noise, paired)
+        return cls(noise, paired, residual)
 
     def pair_noise_nt(self, role: str) -> float | None:
         """The noise ``role`` sees paired with the reference (nT): the paired noise measured, else
@@ -51,6 +63,17 @@ class NoiseFloorResult:
         if role in self.noise_nt:
             return float(np.hypot(self.noise_nt[role], self.noise_nt.get("reference", 0.0)))
         return None
+
+
+def _residual(value: Any) -> tuple[float, float, float] | None:
+    """A stored ``null_residual_ut``: three finite numbers, else None."""
+    if not isinstance(value, list | tuple) or len(value) != 3:
+        return None
+    try:
+        x, y, z = (float(v) for v in value)
+    except (TypeError, ValueError):
+        return None
+    return (x, y, z) if all(np.isfinite((x, y, z))) else None
 
 
 def latest_noise_floor(results: Mapping[str, Any]) -> NoiseFloorResult | None:
@@ -65,7 +88,7 @@ def latest_noise_floor(results: Mapping[str, Any]) -> NoiseFloorResult | None:
 class NullField(FieldStepKind):
     name = "null_field"
     summary = "cancel the ambient field, hold, measure every magnetometer's noise floor"
-    result_values = ("*_noise_nt", "*_paired_noise_nt")  # per magnetometer role
+    result_values = ("*_noise_nt", "*_paired_noise_nt", "null_residual_ut")
     params: ClassVar[dict[str, Param]] = {
         "hold_s": Param("float", 2.0, 0.0, 86400.0),
         "trim": Param("str", "no", choices=("yes", "no")),
@@ -127,13 +150,30 @@ class NoiseFloor(StepExecution):
                 for role, dev in mags.items()
                 if ref is not None and role != "reference" and dev in noise and ref in noise
             }
+            residual = self._null_residual(reader, ref, window)
         finally:
             reader.close()
         result = NoiseFloorResult(
             {role: noise[dev] for role, dev in mags.items() if dev in noise},
             {role: v for role, v in paired.items() if v is not None},
+            residual,
         )
         self.ctx.record_result(self.step.name, result.to_dict())
+
+    def _null_residual(self, reader: Any, ref: str | None,
+                       window: tuple[float, float]) -> tuple[float, float, float] | None:  # fmt: skip
+        """The reference's mean over the hold (uT, cage frame) when the rig's own cage model set
+        this null untrimmed (no characterization earlier in the run); else None."""
+        characterized = any(isinstance(v, Mapping) and "b0_ut" in v and "k_ut_per_a" in v
+                            for v in self.ctx.results.values())  # fmt: skip
+        if ref is None or characterized or self.step.params.get("trim") == "yes":
+            return None
+        t_a, t_b = window[0] + NOISE_SETTLE_S, window[1]
+        rows = np.array([r[1:4] for r in reader.samples(ref) if t_a <= r[0] <= t_b], float)
+        if rows.shape[0] == 0:
+            return None
+        x, y, z = (float(v) for v in to_cage_frame(rows, self.ctx.correction).mean(axis=0))
+        return (x, y, z)
 
 
 KIND = NullField()

@@ -114,6 +114,28 @@ def test_null_field_reports_each_magnetometers_noise_floor(tmp_path: Path) -> No
     assert result["dut_noise_nt"] == pytest.approx(1000 * np.hypot(0.02, 0.05), rel=0.05)
     assert result["reference_noise_nt"] == pytest.approx(1000 * np.hypot(0.02, 0.01), rel=0.05)
     assert result["dut_paired_noise_nt"] == pytest.approx(1000 * np.hypot(0.05, 0.01), rel=0.05)
+    # untrimmed, the rig's own cage model: the field it leaves at zero is recorded
+    assert result["null_residual_ut"] == pytest.approx([0, 0, 0], abs=3e-3)
+
+
+def test_null_field_records_the_field_the_cage_model_leaves_unless_trimmed_or_characterized(
+    tmp_path: Path,
+) -> None:
+    lab = np.array([19.6, 1.2, -44.7])
+    for params, results, expected in (
+        ({"hold_s": 10}, {}, lab),
+        ({"hold_s": 10, "trim": "yes"}, {}, None),  # trimmed: the loop's field, not the model's
+        ({"hold_s": 10}, {"cage": {"k_ut_per_a": [[40, 0, 0]] * 3, "b0_ut": [0, 0, 0]}}, None),
+    ):
+        step = make_step("null_field", params)
+        ctx = context(tmp_path / str(len(params)) / str(len(results)), step, results=results)
+        t = np.arange(0.0, 10.0, 0.05)
+        ctx.recording.add_field(0.0, [0, 0, 0])
+        for dev in ("dut", "reference"):
+            ctx.recording.add_samples(dev, t, lab + np.zeros((t.size, 3)))
+        result = carry_out(ctx, step, (0.0, 10.0))
+        got = result.get("null_residual_ut")
+        assert (got is None) if expected is None else got == pytest.approx(expected), params
 
 
 def test_null_field_leaves_out_the_settling_after_a_change(tmp_path: Path) -> None:
