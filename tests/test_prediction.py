@@ -295,7 +295,8 @@ def test_the_field_a_nominal_cage_model_leaves_is_on_every_planned_field(tmp_pat
     from rig.prediction.background import background_field
 
     (tmp_path / "rig.toml").write_text(
-        RIG + '\n[cage]\naxes = { x = "bus", y = "bus", z = "bus" }\nmax_current_a = [2.5, 2.5, 2.5]'
+        RIG
+        + '\n[cage]\naxes = { x = "bus", y = "bus", z = "bus" }\nmax_current_a = [2.5, 2.5, 2.5]'
         "\nmax_field_ut = 120.0\nmax_slew_a_per_s = 10.0\n"
         "nominal_k_ut_per_a = [[40.0, 0.0, 0.0], [0.0, 40.0, 0.0], [0.0, 0.0, 40.0]]\n"
     )
@@ -322,7 +323,9 @@ def test_the_field_a_nominal_cage_model_leaves_is_on_every_planned_field(tmp_pat
 
     CageModel(40.0 * np.eye(3), np.array([19.0, 1.0, -44.0])).save(tmp_path / "cage.json")
     (tmp_path / "rig.toml").write_text(
-        (tmp_path / "rig.toml").read_text().replace("[cage]\n", '[cage]\ncalibration = "cage.json"\n')
+        (tmp_path / "rig.toml")
+        .read_text()
+        .replace("[cage]\n", '[cage]\ncalibration = "cage.json"\n')
     )
     recorded = background_field(load_rig_config(tmp_path / "rig.toml"), runs, "dut")
     assert recorded.known and recorded.field_ut == (0, 0, 0) and "record" in recorded.source

@@ -62,6 +62,7 @@ from rig.procedure.language import Procedure
 from rig.procedure.plan import compile_plan, rig_timing, step_duration
 from rig.steps.base import ChangeListener
 from rig.steps.check import check_verdict
+from rig.steps.vocabulary import Step
 from rig.store.run_control import run_page_url
 from rig.store.run_states import EXIT_CODES, RunStatus, Verdict
 from rig.store.run_store import RunReader, RunWriter
@@ -323,6 +324,13 @@ class Runner:
         """Total-field magnetometer ``name`` of the rig, opened for this run (closed with it)."""
         assert self.rig is not None
         return self.rig.scalar_magnetometer(name)
+
+    def live_forecast(self, step: Step, noise_nt: float) -> Any:
+        """A live step's sigmas forecast from its plan (rig.prediction.live); None when its plan
+        cannot be fitted."""
+        from rig.prediction.live import live_forecast
+
+        return live_forecast(self.proc, step, self.cfg, self.runs_dir, noise_nt, self.results)
 
     def set_meta(self, **values: Any) -> None:
         """Store run metadata."""

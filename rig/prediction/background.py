@@ -11,8 +11,11 @@ untrimmed ``null_field`` step of an earlier run measured with the same model
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from itertools import chain
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -40,16 +43,19 @@ class Background:
         return np.asarray(self.field_ut, float)
 
 
-def background_field(cfg: RigConfig | None, runs_dir: Path | None, dut: str) -> Background:
+def background_field(cfg: RigConfig | None, runs_dir: Path | None, dut: str,
+                     this_run: Mapping[str, Any] | None = None) -> Background:  # fmt: skip
     """The field the rig's cage model leaves at zero: none with a characterized model, else the
-    newest untrimmed null of device ``dut``'s runs in ``runs_dir`` (see the module)."""
+    newest untrimmed null among ``this_run``'s results (a run in progress), else among device
+    ``dut``'s runs in ``runs_dir`` (see the module)."""
     model = cage_model(cfg) if cfg is not None else None
     if model is None or not model.meta.get("nominal"):
         return Background((0.0, 0.0, 0.0), "the cage's calibration record (its B0 is the lab's"
                           " field)" if model is not None else "no cage model")  # fmt: skip
-    for run_id, results in results_of(runs_dir, dut) if runs_dir is not None else ():
+    earlier = results_of(runs_dir, dut) if runs_dir is not None else iter(())
+    for run_id, results in chain([("in progress", this_run or {})], earlier):
         for name, value in reversed(list(results.items())):
-            found = NoiseFloorResult.from_dict(value) if isinstance(value, dict) else None
+            found = NoiseFloorResult.from_dict(value) if isinstance(value, Mapping) else None
             if found is not None and found.null_residual_ut is not None:
                 return Background(found.null_residual_ut, f"the field at the untrimmed null"
                                   f" '{name}' of run {run_id} (nominal cage model)")  # fmt: skip

@@ -245,9 +245,9 @@ def design_procedure(targets: Targets, cfg: Any, timing: Any, noise: Any, cage: 
 
     from rig.output_limits import cage_model
     from rig.prediction.duration import predicted_duration
-    from rig.prediction.planned import planned_data
+    from rig.prediction.planned import dut_rate_hz, planned_data
     from rig.prediction.predict import predict_step
-    from rig.prediction.procedure import cage_limits, dut_rate_hz
+    from rig.prediction.procedure import cage_limits
     from rig.procedure.language import parse_procedure
 
     model = cage_model(cfg) if cfg is not None else None

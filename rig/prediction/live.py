@@ -3,31 +3,39 @@
 A ``live_calibrate`` step runs a sequential filter on the scalar model with the noise it is given
 (its ``noise_nt``, else the null field's noise of the DUT paired with the reference) and stops at
 the first moment every target group's largest 1-sigma is met (after ``min_s``). A filter that has
-converged holds the information of the samples it has seen, so its sigma at a time is the batch
-scalar fit's on the samples up to then: the prediction fits the step's planned samples (its own
-sphere fields and load profiles, settled as the step settles them) up to a time, and finds by
-bisection the first time every target is met, or says which is not met by ``max_s``.
+converged holds the information of the samples it has seen: the prediction runs the step's own
+filter once over its planned samples (its sphere fields, on the field the cage leaves at zero,
+and load profiles, settled as the step settles them), keeps each group's sigma every few updates
+(:class:`rig.calibration.forecast.SigmaForecast`, which the run's live view also uses) and finds
+the first update at which every target is met, or says which is not met by ``max_s``; the
+values' sigmas then come from a fit of the samples up to that stop.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from rig.calibration.estimate import delta_method
 from rig.calibration.fit import calibrate
-from rig.calibration.residuals import Samples
-from rig.calibration.result import CalibrationResult
+from rig.calibration.forecast import SigmaForecast
+from rig.calibration.residuals import Samples, p_from_theta, parameter_names
+from rig.calibration.sequential.realtime import FilterOptions, run_filter
 from rig.calibration.targets import group_sigmas, unmet_targets
+from rig.config import RigConfig
 from rig.errors import CalibrationError
-from rig.prediction.background import Background
-from rig.prediction.planned import EARLY_REFERENCE_PERIODS, step_samples
+from rig.prediction.background import Background, background_field
+from rig.prediction.planned import EARLY_REFERENCE_PERIODS, dut_rate_hz, step_samples
 from rig.prediction.predict import ParameterPrediction, flat_paths
-from rig.procedure.plan import compile_step
+from rig.procedure.plan import compile_step, rig_timing
 from rig.steps.vocabulary import Procedure, RigTiming, Step
 
-RESOLUTION_S = 0.5
-"""The predicted stop time is found to within this (s)."""
+FORECAST_ROWS = 100
+"""Rows of a forecast (each converts the filter's covariance to the groups' sigmas: 12 ms)."""
 
 
 @dataclass(frozen=True)
@@ -48,6 +56,8 @@ class LivePrediction:
     """Every reported value's sigma when the step stops (or at ``max_s``)."""
     samples: int = 0
     """The filter's updates by then (settled samples)."""
+    forecast: SigmaForecast | None = None
+    """The sigmas over the whole plan (the run's live forecast)."""
 
 
 def predict_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: float,
@@ -59,6 +69,32 @@ def predict_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: fl
     noise = float(p.get("noise_nt") or noise_nt)
     targets = {str(k): float(v) for k, v in dict(p.get("targets") or {}).items()}
     max_s, min_s = float(p["max_s"]), float(p["min_s"])
+    method = str(p.get("method") or "ukf")
+    t, s = planned_live(proc, step, timing, dut_rate_hz, noise, seed, background)
+    head = (step.name, noise)
+    try:
+        forecast = filter_forecast(s, t, method, noise)
+    except CalibrationError as exc:
+        return LivePrediction(*head, None, max_s, {}, targets, "", problem=str(exc))
+    stop = forecast.first_met(targets, from_updates=int(np.sum(t < min_s)) + 1)
+    n = stop if stop is not None else forecast.updates[-1]
+    sigmas = {k: vs[forecast.updates.index(n)] for k, vs in forecast.sigmas.items()}
+    parameters = _parameters(s.head(n), method, noise)
+    if stop is None:
+        unmet = unmet_targets(sigmas, targets)
+        return LivePrediction(*head, None, max_s, sigmas, targets, unmet[0] if unmet else "",
+                              None, parameters, n, forecast)  # fmt: skip
+    return LivePrediction(*head, max(min_s, float(t[n - 1])), max_s, sigmas, targets,
+                          _last(sigmas, targets), None, parameters, n, forecast)  # fmt: skip
+
+
+def planned_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: float,
+                 noise_nt: float, seed: int = 0,
+                 background: Background | None = None) -> tuple[np.ndarray, Samples]:  # fmt: skip
+    """Live step ``step``'s planned samples (its sphere fields on ``background``, its load
+    profiles, settled as the step settles them; the DUT reading the field with ``noise_nt`` nT)
+    and their times in the plan (s)."""
+    p = step.params
     channels = tuple(str(c) for c in p.get("telemetry") or ())
     plan = compile_step(step, proc.path.parent, timing)
     t, field, loads = step_samples(plan.commands, plan.duration_s, channels, dut_rate_hz,
@@ -66,56 +102,40 @@ def predict_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: fl
                                    EARLY_REFERENCE_PERIODS / timing.reference_rate_hz)  # fmt: skip
     if background is not None:
         field = field + background.for_step(proc, step)
-    method = str(p.get("method") or "ukf")
     rng = np.random.default_rng([seed, len(t)])
-    measured = field + 1e-3 * noise * rng.standard_normal(field.shape)
+    measured = field + 1e-3 * noise_nt * rng.standard_normal(field.shape)
+    return t, Samples.build(measured, field_ut=field, telemetry=loads, channels=channels)
 
-    def fit_at(until_s: float) -> _Fit | None:
-        keep = t <= until_s
-        if keep.sum() < 20:
-            return None
-        s = Samples.build(measured[keep], field_ut=field[keep], telemetry=loads[keep],
-                          channels=channels)  # fmt: skip
+
+def filter_forecast(s: Samples, t_s: np.ndarray, method: str, noise_nt: float) -> SigmaForecast:
+    """The filter ``method`` run once over ``s`` (dated ``t_s``, s): each target group's sigma
+    after every few updates (the live step evaluates the same covariance as it runs)."""
+    _, history = run_filter(
+        s, FilterOptions(method=method), 1e-3 * noise_nt, history_rows=FORECAST_ROWS
+    )
+    names = parameter_names(s.channels, vector=False)
+    updates, dwell, rows = [], [], []
+    for k, theta, cov in zip(history.index, history.theta, history.covariance, strict=True):
         try:
-            fit = calibrate(s, method, noise_nt=noise)
+            _, cov_p = delta_method(p_from_theta, theta, cov, method)
         except CalibrationError:
-            return None
-        return _Fit(group_sigmas(fit.sigma, fit.names), _parameters(fit, noise), int(keep.sum()))
-
-    head = (step.name, noise)
-    at_end = fit_at(max_s)
-    if at_end is None:
-        return LivePrediction(*head, None, max_s, {}, targets, "",
-                              problem=f"too few samples in {max_s:g} s to fit")  # fmt: skip
-    unmet = unmet_targets(at_end.sigmas, targets)
-    if unmet:
-        return LivePrediction(*head, None, max_s, at_end.sigmas, targets, unmet[0], None,
-                              at_end.parameters, at_end.samples)  # fmt: skip
-    lo, hi = min_s, max_s
-    found = fit_at(lo)
-    if found is None or unmet_targets(found.sigmas, targets):
-        while hi - lo > RESOLUTION_S:
-            mid = 0.5 * (lo + hi)
-            got = fit_at(mid)
-            if got is not None and not unmet_targets(got.sigmas, targets):
-                hi = mid
-            else:
-                lo = mid
-        found = fit_at(hi) or at_end
-        lo = hi
-    return LivePrediction(*head, lo, max_s, found.sigmas, targets, _last(found.sigmas, targets),
-                          None, found.parameters, found.samples)  # fmt: skip
+            continue  # not an ellipsoid yet
+        updates.append(int(k) + 1)
+        dwell.append(float(t_s[k]))
+        rows.append(group_sigmas(np.sqrt(np.clip(np.diag(cov_p), 0.0, None)), names))
+    if not rows:
+        raise CalibrationError("the filter never became observable on the planned samples")
+    sigmas = {g: tuple(r[g] for r in rows) for g in rows[-1]}
+    return SigmaForecast(tuple(updates), tuple(dwell), sigmas, noise_nt)
 
 
-@dataclass(frozen=True)
-class _Fit:
-    sigmas: dict[str, float]
-    parameters: tuple[ParameterPrediction, ...]
-    samples: int
-
-
-def _parameters(fit: CalibrationResult, noise_nt: float) -> tuple[ParameterPrediction, ...]:
-    """Each reported value's sigma (the filter's own: a live result has no cage terms)."""
+def _parameters(s: Samples, method: str, noise_nt: float) -> tuple[ParameterPrediction, ...]:
+    """Each reported value's sigma on ``s`` (the filter's own: a live result has no cage
+    terms); none when those samples cannot be fitted."""
+    try:
+        fit = calibrate(s, method, noise_nt=noise_nt)
+    except CalibrationError:
+        return ()
     sigma = fit.reported_sigma()
     why = f"noise ({noise_nt:.1f} nT, the filter's)"
     return tuple(ParameterPrediction(path, float(v), float(v), why)
@@ -125,3 +145,18 @@ def _parameters(fit: CalibrationResult, noise_nt: float) -> tuple[ParameterPredi
 def _last(sigmas: dict[str, float], targets: dict[str, float]) -> str:
     """The target group closest to its limit (the one that decides when the step stops)."""
     return max(targets, key=lambda k: sigmas.get(k, 0.0) / targets[k]) if targets else ""
+
+
+def live_forecast(proc: Procedure, step: Step, cfg: RigConfig, runs_dir: Path | None,
+                  noise_nt: float, this_run: Mapping[str, Any]) -> SigmaForecast | None:  # fmt: skip
+    """What a run shows beside a live step's sigmas: the step's plan forecast on rig ``cfg`` at
+    the filter's noise ``noise_nt`` (the field the cage leaves at zero from the run's own results
+    ``this_run``, else ``runs_dir``'s runs); None when the plan cannot be fitted."""
+    dut = proc.magnetometers.get("dut", "dut")
+    noise = float(step.params.get("noise_nt") or noise_nt)
+    t, s = planned_live(proc, step, rig_timing(cfg) or RigTiming(), dut_rate_hz(cfg, dut), noise,
+                        background=background_field(cfg, runs_dir, dut, this_run))  # fmt: skip
+    try:
+        return filter_forecast(s, t, str(step.params.get("method") or "ukf"), noise)
+    except CalibrationError:
+        return None

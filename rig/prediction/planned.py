@@ -16,12 +16,15 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from rig.config import RigConfig
 from rig.prediction.background import Background
 from rig.procedure.plan import compile_step
 from rig.steps import field_kinds
 from rig.steps.vocabulary import Command, Procedure, RigTiming, Step
 
 Array = npt.NDArray[np.float64]
+DEFAULT_DUT_RATE_HZ = 20.0
+"""A DUT's sample rate when the rig configuration gives none (Hz)."""
 EARLY_REFERENCE_PERIODS = 1.5
 """A change's window opens this many reference periods before it (``rig.analysis``)."""
 
@@ -111,3 +114,10 @@ def step_samples(commands: tuple[Command, ...], duration_s: float, channels: tup
             idx = np.searchsorted(load_times[ch], t, side="right") - 1
             loads[:, j] = np.where(idx >= 0, np.asarray(load_values[ch])[np.maximum(idx, 0)], 0.0)
     return t, fields, loads
+
+
+def dut_rate_hz(cfg: RigConfig | None, dut: str) -> float:
+    """The DUT's sample rate from the rig configuration (Hz; 20 when it gives none)."""
+    if cfg is not None and dut in cfg.devices and cfg.devices[dut].get("rate_hz"):
+        return float(cfg.devices[dut].get("rate_hz"))
+    return DEFAULT_DUT_RATE_HZ

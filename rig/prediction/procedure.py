@@ -16,11 +16,9 @@ from rig.prediction.background import Background, background_field
 from rig.prediction.duration import PredictedDuration, predicted_duration
 from rig.prediction.live import LivePrediction, predict_live
 from rig.prediction.noise import NoiseFloor, noise_floor, rest_floor
-from rig.prediction.planned import planned_data
+from rig.prediction.planned import dut_rate_hz, planned_data
 from rig.prediction.predict import StepPrediction, predict_step
 from rig.steps.vocabulary import Procedure, RigTiming
-
-DEFAULT_DUT_RATE_HZ = 20.0
 
 
 @dataclass(frozen=True)
@@ -108,13 +106,6 @@ def judge_live(criterion: dict[str, Any], live: LivePrediction) -> CriterionPred
     verdict = "can pass" if sigma <= hi else "CANNOT PASS"
     return CriterionPrediction(name, verdict, f"predicted sigma {sigma:.3g} {when} (limit"
                                f" {hi:g}; {live.noise_nt:.1f} nT noise)")  # fmt: skip
-
-
-def dut_rate_hz(cfg: RigConfig | None, dut: str) -> float:
-    """The DUT's sample rate from the rig configuration (Hz; 20 when it gives none)."""
-    if cfg is not None and dut in cfg.devices and cfg.devices[dut].get("rate_hz"):
-        return float(cfg.devices[dut].get("rate_hz"))
-    return DEFAULT_DUT_RATE_HZ
 
 
 def cage_limits(cfg: RigConfig | None) -> CageLimits | None:

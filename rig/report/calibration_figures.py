@@ -142,8 +142,8 @@ def read_history(path: Path) -> tuple[list[str], Array] | None:
 
 
 def convergence_figure(folder: Path, live: LiveBlock, plt: Any) -> Any:
-    """One panel per target group: each parameter's 1-sigma against time, the target dashed, the
-    stop marked."""
+    """One panel per target group: each parameter's 1-sigma against time, the plan's forecast
+    dotted (when the run had one), the target dashed, the stop marked."""
 
     name = live.history_file
     if not name or "/" in name or "\\" in name or name.startswith("."):
@@ -161,6 +161,11 @@ def convergence_figure(folder: Path, live: LiveBlock, plt: Any) -> Any:
             g, factor = group_of(name)
             if g == group:
                 ax.semilogy(t, factor * rows[:, i], lw=1.0, label=name)
+        if (
+            f"forecast_{group}" in header
+        ):  # the plan's forecast at this run's noise (no forecast: NaN)
+            ax.semilogy(t, rows[:, header.index(f"forecast_{group}")], ":", color="0.3", lw=1.2,
+                        label="forecast (plan)")  # fmt: skip
         target = live.targets.get(group)
         if target:
             ax.axhline(target, color="k", ls="--", lw=1.0, label="target")

@@ -21,6 +21,7 @@ from rig.steps.load_profiles import load_profile
 from rig.steps.vocabulary import Command, Param, RigTiming, Step
 
 if TYPE_CHECKING:
+    from rig.calibration.forecast import SigmaForecast
     from rig.config import RigConfig
     from rig.steps.vocabulary import Procedure
     from rig.store.run_store import RunReader
@@ -69,6 +70,11 @@ class RunContext(Protocol):
     def scalar_magnetometer(self, name: str) -> Any:
         """Total-field magnetometer ``name`` (drivers.protocols.ScalarMagnetometer), opened for
         the run and closed with it."""
+        ...
+
+    def live_forecast(self, step: Step, noise_nt: float) -> SigmaForecast | None:
+        """A live calibration step's sigmas forecast from its plan at the filter's noise
+        ``noise_nt`` (nT; rig.prediction.live); None when its plan cannot be fitted."""
         ...
 
     def ask_operator(self, text: str) -> bool: ...

@@ -4,6 +4,7 @@ settled sample; stop as soon as each target 1-sigma is met (see rig.steps.live_c
 from __future__ import annotations
 
 import math
+import threading
 import time
 from typing import Any, ClassVar
 
@@ -24,6 +25,9 @@ from rig.steps.vocabulary import (
     Step,
     suggest,
 )
+
+FORECAST_WAIT_S = 10.0
+"""Longest wait at the step's end for its forecast, still being computed (s)."""
 
 
 class LiveCalibrate(FieldStepKind):
@@ -119,9 +123,20 @@ class LiveStep(StepExecution):
         ctx.status_sources.append(self.live.status)
         ctx.live_sources.append(self.live.page_state)
         self.live.start()
+        self._forecaster = threading.Thread(target=self._forecast, args=(noise_nt,),
+                                            name="live-forecast", daemon=True)  # fmt: skip
+        self._forecaster.start()
         self.stop = self.live.done
         ctx.event("info", f"live calibration: {params['method']} at {noise_nt:.3g} nT noise,"
                           f" targets {params['targets'] or 'none'}")  # fmt: skip
+
+    def _forecast(self, noise_nt: float) -> None:
+        """The step's plan forecast (about a second of computing: beside the sweep, not before
+        it); a plan that cannot be forecast only loses the ETA."""
+        try:
+            self.live.set_forecast(self.ctx.live_forecast(self.step, noise_nt))
+        except (RigError, ValueError, np.linalg.LinAlgError) as exc:
+            self.live.set_forecast(None, f"no forecast: {exc}")
 
     def _noise_nt(self, role: str) -> float:
         """The noise of ``role``'s pairs with the reference from the newest null field (nT): the
@@ -168,6 +183,7 @@ class LiveStep(StepExecution):
                                  time.monotonic())  # fmt: skip
 
     def finish(self, t_start: float, t_end: float) -> None:
+        self._forecaster.join(timeout=FORECAST_WAIT_S)  # a short step: the result has it too
         result = self.live.finish(self.ctx.folder, self.step.name, time.monotonic())
         self.ctx.record_result(self.step.name, result)
         self.ctx.event(

@@ -5,7 +5,9 @@ with the newest settled reference sample and the load currents, and updates the 
 thread of its own (the samplers never wait for it). Twice a second of sample time the physical
 1-sigma of each target group is worked out; once every target is met (and ``min_s`` has passed)
 the step is told to stop. The history of estimates and sigmas goes to a CSV in the run folder for
-the report's convergence plot.
+the report's convergence plot. When the step's forecast (its plan's sigmas, from the engine:
+rig.prediction.live) is there, every evaluation also says when the targets will be met
+(:func:`rig.calibration.forecast.forecast_stop`): in the status line, on the page, in the CSV.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from drivers.transport.tty_watch import tty_seen_stall_s
 from rig.analysis import to_cage_frame
 from rig.calibration import Samples
 from rig.calibration.estimate import delta_method
+from rig.calibration.forecast import SigmaForecast, StopForecast, forecast_stop
 from rig.calibration.params import Array
 from rig.calibration.residuals import p_from_theta, parameter_names
 from rig.calibration.result import summarize
@@ -84,6 +87,9 @@ class LiveCalibration:
         self.error: Exception | None = None
         self.snapshot = LiveSnapshot()
         self.history: list[list[float]] = []
+        self.forecast: SigmaForecast | None = None
+        self.forecast_problem = ""
+        self.stop_forecast: StopForecast | None = None
         self.rejected = 0
         self._queue: queue.SimpleQueue[tuple[float, Array, Array, Array] | None] = (
             queue.SimpleQueue()
@@ -107,6 +113,11 @@ class LiveCalibration:
     def start(self) -> None:
         """Start the worker."""
         self._thread.start()
+
+    def set_forecast(self, forecast: SigmaForecast | None, problem: str = "") -> None:
+        """The step's plan forecast (any noise: scaled to the filter's), or why there is none."""
+        self.forecast = forecast.scaled(1000.0 * self.noise_ut) if forecast is not None else None
+        self.forecast_problem = problem or ("" if forecast else "the plan cannot be forecast")
 
     def on_dut(self, t: float, xyz: tuple[float, float, float]) -> None:
         """A DUT sample (sampler thread): paired with the reference and the load currents as it
@@ -191,7 +202,8 @@ class LiveCalibration:
         sigmas = group_sigmas(sigma, self.names)
         elapsed = t - self.t0
         self.snapshot = LiveSnapshot(elapsed, len(self._rows), sigmas)
-        self.history.append([elapsed, float(len(self._rows)), *p, *sigma])
+        self.history.append([elapsed, float(len(self._rows)), *p, *sigma,
+                             *self._forecast_columns(sigmas, elapsed)])  # fmt: skip
         idx, xs, covs = self._recorded
         idx.append(len(self._rows) - 1)
         xs.append(theta)
@@ -206,6 +218,19 @@ class LiveCalibration:
                 return
             self.reason = f"targets met after {elapsed:.1f} s ({len(self._rows)} samples)"
             self.done.set()
+
+    def _forecast_columns(self, sigmas: dict[str, float], elapsed_s: float) -> list[float]:
+        """The forecast's sigma of each target group at this many updates and the update
+        count it now predicts the targets met at (NaN without a forecast)."""
+        f = self.forecast
+        groups = list(self.targets)
+        if f is None:
+            self.stop_forecast = None
+            return [math.nan] * (len(groups) + 1)
+        self.stop_forecast = forecast_stop(f, sigmas, len(self._rows), elapsed_s, self.targets)
+        planned = f.at(len(self._rows))
+        stop = self.stop_forecast.updates
+        return [planned.get(g, math.nan) for g in groups] + [math.nan if stop is None else stop]
 
     def _samples(self) -> Samples:
         """The settled samples so far, as calibration input."""
@@ -241,16 +266,23 @@ class LiveCalibration:
             limit = self.targets.get(key)
             mark = "" if limit is None else ("ok" if sigma <= limit else f"/{limit:.3g}")
             parts.append(f"{key} {sigma:.3g}{mark}")
+        stop = self.stop_forecast
+        if stop is not None:
+            parts.append("ETA ?" if stop.eta_s is None else f"ETA {stop.eta_s:.0f}s")
         return " ".join(parts)
 
     def page_state(self) -> dict[str, Any]:
         """For the web page: the panel to draw (:data:`LIVE_PANEL`) with the updates so far,
         each group's 1-sigma and its target."""
         snap = self.snapshot
-        return {"panel": {"name": LIVE_PANEL, "updates": snap.updates,
-                          "elapsed_s": round(snap.elapsed_s, 2),
-                          "values": {k: float(v) for k, v in snap.sigmas.items()},
-                          "targets": {k: float(v) for k, v in self.targets.items()}}}  # fmt: skip
+        panel = {"name": LIVE_PANEL, "updates": snap.updates, "elapsed_s": round(snap.elapsed_s, 2),
+                 "values": {k: float(v) for k, v in snap.sigmas.items()},
+                 "targets": {k: float(v) for k, v in self.targets.items()}}  # fmt: skip
+        if self.forecast is not None and snap.updates:
+            panel["forecast"] = self.forecast.at(snap.updates)
+        stop = self.stop_forecast
+        panel["forecast_line"] = stop.line() if stop is not None else self.forecast_problem
+        return {"panel": panel}
 
     def stop(self) -> None:
         """Let the worker finish what is queued and end (idempotent)."""
@@ -289,7 +321,8 @@ class LiveCalibration:
         history_file = f"live-{_slug(step_name)}.csv"
         with (folder / history_file).open("w", newline="", encoding="utf-8") as fh:
             w = csv.writer(fh)
-            w.writerow(["elapsed_s", "samples", *self.names, *(f"sigma_{n}" for n in self.names)])
+            w.writerow(["elapsed_s", "samples", *self.names, *(f"sigma_{n}" for n in self.names),
+                        *(f"forecast_{g}" for g in self.targets), "forecast_stop_updates"])  # fmt: skip
             w.writerows([f"{v:.9g}" for v in row] for row in self.history)
         unmet = unmet_targets(self.snapshot.sigmas, self.targets)
         if not self.reason:
@@ -309,8 +342,20 @@ class LiveCalibration:
             "sigma_at_stop": self.snapshot.sigmas,
             "noise_nt": 1000.0 * self.noise_ut,
             "history_file": history_file,
+            "forecast": self._forecast_block(),
         }
         return result
+
+    def _forecast_block(self) -> dict[str, Any] | None:
+        """What the plan forecast (the stop's update count and dwell, at the filter's noise)
+        against what happened; None without a forecast."""
+        f = self.forecast
+        if f is None:
+            return None
+        planned = f.first_met(self.targets)
+        return {"planned_stop_updates": planned,
+                "planned_stop_dwell_s": None if planned is None else f.dwell_at(planned),
+                "noise_nt": f.noise_nt}  # fmt: skip
 
 
 def _held_back(t: float) -> bool:

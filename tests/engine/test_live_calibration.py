@@ -125,3 +125,40 @@ def test_too_little_data_is_a_clear_error(tmp_path: Path) -> None:
     feed.dwell(live, n=3)
     with pytest.raises(CalibrationError, match=r"never became observable .* lengthen max_s"):
         live.finish(tmp_path, "short", feed.t)
+
+
+def test_with_the_plans_forecast_it_says_when_the_targets_will_be_met(tmp_path: Path) -> None:
+    """The forecast (the engine's, from the plan) beside the sigmas: an ETA in the status line,
+    the forecast on the page and in the history CSV, the planned stop in the result."""
+    from rig.calibration.forecast import SigmaForecast
+
+    n = tuple(range(20, 2001, 20))
+    plan = SigmaForecast(n, tuple(0.08 * k for k in n),
+                         {"bias_nt": tuple(12.0 * (20 / k) ** 0.5 for k in n),
+                          "scale": tuple(4e-4 * (20 / k) ** 0.5 for k in n),
+                          "k_ut_per_a": tuple(0.005 * (20 / k) ** 0.5 for k in n)}, 15.0)  # fmt: skip
+    feed = Feed(cage_like(10, channels=2).truth, seed=3)
+    live = make(feed)
+    live.set_forecast(plan)  # at 15 nT; the filter's 30 nT: every sigma doubled
+    assert live.forecast is not None and live.forecast.noise_nt == pytest.approx(1000 * NOISE_UT)
+    for _ in range(30):
+        feed.dwell(live)
+    wait_idle(live)
+    assert "ETA" in live.status()
+    panel = live.page_state()["panel"]
+    assert set(panel["forecast"]) == {"bias_nt", "scale", "k_ut_per_a"}
+    assert panel["forecast_line"].startswith("forecast: ")
+    while not live.done.is_set():
+        feed.dwell(live)
+        wait_idle(live)
+    res = live.finish(tmp_path, "live cal", feed.t)
+    block = res["live"]["forecast"]
+    assert block["planned_stop_updates"] == 180 and block["noise_nt"] == pytest.approx(30.0)
+    with (tmp_path / res["live"]["history_file"]).open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert {"forecast_bias_nt", "forecast_scale", "forecast_stop_updates"} <= set(rows[0])
+    assert any(r["forecast_stop_updates"] not in ("", "nan") for r in rows)
+    other = make(Feed(cage_like(10, channels=2).truth, seed=4))
+    other.set_forecast(None, "no forecast: the plan has no field")
+    assert other.page_state()["panel"]["forecast_line"] == "no forecast: the plan has no field"
+    other.stop()

@@ -200,6 +200,7 @@ class FakeContext:
     report_requested: bool = False
     readers: list[FakeReader] = field(default_factory=list)
     scalars: dict[str, Any] = field(default_factory=dict)
+    forecast: Any = None  # a live step's SigmaForecast (rig.calibration.forecast), if any
     """Total-field magnetometers by name (what :meth:`scalar_magnetometer` opens)."""
 
     def __post_init__(self) -> None:
@@ -222,6 +223,9 @@ class FakeContext:
 
     def scalar_magnetometer(self, name: str) -> Any:
         return self.scalars[name]
+
+    def live_forecast(self, step: Any, noise_nt: float) -> Any:
+        return self.forecast.scaled(noise_nt) if self.forecast is not None else None
 
     def ask_operator(self, text: str) -> bool:
         self.questions.append(text)

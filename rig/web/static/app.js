@@ -82,11 +82,15 @@ const PANELS = {
     const body = cal.tBodies[0]; body.innerHTML = "";
     for (const [k, v] of Object.entries(p.values || {})) {
       const t = (p.targets || {})[k];
+      const f = (p.forecast || {})[k];
       const tr = body.insertRow(); tr.insertCell().textContent = k;
       tr.insertCell().textContent = Number(v).toPrecision(3);
+      tr.insertCell().textContent = f === undefined ? "-" : Number(f).toPrecision(3);
       tr.insertCell().textContent = t === undefined ? "-" : `target ${t}`;
       tr.insertCell().textContent = t !== undefined && v <= t ? "met" : "";
     }
+    const line = document.getElementById("cal-forecast");
+    line.textContent = p.forecast_line || ""; line.hidden = !p.forecast_line;
   },
 };
 
