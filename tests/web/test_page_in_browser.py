@@ -112,6 +112,35 @@ def test_run_watched_and_prompt_answered_on_the_page_then_browsed(
         stop_child(server, first=signal.SIGTERM, wait_s=5.0)
 
 
+def test_live_calibration_shows_the_forecast_beside_its_sigmas(
+    sim: tuple[Path, dict[str, Any]], browser: Any, tmp_path: Path
+) -> None:
+    """The live calibration's panel: each 1-sigma, the plan's forecast at this many samples
+    (rig check --predict's, at this run's noise) and the target, and when they will be met."""
+    rig_toml, _ = sim
+    runs = tmp_path / "runs"
+    proc, url = start_run(rig_toml, runs, "live-calibration")
+    try:
+        page = browser.new_page(viewport={"width": 1280, "height": 900})
+        open_running_run(page, url)
+        page.wait_for_selector("#prompt:not([hidden])", timeout=30_000)
+        page.click("#prompt-yes")
+        page.wait_for_selector("#cal-forecast:not([hidden])", timeout=90_000)
+        wait_js(page, "document.getElementById('cal-forecast').textContent"
+                      ".startsWith('forecast: targets met in about')", 60)  # fmt: skip
+        assert page.inner_text("#cal thead").split()[:3] == ["value", "1", "sigma"]
+        rows = page.locator("#cal tbody tr")
+        assert rows.count() == 4  # bias, scale, non-orthogonality, current-to-bias
+        forecast = [rows.nth(i).locator("td").nth(2).inner_text() for i in range(rows.count())]
+        assert all(float(v) > 0 for v in forecast), forecast
+        screenshot(page, "live-forecast")
+        wait_js(page, "document.getElementById('live').dataset.finished === 'complete'", 120)
+        assert proc.wait(timeout=60) == 0
+    finally:
+        if proc.poll() is None:
+            stop_child(proc, first=signal.SIGTERM)
+
+
 def test_abort_from_the_page_leaves_every_output_off(
     sim: tuple[Path, dict[str, Any]], browser: Any, tmp_path: Path
 ) -> None:
