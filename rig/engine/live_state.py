@@ -174,15 +174,6 @@ class LivePublisher:
             "pause_requested": r.tracker.pause_requested.is_set(),
             "steps": [{"name": n, "duration_s": round(d, 3)} for n, d in self.timeline],
         }
-        step = r.tracker.step
-        if step is not None:
-            idx, name, t0, dur = step.index, step.name, step.t_start, step.duration_s
-            done = sum(d for _, d in self.timeline[:idx]) + min(max(now - t0, 0.0), dur)
-            total = sum(d for _, d in self.timeline)
-            state["step"] = {"index": idx, "name": name, "elapsed_s": round(now - t0, 3),
-                             "duration_s": dur}  # fmt: skip
-            state["progress"] = round(done / total, 4) if total > 0 else 1.0
-            state["eta_s"] = round(max(total - done, 0.0), 1)
         ctl = r.controller
         if ctl is not None:
             state["field_cmd_ut"] = _vec(ctl.model.field_ut(ctl.currents))
@@ -202,6 +193,18 @@ class LivePublisher:
                 state |= source()
             except Exception:  # a step's view must not stop the page
                 continue
+        step = r.tracker.step
+        expected = state.pop("step_expected_s", None)  # a step that knows when it will end
+        if step is not None:
+            idx, name, t0, dur = step.index, step.name, step.t_start, step.duration_s
+            if isinstance(expected, int | float) and 0.0 <= expected < dur:
+                dur = float(expected)
+            done = sum(d for _, d in self.timeline[:idx]) + min(max(now - t0, 0.0), dur)
+            total = sum(d for _, d in self.timeline) - step.duration_s + dur
+            state["step"] = {"index": idx, "name": name, "elapsed_s": round(now - t0, 3),
+                             "duration_s": dur}  # fmt: skip
+            state["progress"] = round(done / total, 4) if total > 0 else 1.0
+            state["eta_s"] = round(max(total - done, 0.0), 1)
         with self._lock:
             if self.prompt is not None:
                 state["prompt"] = {"id": self.prompt[0], "text": self.prompt[1]}

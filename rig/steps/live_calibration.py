@@ -282,7 +282,11 @@ class LiveCalibration:
             panel["forecast"] = self.forecast.at(snap.updates)
         stop = self.stop_forecast
         panel["forecast_line"] = stop.line() if stop is not None else self.forecast_problem
-        return {"panel": panel}
+        state: dict[str, Any] = {"panel": panel}
+        if stop is not None and stop.eta_s is not None and self.params["stop_on_target"] == "yes":
+            # the run's progress and ETA count the step to its forecast stop, not its max_s
+            state["step_expected_s"] = max(snap.elapsed_s + stop.eta_s, float(self.params["min_s"]))
+        return state
 
     def stop(self) -> None:
         """Let the worker finish what is queued and end (idempotent)."""
