@@ -148,6 +148,11 @@ class MagnetometerConfig:
     scalar_offset_nt: float = 0.0
     heading_error_nt: float = 0.0
     dead_zone_deg: float = 10.0
+    # how the offset wanders (sim.offset_wander): drift per axis (nT/h), random walk (nT/sqrt(h)),
+    # flicker floor (nT: the Allan deviation's flat part)
+    offset_drift_nt_per_h: tuple[float, ...] = (0.0, 0.0, 0.0)
+    offset_walk_nt_per_sqrt_h: float = 0.0
+    offset_flicker_nt: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -359,7 +364,14 @@ def _magnetometer(m: dict[str, Any], where: str, loads: set[str]) -> Magnetomete
         scalar_offset_nt=float(m.get("scalar_offset_nt", 0.0)),
         heading_error_nt=float(m.get("heading_error_nt", 0.0)),
         dead_zone_deg=float(m.get("dead_zone_deg", 10.0)),
+        offset_drift_nt_per_h=_vec_or(m, "offset_drift_nt_per_h", where, zero),
+        offset_walk_nt_per_sqrt_h=float(m.get("offset_walk_nt_per_sqrt_h", 0.0)),
+        offset_flicker_nt=float(m.get("offset_flicker_nt", 0.0)),
     )
+    if mag.offset_walk_nt_per_sqrt_h < 0 or mag.offset_flicker_nt < 0:
+        raise SimConfigError(
+            f"{where}: offset_walk_nt_per_sqrt_h and offset_flicker_nt must be >= 0"
+        )
     if mag.role not in (None, "reference", "ambient", "scalar"):
         raise SimConfigError(f"{where}.role must be 'reference', 'ambient' or 'scalar' (or absent)")
     if not any(mag.optical_axis):

@@ -31,6 +31,7 @@ import numpy.typing as npt
 from sim.coils import CageCoils, CoilPair
 from sim.config import MagnetometerConfig, SimConfig, SimConfigError, SupplyConfig
 from sim.lab_field import LabField
+from sim.offset_wander import OffsetWander, WanderSpec
 from sim.signals import FirstOrderSignal
 
 Array = npt.NDArray[np.float64]
@@ -253,7 +254,8 @@ def rotation_matrix(rotvec_rad: Array) -> Array:
 class Magnetometer:
     """A magnetometer's truth: ``m = T h + o + sum_j k_j u_j(t - tau_j) + n`` (uT)."""
 
-    def __init__(self, cfg: MagnetometerConfig, rng: np.random.Generator) -> None:
+    def __init__(self, cfg: MagnetometerConfig, rng: np.random.Generator,
+                 wander_seed: int = 0) -> None:  # fmt: skip
         self.cfg = cfg
         self.name = cfg.name
         self.sensor = springmann_matrix(cfg.scale, tuple(math.radians(v) for v in cfg.nonorth_deg))
@@ -267,6 +269,9 @@ class Magnetometer:
         self._rng = rng
         self._lock = threading.Lock()
         self._last: Array | None = None
+        self.wander = OffsetWander(WanderSpec(cfg.offset_drift_nt_per_h, cfg.offset_walk_nt_per_sqrt_h,
+                                              cfg.offset_flicker_nt), wander_seed, now_s())  # fmt: skip
+        """The offset's wander over time (drift, random walk, flicker)."""
 
     def truth_reading(
         self, field_ut: Array, loads_a: dict[str, float], temperature_c: float | None = None
@@ -287,14 +292,21 @@ class Magnetometer:
             self.turn = np.array(rotation, float)
 
     def sample(
-        self, field_ut: Array, loads_a: dict[str, float], temperature_c: float | None = None
+        self,
+        field_ut: Array,
+        loads_a: dict[str, float],
+        temperature_c: float | None = None,
+        t_s: float | None = None,
     ) -> Array:
-        """One noisy reading (uT); a stuck sensor repeats its last one."""
+        """One noisy reading (uT) at ``t_s`` (the offset's wander then; None: none); a stuck
+        sensor repeats its last one."""
         with self._lock:
             if self.faults.stuck and self._last is not None:
                 return self._last.copy()
             noise = self.cfg.noise_ut * self._rng.standard_normal(3)
             self._last = self.truth_reading(field_ut, loads_a, temperature_c) + noise
+            if t_s is not None and self.wander.spec.active:
+                self._last = self._last + self.wander.value(t_s)
             return self._last.copy()
 
 
@@ -321,7 +333,7 @@ class CagePhysics:
         self.relays = PolarityRelays(cfg.cage.hot_switch_limit_a)
         self.bipolar_sign = [1, 1, 1]
         self.magnetometers = {
-            m.name: Magnetometer(m, np.random.default_rng([cfg.seed, i]))
+            m.name: Magnetometer(m, np.random.default_rng([cfg.seed, i]), 1000 * cfg.seed + i)
             for i, m in enumerate(cfg.magnetometers)
         }
         self.position_m = {m.name: tuple(m.position_m) for m in cfg.magnetometers}
@@ -537,7 +549,7 @@ class CagePhysics:
         t = now_s() if t_s is None else t_s
         mag = self.magnetometers[name]
         return mag.sample(self.field_at_ut(name, t), self.load_currents(t, mag.cfg.delay_s),
-                          self.dut_temperature_c(t))  # fmt: skip
+                          self.dut_temperature_c(t), t)  # fmt: skip
 
     def safe(self) -> None:
         """Turn every output off (the simulator's own emergency stop)."""

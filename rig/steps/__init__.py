@@ -26,6 +26,7 @@ from rig.steps import (
     rotate,
     set_field,
     sphere_sweep,
+    stability,
     supply_stability,
 )
 from rig.steps.base import StepKind
@@ -44,6 +45,7 @@ KINDS: dict[str, StepKind] = {
         orbit_replay,
         live_calibrate,
         noise_spectrum,
+        stability,
         linearity,
         characterize_cage,
         coil_axes,

@@ -657,3 +657,36 @@ def test_supply_stability_needs_an_outside_reference(tmp_path: Path) -> None:
     ctx = context(tmp_path, step, cfg=SimpleNamespace(cage=SimpleNamespace(ambient=None)))
     with pytest.raises(RigError, match=r"\[cage\] ambient"):
         carry_out(ctx, step, window=(0.0, 60.0))
+
+
+def test_stability_takes_the_reference_out_and_reports_allan_deviation_and_drift(
+    tmp_path: Path,
+) -> None:
+    """A lab field drifting 30 nT over the hold, seen by the DUT and the reference alike: with
+    the reference subtracted the DUT's own drift (200 nT over 12 h) is what remains; without, the
+    lab's is in it and the result says so."""
+    hold = 1200.0
+    t = np.arange(0.0, hold, 0.1)
+    rng = np.random.default_rng(4)
+    lab = np.outer(t / hold, [0.03, -0.02, 0.01])  # uT: the lab's drift, common to both
+    own = np.outer(t, [200.0, 0.0, -200.0]) / (12 * 3600) / 1000.0  # uT: the DUT's offset drift
+    out = {}
+    for which in ("reference", "none"):
+        step = make_step("stability", {"hold_s": hold, "reference": which, "settle_s": 0.0})
+        ctx = context(tmp_path / which, step)
+        ctx.recording.add_field(0.0, [0, 0, 0])
+        ctx.recording.add_samples("dut", t, lab + own + 0.005 * rng.standard_normal(lab.shape))
+        ctx.recording.add_samples("reference", t, lab + 0.002 * rng.standard_normal(lab.shape))
+        out[which] = carry_out(ctx, step, (0.0, hold))
+    r = out["reference"]
+    assert r["reference_note"] == "the reference magnetometer 'reference' subtracted"
+    for got, sigma, want in zip(r["drift_nt_per_12h"], r["drift_sigma_nt_per_12h"],
+                                (200, 0, -200), strict=True):  # fmt: skip
+        # white noise of 5.4 nT at 10 Hz over 20 min: a least-squares sigma of 6.3 nT per 12 h
+        assert abs(got - want) < 3 * sigma and 6.0 < sigma < 12.0, (got, sigma)
+    assert r["adev_1s_nt"] == pytest.approx([np.hypot(5, 2) / np.sqrt(10)] * 3, rel=0.15)
+    assert r["allan"]["tau_s"][0] == pytest.approx(0.2) and r["allan"]["tau_s"][-1] <= hold / 4
+    assert not r["calibrated"] and r["samples"] >= t.size - 1  # the one at the change: out
+    n = out["none"]
+    assert "nothing subtracted" in n["reference_note"]
+    assert n["drift_abs_max_nt_per_12h"] > 100 * 12 * 3600 / hold / 10  # the lab's 30 nT/20 min
