@@ -153,6 +153,9 @@ class MagnetometerConfig:
     offset_drift_nt_per_h: tuple[float, ...] = (0.0, 0.0, 0.0)
     offset_walk_nt_per_sqrt_h: float = 0.0
     offset_flicker_nt: float = 0.0
+    # cross-field effect (ppm of an axis's scale per uT of field along another, sensor frame;
+    # rows the measured axis, the diagonal unused): m = L (u + u * (C u)), u = R h
+    cross_field_ppm_per_ut: tuple[tuple[float, ...], ...] = ((0.0,) * 3,) * 3
 
 
 @dataclass(frozen=True)
@@ -367,6 +370,9 @@ def _magnetometer(m: dict[str, Any], where: str, loads: set[str]) -> Magnetomete
         offset_drift_nt_per_h=_vec_or(m, "offset_drift_nt_per_h", where, zero),
         offset_walk_nt_per_sqrt_h=float(m.get("offset_walk_nt_per_sqrt_h", 0.0)),
         offset_flicker_nt=float(m.get("offset_flicker_nt", 0.0)),
+        cross_field_ppm_per_ut=_mat(m, "cross_field_ppm_per_ut", where)
+        if "cross_field_ppm_per_ut" in m
+        else ((0.0,) * 3,) * 3,
     )
     if mag.offset_walk_nt_per_sqrt_h < 0 or mag.offset_flicker_nt < 0:
         raise SimConfigError(

@@ -264,6 +264,10 @@ class Magnetometer:
         self.turn = np.eye(3)
         """How the sensor is turned from its mounting (a rotation fixture), cage frame."""
         self.offset_ut = np.array(cfg.offset_ut)
+        cross = 1e-6 * np.array(cfg.cross_field_ppm_per_ut, float)
+        np.fill_diagonal(cross, 0.0)
+        self.cross_field = cross if np.any(cross) else None
+        """Per uT of field along another axis, the relative change of an axis's scale."""
         self.offset_ut_per_k = np.array(cfg.offset_ut_per_k)
         self.faults = Faults()
         self._rng = rng
@@ -279,7 +283,10 @@ class Magnetometer:
         """Noise-free reading for a field (cage frame), delayed load currents (uT) and the
         sensor's temperature (C; None: at its reference temperature)."""
         d_t = 0.0 if temperature_c is None else temperature_c - self.cfg.temperature_ref_c
-        m = (1.0 + self.cfg.scale_per_k * d_t) * (self.t_matrix @ (self.turn.T @ field_ut))
+        u = self.rotation @ (self.turn.T @ field_ut)  # the field in the sensor's axes
+        if self.cross_field is not None:
+            u = u + u * (self.cross_field @ u)
+        m = (1.0 + self.cfg.scale_per_k * d_t) * (self.sensor @ u)
         m = m + self.offset_ut + self.offset_ut_per_k * d_t
         for ch, k in self.cfg.k_ut_per_a.items():
             m = m + np.asarray(k) * loads_a.get(ch, 0.0)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import pytest
 
 from rig.steps.vocabulary import ProcedureError
@@ -122,3 +123,17 @@ def test_live_calibrate_targets_become_floats() -> None:
     step = make_step("live_calibrate", {"targets": {"bias_nt": 30}})
     assert step.params["targets"] == {"bias_nt": 30.0}
     assert isinstance(step.params["targets"]["bias_nt"], float)
+
+
+def test_cross_field_sweeps_every_pair_and_refuses_too_few_levels() -> None:
+    from rig.steps import KINDS
+    from rig.steps.vocabulary import RigTiming
+
+    step = make_step("cross_field", {"levels_ut": [-20, 0, 20], "dwell_s": 0.5})
+    fields = KINDS["cross_field"].fields(step, RigTiming())
+    assert len(fields) == 6 * 3 * 3 and fields[-1][0] == pytest.approx(53 * 0.5)
+    assert {tuple(np.flatnonzero(f)) for _, f in fields} >= {(0, 1), (0, 2), (1, 2)}
+    with pytest.raises(ProcedureError, match="at least 3 different levels"):
+        make_step("cross_field", {"levels_ut": [10, 10, 20]})
+    with pytest.raises(ProcedureError, match="settle_s must be shorter than dwell_s"):
+        make_step("cross_field", {"dwell_s": 0.2, "settle_s": 0.3})
