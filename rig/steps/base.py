@@ -250,6 +250,19 @@ class FieldStepKind(StepKind):
         return cmds, duration
 
 
+class NullHoldKind(FieldStepKind):
+    """A field step that nulls the field and holds it for ``hold_s`` (s): what a kind measuring
+    the DUT at rest builds on (noise floor, noise spectrum, offset stability)."""
+
+    trim_param = "trim"
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        return [(0.0, np.zeros(3))]
+
+    def duration_s(self, step: Step, timing: RigTiming) -> float:
+        return float(step.params["hold_s"])
+
+
 def load_commands(step: Step, duration_s: float, base: Path) -> list[Command]:
     """The set-points of the step's load profiles, each channel back to 0 A at the end."""
     cmds = []

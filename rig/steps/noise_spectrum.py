@@ -15,8 +15,8 @@ import numpy as np
 from rig.analysis import settled_samples
 from rig.errors import RigError
 from rig.steps import stored
-from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
-from rig.steps.vocabulary import Param, ProcedureError, RigTiming, Step
+from rig.steps.base import Array, NullHoldKind, RunContext, StepExecution
+from rig.steps.vocabulary import Param, ProcedureError, Step
 
 AROUND_1HZ = (0.8, 1.25)
 """The density 'at 1 Hz' is the mean over this band (Hz): one Welch bin is too noisy a figure."""
@@ -98,7 +98,7 @@ def read_noise_spectrum(result: Any) -> NoiseSpectrumResult | None:
     return stored.read_or_none(NoiseSpectrumResult.from_dict, result)
 
 
-class NoiseSpectrum(FieldStepKind):
+class NoiseSpectrum(NullHoldKind):
     name = "noise_spectrum"
     summary = "DUT noise spectral density in a nulled field (nT/rtHz at 1 Hz and over a band)"
     result_values = ("density_1hz_nt_per_rthz", "band_density_nt_per_rthz", "rate_hz", "samples",
@@ -110,7 +110,6 @@ class NoiseSpectrum(FieldStepKind):
         "settle_s": Param("float", 0.5, 0.0, 60.0),
         "magnetometer": Param("str", "dut"),
     }
-    trim_param = "trim"
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
         lo, hi = params["band_hz"]
@@ -120,12 +119,6 @@ class NoiseSpectrum(FieldStepKind):
             raise ProcedureError(
                 f"{where}: hold_s must cover 4 periods of the band's low edge ({4.0 / lo:g} s for {lo:g} Hz)"
             )
-
-    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
-        return [(0.0, np.zeros(3))]
-
-    def duration_s(self, step: Step, timing: RigTiming) -> float:
-        return float(step.params["hold_s"])
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return MeasureSpectrum(ctx, step)

@@ -15,8 +15,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rig.analysis import noise_floor, paired_noise, to_cage_frame
-from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
-from rig.steps.vocabulary import Param, RigTiming, Step
+from rig.steps.base import NullHoldKind, RunContext, StepExecution
+from rig.steps.vocabulary import Param, Step
 
 NOISE_SETTLE_S = 0.3
 """Samples this long after a change are left out of the noise floor (s)."""
@@ -85,7 +85,7 @@ def latest_noise_floor(results: Mapping[str, Any]) -> NoiseFloorResult | None:
     return None
 
 
-class NullField(FieldStepKind):
+class NullField(NullHoldKind):
     name = "null_field"
     summary = "cancel the ambient field, hold, measure every magnetometer's noise floor"
     result_values = ("*_noise_nt", "*_paired_noise_nt", "null_residual_ut")
@@ -93,13 +93,6 @@ class NullField(FieldStepKind):
         "hold_s": Param("float", 2.0, 0.0, 86400.0),
         "trim": Param("str", "no", choices=("yes", "no")),
     }
-    trim_param = "trim"
-
-    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
-        return [(0.0, np.zeros(3))]
-
-    def duration_s(self, step: Step, timing: RigTiming) -> float:
-        return float(step.params["hold_s"])
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return NoiseFloor(ctx, step)

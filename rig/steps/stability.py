@@ -27,8 +27,8 @@ from rig.characterization.stability import (
     offset_drift,
 )
 from rig.errors import RigError
-from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
-from rig.steps.vocabulary import Param, RigTiming, Step
+from rig.steps.base import Array, NullHoldKind, RunContext, StepExecution
+from rig.steps.vocabulary import Param, Step
 
 REFERENCES = ("reference", "ambient", "none")
 
@@ -77,7 +77,7 @@ def read_allan(result: Any) -> AllanDeviation | None:
         return None
 
 
-class Stability(FieldStepKind):
+class Stability(NullHoldKind):
     name = "stability"
     summary = "hold the null field: the DUT offset's Allan deviation and drift per 12 h"
     result_values = ("adev_1s_nt", "adev_1s_max_nt", "adev_floor_nt", "adev_floor_max_nt",
@@ -90,13 +90,6 @@ class Stability(FieldStepKind):
         "settle_s": Param("float", 2.0, 0.0, 600.0),
         "magnetometer": Param("str", "dut"),
     }
-    trim_param = "trim"
-
-    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
-        return [(0.0, np.zeros(3))]
-
-    def duration_s(self, step: Step, timing: RigTiming) -> float:
-        return float(step.params["hold_s"])
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return MeasureStability(ctx, step)
