@@ -214,8 +214,15 @@ def main() -> int:
     if args.load is not None:
         results = pickle.loads(args.load.read_bytes())
     else:
+        kept: dict[int, Any] = {}
+
+        def keep(i: int, result: Any) -> None:  # each run kept as it ends (--save)
+            kept[i] = result
+            if args.save is not None:
+                args.save.write_bytes(pickle.dumps([kept[k] for k in sorted(kept)]))
+
         results = map_on_dask(one_run, range(args.runs), [args.procedure] * args.runs,
-                              workers=args.workers, scheduler=args.scheduler)  # fmt: skip
+                              workers=args.workers, scheduler=args.scheduler, on_result=keep)  # fmt: skip
     if args.save is not None:
         args.save.write_bytes(pickle.dumps(results))
     failed = [r["failed"] for r in results if "failed" in r]
