@@ -135,8 +135,8 @@ class LiveStep(StepExecution):
         it); a plan that cannot be forecast only loses the ETA."""
         try:
             self.live.set_forecast(self.ctx.live_forecast(self.step, noise_nt))
-        except (RigError, ValueError, np.linalg.LinAlgError) as exc:
-            self.live.set_forecast(None, f"no forecast: {exc}")
+        except Exception as exc:  # advisory: whatever went wrong, the step runs on without it
+            self.live.set_forecast(None, f"no forecast: {type(exc).__name__}: {exc}")
 
     def _noise_nt(self, role: str) -> float:
         """The noise of ``role``'s pairs with the reference from the newest null field (nT): the
