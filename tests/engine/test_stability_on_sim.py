@@ -55,7 +55,9 @@ def test_the_shipped_characterization_passes_a_good_dut(tmp_path: Path) -> None:
     text = find_procedure("dut-characterization").read_text()
     text = text.replace("{default: 600,", "{default: 30,").replace("max: 500,", "max: 1.0e9,")
     outcome = run_on_sim(tmp_path, text)
-    failed = [c for c in outcome.results.get("verdict", {}).get("criteria", []) if c["verdict"] != "PASS"]
+    failed = [
+        c for c in outcome.results.get("verdict", {}).get("criteria", []) if c["verdict"] != "PASS"
+    ]
     assert outcome.status == "complete", (outcome.reason, failed)
     verdict = outcome.results["verdict"]
     assert verdict["overall"] == "PASS", verdict["criteria"]
