@@ -92,11 +92,10 @@ def one_run(seed: int, procedure: str) -> dict[str, Any]:
                      "error": values - true[: len(values)], "live": r.get("live"),
                      "residual_rms_nt": r.get("residual_rms_nt"),
                      "residual_axes": r.get("residual_rms_axes_nt")}  # fmt: skip
-    nulls = {
-        k: v
-        for k, v in outcome.results.items()
-        if isinstance(v, dict) and "dut_paired_noise_nt" in v
-    }
+    from rig.steps.null_field import NoiseFloorResult
+
+    nulls = {k: v for k, v in outcome.results.items()
+             if isinstance(v, dict) and NoiseFloorResult.from_dict(v) is not None}  # fmt: skip
     return {"steps": out, "null_field": nulls}
 
 

@@ -158,6 +158,13 @@ def apply_correction(correction: dict[str, Any], measured_ut: Array, telemetry: 
     return to_cage_frame(np.asarray(measured_ut, float) - bias, correction)
 
 
+def apply_correction_unloaded(correction: dict[str, Any], measured_ut: Array) -> Array:
+    """:func:`apply_correction` with every load channel of the correction at 0 A."""
+    channels = list(correction.get("k_ut_per_unit", {}))
+    return apply_correction(correction, measured_ut, np.zeros((len(measured_ut), len(channels))),
+                            channels)  # fmt: skip
+
+
 def hold_values(reader: RunReader, channel: str, t: Array) -> Array:
     """A channel's measured current (A) at times ``t`` (the last reading before each time)."""
     rows = [

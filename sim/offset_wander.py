@@ -3,7 +3,7 @@
 The truth behind an Allan deviation: white noise (the reading's own) falls as tau^-1/2, flicker
 is a floor, a random walk rises as tau^1/2 and a drift as tau. Flicker is the sum of first-order
 Gauss-Markov processes with time constants a decade apart and equal variance (an Allan deviation
-flat to +-10 % between the first and last time constant). Every term is a function of the
+flat within 0.98-1.04 of its value from 10 s to 3000 s: :data:`FLICKER_GAIN`). Every term is a function of the
 simulated time: the wire protocols sample it in real time, a test drives it over 12 simulated
 hours in seconds (:meth:`OffsetWander.values`), and :func:`allan_variance_truth` is its exact
 Allan variance for samples at a given rate (the test's truth).

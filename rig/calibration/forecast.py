@@ -78,6 +78,8 @@ class StopForecast:
     eta_s: float | None
     ratios: dict[str, float]
     limiting: str
+    planned: dict[str, float]
+    """The forecast's own sigma of each group at the run's update count."""
 
     def line(self) -> str:
         """For the live view."""
@@ -87,13 +89,12 @@ class StopForecast:
 
 
 def forecast_stop(forecast: SigmaForecast, sigmas: dict[str, float], updates: int,
-                  elapsed_s: float, targets: dict[str, float],
-                  min_updates: int = 0) -> StopForecast:  # fmt: skip
+                  elapsed_s: float, targets: dict[str, float]) -> StopForecast:  # fmt: skip
     """Where a run's filter (``sigmas`` after ``updates`` updates, ``elapsed_s`` s into the
     step) will meet ``targets``, carried forward from ``forecast``."""
     planned = forecast.at(updates)
     ratios = {k: sigmas[k] / planned[k] for k in planned if k in sigmas and planned[k] > 0}
-    n = forecast.first_met(targets, ratios, max(updates, min_updates))
+    n = forecast.first_met(targets, ratios, updates)
     if n is None and not unmet_targets({k: ratios.get(k, 1.0) * v for k, v in planned.items()},
                                        targets):  # fmt: skip
         n = updates  # met now (between two rows)
@@ -101,4 +102,4 @@ def forecast_stop(forecast: SigmaForecast, sigmas: dict[str, float], updates: in
     eta = None if n is None or rate <= 0 else (n - updates) / rate
     scaled_end = {k: ratios.get(k, 1.0) * vs[-1] for k, vs in forecast.sigmas.items()}
     worst = max(targets, key=lambda k: scaled_end.get(k, math.inf) / targets[k]) if targets else ""
-    return StopForecast(n, eta, ratios, worst)
+    return StopForecast(n, eta, ratios, worst, planned)

@@ -62,7 +62,7 @@ class Drift:
     record_s: float
 
 
-def uniform(t_s: Array, xyz: Array) -> tuple[Array, float]:
+def on_uniform_grid(t_s: Array, xyz: Array) -> tuple[Array, float]:
     """The samples interpolated onto a uniform grid at their median rate: (N, 3), rate (Hz)."""
     rate_hz = 1.0 / float(np.median(np.diff(t_s)))
     grid = np.arange(t_s[0], t_s[-1], 1.0 / rate_hz)
@@ -85,7 +85,7 @@ def allan_deviation(t_s: Array, offsets_nt: Array, taus_s: Array | None = None,
 
     if len(t_s) < MIN_SAMPLES:
         raise ValueError(f"{len(t_s)} samples: an Allan deviation needs at least {MIN_SAMPLES}")
-    y, rate = uniform(np.asarray(t_s, float), np.asarray(offsets_nt, float))
+    y, rate = on_uniform_grid(np.asarray(t_s, float), np.asarray(offsets_nt, float))
     wanted = default_taus(len(y), rate) if taus_s is None else np.asarray(taus_s, float)
     per_axis = []
     for i in range(3):
@@ -112,20 +112,21 @@ def allan_deviation(t_s: Array, offsets_nt: Array, taus_s: Array | None = None,
     )
 
 
-def noise_model(t_s: Array, offsets_nt: Array, axis: int, drift_nt_per_s: float) -> Array:
+def noise_model(y_nt: Array, rate_hz: float, drift_nt_per_s: float) -> Array:
     """``(a, b, c)`` of ``AVAR(tau) = a / tau + b + c tau`` (nT^2; white, flicker, random walk,
-    each at least 0) fitted to the Allan variance of one axis less the drift's ``(D tau)^2 / 2``
+    each at least 0) fitted to the Allan variance of one axis's offsets on a uniform grid at
+    ``rate_hz`` (:func:`on_uniform_grid`) less the drift's ``(D tau)^2 / 2``
     on 1-2-5 averaging times up to :data:`MODEL_TAU_FRACTION` of the record, each weighted by
     its precision (an Allan variance over m samples of N is good to about sqrt(2 m / N)); a
     flicker or random-walk term its data do not show at 2 sigma is left out."""
     import allantools
     from scipy.optimize import nnls
 
-    y, rate = uniform(np.asarray(t_s, float), np.asarray(offsets_nt, float))
+    y, rate = np.asarray(y_nt, float), rate_hz
     record = len(y) / rate
     wanted = default_taus(len(y), rate)
     wanted = wanted[wanted <= max(MODEL_TAU_FRACTION * record, wanted[min(2, len(wanted) - 1)])]
-    tau, dev, _, _ = allantools.oadev(y[:, axis], rate=rate, data_type="freq", taus=wanted)
+    tau, dev, _, _ = allantools.oadev(y, rate=rate, data_type="freq", taus=wanted)
     avar = np.asarray(dev) ** 2 - 0.5 * (drift_nt_per_s * np.asarray(tau)) ** 2
     keep = avar > 0
     tau, avar = np.asarray(tau)[keep], avar[keep]
@@ -151,9 +152,10 @@ def offset_drift(t_s: Array, offsets_nt: Array) -> Drift:
     design = np.column_stack([np.ones_like(t), t - t.mean()])
     coef, *_ = np.linalg.lstsq(design, y, rcond=None)
     slope = coef[1]  # nT/s per axis
+    grid, rate = on_uniform_grid(t, y)  # once for the three axes
     sigmas = []
     for i in range(3):
-        a, b, c = noise_model(t, y, i, float(slope[i]))
+        a, b, c = noise_model(grid[:, i], rate, float(slope[i]))
         half = record / 2.0
         sigmas.append(2.0 * math.sqrt(2.0 * (a / half + b + c * half)) / record)
     return Drift(tuple(float(s * TWELVE_HOURS_S) for s in slope),

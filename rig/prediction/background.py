@@ -22,6 +22,7 @@ import numpy as np
 from rig.config import RigConfig
 from rig.output_limits import cage_model
 from rig.prediction.noise import results_of
+from rig.steps import cage_model_measured_before
 from rig.steps.null_field import NoiseFloorResult
 from rig.steps.vocabulary import Procedure, Step
 
@@ -38,7 +39,7 @@ class Background:
     def for_step(self, proc: Procedure, step: Step) -> np.ndarray:
         """What ``step`` sees: zero after a ``characterize_cage`` step of the same procedure
         (the run then uses the model it measured), else :attr:`field_ut` (uT)."""
-        if any(s.kind == "characterize_cage" and s.index < step.index for s in proc.steps):
+        if cage_model_measured_before(proc, step):
             return np.zeros(3)
         return np.asarray(self.field_ut, float)
 

@@ -31,6 +31,7 @@ from rig.steps import (
     supply_stability,
 )
 from rig.steps.base import StepKind
+from rig.steps.vocabulary import Procedure, Step
 
 KINDS: dict[str, StepKind] = {
     m.KIND.name: m.KIND
@@ -59,6 +60,12 @@ KINDS: dict[str, StepKind] = {
         report,
     )
 }
+
+
+def cage_model_measured_before(proc: Procedure, step: Step) -> bool:
+    """A step of ``proc`` before ``step`` measures the cage model (its kind's
+    ``measures_cage_model``): the run then sets fields with the model it measured."""
+    return any(KINDS[s.kind].measures_cage_model for s in proc.steps if s.index < step.index)
 
 
 def field_kinds() -> frozenset[str]:

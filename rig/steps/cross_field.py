@@ -16,7 +16,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.analysis import apply_correction, settled_samples, to_cage_frame
+from rig.analysis import apply_correction_unloaded, interpolated_field, settled_samples
 from rig.calibration.params import rotation_from_vector
 from rig.calibration.record import latest_calibration
 from rig.characterization.cross_field import CrossField, fit_cross_field
@@ -126,8 +126,7 @@ class MeasureCrossField(StepExecution):
             raise RigError(f"cross_field '{self.step.name}': too few settled samples"
                            f" ({len(rows)} of '{dut}'): lengthen dwell_s")  # fmt: skip
         t, m = rows[:, 0], rows[:, 1:]
-        field = to_cage_frame(refs[:, 1:], self.ctx.correction)
-        h = np.column_stack([np.interp(t, refs[:, 0], field[:, i]) for i in range(3)])
+        h = interpolated_field(refs, t, self.ctx.correction)
         h_axes, m_axes, frame, note = self._axes(h, m)
         fits = tuple(f for i in range(3) for f in fit_cross_field(h_axes, m_axes, i))
         result = CrossFieldResult(fits, frame, note, float(p["transverse_ut"]))
@@ -143,9 +142,7 @@ class MeasureCrossField(StepExecution):
                                   " mounting rotation of a few degrees mixes that fraction of"
                                   " the other transverse coefficient in")  # fmt: skip
         rot = rotation_from_vector(np.radians(np.asarray(mounting, float)))
-        corr = latest[1].correction
-        channels = list(corr.get("k_ut_per_unit", {}))
-        corrected = apply_correction(corr, m, np.zeros((len(m), len(channels))), channels)
+        corrected = apply_correction_unloaded(latest[1].correction, m)
         return (h @ rot.T, corrected @ rot.T, "sensor",
                 f"the sensor's axes (calibration '{latest[0]}', mounting"
                 f" {', '.join(f'{v:.2f}' for v in mounting)} deg)")  # fmt: skip

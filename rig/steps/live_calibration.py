@@ -228,8 +228,7 @@ class LiveCalibration:
             self.stop_forecast = None
             return [math.nan] * (len(groups) + 1)
         self.stop_forecast = forecast_stop(f, sigmas, len(self._rows), elapsed_s, self.targets)
-        planned = f.at(len(self._rows))
-        stop = self.stop_forecast.updates
+        planned, stop = self.stop_forecast.planned, self.stop_forecast.updates
         return [planned.get(g, math.nan) for g in groups] + [math.nan if stop is None else stop]
 
     def _samples(self) -> Samples:
@@ -278,9 +277,9 @@ class LiveCalibration:
         panel = {"name": LIVE_PANEL, "updates": snap.updates, "elapsed_s": round(snap.elapsed_s, 2),
                  "values": {k: float(v) for k, v in snap.sigmas.items()},
                  "targets": {k: float(v) for k, v in self.targets.items()}}  # fmt: skip
-        if self.forecast is not None and snap.updates:
-            panel["forecast"] = self.forecast.at(snap.updates)
         stop = self.stop_forecast
+        if stop is not None:
+            panel["forecast"] = stop.planned
         panel["forecast_line"] = stop.line() if stop is not None else self.forecast_problem
         state: dict[str, Any] = {"panel": panel}
         if stop is not None and stop.eta_s is not None and self.params["stop_on_target"] == "yes":

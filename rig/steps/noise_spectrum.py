@@ -13,6 +13,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from rig.analysis import settled_samples
+from rig.characterization.stability import on_uniform_grid
 from rig.errors import RigError
 from rig.steps import stored
 from rig.steps.base import Array, NullHoldKind, RunContext, StepExecution
@@ -28,10 +29,8 @@ def amplitude_density(t_s: Array, xyz: Array) -> tuple[Array, Array, float]:
     (n_f, 3), sample rate Hz) of samples at times ``t_s`` (s), resampled to their median rate."""
     from scipy.signal import welch
 
-    rate_hz = 1.0 / float(np.median(np.diff(t_s)))
-    grid = np.arange(t_s[0], t_s[-1], 1.0 / rate_hz)
-    uniform = np.column_stack([np.interp(grid, t_s, xyz[:, i]) for i in range(3)])
-    nperseg = min(len(grid), max(MIN_SAMPLES, int(2 ** np.ceil(np.log2(5.0 * rate_hz)))))
+    uniform, rate_hz = on_uniform_grid(t_s, xyz)
+    nperseg = min(len(uniform), max(MIN_SAMPLES, int(2 ** np.ceil(np.log2(5.0 * rate_hz)))))
     f, psd = welch(uniform, fs=rate_hz, window="hann", nperseg=nperseg, detrend="linear", axis=0)
     return f, np.sqrt(psd), rate_hz
 

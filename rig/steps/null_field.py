@@ -157,8 +157,9 @@ class NoiseFloor(StepExecution):
                        window: tuple[float, float]) -> tuple[float, float, float] | None:  # fmt: skip
         """The reference's mean over the hold (uT, cage frame) when the rig's own cage model set
         this null untrimmed (no characterization earlier in the run); else None."""
-        characterized = any(isinstance(v, Mapping) and "b0_ut" in v and "k_ut_per_a" in v
-                            for v in self.ctx.results.values())  # fmt: skip
+        from rig.steps import cage_model_measured_before  # the registry (it imports this module)
+
+        characterized = cage_model_measured_before(self.ctx.proc, self.step)
         if ref is None or characterized or self.step.params.get("trim") == "yes":
             return None
         t_a, t_b = window[0] + NOISE_SETTLE_S, window[1]

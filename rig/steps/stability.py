@@ -18,7 +18,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.analysis import apply_correction, settled_samples, to_cage_frame
+from rig.analysis import apply_correction_unloaded, interpolated_field, settled_samples
 from rig.calibration.record import latest_calibration
 from rig.characterization.stability import (
     MIN_SAMPLES,
@@ -178,14 +178,11 @@ class MeasureStability(StepExecution):
         t, m = rows[:, 0], rows[:, 1:]
         latest = latest_calibration(self.ctx.results)
         if latest is not None:
-            corr = latest[1].correction
-            channels = list(corr.get("k_ut_per_unit", {}))
-            m = apply_correction(corr, m, np.zeros((len(m), len(channels))), channels)
+            m = apply_correction_unloaded(latest[1].correction, m)
         if ref is not None and len(ref) >= 2:
             keep = (t >= ref[0, 0]) & (t <= ref[-1, 0])
             t, m = t[keep], m[keep]
-            field = to_cage_frame(ref[:, 1:], ref_correction)
-            m = m - np.column_stack([np.interp(t, ref[:, 0], field[:, i]) for i in range(3)])
+            m = m - interpolated_field(ref, t, ref_correction)
         return t, 1000.0 * m, latest is not None
 
 

@@ -122,13 +122,14 @@ def test_null_field_records_the_field_the_cage_model_leaves_unless_trimmed_or_ch
     tmp_path: Path,
 ) -> None:
     lab = np.array([19.6, 1.2, -44.7])
-    for params, results, expected in (
-        ({"hold_s": 10}, {}, lab),
-        ({"hold_s": 10, "trim": "yes"}, {}, None),  # trimmed: the loop's field, not the model's
-        ({"hold_s": 10}, {"cage": {"k_ut_per_a": [[40, 0, 0]] * 3, "b0_ut": [0, 0, 0]}}, None),
+    for params, characterized, expected in (
+        ({"hold_s": 10}, False, lab),
+        ({"hold_s": 10, "trim": "yes"}, False, None),  # trimmed: the loop's field, not the model's
+        ({"hold_s": 10}, True, None),  # after a characterization: the run's model, not the rig's
     ):
-        step = make_step("null_field", params)
-        ctx = context(tmp_path / str(len(params)) / str(len(results)), step, results=results)
+        step = make_step("null_field", params, index=int(characterized))
+        before = (make_step("characterize_cage", {}, index=0),) if characterized else ()
+        ctx = context(tmp_path / str(len(params)) / str(characterized), *before, step)
         t = np.arange(0.0, 10.0, 0.05)
         ctx.recording.add_field(0.0, [0, 0, 0])
         for dev in ("dut", "reference"):
