@@ -104,14 +104,29 @@ MAX_RESIDUAL_NT = 60.0
 data were ruined (seen under a load of 30 on two cores: residuals of 1-8 uT), not judged."""
 
 
-def valid(run: dict[str, Any]) -> bool:
+def valid(run: dict[str, Any], max_s: dict[str, float]) -> bool:
     """Every fit of the run leaves residuals an acceptance would pass (per axis where the fit
-    gives them, else the rms)."""
-    for step in run["steps"].values():
+    gives them, else the rms), and every live step (its ``max_s`` of dwell by name) ended
+    within that time: one that ran longer had set-points taking several times their planned
+    time (seen under a load of 30: 52-103 s against at most 44 s otherwise, and estimates
+    hundreds of sigma off), data the plan does not describe."""
+    for name, step in run["steps"].items():
         axes = step.get("residual_axes") or [step.get("residual_rms_nt") or 0.0]
         if max(axes) > MAX_RESIDUAL_NT:
             return False
+        live = step.get("live") or {}
+        if name in max_s and float(live.get("elapsed_s", 0.0)) > max_s[name]:
+            return False
     return True
+
+
+def live_max_s(procedure: str) -> dict[str, float]:
+    """Each live step's longest dwell (s) by name."""
+    from rig.procedure.language import parse_procedure
+    from rig.procedure_files import find_procedure
+
+    proc = parse_procedure(find_procedure(procedure))
+    return {s.name: float(s.params["max_s"]) for s in proc.steps if s.kind == "live_calibrate"}
 
 
 def predicted(procedure: str, earlier: list[dict[str, Any]]) -> Any:
@@ -121,7 +136,7 @@ def predicted(procedure: str, earlier: list[dict[str, Any]]) -> Any:
     the field their untrimmed nulls read (the nominal cage model's), as a runs folder gives them."""
     from rig.config import load_rig_config
     from rig.prediction.background import Background
-    from rig.prediction.noise import NoiseFloor, even
+    from rig.prediction.noise import NoiseFloor, pooled
     from rig.prediction.procedure import predict_procedure
     from rig.procedure.language import parse_procedure
     from rig.procedure.plan import rig_timing
@@ -133,13 +148,13 @@ def predicted(procedure: str, earlier: list[dict[str, Any]]) -> Any:
 
     axes = [step["residual_axes"] for run in earlier for step in run["steps"].values()
             if step.get("residual_axes")]  # fmt: skip
-    pooled = np.sqrt(np.mean(np.square(axes), axis=0))
-    noise = NoiseFloor((float(pooled[0]), float(pooled[1]), float(pooled[2])),
+    per_axis = np.sqrt(np.mean(np.square(axes), axis=0))
+    noise = NoiseFloor((float(per_axis[0]), float(per_axis[1]), float(per_axis[2])),
                        f"the residuals of {len(earlier)} earlier runs")  # fmt: skip
     nulls = [f for run in earlier for v in run["null_field"].values()
              if (f := NoiseFloorResult.from_dict(v)) is not None]  # fmt: skip
     pairs = [p for f in nulls if (p := f.pair_noise_nt("dut")) is not None]
-    rest = even(float(np.sqrt(np.mean(np.square(pairs)))), "earlier null fields") if pairs else None
+    rest = pooled(pairs, "earlier null fields") if pairs else None
     fields = [f.null_residual_ut for f in nulls if f.null_residual_ut is not None]
     mean = np.mean(fields, axis=0) if fields else np.zeros(3)
     background = Background((float(mean[0]), float(mean[1]), float(mean[2])),
@@ -242,8 +257,9 @@ def main() -> int:
         args.save.write_bytes(pickle.dumps(results))
     failed = [r["failed"] for r in results if "failed" in r]
     done = [r for r in results if "failed" not in r]
-    ruined = [i for i, r in enumerate(done) if not valid(r)]
-    done = [r for r in done if valid(r)]
+    longest = live_max_s(args.procedure)
+    ruined = [i for i, r in enumerate(done) if not valid(r, longest)]
+    done = [r for r in done if valid(r, longest)]
     prediction = predicted(args.procedure, done[: args.earlier])
     runs = done[args.earlier :]
     print(f"noise floor: {prediction.noise.source}"
@@ -253,7 +269,8 @@ def main() -> int:
     if ruined:
         print(
             f"left out: {len(ruined)} runs whose vector fit residual exceeds"
-            f" {MAX_RESIDUAL_NT:g} nT on an axis (the acceptance criterion: ruined data)"
+            f" {MAX_RESIDUAL_NT:g} nT on an axis (the acceptance criterion) or whose live step ran"
+            " past its max_s (ruined data)"
         )
     rows = table(prediction, runs)
     print(f"\n{len(runs)} runs on the simulated cage in {time.monotonic() - start:.0f} s")

@@ -13,7 +13,7 @@ values' sigmas then come from a fit of the samples up to that stop.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,11 +29,14 @@ from rig.calibration.targets import group_sigmas, unmet_targets
 from rig.config import RigConfig
 from rig.errors import CalibrationError
 from rig.prediction.background import Background, background_field
-from rig.prediction.planned import EARLY_REFERENCE_PERIODS, dut_rate_hz, step_samples
+from rig.prediction.planned import dut_rate_hz, step_samples
 from rig.prediction.predict import ParameterPrediction, flat_paths
 from rig.procedure.plan import compile_step, rig_timing
 from rig.steps.vocabulary import Procedure, RigTiming, Step
 
+PAIRING_PERIODS = 0.5
+"""After a change has settled, a live step's first DUT sample waits this many reference periods on
+average for a settled reference sample to pair with."""
 FORECAST_ROWS = 100
 """Rows of a forecast (each converts the filter's covariance to the groups' sigmas: 12 ms)."""
 
@@ -42,7 +45,8 @@ FORECAST_ROWS = 100
 class LivePrediction:
     """A live step predicted: ``stop_s`` the time its targets are met (None: not by ``max_s``),
     the group sigmas then (or at ``max_s``) against the targets, and the last group met or the
-    first unmet (``limited_by``)."""
+    first unmet (``limited_by``). Over several noises (earlier runs'), the typical run: the mean
+    stop and the rms of each sigma, each noise's stop in ``stops``."""
 
     step: str
     noise_nt: float
@@ -58,15 +62,33 @@ class LivePrediction:
     """The filter's updates by then (settled samples)."""
     forecast: SigmaForecast | None = None
     """The sigmas over the whole plan (the run's live forecast)."""
+    stops: tuple[Stop, ...] = ()
+    """Per noise the prediction was made for, where the step stops."""
+
+
+@dataclass(frozen=True)
+class Stop:
+    """Where a live step stops at the filter noise ``noise_nt`` (nT): after ``updates`` settled
+    samples at ``dwell_s`` into its plan (s; ``max_s`` when its targets are not met by then)."""
+
+    noise_nt: float
+    updates: int
+    dwell_s: float
+    met: bool
 
 
 def predict_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: float,
-                 noise_nt: float, seed: int = 0,
-                 background: Background | None = None) -> LivePrediction:  # fmt: skip
+                 noise_nt: float, seed: int = 0, background: Background | None = None,
+                 runs_nt: Sequence[float] = ()) -> LivePrediction:  # fmt: skip
     """Predict live step ``step`` of ``proc`` (the filter's noise ``noise_nt`` unless the step
-    gives its own; the field the cage leaves at zero, ``background``, on every set-point)."""
+    gives its own; the field the cage leaves at zero, ``background``, on every set-point). With
+    ``runs_nt``, the noises earlier runs gave their filters (nT), the typical run over them: the
+    stop moves with the noise (the sigmas scale with it), and what the step reports with where it
+    stops (a stop before a load level leaves its coefficients far less known)."""
     p = step.params
-    noise = float(p.get("noise_nt") or noise_nt)
+    own = p.get("noise_nt")
+    noise = float(own or noise_nt)
+    noises = (noise,) if own or not runs_nt else tuple(float(v) for v in runs_nt)
     targets = {str(k): float(v) for k, v in dict(p.get("targets") or {}).items()}
     max_s, min_s = float(p["max_s"]), float(p["min_s"])
     method = str(p.get("method") or "ukf")
@@ -76,16 +98,50 @@ def predict_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: fl
         forecast = filter_forecast(s, t, method, noise)
     except CalibrationError as exc:
         return LivePrediction(*head, None, max_s, {}, targets, "", problem=str(exc))
-    stop = forecast.first_met(targets, from_updates=int(np.sum(t < min_s)) + 1)
-    n = stop if stop is not None else forecast.updates[-1]
-    sigmas = {k: vs[forecast.updates.index(n)] for k, vs in forecast.sigmas.items()}
-    parameters = _parameters(s.head(n), method, noise)
-    if stop is None:
+    first = int(np.sum(t < min_s)) + 1
+    stops = tuple(_stop(forecast.scaled(q), targets, first, t, min_s) for q in noises)
+    rows = [forecast.scaled(x.noise_nt).at(x.updates) for x in stops]
+    sigmas = {k: _rms([r[k] for r in rows]) for k in rows[0]}
+    fits = {n: _parameters(s.head(n), method, noise) for n in sorted({x.updates for x in stops})}
+    parameters = _pooled_parameters([(fits[x.updates], x.noise_nt / noise) for x in stops],
+                                    _rms(list(noises)))  # fmt: skip
+    n = round(float(np.mean([x.updates for x in stops])))
+    if not all(x.met for x in stops):
         unmet = unmet_targets(sigmas, targets)
         return LivePrediction(*head, None, max_s, sigmas, targets, unmet[0] if unmet else "",
-                              None, parameters, n, forecast)  # fmt: skip
-    return LivePrediction(*head, max(min_s, float(t[n - 1])), max_s, sigmas, targets,
-                          _last(sigmas, targets), None, parameters, n, forecast)  # fmt: skip
+                              None, parameters, n, forecast, stops)  # fmt: skip
+    stop_s = float(np.mean([x.dwell_s for x in stops]))
+    return LivePrediction(*head, stop_s, max_s, sigmas, targets, _last(sigmas, targets), None,
+                          parameters, n, forecast, stops)  # fmt: skip
+
+
+def _stop(forecast: SigmaForecast, targets: dict[str, float], first: int, t_s: np.ndarray,
+          min_s: float) -> Stop:  # fmt: skip
+    """Where the step stops on ``forecast`` (its targets met from update ``first`` on)."""
+    n = forecast.first_met(targets, from_updates=first)
+    if n is None:
+        return Stop(forecast.noise_nt, forecast.updates[-1], float(t_s[-1]), False)
+    return Stop(forecast.noise_nt, n, max(min_s, float(t_s[n - 1])), True)
+
+
+def _rms(values: Sequence[float]) -> float:
+    return float(np.sqrt(np.mean(np.square(values))))
+
+
+def _pooled_parameters(scenarios: list[tuple[tuple[ParameterPrediction, ...], float]],
+                       noise_nt: float) -> tuple[ParameterPrediction, ...]:  # fmt: skip
+    """Each value's sigma over the scenarios (a fit's parameters, times its noise's ratio): the
+    rms, as runs at those noises would report on average."""
+    if not scenarios or any(not fit for fit, _ in scenarios):
+        return ()
+    first = scenarios[0][0]
+    out = []
+    for i, p in enumerate(first):
+        v = _rms([fit[i].statistical * f for fit, f in scenarios])
+        why = (f"noise ({noise_nt:.1f} nT rms over {len(scenarios)} runs' filters)"
+               if len(scenarios) > 1 else p.limited_by)  # fmt: skip
+        out.append(ParameterPrediction(p.path, v, v, why))
+    return tuple(out)
 
 
 def planned_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: float,
@@ -97,9 +153,12 @@ def planned_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: fl
     p = step.params
     channels = tuple(str(c) for c in p.get("telemetry") or ())
     plan = compile_step(step, proc.path.parent, timing)
+    # the step's own rule (rig.steps.live_calibration): a DUT sample counts from settle_s after a
+    # change until the next one starts, once a settled reference sample has come to pair it with
+    # (half a reference period later on average); no window before a change, as a batch fit has
+    settle_s = float(p["settle_s"]) + PAIRING_PERIODS / timing.reference_rate_hz
     t, field, loads = step_samples(plan.commands, plan.duration_s, channels, dut_rate_hz,
-                                   float(p["settle_s"]),
-                                   EARLY_REFERENCE_PERIODS / timing.reference_rate_hz)  # fmt: skip
+                                   settle_s, 0.0)  # fmt: skip
     if background is not None:
         field = field + background.for_step(proc, step)
     rng = np.random.default_rng([seed, len(t)])

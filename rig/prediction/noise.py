@@ -31,6 +31,9 @@ RUNS_LOOKED_AT = 50
 """The newest runs searched for a measured noise floor."""
 POOLED_RUNS = 5
 """The newest runs whose calibration residuals are pooled into the floor."""
+REST_RUNS = 20
+"""The newest runs whose null-field noises make a live filter's (their spread too: a live step
+stops when its sigmas, which scale with that noise, meet their targets)."""
 
 
 @dataclass(frozen=True)
@@ -39,6 +42,8 @@ class NoiseFloor:
 
     axes_nt: tuple[float, float, float]
     source: str
+    runs_nt: tuple[float, ...] = ()
+    """Each earlier run's own figure (nT) when the floor pools several (their rms is the floor)."""
 
     @property
     def pair_nt(self) -> float:
@@ -49,6 +54,12 @@ class NoiseFloor:
 def even(nt: float, source: str) -> NoiseFloor:
     """The same noise ``nt`` on every axis."""
     return NoiseFloor((nt, nt, nt), source)
+
+
+def pooled(runs_nt: list[float], source: str) -> NoiseFloor:
+    """The rms of several runs' noises ``runs_nt`` (nT) on every axis, keeping each one."""
+    rms = math.sqrt(sum(v * v for v in runs_nt) / len(runs_nt))
+    return NoiseFloor((rms, rms, rms), source, tuple(runs_nt))
 
 
 def noise_floor(proc: Procedure, cfg: RigConfig | None, runs_dir: Path | None,
@@ -96,15 +107,22 @@ def measured_floor(runs_dir: Path, dut: str) -> NoiseFloor | None:
 
 
 def rest_floor(runs_dir: Path | None, dut: str) -> NoiseFloor | None:
-    """The newest null-field noise of device ``dut`` paired with the reference (what a live
-    calibration's filter is given), None if no run measured it."""
+    """The null-field noises of device ``dut`` paired with the reference (what a live
+    calibration's filter is given) in the newest :data:`REST_RUNS` runs that measured one, pooled
+    with each run's kept; None if no run measured it."""
     if runs_dir is None:
         return None
+    found: list[NoiseFloor] = []
     for run_id, results in results_of(runs_dir, dut):
-        found = _null_field(results, run_id)
-        if found is not None:
-            return found
-    return None
+        floor = _null_field(results, run_id)
+        if floor is not None:
+            found.append(floor)
+            if len(found) == REST_RUNS:
+                break
+    if len(found) < 2:
+        return found[0] if found else None
+    return pooled([f.pair_nt for f in found],
+                  f"the null fields of the newest {len(found)} runs of '{dut}'")  # fmt: skip
 
 
 def results_of(runs_dir: Path, dut: str) -> Iterator[tuple[str, dict[str, Any]]]:

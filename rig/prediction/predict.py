@@ -95,6 +95,30 @@ def predict_step(name: str, params: dict[str, Any], planned: PlannedData, noise:
     return StepPrediction(*head, rows, budget.left_out)
 
 
+def pooled_steps(preds: list[tuple[StepPrediction, int]]) -> StepPrediction:
+    """One step predicted for several scenarios (each with its count of runs): every sigma the
+    rms over the runs, the samples their mean, the limiting term the most common scenario's."""
+    if len(preds) == 1:
+        return preds[0][0]
+    preds = sorted(preds, key=lambda pc: -pc[1])
+    first = preds[0][0]
+    weights = np.array([c for _, c in preds], float) / sum(c for _, c in preds)
+    if any(p.problem is not None or not p.parameters for p, _ in preds):
+        return next(p for p, _ in preds if p.problem is not None or not p.parameters)
+
+    def rms(values: list[float]) -> float:
+        return float(np.sqrt(np.sum(weights * np.square(values))))
+
+    rows = tuple(ParameterPrediction(q.path, rms([p.parameters[i].statistical for p, _ in preds]),
+                                     rms([p.parameters[i].combined for p, _ in preds]),
+                                     q.limited_by)
+                 for i, q in enumerate(first.parameters))  # fmt: skip
+    samples = round(float(np.sum(weights * [p.samples for p, _ in preds])))
+    seconds = float(np.sum(weights * [p.seconds for p, _ in preds]))
+    return StepPrediction(first.step, first.method, samples, seconds, first.steps, rows,
+                          first.left_out)  # fmt: skip
+
+
 def _budget(samples: Samples, refit: Any, fit: CalibrationResult,
             cage: CageTerms | None) -> UncertaintyBudget:  # fmt: skip
     """The cage terms' contributions, found on at most about :data:`BUDGET_ROWS` samples."""

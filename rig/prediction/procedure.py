@@ -3,6 +3,7 @@ predicted value (``rig check --predict``)."""
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -17,8 +18,8 @@ from rig.prediction.duration import PredictedDuration, predicted_duration
 from rig.prediction.live import LivePrediction, predict_live
 from rig.prediction.noise import NoiseFloor, noise_floor, rest_floor
 from rig.prediction.planned import dut_rate_hz, planned_data
-from rig.prediction.predict import StepPrediction, predict_step
-from rig.steps.vocabulary import Procedure, RigTiming
+from rig.prediction.predict import StepPrediction, pooled_steps, predict_step
+from rig.steps.vocabulary import Procedure, RigTiming, Step
 
 
 @dataclass(frozen=True)
@@ -64,14 +65,20 @@ def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
     rest = rest or rest_floor(runs_dir, dut)
     background = background or background_field(cfg, runs_dir, dut)
     live = tuple(predict_live(proc, s, timing, rate, rest.pair_nt if rest else noise.pair_nt, seed,
-                              background)
+                              background, rest.runs_nt if rest else ())
                  for s in proc.steps if s.kind == "live_calibrate")  # fmt: skip
-    stops = {lp.step: lp.stop_s for lp in live if lp.stop_s is not None and _stops_early(proc, lp)}
-    fits = [s for s in proc.steps if s.kind == "calibrate"]
-    data = [planned_data(proc, s, timing, rate, stops_s=stops, background=background)
-            for s in fits]  # fmt: skip
-    steps = tuple(predict_step(s.name, s.params, d, noise, cage, seed)
-                  for s, d in zip(fits, data, strict=True))  # fmt: skip
+    scenarios = _live_stops(proc, live)
+
+    def fit(step: Step) -> StepPrediction:
+        # one prediction per distinct set of live stops (each earlier run's noise), pooled
+        distinct = Counter(tuple(sorted(stops.items())) for stops in scenarios)
+        preds = [(predict_step(step.name, step.params,
+                               planned_data(proc, step, timing, rate, stops_s=dict(stops),
+                                            background=background), noise, cage, seed), count)
+                 for stops, count in distinct.items()]  # fmt: skip
+        return pooled_steps(preds)
+
+    steps = tuple(fit(s) for s in proc.steps if s.kind == "calibrate")
     criteria = [c for s in proc.steps if s.kind == "check" for c in s.params.get("criteria", [])]
     by_name = {p.step: p for p in steps}
     lives = {p.step: p for p in live}
@@ -79,6 +86,15 @@ def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
                    for c in criteria)  # fmt: skip
     return ProcedurePrediction(noise, steps, judged, _duration(proc, cfg, timing), live,
                                background)  # fmt: skip
+
+
+def _live_stops(proc: Procedure, live: tuple[LivePrediction, ...]) -> list[dict[str, float]]:
+    """Per noise scenario (an earlier run's), where each live step that stops on its targets
+    stops (s of its plan); one scenario without such steps."""
+    early = [lp for lp in live if _stops_early(proc, lp) and lp.stops]
+    count = max((len(lp.stops) for lp in early), default=1)
+    return [{lp.step: lp.stops[min(i, len(lp.stops) - 1)].dwell_s for lp in early}
+            for i in range(count)]  # fmt: skip
 
 
 def _stops_early(proc: Procedure, live: LivePrediction) -> bool:
