@@ -8,7 +8,7 @@ Units are in the names: V, A, uT, Hz, s.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 from drivers.identity import Identity
 
@@ -90,6 +90,16 @@ class Magnetometer(Protocol):
     def read_samples(self, max_wait_s: float) -> list[Vector]: ...
     def stop_sampling(self) -> None: ...
     def close(self) -> None: ...
+
+
+@runtime_checkable
+class SetReset(Protocol):
+    """A magnetometer with set/reset pulses (an AMR sensor's strap: they restore its magnetization,
+    so a strong field's perming goes): automatic pulses (the sensor's default, removing perming as
+    it reads) on or off, and one pulse now. Called only while the sensor is not sampling."""
+
+    def set_reset_auto(self, on: bool) -> None: ...
+    def set_reset_pulse(self) -> None: ...
 
 
 class ScalarMagnetometer(Protocol):

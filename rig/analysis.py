@@ -386,6 +386,22 @@ def interpolated_field(ref: Array, t_s: Array, correction: dict[str, Any] | None
     return to_cage_frame(field, correction)
 
 
+def offsets_less_reference(rows: Array, ref: Array | None, dut_correction: dict[str, Any] | None,
+                           ref_correction: dict[str, Any] | None) -> tuple[Array, Array]:  # fmt: skip
+    """A DUT's readings at rest (rows t s, x, y, z uT) as its offset: corrected by
+    ``dut_correction`` (a calibration's, without load currents) when given, less the reference
+    (rows likewise; through ``ref_correction``, its certificate) interpolated at each DUT time,
+    where the reference covers it. Times (s) and offsets (nT, (N, 3))."""
+    t, m = rows[:, 0], rows[:, 1:]
+    if dut_correction is not None:
+        m = apply_correction_unloaded(dut_correction, m)
+    if ref is not None and len(ref) >= 2:
+        keep = (t >= ref[0, 0]) & (t <= ref[-1, 0])
+        t, m = t[keep], m[keep]
+        m = m - interpolated_field(ref, t, ref_correction)
+    return t, 1000.0 * m
+
+
 def reference_field_series(reader: RunReader) -> Callable[[Array], Array]:
     """The run's reference field (cage frame, uT, (N, 3)) at any times (s), interpolated as
     :func:`calibration_data` does at the DUT's dates."""
@@ -576,6 +592,13 @@ def run_temperature(
     """The DUT temperature (C) a run's thermometer ``name`` recorded, interpolated linearly to
     the calibration samples' times ``t_s`` (s): (samples kept, temperature per kept sample,
     number left out for want of a reading within :data:`MAX_TEMPERATURE_GAP_S`)."""
+    temperature, keep = thermometer_at(reader, name, t_s)
+    return samples.take(keep), temperature[keep], int((~keep).sum())
+
+
+def thermometer_at(reader: RunReader, name: str, t_s: Array) -> tuple[Array, Any]:
+    """Thermometer ``name``'s temperature (C) interpolated at ``t_s`` (s) and which times have a
+    reading within :data:`MAX_TEMPERATURE_GAP_S`; UserInputError when the run has none."""
     recorded_thermometer(reader, name)
     rows = np.array(reader.channel_column(name, "measured"), float).reshape(-1, 2)
     if rows.size == 0:
@@ -588,8 +611,7 @@ def run_temperature(
     if not keep.any():
         raise UserInputError(f"--temperature {name}: no reading within {MAX_TEMPERATURE_GAP_S:g} s"
                              " of any calibration sample")  # fmt: skip
-    temperature = np.interp(t_s, t_th, value)
-    return samples.take(keep), temperature[keep], int((~keep).sum())
+    return np.interp(t_s, t_th, value), keep
 
 
 def unresolved_note(unresolved: int, total: int) -> str:

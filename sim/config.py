@@ -156,6 +156,15 @@ class MagnetometerConfig:
     # cross-field effect (ppm of an axis's scale per uT of field along another, sensor frame;
     # rows the measured axis, the diagonal unused): m = L (u + u * (C u)), u = R h
     cross_field_ppm_per_ut: tuple[tuple[float, ...], ...] = ((0.0,) * 3,) * 3
+    # perming (sim.perming): a field beyond the threshold (uT at the sensor) leaves an offset of
+    # perming_nt_per_ut per uT beyond it, along that field, until a set/reset pulse (an AMR
+    # sensor's; a device with automatic set/reset pulses before every reading); 0: none
+    perming_threshold_ut: float = 0.0
+    perming_nt_per_ut: float = 0.0
+    # thermal hysteresis (sim.thermal_hysteresis): the offset on warming less that on cooling at
+    # the same temperature (nT per axis), reached over 2 hysteresis_band_k after a reversal
+    offset_hysteresis_nt: tuple[float, ...] = (0.0, 0.0, 0.0)
+    hysteresis_band_k: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -373,7 +382,15 @@ def _magnetometer(m: dict[str, Any], where: str, loads: set[str]) -> Magnetomete
         cross_field_ppm_per_ut=_mat(m, "cross_field_ppm_per_ut", where)
         if "cross_field_ppm_per_ut" in m
         else ((0.0,) * 3,) * 3,
+        perming_threshold_ut=float(m.get("perming_threshold_ut", 0.0)),
+        perming_nt_per_ut=float(m.get("perming_nt_per_ut", 0.0)),
+        offset_hysteresis_nt=_vec_or(m, "offset_hysteresis_nt", where, zero),
+        hysteresis_band_k=float(m.get("hysteresis_band_k", 1.0)),
     )
+    if not mag.hysteresis_band_k > 0:
+        raise SimConfigError(f"{where}: hysteresis_band_k must be > 0")
+    if mag.perming_threshold_ut < 0 or mag.perming_nt_per_ut < 0:
+        raise SimConfigError(f"{where}: perming_threshold_ut and perming_nt_per_ut must be >= 0")
     if mag.offset_walk_nt_per_sqrt_h < 0 or mag.offset_flicker_nt < 0:
         raise SimConfigError(
             f"{where}: offset_walk_nt_per_sqrt_h and offset_flicker_nt must be >= 0"

@@ -34,6 +34,7 @@ import numpy as np
 
 from sim.device_kind import CageHost, SimKind
 from sim.links import damage, open_pty
+from sim.perming import Perming
 from sim.physics import Faults
 
 if TYPE_CHECKING:
@@ -76,15 +77,19 @@ class Hmr2300:
     the field at the moment the thread ran."""
 
     def __init__(self, read_ut: Callable[[float], np.ndarray], faults: Faults, *, device_id: int = 0,
-                 baudrate: int = 9600, serial_number: str = "0123", seed: int = 0) -> None:  # fmt: skip
+                 baudrate: int = 9600, serial_number: str = "0123", seed: int = 0,
+                 perming: Perming | None = None) -> None:  # fmt: skip
         self.read_ut = read_ut
         self.faults = faults
+        self.perming = perming or Perming(0.0, 0.0)
+        """The sensor's perming: cleared by set/reset pulses (``]S``/``]R``, and S/R mode)."""
         self.device_id = device_id
         self.baudrate = baudrate
         self.serial_number = serial_number
         self.binary = False
         self.rate_sps = 20
         self.set_reset = True
+        self.perming.set_auto_reset(True)
         self.zero_offset = np.zeros(3)
         self.zero_on = False
         self.average = False
@@ -214,6 +219,7 @@ class Hmr2300:
         elif cmd == "ID=":
             self._reply(f"ID= {self.device_id:02d}")
         elif cmd in ("]S", "]R", "]"):
+            self.perming.reset()
             self._invalid_after_pulse = 3
             self._reply({"]S": "SET", "]R": "RST", "]": "SET"}[cmd])
         elif cmd == "#":
@@ -272,23 +278,14 @@ class Hmr2300:
             self._reply("OK")
             self._reply("BAUD= 9600" if baud == 9600 else "BAUD= 19,200")
             self.baudrate = baud  # the client must now reopen the port at the new speed
-        elif cmd in ("TN", "TF", "T"):
-            self.set_reset = {"TN": True, "TF": False, "T": not self.set_reset}[cmd]
-            self._reply("S/R ON" if self.set_reset else "S/R OFF")
-        elif cmd in ("ZN", "ZF", "ZR"):
-            self.zero_on = {"ZN": True, "ZF": False, "ZR": not self.zero_on}[cmd]
-            if self.zero_on:
-                self.zero_offset = np.asarray(self.read_ut(time.monotonic()), dtype=float)
-            self._reply("ZERO ON" if self.zero_on else "ZERO OFF")
-        elif cmd in ("VN", "VF", "V"):
-            self.average = {"VN": True, "VF": False, "V": not self.average}[cmd]
-            self._avg = None
-            self._reply("AVG ON" if self.average else "AVG OFF")
+        elif cmd in ("TN", "TF", "T", "ZN", "ZF", "ZR", "VN", "VF", "V"):
+            self._mode(cmd)
         elif cmd in ("Y", "N"):
             self.reenter_reply = cmd == "Y"
             self._reply("OK")
         elif cmd in ("D", "RST"):
             self.binary, self.rate_sps, self.set_reset = False, 20, True
+            self.perming.set_auto_reset(True)
             self._restart_clock()
             self.zero_on = self.average = False
             self.reenter_reply = True
@@ -296,6 +293,22 @@ class Hmr2300:
             self._reply("BAUD= 9600" if self.baudrate == 9600 else "BAUD= 19,200")
         elif cmd == "SP":
             self._reply("OK")
+
+    def _mode(self, cmd: str) -> None:
+        """The on/off/toggle modes: set/reset (T), zero (Z), averaging (V)."""
+        if cmd[0] == "T":
+            self.set_reset = {"TN": True, "TF": False, "T": not self.set_reset}[cmd]
+            self.perming.set_auto_reset(self.set_reset)
+            self._reply("S/R ON" if self.set_reset else "S/R OFF")
+        elif cmd[0] == "Z":
+            self.zero_on = {"ZN": True, "ZF": False, "ZR": not self.zero_on}[cmd]
+            if self.zero_on:
+                self.zero_offset = np.asarray(self.read_ut(time.monotonic()), dtype=float)
+            self._reply("ZERO ON" if self.zero_on else "ZERO OFF")
+        else:
+            self.average = {"VN": True, "VF": False, "V": not self.average}[cmd]
+            self._avg = None
+            self._reply("AVG ON" if self.average else "AVG OFF")
 
     # --- loop -----------------------------------------------------------------------------------
 
@@ -363,7 +376,8 @@ def _start(host: CageHost, m: MagnetometerConfig, index: int) -> dict[str, Any]:
     """An HMR2300 on a pseudo-terminal at the DUT position."""
     dev = Hmr2300(host.field_reader(m.name), host.physics.magnetometers[m.name].faults,
                   device_id=m.endpoint.device_id, baudrate=m.endpoint.baudrate,
-                  serial_number=m.serial_number, seed=host.cfg.seed + index)  # fmt: skip
+                  serial_number=m.serial_number, seed=host.cfg.seed + index,
+                  perming=host.physics.magnetometers[m.name].perming)  # fmt: skip
     host.add_serial(m.name, dev)
     return {"kind": "hmr2300", "protocol": "serial", "path": dev.path,
             "baudrate": m.endpoint.baudrate, "device_id": m.endpoint.device_id}  # fmt: skip

@@ -32,7 +32,9 @@ from sim.coils import CageCoils, CoilPair
 from sim.config import MagnetometerConfig, SimConfig, SimConfigError, SupplyConfig
 from sim.lab_field import LabField
 from sim.offset_wander import OffsetWander, WanderSpec
+from sim.perming import Perming
 from sim.signals import FirstOrderSignal
+from sim.thermal_hysteresis import ThermalHysteresis
 
 Array = npt.NDArray[np.float64]
 
@@ -276,6 +278,10 @@ class Magnetometer:
         self.wander = OffsetWander(WanderSpec(cfg.offset_drift_nt_per_h, cfg.offset_walk_nt_per_sqrt_h,
                                               cfg.offset_flicker_nt), wander_seed, now_s())  # fmt: skip
         """The offset's wander over time (drift, random walk, flicker)."""
+        self.perming = Perming(cfg.perming_threshold_ut, cfg.perming_nt_per_ut)
+        """What a strong field left in the offset (cleared by a set/reset pulse)."""
+        self.hysteresis = ThermalHysteresis(cfg.offset_hysteresis_nt, cfg.hysteresis_band_k)
+        self._hysteresis_ut = np.zeros(3)  # its offset at the latest reading's temperature
 
     def truth_reading(
         self, field_ut: Array, loads_a: dict[str, float], temperature_c: float | None = None
@@ -287,7 +293,8 @@ class Magnetometer:
         if self.cross_field is not None:
             u = u + u * (self.cross_field @ u)
         m = (1.0 + self.cfg.scale_per_k * d_t) * (self.sensor @ u)
-        m = m + self.offset_ut + self.offset_ut_per_k * d_t
+        m = m + self.offset_ut + self.offset_ut_per_k * d_t + self.sensor @ self.perming.shift_ut
+        m = m + self._hysteresis_ut
         for ch, k in self.cfg.k_ut_per_a.items():
             m = m + np.asarray(k) * loads_a.get(ch, 0.0)
         return np.asarray(m)
@@ -311,6 +318,9 @@ class Magnetometer:
             if self.faults.stuck and self._last is not None:
                 return self._last.copy()
             noise = self.cfg.noise_ut * self._rng.standard_normal(3)
+            self.perming.expose(self.rotation @ (self.turn.T @ field_ut))
+            if temperature_c is not None and self.hysteresis.active:
+                self._hysteresis_ut = self.hysteresis.offset_ut(temperature_c)
             self._last = self.truth_reading(field_ut, loads_a, temperature_c) + noise
             if t_s is not None and self.wander.spec.active:
                 self._last = self._last + self.wander.value(t_s)

@@ -137,6 +137,11 @@ class Hmr2300:
         """The device's IIR average."""
         self._protected("VN" if on else "VF", "AVG ON" if on else "AVG OFF")
 
+    def set_reset_auto(self, on: bool) -> None:
+        """Automatic set/reset pulses (S/R mode: on by default, clearing perming as the sensor
+        reads); off, a strong field's perming stays until :meth:`set_reset_pulse`."""
+        self._protected("TN" if on else "TF", "S/R ON" if on else "S/R OFF")
+
     def set_reset_pulse(self) -> None:
         """One set/reset pulse (degaussing); the next three readings are discarded here."""
         self._command("]S", "SET")

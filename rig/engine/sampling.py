@@ -15,7 +15,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 from drivers.errors import DeviceError, DeviceProtocolError, DeviceTimeoutError
 from drivers.protocols import Magnetometer
@@ -55,6 +55,10 @@ class SensorSampler:
         self.started_t = time.monotonic()
         self.repeats = 0  # consecutive readings identical to the one before
         self._stop = threading.Event()
+        self._hold = threading.Event()  # asked to let go of the sensor
+        self._parked = threading.Event()  # the thread has let go (sampling stopped)
+        self._resume = threading.Event()
+        self._hold_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name=f"sampler-{name}", daemon=True)
 
     def start(self) -> None:
@@ -84,6 +88,11 @@ class SensorSampler:
         failures = 0  # consecutive late or unreadable replies
         try:
             while not self._stop.is_set():
+                if self._hold.is_set():
+                    self._park()
+                    next_t = time.monotonic()
+                    clock.reset()  # the stream starts again: count from its first sample
+                    continue
                 try:
                     if self.driver.self_timed:  # the sensor sends at its own rate
                         samples = self.driver.read_samples(WAIT_S)
@@ -117,6 +126,34 @@ class SensorSampler:
             self.error = exc
             with self._cond:
                 self._cond.notify_all()
+
+    def _park(self) -> None:
+        """Stop sampling, wait for :meth:`paused`'s caller to finish, then sample again."""
+        try:
+            self.driver.stop_sampling()
+        finally:
+            self._parked.set()
+        self._resume.wait()
+        self._resume.clear()
+        self.rate_hz = self.driver.start_sampling(self.rate_hz)
+
+    @contextlib.contextmanager
+    def paused(self, timeout_s: float = 2.0) -> Iterator[Magnetometer]:
+        """The sensor's driver, not sampling, for a command its stream would get in the way of
+        (a set/reset pulse); sampling starts again at the same rate afterwards. A thread that
+        does not let go within ``timeout_s`` (it is stuck in a read) is a DeviceTimeoutError."""
+        with self._hold_lock:
+            self._parked.clear()
+            self._hold.set()
+            try:
+                if not self._parked.wait(timeout_s):
+                    raise DeviceTimeoutError(
+                        f"{self.name}: sampling did not pause within {timeout_s:g} s"
+                    )
+                yield self.driver
+            finally:
+                self._hold.clear()
+                self._resume.set()
 
     def health(
         self, now: float, stall_s: float, stuck_after: int, cpu_wait: CpuWaitLog | None = None

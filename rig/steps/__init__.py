@@ -22,6 +22,7 @@ from rig.steps import (
     noise_spectrum,
     null_field,
     orbit_replay,
+    perming,
     prompt,
     report,
     rotate,
@@ -29,6 +30,7 @@ from rig.steps import (
     sphere_sweep,
     stability,
     supply_stability,
+    thermal_cycle,
 )
 from rig.steps.base import StepKind
 from rig.steps.vocabulary import Procedure, Step
@@ -49,6 +51,8 @@ KINDS: dict[str, StepKind] = {
         noise_spectrum,
         stability,
         cross_field,
+        perming,
+        thermal_cycle,
         linearity,
         characterize_cage,
         coil_axes,

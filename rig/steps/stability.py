@@ -18,7 +18,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.analysis import apply_correction_unloaded, interpolated_field, settled_samples
+from rig.analysis import offsets_less_reference, settled_samples
 from rig.calibration.record import latest_calibration
 from rig.characterization.stability import (
     MIN_SAMPLES,
@@ -175,15 +175,10 @@ class MeasureStability(StepExecution):
                  ref_correction: dict[str, Any] | None) -> tuple[Array, Array, bool]:  # fmt: skip
         """Times (s) and the DUT's offset (nT): corrected by the run's latest calibration when
         there is one, less the reference at the same time (cage frame)."""
-        t, m = rows[:, 0], rows[:, 1:]
         latest = latest_calibration(self.ctx.results)
-        if latest is not None:
-            m = apply_correction_unloaded(latest[1].correction, m)
-        if ref is not None and len(ref) >= 2:
-            keep = (t >= ref[0, 0]) & (t <= ref[-1, 0])
-            t, m = t[keep], m[keep]
-            m = m - interpolated_field(ref, t, ref_correction)
-        return t, 1000.0 * m, latest is not None
+        correction = latest[1].correction if latest is not None else None
+        t, offsets = offsets_less_reference(rows, ref, correction, ref_correction)
+        return t, offsets, latest is not None
 
 
 KIND = Stability()

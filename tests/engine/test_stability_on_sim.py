@@ -49,11 +49,14 @@ def test_a_drifting_dut_held_for_a_minute_shows_its_drift_and_allan_deviation(
 def test_the_shipped_characterization_passes_a_good_dut(tmp_path: Path) -> None:
     """procedures/dut-characterization.yaml on the simulated cage (its hold cut to 30 s, and so
     its drift limit lifted: 30 s know the drift to about 6000 nT per 12 h): every figure
-    recorded, the default DUT (no cross-field, a small wander) passes every criterion."""
+    recorded, the default DUT (no cross-field, a small wander, no perming) passes every
+    criterion."""
     from rig.procedure_files import find_procedure
 
     text = find_procedure("dut-characterization").read_text()
     text = text.replace("{default: 600,", "{default: 30,").replace("max: 500,", "max: 1.0e9,")
+    # perming's holds cut to 30 s: the 20 nT DUT's shift known to about 1.2 nT per axis
+    text = text.replace("{default: 60, description: length of each", "{default: 30, description:")
     outcome = run_on_sim(tmp_path, text)
     failed = [
         c for c in outcome.results.get("verdict", {}).get("criteria", []) if c["verdict"] != "PASS"
@@ -67,3 +70,5 @@ def test_the_shipped_characterization_passes_a_good_dut(tmp_path: Path) -> None:
          for i in range(3) for j in range(3) if i != j]  # fmt: skip
     assert max(abs(v) for v in z) < 4.0, z  # the default DUT has none
     assert outcome.results["offset stability"]["hold_s"] == 30.0
+    perming = outcome.results["perming"]
+    assert perming["calibrated"] and perming["shock_abs_ut"] == pytest.approx(90.0, abs=1.0)
