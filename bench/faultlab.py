@@ -71,6 +71,9 @@ TARGETS: dict[str, str] = {
     "noise_spectrum": "noise_spectrum: {hold_s: 9, band_hz: [0.5, 5.0]}",
     "linearity": "linearity: {max_ut: 50, points: 5, dwell_s: 1.0}",  # loads switch mid-point
     "characterize_cage": "characterize_cage: {amplitude_a: 1.0, samples: 10, repeats: 1}",
+    # turns the DUT's automatic set/reset off: back on however the step ends
+    "perming": "perming: {shock_ut: 60, shock_s: 1, hold_s: 4, settle_s: 0.5}",
+    "thermal_cycle": "thermal_cycle: {thermometer: dut_temp, hold_s: 10}",
 }  # fmt: skip
 """The step each column of the matrix injects its faults into (named ``target``, about 9 s): every
 step kind that drives outputs."""

@@ -93,3 +93,46 @@ def test_a_dut_that_does_not_perm_passes(tmp_path: Path) -> None:
     assert not r["detected"] and r["shift_abs_nt"] < 1.5, r
     assert outcome.results["verdict"]["overall"] == "PASS"
     assert seen["auto"] is True
+
+
+ABORTED = """
+procedure: perming aborted
+magnetometers: {dut: dut, reference: reference}
+steps:
+  - perming: {shock_ut: 60, shock_s: 1, hold_s: 20, settle_s: 0.5}
+    name: perming
+"""
+
+
+@pytest.mark.slow
+def test_an_abort_inside_the_step_turns_the_automatic_set_reset_back_on(tmp_path: Path) -> None:
+    """The operator aborts while the DUT's automatic set/reset is off: the run ends aborted and
+    the DUT is back in the mode it was in (the step's abort path, not only its end)."""
+    import threading
+    import time
+
+    from rig.config import load_rig_config
+    from rig.engine.runner import Runner
+    from rig.procedure.language import parse_procedure
+    from tests.simcage import sim_cage
+
+    (tmp_path / "procedure.yaml").write_text(ABORTED)
+    with sim_cage(tmp_path, None) as (cage, rig_toml):
+        runner = Runner(parse_procedure(tmp_path / "procedure.yaml"), load_rig_config(rig_toml),
+                        tmp_path / "runs", i2c_bus=cage.i2c_bus, confirm=lambda _q: True,
+                        live=False)  # fmt: skip
+        device = cage.serial_devices["dut"]
+        seen_off = threading.Event()
+
+        def abort_once_off() -> None:
+            deadline = time.monotonic() + 120.0  # only against a hang
+            while device.set_reset and time.monotonic() < deadline:
+                time.sleep(0.02)
+            seen_off.set()
+            time.sleep(1.0)
+            runner.tracker.request_abort("aborted by the test")
+
+        threading.Thread(target=abort_once_off, daemon=True).start()
+        outcome = runner.run()
+        assert seen_off.is_set() and "aborted by the test" in outcome.reason, outcome.reason
+        assert device.set_reset is True
