@@ -21,10 +21,10 @@ from typing import Any, ClassVar
 import numpy as np
 
 from drivers.protocols import SetReset
-from rig.analysis import offsets_less_reference, settled_samples, to_cage_frame
-from rig.calibration.record import latest_calibration
+from rig.analysis import settled_samples, to_cage_frame
 from rig.characterization.perming import HoldMean, OffsetShift, hold_mean, offset_shift
 from rig.errors import RigError
+from rig.steps.at_rest import offsets_at_rest
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.vocabulary import Command, Param, ProcedureError, RigTiming, Step
 
@@ -162,7 +162,8 @@ class MeasurePerming(StepExecution):
             raise RigError(f"perming '{step.name}' needs the '{step.params['magnetometer']}' and"
                            " 'reference' magnetometers sampled by this run")  # fmt: skip
         sampler = ctx.samplers[self.dut]
-        self.resettable = step.params["reset"] == "auto" and isinstance(sampler.driver, SetReset)
+        driver = getattr(sampler, "driver", None)
+        self.resettable = step.params["reset"] == "auto" and isinstance(driver, SetReset)
         self.pulse_t: tuple[float, float] | None = None  # (started, done) monotonic s
         self._auto_off = False
         if self.resettable:
@@ -198,11 +199,9 @@ class MeasurePerming(StepExecution):
     def finish(self, t_start: float, t_end: float) -> None:
         p = self.step.params
         windows, shock = self._windows(t_start, t_end)
-        settle = float(p["settle_s"])
+        rests = offsets_at_rest(self.ctx, self.dut, self.ref, windows, float(p["settle_s"]))
         reader = self.ctx.open_reader()
         try:
-            rows = [settled_samples(reader, self.dut, w, settle) for w in windows]
-            refs = [settled_samples(reader, str(self.ref), w, settle) for w in windows]
             at_shock = settled_samples(reader, str(self.ref), shock, 0.0)
         finally:
             reader.close()
@@ -211,20 +210,18 @@ class MeasurePerming(StepExecution):
                            " lengthen shock_s")  # fmt: skip
         # the field the DUT saw during the shock: the reference's, through its certificate
         field = to_cage_frame(at_shock[:, 1:], self.ctx.correction).mean(axis=0)
-        latest = latest_calibration(self.ctx.results)
-        correction = latest[1].correction if latest is not None else None
         holds = []
-        for name, r, ref in zip(("before", "after", "reset"), rows, refs, strict=False):
-            _, offsets = offsets_less_reference(r, ref, correction, self.ctx.correction)
-            if len(offsets) < 10:
-                raise RigError(f"perming '{self.step.name}': {len(offsets)} settled samples in"
-                               f" the hold {name} the shock: lengthen hold_s")  # fmt: skip
-            holds.append(hold_mean(offsets))
+        names = ("before the shock", "after the shock", "after the reset")
+        for name, rest in zip(names, rests, strict=False):
+            if len(rest.offsets_nt) < 10:
+                raise RigError(f"perming '{self.step.name}': {len(rest.offsets_nt)} settled"
+                               f" samples in the hold {name}: lengthen hold_s")  # fmt: skip
+            holds.append(hold_mean(rest.offsets_nt))
         shift = offset_shift(holds[0], holds[1])
         after_reset = offset_shift(holds[0], holds[2]) if len(holds) == 3 else None
         result = PermingResult(float(p["shock_ut"]), tuple(float(v) for v in p["direction"]),
-                               tuple(float(v) for v in field), tuple(holds), shift, after_reset, self._reset_note(),
-                               latest is not None)  # fmt: skip
+                               tuple(float(v) for v in field), tuple(holds), shift, after_reset,
+                               self._reset_note(), rests[0].calibrated)  # fmt: skip
         self.ctx.record_result(self.step.name, result.to_dict())
 
     def _windows(self, t_start: float, t_end: float) -> tuple[list[tuple[float, float]],

@@ -18,8 +18,6 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.analysis import offsets_less_reference, settled_samples
-from rig.calibration.record import latest_calibration
 from rig.characterization.stability import (
     MIN_SAMPLES,
     AllanDeviation,
@@ -27,7 +25,8 @@ from rig.characterization.stability import (
     offset_drift,
 )
 from rig.errors import RigError
-from rig.steps.base import Array, NullHoldKind, RunContext, StepExecution
+from rig.steps.at_rest import offsets_at_rest
+from rig.steps.base import NullHoldKind, RunContext, StepExecution
 from rig.steps.vocabulary import Param, Step
 
 REFERENCES = ("reference", "ambient", "none")
@@ -135,26 +134,19 @@ class MeasureStability(StepExecution):
         p = self.step.params
         mags = self.ctx.proc.magnetometers
         dut = mags.get(p["magnetometer"], p["magnetometer"])
-        reader = self.ctx.open_reader()
-        try:
-            rows = settled_samples(reader, dut, (t_start, t_end), float(p["settle_s"]))
-            which = str(p["reference"])
-            ref_dev, note = self._reference(which)
-            ref = (settled_samples(reader, ref_dev, (t_start, t_end), float(p["settle_s"]))
-                   if ref_dev is not None else None)  # fmt: skip
-        finally:
-            reader.close()
-        if len(rows) < MIN_SAMPLES:
-            raise RigError(f"stability '{self.step.name}': {len(rows)} settled samples of"
-                           f" '{dut}': lengthen hold_s or check the magnetometer")  # fmt: skip
+        which = str(p["reference"])
+        ref_dev, note = self._reference(which)
         # the reference through its certificate; an outside (ambient) one as it reads
-        t, offsets, calibrated = self._offsets(
-            rows, ref, self.ctx.correction if which == "reference" else None
-        )
+        (rest,) = offsets_at_rest(self.ctx, dut, ref_dev, [(t_start, t_end)],
+                                  float(p["settle_s"]), certified=which == "reference")  # fmt: skip
+        t, offsets = rest.t_s, rest.offsets_nt
+        if len(t) < MIN_SAMPLES:
+            raise RigError(f"stability '{self.step.name}': {len(t)} settled samples of"
+                           f" '{dut}': lengthen hold_s or check the magnetometer")  # fmt: skip
         allan = allan_deviation(t, offsets)
         drift = offset_drift(t, offsets)
         result = StabilityResult(allan, drift.per_12h_nt, drift.sigma_nt, str(p["reference"]),
-                                 note, calibrated, len(t), float(p["hold_s"]))  # fmt: skip
+                                 note, rest.calibrated, len(t), float(p["hold_s"]))  # fmt: skip
         self.ctx.record_result(self.step.name, result.to_dict())
 
     def _reference(self, which: str) -> tuple[str | None, str]:
@@ -170,15 +162,6 @@ class MeasureStability(StepExecution):
                            " magnetometer of this rig; use reference: none (the lab field's"
                            " changes then stay in the result)")  # fmt: skip
         return dev, f"the {which} magnetometer '{dev}' subtracted"
-
-    def _offsets(self, rows: Array, ref: Array | None,
-                 ref_correction: dict[str, Any] | None) -> tuple[Array, Array, bool]:  # fmt: skip
-        """Times (s) and the DUT's offset (nT): corrected by the run's latest calibration when
-        there is one, less the reference at the same time (cage frame)."""
-        latest = latest_calibration(self.ctx.results)
-        correction = latest[1].correction if latest is not None else None
-        t, offsets = offsets_less_reference(rows, ref, correction, ref_correction)
-        return t, offsets, latest is not None
 
 
 KIND = Stability()

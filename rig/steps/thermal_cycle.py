@@ -13,16 +13,16 @@ wander is counted in the sigmas; cycling more than once lets its drift be told f
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.analysis import hold_values, offsets_less_reference, settled_samples, thermometer_at
-from rig.calibration.record import latest_calibration
+from rig.analysis import hold_values, thermometer_at
 from rig.characterization.thermal import ThermalFit, fit_thermal
 from rig.errors import RigError
+from rig.steps.at_rest import offsets_at_rest
 from rig.steps.base import NullHoldKind, RunContext, StepExecution
 from rig.steps.vocabulary import Param, ProcedureError, Step
 
@@ -83,9 +83,12 @@ class ThermalCycle(NullHoldKind):
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
         if not params["thermometer"]:
             raise ProcedureError(f"{where}: name the DUT's thermometer (thermometer: dut_temp)")
-        if not loads:
-            raise ProcedureError(f"{where}: give the heater's profile under loads: (warm to a"
-                                 " temperature, go hotter, come back down to it)")  # fmt: skip
+
+    def check_against(self, step: Step, earlier: Sequence[Step]) -> None:
+        if not step.loads:
+            raise ProcedureError(f"{step.where.path}:{step.where.line}: step {step.index + 1}"
+                                 f" ({self.name}): give the heater's profile under loads: (warm to"
+                                 " a temperature, go hotter, come back down to it)")  # fmt: skip
 
     def thermometers(self, step: Step) -> tuple[str, ...]:
         return (str(step.params["thermometer"]),)
@@ -135,14 +138,10 @@ class MeasureThermalCycle(StepExecution):
         if p["reference"] == "reference" and (ref is None or ref not in self.ctx.samplers):
             raise RigError(f"thermal_cycle '{self.step.name}': no 'reference' magnetometer is"
                            " sampled; use reference: none (the lab field then stays in)")  # fmt: skip
+        (rest,) = offsets_at_rest(self.ctx, dut, ref, [(t_start, t_end)], float(p["settle_s"]))
+        t, offsets = rest.t_s, rest.offsets_nt
         reader = self.ctx.open_reader()
         try:
-            rows = settled_samples(reader, dut, (t_start, t_end), float(p["settle_s"]))
-            refs = (settled_samples(reader, ref, (t_start, t_end), float(p["settle_s"]))
-                    if ref is not None else None)  # fmt: skip
-            latest = latest_calibration(self.ctx.results)
-            correction = latest[1].correction if latest is not None else None
-            t, offsets = offsets_less_reference(rows, refs, correction, self.ctx.correction)
             temperature, known = thermometer_at(reader, str(p["thermometer"]), t)
             currents = np.column_stack([hold_values(reader, ch, t) for ch in self.step.loads])
         finally:
@@ -165,7 +164,7 @@ class MeasureThermalCycle(StepExecution):
                 else "nothing subtracted: the lab field's changes are in it")  # fmt: skip
         result = ThermalCycleResult(fit, str(p["thermometer"]),
                                     (float(temperature.min()), float(temperature.max())), len(t),
-                                    latest is not None, note)  # fmt: skip
+                                    rest.calibrated, note)  # fmt: skip
         self.ctx.record_result(self.step.name, result.to_dict())
 
 

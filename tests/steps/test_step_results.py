@@ -3,6 +3,9 @@ synthetic data with known truth."""
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -15,10 +18,12 @@ from rig.calibration.params import Calibration, Springmann
 from rig.errors import RigError, RunAborted
 from rig.steps import KINDS
 from rig.steps.geometry import sphere_fields
+from rig.steps.vocabulary import ProcedureError
 from tests.steps.fake_context import (
     FakeContext,
     Recording,
     carry_out,
+    compile_step,
     held_fields,
     make_procedure,
     make_step,
@@ -691,3 +696,133 @@ def test_stability_takes_the_reference_out_and_reports_allan_deviation_and_drift
     n = out["none"]
     assert "nothing subtracted" in n["reference_note"]
     assert n["drift_abs_max_nt_per_12h"] > 100 * 12 * 3600 / hold / 10  # the lab's 30 nT/20 min
+
+
+# --- perming: the offset before and after a shock, and after a set/reset pulse -------------------
+
+
+class SetResetDriver:
+    """A DUT driver with set/reset (the calls it was given, in order)."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def set_reset_auto(self, on: bool) -> None:
+        self.calls.append(f"auto {'on' if on else 'off'}")
+
+    def set_reset_pulse(self) -> None:
+        self.calls.append("pulse")
+
+
+@dataclass
+class PausingSampler:
+    """A sampler that hands its driver over while paused (as SensorSampler.paused does)."""
+
+    driver: SetResetDriver
+    listeners: list[Any] = field(default_factory=list)
+    paused_times: int = 0
+
+    @contextlib.contextmanager
+    def paused(self) -> Iterator[SetResetDriver]:
+        self.paused_times += 1
+        yield self.driver
+
+
+def perming_context(tmp_path: Path, shift_nt: float) -> tuple[FakeContext, Any, SetResetDriver]:
+    """Holds of 30 s around a 2 s shock and after a pulse at 62 s; the DUT's offset moves by
+    ``shift_nt`` on x with the shock and back with the pulse."""
+    step = make_step("perming", {"hold_s": 30, "shock_s": 2, "settle_s": 0.5}, name="perm")
+    driver = SetResetDriver()
+    ctx = FakeContext(make_procedure(step), tmp_path)
+    ctx.samplers["dut"] = PausingSampler(driver)
+    for t, f in ((0.0, [0, 0, 0]), (30.0, [90, 0, 0]), (32.0, [0, 0, 0])):
+        ctx.recording.add_field(t, f)
+    rng = np.random.default_rng(3)
+    t = np.arange(0.05, 92.0, 0.05)
+    field_ut = np.where(((t >= 30.0) & (t < 32.0))[:, None], [90.0, 0.0, 0.0], 0.0)
+    offset = np.where(((t >= 32.0) & (t < 62.0))[:, None], [1e-3 * shift_nt, 0.0, 0.0], 0.0)
+    ctx.recording.add_samples("reference", t, field_ut + 0.002 * rng.standard_normal((len(t), 3)))
+    ctx.recording.add_samples(
+        "dut", t, field_ut + offset + 0.005 * rng.standard_normal((len(t), 3))
+    )
+    return ctx, step, driver
+
+
+def run_perming(ctx: FakeContext, step: Any) -> Any:
+    """Carry the perming step out with the pulse at its planned time on the test's clock."""
+    execution = KINDS["perming"].execution(ctx, step)
+    for cmd in compile_step(step)[0]:
+        if cmd.kind == "perming":
+            execution.run(cmd.payload)
+            execution.pulse_t = (62.0, 62.0)
+    execution.wind_down()
+    execution.finish(0.0, 92.0)
+    return ctx.results[step.name]
+
+
+def test_perming_finds_the_shift_and_that_the_pulse_clears_it(tmp_path: Path) -> None:
+    ctx, step, driver = perming_context(tmp_path, 2.0)
+    r = run_perming(ctx, step)
+    assert driver.calls == ["auto off", "pulse", "auto on"]
+    # 5 nT and 2 nT noise at 20 Hz over about 29 s: 0.14 nT per hold and axis
+    assert r["detected"] and r["shift_nt"][0] == pytest.approx(2.0, abs=0.6), r
+    assert r["shock_abs_ut"] == pytest.approx(90.0, abs=0.01)
+    assert r["reset_residual_abs_nt"] < 0.8 and "one set/reset pulse" in r["reset_note"]
+    assert "Perming 'perm'" in KINDS["perming"].report_lines("perm", r)[0]
+
+
+def test_perming_without_a_shift_passes_and_an_abort_restores_the_set_reset(
+    tmp_path: Path,
+) -> None:
+    ctx, step, driver = perming_context(tmp_path, 0.0)
+    r = run_perming(ctx, step)
+    assert not r["detected"] and r["shift_abs_nt"] < 0.8, r
+    ctx, step, driver = perming_context(tmp_path / "aborted", 0.0)
+    execution = KINDS["perming"].execution(ctx, step)
+    assert driver.calls == ["auto off"]  # before the first hold
+    execution.abort()  # the run ends inside the step
+    assert driver.calls == ["auto off", "auto on"]
+    plain = FakeContext(make_procedure(step), tmp_path / "plain")  # no set/reset to drive
+    assert "has no set/reset" in KINDS["perming"].execution(plain, step)._reset_note()
+
+
+# --- thermal_cycle: the offset against the thermometer on warming and cooling --------------------
+
+
+def test_thermal_cycle_fits_hysteresis_and_tempco_and_needs_a_heater_profile(
+    tmp_path: Path,
+) -> None:
+    """A DUT 30 nT/K and 4 nT warmer-than-cooler on x, its mount stepped 1.2, 2, 1.2, 0 A twice
+    (tau 20 s), the thermometer at 1 Hz: both come out within their sigma."""
+    from sim.thermal_hysteresis import ThermalHysteresis
+
+    levels = [1.2, 2.0, 1.2, 0.0] * 2
+    step = make_step("thermal_cycle", {"thermometer": "dut_temp", "hold_s": 640, "bin_s": 5.0},
+                     name="cycle", step_loads={"heater": ("steps", {"levels_a": levels,
+                                                                    "dwell_s": 80.0})})  # fmt: skip
+    ctx = FakeContext(make_procedure(step, loads=("heater",)), tmp_path)
+    ctx.recording.add_field(0.0, [0, 0, 0])
+    ctx.recording.meta["thermometers"] = ["dut_temp"]
+    t = np.arange(0.05, 640.0, 0.05)
+    amps = np.asarray(levels)[np.minimum((t // 80).astype(int), len(levels) - 1)]
+    temp = np.empty_like(t)
+    temp[0] = 25.0
+    for k in range(1, len(t)):
+        temp[k] = temp[k - 1] + (25.0 + 8.0 * amps[k - 1] ** 2 - temp[k - 1]) * 0.05 / 20.0
+    play = ThermalHysteresis((4.0, 0.0, 0.0), band_k=0.5)
+    offset = np.array([play.offset_ut(v) for v in temp]) + np.outer(temp - 25.0, [0.03, 0, 0])
+    rng = np.random.default_rng(5)
+    ctx.recording.add_samples("reference", t, 0.002 * rng.standard_normal((len(t), 3)))
+    ctx.recording.add_samples("dut", t, offset + 0.005 * rng.standard_normal((len(t), 3)))
+    ctx.recording.channels["dut_temp"] = [(float(a), None, float(v)) for a, v in
+                                          zip(t[::20], temp[::20], strict=True)]  # fmt: skip
+    ctx.recording.channels["heater"] = [(float(a), float(v), float(v)) for a, v in
+                                        zip(t[::20], amps[::20], strict=True)]  # fmt: skip
+    r = carry_out(ctx, step, (0.0, 640.0))
+    h, sigma = np.asarray(r["hysteresis_nt"]), np.asarray(r["hysteresis_sigma_nt"])
+    assert r["detected"] and np.all(np.abs(h - [4.0, 0.0, 0.0]) < 3.0 * sigma), (h, sigma)
+    assert r["tempco_nt_per_k"][0] == pytest.approx(30.0, abs=3 * r["tempco_sigma_nt_per_k"][0])
+    assert "Thermal cycle 'cycle'" in KINDS["thermal_cycle"].report_lines("cycle", r)[0]
+    bare = make_step("thermal_cycle", {"thermometer": "dut_temp", "hold_s": 640})
+    with pytest.raises(ProcedureError, match="heater's profile under loads"):
+        KINDS["thermal_cycle"].check_against(bare, [])
