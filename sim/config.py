@@ -165,6 +165,10 @@ class MagnetometerConfig:
     # the same temperature (nT per axis), reached over 2 hysteresis_band_k after a reversal
     offset_hysteresis_nt: tuple[float, ...] = (0.0, 0.0, 0.0)
     hysteresis_band_k: float = 1.0
+    # the response to a changing field (sim.sensor_response): a conversion window (s, a boxcar
+    # before each reading's date) and a first-order low-pass (s); 0: the instantaneous field
+    response_integration_s: float = 0.0
+    response_tau_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -386,7 +390,11 @@ def _magnetometer(m: dict[str, Any], where: str, loads: set[str]) -> Magnetomete
         perming_nt_per_ut=float(m.get("perming_nt_per_ut", 0.0)),
         offset_hysteresis_nt=_vec_or(m, "offset_hysteresis_nt", where, zero),
         hysteresis_band_k=float(m.get("hysteresis_band_k", 1.0)),
+        response_integration_s=float(m.get("response_integration_s", 0.0)),
+        response_tau_s=float(m.get("response_tau_s", 0.0)),
     )
+    if mag.response_integration_s < 0 or mag.response_tau_s < 0:
+        raise SimConfigError(f"{where}: response_integration_s and response_tau_s must be >= 0")
     if not mag.hysteresis_band_k > 0:
         raise SimConfigError(f"{where}: hysteresis_band_k must be > 0")
     if mag.perming_threshold_ut < 0 or mag.perming_nt_per_ut < 0:

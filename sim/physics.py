@@ -33,6 +33,7 @@ from sim.config import MagnetometerConfig, SimConfig, SimConfigError, SupplyConf
 from sim.lab_field import LabField
 from sim.offset_wander import OffsetWander, WanderSpec
 from sim.perming import Perming
+from sim.sensor_response import SensorResponse
 from sim.signals import FirstOrderSignal
 from sim.thermal_hysteresis import ThermalHysteresis
 
@@ -281,6 +282,8 @@ class Magnetometer:
         self.perming = Perming(cfg.perming_threshold_ut, cfg.perming_nt_per_ut)
         """What a strong field left in the offset (cleared by a set/reset pulse)."""
         self.hysteresis = ThermalHysteresis(cfg.offset_hysteresis_nt, cfg.hysteresis_band_k)
+        self.response = SensorResponse(cfg.response_tau_s, cfg.response_integration_s)
+        """What it reads of a changing field (a conversion window, a low-pass)."""
         self._hysteresis_ut = np.zeros(3)  # its offset at the latest reading's temperature
 
     def truth_reading(
@@ -298,6 +301,12 @@ class Magnetometer:
         for ch, k in self.cfg.k_ut_per_a.items():
             m = m + np.asarray(k) * loads_a.get(ch, 0.0)
         return np.asarray(m)
+
+    def sensed_field(self, t_s: float, field_at: Callable[[float], Array]) -> Array:
+        """The field (uT, cage frame) as the sensor's response passes it at ``t_s``: the field
+        ``field_at(t)`` filtered (without noise: the caller adds it once)."""
+        with self._lock:
+            return self.response.reading(t_s, field_at)
 
     def set_turn(self, rotation: Array) -> None:
         """Turn the sensor on its fixture: ``rotation`` (cage frame) from its mounting (what an
@@ -519,10 +528,17 @@ class CagePhysics:
         )
         b = b + self.mains_ripple_ut(t_s)
         b = b + self.lab.uniform_ut(since) + self.lab.local_ut(since, where)[0]
-        if noise and a.noise_ut > 0:
-            with self._lock:
-                b = b + a.noise_ut * self._ambient_rng.standard_normal(3)
+        if noise:
+            b = b + self.ambient_noise_ut()
         return np.asarray(b)
+
+    def ambient_noise_ut(self) -> Array:
+        """One draw of the lab field's white noise (uT)."""
+        a = self.cfg.ambient
+        if a.noise_ut <= 0:
+            return np.zeros(3)
+        with self._lock:
+            return np.asarray(a.noise_ut * self._ambient_rng.standard_normal(3))
 
     def mains_ripple_ut(self, t_s: float) -> Array:
         """The lab field's mains ripple at ``t_s`` (uT, the same everywhere)."""
@@ -565,7 +581,12 @@ class CagePhysics:
         """One noisy reading of a magnetometer (uT, its own frame, before quantization)."""
         t = now_s() if t_s is None else t_s
         mag = self.magnetometers[name]
-        return mag.sample(self.field_at_ut(name, t), self.load_currents(t, mag.cfg.delay_s),
+        if mag.response.active:  # what it senses of the field's recent past, plus this noise
+            field = mag.sensed_field(t, lambda s: self.field_at_ut(name, s, noise=False))
+            field = field + self.ambient_noise_ut()
+        else:
+            field = self.field_at_ut(name, t)
+        return mag.sample(field, self.load_currents(t, mag.cfg.delay_s),
                           self.dut_temperature_c(t), t)  # fmt: skip
 
     def safe(self) -> None:
