@@ -74,6 +74,7 @@ TARGETS: dict[str, str] = {
     # turns the DUT's automatic set/reset off: back on however the step ends
     "perming": "perming: {shock_ut: 60, shock_s: 1, hold_s: 4, settle_s: 0.5}",
     "thermal_cycle": "thermal_cycle: {thermometer: dut_temp, hold_s: 10}",
+    "frequency_response": "frequency_response: {frequencies_hz: [1.0], axes: x, cycles: 6, min_s: 0}",
 }  # fmt: skip
 """The step each column of the matrix injects its faults into (named ``target``, about 9 s): every
 step kind that drives outputs."""

@@ -645,6 +645,12 @@ MAG_PARAMS: tuple[Param, ...] = (
     Param("noise_nt", NUMBER, help="white noise per reading, per axis (the datasheet's, or what a"
           " null_field step measured): rig check --predict uses it until a run has measured the"
           " noise", above=0.0, unit="nT", fix="write the noise per reading, e.g. noise_nt = 20"),
+    Param("response_tau_s", NUMBER, False, 0.0, "the sensor's first-order low-pass time constant"
+          " (datasheet or certificate): frequency_response removes a reference's own", low=0.0,
+          unit="s", fix="write the time constant, e.g. response_tau_s = 0.001 (160 Hz corner)"),
+    Param("response_integration_s", NUMBER, False, 0.0, "the sensor's conversion window (a"
+          " boxcar before each reading's date): frequency_response removes a reference's own",
+          low=0.0, unit="s", fix="write the window, e.g. response_integration_s = 0.013"),
     Param("stuck_after", WHOLE, False, 60, "identical readings in a row that mean a frozen"
           " sensor (0 = never judged)", low=0, high=1_000_000,
           fix="write a whole number of readings, e.g. stuck_after = 60 (3 s at 20 Hz)"),

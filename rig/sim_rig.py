@@ -134,6 +134,10 @@ def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig) -> str:
     for mag in cfg.magnetometers:
         if mag.name in devices and mag.noise_ut > 0 and mag.kind != "geometrics-cm201":
             devices[mag.name]["noise_nt"] = round(1e3 * mag.noise_ut, 3)  # its datasheet's
+        if mag.name in devices and mag.role == "reference" and mag.response_tau_s > 0:
+            devices[mag.name]["response_tau_s"] = mag.response_tau_s  # its certificate's
+        if mag.name in devices and mag.role == "reference" and mag.response_integration_s > 0:
+            devices[mag.name]["response_integration_s"] = mag.response_integration_s
         if mag.name in devices and any(mag.position_m):
             devices[mag.name]["position_m"] = [float(v) for v in mag.position_m]
         if mag.kind == "ascii-mag" and mag.name in devices:

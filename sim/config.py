@@ -393,12 +393,7 @@ def _magnetometer(m: dict[str, Any], where: str, loads: set[str]) -> Magnetomete
         response_integration_s=float(m.get("response_integration_s", 0.0)),
         response_tau_s=float(m.get("response_tau_s", 0.0)),
     )
-    if mag.response_integration_s < 0 or mag.response_tau_s < 0:
-        raise SimConfigError(f"{where}: response_integration_s and response_tau_s must be >= 0")
-    if not mag.hysteresis_band_k > 0:
-        raise SimConfigError(f"{where}: hysteresis_band_k must be > 0")
-    if mag.perming_threshold_ut < 0 or mag.perming_nt_per_ut < 0:
-        raise SimConfigError(f"{where}: perming_threshold_ut and perming_nt_per_ut must be >= 0")
+    _check_dut_truth(mag, where)
     if mag.offset_walk_nt_per_sqrt_h < 0 or mag.offset_flicker_nt < 0:
         raise SimConfigError(
             f"{where}: offset_walk_nt_per_sqrt_h and offset_flicker_nt must be >= 0"
@@ -411,6 +406,16 @@ def _magnetometer(m: dict[str, Any], where: str, loads: set[str]) -> Magnetomete
         if ch not in loads:
             raise SimConfigError(f"{where}.k_ut_per_a names '{ch}', which is no load channel")
     return mag
+
+
+def _check_dut_truth(mag: MagnetometerConfig, where: str) -> None:
+    """The characterization truths' ranges (response, hysteresis, perming)."""
+    if mag.response_integration_s < 0 or mag.response_tau_s < 0:
+        raise SimConfigError(f"{where}: response_integration_s and response_tau_s must be >= 0")
+    if not mag.hysteresis_band_k > 0:
+        raise SimConfigError(f"{where}: hysteresis_band_k must be > 0")
+    if mag.perming_threshold_ut < 0 or mag.perming_nt_per_ut < 0:
+        raise SimConfigError(f"{where}: perming_threshold_ut and perming_nt_per_ut must be >= 0")
 
 
 def _thermal(t: dict[str, Any], loads: set[str]) -> ThermalConfig:

@@ -826,3 +826,52 @@ def test_thermal_cycle_fits_hysteresis_and_tempco_and_needs_a_heater_profile(
     bare = make_step("thermal_cycle", {"thermometer": "dut_temp", "hold_s": 640})
     with pytest.raises(ProcedureError, match="heater's profile under loads"):
         KINDS["thermal_cycle"].check_against(bare, [])
+
+
+# --- frequency_response: sines on an axis, the DUT against the reference -----------------------
+
+
+def test_frequency_response_recovers_a_lagging_dut_and_the_cages_own_response(
+    tmp_path: Path,
+) -> None:
+    """Recorded sines at 0.5 and 1 Hz on x: the cage delivers 0.9 of each set-point 5 degrees
+    late, the reference reads it, the DUT lags it by a first-order 8 ms: the DUT's response is
+    that low-pass, the cage's is 0.9 and -5 degrees."""
+    import cmath
+    import math
+
+    body = {"frequencies_hz": [0.5, 1.0], "axes": "x", "cycles": 4, "min_s": 0.0, "rate_hz": 25.0}
+    step = make_step("frequency_response", body, name="bode")
+    ctx = FakeContext(make_procedure(step), tmp_path)
+    rng = np.random.default_rng(6)
+    t_dut, t_ref, dut, ref = [], [], [], []
+    for axis, f, start, length in KINDS["frequency_response"].segments(step):
+        for k in range(1, round(length * 25.0) + 1):
+            t = start + k / 25.0
+            v = [30.0 + 10.0 * math.sin(2 * math.pi * f * k / 25.0), 0.0, 0.0]
+            ctx.recording.commands.append((t, 0, "field", {"field_ut": v, "track": True,
+                                                           "segment": [axis, f]}))  # fmt: skip
+        lag = cmath.exp(-1j * math.radians(5.0))
+        h = 1 / complex(1, 2 * math.pi * f * 0.008)
+        for times, out, resp in ((t_ref, ref, 1.0), (t_dut, dut, h)):
+            ts = np.arange(start, start + length, 0.01) + 0.0005 * rng.standard_normal(
+                round(length * 100)
+            )
+            field = 30.0 + np.real(
+                0.9 * lag * resp * -10j * np.exp(2j * math.pi * f * (ts - start))
+            )
+            times += list(ts)
+            out += list(field + 0.003 * rng.standard_normal(len(ts)))
+    zeros = np.zeros(len(dut))
+    ctx.recording.add_samples("dut", np.asarray(t_dut), np.column_stack([dut, zeros, zeros]))
+    zeros = np.zeros(len(ref))
+    ctx.recording.add_samples("reference", np.asarray(t_ref), np.column_stack([ref, zeros, zeros]))
+    r = carry_out(ctx, step, (0.0, max(t_dut) + 1.0))
+    for p in r["axes"]["x"]:
+        want = 1 / complex(1, 2 * math.pi * p["f_hz"] * 0.008)
+        assert p["amplitude"] == pytest.approx(abs(want), abs=2e-3), p
+        assert p["phase_deg"] == pytest.approx(math.degrees(cmath.phase(want)), abs=0.1), p
+        assert p["cage_amplitude"] == pytest.approx(0.9, abs=0.01) and p["within_bandwidth"]
+        assert p["cage_phase_deg"] == pytest.approx(-5.0, abs=0.5), p
+    assert r["frame"].startswith("cage") and "taken as ideal" in r["reference_response"]
+    assert "Frequency response 'bode'" in KINDS["frequency_response"].report_lines("bode", r)[0]

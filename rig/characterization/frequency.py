@@ -1,0 +1,165 @@
+"""A magnetometer's response to a sine field: amplitude ratio and phase against the reference,
+the reference's own response removed, with sigmas.
+
+Each device's samples (at their own dates: interpolating one to the other's would filter it) and
+the commanded set-points are fitted with a constant, a slope and a sine and cosine at the known
+frequency over whole cycles; the complex amplitude ``P`` is what the device saw of the field's
+``e^(2 pi i f t)``. The field the cage made is ``P_ref / H_ref`` (``H_ref`` the reference's known
+response), so the DUT's response is ``H = P_dut H_ref / P_ref`` and the cage's own is
+``P_ref / (H_ref P_cmd)``: beyond the frequency where the cage's amplitude falls under 1/sqrt(2)
+(its bandwidth) the field is not what was asked, and a point there is marked so.
+"""
+
+from __future__ import annotations
+
+import cmath
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+Array = npt.NDArray[np.float64]
+
+HALF_POWER = 1.0 / math.sqrt(2.0)
+MIN_SAMPLES = 8
+
+
+@dataclass(frozen=True)
+class Phasor:
+    """A sine's complex amplitude (the field unit) and the 1-sigma of its modulus (same unit)
+    and of its angle (rad), from the fit's residuals."""
+
+    value: complex
+    sigma_abs: float
+    sigma_angle_rad: float
+
+
+@dataclass(frozen=True)
+class ResponsePoint:
+    """At ``f_hz``: the DUT's amplitude ratio and phase (deg, negative: lagging) with 1-sigma,
+    and the cage's own (field made over field asked)."""
+
+    f_hz: float
+    amplitude: float
+    amplitude_sigma: float
+    phase_deg: float
+    phase_sigma_deg: float
+    cage_amplitude: float
+    cage_phase_deg: float
+
+    @property
+    def within_bandwidth(self) -> bool:
+        """The cage made at least half the power asked at this frequency."""
+        return self.cage_amplitude >= HALF_POWER
+
+
+@dataclass(frozen=True)
+class SineFit:
+    """A least-squares sine: its complex amplitude, the residuals and the (cos, sin) block of the
+    inverse normal matrix (times a noise variance: their covariance)."""
+
+    value: complex
+    residual: Array
+    inv_normal: Array
+
+
+def sine_fit(t_s: Array, y: Array, f_hz: float, also_hz: tuple[float, ...] = ()) -> SineFit:
+    """``y`` at times ``t_s`` (s) fitted with a constant, a slope, a sine at ``f_hz`` and sines at
+    ``also_hz`` (the set-points' staircase lines: fitted, not left as noise); the amplitude is
+    ``P`` with ``y = Re(P e^(2 pi i f t))``."""
+    t = np.asarray(t_s, float)
+    if len(t) < MIN_SAMPLES:
+        raise ValueError(f"{len(t)} samples: at least {MIN_SAMPLES} are needed for a sine fit")
+    w = 2.0 * math.pi * f_hz * t
+    extra = [g(2.0 * math.pi * h * t) for h in also_hz for g in (np.cos, np.sin)]
+    design = np.column_stack([np.ones_like(t), t - t.mean(), np.cos(w), np.sin(w), *extra])
+    coef, *_ = np.linalg.lstsq(design, np.asarray(y, float), rcond=None)
+    resid = np.asarray(y, float) - design @ coef
+    inv = np.linalg.inv(design.T @ design)[2:4, 2:4]
+    return SineFit(complex(float(coef[2]), -float(coef[3])), resid, inv)  # a cos + b sin
+
+
+def phasor(t_s: Array, y: Array, f_hz: float, also_hz: tuple[float, ...] = ()) -> Phasor:
+    """One device's phasor at ``f_hz``, its sigma from its own residuals near that frequency."""
+    fit = sine_fit(t_s, y, f_hz, also_hz)
+    return _with_sigma(fit, _noise_near(np.asarray(t_s, float), fit.residual, f_hz, also_hz))
+
+
+def relative_phasors(dut: tuple[Array, Array], reference: tuple[Array, Array], f_hz: float,
+                     also_dut: tuple[float, ...] = (),
+                     also_reference: tuple[float, ...] = ()) -> tuple[Phasor, Phasor]:  # fmt: skip
+    """The DUT's and the reference's phasors (each ``(times s, values)``), the sigma of their
+    ratio put on the DUT's: the noise near ``f_hz`` of the DUT's residuals less the reference's at
+    the same times. Both see the lab field's own changes, which cancel in the ratio; counted in
+    each device's sigma they made it fifty times the error."""
+    d = sine_fit(*dut, f_hz, also_dut)
+    r = sine_fit(*reference, f_hz, also_reference)
+    t = np.asarray(dut[0], float)
+    apart = d.residual - np.interp(t, np.asarray(reference[0], float), r.residual)
+    return _with_sigma(d, _noise_near(t, apart, f_hz, also_dut)), Phasor(r.value, 0.0, 0.0)
+
+
+def _with_sigma(fit: SineFit, noise_var: float) -> Phasor:
+    """The fit's phasor with the 1-sigma of its modulus and angle for a noise variance."""
+    cov = fit.inv_normal * noise_var
+    value = fit.value
+    size = abs(value)
+    if size == 0:
+        return Phasor(value, math.sqrt(max(float(cov[0, 0]), 0.0)), math.pi)
+    a, b = value.real, -value.imag
+    # the modulus along the phasor, the angle across it (the covariance of (a, -b) rotated)
+    u = np.array([a, -b]) / size
+    v = np.array([b, a]) / size
+    c = np.array([[cov[0, 0], -cov[0, 1]], [-cov[1, 0], cov[1, 1]]])
+    return Phasor(value, math.sqrt(float(u @ c @ u)), math.sqrt(float(v @ c @ v)) / size)
+
+
+NEIGHBOURS = (-9, -8, -7, -6, -5, -4, -3, -2, 2, 3, 4, 5, 6, 7, 8, 9)
+"""The residuals' power is taken at these many frequency bins (1 / the record) from the sine's:
+the noise that can move its estimate is the noise near its frequency, not the record's whole
+variance (the set-points' higher staircase lines and the lab's mains ripple, far from it, would
+make a white-noise sigma twenty times too large)."""
+
+
+def _noise_near(t: Array, resid: Array, f_hz: float, also_hz: tuple[float, ...]) -> float:
+    """The residuals' variance per sample as seen near ``f_hz`` (their least-squares sine
+    amplitudes at neighbouring bins, scaled to a white noise of the same density)."""
+    span = float(t[-1] - t[0])
+    found = []
+    for j in NEIGHBOURS:
+        g = f_hz + j / span
+        if g <= 0 or any(abs(g - h) < 1.5 / span for h in also_hz):
+            continue
+        w = 2.0 * math.pi * g * t
+        basis = np.column_stack([np.cos(w), np.sin(w)])
+        coef, *_ = np.linalg.lstsq(basis, resid, rcond=None)
+        # for white noise of variance s2, each coefficient has variance about 2 s2 / n
+        found.append(float(coef @ coef) / 4.0 * len(t))
+    if not found:
+        return float(resid @ resid) / max(len(t) - 4, 1)
+    return float(np.mean(found))
+
+
+def response_point(f_hz: float, dut: Phasor, reference: Phasor, commanded: Phasor,
+                   reference_response: complex) -> ResponsePoint:  # fmt: skip
+    """The DUT's and the cage's response at ``f_hz`` from the three phasors and the reference's
+    own response at that frequency."""
+    h = dut.value * reference_response / reference.value
+    cage = reference.value / (reference_response * commanded.value)
+    rel = math.hypot(dut.sigma_abs / abs(dut.value), reference.sigma_abs / abs(reference.value))
+    phase_sigma = math.hypot(dut.sigma_angle_rad, reference.sigma_angle_rad)
+    return ResponsePoint(f_hz, abs(h), abs(h) * rel, math.degrees(cmath.phase(h)),
+                         math.degrees(phase_sigma), abs(cage), math.degrees(cmath.phase(cage)))  # fmt: skip
+
+
+def first_order(tau_s: float, integration_s: float, f_hz: float) -> complex:
+    """A sensor's response as its configuration states it: a conversion window ``integration_s``
+    (a boxcar before the reading's date) and a first-order low-pass ``tau_s``."""
+    h = complex(1.0)
+    if integration_s > 0:
+        x = math.pi * f_hz * integration_s
+        h *= (math.sin(x) / x if x else 1.0) * cmath.exp(-1j * x)
+    if tau_s > 0:
+        h /= complex(1.0, 2.0 * math.pi * f_hz * tau_s)
+    return h
