@@ -16,12 +16,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.analysis import apply_correction_unloaded, interpolated_field, settled_samples
-from rig.calibration.params import rotation_from_vector
-from rig.calibration.record import latest_calibration
+from rig.analysis import interpolated_field, settled_samples
 from rig.characterization.cross_field import CrossField, fit_cross_field
 from rig.errors import RigError
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+from rig.steps.sensor_axes import in_sensor_axes
 from rig.steps.vocabulary import Param, ProcedureError, RigTiming, Step
 
 AXES = "xyz"
@@ -135,17 +134,14 @@ class MeasureCrossField(StepExecution):
     def _axes(self, h: Array, m: Array) -> tuple[Array, Array, str, str]:
         """The field and readings in the sensor's axes (a vector calibration of this run), else
         as they are (the cage's axes, the raw readings)."""
-        latest = latest_calibration(self.ctx.results, "vector")
-        mounting = latest[1].mounting_deg if latest is not None else None
-        if latest is None or mounting is None:
+        axes = in_sensor_axes(self.ctx.results, h, m)
+        if axes.calibration is None or axes.mounting_deg is None:
             return h, m, "cage", ("the cage's axes (no vector calibration earlier in the run): a"
                                   " mounting rotation of a few degrees mixes that fraction of"
                                   " the other transverse coefficient in")  # fmt: skip
-        rot = rotation_from_vector(np.radians(np.asarray(mounting, float)))
-        corrected = apply_correction_unloaded(latest[1].correction, m)
-        return (h @ rot.T, corrected @ rot.T, "sensor",
-                f"the sensor's axes (calibration '{latest[0]}', mounting"
-                f" {', '.join(f'{v:.2f}' for v in mounting)} deg)")  # fmt: skip
+        return (axes.field_ut, axes.readings_ut, "sensor",
+                f"the sensor's axes (calibration '{axes.calibration}', mounting"
+                f" {', '.join(f'{v:.2f}' for v in axes.mounting_deg)} deg)")  # fmt: skip
 
 
 KIND = CrossFieldKind()
