@@ -22,9 +22,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.analysis import apply_correction_unloaded, settled_samples, to_cage_frame
-from rig.calibration.params import rotation_from_vector
-from rig.calibration.record import latest_calibration
+from rig.analysis import settled_samples, to_cage_frame
 from rig.characterization.frequency import (
     ResponsePoint,
     first_order,
@@ -34,6 +32,7 @@ from rig.characterization.frequency import (
 )
 from rig.errors import RigError
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution, load_commands
+from rig.steps.sensor_axes import in_sensor_axes
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
     Command,
@@ -181,24 +180,11 @@ class FrequencyResponse(FieldStepKind):
         fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.0, 5.0), sharex=True)
         for axis, points in result["axes"].items():
             f = [p["f_hz"] for p in points]
-            top.errorbar(
-                f,
-                [p["amplitude"] for p in points],
-                yerr=[p["amplitude_sigma"] for p in points],
-                fmt="o-",
-                ms=3,
-                label=axis,
-            )
-            bottom.errorbar(
-                f,
-                [p["phase_deg"] for p in points],
-                yerr=[p["phase_sigma_deg"] for p in points],
-                fmt="o-",
-                ms=3,
-                label=axis,
-            )
-            top.plot(f, [p["cage_amplitude"] for p in points], ":", color="0.5", lw=0.8)
-            bottom.plot(f, [p["cage_phase_deg"] for p in points], ":", color="0.5", lw=0.8)  # fmt: skip
+            for ax, value, sigma, cage in ((top, "amplitude", "amplitude_sigma", "cage_amplitude"),
+                                           (bottom, "phase_deg", "phase_sigma_deg", "cage_phase_deg")):  # fmt: skip
+                ax.errorbar(f, [p[value] for p in points], yerr=[p[sigma] for p in points],
+                            fmt="o-", ms=3, label=axis)  # fmt: skip
+                ax.plot(f, [p[cage] for p in points], ":", color="0.5", lw=0.8)
         top.set_xscale("log")
         top.set_ylabel("amplitude ratio")
         bottom.set_ylabel("phase (deg)")
@@ -257,12 +243,10 @@ class MeasureFrequencyResponse(StepExecution):
     def _frames(self, m: Array, h: Array) -> tuple[Array, Array, str]:
         """The DUT's readings and the reference field in the DUT's axes (a vector calibration's
         correction and mounting), else both as they are (the cage's axes, raw readings)."""
-        latest = latest_calibration(self.ctx.results, "vector")
-        mounting = latest[1].mounting_deg if latest is not None else None
-        if latest is None or mounting is None:
+        axes = in_sensor_axes(self.ctx.results, h, m)
+        if axes.calibration is None:
             return m, h, "cage (no vector calibration: the amplitude holds the DUT's scale error)"
-        rot = rotation_from_vector(np.radians(np.asarray(mounting, float)))
-        return apply_correction_unloaded(latest[1].correction, m), h @ rot.T, "sensor"
+        return axes.readings_ut, axes.field_ut, "sensor"
 
 
 def _staircase(t_s: Array, rate_hz: float, f_hz: float) -> tuple[float, ...]:
