@@ -99,8 +99,9 @@ def predict_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: fl
     except CalibrationError as exc:
         return LivePrediction(*head, None, max_s, {}, targets, "", problem=str(exc))
     first = int(np.sum(t < min_s)) + 1
-    stops = tuple(_stop(forecast.scaled(q), targets, first, t, min_s) for q in noises)
-    rows = [forecast.scaled(x.noise_nt).at(x.updates) for x in stops]
+    scaled = [forecast.scaled(q) for q in noises]
+    stops = tuple(_stop(f, targets, first, t, min_s) for f in scaled)
+    rows = [f.at(x.updates) for f, x in zip(scaled, stops, strict=True)]
     sigmas = {k: _rms([r[k] for r in rows]) for k in rows[0]}
     fits = {n: _parameters(s.head(n), method, noise) for n in sorted({x.updates for x in stops})}
     parameters = _pooled_parameters([(fits[x.updates], x.noise_nt / noise) for x in stops],
