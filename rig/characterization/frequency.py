@@ -163,3 +163,30 @@ def first_order(tau_s: float, integration_s: float, f_hz: float) -> complex:
     if tau_s > 0:
         h /= complex(1.0, 2.0 * math.pi * f_hz * tau_s)
     return h
+
+
+def cage_point(f_hz: float, reference: Phasor, commanded: Phasor,
+               reference_response: complex) -> ResponsePoint:  # fmt: skip
+    """The cage's own response at ``f_hz`` (the field made, as the reference saw it with its
+    response removed, over the field asked), its sigma from the reference's; the point's
+    ``cage_*`` fields hold the same (the cage is the device measured)."""
+    cage = reference.value / (reference_response * commanded.value)
+    rel = reference.sigma_abs / abs(reference.value) if reference.value else math.inf
+    phase = math.degrees(cmath.phase(cage))
+    return ResponsePoint(f_hz, abs(cage), abs(cage) * rel, phase,
+                         math.degrees(reference.sigma_angle_rad), abs(cage), phase)  # fmt: skip
+
+
+def half_power_hz(f_hz: list[float], amplitude: list[float]) -> float | None:
+    """The frequency (Hz) where the amplitude first falls under 1/sqrt(2), between the measured
+    frequencies (``f_hz`` ascending) by linear interpolation in log frequency; None when it never
+    does (the bandwidth is then at least the highest frequency measured)."""
+    for k, (f, a) in enumerate(zip(f_hz, amplitude, strict=True)):
+        if a >= HALF_POWER:
+            continue
+        if k == 0:
+            return float(f)  # under half power already at the lowest: no better bound
+        f0, a0 = f_hz[k - 1], amplitude[k - 1]
+        x = (a0 - HALF_POWER) / (a0 - a)
+        return float(math.exp(math.log(f0) + x * (math.log(f) - math.log(f0))))
+    return None

@@ -94,7 +94,8 @@ def stale_cage_model(cfg: RigConfig | None, now: dt.datetime | None = None) -> s
 
 METROLOGY_PROCEDURES = {"coil_axes": "procedures/cage-metrology.yaml",
                         "field_map": "procedures/cage-field-map.yaml",
-                        "supply_stability": "procedures/cage-supply-stability.yaml"}  # fmt: skip
+                        "supply_stability": "procedures/cage-supply-stability.yaml",
+                        "cage_response": "procedures/cage-response.yaml"}  # fmt: skip
 """The shipped procedure that measures each metrology result of the cage record."""
 
 
@@ -117,6 +118,7 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
     and holds; 1 on a violation or when limits could not be checked (no ``--rig``, no cage model).
     The rig configuration is loaded (and checked) against the declared keys (:mod:`rig.config`)."""
     from rig.config import load_rig_config
+    from rig.procedure.beyond_cage import beyond_cage, unmeasured_metrology
     from rig.procedure.language import parse_procedure
     from rig.procedure.plan import dry_run, rig_timing
     from rig.procedure_files import find_procedure
@@ -128,6 +130,7 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
     cage = cfg.cage if cfg is not None else None
     dr = dry_run(proc, k, b0, cage.max_current_a if cage else None,
                  cage.max_field_ut if cage else None, loads_max, rig_timing(cfg), uncertainty)  # fmt: skip
+    dr.violations.extend(beyond_cage(proc, cfg))
     unchecked = _unchecked(proc, cfg, k)
     if not quiet:
         _print_plan(proc, dr, cfg, k, model_source, loads_max)
@@ -139,6 +142,8 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
         print(f"NOT CHECKED: {u}")
     if (stale := stale_cage_model(cfg)) is not None:
         print(f"WARNING: {stale}")
+    for missing in unmeasured_metrology(proc, cfg):
+        print(f"WARNING: {missing}")
     if not quiet:
         print(_verdict(dr, unchecked, cfg))
     return 0 if not dr.violations and not unchecked else 1

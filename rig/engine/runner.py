@@ -58,6 +58,7 @@ from rig.engine.session import RigSession
 from rig.errors import RigError, RunAborted
 from rig.lab.url import resolve_url
 from rig.output_limits import refuse_cage_devices_as_loads
+from rig.procedure.beyond_cage import refuse_beyond_cage
 from rig.procedure.language import Procedure
 from rig.procedure.plan import compile_plan, rig_timing, step_duration
 from rig.steps.base import ChangeListener
@@ -130,6 +131,8 @@ class Runner:
         self.lab_url = resolve_url(None, self.cfg.raw, self.cfg.path)
         # a cage device named as a load: refused before anything is locked or switched on
         refuse_cage_devices_as_loads(list(self.proc.loads), self.cfg, self.proc.path)
+        # a sine beyond the cage's measured bandwidth or its supplies' slew: refused alike
+        refuse_beyond_cage(self.proc, self.cfg)
         # The interlock first: a run refused because the rig is busy leaves no run folder.
         self._lock = RigLock(self.cfg, f"rig run {self.proc.path.name}")
         self._lock.acquire()

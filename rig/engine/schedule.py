@@ -113,8 +113,10 @@ class StepScheduler:
                 # from the step's start): analysis judges a tracked timeline's spacing by the plan
                 due = {"t_due": t0 + cmd.t_s, "t_plan": cmd.t_s}
                 self.commands.command(step.index, cmd.kind, cmd.payload | due, now)
-                if cmd.kind == "field" and hold_from_field:
-                    t0 = time.monotonic() - cmd.t_s  # its dwell starts once the field is there
+                if cmd.kind == "field" and hold_from_field and not track:
+                    # its dwell starts once the field is there; a tracked set-point keeps the
+                    # schedule (re-anchored on each, a sine's 4 ms writes stretched it by 11 %)
+                    t0 = time.monotonic() - cmd.t_s
             elif cmd.kind != "end":
                 execution.run(cmd.payload)
         if pace.slip_s > 0.0:

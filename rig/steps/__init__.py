@@ -6,8 +6,11 @@ To add a kind, write one module here with a :class:`rig.steps.base.StepKind` sub
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from rig.steps import (
     axis_sweep,
+    cage_response,
     calibrate,
     characterize_cage,
     check,
@@ -33,7 +36,7 @@ from rig.steps import (
     supply_stability,
     thermal_cycle,
 )
-from rig.steps.base import StepKind
+from rig.steps.base import CageAbilities, StepKind
 from rig.steps.vocabulary import Procedure, Step
 
 KINDS: dict[str, StepKind] = {
@@ -61,6 +64,7 @@ KINDS: dict[str, StepKind] = {
         coil_scalar,
         field_map,
         supply_stability,
+        cage_response,
         calibrate,
         check,
         report,
@@ -77,3 +81,16 @@ def cage_model_measured_before(proc: Procedure, step: Step) -> bool:
 def field_kinds() -> frozenset[str]:
     """Kinds that set fields with load profiles running: their samples are 'every field step'."""
     return frozenset(name for name, k in KINDS.items() if k.takes_loads)
+
+
+def beyond_the_cage(proc: Procedure, cage: CageAbilities) -> list[str]:
+    """What the procedure's steps ask of the cage beyond what it can do (each kind's
+    ``beyond_cage``; a metrology result a step before measures in the same run is not held
+    against the steps after it), one sentence each."""
+    out: list[str] = []
+    measured: set[str] = set()
+    for step in proc.steps:
+        kind = KINDS[step.kind]
+        out += kind.beyond_cage(step, replace(cage, measured_before=frozenset(measured)))
+        measured.add(step.kind)
+    return out

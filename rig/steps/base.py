@@ -9,7 +9,8 @@ the report find every kind there; none of them names a kind.
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
@@ -145,6 +146,21 @@ class StepExecution:
         """The run is ending with an exception inside this step."""
 
 
+@dataclass(frozen=True)
+class CageAbilities:
+    """What the rig's cage can do, as known before a run (``rig check`` and the run's start)."""
+
+    k_ut_per_a: Array | None
+    """The cage model's coil matrix (uT/A), None without one."""
+    max_slew_a_per_s: float | None
+    """The coil supplies' slew limit (A/s), None without a ``[cage]`` section."""
+    metrology: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    """The cage record's metrology results by step kind (``cage_response``: its bandwidth)."""
+    measured_before: frozenset[str] = frozenset()
+    """The metrology kinds a step before this one measures in the same run (the record's older
+    result is then not the one the step will meet)."""
+
+
 class StepKind:
     """A kind of procedure step. Subclasses set :attr:`name` and :attr:`params` and override what
     differs from the defaults: one command at time 0 carrying the parameters, no duration."""
@@ -172,6 +188,15 @@ class StepKind:
     measures_cage_model: ClassVar[bool] = False
     """It measures the cage model (coil matrix and ambient field) that later steps' currents use:
     a dry run without a characterization cannot know the ambient field those steps cancel."""
+
+    cage_metrology_used: ClassVar[str | None] = None
+    """The cage record's metrology result (a step kind: ``cage_response``) this kind is held to
+    before a run; ``rig check`` warns when neither the record nor an earlier step has it."""
+
+    def beyond_cage(self, step: Step, cage: CageAbilities) -> list[str]:
+        """What ``step`` asks of the cage beyond what it can do (one sentence each, naming the
+        fix), checked by ``rig check`` and before a run starts; most kinds ask nothing special."""
+        return []
 
     def shorthand(self, body: Any) -> Any:
         """The step's body as written (``- prompt: "text"``) to its parameter mapping."""

@@ -14,35 +14,38 @@ fell under half power is beyond the cage's bandwidth: reported, not judged.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-import numpy as np
-
 from rig.analysis import settled_samples, to_cage_frame
-from rig.characterization.frequency import (
-    ResponsePoint,
-    first_order,
-    phasor,
-    relative_phasors,
-    response_point,
+from rig.characterization.frequency import ResponsePoint, phasor, relative_phasors, response_point
+from rig.steps import sine_fields as sines
+from rig.steps.base import (
+    Array,
+    CageAbilities,
+    FieldStepKind,
+    RunContext,
+    StepExecution,
+    load_commands,
 )
-from rig.errors import RigError
-from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution, load_commands
 from rig.steps.sensor_axes import in_sensor_axes
-from rig.steps.vocabulary import (
-    MAX_FIELD_SETPOINTS_PER_STEP,
-    Command,
-    Param,
-    ProcedureError,
-    RigTiming,
-    Step,
+from rig.steps.sine_fields import (
+    AXES,
+    SINE_PARAMS,
+    beyond_the_cage,
+    bias_fields,
+    commanded,
+    reference_response,
+    segments,
+    sent_sines,
+    sine_commands,
+    span_of,
+    staircase,
+    validate_sines,
 )
-
-AXES = "xyz"
+from rig.steps.vocabulary import Command, Param, RigTiming, Step
 
 
 @dataclass(frozen=True)
@@ -77,83 +80,28 @@ class FrequencyResponse(FieldStepKind):
     summary = "sine fields at each frequency: the DUT's amplitude ratio and phase (Bode plot)"
     result_values = ("axes", "amplitude_error_max", "phase_abs_max_deg", "cage_bandwidth_hz",
                      "frame", "reference_response")  # fmt: skip
-    params: ClassVar[dict[str, Param]] = {
-        "frequencies_hz": Param("list_float", [0.1, 0.2, 0.5, 1.0, 2.0]),
-        "axes": Param("str", "xyz"),
-        "amplitude_ut": Param("float", 10.0, 0.1, 1000.0),
-        "bias_ut": Param("float", 30.0, 0.0, 1000.0),
-        "cycles": Param("int", 4, 1, 10000),
-        "min_s": Param("float", 8.0, 0.0, 86400.0),
-        "settle_cycles": Param("int", 1, 0, 100),
-        "settle_s": Param("float", 2.0, 0.0, 600.0),
-        "rate_hz": Param("float", 25.0, 1.0, 200.0),
-        "magnetometer": Param("str", "dut"),
-    }
+    params: ClassVar[dict[str, Param]] = {**SINE_PARAMS, "magnetometer": Param("str", "dut")}
+    cage_metrology_used = "cage_response"
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
-        axes = params["axes"]
-        if not axes or any(a not in AXES for a in axes) or len(set(axes)) != len(axes):
-            raise ProcedureError(f"{where}: axes is some of x, y, z, each once (e.g. xyz)")
-        if params["bias_ut"] <= params["amplitude_ut"]:
-            raise ProcedureError(f"{where}: bias_ut must exceed amplitude_ut, so that no coil"
-                                 " changes polarity during a sine")  # fmt: skip
-        top = params["rate_hz"] / 5.0
-        if not params["frequencies_hz"] or any(not 0 < f <= top for f in params["frequencies_hz"]):
-            raise ProcedureError(f"{where}: frequencies_hz must be above 0 and at most rate_hz / 5"
-                                 f" ({top:g} Hz: five set-points per cycle)")  # fmt: skip
-        cycles = params["cycles"] + params["settle_cycles"]
-        setpoints = (
-            len(axes) * params["rate_hz"] * sum(cycles / f for f in params["frequencies_hz"])
-        )
-        if setpoints > MAX_FIELD_SETPOINTS_PER_STEP:
-            raise ProcedureError(f"{where}: {setpoints:.0f} set-points, more than"
-                                 f" {MAX_FIELD_SETPOINTS_PER_STEP} (MAX_FIELD_SETPOINTS_PER_STEP):"
-                                 " fewer cycles at the lowest frequencies")  # fmt: skip
+        validate_sines(params, where)
 
-    def segments(self, step: Step) -> list[tuple[int, float, float, float]]:
-        """(axis, frequency Hz, start s, seconds) of each sine, in the step's time: ``cycles``
-        fitted, or as many as last ``min_s`` (a fast sine's few cycles are soon over)."""
-        p, t, out = step.params, 0.0, []
-        for axis in p["axes"]:
-            t += float(p["settle_s"])
-            for f in p["frequencies_hz"]:
-                fitted = max(int(p["cycles"]), math.ceil(float(p["min_s"]) * float(f) - 1e-9))
-                length = (fitted + int(p["settle_cycles"])) / float(f)
-                out.append((AXES.index(axis), float(f), t, length))
-                t += length
-        return out
+    def beyond_cage(self, step: Step, cage: CageAbilities) -> list[str]:
+        return beyond_the_cage(step, cage)
 
     def duration_s(self, step: Step, timing: RigTiming) -> float:
-        *_, start, length = self.segments(step)[-1]
-        return start + length
+        return sines.duration_s(step.params)
 
     def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
         """Each axis's bias as it starts (the sines are the step's own tracked set-points)."""
-        p, out = step.params, []
-        starts: dict[int, float] = {}
-        for axis, _f, start, _length in self.segments(step):
-            starts.setdefault(axis, start - float(p["settle_s"]))
-        for axis, t in starts.items():
-            v = np.zeros(3)
-            v[axis] = float(p["bias_ut"])
-            out.append((t, v))
-        return out
+        return bias_fields(step.params)
 
     def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
-        p = step.params
         duration = self.duration_s(step, timing)
         cmds = [
             Command(t, "field", self.field_payload(step, f)) for t, f in self.fields(step, timing)
         ]
-        rate, amp, bias = float(p["rate_hz"]), float(p["amplitude_ut"]), float(p["bias_ut"])
-        for axis, f, start, length in self.segments(step):
-            for k in range(1, round(length * rate) + 1):
-                v = np.zeros(3)
-                v[axis] = bias + amp * math.sin(2.0 * math.pi * f * k / rate)
-                cmds.append(Command(start + k / rate, "field",
-                                    {"field_ut": [float(x) for x in v], "trim": False,
-                                     "track": True, "segment": [axis, f]}))  # fmt: skip
-        cmds += load_commands(step, duration, base)
+        cmds += sine_commands(step.params) + load_commands(step, duration, base)
         cmds.append(Command(duration, "end", {}))
         return cmds, duration
 
@@ -200,44 +148,30 @@ class MeasureFrequencyResponse(StepExecution):
 
     def finish(self, t_start: float, t_end: float) -> None:
         p = self.step.params
-        mags = self.ctx.proc.magnetometers
-        dut, ref = mags.get(p["magnetometer"], p["magnetometer"]), mags.get("reference")
-        if ref is None or ref not in self.ctx.samplers:
-            raise RigError(f"frequency_response '{self.step.name}' needs a sampled 'reference'")
-        known = self.ctx.cfg.devices if self.ctx.cfg is not None else {}
-        ref_cfg = known.get(ref)
-        tau = float(ref_cfg.get("response_tau_s") or 0.0) if ref_cfg is not None else 0.0
-        window = float(ref_cfg.get("response_integration_s") or 0.0) if ref_cfg is not None else 0.0
+        dut = self.ctx.proc.magnetometers.get(p["magnetometer"], p["magnetometer"])
+        ref = reference_response(self.ctx, self.step)
         reader = self.ctx.open_reader()
         try:
             rows = settled_samples(reader, dut, (t_start, t_end), 0.0)
-            refs = settled_samples(reader, ref, (t_start, t_end), 0.0)
-            sent = [(t, pl) for t, s, k, pl in reader.commands()
-                    if s == self.step.index and k == "field" and "segment" in pl]  # fmt: skip
+            refs = settled_samples(reader, ref.name, (t_start, t_end), 0.0)
+            sent = sent_sines(reader, self.step)
         finally:
             reader.close()
         m, h, frame = self._frames(rows[:, 1:], to_cage_frame(refs[:, 1:], self.ctx.correction))
+        rate = float(p["rate_hz"])
         points: dict[str, list[ResponsePoint]] = {}
-        for axis, f, _start, _length in KIND.segments(self.step):
-            cmds = [(t, pl["field_ut"][axis]) for t, pl in sent if pl["segment"] == [axis, f]]
-            skip = round(int(p["settle_cycles"]) / f * float(p["rate_hz"]))
-            if len(cmds) <= skip + 4:
-                raise RigError(f"frequency_response '{self.step.name}': the {f:g} Hz sine on"
-                               f" {AXES[axis]} was not sent (the step ended early)")  # fmt: skip
-            c = np.asarray(cmds[skip:], float)
-            span = (c[0, 0], c[-1, 0] + 1.0 / float(p["rate_hz"]))
+        for s in segments(p):
+            c = commanded(self.step, sent, s)
+            span = span_of(c, rate)
             kd = (rows[:, 0] >= span[0]) & (rows[:, 0] < span[1])
             kr = (refs[:, 0] >= span[0]) & (refs[:, 0] < span[1])
-            rate = float(p["rate_hz"])
-            dut_p, ref_p = relative_phasors((rows[kd, 0], m[kd, axis]), (refs[kr, 0], h[kr, axis]), f,
-                                            _staircase(rows[kd, 0], rate, f),
-                                            _staircase(refs[kr, 0], rate, f))  # fmt: skip
-            point = response_point(f, dut_p, ref_p, phasor(c[:, 0], c[:, 1], f),
-                                   first_order(tau, window, f))  # fmt: skip
-            points.setdefault(AXES[axis], []).append(point)
-        note = (f"the reference's response (tau {tau:g} s, window {window:g} s) removed"
-                if tau or window else "the reference taken as ideal (no response_tau_s given)")  # fmt: skip
-        result = FrequencyResult({k: tuple(v) for k, v in points.items()}, frame, note)
+            dut_p, ref_p = relative_phasors(
+                (rows[kd, 0], m[kd, s.axis]), (refs[kr, 0], h[kr, s.axis]), s.f_hz,
+                staircase(rows[kd, 0], rate, s.f_hz), staircase(refs[kr, 0], rate, s.f_hz))  # fmt: skip
+            point = response_point(s.f_hz, dut_p, ref_p, phasor(c[:, 0], c[:, 1], s.f_hz),
+                                   ref.at(s.f_hz))  # fmt: skip
+            points.setdefault(AXES[s.axis], []).append(point)
+        result = FrequencyResult({k: tuple(v) for k, v in points.items()}, frame, ref.note())
         self.ctx.record_result(self.step.name, result.to_dict())
 
     def _frames(self, m: Array, h: Array) -> tuple[Array, Array, str]:
@@ -247,23 +181,6 @@ class MeasureFrequencyResponse(StepExecution):
         if axes.calibration is None:
             return m, h, "cage (no vector calibration: the amplitude holds the DUT's scale error)"
         return axes.readings_ut, axes.field_ut, "sensor"
-
-
-def _staircase(t_s: Array, rate_hz: float, f_hz: float) -> tuple[float, ...]:
-    """The set-points' staircase lines (the set-point rate and its double, plus and minus the
-    sine's frequency) as a device sampling at times ``t_s`` sees them: aliased into its band,
-    and left out where one lands on the sine itself or on zero (it cannot be told from them)."""
-    if len(t_s) < 2:
-        return ()
-    fs = 1.0 / float(np.median(np.diff(t_s)))
-    resolution = 1.5 / float(t_s[-1] - t_s[0])
-    out: list[float] = []
-    for line in (rate_hz - f_hz, rate_hz + f_hz, 2 * rate_hz - f_hz, 2 * rate_hz + f_hz):
-        seen = abs(line - round(line / fs) * fs)
-        apart = all(abs(seen - g) > resolution for g in (0.0, f_hz, *out))
-        if apart and seen < 0.5 * fs - resolution:
-            out.append(seen)
-    return tuple(out)
 
 
 KIND = FrequencyResponse()

@@ -831,6 +831,41 @@ def test_thermal_cycle_fits_hysteresis_and_tempco_and_needs_a_heater_profile(
 # --- frequency_response: sines on an axis, the DUT against the reference -----------------------
 
 
+def record_sines(ctx: FakeContext, step: Any, cage: Any, dut: Any, seed: int) -> float:
+    """Record ``step``'s sines as sent (at its ``rate_hz``) on x, the field the cage made of them (``cage(f)``:
+    its complex response), the reference reading it at 100 Hz and the DUT through ``dut(f)``
+    (None: no DUT); returns the last sample's time (s)."""
+    import math
+
+    from rig.steps.sine_fields import segments
+
+    rng = np.random.default_rng(seed)
+    rate = float(step.params["rate_hz"])
+    t_dut: list[float] = []
+    t_ref: list[float] = []
+    dut_x: list[float] = []
+    ref_x: list[float] = []
+    for s in segments(step.params):
+        for k in range(1, round(s.length_s * rate) + 1):
+            v = [30.0 + 10.0 * math.sin(2 * math.pi * s.f_hz * k / rate), 0.0, 0.0]
+            ctx.recording.commands.append((s.start_s + k / rate, 0, "field",
+                                           {"field_ut": v, "track": True,
+                                            "segment": [s.axis, s.f_hz]}))  # fmt: skip
+        devices = [(t_ref, ref_x, 1.0)] + ([(t_dut, dut_x, dut(s.f_hz))] if dut else [])
+        for times, out, resp in devices:
+            n = round(s.length_s * 100)
+            ts = np.arange(s.start_s, s.start_s + s.length_s, 0.01)[:n]
+            ts = ts + 0.0005 * rng.standard_normal(len(ts))
+            made = cage(s.f_hz) * resp * -10j * np.exp(2j * math.pi * s.f_hz * (ts - s.start_s))
+            times += list(ts)
+            out += list(30.0 + np.real(made) + 0.003 * rng.standard_normal(len(ts)))
+    for name, times, x in (("dut", t_dut, dut_x), ("reference", t_ref, ref_x)):
+        if times:
+            zeros = np.zeros(len(x))
+            ctx.recording.add_samples(name, np.asarray(times), np.column_stack([x, zeros, zeros]))
+    return max(t_ref)
+
+
 def test_frequency_response_recovers_a_lagging_dut_and_the_cages_own_response(
     tmp_path: Path,
 ) -> None:
@@ -843,30 +878,10 @@ def test_frequency_response_recovers_a_lagging_dut_and_the_cages_own_response(
     body = {"frequencies_hz": [0.5, 1.0], "axes": "x", "cycles": 4, "min_s": 0.0, "rate_hz": 25.0}
     step = make_step("frequency_response", body, name="bode")
     ctx = FakeContext(make_procedure(step), tmp_path)
-    rng = np.random.default_rng(6)
-    t_dut, t_ref, dut, ref = [], [], [], []
-    for axis, f, start, length in KINDS["frequency_response"].segments(step):
-        for k in range(1, round(length * 25.0) + 1):
-            t = start + k / 25.0
-            v = [30.0 + 10.0 * math.sin(2 * math.pi * f * k / 25.0), 0.0, 0.0]
-            ctx.recording.commands.append((t, 0, "field", {"field_ut": v, "track": True,
-                                                           "segment": [axis, f]}))  # fmt: skip
-        lag = cmath.exp(-1j * math.radians(5.0))
-        h = 1 / complex(1, 2 * math.pi * f * 0.008)
-        for times, out, resp in ((t_ref, ref, 1.0), (t_dut, dut, h)):
-            ts = np.arange(start, start + length, 0.01) + 0.0005 * rng.standard_normal(
-                round(length * 100)
-            )
-            field = 30.0 + np.real(
-                0.9 * lag * resp * -10j * np.exp(2j * math.pi * f * (ts - start))
-            )
-            times += list(ts)
-            out += list(field + 0.003 * rng.standard_normal(len(ts)))
-    zeros = np.zeros(len(dut))
-    ctx.recording.add_samples("dut", np.asarray(t_dut), np.column_stack([dut, zeros, zeros]))
-    zeros = np.zeros(len(ref))
-    ctx.recording.add_samples("reference", np.asarray(t_ref), np.column_stack([ref, zeros, zeros]))
-    r = carry_out(ctx, step, (0.0, max(t_dut) + 1.0))
+    lag = cmath.exp(-1j * math.radians(5.0))
+    end = record_sines(ctx, step, lambda f: 0.9 * lag,
+                       lambda f: 1 / complex(1, 2 * math.pi * f * 0.008), seed=6)  # fmt: skip
+    r = carry_out(ctx, step, (0.0, end + 1.0))
     for p in r["axes"]["x"]:
         want = 1 / complex(1, 2 * math.pi * p["f_hz"] * 0.008)
         assert p["amplitude"] == pytest.approx(abs(want), abs=2e-3), p
@@ -875,3 +890,38 @@ def test_frequency_response_recovers_a_lagging_dut_and_the_cages_own_response(
         assert p["cage_phase_deg"] == pytest.approx(-5.0, abs=0.5), p
     assert r["frame"].startswith("cage") and "taken as ideal" in r["reference_response"]
     assert "Frequency response 'bode'" in KINDS["frequency_response"].report_lines("bode", r)[0]
+
+
+# --- cage_response: the cage's own bandwidth --------------------------------------------------
+
+
+def test_cage_response_finds_the_half_power_frequency_of_a_first_order_cage(
+    tmp_path: Path,
+) -> None:
+    """A cage whose field follows the set-points through a first-order 25 ms (the coils' L/R: half
+    power at 6.37 Hz) read by an ideal reference at 1-5 Hz, and at 1-8 Hz: each point's amplitude
+    and phase that low-pass's; up to 5 Hz never under half power (the limit: 5 Hz, the highest
+    measured), up to 8 Hz its half-power frequency within 3 %."""
+    import cmath
+    import math
+
+    def cage(f: float) -> complex:
+        return 1 / complex(1, 2 * math.pi * f * 0.025)
+
+    for top, found in ((5.0, None), (8.0, 1 / (2 * math.pi * 0.025))):
+        freqs = [f for f in (1.0, 2.0, 4.0, 5.0, 6.0, 8.0) if f <= top]
+        body = {"frequencies_hz": freqs, "axes": "x", "cycles": 4, "min_s": 0.0, "rate_hz": 50.0}
+        step = make_step("cage_response", body, name="cage")
+        ctx = FakeContext(make_procedure(step), tmp_path / str(top))
+        end = record_sines(ctx, step, cage, None, seed=7)
+        r = carry_out(ctx, step, (0.0, end + 1.0))
+        for p in r["axes"]["x"]:
+            assert p["amplitude"] == pytest.approx(abs(cage(p["f_hz"])), abs=5e-3), p
+            assert p["phase_deg"] == pytest.approx(math.degrees(cmath.phase(cage(p["f_hz"]))),
+                                                   abs=0.3), p  # fmt: skip
+        if found is None:
+            assert r["bandwidth_hz"]["x"] is None and r["limit_hz"]["x"] == top
+        else:
+            assert r["bandwidth_hz"]["x"] == pytest.approx(found, rel=0.03)
+            assert r["limit_hz"]["x"] == r["bandwidth_hz"]["x"]
+        assert "Cage response 'cage'" in KINDS["cage_response"].report_lines("cage", r)[0]

@@ -1,0 +1,171 @@
+"""``cage_response``: the cage's own bandwidth. Sine fields along each axis at a list of
+frequencies (the set-points, the supplies and the coils' L/R together), read by the reference with
+its configured response removed; per axis the amplitude and phase of the field made over the field
+asked, and the frequency where it falls to half power. Kept in the cage record (``metrology``):
+``rig check`` and every later run refuse a ``frequency_response`` above it."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, ClassVar
+
+from rig.analysis import settled_samples, to_cage_frame
+from rig.characterization.frequency import (
+    ResponsePoint,
+    cage_point,
+    half_power_hz,
+    phasor,
+)
+from rig.steps import sine_fields as sines
+from rig.steps.base import (
+    Array,
+    CageAbilities,
+    FieldStepKind,
+    RunContext,
+    StepExecution,
+    load_commands,
+    record_cage_metrology,
+)
+from rig.steps.sine_fields import (
+    AXES,
+    SINE_PARAMS,
+    beyond_the_cage,
+    bias_fields,
+    commanded,
+    reference_phasor,
+    reference_response,
+    segments,
+    sent_sines,
+    sine_commands,
+    span_of,
+    validate_sines,
+    within,
+)
+from rig.steps.vocabulary import Command, Param, RigTiming, Step
+
+
+class CageResponse(FieldStepKind):
+    name = "cage_response"
+    summary = "sine fields at each frequency: the cage's own amplitude and phase, its bandwidth"
+    result_values = ("axes", "bandwidth_hz", "bandwidth_hz.*", "limit_hz", "limit_hz.*",
+                     "measured_to_hz", "reference_response")  # fmt: skip
+    params: ClassVar[dict[str, Param]] = {
+        **SINE_PARAMS,
+        "frequencies_hz": Param("list_float", [0.5, 1.0, 2.0, 3.0, 4.0, 5.0]),
+        "cycles": Param("int", 3, 1, 10000),
+        "min_s": Param("float", 3.0, 0.0, 86400.0),
+    }
+
+    def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
+        validate_sines(params, where)
+
+    def beyond_cage(self, step: Step, cage: CageAbilities) -> list[str]:
+        """Only the slew limit: this step is what measures the bandwidth."""
+        return beyond_the_cage(step, CageAbilities(cage.k_ut_per_a, cage.max_slew_a_per_s))
+
+    def duration_s(self, step: Step, timing: RigTiming) -> float:
+        return sines.duration_s(step.params)
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        """Each axis's bias as it starts (the sines are the step's own tracked set-points)."""
+        return bias_fields(step.params)
+
+    def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
+        duration = self.duration_s(step, timing)
+        cmds = [
+            Command(t, "field", self.field_payload(step, f)) for t, f in self.fields(step, timing)
+        ]
+        cmds += sine_commands(step.params) + load_commands(step, duration, base)
+        cmds.append(Command(duration, "end", {}))
+        return cmds, duration
+
+    def execution(self, ctx: RunContext, step: Step) -> StepExecution:
+        return MeasureCageResponse(ctx, step)
+
+    def report_lines(self, name: str, result: Any) -> list[str]:
+        if not isinstance(result, Mapping) or "axes" not in result:
+            return []
+        lines = [f"Cage response '{name}' ({result['reference_response']}):"]
+        for axis, points in result["axes"].items():
+            found = result["bandwidth_hz"].get(axis)
+            edge = (f"half power at {found:.3g} Hz" if found is not None
+                    else f"above half power up to {result['measured_to_hz']:g} Hz")  # fmt: skip
+            cells = [f"{p['f_hz']:g} Hz {p['amplitude']:.3f} {p['phase_deg']:+.1f} deg"
+                     for p in points]  # fmt: skip
+            lines.append(f"  {axis}: {edge}; " + "; ".join(cells))
+        return lines
+
+    def figures(self, reader: Any, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
+        if not isinstance(result, Mapping) or "axes" not in result:
+            return []
+        fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.0, 5.0), sharex=True)
+        for axis, points in result["axes"].items():
+            f = [p["f_hz"] for p in points]
+            for ax, value, sigma in ((top, "amplitude", "amplitude_sigma"),
+                                     (bottom, "phase_deg", "phase_sigma_deg")):  # fmt: skip
+                ax.errorbar(f, [p[value] for p in points], yerr=[p[sigma] for p in points],
+                            fmt="o-", ms=3, label=axis)  # fmt: skip
+        top.axhline(2**-0.5, color="0.5", ls=":", lw=0.8)
+        top.set_xscale("log")
+        top.set_ylabel("field made / asked")
+        bottom.set_ylabel("phase (deg)")
+        bottom.set_xlabel("frequency (Hz); dotted: half power")
+        for ax in (top, bottom):
+            ax.grid(alpha=0.3, which="both")
+        top.legend(fontsize=7)
+        return [(f"Cage response ('{name}'): the field made over the field asked, 1-sigma", fig)]
+
+
+class MeasureCageResponse(StepExecution):
+    """After the sines: per axis and frequency, the reference and the set-points fitted; the
+    bandwidth kept in the cage record."""
+
+    def finish(self, t_start: float, t_end: float) -> None:
+        p = self.step.params
+        ref = reference_response(self.ctx, self.step)
+        reader = self.ctx.open_reader()
+        try:
+            refs = settled_samples(reader, ref.name, (t_start, t_end), 0.0)
+            sent = sent_sines(reader, self.step)
+        finally:
+            reader.close()
+        refs[:, 1:] = to_cage_frame(refs[:, 1:], self.ctx.correction)
+        rate = float(p["rate_hz"])
+        points: dict[str, list[ResponsePoint]] = {}
+        for s in segments(p):
+            c = commanded(self.step, sent, s)
+            seen = reference_phasor(within(refs, span_of(c, rate)), rate, s.f_hz, s.axis)
+            points.setdefault(AXES[s.axis], []).append(
+                cage_point(s.f_hz, seen, phasor(c[:, 0], c[:, 1], s.f_hz), ref.at(s.f_hz))
+            )
+        result = cage_result(points, ref.note(), p)
+        self.ctx.record_result(self.step.name, result)
+        record_cage_metrology(self.ctx, self.step.kind, {
+            "limit_hz": result["limit_hz"], "bandwidth_hz": result["bandwidth_hz"],
+            "amplitude_ut": float(p["amplitude_ut"]), "rate_hz": rate})  # fmt: skip
+
+
+def cage_result(points: dict[str, list[ResponsePoint]], note: str,
+                params: Mapping[str, Any]) -> dict[str, Any]:  # fmt: skip
+    """The stored result: per axis the points, the half-power frequency (None: above half power
+    at every frequency measured) and the limit a later sine is held to (the half-power frequency,
+    or the highest frequency measured: nothing beyond it is known)."""
+    top = max(float(f) for f in params["frequencies_hz"])
+    bandwidth: dict[str, float | None] = {}
+    for axis, ps in points.items():
+        ordered = sorted(ps, key=lambda q: q.f_hz)
+        bandwidth[axis] = half_power_hz([q.f_hz for q in ordered], [q.amplitude for q in ordered])
+    return {
+        "axes": {axis: [{"f_hz": q.f_hz, "amplitude": q.amplitude,
+                         "amplitude_sigma": q.amplitude_sigma, "phase_deg": q.phase_deg,
+                         "phase_sigma_deg": q.phase_sigma_deg} for q in ps]
+                 for axis, ps in points.items()},
+        "bandwidth_hz": bandwidth,
+        "limit_hz": {axis: (top if b is None else b) for axis, b in bandwidth.items()},
+        "measured_to_hz": top, "amplitude_ut": float(params["amplitude_ut"]),
+        "rate_hz": float(params["rate_hz"]), "reference_response": note,
+    }  # fmt: skip
+
+
+KIND = CageResponse()

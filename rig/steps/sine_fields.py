@@ -1,0 +1,223 @@
+"""Sine fields on the cage's axes, as ``frequency_response`` and ``cage_response`` make and read
+them: each axis holds a bias (no coil changes polarity mid-sine: a relay flip would be a step),
+then at each frequency a sine on top as tracked set-points at ``rate_hz``, ``settle_cycles`` left
+out and the rest fitted; and what the rig allows of them (its slew limit, the cage's measured
+bandwidth)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from rig.characterization.frequency import Phasor, first_order, phasor
+from rig.errors import RigError
+from rig.steps.base import Array, CageAbilities, RunContext
+from rig.steps.vocabulary import MAX_FIELD_SETPOINTS_PER_STEP, Command, Param, ProcedureError, Step
+
+AXES = "xyz"
+
+SINE_PARAMS: dict[str, Param] = {
+    "frequencies_hz": Param("list_float", [0.1, 0.2, 0.5, 1.0, 2.0]),
+    "axes": Param("str", "xyz"),
+    "amplitude_ut": Param("float", 10.0, 0.1, 1000.0),
+    "bias_ut": Param("float", 30.0, 0.0, 1000.0),
+    "cycles": Param("int", 4, 1, 10000),
+    "min_s": Param("float", 8.0, 0.0, 86400.0),
+    "settle_cycles": Param("int", 1, 0, 100),
+    "settle_s": Param("float", 2.0, 0.0, 600.0),
+    "rate_hz": Param("float", 25.0, 1.0, 200.0),
+}
+"""The parameters of a step of sines (docs/procedures.md)."""
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One sine in a step's plan: its axis (0-2), frequency (Hz), start and length (s from the
+    step's start)."""
+
+    axis: int
+    f_hz: float
+    start_s: float
+    length_s: float
+
+
+def validate_sines(params: dict[str, Any], where: str) -> None:
+    """Refuse (ProcedureError naming ``where`` and the fix) sines the step cannot make."""
+    axes = params["axes"]
+    if not axes or any(a not in AXES for a in axes) or len(set(axes)) != len(axes):
+        raise ProcedureError(f"{where}: axes is some of x, y, z, each once (e.g. xyz)")
+    if params["bias_ut"] <= params["amplitude_ut"]:
+        raise ProcedureError(f"{where}: bias_ut must exceed amplitude_ut, so that no coil"
+                             " changes polarity during a sine")  # fmt: skip
+    top = params["rate_hz"] / 5.0
+    if not params["frequencies_hz"] or any(not 0 < f <= top for f in params["frequencies_hz"]):
+        raise ProcedureError(f"{where}: frequencies_hz must be above 0 and at most rate_hz / 5"
+                             f" ({top:g} Hz: five set-points per cycle)")  # fmt: skip
+    setpoints = params["rate_hz"] * sum(s.length_s for s in segments(params))
+    if setpoints > MAX_FIELD_SETPOINTS_PER_STEP:
+        raise ProcedureError(f"{where}: {setpoints:.0f} set-points, more than"
+                             f" {MAX_FIELD_SETPOINTS_PER_STEP} (MAX_FIELD_SETPOINTS_PER_STEP):"
+                             " fewer cycles at the lowest frequencies")  # fmt: skip
+
+
+def segments(params: dict[str, Any]) -> list[Segment]:
+    """Each sine of a step with these parameters, in the step's time: ``cycles`` fitted, or as
+    many as last ``min_s`` (a fast sine's few cycles are soon over), after ``settle_cycles``."""
+    t, out = 0.0, []
+    for axis in params["axes"]:
+        t += float(params["settle_s"])
+        for f in params["frequencies_hz"]:
+            fitted = max(int(params["cycles"]), math.ceil(float(params["min_s"]) * f - 1e-9))
+            length = (fitted + int(params["settle_cycles"])) / float(f)
+            out.append(Segment(AXES.index(axis), float(f), t, length))
+            t += length
+    return out
+
+
+def duration_s(params: dict[str, Any]) -> float:
+    """The step's length (s): its last sine's end."""
+    last = segments(params)[-1]
+    return last.start_s + last.length_s
+
+
+def bias_fields(params: dict[str, Any]) -> list[tuple[float, Array]]:
+    """Each axis's bias (s from the step's start, field uT) as its sines start."""
+    starts: dict[int, float] = {}
+    for s in segments(params):
+        starts.setdefault(s.axis, s.start_s - float(params["settle_s"]))
+    out = []
+    for axis, t in starts.items():
+        v = np.zeros(3)
+        v[axis] = float(params["bias_ut"])
+        out.append((t, v))
+    return out
+
+
+def sine_commands(params: dict[str, Any]) -> list[Command]:
+    """The sines' tracked set-points (each tagged with its ``segment``: axis, frequency)."""
+    rate, amp, bias = float(params["rate_hz"]), float(params["amplitude_ut"]), params["bias_ut"]
+    cmds = []
+    for s in segments(params):
+        for k in range(1, round(s.length_s * rate) + 1):
+            v = np.zeros(3)
+            v[s.axis] = float(bias) + amp * math.sin(2.0 * math.pi * s.f_hz * k / rate)
+            cmds.append(Command(s.start_s + k / rate, "field",
+                                {"field_ut": [float(x) for x in v], "trim": False, "track": True,
+                                 "segment": [s.axis, s.f_hz]}))  # fmt: skip
+    return cmds
+
+
+def commanded(step: Step, sent: list[tuple[float, dict[str, Any]]], s: Segment) -> Array:
+    """Rows (t s, field uT along the sine's axis) of the segment's fitted set-points as sent
+    (``sent``: the step's field commands, time and payload); RigError when they were not."""
+    p = step.params
+    rows = [(t, pl["field_ut"][s.axis]) for t, pl in sent if pl.get("segment") == [s.axis, s.f_hz]]
+    skip = round(int(p["settle_cycles"]) / s.f_hz * float(p["rate_hz"]))
+    if len(rows) <= skip + 4:
+        raise RigError(f"{step.kind} '{step.name}': the {s.f_hz:g} Hz sine on"
+                       f" {AXES[s.axis]} was not sent (the step ended early)")  # fmt: skip
+    return np.asarray(rows[skip:], float)
+
+
+def sent_sines(reader: Any, step: Step) -> list[tuple[float, dict[str, Any]]]:
+    """The step's sine set-points as recorded (time s, payload)."""
+    return [(t, pl) for t, s, k, pl in reader.commands()
+            if s == step.index and k == "field" and "segment" in pl]  # fmt: skip
+
+
+def within(rows: Array, span: tuple[float, float]) -> Array:
+    """The rows (first column: time s) within ``span`` (s, end excluded)."""
+    return rows[(rows[:, 0] >= span[0]) & (rows[:, 0] < span[1])]
+
+
+def span_of(cmds: Array, rate_hz: float) -> tuple[float, float]:
+    """The time (s) the fitted set-points cover: the first to one period after the last."""
+    return float(cmds[0, 0]), float(cmds[-1, 0] + 1.0 / rate_hz)
+
+
+def staircase(t_s: Array, rate_hz: float, f_hz: float) -> tuple[float, ...]:
+    """The set-points' staircase lines (the set-point rate and its double, plus and minus the
+    sine's frequency) as a device sampling at times ``t_s`` sees them: aliased into its band,
+    and left out where one lands on the sine itself or on zero (it cannot be told from them)."""
+    if len(t_s) < 2:
+        return ()
+    fs = 1.0 / float(np.median(np.diff(t_s)))
+    resolution = 1.5 / float(t_s[-1] - t_s[0])
+    out: list[float] = []
+    for line in (rate_hz - f_hz, rate_hz + f_hz, 2 * rate_hz - f_hz, 2 * rate_hz + f_hz):
+        seen = abs(line - round(line / fs) * fs)
+        apart = all(abs(seen - g) > resolution for g in (0.0, f_hz, *out))
+        if apart and seen < 0.5 * fs - resolution:
+            out.append(seen)
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class ReferenceResponse:
+    """The reference magnetometer's response as the rig configuration states it."""
+
+    name: str
+    tau_s: float
+    integration_s: float
+
+    def at(self, f_hz: float) -> complex:
+        """Its transfer at ``f_hz``."""
+        return first_order(self.tau_s, self.integration_s, f_hz)
+
+    def note(self) -> str:
+        """How the reference was taken, for the result."""
+        if self.tau_s or self.integration_s:
+            return (f"the reference's response (tau {self.tau_s:g} s, window"
+                    f" {self.integration_s:g} s) removed")  # fmt: skip
+        return "the reference taken as ideal (no response_tau_s given)"
+
+
+def reference_response(ctx: RunContext, step: Step) -> ReferenceResponse:
+    """The run's sampled reference and its configured response; RigError without one."""
+    ref = ctx.proc.magnetometers.get("reference")
+    if ref is None or ref not in ctx.samplers:
+        raise RigError(f"{step.kind} '{step.name}' needs a sampled 'reference'")
+    known = ctx.cfg.devices if ctx.cfg is not None else {}
+    cfg = known.get(ref)
+    tau = float(cfg.get("response_tau_s") or 0.0) if cfg is not None else 0.0
+    window = float(cfg.get("response_integration_s") or 0.0) if cfg is not None else 0.0
+    return ReferenceResponse(ref, tau, window)
+
+
+def reference_phasor(rows: Array, rate_hz: float, f_hz: float, axis: int) -> Phasor:
+    """The reference's phasor along ``axis`` from its rows (t s, x, y, z uT), its sigma from its
+    own residuals near ``f_hz``."""
+    return phasor(rows[:, 0], rows[:, 1 + axis], f_hz, staircase(rows[:, 0], rate_hz, f_hz))
+
+
+def beyond_the_cage(step: Step, cage: CageAbilities) -> list[str]:
+    """What the rig cannot make of a step's sines: a frequency above the cage's measured
+    bandwidth on its axis (``cage_response`` in the cage record), or a sine whose slew on some
+    coil exceeds ``max_slew_a_per_s`` (the controller would wait, and the sine would not be one)."""
+    p, out = step.params, []
+    limits = (cage.metrology.get("cage_response") or {}).get("limit_hz") or {}
+    when = (cage.metrology.get("cage_response") or {}).get("date", "undated")
+    for axis in p["axes"]:
+        if limits.get(axis) is None or "cage_response" in cage.measured_before:
+            continue
+        top = float(limits[axis])
+        over = [f for f in p["frequencies_hz"] if f > top + 1e-9]
+        if over:
+            out.append(f"{step.kind} '{step.name}': {', '.join(f'{f:g}' for f in over)} Hz on"
+                       f" {axis} beyond the cage's measured bandwidth there ({top:.3g} Hz,"
+                       f" cage_response of {when}): lower the frequencies, or measure the cage"
+                       " again (procedures/cage-response.yaml)")  # fmt: skip
+    if cage.k_ut_per_a is not None and cage.max_slew_a_per_s is not None:
+        inverse = np.linalg.inv(np.asarray(cage.k_ut_per_a, float))
+        for axis in p["axes"]:
+            amps = np.abs(inverse[:, AXES.index(axis)]) * float(p["amplitude_ut"])
+            slew = 2.0 * math.pi * max(p["frequencies_hz"]) * float(np.max(amps))
+            if slew > cage.max_slew_a_per_s:
+                out.append(f"{step.kind} '{step.name}': the {max(p['frequencies_hz']):g} Hz sine"
+                           f" of {p['amplitude_ut']:g} uT on {axis} needs {slew:.3g} A/s, over the"
+                           f" cage's max_slew_a_per_s ({cage.max_slew_a_per_s:g}): a smaller"
+                           " amplitude_ut or lower frequencies")  # fmt: skip
+    return out
