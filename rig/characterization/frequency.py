@@ -13,6 +13,7 @@ response), so the DUT's response is ``H = P_dut H_ref / P_ref`` and the cage's o
 from __future__ import annotations
 
 import cmath
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -190,3 +191,51 @@ def half_power_hz(f_hz: list[float], amplitude: list[float]) -> float | None:
         x = (a0 - HALF_POWER) / (a0 - a)
         return float(math.exp(math.log(f0) + x * (math.log(f) - math.log(f0))))
     return None
+
+
+IMAGE_HARMONICS = 50
+"""The staircase's images looked at: the set-point rate's multiples up to this one, plus and
+minus the sine's frequency (beyond it the hold and the coils leave less than 1e-5 of the sine)."""
+
+
+def corner_hz(f_hz: float, cage_amplitude: float) -> float:
+    """The corner (Hz) of a first-order low-pass that is ``cage_amplitude`` at ``f_hz``: the
+    cage's high frequencies as one measured point says (infinite when it is not below 0.99)."""
+    if cage_amplitude >= 0.99:
+        return math.inf
+    return f_hz * cage_amplitude / math.sqrt(1.0 - cage_amplitude**2)
+
+
+def image_on_sine(f_hz: float, rate_hz: float, sample_rates_hz: tuple[float, ...], span_s: float,
+                  corner: float) -> float:  # fmt: skip
+    """A bound on the set-points' staircase images a device sees on the sine itself, relative to
+    the sine: an image at ``k rate_hz +- f_hz`` that a device sampling at one of
+    ``sample_rates_hz`` aliases to within a frequency bin (1.5 / ``span_s``) of ``f_hz`` cannot be
+    fitted apart from it. Each counts with the hold's own (sinc) weight at its frequency over the
+    sine's and the cage's first-order fall beyond ``corner`` (Hz); the devices' responses at the
+    image, unknown for the DUT, are bounded by one. Summed (they may add in phase)."""
+    resolution = 1.5 / span_s
+    total = 0.0
+    for k in range(1, IMAGE_HARMONICS + 1):
+        for g in (k * rate_hz - f_hz, k * rate_hz + f_hz):
+            seen = [abs(g - round(g / fs) * fs) for fs in sample_rates_hz if g > fs / 2]
+            if not any(abs(s - f_hz) < resolution for s in seen):
+                continue
+            hold = _sinc(g / rate_hz) / _sinc(f_hz / rate_hz)
+            fall = math.hypot(1.0, f_hz / corner) / math.hypot(1.0, g / corner)
+            total += abs(hold) * fall
+    return total
+
+
+def _sinc(x: float) -> float:
+    return math.sin(math.pi * x) / (math.pi * x) if x else 1.0
+
+
+def with_systematics(point: ResponsePoint, image: float, timing_sigma_s: float) -> ResponsePoint:
+    """``point`` with two systematic terms added in quadrature to its sigmas: the staircase's
+    images on the sine (``image``, relative: on the amplitude and, in radians, on the phase) and
+    the devices' relative date uncertainty (``timing_sigma_s``, 1-sigma: on the phase)."""
+    phase_timing = 360.0 * point.f_hz * timing_sigma_s
+    phase = math.hypot(point.phase_sigma_deg, math.degrees(image), phase_timing)
+    amplitude = math.hypot(point.amplitude_sigma, point.amplitude * image)
+    return dataclasses.replace(point, amplitude_sigma=amplitude, phase_sigma_deg=phase)

@@ -14,13 +14,24 @@ fell under half power is beyond the cage's bandwidth: reported, not judged.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
+import numpy as np
+
 from rig.analysis import settled_samples, to_cage_frame
-from rig.characterization.frequency import ResponsePoint, phasor, relative_phasors, response_point
+from rig.characterization.frequency import (
+    ResponsePoint,
+    corner_hz,
+    image_on_sine,
+    phasor,
+    relative_phasors,
+    response_point,
+    with_systematics,
+)
 from rig.steps import sine_fields as sines
 from rig.steps.base import (
     Array,
@@ -34,6 +45,7 @@ from rig.steps.sensor_axes import in_sensor_axes
 from rig.steps.sine_fields import (
     AXES,
     SINE_PARAMS,
+    Segment,
     beyond_the_cage,
     bias_fields,
     commanded,
@@ -154,12 +166,13 @@ class MeasureFrequencyResponse(StepExecution):
         try:
             rows = settled_samples(reader, dut, (t_start, t_end), 0.0)
             refs = settled_samples(reader, ref.name, (t_start, t_end), 0.0)
+            dates = [_dates(reader, name) for name in (dut, ref.name)]
             sent = sent_sines(reader, self.step)
         finally:
             reader.close()
         m, h, frame = self._frames(rows[:, 1:], to_cage_frame(refs[:, 1:], self.ctx.correction))
         rate = float(p["rate_hz"])
-        points: dict[str, list[ResponsePoint]] = {}
+        measured: list[tuple[Segment, ResponsePoint, tuple[float, float], tuple[float, ...]]] = []
         for s in segments(p):
             c = commanded(self.step, sent, s)
             span = span_of(c, rate)
@@ -170,7 +183,14 @@ class MeasureFrequencyResponse(StepExecution):
                 staircase(rows[kd, 0], rate, s.f_hz), staircase(refs[kr, 0], rate, s.f_hz))  # fmt: skip
             point = response_point(s.f_hz, dut_p, ref_p, phasor(c[:, 0], c[:, 1], s.f_hz),
                                    ref.at(s.f_hz))  # fmt: skip
-            points.setdefault(AXES[s.axis], []).append(point)
+            measured.append((s, point, span, (_rate(rows[kd, 0]), _rate(refs[kr, 0]))))
+        points: dict[str, list[ResponsePoint]] = {}
+        for s, point, span, rates in measured:
+            corner = min(corner_hz(q.f_hz, q.cage_amplitude)
+                         for z, q, *_ in measured if z.axis == s.axis)  # fmt: skip
+            image = image_on_sine(s.f_hz, rate, rates, span[1] - span[0], corner)
+            timing = math.hypot(*(_date_sigma_s(d, span) for d in dates))
+            points.setdefault(AXES[s.axis], []).append(with_systematics(point, image, timing))
         result = FrequencyResult({k: tuple(v) for k, v in points.items()}, frame, ref.note())
         self.ctx.record_result(self.step.name, result.to_dict())
 
@@ -181,6 +201,26 @@ class MeasureFrequencyResponse(StepExecution):
         if axes.calibration is None:
             return m, h, "cage (no vector calibration: the amplitude holds the DUT's scale error)"
         return axes.readings_ut, axes.field_ut, "sensor"
+
+
+def _dates(reader: Any, device: str) -> Array:
+    """Rows (date s, its uncertainty s: a half-width, NaN when not recorded) of a device."""
+    rows = reader.dated_samples(device)
+    return np.asarray([(r[0], r[4]) for r in rows], float).reshape(-1, 2)
+
+
+def _date_sigma_s(dates: Array, span: tuple[float, float]) -> float:
+    """The 1-sigma (s) of a device's dates within ``span``, common to the span (a date comes from
+    the stream's envelope, shared by its neighbours): the median half-width over the square root
+    of 3 (uniform within it); 0 when the run did not record it."""
+    inside = dates[(dates[:, 0] >= span[0]) & (dates[:, 0] < span[1]), 1]
+    inside = inside[np.isfinite(inside)]
+    return float(np.median(inside)) / math.sqrt(3.0) if len(inside) else 0.0
+
+
+def _rate(t_s: Array) -> float:
+    """A device's sampling rate (Hz) from its dates."""
+    return 1.0 / float(np.median(np.diff(t_s))) if len(t_s) > 1 else math.inf
 
 
 KIND = FrequencyResponse()
