@@ -87,3 +87,30 @@ def test_only_the_chosen_axes_are_measured() -> None:
     assert wait_drdy(bus, 0.3)
     x2, y2, z2 = results(bus)
     assert (x2, y2) == (x, 0) and z2 == round(FIELD_UT[2] * GAIN)
+
+
+def test_each_axis_reads_the_field_at_the_middle_of_its_own_conversion() -> None:
+    """The axes convert one after another, each for its cycle count: the field each one latches
+    is the field at the middle of its own conversion (x, then y, then z; at CC = 200, 0.78 ms
+    apart), the truth a frequency response of the sensor sees as a lag per axis."""
+    from sim.rm3100 import SECONDS_PER_CYCLE
+
+    asked: list[float] = []
+
+    def field(t: float) -> np.ndarray:
+        asked.append(t)
+        return np.array(FIELD_UT)
+
+    bus = SimI2CBus()
+    device = SimRm3100(field, Faults())
+    bus.attach(device)
+    bus.write_i2c_block_data(0x20, 0x06, [0, 100])  # CCY = 100
+    t0 = time.monotonic()
+    bus.write_byte_data(0x20, 0x00, 0x70)  # POLL x, y, z
+    assert wait_drdy(bus, 1.0)
+    done = t0 + (200 + 100 + 200) * SECONDS_PER_CYCLE
+    step = SECONDS_PER_CYCLE
+    want = [done - 500 * step + 100 * step, done - 300 * step + 50 * step, done - 100 * step]
+    assert len(asked) == 3 and np.allclose(asked, want, atol=2e-4), (asked, want)
+    assert results(bus) == [round(FIELD_UT[0] * GAIN), round(FIELD_UT[1] * (0.3671 * 100 + 1.5)),
+                            round(FIELD_UT[2] * GAIN)]  # fmt: skip

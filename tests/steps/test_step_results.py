@@ -925,3 +925,28 @@ def test_cage_response_finds_the_half_power_frequency_of_a_first_order_cage(
             assert r["bandwidth_hz"]["x"] == pytest.approx(found, rel=0.03)
             assert r["limit_hz"]["x"] == r["bandwidth_hz"]["x"]
         assert "Cage response 'cage'" in KINDS["cage_response"].report_lines("cage", r)[0]
+
+
+def test_a_poorly_measured_point_does_not_decide_the_cages_bandwidth() -> None:
+    """Under a CPU hog one 8 Hz point read 0.87 +- 0.55 (the staircase late and irregular): taken
+    as it was, the axis never fell to half power and the limit was 8 Hz; points known no better
+    than 2 % are left out of the bandwidth and named."""
+    from rig.characterization.frequency import ResponsePoint
+    from rig.steps.cage_response import cage_result
+
+    def point(f: float, a: float, s: float) -> ResponsePoint:
+        return ResponsePoint(f, a, s, -10.0 * f, 0.1, a, -10.0 * f)
+
+    hog = [point(1, 0.99, 0.001), point(2, 0.95, 0.001), point(4, 0.84, 0.002),
+           point(6, 0.72, 0.003), point(8, 0.87, 0.55)]  # fmt: skip
+    r = cage_result({"x": hog}, "ideal", {"frequencies_hz": [1, 2, 4, 6, 8], "amplitude_ut": 5.0,
+                                          "rate_hz": 50.0})  # fmt: skip
+    assert r["bandwidth_hz"]["x"] is None and r["limit_hz"]["x"] == 6
+    assert r["poorly_measured_hz"]["x"] == [8]
+    r = cage_result({"x": [*hog[:4], point(8, 0.60, 0.004)]}, "ideal",
+                    {"frequencies_hz": [1, 2, 4, 6, 8], "amplitude_ut": 5.0, "rate_hz": 50.0})  # fmt: skip
+    assert 6 < r["bandwidth_hz"]["x"] < 7 and r["poorly_measured_hz"]["x"] == []
+    r = cage_result({"x": [point(1, 0.99, 0.03)]}, "ideal",
+                    {"frequencies_hz": [1], "amplitude_ut": 5.0, "rate_hz": 50.0})  # fmt: skip
+    assert r["limit_hz"]["x"] is None
+    assert "no frequency measured well enough" in KINDS["cage_response"].report_lines("c", r)[1]
