@@ -6,6 +6,7 @@ asked, and the frequency where it falls to half power. Kept in the cage record (
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, ClassVar
@@ -161,19 +162,21 @@ irregular and the reference's view of it noisy (0.025-0.55 seen under a CPU hog)
 
 def cage_result(points: dict[str, list[ResponsePoint]], note: str,
                 params: Mapping[str, Any]) -> dict[str, Any]:  # fmt: skip
-    """The stored result: per axis the points, the half-power frequency among the points known to
-    :data:`MAX_POINT_SIGMA` (None: above half power at every one of them) and the limit a later
-    sine is held to (the half-power frequency, or the highest such point: nothing beyond it is
-    known; None without one), and the frequencies measured too poorly to count."""
+    """The stored result: per axis the points, the half-power frequency among the points below
+    the first one known no better than :data:`MAX_POINT_SIGMA` (None: above half power at every
+    one of them), the limit a later sine is held to (the half-power frequency, or the highest of
+    those points: nothing beyond is known; None without one), and the frequencies measured too
+    poorly to count."""
     bandwidth: dict[str, float | None] = {}
     limit: dict[str, float | None] = {}
     poor: dict[str, list[float]] = {}
     for axis, ps in points.items():
         ordered = sorted(ps, key=lambda q: q.f_hz)
-        good = [q for q in ordered if q.amplitude_sigma <= MAX_POINT_SIGMA]
         poor[axis] = [q.f_hz for q in ordered if q.amplitude_sigma > MAX_POINT_SIGMA]
-        bandwidth[axis] = half_power_hz([q.f_hz for q in good], [q.amplitude for q in good])
-        top = max((q.f_hz for q in good), default=None)
+        # known: the points below the first one measured too poorly (what lies beyond is not)
+        known = [q for q in ordered if q.f_hz < min(poor[axis], default=math.inf)]
+        bandwidth[axis] = half_power_hz([q.f_hz for q in known], [q.amplitude for q in known])
+        top = max((q.f_hz for q in known), default=None)
         limit[axis] = top if bandwidth[axis] is None else bandwidth[axis]
     return {
         "axes": {axis: [{"f_hz": q.f_hz, "amplitude": q.amplitude,

@@ -943,6 +943,10 @@ def test_a_poorly_measured_point_does_not_decide_the_cages_bandwidth() -> None:
                                           "rate_hz": 50.0})  # fmt: skip
     assert r["bandwidth_hz"]["x"] is None and r["limit_hz"]["x"] == 6
     assert r["poorly_measured_hz"]["x"] == [8]
+    # a poor point at 2 Hz: what lies beyond it is not known, however well measured
+    r = cage_result({"x": [hog[0], point(2, 0.95, 0.05), *hog[2:4]]}, "ideal",
+                    {"frequencies_hz": [1, 2, 4, 6], "amplitude_ut": 5.0, "rate_hz": 50.0})  # fmt: skip
+    assert r["limit_hz"]["x"] == 1 and r["poorly_measured_hz"]["x"] == [2]
     r = cage_result({"x": [*hog[:4], point(8, 0.60, 0.004)]}, "ideal",
                     {"frequencies_hz": [1, 2, 4, 6, 8], "amplitude_ut": 5.0, "rate_hz": 50.0})  # fmt: skip
     assert 6 < r["bandwidth_hz"]["x"] < 7 and r["poorly_measured_hz"]["x"] == []
