@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any, ClassVar
 
 from rig.analysis import settled_samples, to_cage_frame
@@ -18,35 +17,29 @@ from rig.characterization.frequency import (
     half_power_hz,
     phasor,
 )
-from rig.steps import sine_fields as sines
 from rig.steps.base import (
-    Array,
     CageAbilities,
-    FieldStepKind,
     RunContext,
     StepExecution,
-    load_commands,
     record_cage_metrology,
 )
 from rig.steps.sine_fields import (
     AXES,
     SINE_PARAMS,
+    SineStepKind,
     beyond_the_cage,
-    bias_fields,
     commanded,
     reference_phasor,
     reference_response,
     segments,
     sent_sines,
-    sine_commands,
     span_of,
-    validate_sines,
     within,
 )
-from rig.steps.vocabulary import Command, Param, RigTiming, Step
+from rig.steps.vocabulary import Param, Step
 
 
-class CageResponse(FieldStepKind):
+class CageResponse(SineStepKind):
     name = "cage_response"
     summary = "sine fields at each frequency: the cage's own amplitude and phase, its bandwidth"
     result_values = ("axes", "bandwidth_hz", "bandwidth_hz.*", "limit_hz", "limit_hz.*",
@@ -58,28 +51,9 @@ class CageResponse(FieldStepKind):
         "min_s": Param("float", 3.0, 0.0, 86400.0),
     }
 
-    def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
-        validate_sines(params, where)
-
     def beyond_cage(self, step: Step, cage: CageAbilities) -> list[str]:
         """Only the slew limit: this step is what measures the bandwidth."""
         return beyond_the_cage(step, CageAbilities(cage.k_ut_per_a, cage.max_slew_a_per_s))
-
-    def duration_s(self, step: Step, timing: RigTiming) -> float:
-        return sines.duration_s(step.params)
-
-    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
-        """Each axis's bias as it starts (the sines are the step's own tracked set-points)."""
-        return bias_fields(step.params)
-
-    def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
-        duration = self.duration_s(step, timing)
-        cmds = [
-            Command(t, "field", self.field_payload(step, f)) for t, f in self.fields(step, timing)
-        ]
-        cmds += sine_commands(step.params) + load_commands(step, duration, base)
-        cmds.append(Command(duration, "end", {}))
-        return cmds, duration
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return MeasureCageResponse(ctx, step)

@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
@@ -32,32 +31,25 @@ from rig.characterization.frequency import (
     response_point,
     with_systematics,
 )
-from rig.steps import sine_fields as sines
 from rig.steps.base import (
     Array,
-    CageAbilities,
-    FieldStepKind,
     RunContext,
     StepExecution,
-    load_commands,
 )
 from rig.steps.sensor_axes import in_sensor_axes
 from rig.steps.sine_fields import (
     AXES,
     SINE_PARAMS,
     Segment,
-    beyond_the_cage,
-    bias_fields,
+    SineStepKind,
     commanded,
     reference_response,
     segments,
     sent_sines,
-    sine_commands,
     span_of,
     staircase,
-    validate_sines,
 )
-from rig.steps.vocabulary import Command, Param, RigTiming, Step
+from rig.steps.vocabulary import Param, Step
 
 
 @dataclass(frozen=True)
@@ -87,35 +79,13 @@ class FrequencyResult:
         }  # fmt: skip
 
 
-class FrequencyResponse(FieldStepKind):
+class FrequencyResponse(SineStepKind):
     name = "frequency_response"
     summary = "sine fields at each frequency: the DUT's amplitude ratio and phase (Bode plot)"
     result_values = ("axes", "amplitude_error_max", "phase_abs_max_deg", "cage_bandwidth_hz",
                      "frame", "reference_response")  # fmt: skip
     params: ClassVar[dict[str, Param]] = {**SINE_PARAMS, "magnetometer": Param("str", "dut")}
     cage_metrology_used = "cage_response"
-
-    def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
-        validate_sines(params, where)
-
-    def beyond_cage(self, step: Step, cage: CageAbilities) -> list[str]:
-        return beyond_the_cage(step, cage)
-
-    def duration_s(self, step: Step, timing: RigTiming) -> float:
-        return sines.duration_s(step.params)
-
-    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
-        """Each axis's bias as it starts (the sines are the step's own tracked set-points)."""
-        return bias_fields(step.params)
-
-    def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
-        duration = self.duration_s(step, timing)
-        cmds = [
-            Command(t, "field", self.field_payload(step, f)) for t, f in self.fields(step, timing)
-        ]
-        cmds += sine_commands(step.params) + load_commands(step, duration, base)
-        cmds.append(Command(duration, "end", {}))
-        return cmds, duration
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return MeasureFrequencyResponse(ctx, step)

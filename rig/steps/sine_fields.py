@@ -8,14 +8,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rig.characterization.frequency import Phasor, first_order, phasor
 from rig.errors import RigError
-from rig.steps.base import Array, CageAbilities, RunContext
-from rig.steps.vocabulary import MAX_FIELD_SETPOINTS_PER_STEP, Command, Param, ProcedureError, Step
+from rig.steps.base import Array, CageAbilities, FieldStepKind, RunContext, load_commands
+from rig.steps.vocabulary import (
+    MAX_FIELD_SETPOINTS_PER_STEP,
+    Command,
+    Param,
+    ProcedureError,
+    RigTiming,
+    Step,
+)
 
 AXES = "xyz"
 
@@ -221,3 +229,29 @@ def beyond_the_cage(step: Step, cage: CageAbilities) -> list[str]:
                            f" cage's max_slew_a_per_s ({cage.max_slew_a_per_s:g}): a smaller"
                            " amplitude_ut or lower frequencies")  # fmt: skip
     return out
+
+
+class SineStepKind(FieldStepKind):
+    """A step of sines (:data:`SINE_PARAMS`): each axis's bias, then its tracked set-points."""
+
+    def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
+        validate_sines(params, where)
+
+    def beyond_cage(self, step: Step, cage: CageAbilities) -> list[str]:
+        return beyond_the_cage(step, cage)
+
+    def duration_s(self, step: Step, timing: RigTiming) -> float:
+        return duration_s(step.params)
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        """Each axis's bias as it starts (the sines are the step's own tracked set-points)."""
+        return bias_fields(step.params)
+
+    def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
+        duration = self.duration_s(step, timing)
+        cmds = [
+            Command(t, "field", self.field_payload(step, f)) for t, f in self.fields(step, timing)
+        ]
+        cmds += sine_commands(step.params) + load_commands(step, duration, base)
+        cmds.append(Command(duration, "end", {}))
+        return cmds, duration
