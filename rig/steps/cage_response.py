@@ -28,6 +28,7 @@ from rig.steps.sine_fields import (
     SINE_PARAMS,
     SineStepKind,
     beyond_the_cage,
+    bode_figure,
     commanded,
     reference_phasor,
     reference_response,
@@ -75,21 +76,8 @@ class CageResponse(SineStepKind):
     def figures(self, reader: Any, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
         if not isinstance(result, Mapping) or "axes" not in result:
             return []
-        fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.0, 5.0), sharex=True)
-        for axis, points in result["axes"].items():
-            f = [p["f_hz"] for p in points]
-            for ax, value, sigma in ((top, "amplitude", "amplitude_sigma"),
-                                     (bottom, "phase_deg", "phase_sigma_deg")):  # fmt: skip
-                ax.errorbar(f, [p[value] for p in points], yerr=[p[sigma] for p in points],
-                            fmt="o-", ms=3, label=axis)  # fmt: skip
-        top.axhline(2**-0.5, color="0.5", ls=":", lw=0.8)
-        top.set_xscale("log")
-        top.set_ylabel("field made / asked")
-        bottom.set_ylabel("phase (deg)")
-        bottom.set_xlabel("frequency (Hz); dotted: half power")
-        for ax in (top, bottom):
-            ax.grid(alpha=0.3, which="both")
-        top.legend(fontsize=7)
+        fig = bode_figure(result, plt, "field made / asked", "half power")
+        fig.axes[0].axhline(2**-0.5, color="0.5", ls=":", lw=0.8)
         return [(f"Cage response ('{name}'): the field made over the field asked, 1-sigma", fig)]
 
 

@@ -42,6 +42,7 @@ from rig.steps.sine_fields import (
     SINE_PARAMS,
     Segment,
     SineStepKind,
+    bode_figure,
     commanded,
     reference_response,
     segments,
@@ -107,21 +108,8 @@ class FrequencyResponse(SineStepKind):
     def figures(self, reader: Any, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
         if not isinstance(result, Mapping) or "axes" not in result:
             return []
-        fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.0, 5.0), sharex=True)
-        for axis, points in result["axes"].items():
-            f = [p["f_hz"] for p in points]
-            for ax, value, sigma, cage in ((top, "amplitude", "amplitude_sigma", "cage_amplitude"),
-                                           (bottom, "phase_deg", "phase_sigma_deg", "cage_phase_deg")):  # fmt: skip
-                ax.errorbar(f, [p[value] for p in points], yerr=[p[sigma] for p in points],
-                            fmt="o-", ms=3, label=axis)  # fmt: skip
-                ax.plot(f, [p[cage] for p in points], ":", color="0.5", lw=0.8)
-        top.set_xscale("log")
-        top.set_ylabel("amplitude ratio")
-        bottom.set_ylabel("phase (deg)")
-        bottom.set_xlabel("frequency (Hz); dotted: the cage's own")
-        for ax in (top, bottom):
-            ax.grid(alpha=0.3, which="both")
-        top.legend(fontsize=7)
+        fig = bode_figure(result, plt, "amplitude ratio", "the cage's own",
+                          ("cage_amplitude", "cage_phase_deg"))  # fmt: skip
         return [(f"Frequency response ('{name}'): Bode plot, 1-sigma", fig)]
 
 

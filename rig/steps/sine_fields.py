@@ -255,3 +255,27 @@ class SineStepKind(FieldStepKind):
         cmds += sine_commands(step.params) + load_commands(step, duration, base)
         cmds.append(Command(duration, "end", {}))
         return cmds, duration
+
+
+def bode_figure(result: Any, plt: Any, amplitude_label: str, note: str,
+                beside: tuple[str, str] | None = None) -> Any:  # fmt: skip
+    """A two-panel Bode plot of a sine step's result (per axis, amplitude and phase with their
+    1-sigma against frequency, log scale); ``beside``: a second pair of values per point drawn
+    dotted (the cage's own); ``note`` ends the frequency axis's label."""
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.0, 5.0), sharex=True)
+    panels = ((top, "amplitude", "amplitude_sigma"), (bottom, "phase_deg", "phase_sigma_deg"))
+    for axis, points in result["axes"].items():
+        f = [p["f_hz"] for p in points]
+        for k, (ax, value, sigma) in enumerate(panels):
+            ax.errorbar(f, [p[value] for p in points], yerr=[p[sigma] for p in points],
+                        fmt="o-", ms=3, label=axis)  # fmt: skip
+            if beside is not None:
+                ax.plot(f, [p[beside[k]] for p in points], ":", color="0.5", lw=0.8)
+    top.set_xscale("log")
+    top.set_ylabel(amplitude_label)
+    bottom.set_ylabel("phase (deg)")
+    bottom.set_xlabel(f"frequency (Hz); dotted: {note}")
+    for ax in (top, bottom):
+        ax.grid(alpha=0.3, which="both")
+    top.legend(fontsize=7)
+    return fig

@@ -890,6 +890,25 @@ def test_frequency_response_recovers_a_lagging_dut_and_the_cages_own_response(
         assert p["cage_phase_deg"] == pytest.approx(-5.0, abs=0.5), p
     assert r["frame"].startswith("cage") and "taken as ideal" in r["reference_response"]
     assert "Frequency response 'bode'" in KINDS["frequency_response"].report_lines("bode", r)[0]
+    assert_bode(KINDS["frequency_response"].figures(None, "bode", r, pyplot()), "Bode plot", 2)
+
+
+def pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def assert_bode(figures: list[tuple[str, Any]], title: str, lines: int) -> None:
+    """One two-panel figure titled ``title``, each panel with ``lines`` drawn lines per axis."""
+    plt = pyplot()
+    ((found, fig),) = figures
+    assert title in found and len(fig.axes) == 2
+    assert all(len(ax.get_lines()) >= lines for ax in fig.axes), [ax.get_lines() for ax in fig.axes]
+    plt.close(fig)
 
 
 # --- cage_response: the cage's own bandwidth --------------------------------------------------
@@ -925,6 +944,7 @@ def test_cage_response_finds_the_half_power_frequency_of_a_first_order_cage(
             assert r["bandwidth_hz"]["x"] == pytest.approx(found, rel=0.03)
             assert r["limit_hz"]["x"] == r["bandwidth_hz"]["x"]
         assert "Cage response 'cage'" in KINDS["cage_response"].report_lines("cage", r)[0]
+        assert_bode(KINDS["cage_response"].figures(None, "cage", r, pyplot()), "field made", 1)
 
 
 def test_a_poorly_measured_point_does_not_decide_the_cages_bandwidth() -> None:
