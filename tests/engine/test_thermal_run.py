@@ -73,11 +73,15 @@ def test_temperature_coefficients_recovered_from_a_run_within_three_sigma(
     assert scale_sigma < 0.1 * abs(truth.scale_per_k)  # resolved, not merely consistent
     k = np.array(doc["correction"]["k_ut_per_unit"]["temperature"])
     k_sigma = np.array(doc["sigma"]["k_ut_per_unit"]["temperature"])
-    assert np.all(np.abs(k - truth.offset_ut_per_k) < 3 * k_sigma), (k, k_sigma)
     assert np.all(k_sigma < 0.2 * np.abs(truth.offset_ut_per_k))
-    # the heater's wires carry no field in the simulator: its coefficient is nil within 3 sigma
+    # the heater's wires carry no field in the simulator: its coefficient is nil. Six
+    # components held to their sigmas: with honest sigmas one lands beyond 3 sigma in 1.6 % of
+    # runs (a CI rehearsal: the heater's y at 3.01), two in 0.01 %; so at most one beyond 3
+    # sigma, none beyond 4
     k_heater = np.array(doc["correction"]["k_ut_per_unit"]["heater"])
-    assert np.all(np.abs(k_heater) < 3 * np.array(doc["sigma"]["k_ut_per_unit"]["heater"]))
+    z = np.concatenate([(k - truth.offset_ut_per_k) / k_sigma,
+                        k_heater / np.array(doc["sigma"]["k_ut_per_unit"]["heater"])])  # fmt: skip
+    assert np.sum(np.abs(z) > 3.0) <= 1 and np.all(np.abs(z) < 4.0), (k, k_sigma, k_heater, z)
     offset = np.array(doc["correction"]["offset_ut"])
     print(f"scale/K {scale:.3e} +- {scale_sigma:.1e} (truth {truth.scale_per_k:.1e});"
           f" offset/K {k} +- {k_sigma} (truth {truth.offset_ut_per_k}); offset {offset}")  # fmt: skip
