@@ -25,7 +25,9 @@ from sim.hmr2300 import Hmr2300
 from sim.physics import Faults
 
 PERIOD_S = 0.05  # 20 samples/s, both devices' default
-HOLD_SLOT = 10  # the thread is held while taking this slot's sample
+HOLD_SLOT = 40  # the thread is held while taking this slot's sample: 2 s into the stream, as the
+# ASCII sensor streams from its start and opening the port flushes what came before (slots 7
+# and 8 were missing once on a loaded worker with this at 10)
 STEP_AFTER_S = 0.12  # the field steps this long after that slot: between slots +2 and +3
 HOLD_S = 0.3  # six slots fall due while the thread is held
 NEW_UT = 50.0
