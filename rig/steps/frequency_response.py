@@ -142,11 +142,13 @@ class MeasureFrequencyResponse(StepExecution):
             point = response_point(s.f_hz, dut_p, ref_p, phasor(c[:, 0], c[:, 1], s.f_hz),
                                    ref.at(s.f_hz))  # fmt: skip
             measured.append((s, point, span, (_rate(rows[kd, 0]), _rate(refs[kr, 0]))))
+        corners: dict[int, float] = {}  # per axis, the cage's fall from its lowest point
+        for s, point, *_ in measured:
+            corner = corner_hz(point.f_hz, point.cage_amplitude)
+            corners[s.axis] = min(corners.get(s.axis, math.inf), corner)
         points: dict[str, list[ResponsePoint]] = {}
         for s, point, span, rates in measured:
-            corner = min(corner_hz(q.f_hz, q.cage_amplitude)
-                         for z, q, *_ in measured if z.axis == s.axis)  # fmt: skip
-            image = image_on_sine(s.f_hz, rate, rates, span[1] - span[0], corner)
+            image = image_on_sine(s.f_hz, rate, rates, span[1] - span[0], corners[s.axis])
             timing = math.hypot(*(_date_sigma_s(d, span) for d in dates))
             points.setdefault(AXES[s.axis], []).append(with_systematics(point, image, timing))
         result = FrequencyResult({k: tuple(v) for k, v in points.items()}, frame, ref.note())
