@@ -72,8 +72,8 @@ noise_nt = 5.0
 correction_matrix = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
 position_m = [0.0, 0.0, -0.08]
 """ + "".join(
-    f'\n[devices.{n}]\nkind = "riden-rd60xx"\nprotocol = "modbus-tcp"\nhost = "127.0.0.1"\nport = 9\n'
-    for n in ("coil_x", "coil_y", "coil_z", "load_bus", "load_panel")
+    f'\n[devices.{n}]\nkind = "riden-rd60xx"\nprotocol = "modbus-tcp"\nhost = "127.0.0.1"\nport = {9 + i}\n'
+    for i, n in enumerate(("coil_x", "coil_y", "coil_z", "load_bus", "load_panel"))
 )
 """A rig with a reference certificate and its place: the prediction carries the cage's terms
 (certificate and lab field: 12 refits of each calibration)."""

@@ -653,15 +653,18 @@ steps:
 
 @contextlib.contextmanager
 def _past_the_load_check() -> Iterator[None]:
-    """The attack: ``Runner.run`` without its refusal of a cage device named as a load."""
+    """The attack: ``Runner.run`` without its pre-run refusals (a cage device named as a load)
+    and without its field guard (which would end it first: the reference reads 124.9 uT with the
+    lab field), so the coil's own limits are what is measured."""
     import rig.engine.runner as runner_module
 
-    check = runner_module.refuse_cage_devices_as_loads
-    runner_module.refuse_cage_devices_as_loads = lambda *args: None
+    check, guard = runner_module.refuse_what_check_refuses, runner_module.guard_the_field
+    runner_module.refuse_what_check_refuses = lambda *args: None
+    runner_module.guard_the_field = lambda *args: None
     try:
         yield
     finally:
-        runner_module.refuse_cage_devices_as_loads = check
+        runner_module.refuse_what_check_refuses, runner_module.guard_the_field = check, guard
 
 
 def _coil_as_load(fault: Fault, cage: SimulatedCage, workdir: Path, rig_toml: Path) -> Measured:

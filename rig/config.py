@@ -91,6 +91,10 @@ CAGE_KEYS: tuple[Param, ...] = (
     Param("max_current_a", LIST, True, help="coil current limit per axis [x, y, z]", unit="A"),
     Param("max_field_ut", NUMBER, True, help="largest field magnitude a procedure may ask for",
           above=0.0, fix="write the cage's field limit, e.g. max_field_ut = 150.0", unit="uT"),
+    Param("max_ambient_ut", NUMBER, False, 66.0, "the largest lab field at the cage before a"
+          " characterization measures it (a handheld reading with a margin; 66 uT holds anywhere"
+          " on Earth): the field limit counts it until then", above=0.0,
+          fix="write the lab field's bound, e.g. max_ambient_ut = 66.0", unit="uT"),
     Param("max_slew_a_per_s", NUMBER, True, help="coil current slew limit", above=0.0,
           fix="write the slew limit, e.g. max_slew_a_per_s = 4.0", unit="A/s"),
     Param("compliance_v", NUMBER, False, 20.0, "the coil supplies' voltage set-point", above=0.0,
@@ -165,6 +169,7 @@ class CageConfig:
     ambient_gradient_nt_per_m: float = 15.0
     trim: tuple[str, str, str] | None = None
     trim_ut_per_a: tuple[float, float, float] | None = None
+    max_ambient_ut: float = 66.0
 
 
 @dataclass(frozen=True)
@@ -483,6 +488,7 @@ def _cage(path: Path, c: dict[str, Any], devices: dict[str, DeviceConfig]) -> Ca
         ambient=ambient,
         scalar=scalar,
         ambient_gradient_nt_per_m=float(c["ambient_gradient_nt_per_m"]),
+        max_ambient_ut=float(c["max_ambient_ut"]),
         **_trim(path, c, devices),
     )
 

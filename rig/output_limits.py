@@ -4,7 +4,8 @@ A supply or load is opened through :func:`rig.devices.open_load` or :func:`rig.d
 and both wrap the driver in a :class:`LimitedOutput` holding the device's :class:`OutputLimits`:
 
 * its instrument range, narrowed by ``max_current_a`` / ``max_voltage_v`` in the rig configuration;
-* for a cage coil supply, also the cage's limits: ``[cage].max_current_a`` for its axis,
+* for a cage coil supply (known by its wire address, :mod:`rig.wire_address`, never by its name:
+  a second name for a coil supply has the coil's limits), also the cage's limits: ``[cage].max_current_a`` for its axis,
   ``[cage].compliance_v``, and the most current any field within ``[cage].max_field_ut`` needs on
   its axis (from the cage model), so no path drives a coil past what a legal field command could.
 
@@ -32,6 +33,7 @@ from drivers.registry import KINDS
 from rig.cage.model import CageModel
 from rig.config import DeviceConfig, RigConfig
 from rig.errors import RigError, UserInputError
+from rig.wire_address import lock_addresses, same_device
 
 TOLERANCE = 1e-9
 """Set-points this close above a limit count as at it (floating-point rounding)."""
@@ -91,8 +93,8 @@ def output_limits(cfg: RigConfig | None, dev: DeviceConfig, driver: Any) -> Outp
     volts_max = getattr(driver, "max_voltage_v", None)
     voltage = [(float(volts_max), f"the voltage range of {name}")] if volts_max is not None else []
     c = cfg.cage if cfg is not None else None
-    if cfg is not None and c is not None and name in c.axes:
-        axis = c.axes.index(name)
+    axis = cage_axis(cfg, dev) if cfg is not None else None
+    if cfg is not None and c is not None and axis is not None:
         current.append((c.max_current_a[axis], f"the cage's max_current_a for axis {'xyz'[axis]}"))
         voltage.append((c.compliance_v, "the cage's compliance_v"))
         model = cage_model(cfg)
@@ -192,22 +194,42 @@ def limited(cfg: RigConfig | None, dev: DeviceConfig, driver: Any) -> LimitedOut
     return LimitedOutput(driver, output_limits(cfg, dev, driver))
 
 
-def cage_role(cfg: RigConfig, name: str) -> str | None:
-    """What device ``name`` is in the cage ("the cage's x coil supply", "the cage's polarity
-    relays", "the cage's reference magnetometer"), None if it is not part of the cage."""
+def cage_axis(cfg: RigConfig, dev: DeviceConfig) -> int | None:
+    """The cage axis (0-2) whose coil supply ``dev`` is on the wire, whatever name it is given
+    (:func:`rig.wire_address.same_device`); None for any other device."""
     c = cfg.cage
     if c is None:
         return None
-    if name in c.axes:
-        return f"the cage's {'xyz'[c.axes.index(name)]} coil supply"
-    if name == c.polarity:
-        return "the cage's polarity relays"
-    if name == c.reference:
-        return "the cage's reference magnetometer"
-    if c.trim is not None and name in c.trim:
-        return f"the cage's {'xyz'[c.trim.index(name)]} trim supply"
-    if name == c.ambient:
-        return "the cage's outside reference magnetometer"
+    mine = set(lock_addresses(dev))
+    for axis, name in enumerate(c.axes):
+        coil = cfg.devices.get(name)
+        if name == dev.name or (coil is not None and mine & set(lock_addresses(coil))):
+            return axis
+    return None
+
+
+def cage_role(cfg: RigConfig, name: str) -> str | None:
+    """What device ``name`` is in the cage ("the cage's x coil supply", "the cage's polarity
+    relays", "the cage's reference magnetometer"), None if it is not part of the cage. Keyed by
+    the wire address: a second name for a cage device has its role ("... (coil_x, on the same
+    address)")."""
+    c = cfg.cage
+    if c is None:
+        return None
+    roles: list[tuple[str | None, str]] = [
+        (n, f"the cage's {'xyz'[i]} coil supply") for i, n in enumerate(c.axes)
+    ]
+    roles += [(c.polarity, "the cage's polarity relays"), (c.reference,
+              "the cage's reference magnetometer"), (c.ambient,
+              "the cage's outside reference magnetometer")]  # fmt: skip
+    if c.trim is not None:
+        roles += [(n, f"the cage's {'xyz'[i]} trim supply") for i, n in enumerate(c.trim)]
+    for device, role in roles:
+        if device == name:
+            return role
+    for device, role in roles:
+        if device is not None and same_device(cfg, name, device):
+            return f"{role} ({device}, on the same address)"
     return None
 
 

@@ -63,6 +63,7 @@ def rig_config_toml(
             'calibration = "cage-calibration.json"',
             "max_current_a = [2.5, 2.5, 2.5]",
             "max_field_ut = 120.0",
+            "max_ambient_ut = 55.0  # the simulated lab field is 49 uT",
             "max_slew_a_per_s = 10.0",
             "compliance_v = 12.0",
         ]

@@ -258,7 +258,7 @@ class Magnetometer:
     """A magnetometer's truth: ``m = T h + o + sum_j k_j u_j(t - tau_j) + n`` (uT)."""
 
     def __init__(self, cfg: MagnetometerConfig, rng: np.random.Generator,
-                 wander_seed: int = 0) -> None:  # fmt: skip
+                 wander_seed: int = 0, start_s: float | None = None) -> None:  # fmt: skip
         self.cfg = cfg
         self.name = cfg.name
         self.sensor = springmann_matrix(cfg.scale, tuple(math.radians(v) for v in cfg.nonorth_deg))
@@ -277,8 +277,10 @@ class Magnetometer:
         self._lock = threading.Lock()
         self._last: Array | None = None
         self.wander = OffsetWander(WanderSpec(cfg.offset_drift_nt_per_h, cfg.offset_walk_nt_per_sqrt_h,
-                                              cfg.offset_flicker_nt), wander_seed, now_s())  # fmt: skip
-        """The offset's wander over time (drift, random walk, flicker)."""
+                                              cfg.offset_flicker_nt), wander_seed,
+                                   now_s() if start_s is None else start_s)  # fmt: skip
+        """The offset's wander over time (drift, random walk, flicker), from ``start_s`` (the
+        cage's start, so one seed gives one wander whenever it starts)."""
         self.perming = Perming(cfg.perming_threshold_ut, cfg.perming_nt_per_ut)
         """What a strong field left in the offset (cleared by a set/reset pulse)."""
         self.hysteresis = ThermalHysteresis(cfg.offset_hysteresis_nt, cfg.hysteresis_band_k)
@@ -359,7 +361,9 @@ class CagePhysics:
         self.relays = PolarityRelays(cfg.cage.hot_switch_limit_a)
         self.bipolar_sign = [1, 1, 1]
         self.magnetometers = {
-            m.name: Magnetometer(m, np.random.default_rng([cfg.seed, i]), 1000 * cfg.seed + i)
+            m.name: Magnetometer(
+                m, np.random.default_rng([cfg.seed, i]), 1000 * cfg.seed + i, self.start_s
+            )
             for i, m in enumerate(cfg.magnetometers)
         }
         self.position_m = {m.name: tuple(m.position_m) for m in cfg.magnetometers}

@@ -52,13 +52,13 @@ max_field_ut = 120.0
 max_slew_a_per_s = 10.0
 nominal_k_ut_per_a = [[40.0, 0.0, 0.0], [0.0, 40.0, 0.0], [0.0, 0.0, 40.0]]
 """
-for _name in ("coil_x", "coil_y", "coil_z", "load_bus"):
+for _port, _name in enumerate(("coil_x", "coil_y", "coil_z", "load_bus"), 9):
     RIG_TOML += f"""
 [devices.{_name}]
 kind = "riden-rd60xx"
 protocol = "modbus-tcp"
 host = "127.0.0.1"
-port = 9
+port = {_port}
 device_id = 1
 """
 RIG_TOML += """

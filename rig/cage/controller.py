@@ -361,7 +361,8 @@ class CageController:
     ) -> TrimResult:
         """Closed loop on the reference: correct the currents by ``K^-1 (target - measured)``
         until the averaged error is within half of ``tolerance_nt``, then confirm the field stays
-        within ``tolerance_nt`` for ``settle_s`` ("within X nT for Y s")."""
+        within ``tolerance_nt`` for ``settle_s`` ("within X nT for Y s"). A correction whose
+        field by the cage model is beyond the field limit is refused (CageLimitError)."""
         target = np.asarray(target_ut, float)
         self.set_field(target)
         measured = target
@@ -376,7 +377,12 @@ class CageController:
             if err <= 0.5 * tolerance_nt or iteration == max_iterations:
                 break
             correction = np.linalg.solve(self.model.k_ut_per_a, target - measured)
-            self.set_currents(self.currents + correction)
+            trimmed = self.currents + correction
+            # the trim answers to the field limit as a whole, not only to each axis's current:
+            # a reference reading wrong (a bad certificate) must not trim the field past it
+            self.limits.check_field(self.model.field_ut(trimmed),
+                                    f"trim to {np.round(target, 2).tolist()} uT")  # fmt: skip
+            self.set_currents(trimmed)
         if err <= tolerance_nt:
             settled = self.wait_settled(target, tolerance_nt, settle_s, timeout_s=4 * settle_s + 2)
             return TrimResult(self.currents.copy(), measured, err, iteration, settled)

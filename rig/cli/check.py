@@ -53,25 +53,6 @@ def _cmd_check(args: argparse.Namespace) -> int:
     return code
 
 
-def cage_model_arrays(cfg: RigConfig | None) -> tuple[Any, Any, Any, str]:
-    """The cage model for a dry run: (K uT/A, b0 uT, its uncertainty, where it comes from) from
-    the last characterization if there is one, else the nominal K with an ambient field not yet
-    known (None for all when the rig has no cage model)."""
-    from rig.output_limits import cage_model
-    from rig.procedure.plan import EARTH_MAX_UT, MODEL_SIGMAS, CageModelUncertainty
-
-    m = cage_model(cfg) if cfg is not None else None
-    if m is None or cfg is None or cfg.cage is None:
-        return None, None, None, ""
-    if m.meta.get("nominal"):
-        return (m.k_ut_per_a, m.b0_ut, CageModelUncertainty(unknown_ambient_ut=EARTH_MAX_UT),
-                "nominal_k_ut_per_a: no cage characterization yet, so the ambient field is not"
-                " counted until the procedure characterizes the cage")  # fmt: skip
-    return (m.k_ut_per_a, m.b0_ut, CageModelUncertainty(m.k_sigma, m.b0_sigma_ut),
-            f"the cage characterization of {m.meta.get('date', 'undated')}"
-            f" ({cfg.cage.calibration}), currents at {MODEL_SIGMAS:g} sigma of it")  # fmt: skip
-
-
 def stale_cage_model(cfg: RigConfig | None, now: dt.datetime | None = None) -> str | None:
     """A warning when the cage's characterization or one of its metrology results (coil axes,
     field map, supply stability) is older than ``[cage] calibration_valid_days`` (or undated),
@@ -116,24 +97,21 @@ def _stale(what: str, when: Any, valid: float, now: dt.datetime, fix: str) -> st
 def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: bool) -> int:
     """Dry run: timeline, duration, peaks against limits. Exit 0 only when every limit was checked
     and holds; 1 on a violation or when limits could not be checked (no ``--rig``, no cage model).
-    The rig configuration is loaded (and checked) against the declared keys (:mod:`rig.config`)."""
+    The rig configuration is loaded (and checked) against the declared keys (:mod:`rig.config`);
+    the limits are :func:`rig.procedure.preflight.preflight`'s, which ``rig run`` refuses by."""
     from rig.config import load_rig_config
-    from rig.procedure.beyond_cage import beyond_cage, unmeasured_metrology
+    from rig.procedure.beyond_cage import unmeasured_metrology
     from rig.procedure.language import parse_procedure
-    from rig.procedure.plan import dry_run, rig_timing
+    from rig.procedure.preflight import preflight
     from rig.procedure_files import find_procedure
 
     proc = parse_procedure(find_procedure(procedure), parse_sets(sets))
     cfg = load_rig_config(rig_config) if rig_config else None
-    k, b0, uncertainty, model_source = cage_model_arrays(cfg)
-    loads_max = _load_limits(proc, cfg)
-    cage = cfg.cage if cfg is not None else None
-    dr = dry_run(proc, k, b0, cage.max_current_a if cage else None,
-                 cage.max_field_ut if cage else None, loads_max, rig_timing(cfg), uncertainty)  # fmt: skip
-    dr.violations.extend(beyond_cage(proc, cfg))
-    unchecked = _unchecked(proc, cfg, k)
+    checked = preflight(proc, cfg)  # what rig run refuses too, by the same code
+    dr, unchecked = checked.dry_run, checked.unchecked
     if not quiet:
-        _print_plan(proc, dr, cfg, k, model_source, loads_max)
+        _print_plan(proc, dr, cfg, checked.model.k_ut_per_a, checked.model.source,
+                    checked.loads_max_a)  # fmt: skip
     for v in dr.violations:
         print(f"LIMIT: {v}")
     for r in dr.at_risk:
@@ -147,44 +125,6 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
     if not quiet:
         print(_verdict(dr, unchecked, cfg))
     return 0 if not dr.violations and not unchecked else 1
-
-
-def _load_limits(proc: Procedure, cfg: RigConfig | None) -> dict[str, float]:
-    """Each load channel's ``max_current_a`` (A) from the rig configuration, where it has one."""
-    from rig.errors import UserInputError
-    from rig.output_limits import refuse_cage_devices_as_loads
-
-    if cfg is None:
-        return {}
-    refuse_cage_devices_as_loads(list(proc.loads), cfg, proc.path)
-    limits = {}
-    for name in proc.loads:
-        if name not in cfg.devices:
-            raise UserInputError(f"{proc.path}: load '{name}' is not a device in {cfg.path}")
-        limit = cfg.devices[name].get("max_current_a")
-        if limit is not None:
-            limits[name] = float(limit)
-    return limits
-
-
-def _unchecked(proc: Procedure, cfg: RigConfig | None, k: Any) -> list[str]:
-    """The limits the dry run could not check, one sentence each with the fix."""
-    from rig.procedure.language import FIELD_STEPS
-    from rig.procedure.plan import ABSOLUTE_MAX_FIELD_UT
-
-    if cfg is None:
-        return [
-            "no rig configuration given (--rig CONFIG.toml); the rig's field, coil current and"
-            f" load current limits were not checked (only |B| <= {ABSOLUTE_MAX_FIELD_UT:g} uT)"
-        ]
-    if cfg.cage is None:
-        return [f"{cfg.path} has no [cage] section; field and coil current limits were not checked"]
-    if k is None and any(s.kind in FIELD_STEPS for s in proc.steps):
-        return [
-            f"{cfg.path} has no cage model ([cage].calibration file or nominal_k_ut_per_a); coil"
-            " currents were not checked: run cage-characterization or add nominal_k_ut_per_a"
-        ]
-    return []
 
 
 def _print_plan(proc: Procedure, dr: DryRun, cfg: RigConfig | None, k: Any, model_source: str,

@@ -51,12 +51,13 @@ from pathlib import Path
 from rig import host_identity
 from rig.child_process import process_alive
 from rig.config import RigConfig
-from rig.engine.wire_address import lock_addresses as lock_addresses
-from rig.engine.wire_address import numeric_hosts as numeric_hosts
-from rig.engine.wire_address import output_devices as output_devices
-from rig.engine.wire_address import wire_address as wire_address
-from rig.engine.wire_address import wire_link as wire_link
 from rig.errors import RigError
+from rig.wire_address import lock_addresses as lock_addresses
+from rig.wire_address import numeric_hosts as numeric_hosts
+from rig.wire_address import output_devices as output_devices
+from rig.wire_address import refuse_shared_addresses
+from rig.wire_address import wire_address as wire_address
+from rig.wire_address import wire_link as wire_link
 
 LOCK_DIR_ENV = "RIG_LOCK_DIR"
 """Environment variable naming the folder of the lock files (shared by every user of the rig)."""
@@ -258,7 +259,9 @@ class RigLock:
     def acquire(self) -> None:
         """Lock every output device, in a fixed order (two commands cannot deadlock), or raise
         :class:`RigBusyError` naming the holder (:class:`LockFolderError` for a lock folder that
-        cannot be used) and hold nothing."""
+        cannot be used) and hold nothing. A configuration naming one instrument twice is refused
+        first (UserInputError): a second name would drive it without the first one's limits."""
+        refuse_shared_addresses(self.cfg)
         dir_fd = open_lock_dir()
         assert dir_fd is not None  # created when missing
         folder = lock_dir()

@@ -29,6 +29,7 @@ from rig.analysis import apply_correction
 from rig.calibration.record import latest_calibration
 from rig.config import RigConfig
 from rig.engine.commands import Commands, LoadBook
+from rig.engine.field_guard import guard_the_field
 from rig.engine.health import HealthMonitor
 from rig.engine.interlock import RigLock
 from rig.engine.live import LiveView
@@ -57,10 +58,9 @@ from rig.engine.schedule import StepScheduler
 from rig.engine.session import RigSession
 from rig.errors import RigError, RunAborted
 from rig.lab.url import resolve_url
-from rig.output_limits import refuse_cage_devices_as_loads
-from rig.procedure.beyond_cage import refuse_beyond_cage
 from rig.procedure.language import Procedure
 from rig.procedure.plan import compile_plan, rig_timing, step_duration
+from rig.procedure.preflight import refuse_what_check_refuses
 from rig.steps.base import ChangeListener
 from rig.steps.check import check_verdict
 from rig.steps.vocabulary import Step
@@ -129,10 +129,10 @@ class Runner:
         """Execute the whole procedure; always returns an outcome with the run folder."""
         # a password in [lab] url is refused before the configuration is copied into a run folder
         self.lab_url = resolve_url(None, self.cfg.raw, self.cfg.path)
-        # a cage device named as a load: refused before anything is locked or switched on
-        refuse_cage_devices_as_loads(list(self.proc.loads), self.cfg, self.proc.path)
-        # a sine beyond the cage's measured bandwidth or its supplies' slew: refused alike
-        refuse_beyond_cage(self.proc, self.cfg)
+        # whatever rig check --rig refuses (one instrument under two names, a cage device as a
+        # load, a field, current or load beyond a limit, a sine beyond the cage's bandwidth):
+        # refused before anything is locked, recorded or switched on
+        refuse_what_check_refuses(self.proc, self.cfg)
         # The interlock first: a run refused because the rig is busy leaves no run folder.
         self._lock = RigLock(self.cfg, f"rig run {self.proc.path.name}")
         self._lock.acquire()
@@ -233,6 +233,7 @@ class Runner:
         self.controller = self.commands.controller = rig.cage()
         instruments = dict(self.controller.instruments())
         start_samplers(rig, self.proc, self.cfg, w, self.samplers, instruments, self._event)
+        guard_the_field(rig, self.cfg, self.samplers)  # the field limit on what is measured
         open_loads(rig, self.proc, self.cfg, self.loads, instruments)
         thermometers = record_thermometers(rig, self.cfg, w, instruments, self._event)
         check_thermometers(self.proc, self.cfg, thermometers)

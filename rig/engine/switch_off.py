@@ -13,7 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 from drivers.registry import output_kinds
 from rig.config import DeviceConfig, RigConfig
 from rig.devices import open_device
-from rig.engine.wire_address import wire_link
+from rig.wire_address import wire_link
 
 RETRY_FOR_S = 3.0
 """How long a device that cannot be opened is tried again when switching everything off (s): its

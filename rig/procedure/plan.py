@@ -186,9 +186,20 @@ class _DryRunWalk:
         out = self.out
         mag = float(np.linalg.norm(f))
         out.peak_field_ut = max(out.peak_field_ut, mag)
+        # until the run measures the lab field (a step that characterizes the cage), the coils
+        # do not cancel it: the field made is the one asked plus an ambient of up to the given
+        unmeasured = self.given.unknown_ambient_ut if self.u is not self.given else 0.0
         if self.max_field_ut is not None and mag > self.max_field_ut + 1e-9:
             out.violations.append(
                 f"{s.where}: step {s.index + 1} ({s.name}): |B| = {mag:.1f} uT exceeds the {self.max_field_ut:g} uT limit"
+            )
+        elif self.max_field_ut is not None and mag + unmeasured > self.max_field_ut + 1e-9:
+            out.violations.append(
+                f"{s.where}: step {s.index + 1} ({s.name}): |B| = {mag:.1f} uT with the lab field"
+                f" not yet measured (up to {unmeasured:g} uT, the cage not characterized) may"
+                f" reach {mag + unmeasured:.1f} uT, beyond the {self.max_field_ut:g} uT limit:"
+                " characterize the cage first (rig run cage-characterization, or a"
+                " characterize_cage step before it) or ask for a smaller field"
             )
         elif mag > ABSOLUTE_MAX_FIELD_UT + 1e-9:
             out.violations.append(

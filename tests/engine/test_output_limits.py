@@ -85,7 +85,10 @@ def test_forced_past_the_check_the_coil_is_held_by_the_cage_limits(
     the cage's 2.5 A for x) is refused at the coil's own write path, the run ends `error` naming
     coil_x, the value and the limit, and the coil never carries more than 2.5 A (watched in the
     simulator's physics every 2 ms): the field it makes stays within 120 uT."""
-    monkeypatch.setattr(runner_module, "refuse_cage_devices_as_loads", lambda *a: None)
+    monkeypatch.setattr(runner_module, "refuse_what_check_refuses", lambda *a: None)
+    # and without the field guard, which would end it first (the reference reads 124.9 uT with
+    # the lab field): the coil's own limits are the line under test
+    monkeypatch.setattr(runner_module, "guard_the_field", lambda *a: None)
     proc = tmp_path / "p.yaml"
     proc.write_text(COIL_AS_LOAD)
     coil = cage.physics.supplies["coil_x"]
