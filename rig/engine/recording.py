@@ -88,7 +88,8 @@ def sync_lab(url: str, folder: Path, quiet: bool) -> None:
 def outputs_note(read_back: dict[str, OutputState] | None, cfg_path: Path) -> str:
     """One line on every output as read back after the session's safe path ('' when no session
     was entered): ``outputs: read back off: coil_x 0.000 A, ..., polarity normal`` or
-    ``outputs: STILL ON: heater 2.000 A (output enabled), ...`` with the fix."""
+    ``outputs: STILL ON or not confirmed off: heater 2.000 A (output enabled), ...`` and
+    the fix."""
     if read_back is None:
         return ""
     if not read_back:

@@ -124,7 +124,8 @@ def read_outputs(
     devices: Mapping[str, DeviceConfig], retry_s: float = 0.0
 ) -> dict[str, OutputState]:
     """Read every output of ``devices`` as it is, touching nothing: one thread per link, each
-    device opened, read and closed (tried again for ``retry_s``, s). Name -> state."""
+    device opened, read and closed (tried again for ``retry_s``, s); a current still decaying
+    through an output that reads off is waited for (:data:`COIL_DECAY_S`). Name -> state."""
     kinds = output_kinds()
     outputs = {n: d for n, d in devices.items() if d.kind in kinds}
     states = _per_link(outputs, lambda d: _act(d, switch=False, retry_s=retry_s))
@@ -163,7 +164,7 @@ def _act(dev: DeviceConfig, *, switch: bool, retry_s: float) -> OutputState:
             try:
                 if switch:
                     driver.safe()
-                return _read_back(dev.name, driver, wait_decay=switch)
+                return _read_back(dev.name, driver)
             finally:
                 driver.close()
         except Exception as exc:  # one dead link must not stop the others going safe
@@ -173,10 +174,10 @@ def _act(dev: DeviceConfig, *, switch: bool, retry_s: float) -> OutputState:
             time.sleep(RETRY_PAUSE_S)
 
 
-def _read_back(name: str, driver: Any, *, wait_decay: bool) -> OutputState:
+def _read_back(name: str, driver: Any) -> OutputState:
     """The state ``driver`` reads: a relay board's axes, or a supply's or load's output flag and
-    current (once its output reads off, waiting up to :data:`COIL_DECAY_S` for the current to
-    decay when ``wait_decay``)."""
+    current (when its output reads off, waiting up to :data:`COIL_DECAY_S` for a coil's current to
+    decay: a current that does not is on)."""
     if not hasattr(driver, "read"):
         polarity = getattr(driver, "polarity", None)
         if polarity is None:  # a relay board that cannot say: its safe() is all there is
@@ -189,7 +190,7 @@ def _read_back(name: str, driver: Any, *, wait_decay: bool) -> OutputState:
     while True:
         r = driver.read()
         amps = abs(float(r.i_out_a))
-        if not (wait_decay and not r.output_on and amps > ON_ABOVE_A):
+        if r.output_on or amps <= ON_ABOVE_A:
             break
         if time.monotonic() > deadline:
             break
