@@ -20,6 +20,8 @@ import pytest
 
 from rig.config import load_rig_config
 from rig.devices import open_device
+from rig.engine.session import RigSession
+from rig.errors import RigError
 from rig.store import RunReader
 from sim.cage import SimulatedCage
 
@@ -102,3 +104,27 @@ def test_outputs_found_on_are_switched_off_before_the_first_step(
         f"heater found on at 2 A: off {t_first_step - off_at:.2f} s before the first step;"
         f" {len(during)} samples during the run, peak {1000 * peak:.1f} mA, never on"
     )
+
+
+def test_an_output_that_cannot_be_read_at_the_start_refuses_the_command(
+    cage: SimulatedCage, rig_toml: Path
+) -> None:
+    """load_panel does not answer and the heater is on: the session switches the heater off and
+    refuses in one line naming load_panel and `rig safe`, before anything is opened."""
+    drive(rig_toml)
+    cage.faults["load_panel"].silent = True
+    try:
+        with (
+            pytest.raises(RigError) as refused,
+            RigSession(load_rig_config(rig_toml), command="test", guardian=False),
+        ):
+            raise AssertionError("the session started")
+    finally:
+        cage.faults["load_panel"].silent = False
+    message = str(refused.value)
+    assert "\n" not in message
+    assert re.search(r"load_panel: could not confirm off: reading it at 127\.0\.0\.1:\d+ id 1"
+                     r" failed", message), message  # fmt: skip
+    assert message.endswith(f"then run 'rig safe --rig {rig_toml}' and start again"), message
+    supplies = cage.physics.supplies
+    assert not [n for n, s in supplies.items() if s.output and n != "load_panel"]

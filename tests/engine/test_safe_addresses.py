@@ -20,7 +20,7 @@ import pytest
 
 from rig.config import load_rig_config
 from rig.devices import open_device
-from rig.engine.config_copy import copy_name
+from rig.engine.config_copy import copy_name, last_config_copy
 from rig.engine.interlock import lock_dir
 from rig.engine.session import RigSession
 from rig.errors import UserInputError
@@ -199,3 +199,21 @@ def test_a_broken_device_table_is_named_and_the_others_go_off(
     assert not [n for n, s in supplies.items() if s.output and n != "heater"]
     assert re.search(r"^polarity: off \(normal\)$", done.stdout, re.M), done.stdout
     assert "heater:" not in done.stdout
+
+
+def test_the_copy_is_private_and_a_planted_link_is_not_followed(
+    rig_toml: Path, tmp_path: Path
+) -> None:
+    """The copy is the account's own (0600 in a private lock folder); a link planted where it
+    goes is never read as the last configuration (it could name other devices)."""
+    with RigSession(load_rig_config(rig_toml), command="test", guardian=False):
+        pass
+    copy = lock_dir() / copy_name(rig_toml)
+    assert copy.stat().st_mode & 0o777 == 0o600
+    kept = last_config_copy(rig_toml)
+    assert kept is not None and kept[0] == rig_toml.read_text()
+    planted = tmp_path / "planted.toml"
+    planted.write_text(rig_toml.read_text())
+    copy.unlink()
+    copy.symlink_to(planted)
+    assert last_config_copy(rig_toml) is None
