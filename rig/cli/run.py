@@ -107,7 +107,11 @@ def summarize(outcome: Any, quiet: bool) -> None:
                 f" ({', '.join(failed)})" if outcome.status == RunStatus.FAILED and failed else ""
             )
             prefix = "error: " if outcome.status == RunStatus.ERROR else ""
-            safe = "; every output off" if outcome.outputs.startswith("outputs: safe") else ""
+            safe = (
+                "; every output read back off"
+                if outcome.outputs.startswith("outputs: read back off")
+                else ""
+            )
             print(
                 f"rig: {prefix}run {outcome.folder.name} ended with status {outcome.status}:"
                 f" {outcome.reason}{what}{safe}; data in {outcome.folder}",

@@ -15,6 +15,7 @@ import numpy as np
 from rig import __version__
 from rig.config import RigConfig
 from rig.engine.sampling import SensorSampler
+from rig.engine.switch_off import OutputState
 from rig.procedure.language import Procedure
 from rig.store.run_states import RunStatus
 from rig.store.run_store import RunWriter, new_run
@@ -84,14 +85,17 @@ def sync_lab(url: str, folder: Path, quiet: bool) -> None:
               " 'rig lab sync' adds it later", file=sys.stderr)  # fmt: skip
 
 
-def outputs_note(opened: bool, unsafe: list[str], cfg_path: Path) -> str:
-    """One line on the outputs after the session's safe path ('' if none was opened)."""
-    if not opened:
+def outputs_note(read_back: dict[str, OutputState] | None, cfg_path: Path) -> str:
+    """One line on every output as read back after the session's safe path ('' when no session
+    was entered): ``outputs: read back off: coil_x 0.000 A, ..., polarity normal`` or
+    ``outputs: STILL ON or not confirmed off: heater 2.000 A (output enabled), ...`` and
+    the fix."""
+    if read_back is None:
         return ""
-    if unsafe:
-        return (f"outputs: {len(unsafe)} may still be on ({unsafe[0]}); switch them"
-                f" off by hand or with 'rig safe --rig {cfg_path}'")  # fmt: skip
-    return (
-        "outputs: safe - coils ramped down and off, every supply and load off, polarity"
-        " relays normal"
-    )
+    if not read_back:
+        return "outputs: none in the configuration"
+    left = [s for s in read_back.values() if not s.off]
+    if left:
+        return (f"outputs: STILL ON or not confirmed off: {', '.join(s.short() for s in left)};"
+                f" switch them off with 'rig safe --rig {cfg_path}' or by hand")  # fmt: skip
+    return f"outputs: read back off: {', '.join(s.short() for s in read_back.values())}"

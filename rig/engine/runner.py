@@ -113,7 +113,8 @@ class Runner:
         self.controller: Any = None
         self.correction: dict[str, Any] | None = None
         self.writer: RunWriter | None = None
-        self.rig: RigSession | None = None
+        self.rig: RigSession | None = None  # the session, once its devices are open
+        self.session: RigSession | None = None  # the session, once made (entered or not)
         self.publisher: LivePublisher | None = None
         self.live: LiveView | None = None
         self.scheduler: StepScheduler | None = None
@@ -195,9 +196,11 @@ class Runner:
         the line on the outputs."""
         if self.live is not None:
             self.live.stop()
-        outputs = outputs_note(self.rig is not None, self.unsafe, self.cfg.path)
+        read_back = self.session.read_back if self.session is not None else None
+        outputs = outputs_note(read_back, self.cfg.path)
         if outputs:
-            self._event("error" if self.unsafe else "info", outputs)
+            still_on = read_back is not None and not all(s.off for s in read_back.values())
+            self._event("error" if still_on else "info", outputs)
         lateness = self.scheduler.lateness_s if self.scheduler is not None else array("d")
         close_record(w, status, reason, self.samplers, lateness)
         self._lock.release()  # the session released it already, unless it never opened
@@ -221,9 +224,11 @@ class Runner:
         sync_lab(url, folder, self.quiet)
 
     def _session(self, w: RunWriter) -> RigSession:
-        return RigSession(self.cfg, command=self._lock.command, folder=w.folder,
-                          guardian=self.use_guardian, lock=self._lock, i2c_bus=self.i2c_bus,
-                          abort=self.tracker.abort_requested, on_unsafe=self._unsafe)  # fmt: skip
+        self.session = RigSession(self.cfg, command=self._lock.command, folder=w.folder,
+                                  guardian=self.use_guardian, lock=self._lock,
+                                  i2c_bus=self.i2c_bus, abort=self.tracker.abort_requested,
+                                  on_unsafe=self._unsafe, on_found_on=self._found_on)  # fmt: skip
+        return self.session
 
     def _open(self, rig: RigSession, w: RunWriter) -> None:
         """Open every device through ``rig`` (entered), start the health monitor and the live
@@ -255,6 +260,11 @@ class Runner:
         self.unsafe.append(message)
         self._event("error", message)
         print(f"rig: WARNING: {message}; switch it off by hand", file=sys.stderr)
+
+    def _found_on(self, message: str) -> None:
+        """An output found on at the start and switched off: recorded, and told whatever -q says."""
+        self._event("warning", message)
+        print(f"rig: WARNING: {message}", file=sys.stderr)
 
     def _event(self, level: str, message: str) -> None:
         assert self.writer is not None

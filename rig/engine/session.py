@@ -15,6 +15,16 @@ Every command that drives outputs (``rig run`` and ``rig demo`` through the runn
 * the guardian process (rig.engine.guardian), given the configuration as parsed here and fed a
   heartbeat while the main thread makes progress: it switches every output off if this process
   dies or hangs; watched in turn, a guardian that dies or is stopped is a fault;
+* the outputs as found: at its start, once it holds the interlock and the guardian runs, every
+  output of the configuration (not only those the command opens) is read; one found on (its
+  output enabled, a current, a relay reversed: a rig and guardian that both died) is reported
+  (``on_found_on``, :attr:`RigSession.found_on`) and switched off before anything else, and one
+  that cannot be read or confirmed off refuses the command in one line;
+* the outputs as left: at its end, after the safe path and once its links are closed, every
+  output is read back (:attr:`RigSession.read_back`): the end of a run states what was read,
+  never what was assumed;
+* the last configuration used: the raw text of the rig file, kept in the lock folder
+  (:mod:`rig.engine.config_copy`) for ``rig safe`` should the file later not parse;
 * fault-aware waiting: every wait while outputs are live (the cage controller's ramps, relay
   flips, trim, characterization, holds) goes through :meth:`RigSession.sleep`, which raises the
   first fault reported by any thread (:meth:`RigSession.fail`) or an abort.
@@ -47,9 +57,16 @@ from rig.devices import (
     open_scalar_magnetometer,
     open_thermometer,
 )
+from rig.engine.config_copy import keep_config_copy
 from rig.engine.cpu_wait import run_delay_s
 from rig.engine.guardian import HEARTBEAT_PERIOD_S, Guardian
 from rig.engine.interlock import RigLock
+from rig.engine.switch_off import (
+    OutputState,
+    output_devices_of,
+    read_outputs,
+    switch_off_and_confirm,
+)
 from rig.engine.switch_off import switch_off_every_output as switch_off_every_output
 from rig.errors import RigError, RunAborted, UserInputError
 
@@ -60,23 +77,31 @@ than any single blocking call of a healthy run (a Modbus transaction with its re
 calibration of a long run)."""
 WAIT_SLICE_S = 0.05
 """Fault-aware waits look for faults and aborts this often."""
+READ_RETRY_S = 1.0
+"""How long an output that does not answer at the session's start is tried again (s)."""
 
 
 def _warn(message: str) -> None:
     print(f"rig: WARNING: {message}; switch it off by hand", file=sys.stderr)
 
 
+def _tell_found_on(message: str) -> None:
+    print(f"rig: WARNING: {message}", file=sys.stderr)
+
+
 class RigSession:
     """The cage controller, load channels and magnetometers of one command, closed together.
 
     ``on_unsafe`` is told (one line each) about any output that may still be on after
-    :meth:`safe`; by default it is printed to stderr, whatever the verbosity.
+    :meth:`safe` or reads back on at the end; ``on_found_on`` about each output found on at the
+    start and switched off; by default both are printed to stderr, whatever the verbosity.
     """
 
     def __init__(self, cfg: RigConfig, *, command: str = "rig", folder: Path | None = None,
                  guardian: bool = True, lock: RigLock | None = None, i2c_bus: Any | None = None,
                  abort: threading.Event | None = None,
-                 on_unsafe: Callable[[str], None] = _warn) -> None:  # fmt: skip
+                 on_unsafe: Callable[[str], None] = _warn,
+                 on_found_on: Callable[[str], None] = _tell_found_on) -> None:  # fmt: skip
         self.cfg = cfg
         self.command = command
         self.folder = folder
@@ -85,6 +110,11 @@ class RigSession:
         self.i2c_bus = i2c_bus
         self.abort = abort if abort is not None else threading.Event()
         self.on_unsafe = on_unsafe
+        self.on_found_on = on_found_on
+        self.found_on: list[str] = []
+        """One line per output found on at the start (and switched off)."""
+        self.read_back: dict[str, OutputState] | None = None
+        """Every output as read back at the end (None until the session has ended)."""
         self.controller: CageController | None = None
         self.loads: dict[str, Load] = {}
         self.magnetometers: dict[str, Magnetometer] = {}
@@ -98,21 +128,54 @@ class RigSession:
         self._heart: threading.Thread | None = None
 
     def __enter__(self) -> RigSession:
-        """Take the interlock, then start the guardian and its heartbeat."""
+        """Take the interlock, keep a copy of the configuration, start the guardian and its
+        heartbeat, then switch off every output found on (:meth:`_outputs_as_found`)."""
         if self.lock is None:
             self.lock = RigLock(self.cfg, self.command)
         if not self.lock.fds:
             self.lock.acquire()
         try:
+            keep_config_copy(self.cfg.path, self.cfg.raw)
             if self.use_guardian:
                 self.guardian = Guardian(self.cfg, self.folder, tuple(self.lock.fds))
                 self._beating.set()
                 self._heart = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
                 self._heart.start()
+            self._outputs_as_found()
         except BaseException:
+            self._stop_guardian()
             self.lock.release()
             raise
         return self
+
+    def _outputs_as_found(self) -> None:
+        """Read every output of the configuration; switch off each one found on, telling
+        ``on_found_on``; raise :class:`RigError` (one line with the fix) naming one that cannot
+        be read or confirmed off, the others left safe."""
+        devices = output_devices_of(self.cfg)
+        found = read_outputs(devices, retry_s=READ_RETRY_S)
+        on = {n: devices[n] for n, s in found.items() if s.on}
+        unread = [n for n, s in found.items() if s.on is None]
+        after = switch_off_and_confirm(on, unreachable=unread) if on else {}
+        for name in on:
+            line = (f"{name} was found on at the start ({found[name].detail}); switched off"
+                    f" before anything else, read back: {after[name].line()}")  # fmt: skip
+            self.found_on.append(line)
+            self.on_found_on(line)
+        bad = [s for s in found.values() if s.on is None] + [s for s in after.values() if not s.off]
+        if bad:
+            raise RigError(
+                f"{self.cfg.path}: {bad[0].line()}; nothing was started: check its power and"
+                f" wiring, then run 'rig safe --rig {self.cfg.path}' and start again"
+            )
+
+    def _stop_guardian(self) -> None:
+        """Stop the heartbeat and let the guardian go (a clean exit)."""
+        self._beating.clear()
+        if self._heart is not None:
+            self._heart.join(2 * HEARTBEAT_PERIOD_S + 1.0)
+        if self.guardian is not None:
+            self.guardian.release()
 
     def __exit__(
         self,
@@ -124,15 +187,31 @@ class RigSession:
             self.safe()
         finally:
             try:
-                self._stack.close()
+                try:
+                    self._stack.close()
+                finally:
+                    self.read_back = self._read_back()
             finally:
-                self._beating.clear()
-                if self._heart is not None:
-                    self._heart.join(2 * HEARTBEAT_PERIOD_S + 1.0)
-                if self.guardian is not None:
-                    self.guardian.release()
+                self._stop_guardian()
                 if self.lock is not None:
                     self.lock.release()
+
+    def _read_back(self) -> dict[str, OutputState]:
+        """Every output of the configuration read back once the links are closed; one found on
+        or unread is switched off (and read back) again, and each that still does not read back
+        off goes to ``on_unsafe``. Never raises."""
+        devices = output_devices_of(self.cfg)
+        try:
+            states = read_outputs(devices)
+            again = {n: devices[n] for n, s in states.items() if not s.off}
+            if again:
+                states |= switch_off_and_confirm(again)
+        except Exception as exc:  # the safe path never raises: say what is not known
+            states = {n: OutputState(n, None, f"not read back ({exc})") for n in devices}
+        for state in states.values():
+            if not state.off:
+                self.on_unsafe(state.line())
+        return states
 
     # --- liveness, faults and waiting -------------------------------------------------------------
 

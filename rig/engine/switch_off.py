@@ -1,5 +1,10 @@
-"""Every output of a rig to its safe state, each device opened on its own: ``rig safe`` and the
-guardian (which must act without a session: the rig process may be dead).
+"""Every output of a rig to its safe state and read back, each device opened on its own: ``rig
+safe``, the guardian (which must act without a session: the rig process may be dead) and the
+session's check of the outputs at its start and end (:mod:`rig.engine.session`).
+
+An output is judged by what it reads back, never by what was asked of it: a supply or load is off
+when its output (or load input) reads disabled and its current reads at most :data:`ON_ABOVE_A`;
+a polarity relay board when every axis reads normal.
 
 Apart from :mod:`rig.engine.session` so that the guardian, which the session starts, does not
 import the session back.
@@ -8,9 +13,12 @@ import the session back.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
 
-from drivers.registry import output_kinds
+from drivers.registry import KINDS, output_kinds
 from rig.config import DeviceConfig, RigConfig
 from rig.devices import open_device
 from rig.wire_address import wire_link
@@ -21,81 +29,172 @@ port may still be held by a dying rig process, which on a busy computer takes se
 guardian once found coil_y's pty still held 0.6 s after the kill, beside two CPU hogs)."""
 RETRY_PAUSE_S = 0.2
 COIL_DECAY_S = 2.0
-"""Longest wait for a coil's current to decay before its polarity relay is switched."""
+"""Longest wait for a coil's current to decay once its output is off (s), before the polarity
+relays are switched (never while a coil carries current: that arcs the contacts)."""
+ON_ABOVE_A = 0.01
+"""A supply or load reading more current than this (A) is on, whatever its output flag says."""
+DECAY_POLL_S = 0.02
+
+
+@dataclass(frozen=True)
+class OutputState:
+    """One output as read back: ``on`` True (on), False (confirmed off) or None (not known: it
+    could not be opened, switched or read, ``detail`` says why); ``current_a`` the current it
+    read (A, magnitude; None for a relay board or when unread)."""
+
+    name: str
+    on: bool | None
+    detail: str
+    current_a: float | None = None
+
+    @property
+    def off(self) -> bool:
+        """Confirmed off by what it read back."""
+        return self.on is False
+
+    def line(self) -> str:
+        """``coil_x: off (0.000 A read back)``, ``heater: ON (output enabled, 2.000 A read
+        back)`` or ``load_panel: could not confirm off: <why>``."""
+        if self.on is None:
+            return f"{self.name}: could not confirm off: {self.detail}"
+        return f"{self.name}: {'ON' if self.on else 'off'} ({self.detail})"
+
+    def short(self) -> str:
+        """``coil_x 0.000 A``, ``polarity normal``, ``heater unread (<why>)``: for one line
+        listing every output."""
+        if self.on is None:
+            return f"{self.name} unread ({self.detail})"
+        if self.current_a is None:
+            return f"{self.name} {self.detail}"
+        enabled = " (output enabled)" if self.detail.startswith("output enabled") else ""
+        return f"{self.name} {self.current_a:.3f} A{enabled}"
+
+
+def output_devices_of(cfg: RigConfig) -> dict[str, DeviceConfig]:
+    """The supplies, loads and relay boards of ``cfg`` (by name)."""
+    kinds = output_kinds()
+    return {n: d for n, d in cfg.devices.items() if d.kind in kinds}
 
 
 def switch_off_every_output(cfg: RigConfig) -> tuple[list[str], list[str]]:
-    """Every supply, load and relay board of ``cfg`` to its safe state, each opened on its own
-    (one dead link does not stop the others): (devices switched off, problems).
-
-    Supplies and loads first, one thread per link (devices sharing a serial bus or a TCP
-    endpoint take turns on it), so a slow or dead link does not hold back the others: the time
-    to safe is the slowest link's, not the sum. Then, once the cage's coil currents have
-    decayed, the polarity relays to normal (never switched while a coil carries current: that
-    arcs the contacts)."""
-    kinds = output_kinds()
-    outputs = [(n, d) for n, d in cfg.devices.items() if d.kind in kinds]
-    supplies = [(n, d) for n, d in outputs if d.kind != "relay"]
-    relays = [(n, d) for n, d in outputs if d.kind == "relay"]
-    links: dict[str, list[tuple[str, DeviceConfig]]] = {}
-    for name, dev in supplies:
-        links.setdefault(wire_link(dev), []).append((name, dev))
-    outcome: dict[str, str | None] = {}
-    with ThreadPoolExecutor(max_workers=max(1, len(links)), thread_name_prefix="safe") as pool:
-        for results in pool.map(lambda devs: [(n, _switch_off(d)) for n, d in devs],
-                                links.values()):  # fmt: skip
-            outcome.update(results)
-    for name, dev in relays:
-        still = _coil_currents_above(cfg, 0.02)
-        outcome[name] = (
-            _switch_off(dev)
-            if not still
-            else f"left as it is, {still} (switch it when the coils are off)"
-        )
-    done = [n for n, _ in supplies + relays if outcome[n] is None]
-    problems = [f"{n}: {outcome[n]}" for n, _ in supplies + relays if outcome[n] is not None]
+    """Every supply, load and relay board of ``cfg`` to its safe state and read back
+    (:func:`switch_off_and_confirm`): (devices confirmed off, one problem line for each other)."""
+    states = switch_off_and_confirm(output_devices_of(cfg))
+    done = [n for n, s in states.items() if s.off]
+    problems = [f"{n}: {s.detail}" + (" (still on)" if s.on else "")
+                for n, s in states.items() if not s.off]  # fmt: skip
     return done, problems
 
 
-def _switch_off(dev: DeviceConfig) -> str | None:
-    """Open ``dev``, call its ``safe()`` and close it, tried again for :data:`RETRY_FOR_S`: None
-    when it is safe, else the last error."""
-    deadline = time.monotonic() + RETRY_FOR_S
+def switch_off_and_confirm(
+    devices: Mapping[str, DeviceConfig], unreachable: Sequence[str] = ()
+) -> dict[str, OutputState]:
+    """Every output of ``devices`` (supplies, loads, relay boards; other kinds are passed over)
+    to its safe state, each opened on its own (one dead link does not stop the others), then
+    read back: name -> state, in the order of ``devices``.
+
+    Supplies and loads first, one thread per link (devices sharing a serial bus or a TCP
+    endpoint take turns on it), so a slow or dead link does not hold back the others: the time
+    to safe is the slowest link's, not the sum; each is read back once its current has decayed
+    (at most :data:`COIL_DECAY_S`). Then the polarity relays to normal, only when every supply and
+    load read back off and none is ``unreachable`` (outputs known by name only, e.g. whose
+    configuration cannot be read: they may be coils carrying current); otherwise a relay board
+    is only read, and one that reads reversed is left as it is (switching a coil that may carry
+    current arcs the contacts)."""
+    kinds = output_kinds()
+    outputs = {n: d for n, d in devices.items() if d.kind in kinds}
+    supplies = {n: d for n, d in outputs.items() if not _is_relay(d)}
+    relays = {n: d for n, d in outputs.items() if n not in supplies}
+    states = _per_link(supplies, lambda d: _act(d, switch=True, retry_s=RETRY_FOR_S))
+    carrying = [s.short() for s in states.values() if not s.off]
+    carrying += [f"{n} unread" for n in unreachable]
+    for name, dev in relays.items():
+        if not carrying:
+            states[name] = _act(dev, switch=True, retry_s=RETRY_FOR_S)
+            continue
+        state = _act(dev, switch=False, retry_s=RETRY_FOR_S)
+        if state.on:
+            state = OutputState(name, None, f"{state.detail}, left as it is as {'; '.join(carrying)}"
+                                " may carry current (switch it when the coils are off)")  # fmt: skip
+        states[name] = state
+    return {n: states[n] for n in outputs}
+
+
+def read_outputs(
+    devices: Mapping[str, DeviceConfig], retry_s: float = 0.0
+) -> dict[str, OutputState]:
+    """Read every output of ``devices`` as it is, touching nothing: one thread per link, each
+    device opened, read and closed (tried again for ``retry_s``, s); a current still decaying
+    through an output that reads off is waited for (:data:`COIL_DECAY_S`). Name -> state."""
+    kinds = output_kinds()
+    outputs = {n: d for n, d in devices.items() if d.kind in kinds}
+    states = _per_link(outputs, lambda d: _act(d, switch=False, retry_s=retry_s))
+    return {n: states[n] for n in outputs}
+
+
+def _is_relay(dev: DeviceConfig) -> bool:
+    """A relay board (the ``relay`` role), not a supply or load."""
+    kind = KINDS.get(dev.kind)
+    return kind is not None and "relay" in kind.roles and not ({"supply", "load"} & kind.roles)
+
+
+def _per_link(
+    devices: Mapping[str, DeviceConfig], act: Callable[[DeviceConfig], OutputState]
+) -> dict[str, OutputState]:
+    """``act`` on every device, one thread per link, the devices of a link in turn."""
+    links: dict[str, list[DeviceConfig]] = {}
+    for dev in devices.values():
+        links.setdefault(wire_link(dev), []).append(dev)
+    states: dict[str, OutputState] = {}
+    if not links:
+        return states
+    with ThreadPoolExecutor(max_workers=len(links), thread_name_prefix="safe") as pool:
+        for results in pool.map(lambda devs: [act(d) for d in devs], links.values()):
+            states.update((s.name, s) for s in results)
+    return states
+
+
+def _act(dev: DeviceConfig, *, switch: bool, retry_s: float) -> OutputState:
+    """Open ``dev``, call its ``safe()`` when ``switch``, read it back and close it, tried again
+    for ``retry_s`` (s) when any of it fails (a port still held by a dying process)."""
+    deadline = time.monotonic() + retry_s
     while True:
         try:
             driver = open_device(dev)
             try:
-                driver.safe()
+                if switch:
+                    driver.safe()
+                return _read_back(dev.name, driver)
             finally:
                 driver.close()
-            return None
         except Exception as exc:  # one dead link must not stop the others going safe
             if time.monotonic() >= deadline:
-                return str(exc)
-            time.sleep(RETRY_PAUSE_S)  # a port still held by someone else
+                did = "switching it off" if switch else "reading it"
+                return OutputState(dev.name, None, f"{did} at {dev.where} failed ({exc})")
+            time.sleep(RETRY_PAUSE_S)
 
 
-def _coil_currents_above(cfg: RigConfig, threshold_a: float) -> str:
-    """Wait up to COIL_DECAY_S for every coil's current to fall below ``threshold_a``; '' when it
-    has, else which coil still carries what (a coil that cannot be read counts as carrying)."""
-    if cfg.cage is None:
-        return ""
+def _read_back(name: str, driver: Any) -> OutputState:
+    """The state ``driver`` reads: a relay board's axes, or a supply's or load's output flag and
+    current (when its output reads off, waiting up to :data:`COIL_DECAY_S` for a coil's current to
+    decay: a current that does not is on)."""
+    if not hasattr(driver, "read"):
+        polarity = getattr(driver, "polarity", None)
+        if polarity is None:  # a relay board that cannot say: its safe() is all there is
+            return OutputState(name, False, "switched to normal, its state cannot be read")
+        reversed_axes = [ax for i, ax in enumerate("xyz") if polarity(i) != 1]
+        if reversed_axes:
+            return OutputState(name, True, f"reversed on {', '.join(reversed_axes)}")
+        return OutputState(name, False, "normal")
     deadline = time.monotonic() + COIL_DECAY_S
-    left = list(cfg.cage.axes)
     while True:
-        carrying = []
-        for name in left:
-            try:
-                supply = open_device(cfg.devices[name])
-                try:
-                    amps = abs(float(supply.read().i_out_a))
-                finally:
-                    supply.close()
-            except Exception as exc:  # unknown: assume it carries
-                carrying.append(f"{name} unreadable ({exc})")
-                continue
-            if amps > threshold_a:
-                carrying.append(f"{name} carries {amps:.3f} A")
-        if not carrying or time.monotonic() > deadline:
-            return "; ".join(carrying)
-        time.sleep(0.05)
+        r = driver.read()
+        amps = abs(float(r.i_out_a))
+        if r.output_on or amps <= ON_ABOVE_A:
+            break
+        if time.monotonic() > deadline:
+            break
+        time.sleep(DECAY_POLL_S)
+    on = bool(r.output_on) or amps > ON_ABOVE_A
+    enabled = "output enabled, " if r.output_on else ""
+    return OutputState(name, on, f"{enabled}{amps:.3f} A read back", amps)

@@ -120,9 +120,9 @@ def test_second_command_refused_naming_the_holder_and_no_stale_lock_after_sigkil
         safe = subprocess.run([*RIG, "safe", "--rig", str(rig_toml)], capture_output=True,
                               text=True, timeout=60)  # fmt: skip
         assert f"PID {holder.pid}" in safe.stderr
-        done = safe.stdout.split("switched off:", 1)[1].split("\n", 1)[0]
+        done = [n for n in ("coil_y", "load_bus") if f"\n{n}: off (" in f"\n{safe.stdout}"]
         unreached = [
-            n for n in ("coil_y", "load_bus") if f"could not switch off {n}" in safe.stderr
+            n for n in ("coil_y", "load_bus") if f"{n}: could not confirm off" in safe.stderr
         ]
         assert all((n in done) != (n in unreached) for n in ("coil_y", "load_bus")), safe
         assert safe.returncode == (2 if unreached else 0), safe

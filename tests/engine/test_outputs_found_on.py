@@ -1,0 +1,130 @@
+"""Outputs found on at the start of a run are switched off before anything else, and the end of
+the run states what was read back (issue 51: after SIGKILL of both the rig and its guardian the
+next `rig run smoke` ran with the heater at 2 A throughout and said every output was off).
+
+The heater at 2 A and coil_x at 1 A are driven through the drivers and their links closed, as the
+two dead processes leave them; then `rig run procedures/smoke.yaml` as a child process on the
+simulated cage over real Modbus, with the heater's true output sampled every 2 ms from the
+simulator's physics."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from rig.config import load_rig_config
+from rig.devices import open_device
+from rig.engine.session import RigSession
+from rig.errors import RigError
+from rig.store import RunReader
+from sim.cage import SimulatedCage
+
+RIG = [sys.executable, "-m", "rig.cli"]
+SMOKE = Path(__file__).resolve().parents[2] / "procedures" / "smoke.yaml"
+
+pytestmark = pytest.mark.usefixtures("own_lock_dir")
+
+
+def drive(rig_toml: Path) -> None:
+    """The heater at 2 A and coil_x at 1 A through their drivers, links closed, outputs on."""
+    cfg = load_rig_config(rig_toml)
+    for name, amps in (("heater", 2.0), ("coil_x", 1.0)):
+        supply = open_device(cfg.devices[name])
+        try:
+            supply.set_voltage(12.0)
+            supply.set_current(amps)
+            supply.set_output(True)
+        finally:
+            supply.close()
+
+
+def test_outputs_found_on_are_switched_off_before_the_first_step(
+    cage: SimulatedCage, rig_toml: Path, tmp_path: Path
+) -> None:
+    heater = cage.physics.supplies["heater"]
+    drive(rig_toml)
+    deadline = time.monotonic() + 2.0
+    while heater.output_current() < 1.9 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert heater.output and heater.output_current() > 1.9
+    samples: list[tuple[float, bool, float]] = []  # (monotonic s, output on, true current A)
+    stop = threading.Event()
+
+    def watch() -> None:
+        while not stop.wait(0.002):
+            samples.append((time.monotonic(), heater.output, heater.output_current()))
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    runs = tmp_path / "runs"
+    try:
+        done = subprocess.run([*RIG, "run", str(SMOKE), "--rig", str(rig_toml), "--yes",
+                               "--runs-dir", str(runs)], capture_output=True, text=True,
+                              timeout=180)  # fmt: skip
+    finally:
+        stop.set()
+        watcher.join(1.0)
+    assert done.returncode == 0, done.stderr
+    said = [ln for ln in done.stderr.splitlines() if "was found on at the start" in ln]
+    assert len(said) == 2, done.stderr  # the heater and coil_x, one line each
+    heater_line = next(ln for ln in said if "heater was found on" in ln)
+    assert re.search(r"heater was found on at the start \(output enabled, 2\.\d{3} A read"
+                     r" back\); switched off before anything else, read back: heater: off"
+                     r" \(0\.0[01]\d A read back\)", heater_line), heater_line  # fmt: skip
+    end = next(ln for ln in done.stdout.splitlines() if ln.startswith("outputs:"))
+    assert end.startswith("outputs: read back off: coil_x 0.0"), end
+    assert "heater 0.0" in end and end.endswith("polarity normal"), end
+    folder = next(p for p in runs.iterdir() if (p / "run.sqlite").exists())
+    reader = RunReader(folder)
+    try:
+        events = reader.events()
+        steps = reader.steps()
+        first_command = min(t for t, *_ in reader.commands())
+    finally:
+        reader.close()
+    found = [(t, lvl) for t, lvl, m in events if "heater was found on at the start" in m]
+    assert len(found) == 1 and found[0][1] == "warning", events
+    t_first_step = min(s[3] for s in steps)
+    assert found[0][0] < t_first_step and found[0][0] < first_command
+    assert end in [m for _, lvl, m in events if lvl == "info"]  # recorded in the run too
+    during = [(on, amps) for t, on, amps in samples if t >= t_first_step]
+    assert len(during) > 1000, len(during)  # the run's ~15 s, sampled every few ms
+    assert not any(on for on, _ in during)
+    peak = max(amps for _, amps in during)
+    assert peak < 0.01, peak
+    off_at = heater.off_since_s
+    assert off_at is not None and off_at < t_first_step
+    print(
+        f"heater found on at 2 A: off {t_first_step - off_at:.2f} s before the first step;"
+        f" {len(during)} samples during the run, peak {1000 * peak:.1f} mA, never on"
+    )
+
+
+def test_an_output_that_cannot_be_read_at_the_start_refuses_the_command(
+    cage: SimulatedCage, rig_toml: Path
+) -> None:
+    """load_panel does not answer and the heater is on: the session switches the heater off and
+    refuses in one line naming load_panel and `rig safe`, before anything is opened."""
+    drive(rig_toml)
+    cage.faults["load_panel"].silent = True
+    try:
+        with (
+            pytest.raises(RigError) as refused,
+            RigSession(load_rig_config(rig_toml), command="test", guardian=False),
+        ):
+            raise AssertionError("the session started")
+    finally:
+        cage.faults["load_panel"].silent = False
+    message = str(refused.value)
+    assert "\n" not in message
+    assert re.search(r"load_panel: could not confirm off: reading it at 127\.0\.0\.1:\d+ id 1"
+                     r" failed", message), message  # fmt: skip
+    assert message.endswith(f"then run 'rig safe --rig {rig_toml}' and start again"), message
+    supplies = cage.physics.supplies
+    assert not [n for n, s in supplies.items() if s.output and n != "load_panel"]
