@@ -119,6 +119,7 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
     The rig configuration is loaded (and checked) against the declared keys (:mod:`rig.config`)."""
     from rig.config import load_rig_config
     from rig.procedure.beyond_cage import beyond_cage, unmeasured_metrology
+    from rig.procedure.heat_limits import heater_refusals
     from rig.procedure.language import parse_procedure
     from rig.procedure.plan import dry_run, rig_timing
     from rig.procedure_files import find_procedure
@@ -129,8 +130,9 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
     loads_max = _load_limits(proc, cfg)
     cage = cfg.cage if cfg is not None else None
     dr = dry_run(proc, k, b0, cage.max_current_a if cage else None,
-                 cage.max_field_ut if cage else None, loads_max, rig_timing(cfg), uncertainty)  # fmt: skip
+                 cage.max_field_ut if cage else None, {}, rig_timing(cfg), uncertainty)  # fmt: skip
     dr.violations.extend(beyond_cage(proc, cfg))
+    dr.violations.extend(heater_refusals(proc, cfg))  # each load's own limits (ADR 0035)
     unchecked = _unchecked(proc, cfg, k)
     if not quiet:
         _print_plan(proc, dr, cfg, k, model_source, loads_max)

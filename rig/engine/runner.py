@@ -55,10 +55,11 @@ from rig.engine.run_tracker import RunTracker
 from rig.engine.sampling import SensorSampler
 from rig.engine.schedule import StepScheduler
 from rig.engine.session import RigSession
-from rig.errors import RigError, RunAborted
+from rig.errors import RigError, RunAborted, UserInputError
 from rig.lab.url import resolve_url
 from rig.output_limits import refuse_cage_devices_as_loads
 from rig.procedure.beyond_cage import refuse_beyond_cage
+from rig.procedure.heat_limits import heater_refusals
 from rig.procedure.language import Procedure
 from rig.procedure.plan import compile_plan, rig_timing, step_duration
 from rig.steps.base import ChangeListener
@@ -133,6 +134,8 @@ class Runner:
         refuse_cage_devices_as_loads(list(self.proc.loads), self.cfg, self.proc.path)
         # a sine beyond the cage's measured bandwidth or its supplies' slew: refused alike
         refuse_beyond_cage(self.proc, self.cfg)
+        if refusals := heater_refusals(self.proc, self.cfg):  # a load beyond its own limits
+            raise UserInputError(refusals[0])
         # The interlock first: a run refused because the rig is busy leaves no run folder.
         self._lock = RigLock(self.cfg, f"rig run {self.proc.path.name}")
         self._lock.acquire()
