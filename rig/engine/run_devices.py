@@ -101,7 +101,7 @@ def record_thermometers(rig: RigSession, cfg: RigConfig, writer: RunWriter,
 
 def _heaters(rig: RigSession, cfg: RigConfig, thermometer: str) -> list[str]:
     """The run's loads that warm ``thermometer`` (their ``heats``)."""
-    return [n for n in rig.loads if n in cfg.devices
+    return [n for n in list(rig.loads) if n in cfg.devices
             and cfg.devices[n].get("heats") == thermometer]  # fmt: skip
 
 

@@ -389,3 +389,43 @@ def test_the_dut_over_its_limit_is_taken_safe_within_a_second_on_the_simulated_c
     print(f"limit crossed -> heater off: {to_off_s * 1e3:.0f} ms; peak {peak[0]:.2f} C")
     assert 0.0 < to_off_s < 1.0, to_off_s
     assert peak[0] < 28.0 + 1.0  # 5.3 K/s at most at 2 A: under 1 s, under 1 K beyond
+
+
+def test_an_interlock_thermometer_that_goes_silent_while_the_heater_is_on_ends_the_run(
+    cage: SimulatedCage, tmp_path: Path
+) -> None:
+    """dut_temp stops answering half a second after the heater (1 A) is on: the run ends
+    ``error`` naming it and the heater, the heater off about STALE_S after its last reading."""
+    rig_toml = write_rig_toml(cage, tmp_path)
+    proc = tmp_path / "p.yaml"
+    proc.write_text(heater_procedure(1.0, 8.0))
+    heater = cage.physics.supplies["heater"]
+    silenced: list[float] = []
+    stop = threading.Event()
+
+    def silence_once_heating() -> None:
+        while not stop.wait(0.005):
+            if heater.output and heater.i_set > 0.5:
+                time.sleep(0.5)
+                cage.faults["dut_temp"].silent = True
+                silenced.append(time.monotonic())
+                return
+
+    silencer = threading.Thread(target=silence_once_heating, daemon=True)
+    silencer.start()
+    try:
+        outcome = Runner(parse_procedure(proc), load_rig_config(rig_toml), tmp_path / "runs",
+                         i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False).run()  # fmt: skip
+    finally:
+        stop.set()
+        silencer.join(1.0)
+        cage.faults["dut_temp"].silent = False
+    assert silenced, "the heater never came on"
+    assert outcome.status == "error", outcome.reason
+    assert outcome.reason.startswith("dut_temp has given no temperature for 2."), outcome.reason
+    assert "while heater heats the DUT" in outcome.reason
+    assert heater.off_since_s is not None and not heater.output
+    off_after_s = heater.off_since_s - silenced[0]
+    print(f"thermometer silent -> heater off: {off_after_s:.2f} s")
+    # STALE_S from the last reading, which came up to one period (0.25 s) before the silence
+    assert STALE_S - 0.3 < off_after_s < STALE_S + 1.0, off_after_s
