@@ -201,9 +201,8 @@ class LimitedOutput:
                 f" limit ({lim.current_from}); nothing was sent: lower the current asked of it"
             )
         self._check_power(amps, None, f"a set-point of {amps:g} A")
-        done = float(self.driver.set_current(amps))
-        self.current_set_a = amps
-        return done
+        self.current_set_a = amps  # before it is sent: a write that fails may still have landed
+        return float(self.driver.set_current(amps))
 
     def set_voltage(self, volts: float) -> float:
         """Voltage set-point (V), refused beyond the voltage limit or when the present current
