@@ -32,6 +32,7 @@ from drivers.mag.lis3mdl import WHO_AM_I, WHO_AM_I_VALUE, Lis3mdl
 from drivers.mag.rm3100 import REVID, REVID_VALUE, Rm3100
 from drivers.protocols import Load, Magnetometer, Relay, ScalarMagnetometer, Supply, Thermometer
 from drivers.psu.regmap_device import MappedSupply, MappedThermometer, PolarityRelay
+from drivers.psu.riden import MODELS as RIDEN_MODELS
 from drivers.psu.riden import RidenSupply, riden_model
 from drivers.regmap import RegisterMap, load_map, shipped_maps
 from drivers.transport.i2c import I2CDevice
@@ -610,8 +611,37 @@ SUPPLY_PARAMS: tuple[Param, ...] = (
           fix="write the largest voltage this rig may ask for, e.g. max_voltage_v = 24.0", unit="V"),
     Param("compliance_v", NUMBER, False, 12.0, "voltage set-point when used as a load", above=0.0,
           fix="write the voltage set-point for use as a load, e.g. compliance_v = 12.0", unit="V"),
+    Param("max_power_w", NUMBER, help="power limit: a current set-point whose worst case I x V"
+          " (V: the voltage set-point, or the voltage limit when the output has none) exceeds it"
+          " is refused, and a read-back V_out x I_out beyond it during a run is a fault",
+          above=0.0, unit="W",
+          fix="write the most power this output may deliver, e.g. max_power_w = 20"),
+    Param("heats", TEXT, help="the thermometer (a device name) this output warms, e.g. a heater"
+          " pad on the DUT's mount: rig check predicts that thermometer's temperature, and it"
+          " interlocks this output (docs/adr/0035)", nonempty=True,
+          fix='write the thermometer\'s device name, e.g. heats = "dut_temp"'),
+    Param("kelvin_per_w", NUMBER, help="with heats: the steady-state temperature rise per watt"
+          " this output delivers", above=0.0, unit="K/W",
+          fix="write the rise per watt, e.g. kelvin_per_w = 2.0 (measure it: a known power held"
+          " for five time constants)"),
+    Param("thermal_tau_s", NUMBER, help="with heats: the first-order time constant of that"
+          " warming (absent: the steady state is reached at once, the safe assumption)", above=0.0,
+          unit="s", fix="write the time constant, e.g. thermal_tau_s = 120"),
+    Param("resistance_ohm", NUMBER, help="with heats: the heater's resistance, so the predicted"
+          " power is min(I, V/R)^2 R instead of the worst case I x V", above=0.0, unit="ohm",
+          fix="write the heater's resistance, e.g. resistance_ohm = 4.0"),
 )  # fmt: skip
-"""The limits every supply and load accepts."""
+"""The limits every supply and load accepts, and how one that heats the DUT warms it."""
+THERMOMETER_PARAMS: tuple[Param, ...] = (
+    Param("max_temperature_c", NUMBER, help="the DUT's temperature limit: during every run a"
+          " reading beyond it takes the outputs safe, and rig check refuses a heater plan"
+          " predicted to pass it", low=-273.15, unit="C",
+          fix="write the DUT's highest allowed temperature, e.g. max_temperature_c = 70"),
+    Param("ambient_c", NUMBER, False, 25.0, "the temperature the DUT rests at with its heaters"
+          " off: what rig check adds the heaters' predicted rise to", low=-273.15, unit="C",
+          fix="write the lab's temperature, e.g. ambient_c = 25"),
+)  # fmt: skip
+"""A thermometer's keys: the DUT temperature interlock (ADR 0035)."""
 REGMAP = Param("regmap", TEXT, True,
                help="a register-map file or a shipped map name, e.g. \"maynuo-m97\"")  # fmt: skip
 MAP_BAUD = {"baudrate": replace(BAUDRATE, default=None,
@@ -681,7 +711,8 @@ def _modbus_kinds() -> Iterator[DeviceKind]:
          _open_mapped_supply, "Modbus electronic load described by a register map (regmaps/)"),
         ("regmap-relay", frozenset({"relay"}), "relay", (REGMAP,), _open_relay,
          "Modbus polarity relay board described by a register map"),
-        ("regmap-thermometer", frozenset({"thermometer"}), "thermometer", (REGMAP,),
+        ("regmap-thermometer", frozenset({"thermometer"}), "thermometer",
+         (REGMAP, *THERMOMETER_PARAMS),
          _open_thermometer, "Modbus temperature module (RTD, thermocouple) described by a"
          " register map: recorded through every run (the DUT's temperature)"),
     )  # fmt: skip
@@ -753,6 +784,40 @@ def _scalar_kinds() -> Iterator[DeviceKind]:
         _probe_counter, (9600, 19200), probe_first=True,
         transport_keys={"baudrate": replace(BAUDRATE, default=9600)},
     )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class OutputRange:
+    """What a supply or load's kind and configuration say of its range before it is opened: the
+    most current (A) and voltage (V) it can give, whether its current is signed, whether it has a
+    voltage set-point (an electronic load has none), and where that comes from (words)."""
+
+    max_current_a: float
+    max_voltage_v: float
+    bipolar: bool
+    sets_voltage: bool
+    source: str
+
+
+def output_range(kind: str, params: Mapping[str, Any]) -> OutputRange | None:
+    """The range of an output of ``kind`` configured with ``params``, as known without opening
+    it: a register-map device's from its map, a Riden's as the largest of its family (the model
+    is read when it is opened); None for another kind or a map that cannot be read."""
+    if kind == "riden-rd60xx":
+        biggest = max(RIDEN_MODELS, key=lambda m: max(r.i_max_a for r in m.ranges))
+        return OutputRange(max(r.i_max_a for r in biggest.ranges),
+                           max(m.v_max_v for m in RIDEN_MODELS), False, True,
+                           f"the largest range of any {kind} ({biggest.name}); the model is read"
+                           " when it is opened")  # fmt: skip
+    if kind in ("regmap-supply", "regmap-eload"):
+        try:
+            regmap = load_map(str(params.get("regmap")))
+        except (OSError, ValueError):  # RegisterMapError is a ValueError; opening says more
+            return None
+        return OutputRange(regmap.i_max, regmap.v_max, regmap.bipolar,
+                           regmap.role("v_set") is not None,
+                           f"the range of its register map {regmap.name}")  # fmt: skip
+    return None
 
 
 def _iter_registered() -> Iterator[DeviceKind]:

@@ -14,6 +14,12 @@ A set-point beyond a limit is **refused**, never capped: nothing is sent, and
 run with status ``error`` through the safe path. A capped set-point would silently run a different
 experiment than the one written; a refused one cannot exceed the limit either.
 
+An output with ``max_power_w`` also has a power limit (:func:`with_power_limit`): a current
+set-point whose worst case ``|I| x V`` exceeds it is refused, ``V`` being the voltage the output
+may reach (its voltage set-point, its compliance as a load, within its voltage limit; the voltage
+limit itself while none was given, or for an electronic load, which has no voltage set-point),
+and so is a voltage set-point that would raise the worst case beyond it (ADR 0035).
+
 ``rig check`` and ``rig run`` also refuse, before any output is on, a procedure that names a cage
 coil supply, the polarity relays or the reference as a load (:func:`refuse_cage_devices_as_loads`);
 the limits here are what holds if that check is bypassed.
@@ -21,7 +27,8 @@ the limits here are what holds if that check is bypassed.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +60,9 @@ class OutputLimits:
     current_from: str
     max_voltage_v: float | None = None
     voltage_from: str = ""
+    max_power_w: float | None = None
+    """The most power (W) the output may deliver, worst case ``|I| x V``; None: no limit."""
+    power_from: str = ""
 
 
 def cage_model(cfg: RigConfig) -> CageModel | None:
@@ -111,6 +121,15 @@ def output_limits(cfg: RigConfig | None, dev: DeviceConfig, driver: Any) -> Outp
     return OutputLimits(name, amps, amps_from, volts, volts_from)
 
 
+def with_power_limit(limits: OutputLimits, dev: DeviceConfig) -> OutputLimits:
+    """``limits`` with the power limit of output ``dev`` (its ``max_power_w``, W), if it has one."""
+    watts = dev.get("max_power_w")
+    if watts is None:
+        return limits
+    return replace(limits, max_power_w=float(watts),
+                   power_from=f"max_power_w of [devices.{dev.name}]")  # fmt: skip
+
+
 class LimitedOutput:
     """A supply or load driver behind its :class:`OutputLimits`: every set-point goes through
     here, and one beyond a limit raises :class:`OutputLimitError` without reaching the device.
@@ -120,6 +139,9 @@ class LimitedOutput:
         self.driver = driver
         self.limits = limits
         self.name: str = driver.name
+        self.current_set_a = 0.0
+        """The last current set-point sent (A); 0 after :meth:`safe`."""
+        self._volts_set: float | None = None  # the last voltage set-point sent (V)
 
     def __getattr__(self, attr: str) -> Any:
         return getattr(self.driver, attr)
@@ -140,31 +162,73 @@ class LimitedOutput:
         """True when the current set-point is signed."""
         return bool(getattr(self.driver, "bipolar", False))
 
+    @property
+    def sets_voltage(self) -> bool:
+        """True when the output has a voltage set-point (an electronic load has none)."""
+        return bool(getattr(self.driver, "sets_voltage", True))
+
+    def reach_v(self, volts_set: float | None = None) -> float:
+        """The most voltage (V) the output may put across its load with voltage set-point
+        ``volts_set`` (None: the last one sent): that set-point within the voltage limit; the
+        voltage limit itself before any was sent, or for an output without one."""
+        volts = self._volts_set if volts_set is None else volts_set
+        if volts is None or not self.sets_voltage:
+            return self.max_voltage_v
+        return min(volts, self.max_voltage_v)
+
+    def _check_power(self, amps: float, volts_set: float | None, what: str) -> None:
+        """Refuse (OutputLimitError) a worst case ``|amps| x V`` (W) beyond the power limit, V
+        the voltage reached with set-point ``volts_set`` (:meth:`reach_v`)."""
+        lim = self.limits
+        if lim.max_power_w is None:
+            return
+        volts = self.reach_v(volts_set)
+        watts = abs(amps) * volts
+        if not watts <= lim.max_power_w * (1.0 + TOLERANCE) + TOLERANCE:  # also refuses NaN
+            most = lim.max_power_w / volts if volts > 0 else math.inf
+            raise OutputLimitError(
+                f"{lim.device}: {what} makes a worst case of {abs(amps):g} A x {volts:g} V ="
+                f" {watts:g} W, beyond its {lim.max_power_w:g} W limit ({lim.power_from});"
+                f" nothing was sent: at {volts:g} V ask at most {most:.3g} A, or lower the"
+                " voltage it may reach (compliance_v, max_voltage_v)"
+            )
+
     def set_current(self, amps: float) -> float:
-        """Current set-point (A), refused beyond the limit; returns what the driver set."""
+        """Current set-point (A), refused beyond the current or the power limit; returns what
+        the driver set."""
         lim = self.limits
         if not abs(amps) <= lim.max_current_a + TOLERANCE:  # also refuses NaN
             raise OutputLimitError(
                 f"{lim.device}: a set-point of {amps:g} A is beyond its {lim.max_current_a:g} A"
                 f" limit ({lim.current_from}); nothing was sent: lower the current asked of it"
             )
+        self._check_power(amps, None, f"a set-point of {amps:g} A")
+        self.current_set_a = amps  # before it is sent: a write that fails may still have landed
         return float(self.driver.set_current(amps))
 
     def set_voltage(self, volts: float) -> float:
-        """Voltage set-point (V), refused beyond the limit; returns what the driver set."""
+        """Voltage set-point (V), refused beyond the voltage limit or when the present current
+        set-point would make a worst case beyond the power limit; returns what the driver set."""
         lim = self.limits
         if lim.max_voltage_v is not None and not volts <= lim.max_voltage_v + TOLERANCE:
             raise OutputLimitError(
                 f"{lim.device}: a set-point of {volts:g} V is beyond its {lim.max_voltage_v:g} V"
                 f" limit ({lim.voltage_from}); nothing was sent: lower the voltage asked of it"
             )
-        return float(self.driver.set_voltage(volts))
+        self._check_power(self.current_set_a, volts,
+                          f"a set-point of {volts:g} V at {self.current_set_a:g} A")  # fmt: skip
+        done = float(self.driver.set_voltage(volts))
+        self._volts_set = volts
+        return done
 
     def enable_as_load(self, compliance_v: float) -> None:
-        """As the driver's, with the compliance voltage (V) within this output's voltage limit."""
+        """As the driver's (current 0, voltage set-point at the compliance, output on), with the
+        compliance voltage (V) within this output's voltage limit."""
         if self.limits.max_voltage_v is not None:
             compliance_v = min(compliance_v, self.limits.max_voltage_v)
         self.driver.enable_as_load(compliance_v)
+        self.current_set_a = 0.0
+        self._volts_set = compliance_v
 
     def set_output(self, on: bool) -> None:
         """Output enable."""
@@ -183,6 +247,7 @@ class LimitedOutput:
     def safe(self) -> None:
         """The driver's safe state (always allowed)."""
         self.driver.safe()
+        self.current_set_a = 0.0
 
     def close(self) -> None:
         """Close the driver's link."""
@@ -191,7 +256,7 @@ class LimitedOutput:
 
 def limited(cfg: RigConfig | None, dev: DeviceConfig, driver: Any) -> LimitedOutput:
     """``driver`` (output ``dev``, of ``cfg`` if given) behind its limits."""
-    return LimitedOutput(driver, output_limits(cfg, dev, driver))
+    return LimitedOutput(driver, with_power_limit(output_limits(cfg, dev, driver), dev))
 
 
 def cage_axis(cfg: RigConfig, dev: DeviceConfig) -> int | None:

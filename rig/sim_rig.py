@@ -128,6 +128,35 @@ def reference_certificate(mag: MagnetometerConfig, seed: int = 0) -> dict[str, A
     }
 
 
+HEATER_COMPLIANCE_V = 10.0
+"""The simulated heater pad's supply voltage as a load (V): 2.5 A into its 4 ohm, and with
+:data:`HEATER_MAX_POWER_W` a worst case of 2 A."""
+HEATER_MAX_POWER_W = 20.0
+"""The simulated heater's power limit (W): 2 A into 4 ohm is 16 W, +32 K at 2 K/W."""
+DUT_MAX_TEMPERATURE_C = 70.0
+"""The simulated DUT's temperature limit (C), its thermometer the interlock (ADR 0035)."""
+
+
+def heater_limits(devices: dict[str, dict[str, Any]], cfg: SimConfig) -> None:
+    """Give the simulated heater (``[thermal].heater``) and the DUT's thermometer their limits
+    and the heater its warming as a nameplate would state it (ADR 0035): ``heats``,
+    ``kelvin_per_w``, ``thermal_tau_s``, ``resistance_ohm``; the thermometer
+    ``max_temperature_c`` and the ambient the simulated DUT rests at."""
+    thermal, thermometer = cfg.thermal, cfg.thermometer
+    if thermal is None or thermometer is None:
+        return
+    if thermal.heater not in devices or thermometer.name not in devices:
+        return
+    resistance = next(s.resistance_ohm for s in cfg.supplies if s.name == thermal.heater)
+    devices[thermal.heater] |= {
+        "compliance_v": HEATER_COMPLIANCE_V, "max_power_w": HEATER_MAX_POWER_W,
+        "heats": thermometer.name, "kelvin_per_w": round(thermal.k_per_w, 2),
+        "thermal_tau_s": round(thermal.tau_s, 1), "resistance_ohm": resistance,
+    }  # fmt: skip
+    devices[thermometer.name] |= {"max_temperature_c": DUT_MAX_TEMPERATURE_C,
+                                  "ambient_c": thermal.ambient_c}  # fmt: skip
+
+
 def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig) -> str:
     """The rig configuration for a running simulated cage: devices, cage section, the reference's
     certificate and the coil constants as nameplate values."""
@@ -146,6 +175,7 @@ def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig) -> str:
             devices[mag.name]["rate_hz"] = mag.rate_hz
         elif mag.name in devices:
             devices[mag.name]["rate_hz"] = mag.rate_hz
+    heater_limits(devices, cfg)
     nominal = [[float(v) for v in row] for row in cfg.cage.coil_matrix_ut_per_a]
     trims = [float(v) for v in cfg.cage.trim_ut_per_a] if any(cfg.cage.trim_ut_per_a) else None
     return rig_config_toml({"devices": devices}, cfg.source, nominal, trims)

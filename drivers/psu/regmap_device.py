@@ -82,6 +82,12 @@ class MappedSupply(MappedDevice):
         """True when the current set-point is signed."""
         return self.map.bipolar
 
+    @property
+    def sets_voltage(self) -> bool:
+        """True when the device has a voltage set-point (a supply; an electronic load has none:
+        its input sees whatever the source across it gives, up to its range)."""
+        return self.map.role("v_set") is not None
+
     def set_voltage(self, volts: float) -> float:
         """Voltage set-point (V), if the device has one."""
         reg = self.map.require("v_set")

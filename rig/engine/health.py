@@ -25,6 +25,11 @@ OWN_STALL_S = 0.3
 """The monitor woke this much later than its period: our own process was descheduled."""
 COIL_CHECK_S = 1.0
 """How often the coil supplies' protection flags are read."""
+POWER_TOLERANCE = 0.05
+"""A read-back power (V_out x I_out) more than this fraction above an output's ``max_power_w``
+(and :data:`POWER_FLOOR_W` more) is a fault: the read-back's own resolution and a set-point's
+overshoot stay within it."""
+POWER_FLOOR_W = 0.1
 UNREAD_FAULT_AFTER = 2
 """Read-backs of an output that failed in a row (each after the link's own retries) before the
 output counts as lost: one can be a glitch, two mean its state is unknown (a fault)."""
@@ -101,9 +106,23 @@ class HealthMonitor:
                 if reading.protection:
                     self.rig.fail(f"{name}: the output tripped ({reading.protection}) and is off;"
                                   " check the wiring and the load before running again")  # fmt: skip
+                self._check_power(name, load, reading.v_out_v, reading.i_out_a)
                 self._unread.pop(name, None)
             except (DeviceError, OSError) as exc:
                 self._not_answering(name, exc)
+
+    def _check_power(self, name: str, load: object, v_out_v: float, i_out_a: float) -> None:
+        """A read-back power (W) beyond the output's ``max_power_w`` is a fault (ADR 0035)."""
+        limits = getattr(load, "limits", None)
+        limit_w = getattr(limits, "max_power_w", None)
+        if limit_w is None:
+            return
+        watts = abs(float(v_out_v) * float(i_out_a))
+        if watts > limit_w * (1.0 + POWER_TOLERANCE) + POWER_FLOOR_W:
+            self.rig.fail(f"{name}: it delivers {watts:.1f} W ({float(v_out_v):.2f} V x"
+                          f" {abs(float(i_out_a)):.3f} A read back), beyond its {limit_w:g} W"
+                          " max_power_w; outputs switched off: check what it drives (a lower"
+                          " resistance, a short) and its compliance_v")  # fmt: skip
 
     def check(self, judge_sensors: bool = True) -> None:
         """One round: the store, the sensors (unless this process was just descheduled), and

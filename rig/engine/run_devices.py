@@ -16,7 +16,7 @@ from rig.devices import thermometer_names
 from rig.engine.commands import LoadBook
 from rig.engine.sampling import BufferedSensor, SensorSampler
 from rig.engine.session import RigSession
-from rig.engine.temperature_log import TemperatureLog
+from rig.engine.temperature_log import Interlock, TemperatureLog
 from rig.errors import RigError
 from rig.procedure.language import Procedure
 from rig.steps import KINDS
@@ -75,22 +75,49 @@ def open_loads(rig: RigSession, proc: Procedure, cfg: RigConfig, book: LoadBook,
 def record_thermometers(rig: RigSession, cfg: RigConfig, writer: RunWriter,
                         instruments: dict[str, str], event: Event) -> list[str]:  # fmt: skip
     """Start recording every thermometer of the rig (channels in degrees C, one reading a
-    second); one that cannot be opened is a warning, never the end of the run. Returns the
-    names being recorded."""
+    second); one that cannot be opened is a warning, never the end of the run, unless it is the
+    temperature interlock (``max_temperature_c``) of one of the run's loads (``heats``; ADR
+    0035). Returns the names being recorded."""
     recorded = []
     for name in thermometer_names(cfg):
+        lock = _interlock(rig, cfg, name)
         try:
             thermometer = rig.thermometer(name)
             if (ident := _identity(thermometer)) is not None:
                 instruments[name] = ident
         except (DeviceError, OSError, RigError) as exc:
+            if lock is not None and (heaters := _heaters(rig, cfg, name)):
+                raise RigError(f"{exc}; {name} is the temperature interlock of"
+                               f" {', '.join(heaters)} (max_temperature_c), so nothing is driven"
+                               f" without it: check {name}'s link and wiring") from None  # fmt: skip
             event("warning", f"{exc}; the run goes on without recording {name}")
             continue
-        log = TemperatureLog(name, thermometer, writer.add_channel, event)
+        log = TemperatureLog(name, thermometer, writer.add_channel, event, interlock=lock)
         log.start()
         rig.on_close(log.stop)
         recorded.append(name)
     return recorded
+
+
+def _heaters(rig: RigSession, cfg: RigConfig, thermometer: str) -> list[str]:
+    """The run's loads that warm ``thermometer`` (their ``heats``)."""
+    return [n for n in list(rig.loads) if n in cfg.devices
+            and cfg.devices[n].get("heats") == thermometer]  # fmt: skip
+
+
+def _interlock(rig: RigSession, cfg: RigConfig, name: str) -> Interlock | None:
+    """Thermometer ``name`` as the DUT's temperature interlock, if it has ``max_temperature_c``:
+    the run fails beyond it, or when it goes silent while a load that heats it has a current
+    set-point (ADR 0035)."""
+    limit = cfg.devices[name].get("max_temperature_c")
+    if limit is None:
+        return None
+
+    def heating() -> list[str]:
+        return [n for n in _heaters(rig, cfg, name)
+                if getattr(rig.loads[n], "current_set_a", 1.0) != 0.0]  # fmt: skip
+
+    return Interlock(float(limit), rig.fail, heating)
 
 
 def check_thermometers(proc: Procedure, cfg: RigConfig, recorded: list[str]) -> None:

@@ -6,8 +6,9 @@ Refused outright (one line, :class:`rig.errors.UserInputError`, exit 2): a confi
 one instrument twice (:func:`rig.wire_address.shared_addresses`), a cage device named as a load,
 a load that is no device. Violations (``LIMIT:`` lines of ``rig check``, exit 1; the first one
 refuses a run): fields beyond the cage's field limit, coil currents beyond the cage's current
-limits with the cage model's margin, load set-points beyond a channel's configured limit, and what
-the cage cannot do (:mod:`rig.procedure.beyond_cage`).
+limits with the cage model's margin, load set-points beyond a channel's own limits (current, sign,
+power, the DUT temperature a heater would reach: :mod:`rig.procedure.heat_limits`), and what the
+cage cannot do (:mod:`rig.procedure.beyond_cage`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from rig.config import RigConfig
 from rig.errors import UserInputError
 from rig.output_limits import cage_model, refuse_cage_devices_as_loads
 from rig.procedure.beyond_cage import beyond_cage
+from rig.procedure.heat_limits import heater_refusals
 from rig.procedure.language import FIELD_STEPS, Procedure
 from rig.procedure.plan import (
     ABSOLUTE_MAX_FIELD_UT,
@@ -116,10 +118,13 @@ def preflight(proc: Procedure, cfg: RigConfig | None) -> Preflight:
     model = cage_model_view(cfg)
     loads_max = load_limits_a(proc, cfg)
     cage = cfg.cage if cfg is not None else None
+    # each load's own limits (current, sign, power, the DUT's predicted temperature) are
+    # heater_refusals' (ADR 0035), not the dry run's: one LIMIT line per problem
     dr = dry_run(proc, model.k_ut_per_a, model.b0_ut, cage.max_current_a if cage else None,
-                 cage.max_field_ut if cage else None, loads_max, rig_timing(cfg),
+                 cage.max_field_ut if cage else None, {}, rig_timing(cfg),
                  model.uncertainty)  # fmt: skip
     dr.violations.extend(beyond_cage(proc, cfg))
+    dr.violations.extend(heater_refusals(proc, cfg))
     return Preflight(dr, unchecked_limits(proc, cfg, model.k_ut_per_a), model, loads_max)
 
 

@@ -10,6 +10,14 @@ NOT_CONFIG_KEYS = ("role", "stopbits", "line_format", "unit")
 """Endpoint entries that are no rig configuration keys (unknown keys are refused)."""
 
 
+LIMITS: dict[str, dict[str, Any]] = {
+    "heater": {"compliance_v": 10.0, "max_power_w": 20.0, "heats": "dut_temp",
+               "kelvin_per_w": 2.0, "thermal_tau_s": 120.0, "resistance_ohm": 4.0},
+    "dut_temp": {"max_temperature_c": 70.0},
+}  # fmt: skip
+"""The default cage's heater (4 ohm, 2 K/W, 120 s) and DUT limits, as a nameplate states them."""
+
+
 def rig_toml(endpoints: dict[str, Any], nominal_k: list[list[float]]) -> str:
     """The cage section (coil supplies by role, relays, the ASCII reference, nominal constants)
     and one ``[devices.NAME]`` table per simulated device."""
@@ -32,5 +40,6 @@ def rig_toml(endpoints: dict[str, Any], nominal_k: list[list[float]]) -> str:
         lines.append(f"[devices.{name}]")
         lines += [f"{key} = {json.dumps(value)}" for key, value in dev.items()
                   if key not in NOT_CONFIG_KEYS]  # fmt: skip
+        lines += [f"{key} = {json.dumps(value)}" for key, value in LIMITS.get(name, {}).items()]
         lines.append("")
     return "\n".join(lines)
