@@ -19,8 +19,11 @@ def cage_abilities(cfg: RigConfig | None) -> CageAbilities:
     if cfg is None or cage is None:
         return CageAbilities(None, None)
     model = cage_model(cfg)
+    measured = model is not None and not model.meta.get("nominal")
     return CageAbilities(None if model is None else model.k_ut_per_a, cage.max_slew_a_per_s,
-                         {} if model is None else model.metrology())  # fmt: skip
+                         {} if model is None else model.metrology(),
+                         b0_ut=model.b0_ut if measured and model is not None else None,
+                         polarity_relays=cage.polarity is not None)  # fmt: skip
 
 
 def beyond_cage(proc: Procedure, cfg: RigConfig | None) -> list[str]:

@@ -89,8 +89,12 @@ def beyond_the_cage(proc: Procedure, cage: CageAbilities) -> list[str]:
     against the steps after it), one sentence each."""
     out: list[str] = []
     measured: set[str] = set()
+    b0_ut = cage.b0_ut  # the record's lab field, until a step measures the cage again
     for step in proc.steps:
         kind = KINDS[step.kind]
-        out += kind.beyond_cage(step, replace(cage, measured_before=frozenset(measured)))
+        out += kind.beyond_cage(step, replace(cage, measured_before=frozenset(measured),
+                                              b0_ut=b0_ut))  # fmt: skip
         measured.add(step.kind)
+        if kind.measures_cage_model:
+            b0_ut = None
     return out

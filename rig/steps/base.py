@@ -159,6 +159,11 @@ class CageAbilities:
     measured_before: frozenset[str] = frozenset()
     """The metrology kinds a step before this one measures in the same run (the record's older
     result is then not the one the step will meet)."""
+    b0_ut: Array | None = None
+    """The lab field the coils cancel (uT, cage frame) from a characterization; None when not
+    measured (a nominal model: the currents then do not cancel it)."""
+    polarity_relays: bool = False
+    """The coils change polarity through relays (a flip is a step of the field, and arcs)."""
 
 
 class StepKind:

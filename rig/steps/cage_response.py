@@ -53,8 +53,10 @@ class CageResponse(SineStepKind):
     }
 
     def beyond_cage(self, step: Step, cage: CageAbilities) -> list[str]:
-        """Only the slew limit: this step is what measures the bandwidth."""
-        return beyond_the_cage(step, CageAbilities(cage.k_ut_per_a, cage.max_slew_a_per_s))
+        """The slew limit and the polarity relays, never the bandwidth: this step measures it."""
+        return beyond_the_cage(step, CageAbilities(cage.k_ut_per_a, cage.max_slew_a_per_s,
+                                                   b0_ut=cage.b0_ut,
+                                                   polarity_relays=cage.polarity_relays))  # fmt: skip
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return MeasureCageResponse(ctx, step)

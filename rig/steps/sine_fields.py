@@ -228,6 +228,37 @@ def beyond_the_cage(step: Step, cage: CageAbilities) -> list[str]:
                            f" of {p['amplitude_ut']:g} uT on {axis} needs {slew:.3g} A/s, over the"
                            f" cage's max_slew_a_per_s ({cage.max_slew_a_per_s:g}): a smaller"
                            " amplitude_ut or lower frequencies")  # fmt: skip
+    return out + polarity_flips(step, cage)
+
+
+def polarity_flips(step: Step, cage: CageAbilities) -> list[str]:
+    """A sine that would take a coil's current through zero once the lab field is cancelled
+    (``I = K^-1 (B - B0)``): behind polarity relays each crossing is a relay flip mid-sine (a step
+    of the field, and arcing contacts), which ``bias_ut > amplitude_ut`` promises never happens.
+    Nothing to say without relays or a measured lab field (one measured in the same run before
+    the step is not known yet: :func:`rig.steps.beyond_the_cage`)."""
+    if not cage.polarity_relays or cage.k_ut_per_a is None or cage.b0_ut is None:
+        return []
+    p, out = step.params, []
+    inverse = np.linalg.inv(np.asarray(cage.k_ut_per_a, float))
+    lo, hi = (
+        float(p["bias_ut"]) - float(p["amplitude_ut"]),
+        float(p["bias_ut"]) + float(p["amplitude_ut"]),
+    )
+    offset = inverse @ np.asarray(cage.b0_ut, float)  # the currents that cancel the lab field
+    for axis in p["axes"]:
+        a = AXES.index(axis)
+        for coil in range(3):
+            per_ut = float(inverse[coil, a])
+            if abs(per_ut) < 1e-12:
+                continue
+            zero_ut = float(offset[coil]) / per_ut  # the field on the axis at which it is 0 A
+            if lo - 1e-9 <= zero_ut <= hi + 1e-9:
+                out.append(f"{step.kind} '{step.name}': the sine on {axis} ({lo:g}-{hi:g} uT)"
+                           f" takes coil {AXES[coil]}'s current through zero at {zero_ut:.1f} uT"
+                           " (the lab field cancelled): its polarity relay would flip every"
+                           f" cycle; keep bias_ut - amplitude_ut above {zero_ut:.1f} uT or"
+                           f" bias_ut + amplitude_ut below it")  # fmt: skip
     return out
 
 
