@@ -97,6 +97,11 @@ CAGE_KEYS: tuple[Param, ...] = (
           fix="write the lab field's bound, e.g. max_ambient_ut = 66.0", unit="uT"),
     Param("max_slew_a_per_s", NUMBER, True, help="coil current slew limit", above=0.0,
           fix="write the slew limit, e.g. max_slew_a_per_s = 4.0", unit="A/s"),
+    Param("coil_tau_s", NUMBER, help="the shortest coil's L/R time constant: ramps are then"
+          " planned so that the coil current itself, not only its set-points, never changes"
+          " faster than max_slew_a_per_s (each set-point step into the coil peaks at"
+          " step / (tau (1 - exp(-step_s / tau))) A/s)", above=0.0,
+          fix="write the L/R of the coils, e.g. coil_tau_s = 0.025", unit="s"),
     Param("compliance_v", NUMBER, False, 20.0, "the coil supplies' voltage set-point", above=0.0,
           fix="write the voltage set-point, e.g. compliance_v = 20.0", unit="V"),
     Param("step_s", NUMBER, False, 0.05, "interval between set-points of a ramp", above=0.0,
@@ -170,6 +175,18 @@ class CageConfig:
     trim: tuple[str, str, str] | None = None
     trim_ut_per_a: tuple[float, float, float] | None = None
     max_ambient_ut: float = 66.0
+    coil_tau_s: float | None = None
+
+    @property
+    def ramp_slew_a_per_s(self) -> float:
+        """The average slew (A/s) ramps are planned at: ``max_slew_a_per_s``, or with
+        ``coil_tau_s`` the rate whose set-point steps (one per ``step_s``) into a first-order
+        coil of that L/R peak at exactly ``max_slew_a_per_s``:
+        ``max_slew * tau (1 - exp(-step_s / tau)) / step_s``."""
+        tau, step = self.coil_tau_s, self.step_s
+        if tau is None:
+            return self.max_slew_a_per_s
+        return self.max_slew_a_per_s * tau * -math.expm1(-step / tau) / step
 
 
 @dataclass(frozen=True)
@@ -489,6 +506,7 @@ def _cage(path: Path, c: dict[str, Any], devices: dict[str, DeviceConfig]) -> Ca
         scalar=scalar,
         ambient_gradient_nt_per_m=float(c["ambient_gradient_nt_per_m"]),
         max_ambient_ut=float(c["max_ambient_ut"]),
+        coil_tau_s=None if c.get("coil_tau_s") is None else float(c["coil_tau_s"]),
         **_trim(path, c, devices),
     )
 

@@ -157,7 +157,7 @@ def build_cage(
         raise UserInputError(
             f"{cfg.path}: [cage] needs a calibration file or nominal_k_ut_per_a; characterize the cage first"
         )
-    limits = CageLimits(c.max_current_a, c.max_field_ut, c.max_slew_a_per_s, c.step_s)
+    limits = CageLimits(c.max_current_a, c.max_field_ut, c.max_slew_a_per_s, c.step_s, c.coil_tau_s)
     controller = CageController(drives, model, limits, relays=relays, reference=reference,
                                 reference_to_cage=reference_to_cage)  # fmt: skip
     if safe_on_exit:

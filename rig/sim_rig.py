@@ -26,6 +26,7 @@ def rig_config_toml(
     sim_config: str,
     nominal_k: list[list[float]] | None = None,
     trim_ut_per_a: list[float] | None = None,
+    coil_tau_s: float | None = None,
 ) -> str:
     """A rig configuration (TOML) that points at the simulated devices.
 
@@ -65,6 +66,11 @@ def rig_config_toml(
             "max_field_ut = 120.0",
             "max_ambient_ut = 55.0  # the simulated lab field is 49 uT",
             "max_slew_a_per_s = 10.0",
+            *(
+                [f"coil_tau_s = {coil_tau_s:.4g}  # the coils' nameplate L/R"]
+                if coil_tau_s is not None
+                else []
+            ),
             "compliance_v = 12.0",
         ]
         if nominal_k is not None:
@@ -178,4 +184,6 @@ def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig) -> str:
     heater_limits(devices, cfg)
     nominal = [[float(v) for v in row] for row in cfg.cage.coil_matrix_ut_per_a]
     trims = [float(v) for v in cfg.cage.trim_ut_per_a] if any(cfg.cage.trim_ut_per_a) else None
-    return rig_config_toml({"devices": devices}, cfg.source, nominal, trims)
+    coil_tau_s = min(inductance / resistance for inductance, resistance
+                     in zip(cfg.cage.inductance_h, cfg.cage.resistance_ohm, strict=True))  # fmt: skip
+    return rig_config_toml({"devices": devices}, cfg.source, nominal, trims, coil_tau_s)

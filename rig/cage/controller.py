@@ -6,6 +6,7 @@ current limit and the slew limit hold for every command; the drivers check their
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import deque
@@ -199,7 +200,7 @@ class CageController:
         elapsed = (
             self.limits.step_s if self.last_send_s is None else time.monotonic() - self.last_send_s
         )
-        allowed = self.limits.max_slew_a_per_s * elapsed
+        allowed = self.limits.step_within_a(elapsed)
         flips = [
             ax for ax, d in enumerate(self.axes)
             if not d.bipolar and currents[ax] != 0 and (1 if currents[ax] > 0 else -1) != self.signs[ax]
@@ -208,11 +209,22 @@ class CageController:
         change = float(np.max(np.abs(currents - self.currents)))
         if not flips and change <= self.limits.max_step_a:
             if change > allowed:  # too soon after the last set-point: wait the slew out
-                self.sleep((change - allowed) / self.limits.max_slew_a_per_s)
+                self.sleep(self._wait_for_step_s(change, elapsed))
             self._send(currents)
             return False
         self.set_currents(currents)
         return True
+
+    def _wait_for_step_s(self, change_a: float, elapsed_s: float) -> float:
+        """How much longer (s) than ``elapsed_s`` to wait before a set-point change of
+        ``change_a`` keeps the coil current's slope within the slew limit."""
+        lim = self.limits
+        if lim.coil_tau_s is None:
+            return (change_a - lim.step_within_a(elapsed_s)) / lim.max_slew_a_per_s
+        fraction = change_a / (lim.max_slew_a_per_s * lim.coil_tau_s)
+        if fraction >= 1.0:  # beyond any wait: one ramp step (max_step_a) at most, checked above
+            return lim.step_s
+        return max(0.0, -lim.coil_tau_s * math.log1p(-fraction) - elapsed_s)
 
     def null_field(self) -> Array:
         """Cancel the ambient field (target 0 uT)."""

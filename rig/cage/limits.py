@@ -29,17 +29,34 @@ class CageLimits:
     max_field_ut: float
     max_slew_a_per_s: float
     step_s: float = 0.05  # interval between ramp set-points
+    coil_tau_s: float | None = None
+    """The coils' (shortest) L/R (s): a set-point step into a first-order coil makes its current
+    change fastest right after the step, so with it the steps are sized for that peak slope,
+    not only for the average."""
 
     def __post_init__(self) -> None:
         if min(self.max_current_a) <= 0 or self.max_field_ut <= 0 or self.max_slew_a_per_s <= 0:
             raise ValueError("cage limits must be positive")
         if self.step_s <= 0:
             raise ValueError("step_s must be positive")
+        if self.coil_tau_s is not None and not self.coil_tau_s > 0:
+            raise ValueError("coil_tau_s must be positive")
 
     @property
     def max_step_a(self) -> float:
-        """Largest change of one axis between consecutive set-points."""
-        return self.max_slew_a_per_s * self.step_s
+        """Largest change of one axis between consecutive set-points (A)."""
+        return self.step_within_a(self.step_s)
+
+    def step_within_a(self, dt_s: float) -> float:
+        """The largest set-point change (A) ``dt_s`` after the last one that keeps the coil
+        current's slope within ``max_slew_a_per_s``: ``slew * dt`` for an ideal coil; into a
+        coil of L/R ``tau`` still moving towards the last set-point, ``slew * tau * (1 -
+        exp(-dt / tau))`` (the steady staircase's peak slope, step / (tau (1 - exp(-dt/tau))),
+        at the limit)."""
+        tau = self.coil_tau_s
+        if tau is None:
+            return self.max_slew_a_per_s * dt_s
+        return self.max_slew_a_per_s * tau * -math.expm1(-dt_s / tau)
 
     def check_currents(self, currents_a: npt.ArrayLike, what: str = "command") -> None:
         """Refuse currents beyond the per-axis limits."""

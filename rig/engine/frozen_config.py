@@ -43,6 +43,7 @@ def freeze(cfg: RigConfig) -> str:
             "scalar": c.scalar,
             "ambient_gradient_nt_per_m": c.ambient_gradient_nt_per_m,
             "max_ambient_ut": c.max_ambient_ut,
+            "coil_tau_s": c.coil_tau_s,
             "trim": None if c.trim is None else list(c.trim),
             "trim_ut_per_a": None if c.trim_ut_per_a is None else list(c.trim_ut_per_a),
         }
@@ -89,6 +90,7 @@ def thaw(text: str) -> RigConfig:
                 scalar=c.get("scalar"),
                 ambient_gradient_nt_per_m=float(c.get("ambient_gradient_nt_per_m", 15.0)),
                 max_ambient_ut=float(c.get("max_ambient_ut", 66.0)),
+                coil_tau_s=None if c.get("coil_tau_s") is None else float(c["coil_tau_s"]),
                 trim=None if c.get("trim") is None else (c["trim"][0], c["trim"][1], c["trim"][2]),
                 trim_ut_per_a=None
                 if c.get("trim_ut_per_a") is None

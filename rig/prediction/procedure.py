@@ -129,7 +129,7 @@ def cage_limits(cfg: RigConfig | None) -> CageLimits | None:
     if cfg is None or cfg.cage is None:
         return None
     c = cfg.cage
-    return CageLimits(c.max_current_a, c.max_field_ut, c.max_slew_a_per_s, c.step_s)
+    return CageLimits(c.max_current_a, c.max_field_ut, c.max_slew_a_per_s, c.step_s, c.coil_tau_s)
 
 
 def _duration(proc: Procedure, cfg: RigConfig | None, timing: RigTiming) -> PredictedDuration:

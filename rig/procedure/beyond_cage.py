@@ -23,7 +23,8 @@ def cage_abilities(cfg: RigConfig | None) -> CageAbilities:
     return CageAbilities(None if model is None else model.k_ut_per_a, cage.max_slew_a_per_s,
                          {} if model is None else model.metrology(),
                          b0_ut=model.b0_ut if measured and model is not None else None,
-                         polarity_relays=cage.polarity is not None)  # fmt: skip
+                         polarity_relays=cage.polarity is not None,
+                         coil_tau_s=cage.coil_tau_s)  # fmt: skip
 
 
 def beyond_cage(proc: Procedure, cfg: RigConfig | None) -> list[str]:

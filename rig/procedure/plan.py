@@ -43,7 +43,7 @@ def rig_timing(cfg: RigConfig | None) -> RigTiming | None:
     given = ref.get("rate_hz") if ref is not None else None
     if isinstance(given, int | float) and not isinstance(given, bool) and given > 0:
         rate = float(given)
-    return RigTiming(cfg.cage.max_slew_a_per_s, cfg.cage.step_s, rate, cfg.cage.max_field_ut)
+    return RigTiming(cfg.cage.ramp_slew_a_per_s, cfg.cage.step_s, rate, cfg.cage.max_field_ut)
 
 
 def step_duration(step: Step, timing: RigTiming | None = None) -> float:

@@ -8,6 +8,7 @@ the report find every kind there; none of them names a kind.
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -164,6 +165,19 @@ class CageAbilities:
     measured (a nominal model: the currents then do not cancel it)."""
     polarity_relays: bool = False
     """The coils change polarity through relays (a flip is a step of the field, and arcs)."""
+    coil_tau_s: float | None = None
+    """The coils' shortest L/R (s), when the configuration states it (``[cage] coil_tau_s``)."""
+
+    def tracked_slew_a_per_s(self, rate_hz: float) -> float | None:
+        """The fastest a coil current may follow set-points sent at ``rate_hz`` (A/s): each
+        step into the coil's L/R peaks at the slew limit (:meth:`rig.cage.limits.CageLimits.
+        step_within_a`); the slew limit itself without an L/R, None without either."""
+        if self.max_slew_a_per_s is None:
+            return None
+        if self.coil_tau_s is None:
+            return self.max_slew_a_per_s
+        dt = 1.0 / rate_hz
+        return self.max_slew_a_per_s * self.coil_tau_s * -math.expm1(-dt / self.coil_tau_s) / dt
 
 
 class StepKind:

@@ -56,7 +56,8 @@ class CageResponse(SineStepKind):
         """The slew limit and the polarity relays, never the bandwidth: this step measures it."""
         return beyond_the_cage(step, CageAbilities(cage.k_ut_per_a, cage.max_slew_a_per_s,
                                                    b0_ut=cage.b0_ut,
-                                                   polarity_relays=cage.polarity_relays))  # fmt: skip
+                                                   polarity_relays=cage.polarity_relays,
+                                                   coil_tau_s=cage.coil_tau_s))  # fmt: skip
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return MeasureCageResponse(ctx, step)

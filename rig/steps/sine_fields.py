@@ -218,16 +218,19 @@ def beyond_the_cage(step: Step, cage: CageAbilities) -> list[str]:
                        f" {axis} beyond the cage's measured bandwidth there ({top:.3g} Hz,"
                        f" cage_response of {when}): lower the frequencies, or measure the cage"
                        " again (procedures/cage-response.yaml)")  # fmt: skip
-    if cage.k_ut_per_a is not None and cage.max_slew_a_per_s is not None:
+    top_slew = cage.tracked_slew_a_per_s(float(p["rate_hz"]))
+    if cage.k_ut_per_a is not None and top_slew is not None:
         inverse = np.linalg.inv(np.asarray(cage.k_ut_per_a, float))
+        through = ("" if cage.coil_tau_s is None else f", {top_slew:.3g} A/s for set-points at"
+                   f" {p['rate_hz']:g} Hz into the coils' {1e3 * cage.coil_tau_s:g} ms L/R")  # fmt: skip
         for axis in p["axes"]:
             amps = np.abs(inverse[:, AXES.index(axis)]) * float(p["amplitude_ut"])
             slew = 2.0 * math.pi * max(p["frequencies_hz"]) * float(np.max(amps))
-            if slew > cage.max_slew_a_per_s:
+            if slew > top_slew + 1e-9:
                 out.append(f"{step.kind} '{step.name}': the {max(p['frequencies_hz']):g} Hz sine"
                            f" of {p['amplitude_ut']:g} uT on {axis} needs {slew:.3g} A/s, over the"
-                           f" cage's max_slew_a_per_s ({cage.max_slew_a_per_s:g}): a smaller"
-                           " amplitude_ut or lower frequencies")  # fmt: skip
+                           f" cage's max_slew_a_per_s ({cage.max_slew_a_per_s:g}{through}): a"
+                           " smaller amplitude_ut or lower frequencies")  # fmt: skip
     return out + polarity_flips(step, cage)
 
 
