@@ -258,6 +258,8 @@ class RunInfo:
     run_id: str
     folder: Path
     meta: dict[str, Any]
+    closed_now: bool = False
+    """Found dead and marked incomplete by this listing (:attr:`RunReader.closed_now`)."""
 
     @property
     def status(self) -> str:
@@ -284,9 +286,13 @@ class RunReader:
             with contextlib.suppress(AttributeError, sqlite3.Error):
                 self._con.close()
             raise damaged(folder, exc) from None
+        self.closed_now = False
+        """This reader found the run's recorder gone and marked it incomplete (its outputs may
+        still be on: ``rig runs`` switches them off when nobody holds them)."""
         if meta.get("status") == RunStatus.RUNNING:
             reason = _recorder_gone(self._con, meta)
             if reason is not None and self._mark_incomplete(meta.get("lease"), reason):
+                self.closed_now = True
                 with contextlib.suppress(sqlite3.Error, OSError):
                     seal_run(folder)  # closed now: nobody will write to it again
 
@@ -511,6 +517,6 @@ def list_runs(runs_dir: Path) -> list[RunInfo]:
             except (UserInputError, safe_files.UnsafeFileError) as exc:
                 out.append(RunInfo(folder.name, folder, {"status": "damaged", "reason": str(exc)}))
                 continue
-            out.append(RunInfo(folder.name, folder, reader.meta()))
+            out.append(RunInfo(folder.name, folder, reader.meta(), reader.closed_now))
             reader.close()
     return out
