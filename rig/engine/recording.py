@@ -4,9 +4,11 @@ record)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import socket
 import sys
+import time
 from array import array
 from pathlib import Path
 
@@ -17,8 +19,10 @@ from rig.config import RigConfig
 from rig.engine.sampling import SensorSampler
 from rig.engine.switch_off import OutputState
 from rig.procedure.language import Procedure
+from rig.store import safe_files
 from rig.store.run_states import RunStatus
-from rig.store.run_store import RunWriter, new_run
+from rig.store.run_store import RunWriter, new_run, now_iso
+from rig.store.seal import SEAL_FILE, record_written
 
 LAB_TIMEOUT_S = 5.0
 """Longest wait for the lab index at run close (s); then the run is synced later."""
@@ -53,6 +57,37 @@ def close_record(w: RunWriter, status: RunStatus, reason: str,
                    commands_scheduled=int(lat.size))  # fmt: skip
     for problem in w.close(status, reason):
         print(f"rig: WARNING: {problem}; the data committed before it is kept", file=sys.stderr)
+
+
+AFTER_CLOSE_FILE = "closed-by-other.json"
+"""Written beside the seal by a recorder that found its run closed by another process (ADR 0036)."""
+SEAL_WAIT_S = 5.0
+"""How long such a recorder waits for the other process's seal before noting the fact (s)."""
+
+
+def note_closed_by_other(w: RunWriter, line: str, intended: str, outputs: str) -> None:
+    """Record, in :data:`AFTER_CLOSE_FILE` beside the other process's seal (which stays as it is,
+    as does the data it sealed), that this recorder carried on after the run was closed: its one
+    ``line``, the status it would have stored (``intended``), the rows it did not store and the
+    outputs as read back. The file is entered in the run's manifest (``rig verify`` lists it as
+    written by the rig). Best effort: a failure is one warning line."""
+    deadline = time.monotonic() + SEAL_WAIT_S  # the other process seals right after it marks
+    while not (w.folder / SEAL_FILE).exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    note = {
+        "written_at": now_iso(),
+        "line": line,
+        "would_have_stored": intended,
+        "rows_not_stored": w.rows_dropped,
+        "outputs": outputs,
+        "rows_stored_by_this_process": w.rows_written,
+    }
+    path = w.folder / AFTER_CLOSE_FILE
+    try:
+        safe_files.write_text(path, json.dumps(note, indent=2) + "\n")
+        record_written(w.folder, [path], "the recorder found its run closed by another process")
+    except (OSError, safe_files.UnsafeFileError) as exc:
+        print(f"rig: WARNING: could not write {path} ({exc})", file=sys.stderr)
 
 
 def write_report(folder: Path, quiet: bool) -> None:
