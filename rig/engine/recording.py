@@ -39,7 +39,9 @@ def open_record(runs_dir: Path, proc: Procedure, cfg: RigConfig) -> RunWriter:
         magnetometers=proc.magnetometers, loads=list(proc.loads),
     )  # fmt: skip
     (w.folder / "procedure.yaml").write_text(proc.text, encoding="utf-8")
-    shutil.copy(cfg.path, w.folder / "rig.toml")
+    # the bytes only: a group-writable configuration must not make a group-writable run file
+    # (the lab sync skips those, docs/lab.md)
+    shutil.copyfile(cfg.path, w.folder / "rig.toml")
     return w
 
 
@@ -113,7 +115,7 @@ def sync_lab(url: str, folder: Path, quiet: bool) -> None:
         report = sync_runs(url, [folder], timeout_s=LAB_TIMEOUT_S)
         if report.added and not quiet:
             print(f"rig: run added to the lab index {masked(url)}", file=sys.stderr)
-        for why in report.refused + report.not_stored + report.unreadable:
+        for why in report.refused + report.not_stored + report.skipped + report.unreadable:
             print(f"rig: WARNING: the lab index did not take this run: {why}", file=sys.stderr)
     except Exception as exc:  # never a failed run: the folder is the record
         print(f"rig: WARNING: the run was not added to the lab index ({masked(str(exc))});"
