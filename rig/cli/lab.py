@@ -89,13 +89,16 @@ def _emit(args: argparse.Namespace, rows: Any, text: str) -> None:
 
 
 def _cmd_sync(args: argparse.Namespace) -> int:
-    from rig.lab.sync import run_folders, sync_runs
+    from rig.lab.sync import check_runs_dir, run_folders, sync_runs
     from rig.lab.url import masked
 
     url = _url(args)
     if not args.runs_dir.is_dir():
         raise UserInputError(f"--runs-dir {args.runs_dir}: no such folder; name the runs folder")
+    check_runs_dir(args.runs_dir)
     report = sync_runs(url, run_folders(args.runs_dir))
+    for problem in report.skipped:
+        print(f"rig: WARNING: run {problem}; skipped", file=sys.stderr)
     for problem in report.unreadable:
         print(f"rig: WARNING: cannot read run {problem}; skipped", file=sys.stderr)
     for problem in report.refused:
@@ -105,12 +108,15 @@ def _cmd_sync(args: argparse.Namespace) -> int:
               file=sys.stderr)  # fmt: skip
     summary = {"added": len(report.added), "already_indexed": report.present,
                "still_running": len(report.running), "unreadable": len(report.unreadable),
-               "refused": len(report.refused), "not_stored": len(report.not_stored)}  # fmt: skip
+               "refused": len(report.refused), "not_stored": len(report.not_stored),
+               "skipped": len(report.skipped)}  # fmt: skip
     refused = len(report.refused) + len(report.not_stored)
+    skipped = len(report.skipped)
     _emit(args, summary, f"{len(report.added)} runs added to {masked(url)}"
           f" ({report.present} already there, {len(report.running)} still running"
-          + (f", {refused} refused" if refused else "") + ")")  # fmt: skip
-    return 1 if refused else 0
+          + (f", {refused} refused" if refused else "")
+          + (f", {skipped} skipped" if skipped else "") + ")")  # fmt: skip
+    return 1 if refused or skipped else 0
 
 
 def _cmd_runs(args: argparse.Namespace) -> int:

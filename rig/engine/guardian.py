@@ -13,6 +13,15 @@ the read end of a pipe whose write end only the rig process has:
 * no heartbeat for :data:`HEARTBEAT_TIMEOUT_S` means it hung: the guardian kills it (SIGKILL, so a
   stopped process that is resumed later cannot drive the outputs again).
 
+A run closed by another process while the rig was stopped (a reader in another PID namespace found
+its lease expired, marked it ``incomplete`` and sealed it: ``seal.json`` appears before the rig has
+said ``done``, and the stored status is no longer ``running``) is the third finding: the guardian
+switches every output off and writes nothing to the closed run. A rig still stopped is killed
+first (it holds its ports and cannot go safe); a running one finds the same and ends through its
+own safe path (ADR 0036), guarded meanwhile: one that has not ended :data:`CLOSED_GRACE_S` later
+is killed, and outputs the guardian could not reach while the rig held them are switched off
+once it has ended.
+
 Either way it then opens every Modbus output of the rig configuration (coil supplies, load
 channels, then the polarity relays once the coils are off), calls ``safe()`` on each, and, for a
 run, marks the run incomplete and records what it did in the run's store. It inherits the rig's
@@ -40,6 +49,7 @@ import sqlite3
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from drivers.registry import output_kinds
@@ -61,6 +71,15 @@ interpreter held). 15 heartbeat periods: far beyond the scheduling stalls of a b
 OWN_STALL_S = 0.5
 """The guardian's own wait took this much longer than asked: the guardian itself was descheduled,
 so the silence it saw is not the rig's; the rig gets a fresh timeout."""
+
+
+CLOSED_GRACE_S = 10.0
+"""After switching the outputs off because another process closed the run, how long the guardian
+waits for the rig to end through its own safe path (which takes ~1 s) before it kills it (s)."""
+
+
+class ClosedByOther(str):
+    """What :func:`wait_for_rig` returns when the run was closed by another process."""
 
 
 START_TIMEOUT_S = 30.0
@@ -156,11 +175,7 @@ class Guardian:
     def _stopped(self) -> bool:
         """True while the guardian process is stopped (state T or t in /proc): it would not act
         if the rig died now (a busy computer's waiting for a CPU is state R, not this)."""
-        try:
-            stat = Path(f"/proc/{self.proc.pid}/stat").read_text(encoding="ascii")
-        except OSError:
-            return False
-        self.stopped = stat.rsplit(")", 1)[-1].split()[:1] in (["T"], ["t"])
+        self.stopped = process_stopped(self.proc.pid)
         return self.stopped
 
     def release(self) -> None:
@@ -211,7 +226,8 @@ def _record(
     folder: Path, t_found: float, why: str, done: list[str], problems: list[str], cpu: str = ""
 ) -> None:
     """Mark the run incomplete and log what the guardian did (the run's own clock); ``cpu`` is
-    the guardian's note on its own wait for a CPU, appended to its message."""
+    the guardian's note on its own wait for a CPU, appended to its message. A run that is no
+    longer ``running`` (closed by another process) is left untouched, its seal too."""
     path = folder / "run.sqlite"
     if not path.exists():
         return
@@ -221,6 +237,11 @@ def _record(
     )
     con = sqlite3.connect(path, timeout=10.0)
     try:
+        con.execute("BEGIN IMMEDIATE")  # a run closed meanwhile by another process stays as it is
+        row = con.execute("SELECT value FROM meta WHERE key = 'status'").fetchone()
+        if row is not None and json.loads(row[0]) != "running":
+            con.rollback()
+            return
         rows = [(time.monotonic(), "error", message)]
         rows += [(time.monotonic(), "error", f"guardian could not safe {p}") for p in problems]
         con.executemany("INSERT INTO events VALUES (?, ?, ?)", rows)
@@ -236,15 +257,42 @@ def _record(
     seal_run(folder)  # the run is closed now: its data never change again
 
 
+def run_closed_by_other(folder: Path) -> str | None:
+    """The status another process stored in the run in ``folder`` when it closed it while the rig
+    was not done (``seal.json`` is there and the status is no longer ``running``), else None. One
+    ``lstat`` per call while the run has no seal; the store is read only once it has one."""
+    if not os.path.lexists(folder / "seal.json"):
+        return None
+    try:
+        con = sqlite3.connect(f"file:{folder / 'run.sqlite'}?mode=ro", uri=True, timeout=1.0)
+        try:
+            row = con.execute("SELECT value FROM meta WHERE key = 'status'").fetchone()
+        finally:
+            con.close()
+        status = json.loads(row[0]) if row is not None else None
+    except (sqlite3.Error, ValueError):
+        return None  # not readable: the rig's own writer judges its store
+    return None if status in (None, "running") else str(status)
+
+
 def wait_for_rig(
-    fd: int, pid: int, timeout_s: float = HEARTBEAT_TIMEOUT_S, waits: CpuWaitLog | None = None
+    fd: int,
+    pid: int,
+    timeout_s: float = HEARTBEAT_TIMEOUT_S,
+    waits: CpuWaitLog | None = None,
+    closed: Callable[[], str | None] | None = None,
+    kill_at: float | None = None,
 ) -> str | None:
     """Read heartbeats until the rig says ``done`` (None) or dies or hangs (why, one phrase).
     A hung rig is killed first, so that it cannot drive the outputs again once resumed.
 
     Time the guardian itself was not running (its 0.1 s wait took more than OWN_STALL_S longer)
     is not the rig's silence: that much is added to the rig's time, and no more. ``waits``, if
-    given, is noted every round (the guardian's own waits for a CPU, for its account)."""
+    given, is noted every round (the guardian's own waits for a CPU, for its account).
+    ``closed``, if given, is asked every round whether another process closed the run (the
+    status it stored): then a :class:`ClosedByOther` is returned at once, the rig left running
+    (it ends through its own safe path). A rig still there at ``kill_at`` (monotonic s) is
+    killed as a hung one is."""
     tail = b""
     last_beat = time.monotonic()
     own_stall_s = 0.0  # guardian stalls discounted since the last beat
@@ -257,6 +305,18 @@ def wait_for_rig(
         late = now - before - 0.1
         if late > OWN_STALL_S:
             own_stall_s += late  # we were not running: the rig's silence was not measured
+        stored = closed() if closed is not None else None
+        if stored is not None:
+            return ClosedByOther(
+                f"the run was closed by another process while the rig was stopped (stored:"
+                f" {stored})"
+            )
+        if kill_at is not None and now >= kill_at:
+            _kill_and_wait(fd, pid)
+            return (
+                f"the rig process did not end within {CLOSED_GRACE_S:g} s of its run being closed"
+                " by another process and was killed"
+            )
         if ready:
             chunk = os.read(fd, 4096)
             if not chunk:
@@ -265,12 +325,7 @@ def wait_for_rig(
             last_beat, own_stall_s = now, 0.0
             continue
         if now - last_beat - own_stall_s > timeout_s:
-            with contextlib.suppress(OSError):
-                os.kill(pid, signal.SIGKILL)
-            deadline = time.monotonic() + 1.0  # its end of the pipe closes as it dies
-            while time.monotonic() < deadline and select.select([fd], [], [], 0.05)[0]:
-                if not os.read(fd, 4096):
-                    break
+            _kill_and_wait(fd, pid)
             ours = (
                 f", {own_stall_s:.1f} s more while the guardian waited for a CPU"
                 if own_stall_s
@@ -280,6 +335,16 @@ def wait_for_rig(
                 f"the rig process stopped answering (no heartbeat for {now - last_beat - own_stall_s:.1f} s{ours}:"
                 " hung, stopped or deadlocked) and was killed"
             )
+
+
+def _kill_and_wait(fd: int, pid: int) -> None:
+    """SIGKILL the rig and wait (up to 1 s) for its end of the pipe to close as it dies."""
+    with contextlib.suppress(OSError):
+        os.kill(pid, signal.SIGKILL)
+    deadline = time.monotonic() + 1.0
+    while time.monotonic() < deadline and select.select([fd], [], [], 0.05)[0]:
+        if not os.read(fd, 4096):
+            break
 
 
 CPU_WAIT_LOOKBACK_S = 0.15
@@ -296,12 +361,15 @@ def _cpu_wait_note(wait_s: float) -> str:
 
 
 def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
-    """Wait for the rig to finish; act if it died or hung, on ``cfg`` (the frozen copy). Returns
-    the exit status."""
+    """Wait for the rig to finish; act if it died or hung, or if another process closed its run,
+    on ``cfg`` (the frozen copy). Returns the exit status."""
     waits = CpuWaitLog(keep=64)
-    why = wait_for_rig(fd, pid, waits=waits)
+    closed = None if folder is None else (lambda: run_closed_by_other(folder))
+    why = wait_for_rig(fd, pid, waits=waits, closed=closed)
     if why is None:
         return 0
+    if isinstance(why, ClosedByOther):
+        return _closed_by_other(fd, cfg, pid, why, waits)
     t_found = time.monotonic()
     done, problems = safe_outputs(cfg)
     waits.note(time.monotonic())
@@ -309,6 +377,11 @@ def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
     if folder is not None:
         with contextlib.suppress(sqlite3.Error, OSError):
             _record(folder, t_found, why, done, problems, cpu)
+    return _tell(why, t_found, done, problems, cpu)
+
+
+def _tell(why: str, t_found: float, done: list[str], problems: list[str], cpu: str = "") -> int:
+    """The guardian's lines on what it did (stderr); its exit status (1: an output not off)."""
     took_ms = 1000.0 * (time.monotonic() - t_found)
     print(f"rig guardian: {why}; switched off {', '.join(done) or 'nothing'} in {took_ms:.0f} ms"
           f"{cpu}", file=sys.stderr)  # fmt: skip
@@ -318,6 +391,42 @@ def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
             file=sys.stderr,
         )
     return 1 if problems else 0
+
+
+def _closed_by_other(fd: int, cfg: RigConfig, pid: int, why: str, waits: CpuWaitLog) -> int:
+    """Another process closed the run while the rig was stopped (ADR 0036). A rig still stopped
+    cannot take its own safe path and holds its ports: it is killed, then every output switched
+    off. A running rig finds the same and ends through its safe path: every output the guardian
+    can reach is switched off at once (one the rig holds open, a serial port, is left to it), the
+    rig is given :data:`CLOSED_GRACE_S` to end (else killed), and whatever was not reached is
+    switched off once it has. The closed run is never written to."""
+    t_found = time.monotonic()
+    if process_stopped(pid):
+        _kill_and_wait(fd, pid)
+        done, problems = safe_outputs(cfg)
+        return _tell(f"{why}; the rig process was still stopped and was killed", t_found, done,
+                     problems)  # fmt: skip
+    done, held = safe_outputs(cfg)
+    waits.note(time.monotonic())
+    cpu = _cpu_wait_note(waits.waited_since(t_found - CPU_WAIT_LOOKBACK_S))
+    left = f"; {len(held)} not reached yet (held by the rig, which is going safe)" if held else ""
+    _tell(why, t_found, done, [], cpu + left)
+    later = wait_for_rig(fd, pid, waits=waits, kill_at=time.monotonic() + CLOSED_GRACE_S)
+    if later is None and not held:
+        return 0
+    t_again = time.monotonic()
+    done, problems = safe_outputs(cfg)
+    return _tell(later or "the rig process went safe and ended", t_again, done, problems)
+
+
+def process_stopped(pid: int) -> bool:
+    """True while process ``pid`` is stopped (state T or t in /proc: SIGSTOP, a debugger); a
+    process waiting for a CPU (state R) or gone is not."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text(encoding="ascii")
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[-1].split()[:1] in (["T"], ["t"])
 
 
 def read_config_line(fd: int) -> RigConfig:

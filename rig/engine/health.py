@@ -1,6 +1,7 @@
 """The run's health monitor: a thread that reads back the load and coil currents and watches the
 sensors and the store at about 5 Hz. A tripped supply, a stalled or frozen sensor, an output that
-stopped answering or a store that cannot write is a fault (``RigSession.fail``): the main thread
+stopped answering, a store that cannot write or a run closed by another process while this one was
+stopped (ADR 0036) is a fault (``RigSession.fail``): the main thread
 raises it at its next wait and the run ends through the safe path."""
 
 from __future__ import annotations
@@ -33,6 +34,16 @@ POWER_FLOOR_W = 0.1
 UNREAD_FAULT_AFTER = 2
 """Read-backs of an output that failed in a row (each after the link's own retries) before the
 output counts as lost: one can be a glitch, two mean its state is unknown (a fault)."""
+
+
+def closed_by_other_line(stored: str) -> str:
+    """The one line of a run another process closed while this one was stopped (``stored``: the
+    status and reason that process wrote, :attr:`RunWriter.closed_by_other`)."""
+    return (
+        f"the run was closed by another process while this one was stopped (stored: {stored});"
+        " outputs switched off and nothing more recorded, its data kept as that process sealed"
+        " it: start a new run"
+    )
 
 
 class HealthMonitor:
@@ -128,6 +139,8 @@ class HealthMonitor:
         """One round: the store, the sensors (unless this process was just descheduled), and
         every COIL_CHECK_S the coil supplies (``RigSession.check_coils``)."""
         w = self.writer
+        if w.closed_by_other is not None:
+            self.rig.fail(closed_by_other_line(w.closed_by_other))
         if w.error is not None:
             self.rig.fail(f"cannot write the run data ({w.error}): is the disk full? Free space"
                           f" under {w.folder.parent}; what was recorded before is kept")  # fmt: skip

@@ -4,9 +4,11 @@ record)."""
 
 from __future__ import annotations
 
+import json
 import shutil
 import socket
 import sys
+import time
 from array import array
 from pathlib import Path
 
@@ -17,8 +19,10 @@ from rig.config import RigConfig
 from rig.engine.sampling import SensorSampler
 from rig.engine.switch_off import OutputState
 from rig.procedure.language import Procedure
+from rig.store import safe_files
 from rig.store.run_states import RunStatus
-from rig.store.run_store import RunWriter, new_run
+from rig.store.run_store import RunWriter, new_run, now_iso
+from rig.store.seal import SEAL_FILE, record_written
 
 LAB_TIMEOUT_S = 5.0
 """Longest wait for the lab index at run close (s); then the run is synced later."""
@@ -35,7 +39,9 @@ def open_record(runs_dir: Path, proc: Procedure, cfg: RigConfig) -> RunWriter:
         magnetometers=proc.magnetometers, loads=list(proc.loads),
     )  # fmt: skip
     (w.folder / "procedure.yaml").write_text(proc.text, encoding="utf-8")
-    shutil.copy(cfg.path, w.folder / "rig.toml")
+    # the bytes only: a group-writable configuration must not make a group-writable run file
+    # (the lab sync skips those, docs/lab.md)
+    shutil.copyfile(cfg.path, w.folder / "rig.toml")
     return w
 
 
@@ -53,6 +59,37 @@ def close_record(w: RunWriter, status: RunStatus, reason: str,
                    commands_scheduled=int(lat.size))  # fmt: skip
     for problem in w.close(status, reason):
         print(f"rig: WARNING: {problem}; the data committed before it is kept", file=sys.stderr)
+
+
+AFTER_CLOSE_FILE = "closed-by-other.json"
+"""Written beside the seal by a recorder that found its run closed by another process (ADR 0036)."""
+SEAL_WAIT_S = 5.0
+"""How long such a recorder waits for the other process's seal before noting the fact (s)."""
+
+
+def note_closed_by_other(w: RunWriter, line: str, intended: str, outputs: str) -> None:
+    """Record, in :data:`AFTER_CLOSE_FILE` beside the other process's seal (which stays as it is,
+    as does the data it sealed), that this recorder carried on after the run was closed: its one
+    ``line``, the status it would have stored (``intended``), the rows it did not store and the
+    outputs as read back. The file is entered in the run's manifest (``rig verify`` lists it as
+    written by the rig). Best effort: a failure is one warning line."""
+    deadline = time.monotonic() + SEAL_WAIT_S  # the other process seals right after it marks
+    while not (w.folder / SEAL_FILE).exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    note = {
+        "written_at": now_iso(),
+        "line": line,
+        "would_have_stored": intended,
+        "rows_not_stored": w.rows_dropped,
+        "outputs": outputs,
+        "rows_stored_by_this_process": w.rows_written,
+    }
+    path = w.folder / AFTER_CLOSE_FILE
+    try:
+        safe_files.write_text(path, json.dumps(note, indent=2) + "\n")
+        record_written(w.folder, [path], "the recorder found its run closed by another process")
+    except (OSError, safe_files.UnsafeFileError) as exc:
+        print(f"rig: WARNING: could not write {path} ({exc})", file=sys.stderr)
 
 
 def write_report(folder: Path, quiet: bool) -> None:
@@ -78,7 +115,7 @@ def sync_lab(url: str, folder: Path, quiet: bool) -> None:
         report = sync_runs(url, [folder], timeout_s=LAB_TIMEOUT_S)
         if report.added and not quiet:
             print(f"rig: run added to the lab index {masked(url)}", file=sys.stderr)
-        for why in report.refused + report.not_stored + report.unreadable:
+        for why in report.refused + report.not_stored + report.skipped + report.unreadable:
             print(f"rig: WARNING: the lab index did not take this run: {why}", file=sys.stderr)
     except Exception as exc:  # never a failed run: the folder is the record
         print(f"rig: WARNING: the run was not added to the lab index ({masked(str(exc))});"

@@ -30,7 +30,7 @@ from rig.calibration.record import latest_calibration
 from rig.config import RigConfig
 from rig.engine.commands import Commands, LoadBook
 from rig.engine.field_guard import guard_the_field
-from rig.engine.health import HealthMonitor
+from rig.engine.health import HealthMonitor, closed_by_other_line
 from rig.engine.interlock import RigLock
 from rig.engine.live import LiveView
 from rig.engine.live_state import LivePublisher
@@ -40,6 +40,7 @@ from rig.engine.recording import (
 )
 from rig.engine.recording import (
     close_record,
+    note_closed_by_other,
     open_record,
     outputs_note,
     sync_lab,
@@ -158,8 +159,10 @@ class Runner:
             status, reason = RunStatus.ERROR, f"internal error: {type(exc).__name__}: {exc}"
             raise
         finally:
-            outputs = self._close(w, status, reason, old)
-        self._after_close(w.folder)
+            outputs, status, reason = self._close(w, status, reason, old)
+        if w.closed_by_other is None:
+            self._after_close(w.folder)
+        # else: the run is the other process's record now; no report, no lab index (ADR 0036)
         return RunOutcome(status, reason, w.folder, self.results, outputs)
 
     def _carry_out(self, w: RunWriter) -> None:
@@ -191,9 +194,13 @@ class Runner:
             return RunStatus.FAILED, "acceptance checks failed"
         return RunStatus.COMPLETE, "all steps done"
 
-    def _close(self, w: RunWriter, status: RunStatus, reason: str, old: dict[int, Any]) -> str:
+    def _close(
+        self, w: RunWriter, status: RunStatus, reason: str, old: dict[int, Any]
+    ) -> tuple[str, RunStatus, str]:
         """The run to ``status``, recorded and closed, the lock and signals given back; returns
-        the line on the outputs."""
+        the line on the outputs and the status and reason the run ended with: ``error`` and the
+        one line of :func:`closed_by_other_line` when another process closed the run meanwhile
+        (its status and seal are left as they are, the fact noted beside them, ADR 0036)."""
         if self.live is not None:
             self.live.stop()
         read_back = self.session.read_back if self.session is not None else None
@@ -203,12 +210,16 @@ class Runner:
             self._event("error" if still_on else "info", outputs)
         lateness = self.scheduler.lateness_s if self.scheduler is not None else array("d")
         close_record(w, status, reason, self.samplers, lateness)
+        if w.closed_by_other is not None:
+            intended = f"{status}: {reason}"
+            status, reason = RunStatus.ERROR, closed_by_other_line(w.closed_by_other)
+            note_closed_by_other(w, reason, intended, outputs)
         self._lock.release()  # the session released it already, unless it never opened
         restore_signals(old)
         assert self.publisher is not None
         self.publisher.stop(status, reason)
         self.tracker.to(status)
-        return outputs
+        return outputs, status, reason
 
     def _after_close(self, folder: Path) -> None:
         """The report (asked for, or one written while the run was recording, which says

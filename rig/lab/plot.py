@@ -9,7 +9,9 @@ from rig.lab.queries import Trend
 
 def trend_png(trend: Trend, path: Path) -> None:
     """Values (with 1-sigma bars) in run order, one colour per series (calibration and lot), its
-    mean and control limits as lines; outliers circled. matplotlib is imported here only."""
+    mean and control limits as lines; outliers circled; values beyond the parameter's physical
+    range (``in_range`` false) are not drawn, only counted in the title. matplotlib is imported
+    here only."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -18,7 +20,8 @@ def trend_png(trend: Trend, path: Path) -> None:
     fig, ax = plt.subplots(figsize=(10, 4.5))
     try:
         for series in trend.series:
-            idx = [i for i, r in enumerate(trend.rows) if r["series"] == series]
+            idx = [i for i, r in enumerate(trend.rows)
+                   if r["series"] == series and r.get("in_range", True)]  # fmt: skip
             vals = [float(trend.rows[i]["value"]) for i in idx]
             sig = [float(trend.rows[i]["sigma"] or 0.0) for i in idx]
             line = ax.errorbar(idx, vals, yerr=sig, fmt=".", ms=4, label=series)
@@ -28,14 +31,16 @@ def trend_png(trend: Trend, path: Path) -> None:
                 lo, hi = min(idx), max(idx)
                 ax.hlines([lim["mean"]], lo, hi, colors=color, linestyles="-", lw=0.8)
                 ax.hlines([lim["lcl"], lim["ucl"]], lo, hi, colors=color, linestyles="--", lw=0.8)
-        out = [i for i, r in enumerate(trend.rows) if r["outlier"]]
+        out = [i for i, r in enumerate(trend.rows) if r["outlier"] and r.get("in_range", True)]
         ax.plot(out, [trend.rows[i]["value"] for i in out], "o", mfc="none", mec="red", ms=9,
                 label="outside mean +- 3 sigma")  # fmt: skip
         ax.set_xlabel("calibration (time order)")
         ax.set_ylabel(trend.param)
+        beyond = sum(1 for r in trend.rows if not r.get("in_range", True))
         ax.set_title(
             f"{trend.param}: {trend.runs} runs, {len(trend.rows)} calibrations,"
             " control limits per calibration and lot"
+            + (f"; {beyond} beyond the physical range not drawn" if beyond else "")
         )
         ax.legend(fontsize=7, ncol=2)
         fig.tight_layout()

@@ -13,6 +13,8 @@ import statistics
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from rig.lab.bounds import PARAMETERS, UNKNOWN, in_range
+
 if TYPE_CHECKING:
     import psycopg
 
@@ -124,7 +126,8 @@ def control_limits(values: list[float], positive: bool) -> Row:
 def trend(conn: psycopg.Connection[Any], param: str, *, lot: str | None = None) -> Trend:
     """``param`` (a calibration result name, e.g. ``x0_ut``) over runs in time order, one series
     per calibration and lot (``series``); each row flagged ``outlier`` when outside its series'
-    control limits."""
+    control limits or outside the parameter's physical range (``in_range`` false: such a value,
+    stored before syncs refused it, is left out of the limits, :mod:`rig.lab.bounds`)."""
     rows = _rows(conn, """
         SELECT r.run_id, r.rig, r.lot, r.dut_serial, r.started_at, s.source, s.value, s.sigma
         FROM lab_results s JOIN lab_runs r ON r.id = s.run
@@ -133,7 +136,11 @@ def trend(conn: psycopg.Connection[Any], param: str, *, lot: str | None = None) 
     by_series: dict[str, list[float]] = {}
     for row in rows:
         row["series"] = series_label(row["source"], row["lot"])
-        by_series.setdefault(row["series"], []).append(float(row["value"]))
+        # a value beyond the physical range (stored by an older sync) is no part of the limits
+        row["in_range"] = in_range(param, float(row["value"]))
+        values = by_series.setdefault(row["series"], [])
+        if row["in_range"]:
+            values.append(float(row["value"]))
     limits = {}
     positive = positive_quantity(param)
     for row in rows:
@@ -143,7 +150,9 @@ def trend(conn: psycopg.Connection[Any], param: str, *, lot: str | None = None) 
                             **control_limits(by_series[name], positive)}  # fmt: skip
     for row in rows:
         lim = limits.get(row["series"])
-        row["outlier"] = bool(lim) and not lim["lcl"] <= row["value"] <= lim["ucl"]  # type: ignore[index]
+        row["outlier"] = not row["in_range"] or (
+            bool(lim) and not lim["lcl"] <= row["value"] <= lim["ucl"]  # type: ignore[index]
+        )
     return Trend(param, rows, limits)
 
 
@@ -157,8 +166,12 @@ def refusals(conn: psycopg.Connection[Any]) -> list[Row]:
 
 def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
     """Runs that used an instrument whose certificate had expired; runs without a seal (no data
-    hash); runs a sync refused (changed since they were sealed, or not storable); and per rig: runs, failed criteria and calibration values outside their series'
-    control limits (mean +- 3 sigma of the parameter over the same calibration in the same lot)."""
+    hash); runs a sync refused (changed since they were sealed, not sealed, a value out of range,
+    or not storable); and per rig: runs, failed criteria and calibration values outside their
+    series' control limits (mean +- 3 sigma of the parameter over the same calibration in the
+    same lot) or outside the parameter's physical range (:mod:`rig.lab.bounds`; such a value,
+    stored by an older sync, is counted an outlier and left out of the limits, so it can neither
+    move them nor overflow them)."""
     expired = _rows(conn, """
         SELECT r.run_id, r.rig, r.started_at, r.dut_serial, i.name AS instrument, i.serial,
                i.certificate_expires
@@ -168,17 +181,22 @@ def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
         SELECT r.run_id, r.rig, r.started_at, r.status FROM lab_runs r
         WHERE r.data_sha256 IS NULL ORDER BY r.started_at, r.id""")  # fmt: skip
     refused = refusals(conn)
+    ranges = ", ".join(["(%s, %s::float8, %s::float8)"] * len(PARAMETERS))
     per_rig = _rows(conn, f"""
-        WITH vals AS MATERIALIZED (
-            SELECT r.rig, coalesce(r.lot, '') AS lot, s.source, s.name, s.value
-            FROM lab_results s JOIN lab_runs r ON r.id = s.run),
+        WITH ranges (name, lo, hi) AS (VALUES {ranges}),
+        vals AS MATERIALIZED (
+            SELECT r.rig, coalesce(r.lot, '') AS lot, s.source, s.name, s.value,
+                   coalesce(s.value BETWEEN coalesce(g.lo, -{UNKNOWN}::float8)
+                                        AND coalesce(g.hi, {UNKNOWN}::float8), false) AS in_range
+            FROM lab_results s JOIN lab_runs r ON r.id = s.run LEFT JOIN ranges g USING (name)),
         lots AS (
             SELECT name, source, lot, avg(value) AS m, stddev_samp(value) AS sd FROM vals
-            GROUP BY name, source, lot HAVING count(*) >= {MIN_FOR_LIMITS}),
+            WHERE in_range GROUP BY name, source, lot HAVING count(*) >= {MIN_FOR_LIMITS}),
         outliers AS (
-            SELECT v.rig, count(*) AS n,
-                   count(*) FILTER (WHERE abs(v.value - l.m) > {CONTROL_SIGMAS} * l.sd) AS outliers
-            FROM vals v JOIN lots l USING (name, source, lot) GROUP BY v.rig),
+            SELECT v.rig, count(*) FILTER (WHERE l.m IS NOT NULL OR NOT v.in_range) AS n,
+                   count(*) FILTER (WHERE NOT v.in_range OR (l.m IS NOT NULL
+                                    AND abs(v.value - l.m) > {CONTROL_SIGMAS} * l.sd)) AS outliers
+            FROM vals v LEFT JOIN lots l USING (name, source, lot) GROUP BY v.rig),
         crit AS (
             SELECT r.rig, count(*) AS n, count(*) FILTER (WHERE c.verdict = 'FAIL') AS failed
             FROM lab_criteria c JOIN lab_runs r ON r.id = c.run GROUP BY r.rig),
@@ -191,7 +209,8 @@ def audit(conn: psycopg.Connection[Any]) -> dict[str, list[Row]]:
                coalesce(o.n, 0) AS values, coalesce(o.outliers, 0) AS outliers,
                coalesce(o.outliers::float / nullif(o.n, 0), 0) AS outlier_fraction
         FROM rigs g LEFT JOIN crit c USING (rig) LEFT JOIN outliers o USING (rig)
-        ORDER BY outlier_fraction DESC, failed_fraction DESC, g.rig""")  # fmt: skip
+        ORDER BY outlier_fraction DESC, failed_fraction DESC, g.rig""",
+        tuple(x for name, (lo, hi) in PARAMETERS.items() for x in (name, lo, hi)))  # fmt: skip
     return {"expired_certificates": expired, "unsealed": unsealed, "refused": refused,
             "rigs": per_rig}  # fmt: skip
 

@@ -192,9 +192,15 @@ def instruments(config: dict[str, Any], started_at: str | None) -> list[Instrume
 
 
 def _number(value: Any) -> float | None:
+    """A stored number as a float (an infinite or huge one kept, for the sync's range check to
+    refuse, :mod:`rig.lab.bounds`); None for NaN or anything not a number."""
     if isinstance(value, bool) or not isinstance(value, int | float):
         return None
-    return float(value) if math.isfinite(value) else None
+    try:
+        x = float(value)
+    except OverflowError:  # an integer beyond any float
+        return math.inf if value > 0 else -math.inf
+    return None if math.isnan(x) else x
 
 
 def stored_verdict(results: dict[str, Any]) -> CheckVerdict | None:

@@ -7,10 +7,17 @@
   killed at any point leaves whole runs only, and the next sync pushes the rest.
 * Offline-first: the run folders are the record; an index that is down is one error line
   (:class:`~rig.lab.schema.LabUnavailableError`) and the next sync catches up.
-* Checked: a sealed run's data are recomputed before it is pushed (:func:`seal_problem`); a run
-  whose data, tables or configuration copies no longer match its seal is refused, and so is one
-  the index cannot store (a NUL byte in a string, a constraint). Each refusal is one line in the
-  report and a row of ``lab_refusals`` (``rig lab audit``); the other runs sync.
+* Checked: only sealed runs are pushed, and each seal is recomputed first (:func:`seal_problem`,
+  as ``rig verify`` does); a run whose data, tables, configuration copies or other files no
+  longer match its seal is refused, and so is one with a number outside its physical range
+  (:mod:`rig.lab.bounds`) or one the index cannot store (a NUL byte in a string, a constraint).
+  Each refusal is one line in the report and a row of ``lab_refusals`` (``rig lab audit``); the
+  other runs sync. A run without a seal is skipped (one line, and a ``lab_refusals`` row).
+* Owned: the seal is a checksum, not a signature; anyone who can write a runs folder can make a
+  sealed run from nothing. So a run folder (or one of its files) that group or other may write,
+  or that another account owns, is skipped unread with one line naming the permission and the
+  fix (:func:`folder_problem`), and ``rig lab sync`` refuses a runs folder so exposed
+  (:func:`check_runs_dir`). See docs/lab.md.
 * Bounded: every statement, lock waits included, ends within ``timeout_s`` (the session's
   ``statement_timeout`` and ``lock_timeout``), so a locked table cannot hold a closing run.
 """
@@ -19,11 +26,14 @@ from __future__ import annotations
 
 import os
 import sqlite3
+import stat
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from rig.errors import UserInputError
+from rig.lab.bounds import out_of_range
 from rig.lab.schema import open_index, unavailable
 from rig.lab.summary import RunSummary, run_key, sealed_key, summarize
 from rig.store import safe_files
@@ -48,7 +58,8 @@ BATCH = 200
 @dataclass
 class SyncReport:
     """What a sync did: runs added, already there, still running (skipped), unreadable, refused
-    (changed since sealed), not stored (the index refused them); the last three with the reason."""
+    (changed since sealed, a value out of range), not stored (the index refused them), skipped
+    (not sealed, or a folder other accounts may write); the last four with the reason."""
 
     added: list[str] = field(default_factory=list)
     present: int = 0
@@ -56,6 +67,65 @@ class SyncReport:
     unreadable: list[str] = field(default_factory=list)
     refused: list[str] = field(default_factory=list)
     not_stored: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+
+
+def _trusted(uid: int) -> bool:
+    """Files of this account or root are the rig's."""
+    return uid in (os.geteuid(), 0)
+
+
+def path_problem(path: Path, what: str, *, follow: bool = False) -> str | None:
+    """Why ``path`` (a folder or file of runs) may hold another account's data, or None: owned by
+    another account, or writable by group or other. One line naming the fix. A link is judged
+    by what it points to when ``follow``, else not at all: the run's readers refuse links with
+    their own line (:mod:`rig.store.safe_files`)."""
+    try:
+        st = os.stat(path) if follow else os.lstat(path)
+    except FileNotFoundError:
+        return None
+    if stat.S_ISLNK(st.st_mode):
+        return None
+    if not _trusted(st.st_uid):
+        return (f"{what} {path} is owned by uid {st.st_uid}, not by this account (uid"
+                f" {os.geteuid()}): another account made it; check it and move it out of the runs"
+                " folder")  # fmt: skip
+    mode = stat.S_IMODE(st.st_mode)
+    if mode & 0o022:
+        who = " and ".join(w for w, bit in (("group", 0o020), ("other", 0o002)) if mode & bit)
+        return (f"{what} {path} can be written by {who} (mode {mode:o}): anyone there can forge a"
+                f" sealed run; chmod go-w {path}")  # fmt: skip
+    return None
+
+
+def check_runs_dir(runs_dir: Path) -> None:
+    """Refuse (UserInputError, one line) a runs folder another account may write or owns."""
+    problem = path_problem(runs_dir, "runs folder", follow=True)
+    if problem is not None:
+        raise UserInputError(f"{problem}; nothing was pushed")
+
+
+LIVE_ONLY = frozenset({"live.json", "control"})
+"""Entries of a running run's live channel (checked by the run itself, ADR 0016)."""
+
+
+def folder_problem(folder: Path) -> str | None:
+    """Why the run in ``folder`` may not be trusted as the rig's own (see :func:`path_problem`):
+    the folder itself, then each entry of it (files and folders, one level)."""
+    problem = path_problem(folder, "run folder")
+    if problem is not None:
+        return problem
+    try:
+        names = sorted(os.listdir(folder))
+    except OSError as exc:
+        return f"run folder {folder} cannot be listed ({exc.strerror})"
+    for name in names:
+        if name in LIVE_ONLY:
+            continue
+        problem = path_problem(folder / name, "run file")
+        if problem is not None:
+            return problem
+    return None
 
 
 def run_folders(runs_dir: Path) -> list[Path]:
@@ -102,7 +172,12 @@ def _sealed_key(folder: Path) -> str | None:
 
 def _sync_one(conn: psycopg.Connection[Any], folder: Path, report: SyncReport,
               on_added: Callable[[RunSummary], None] | None) -> None:  # fmt: skip
-    """One run: read, checked against its seal, inserted; a refusal is reported and recorded."""
+    """One run: its folder's owner and permissions checked, read, checked against its seal and
+    the physical ranges, inserted; a refusal is reported and recorded."""
+    exposed = folder_problem(folder)
+    if exposed is not None:  # not even opened: reading a run may mark and seal it
+        report.skipped.append(f"{folder.name}: {exposed}")
+        return
     try:
         summary = summarize(folder)
         problem = None if summary is None else seal_problem(folder, summary)
@@ -112,9 +187,19 @@ def _sync_one(conn: psycopg.Connection[Any], folder: Path, report: SyncReport,
     if summary is None:
         report.running.append(folder.name)
         return
+    if summary.data_sha256 is None:
+        why = f"not sealed, so its data cannot be checked; 'rig verify {folder}' says more"
+        report.skipped.append(f"{folder.name}: {why}")
+        record_refusal(conn, summary, "not sealed", why)
+        return
     if problem is not None:
         report.refused.append(f"{folder.name}: {problem}")
         record_refusal(conn, summary, "changed since sealed", problem)
+        return
+    beyond = out_of_range(summary)
+    if beyond is not None:
+        report.refused.append(f"{folder.name}: {beyond}; not stored")
+        record_refusal(conn, summary, "value out of range", beyond)
         return
     try:
         added = insert_run(conn, summary)
@@ -134,10 +219,11 @@ def _sync_one(conn: psycopg.Connection[Any], folder: Path, report: SyncReport,
 
 
 def seal_problem(folder: Path, summary: RunSummary) -> str | None:
-    """Why a sealed run may not be pushed (its data, tables or configuration copies no longer
-    match the seal: recomputed now), None when it may; an unsealed run is pushed as such."""
+    """Why a run may not be pushed: no seal, or its data, tables, configuration copies or other
+    files no longer match the seal (recomputed now, as ``rig verify`` does; the reports are not
+    held to it: the index takes nothing from them); None when it may."""
     if summary.data_sha256 is None:
-        return None
+        return f"not sealed; 'rig verify {folder}' says more"
     try:
         result = verify_run(folder)
     except (sqlite3.Error, OSError, safe_files.UnsafeFileError) as exc:
@@ -145,8 +231,8 @@ def seal_problem(folder: Path, summary: RunSummary) -> str | None:
     if result.data_sha256 != summary.data_sha256:
         return (f"its data changed since the run was sealed (sealed {summary.data_sha256}, now"
                 f" {result.data_sha256}); 'rig verify {folder}' says what")  # fmt: skip
-    data = result.changed.get("data")
-    return f"{data[0]}; 'rig verify {folder}' says more" if data else None
+    changed = result.changed.get("data", []) + result.changed.get("files", [])
+    return f"{changed[0]}; 'rig verify {folder}' says more" if changed else None
 
 
 def _one_line(exc: BaseException) -> str:

@@ -10,6 +10,14 @@ its recorder is gone: judged by the PID when the reader is provably in the recor
 namespace, else by the lease - expired when its wall-clock time is more than ``LEASE_EXPIRY_S``
 away from the reader's *and* its count does not move for ``LEASE_WATCH_S``. So a reader in a
 container or on another host sharing the runs folder never closes a live run, whatever the clocks.
+
+A recorder can still be *stopped* long enough (SIGSTOP, a suspended VM) for such a reader to close
+its run rightly. So the writer writes only while the run is still its own: every write (a batch,
+the lease, metadata, a step, a result, the final status) is one ``BEGIN IMMEDIATE`` transaction
+that first reads the status and writes nothing once it is no longer ``running``. The writer then
+sets :attr:`RunWriter.closed_by_other`; the health monitor ends the run through the safe path, and
+:meth:`RunWriter.close` neither writes the status nor seals again: the run stays as the reader
+closed and sealed it (ADR 0036).
 """
 
 from __future__ import annotations
@@ -103,6 +111,11 @@ class RunWriter:
         self._stop = threading.Event()
         self.rows_written = 0
         self.error: sqlite3.Error | None = None
+        self.closed_by_other: str | None = None
+        """Set (once) when another process closed this run (a reader marked it ``incomplete``
+        while this one was stopped): the stored status and reason. Nothing more is written."""
+        self.rows_dropped = 0
+        """Rows not written because the run had been closed by another process."""
         self._lease = _lease_of(self._con)
         self._renew_lease()
         self._thread = threading.Thread(target=self._run, name="run-store", daemon=True)
@@ -138,12 +151,38 @@ class RunWriter:
 
     # --- immediate writes -----------------------------------------------------------------------
 
+    def _begin_if_ours(self) -> bool:
+        """Open a write transaction (``BEGIN IMMEDIATE``, the lock held) if the run is still this
+        writer's: its stored status is ``running`` (or not stored yet). Otherwise roll back, note
+        who closed it in :attr:`closed_by_other` and return False: nothing may be written."""
+        if self.closed_by_other is not None:
+            return False
+        con = self._con
+        if con.in_transaction:
+            con.commit()
+        con.execute("BEGIN IMMEDIATE")
+        stored = dict(con.execute("SELECT key, value FROM meta WHERE key IN ('status', 'reason')"))
+        status = json.loads(stored["status"]) if "status" in stored else RunStatus.RUNNING
+        if status == RunStatus.RUNNING:
+            return True
+        con.rollback()
+        reason = json.loads(stored["reason"]) if "reason" in stored else "no reason stored"
+        self.closed_by_other = f"{status} ({reason})"
+        return False
+
     @contextlib.contextmanager
-    def _writing(self) -> Iterator[None]:
-        """Hold the lock; a database error becomes a one-line :class:`StoreWriteError`."""
+    def _writing(self) -> Iterator[bool]:
+        """Hold the lock inside a write transaction if the run is still ours (yields whether it
+        is: write only then); a database error becomes a one-line :class:`StoreWriteError`."""
         with self._lock:
             try:
-                yield
+                ours = self._begin_if_ours()
+                try:
+                    yield ours
+                except BaseException:
+                    if self._con.in_transaction:
+                        self._con.rollback()
+                    raise
             except sqlite3.Error as exc:
                 self.error = exc
                 raise StoreWriteError(
@@ -153,26 +192,29 @@ class RunWriter:
 
     def set_meta(self, **values: Any) -> None:
         """Metadata, written and committed at once."""
-        with self._writing():
-            self._con.executemany(META_UPSERT, _meta_rows(values))
-            self._con.commit()
+        with self._writing() as ours:
+            if ours:
+                self._con.executemany(META_UPSERT, _meta_rows(values))
+                self._con.commit()
 
     def set_step(self, idx: int, name: str, kind: str, t_start: float, t_end: float | None) -> None:
         """Start (and later end) of a procedure step."""
-        with self._writing():
-            self._con.execute(
-                "INSERT OR REPLACE INTO steps VALUES (?, ?, ?, ?, ?)",
-                (idx, name, kind, t_start, t_end),
-            )
-            self._con.commit()
+        with self._writing() as ours:
+            if ours:
+                self._con.execute(
+                    "INSERT OR REPLACE INTO steps VALUES (?, ?, ?, ?, ?)",
+                    (idx, name, kind, t_start, t_end),
+                )
+                self._con.commit()
 
     def set_result(self, name: str, value: Any) -> None:
         """A named result (calibration, check verdict), JSON-serializable."""
-        with self._writing():
-            self._con.execute(
-                "INSERT OR REPLACE INTO results VALUES (?, ?)", (name, json.dumps(value))
-            )
-            self._con.commit()
+        with self._writing() as ours:
+            if ours:
+                self._con.execute(
+                    "INSERT OR REPLACE INTO results VALUES (?, ?)", (name, json.dumps(value))
+                )
+                self._con.commit()
 
     # --- the commit thread ----------------------------------------------------------------------
 
@@ -188,15 +230,23 @@ class RunWriter:
             batches.setdefault(item[0], []).append(item[1])
         if not batches:
             return 0
-        with self._lock:
-            for table, rows in batches.items():
-                cols = TABLE_COLUMNS[table]
-                self._con.executemany(
-                    f"INSERT INTO {table} ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})",
-                    rows,
-                )
-            self._con.commit()
         n = sum(len(r) for r in batches.values())
+        with self._lock:
+            try:
+                if not self._begin_if_ours():
+                    self.rows_dropped += n
+                    return 0
+                for table, rows in batches.items():
+                    cols = TABLE_COLUMNS[table]
+                    self._con.executemany(
+                        f"INSERT INTO {table} ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})",
+                        rows,
+                    )
+                self._con.commit()
+            except BaseException:
+                if self._con.in_transaction:
+                    self._con.rollback()
+                raise
         self.rows_written += n
         return n
 
@@ -205,8 +255,15 @@ class RunWriter:
         self._lease["seq"] = int(self._lease.get("seq", 0)) + 1
         self._lease["renewed_at"] = time.time()
         with self._lock:
-            self._con.execute(META_UPSERT, ("lease", json.dumps(self._lease)))
-            self._con.commit()
+            try:
+                if not self._begin_if_ours():
+                    return
+                self._con.execute(META_UPSERT, ("lease", json.dumps(self._lease)))
+                self._con.commit()
+            except BaseException:
+                if self._con.in_transaction:
+                    self._con.rollback()
+                raise
 
     def _run(self) -> None:
         renew_at = time.monotonic() + LEASE_PERIOD_S
@@ -224,9 +281,16 @@ class RunWriter:
         """Commit everything queued so far."""
         self._drain()
 
+    def _checkpoint(self) -> None:
+        """Fold the WAL into the database file (not in a run another process closed)."""
+        if self.closed_by_other is None:
+            self._con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+
     def close(self, status: str, reason: str) -> list[str]:
-        """Commit the rest, record the exit status and reason, close the database. Never raises
-        on a database error (a full disk): returns what could not be written."""
+        """Commit the rest, record the exit status and reason, close the database and seal the
+        run. Never raises on a database error (a full disk): returns what could not be written.
+        A run closed by another process (:attr:`closed_by_other`, checked again here) gets
+        nothing: neither the rest, nor the status, nor a new seal."""
         self._stop.set()
         self._thread.join(timeout=2.0)
         problems = []
@@ -236,7 +300,7 @@ class RunWriter:
                 "the run's status",
                 lambda: self.set_meta(status=status, reason=reason, end_time=now_iso()),
             ),
-            ("the checkpoint", lambda: self._con.execute("PRAGMA wal_checkpoint(TRUNCATE)")),
+            ("the checkpoint", self._checkpoint),
         ):
             try:
                 action()
@@ -244,6 +308,14 @@ class RunWriter:
                 problems.append(f"could not write {what} to {self.path} ({exc})")
         with self._lock:
             self._con.close()
+        if self.closed_by_other is not None:
+            while True:  # what was queued is not written: count it
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                self.rows_dropped += item is not None
+            return problems
         try:
             seal_run(self.folder)
         except (sqlite3.Error, OSError, safe_files.UnsafeFileError) as exc:

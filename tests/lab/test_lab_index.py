@@ -98,7 +98,7 @@ def test_resync_adds_nothing(synced: str, rig_dirs: list[Path]) -> None:
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout) == {"added": 0, "already_indexed": PER_RIG,
                                        "still_running": 0, "unreadable": 0, "refused": 0,
-                                       "not_stored": 0}  # fmt: skip
+                                       "not_stored": 0, "skipped": 0}  # fmt: skip
     assert scalar(synced, "SELECT count(*) FROM lab_runs") == 4 * PER_RIG
 
 
@@ -193,8 +193,8 @@ def test_queries_answer_from_the_index(synced: str, rig_dirs: list[Path], tmp_pa
 
 
 def test_unsealed_and_running_runs(lab_url: str, tmp_path: Path) -> None:
-    """A closed run without a seal is indexed without a hash (the audit lists it); a run still
-    being recorded is left for a later sync."""
+    """A closed run without a seal is skipped (the audit lists it as refused, issue 51); a run
+    still being recorded is left for a later sync."""
     folders = generate_runs(tmp_path, 3, rig="cage-9", seed=9)
     (folders[1] / "seal.json").unlink()
     running = new_run(tmp_path, "still-running", procedure="smoke")
@@ -202,9 +202,11 @@ def test_unsealed_and_running_runs(lab_url: str, tmp_path: Path) -> None:
         report = sync_runs(lab_url, run_folders(tmp_path))
     finally:
         running.close("complete", "done")
-    assert len(report.added) == 3 and report.running == [running.folder.name]
+    assert len(report.added) == 2 and report.running == [running.folder.name]
+    assert [line.split(":", 1)[0] for line in report.skipped] == [folders[1].name]
     proc = rig_lab("audit", "--json", url=lab_url)
-    assert [r["run_id"] for r in json.loads(proc.stdout)["unsealed"]] == [folders[1].name]
+    assert json.loads(proc.stdout)["unsealed"] == []
+    assert [r["run_id"] for r in json.loads(proc.stdout)["refused"]] == [folders[1].name]
     assert len(sync_runs(lab_url, run_folders(tmp_path)).added) == 1  # now closed and sealed
 
 
