@@ -119,6 +119,16 @@ ATTACKS = [
            "tests/engine/test_heat_limits.py::test_rig_run_refuses_the_heater_before_any_output_is_written"),
     Attack("the DUT warmed past its max_temperature_c", "the run `error`, heater off within 1 s (0.22-0.23 s measured)",
            "tests/engine/test_heat_limits.py::test_the_dut_over_its_limit_is_taken_safe_within_a_second_on_the_simulated_cage"),
+    Attack("recorder and guardian SIGSTOPped while a reader seals the run, then SIGCONT", "the run ends `error`, outputs off in 0.16 s, the reader's status and seal kept",
+           "tests/engine/test_sealed_by_reader.py::test_a_run_sealed_by_a_reader_while_stopped_ends_error_outputs_off_seal_kept"),
+    Attack("the same, only the guardian resumed", "the guardian kills the stopped rig and switches off",
+           "tests/engine/test_sealed_by_reader.py::test_the_guardian_alone_acts_on_the_reader_seal_and_kills_a_rig_still_stopped"),
+    Attack("forged runs (made from nothing, edited and re-sealed) in a runs folder another account can write", "`rig lab sync` refuses the folder or skips the runs, one line each",
+           "tests/lab/test_lab_forged_runs.py::test_forged_runs_from_another_account_never_reach_the_index"),
+    Attack("an unsealed run", "skipped by `rig lab sync` with a line; listed in the audit",
+           "tests/lab/test_lab_forged_runs.py::test_an_unsealed_run_of_the_rig_s_own_is_skipped_with_a_line"),
+    Attack("a value of 1e308 in a run, and one already in the index", "the run refused; `rig lab audit` and trend survive, limits unmoved",
+           "tests/lab/test_lab_forged_runs.py::test_audit_and_trend_survive_an_extreme_value_an_older_sync_stored"),
 ]  # fmt: skip
 
 
