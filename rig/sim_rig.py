@@ -60,28 +60,28 @@ def rig_config_toml(
             lines.append("trim = { " + ", ".join(f'{ax} = "{roles[f"trim_{ax}"]}"' for ax in "xyz")
                          + " }")  # fmt: skip
             lines.append(f"trim_ut_per_a = {json.dumps([round(v, 1) for v in trim_ut_per_a])}")
-        lines += [
-            'calibration = "cage-calibration.json"',
-            "max_current_a = [2.5, 2.5, 2.5]",
-            "max_field_ut = 120.0",
-            "max_ambient_ut = 55.0  # the simulated lab field is 49 uT",
-            "max_slew_a_per_s = 10.0",
-            *(
-                [f"coil_tau_s = {coil_tau_s:.4g}  # the coils' nameplate L/R"]
-                if coil_tau_s is not None
-                else []
-            ),
-            "compliance_v = 12.0",
-        ]
-        if nominal_k is not None:
-            rows = ", ".join(
-                "[" + ", ".join(f"{round(v):.1f}" for v in row) + "]" for row in nominal_k
-            )
-            lines.append(f"nominal_k_ut_per_a = [{rows}]")
-        lines.append("")
+        lines += [*_cage_limits(coil_tau_s, nominal_k), ""]
     for name, dev in endpoints["devices"].items():
         lines += device_lines(name, dev)
     return "\n".join(lines)
+
+
+def _cage_limits(coil_tau_s: float | None, nominal_k: list[list[float]] | None) -> list[str]:
+    """The simulated cage's ``[cage]`` limits, its coils' L/R and nameplate coil constants."""
+    lines = [
+        'calibration = "cage-calibration.json"',
+        "max_current_a = [2.5, 2.5, 2.5]",
+        "max_field_ut = 120.0",
+        "max_ambient_ut = 55.0  # the simulated lab field is 49 uT",
+        "max_slew_a_per_s = 10.0",
+        "compliance_v = 12.0",
+    ]
+    if coil_tau_s is not None:
+        lines.append(f"coil_tau_s = {coil_tau_s:.4g}  # the coils' nameplate L/R")
+    if nominal_k is not None:
+        rows = ", ".join("[" + ", ".join(f"{round(v):.1f}" for v in row) + "]" for row in nominal_k)
+        lines.append(f"nominal_k_ut_per_a = [{rows}]")
+    return lines
 
 
 def _toml_value(value: Any) -> str:

@@ -13,14 +13,8 @@ the read end of a pipe whose write end only the rig process has:
 * no heartbeat for :data:`HEARTBEAT_TIMEOUT_S` means it hung: the guardian kills it (SIGKILL, so a
   stopped process that is resumed later cannot drive the outputs again).
 
-A run closed by another process while the rig was stopped (a reader in another PID namespace found
-its lease expired, marked it ``incomplete`` and sealed it: ``seal.json`` appears before the rig has
-said ``done``, and the stored status is no longer ``running``) is the third finding: the guardian
-switches every output off and writes nothing to the closed run. A rig still stopped is killed
-first (it holds its ports and cannot go safe); a running one finds the same and ends through its
-own safe path (ADR 0036), guarded meanwhile: one that has not ended :data:`CLOSED_GRACE_S` later
-is killed, and outputs the guardian could not reach while the rig held them are switched off
-once it has ended.
+A run closed by another process while the rig was stopped is the third finding (see
+:mod:`rig.engine.guardian_findings`, ADR 0036).
 
 Either way it then opens every Modbus output of the rig configuration (coil supplies, load
 channels, then the polarity relays once the coils are off), calls ``safe()`` on each, and, for a
@@ -41,7 +35,6 @@ moment the guardian dies, and ends the command through its safe path (RigSession
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import select
 import signal
@@ -56,6 +49,7 @@ from drivers.registry import output_kinds
 from rig.config import RigConfig
 from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.frozen_config import FrozenConfigError, freeze, thaw
+from rig.engine.guardian_findings import process_stopped, record_in_run, run_closed_by_other
 from rig.errors import RigError
 
 OUTPUT_KINDS = output_kinds()
@@ -222,59 +216,6 @@ def safe_outputs(cfg: RigConfig) -> tuple[list[str], list[str]]:
     return switch_off_every_output(cfg)
 
 
-def _record(
-    folder: Path, t_found: float, why: str, done: list[str], problems: list[str], cpu: str = ""
-) -> None:
-    """Mark the run incomplete and log what the guardian did (the run's own clock); ``cpu`` is
-    the guardian's note on its own wait for a CPU, appended to its message. A run that is no
-    longer ``running`` (closed by another process) is left untouched, its seal too."""
-    path = folder / "run.sqlite"
-    if not path.exists():
-        return
-    took_ms = 1000.0 * (time.monotonic() - t_found)
-    message = (
-        f"guardian: {why}; switched off {', '.join(done) or 'nothing'} in {took_ms:.0f} ms{cpu}"
-    )
-    con = sqlite3.connect(path, timeout=10.0)
-    try:
-        con.execute("BEGIN IMMEDIATE")  # a run closed meanwhile by another process stays as it is
-        row = con.execute("SELECT value FROM meta WHERE key = 'status'").fetchone()
-        if row is not None and json.loads(row[0]) != "running":
-            con.rollback()
-            return
-        rows = [(time.monotonic(), "error", message)]
-        rows += [(time.monotonic(), "error", f"guardian could not safe {p}") for p in problems]
-        con.executemany("INSERT INTO events VALUES (?, ?, ?)", rows)
-        con.execute(
-            "INSERT OR REPLACE INTO meta VALUES ('status', ?), ('reason', ?)",
-            (json.dumps("incomplete"), json.dumps(f"{why}; the guardian switched the outputs off")),
-        )
-        con.commit()
-    finally:
-        con.close()
-    from rig.store.seal import seal_run
-
-    seal_run(folder)  # the run is closed now: its data never change again
-
-
-def run_closed_by_other(folder: Path) -> str | None:
-    """The status another process stored in the run in ``folder`` when it closed it while the rig
-    was not done (``seal.json`` is there and the status is no longer ``running``), else None. One
-    ``lstat`` per call while the run has no seal; the store is read only once it has one."""
-    if not os.path.lexists(folder / "seal.json"):
-        return None
-    try:
-        con = sqlite3.connect(f"file:{folder / 'run.sqlite'}?mode=ro", uri=True, timeout=1.0)
-        try:
-            row = con.execute("SELECT value FROM meta WHERE key = 'status'").fetchone()
-        finally:
-            con.close()
-        status = json.loads(row[0]) if row is not None else None
-    except (sqlite3.Error, ValueError):
-        return None  # not readable: the rig's own writer judges its store
-    return None if status in (None, "running") else str(status)
-
-
 def wait_for_rig(
     fd: int,
     pid: int,
@@ -376,7 +317,7 @@ def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
     cpu = _cpu_wait_note(waits.waited_since(t_found - CPU_WAIT_LOOKBACK_S))
     if folder is not None:
         with contextlib.suppress(sqlite3.Error, OSError):
-            _record(folder, t_found, why, done, problems, cpu)
+            record_in_run(folder, t_found, why, done, problems, cpu)
     return _tell(why, t_found, done, problems, cpu)
 
 
@@ -417,16 +358,6 @@ def _closed_by_other(fd: int, cfg: RigConfig, pid: int, why: str, waits: CpuWait
     t_again = time.monotonic()
     done, problems = safe_outputs(cfg)
     return _tell(later or "the rig process went safe and ended", t_again, done, problems)
-
-
-def process_stopped(pid: int) -> bool:
-    """True while process ``pid`` is stopped (state T or t in /proc: SIGSTOP, a debugger); a
-    process waiting for a CPU (state R) or gone is not."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text(encoding="ascii")
-    except OSError:
-        return False
-    return stat.rsplit(")", 1)[-1].split()[:1] in (["T"], ["t"])
 
 
 def read_config_line(fd: int) -> RigConfig:

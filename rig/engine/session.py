@@ -64,8 +64,8 @@ from rig.engine.interlock import RigLock
 from rig.engine.switch_off import (
     OutputState,
     output_devices_of,
-    read_outputs,
-    switch_off_and_confirm,
+    read_back_and_off,
+    switch_off_found_on,
 )
 from rig.engine.switch_off import switch_off_every_output as switch_off_every_output
 from rig.errors import RigError, RunAborted, UserInputError
@@ -149,23 +149,16 @@ class RigSession:
         return self
 
     def _outputs_as_found(self) -> None:
-        """Read every output of the configuration; switch off each one found on, telling
-        ``on_found_on``; raise :class:`RigError` (one line with the fix) naming one that cannot
-        be read or confirmed off, the others left safe."""
-        devices = output_devices_of(self.cfg)
-        found = read_outputs(devices, retry_s=READ_RETRY_S)
-        on = {n: devices[n] for n, s in found.items() if s.on}
-        unread = [n for n, s in found.items() if s.on is None]
-        after = switch_off_and_confirm(on, unreachable=unread) if on else {}
-        for name in on:
-            line = (f"{name} was found on at the start ({found[name].detail}); switched off"
-                    f" before anything else, read back: {after[name].line()}")  # fmt: skip
+        """Switch off every output of the configuration found on, telling ``on_found_on``
+        (:func:`switch_off_found_on`); raise :class:`RigError` (one line with the fix) naming
+        one that cannot be read or confirmed off, the others left safe."""
+        lines, bad = switch_off_found_on(output_devices_of(self.cfg), READ_RETRY_S)
+        for line in lines:
             self.found_on.append(line)
             self.on_found_on(line)
-        bad = [s for s in found.values() if s.on is None] + [s for s in after.values() if not s.off]
-        if bad:
+        if bad is not None:
             raise RigError(
-                f"{self.cfg.path}: {bad[0].line()}; nothing was started: check its power and"
+                f"{self.cfg.path}: {bad}; nothing was started: check its power and"
                 f" wiring, then run 'rig safe --rig {self.cfg.path}' and start again"
             )
 
@@ -197,17 +190,9 @@ class RigSession:
                     self.lock.release()
 
     def _read_back(self) -> dict[str, OutputState]:
-        """Every output of the configuration read back once the links are closed; one found on
-        or unread is switched off (and read back) again, and each that still does not read back
-        off goes to ``on_unsafe``. Never raises."""
-        devices = output_devices_of(self.cfg)
-        try:
-            states = read_outputs(devices)
-            again = {n: devices[n] for n, s in states.items() if not s.off}
-            if again:
-                states |= switch_off_and_confirm(again)
-        except Exception as exc:  # the safe path never raises: say what is not known
-            states = {n: OutputState(n, None, f"not read back ({exc})") for n in devices}
+        """Every output read back once the links are closed (:func:`read_back_and_off`); each
+        that does not read back off goes to ``on_unsafe``. Never raises."""
+        states = read_back_and_off(output_devices_of(self.cfg))
         for state in states.values():
             if not state.off:
                 self.on_unsafe(state.line())

@@ -132,6 +132,36 @@ def read_outputs(
     return {n: states[n] for n in outputs}
 
 
+def switch_off_found_on(
+    devices: Mapping[str, DeviceConfig], retry_s: float
+) -> tuple[list[str], str | None]:
+    """Read every output of ``devices`` (each tried again for ``retry_s``, s) and switch off each
+    one found on: (one line per output found on, saying what it read and what it read back after
+    the switch-off; the line of the first output that could not be read or confirmed off, or
+    None)."""
+    found = read_outputs(devices, retry_s=retry_s)
+    on = {n: devices[n] for n, s in found.items() if s.on}
+    unread = [n for n, s in found.items() if s.on is None]
+    after = switch_off_and_confirm(on, unreachable=unread) if on else {}
+    lines = [f"{name} was found on at the start ({found[name].detail}); switched off before"
+             f" anything else, read back: {after[name].line()}" for name in on]  # fmt: skip
+    bad = [s for s in found.values() if s.on is None] + [s for s in after.values() if not s.off]
+    return lines, (bad[0].line() if bad else None)
+
+
+def read_back_and_off(devices: Mapping[str, DeviceConfig]) -> dict[str, OutputState]:
+    """Every output of ``devices`` read back; one found on or unread is switched off (and read
+    back) again. Never raises: what could not be read says so in its state."""
+    try:
+        states = read_outputs(devices)
+        again = {n: devices[n] for n, s in states.items() if not s.off}
+        if again:
+            states |= switch_off_and_confirm(again)
+    except Exception as exc:  # the safe path never raises: say what is not known
+        states = {n: OutputState(n, None, f"not read back ({exc})") for n in devices}
+    return states
+
+
 def _is_relay(dev: DeviceConfig) -> bool:
     """A relay board (the ``relay`` role), not a supply or load."""
     kind = KINDS.get(dev.kind)

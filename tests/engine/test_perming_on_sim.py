@@ -1,6 +1,7 @@
 """The perming step through the wire protocols on the simulated cage: an HMR2300 DUT that perms
-by 1.9 nT after an 80 uT shock (its truth beyond a 90 uT threshold at the sensor; the lab's 49 uT
-add to the set-point on a nominal cage model) is found to have shifted at 3 sigma or more, within
+by about 2 nT after a 60 uT shock (its truth beyond a 72 uT threshold at the sensor; the lab's
+49 uT add to the set-point on a nominal cage model, and the field limit counts them: 60 + 55 uT
+within 120 uT) is found to have shifted at 3 sigma or more, within
 3 sigma of its truth, and the set/reset pulse takes the shift away; the DUT's automatic set/reset,
 off for the step, is on again afterwards. The DUT's noise is 5 nT (the default HMR2300's 20 nT
 would need holds of several minutes for a 2 nT shift; much less would not dither its 6.7 nT
@@ -20,7 +21,7 @@ import pytest
 from sim.config import SimConfig, load_config
 from tests.simrun import run_on_sim
 
-THRESHOLD_UT, NT_PER_UT = 90.0, 0.1
+THRESHOLD_UT, NT_PER_UT = 72.0, 0.1
 
 PROCEDURE = """
 procedure: perming
@@ -30,7 +31,7 @@ steps:
     name: sweep
   - calibrate: {model: vector, steps: [sweep]}
     name: vector calibration
-  - perming: {shock_ut: 80, direction: [1, 0, 0], shock_s: 3, hold_s: 60, settle_s: 1.5}
+  - perming: {shock_ut: 60, direction: [1, 0, 0], shock_s: 3, hold_s: 60, settle_s: 1.5}
     name: perming
   - check:
       criteria:
