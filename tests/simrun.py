@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -33,6 +35,27 @@ def run_on_sim(
 
         return Runner(parse_procedure(folder / "procedure.yaml"), load_rig_config(rig_toml),
                       folder / "runs", i2c_bus=cage.i2c_bus, confirm=confirm, live=False).run()  # fmt: skip
+
+
+def run_watched(cage: SimulatedCage, rig_toml: Path, procedure: Path, runs: Path,
+                watch: Callable[[float], None], period_s: float = 0.002) -> RunOutcome:  # fmt: skip
+    """Run ``procedure`` (a file) on the running ``cage`` in this process, every prompt confirmed,
+    while ``watch(t)`` (t: monotonic s) is called every ``period_s`` from a thread of its own:
+    the simulator's truth read as the run goes (coil currents, field, temperature)."""
+    stop = threading.Event()
+
+    def watching() -> None:
+        while not stop.wait(period_s):
+            watch(time.monotonic())
+
+    watcher = threading.Thread(target=watching, name="truth-watch", daemon=True)
+    watcher.start()
+    try:
+        return Runner(parse_procedure(procedure), load_rig_config(rig_toml), runs,
+                      i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False).run()  # fmt: skip
+    finally:
+        stop.set()
+        watcher.join(1.0)
 
 
 TINY_PROCEDURE = """

@@ -9,7 +9,6 @@ off."""
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -17,10 +16,8 @@ import pytest
 
 import rig.engine.runner as runner_module
 from rig.cli import main
-from rig.config import load_rig_config
-from rig.engine.runner import Runner
-from rig.procedure.language import parse_procedure
 from sim.cage import SimulatedCage
+from tests.simrun import run_watched
 from tests.test_check_cage_model import CHARACTERIZE, write
 
 Z_95 = "  - set_field: {field_ut: [0, 0, -95], hold_s: 2}\n"  # the lab field is -44.8 uT on z
@@ -59,22 +56,13 @@ def test_forced_past_the_check_the_measured_field_takes_the_outputs_safe(
                     + Z_95.replace("hold_s: 2", "hold_s: 6"))  # fmt: skip
     physics = cage.physics
     above: list[float] = []  # true |B| at the DUT beyond 120 uT, every 2 ms
-    stop = threading.Event()
 
-    def watch() -> None:
-        while not stop.wait(0.002):
-            b = float(np.linalg.norm(physics.field_ut(noise=False)))
-            if b > 120.0:
-                above.append(b)
+    def watch(t: float) -> None:
+        b = float(np.linalg.norm(physics.field_ut(t, noise=False)))
+        if b > 120.0:
+            above.append(b)
 
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
-    try:
-        outcome = Runner(parse_procedure(proc), load_rig_config(rig_toml), tmp_path / "runs",
-                         i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False).run()  # fmt: skip
-    finally:
-        stop.set()
-        watcher.join(1.0)
+    outcome = run_watched(cage, rig_toml, proc, tmp_path / "runs", watch)
     assert outcome.status == "error", outcome.reason
     assert outcome.reason.startswith("reference reads |B| = 1"), outcome.reason
     assert "beyond the cage's 120 uT limit (max_field_ut)" in outcome.reason

@@ -31,6 +31,7 @@ from rig.procedure.language import parse_procedure
 from sim.cage import SimulatedCage
 from sim.config import load_config
 from tests.simcage import write_rig_toml
+from tests.simrun import run_watched
 
 RIG = [sys.executable, "-m", "rig.cli"]
 pytestmark = pytest.mark.usefixtures("own_lock_dir")
@@ -362,24 +363,14 @@ def test_the_dut_over_its_limit_is_taken_safe_within_a_second_on_the_simulated_c
         time.sleep(0.1)
     crossed: list[float] = []
     peak = [0.0]
-    stop = threading.Event()
 
-    def watch() -> None:
-        while not stop.wait(0.001):
-            t = time.monotonic()
-            temperature = physics.dut_temperature_c(t)
-            peak[0] = max(peak[0], temperature)
-            if temperature > 28.0 and not crossed:
-                crossed.append(t)
+    def watch(t: float) -> None:
+        temperature = physics.dut_temperature_c(t)
+        peak[0] = max(peak[0], temperature)
+        if temperature > 28.0 and not crossed:
+            crossed.append(t)
 
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
-    try:
-        outcome = Runner(parse_procedure(proc), load_rig_config(rig_toml), tmp_path / "runs",
-                         i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False).run()  # fmt: skip
-    finally:
-        stop.set()
-        watcher.join(1.0)
+    outcome = run_watched(cage, rig_toml, proc, tmp_path / "runs", watch, period_s=0.001)
     assert outcome.status == "error", outcome.reason
     assert outcome.reason.startswith("dut_temp reads 28."), outcome.reason
     assert "beyond its max_temperature_c of 28 C" in outcome.reason

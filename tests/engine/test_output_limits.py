@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ from rig.output_limits import (
 )
 from rig.procedure.language import parse_procedure
 from sim.cage import SimulatedCage
+from tests.simrun import run_watched
 
 RIG = [sys.executable, "-m", "rig.cli"]
 COIL_AS_LOAD = """procedure: Coil as a load
@@ -93,20 +93,11 @@ def test_forced_past_the_check_the_coil_is_held_by_the_cage_limits(
     proc.write_text(COIL_AS_LOAD)
     coil = cage.physics.supplies["coil_x"]
     peak = [0.0]
-    stop = threading.Event()
 
-    def watch() -> None:
-        while not stop.wait(0.002):
-            peak[0] = max(peak[0], abs(coil.output_current()))
+    def watch(t: float) -> None:
+        peak[0] = max(peak[0], abs(coil.output_current(t)))
 
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
-    try:
-        outcome = Runner(parse_procedure(proc), load_rig_config(rig_toml), tmp_path / "runs",
-                         i2c_bus=cage.i2c_bus, confirm=lambda s: True, live=False).run()  # fmt: skip
-    finally:
-        stop.set()
-        watcher.join(1.0)
+    outcome = run_watched(cage, rig_toml, proc, tmp_path / "runs", watch)
     assert outcome.status == "error", outcome.reason
     assert outcome.reason.startswith("coil_x: a set-point of 2.5641 A is beyond its 2.5 A limit"
                                      " (the cage's max_current_a for axis x)"), outcome.reason  # fmt: skip
