@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import csv
 import difflib
+import errno
 import io
 import math
+import os
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -233,13 +235,28 @@ def _raise_bad_cell(
     )
 
 
-def write_columns(path: str | Path, columns: dict[str, Array], fmt: str = "%.6f") -> None:
-    """Write equal-length columns as CSV with a header row."""
-    path = Path(path)
+def columns_text(columns: dict[str, Array], fmt: str = "%.6f") -> str:
+    """Equal-length columns as CSV text with a header row (``rig example-data`` writes it through
+    :func:`rig.cli.common.write_text`: atomically, never through a link)."""
     names = list(columns)
     data = np.column_stack([columns[n] for n in names])
+    buf = io.StringIO()
+    np.savetxt(buf, data, delimiter=",", header=",".join(names), comments="", fmt=fmt)
+    return buf.getvalue()
+
+
+def write_columns(path: str | Path, columns: dict[str, Array], fmt: str = "%.6f") -> None:
+    """Write equal-length columns as CSV with a header row, never through a symbolic link on the
+    file itself (``O_NOFOLLOW``: a link there is an input error, not followed)."""
+    path = Path(path)
+    text = columns_text(columns, fmt)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt=fmt)
+        flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC
+        with os.fdopen(os.open(path, flags, 0o644), "w", encoding="utf-8") as fh:
+            fh.write(text)
     except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise UserInputError(f"{path}: is a symbolic link, which is not written through:"
+                                 " remove it or choose another file name") from None  # fmt: skip
         raise UserInputError(f"cannot write {path}: {exc.strerror}: choose another path") from None

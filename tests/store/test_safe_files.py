@@ -92,3 +92,42 @@ def test_regular_file_checks(folder: Path, outside: Path) -> None:
     assert safe_files.is_regular_file(outside)
     with pytest.raises(FileNotFoundError):
         safe_files.regular_file(folder / "missing")
+
+
+# --- user-named output files (issue 51): refused through a link, written atomically ------------
+
+
+def test_write_output_refuses_links_and_keeps_targets(tmp_path: Path, outside: Path) -> None:
+    out = tmp_path / "result.json"
+    out.symlink_to(outside)
+    with pytest.raises(UnsafeFileError, match=r"result\.json: is a symbolic link.*remove it or"
+                       r" choose another file name"):  # fmt: skip
+        safe_files.write_output(out, b"new")
+    assert outside.read_text() == "do not touch\n"
+    dangling = tmp_path / "magcal.h"
+    dangling.symlink_to(tmp_path / "created-by-following.h")
+    for exclusive in (False, True):
+        with pytest.raises(UnsafeFileError, match="symbolic link"):
+            safe_files.write_output(dangling, b"new", exclusive=exclusive)
+    assert not (tmp_path / "created-by-following.h").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["magcal.h", "result.json", "secret.txt"]
+
+
+def test_write_output_replaces_a_file_atomically_and_exclusive_never_overwrites(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "x.csv"
+    safe_files.write_output(out, b"one")
+    assert out.read_bytes() == b"one"
+    out.chmod(0o640)
+    inode = out.stat().st_ino
+    safe_files.write_output(out, b"two")
+    assert out.read_bytes() == b"two" and stat.S_IMODE(out.stat().st_mode) == 0o640
+    assert out.stat().st_ino != inode  # a new file renamed over the old one, not rewritten
+    with pytest.raises(FileExistsError):
+        safe_files.write_output(out, b"three", exclusive=True)
+    assert out.read_bytes() == b"two"
+    new = tmp_path / "new.yaml"
+    safe_files.write_output(new, b"designed", exclusive=True)
+    assert new.read_bytes() == b"designed"
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
