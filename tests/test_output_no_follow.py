@@ -7,6 +7,7 @@ written; the target is left alone and a dangling link's target is not created.""
 from __future__ import annotations
 
 import os
+import stat
 import subprocess
 import sys
 from collections.abc import Callable
@@ -16,6 +17,8 @@ import pytest
 
 from rig.calibration.synthetic import RAX_CHANNELS
 from rig.cli import main
+from rig.errors import UserInputError
+from rig.io.output_files import write_output
 
 SPHERE = Path(__file__).resolve().parent / "data" / "real-magnetometer" / "space-denpa-set1.csv"
 SPHERE_ARGS = ["--measured", "x,y,z", "--unit", "G", "--field-magnitude", "0.47"]
@@ -106,3 +109,44 @@ def test_a_fifo_named_as_output_is_refused_without_hanging(tmp_path: Path) -> No
                            "200"], capture_output=True, text=True, timeout=60)  # fmt: skip
     assert done.returncode == 2
     assert "is not a regular file (a folder, FIFO or device)" in one_line(done.stderr)
+
+
+# --- user-named output files (issue 51): refused through a link, written atomically ------------
+
+
+def test_write_output_refuses_links_and_keeps_targets(tmp_path: Path) -> None:
+    outside = tmp_path / "secret.txt"
+    outside.write_text("do not touch\n")
+    out = tmp_path / "result.json"
+    out.symlink_to(outside)
+    with pytest.raises(UserInputError, match=r"result\.json: is a symbolic link.*remove it or"
+                       r" choose another file name"):  # fmt: skip
+        write_output(out, b"new")
+    assert outside.read_text() == "do not touch\n"
+    dangling = tmp_path / "magcal.h"
+    dangling.symlink_to(tmp_path / "created-by-following.h")
+    for exclusive in (False, True):
+        with pytest.raises(UserInputError, match="symbolic link"):
+            write_output(dangling, b"new", exclusive=exclusive)
+    assert not (tmp_path / "created-by-following.h").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["magcal.h", "result.json", "secret.txt"]
+
+
+def test_write_output_replaces_a_file_atomically_and_exclusive_never_overwrites(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "x.csv"
+    write_output(out, b"one")
+    assert out.read_bytes() == b"one"
+    out.chmod(0o640)
+    inode = out.stat().st_ino
+    write_output(out, b"two")
+    assert out.read_bytes() == b"two" and stat.S_IMODE(out.stat().st_mode) == 0o640
+    assert out.stat().st_ino != inode  # a new file renamed over the old one, not rewritten
+    with pytest.raises(FileExistsError):
+        write_output(out, b"three", exclusive=True)
+    assert out.read_bytes() == b"two"
+    new = tmp_path / "new.yaml"
+    write_output(new, b"designed", exclusive=True)
+    assert new.read_bytes() == b"designed"
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []

@@ -48,7 +48,7 @@ def columns(text: str) -> list[str]:
 def check_outputs(paths: list[Path | None], *, exclusive: bool = False) -> None:
     """Refuse, before any work, user-named output files :func:`write_text` would refuse (a
     symbolic link, a folder, FIFO or device; with ``exclusive`` any existing file): one line."""
-    from rig.store.safe_files import check_output
+    from rig.io.output_files import check_output
 
     for path in paths:
         if path is None:
@@ -63,10 +63,10 @@ def check_outputs(paths: list[Path | None], *, exclusive: bool = False) -> None:
 
 def write_text(path: Path, text: str, *, exclusive: bool = False) -> None:
     """Write a user-named output file (UTF-8), creating its folder: atomically and never through a
-    symbolic link (:func:`rig.store.safe_files.write_output`: a link there is refused in one line,
+    symbolic link (:func:`rig.io.output_files.write_output`: a link there is refused in one line,
     exit 2). ``exclusive``: an existing file is refused, not overwritten. A failure is a one-line
     input error."""
-    from rig.store.safe_files import write_output
+    from rig.io.output_files import write_output
 
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

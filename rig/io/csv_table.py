@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import csv
 import difflib
-import errno
 import io
 import math
-import os
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -246,17 +244,13 @@ def columns_text(columns: dict[str, Array], fmt: str = "%.6f") -> str:
 
 
 def write_columns(path: str | Path, columns: dict[str, Array], fmt: str = "%.6f") -> None:
-    """Write equal-length columns as CSV with a header row, never through a symbolic link on the
-    file itself (``O_NOFOLLOW``: a link there is an input error, not followed)."""
+    """Write equal-length columns as CSV with a header row, atomically and never through a
+    symbolic link (:func:`rig.io.output_files.write_output`: a link there is an input error)."""
+    from rig.io.output_files import write_output
+
     path = Path(path)
-    text = columns_text(columns, fmt)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC
-        with os.fdopen(os.open(path, flags, 0o644), "w", encoding="utf-8") as fh:
-            fh.write(text)
+        write_output(path, columns_text(columns, fmt).encode("utf-8"))
     except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            raise UserInputError(f"{path}: is a symbolic link, which is not written through:"
-                                 " remove it or choose another file name") from None  # fmt: skip
         raise UserInputError(f"cannot write {path}: {exc.strerror}: choose another path") from None

@@ -8,12 +8,9 @@ every run-folder file goes through this module:
 * reads open with ``O_NOFOLLOW`` and accept only regular files (no link, FIFO or device);
 * writes go to a new temporary file beside the target (``O_CREAT | O_EXCL | O_NOFOLLOW``) that
   then replaces the target by ``rename``, which replaces a link itself, never what it points to;
-* a run folder that is itself a link, or not a folder, is refused;
-* an output file a user names on the command line (``rig calibrate --out``, ``rig example-data``,
-  ``rig design --out``, ...) goes through :func:`write_output`: a link there (or a dangling one,
-  which a plain ``open`` would follow to create its target) is refused rather than replaced, since
-  the user named that path and may not know another account planted it; the folder holding it may
-  be a link (the user chose it).
+* a run folder that is itself a link, or not a folder, is refused.
+
+Output files a user names on the command line go through :mod:`rig.io.output_files` instead.
 
 Every refusal is an :class:`UnsafeFileError` (a ``RigError``: one line, exit 2) naming the file.
 """
@@ -156,60 +153,6 @@ def write_bytes(path: Path, data: bytes, mode: int = 0o644) -> None:
 def write_text(path: Path, text: str, mode: int = 0o644) -> None:
     """:func:`write_bytes` of ``text`` as UTF-8."""
     write_bytes(path, text.encode("utf-8"), mode)
-
-
-def _refuse_output(path: Path, what: str, fix: str = "choose another file name") -> UnsafeFileError:
-    return UnsafeFileError(f"{path}: {what}: {fix}")
-
-
-def check_output(path: Path, *, exclusive: bool = False) -> os.stat_result | None:
-    """What :func:`write_output` refuses, checked before the work that makes the data (a command
-    writing several files checks them all first, so a refusal writes none): a symbolic link or a
-    file that is not regular (:class:`UnsafeFileError`), with ``exclusive`` any file
-    (FileExistsError). Returns the file's status, None when there is none."""
-    try:
-        st = os.lstat(path)
-    except FileNotFoundError:
-        return None
-    if stat.S_ISLNK(st.st_mode):
-        raise _refuse_output(path, "is a symbolic link, which the rig does not write through"
-                             " (another account may have planted it)",
-                             "remove it or choose another file name")  # fmt: skip
-    if not stat.S_ISREG(st.st_mode):
-        raise _refuse_output(path, "is not a regular file (a folder, FIFO or device)")
-    if exclusive:
-        raise FileExistsError(17, "File exists", str(path))
-    return st
-
-
-def write_output(path: Path, data: bytes, *, exclusive: bool = False) -> None:
-    """Write ``data`` to the user-named file ``path``: never through a symbolic link on its last
-    component (a link, even a dangling one, is refused: :class:`UnsafeFileError`), never into a
-    FIFO or device, and atomically (a new temporary file beside it, ``O_CREAT | O_EXCL |
-    O_NOFOLLOW``, renamed over it: a reader sees the old file or the new one, never half of one).
-    An existing file keeps its permissions; a new one gets 0o644 less the umask. ``exclusive``:
-    refuse an existing file too (FileExistsError), without a window between check and write (the
-    temporary file is hard-linked to ``path``, which fails on anything there). Other OSErrors pass
-    to the caller."""
-    st = check_output(path, exclusive=exclusive)
-    tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            if st is not None:
-                os.fchmod(fh.fileno(), stat.S_IMODE(st.st_mode))
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        if exclusive:
-            os.link(tmp, path, follow_symlinks=False)  # EEXIST on anything there, a link too
-            os.unlink(tmp)
-        else:
-            os.replace(tmp, path)  # replaces a link planted since the check, never its target
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
 
 
 def _umask() -> int:
