@@ -150,3 +150,21 @@ def test_write_output_replaces_a_file_atomically_and_exclusive_never_overwrites(
     write_output(new, b"designed", exclusive=True)
     assert new.read_bytes() == b"designed"
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_rig_lab_trend_png_is_not_written_through_a_link(tmp_path: Path) -> None:
+    """``rig lab trend --png FILE`` saved the figure by name (matplotlib follows links)."""
+    from rig.lab.plot import trend_png
+    from rig.lab.queries import Trend
+
+    rows = [{"series": "vector, lot 1", "value": v, "sigma": 0.1, "outlier": False,
+             "run_id": f"r{i}"} for i, v in enumerate([1.0, 1.2, 0.9])]  # fmt: skip
+    trend = Trend("x0_ut", rows)
+    planted = tmp_path / "trend.png"
+    planted.symlink_to(tmp_path / "created-through-the-link")
+    with pytest.raises(UserInputError, match=r"trend\.png: is a symbolic link"):
+        trend_png(trend, planted)
+    assert not (tmp_path / "created-through-the-link").exists()
+    plain = tmp_path / "plain.png"
+    trend_png(trend, plain)
+    assert plain.read_bytes().startswith(b"\x89PNG")
