@@ -522,7 +522,7 @@ def _probe_hmr2300(target: ProbeTarget) -> list[Found]:
     baud = int(target.params["baudrate"])
     try:
         mag = Hmr2300(str(target.params["path"]), baudrate=baud, timeout_s=target.timeout_s,
-                      retries=0, name="scan:hmr2300")  # fmt: skip
+                      retries=0, name="scan:hmr2300", set_reset_auto=False)  # fmt: skip
     except DeviceError:
         return []
     try:

@@ -30,13 +30,18 @@ Format::
     off = 43                # state is then read from a register of role "output_state")
 
 An unknown key, role, kind, type or access is an error naming the file, the line and the nearest
-valid name; so are overlapping registers.
+valid name; so are overlapping registers, two registers of one name or role, an address outside
+0-65535, a scale or limit that is not a finite number above 0 and a map of more than
+:data:`MAX_REGISTERS` registers (:func:`parse_map`, issue 51). The parse takes time linear in the
+number of registers (``bench/bench_regmap_parse.py``).
 """
 
 from __future__ import annotations
 
+import bisect
 import difflib
 import itertools
+import math
 import re
 import struct
 import tomllib
@@ -76,6 +81,22 @@ REGISTER_KEYS = ("name", "address", "type", "scale", "unit", "access", "role", "
                  "flags", "on", "off")  # fmt: skip
 TOP_KEYS = ("device", "registers")
 DEFAULT_CODES = ("", "OVP", "OCP")
+REPEATABLE_ROLES = ("none", "constant")
+"""Roles more than one register may have; every other role names one register."""
+ADDRESS_MAX = 0xFFFF
+"""Highest Modbus register address."""
+MAX_REGISTERS = 4096
+"""Most registers a map may list (a real device's map lists tens): a larger one is refused."""
+MAX_MAP_BYTES = 4 * 1024 * 1024
+"""Largest map file (bytes) read at all."""
+MAX_NAME_CHARS = 64
+"""Longest register, code or flag name (characters)."""
+MAX_MODEL_CHARS = 128
+"""Longest model name (characters)."""
+MAX_SCALE = 1e9
+"""Largest scale (counts per unit): a nano-unit a count."""
+MAX_CODES = 256
+"""Most protection codes a register may list."""
 _RANGES = {"uint16": (0, 0xFFFF), "int16": (-0x8000, 0x7FFF),
            "uint32": (0, 0xFFFFFFFF), "int32": (-0x80000000, 0x7FFFFFFF)}  # fmt: skip
 
@@ -210,20 +231,29 @@ def find_map(name_or_path: str) -> Path:
 
 
 class _Lines:
-    """Line numbers of the ``[device]`` keys and of each ``[[registers]]`` entry's keys."""
+    """Line numbers of the ``[device]`` keys and of each ``[[registers]]`` entry's keys.
+
+    Indexed once (one pass over the text): finding a register's line is then a lookup and a scan
+    of that register's own block, so a map of n registers is checked in time linear in n (the
+    scan of every header per register made 30000 registers take minutes, issue 51)."""
 
     def __init__(self, text: str) -> None:
         self.lines = text.splitlines()
-        self.headers = [(i + 1, m.group(1)) for i, line in enumerate(self.lines)
-                        if (m := re.match(r"\s*(\[\[?[^\]]+\]\]?)", line))]  # fmt: skip
+        self.header_lines: list[int] = []  # every header's line (1-based), ascending
+        self.starts: dict[str, list[int]] = {}  # header (spaces removed) -> its lines, in order
+        for i, line in enumerate(self.lines):
+            if m := re.match(r"\s*(\[\[?[^\]]+\]\]?)", line):
+                self.header_lines.append(i + 1)
+                self.starts.setdefault(m.group(1).replace(" ", ""), []).append(i + 1)
 
     def _block(self, header: str, index: int) -> tuple[int, int]:
-        starts = [n for n, h in self.headers if h.replace(" ", "") == header]
+        starts = self.starts.get(header, [])
         if index >= len(starts):
             return (1, len(self.lines))
         start = starts[index]
-        later = [n for n, _ in self.headers if n > start]
-        return (start, (later[0] - 1) if later else len(self.lines))
+        after = bisect.bisect_right(self.header_lines, start)
+        end = self.header_lines[after] - 1 if after < len(self.header_lines) else len(self.lines)
+        return (start, end)
 
     def top(self, key: str) -> int:
         """Line of a top-level key or table named ``key`` (1 if not found)."""
@@ -236,8 +266,9 @@ class _Lines:
         """Line (1-based) of ``key`` in the ``index``-th block under ``header``, or the header."""
         start, end = self._block(header, index)
         if key is not None:
+            pattern = re.compile(rf"\s*{re.escape(key)}\s*=")
             for n in range(start, end + 1):
-                if re.match(rf"\s*{re.escape(key)}\s*=", self.lines[n - 1]):
+                if pattern.match(self.lines[n - 1]):
                     return n
         return start
 
@@ -269,67 +300,236 @@ def _names(where: str, value: Any) -> tuple[str, ...]:
     return tuple(value)
 
 
-@lru_cache(maxsize=64)
-def _load(path: str, mtime_ns: int) -> RegisterMap:
-    p = Path(path)
-    text = p.read_text(encoding="utf-8")
+def _finite(
+    where: str, what: str, value: Any, fix: str, *, positive: bool = False, high: float = math.inf
+) -> float:
+    """``value`` as a finite float (above 0 with ``positive``, at most ``high``), else a one-line
+    error with ``fix``."""
+    try:
+        ok = not isinstance(value, bool) and isinstance(value, int | float)
+        x = float(value) if ok else math.nan
+    except OverflowError:  # an integer beyond any float
+        x = math.inf
+    shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:37] + "..."
+    if not math.isfinite(x) or (positive and x <= 0.0):
+        need = "a finite number above 0" if positive else "a finite number"
+        raise RegisterMapError(f"{where}: {what} is {shown}; it must be {need}: {fix}")
+    if x > high:
+        raise RegisterMapError(f"{where}: {what} is {shown}; it must be at most {high:g}: {fix}")
+    return x
+
+
+def _label(where: str, what: str, value: Any, max_chars: int) -> str:
+    """A name or model: printable text (no control, bidi or zero-width character), not empty."""
+    if not isinstance(value, str) or not value or len(value) > max_chars or not value.isprintable():
+        raise RegisterMapError(
+            f"{where}: {what} {str(value)[:40]!r} must be printable text of 1 to {max_chars}"
+            " characters; rename it"
+        )
+    return value
+
+
+def _register(at: Callable[..., str], i: int, r: Any) -> Register:
+    """The ``i``-th ``[[registers]]`` table, every value checked; ``at(key)`` names its line."""
+    if not isinstance(r, dict):
+        raise RegisterMapError(f"{at()}: registers[{i}] must be a table ([[registers]])")
+    for key in r:
+        if key not in REGISTER_KEYS:
+            raise RegisterMapError(
+                f"{at(key)}: unknown key '{key}'; {_nearest(key, REGISTER_KEYS)}"
+            )
+    if "name" not in r or "address" not in r:
+        raise RegisterMapError(f"{at()}: registers[{i}] needs a name and an address")
+    name = _label(at("name"), "the register name", r["name"], MAX_NAME_CHARS)
+    what = f"register '{name}'"
+    type_ = _choice(at("type"), "type", r.get("type"), TYPES)
+    access = _choice(at("access"), "access", r.get("access", "ro"), ACCESS)
+    role = _choice(at("role"), "role", r.get("role", "none"), ROLES)
+    address = r["address"]
+    last = ADDRESS_MAX - TYPES[type_] + 1  # a 32-bit register takes two addresses
+    if isinstance(address, bool) or not isinstance(address, int) or not 0 <= address <= last:
+        raise RegisterMapError(
+            f"{at('address')}: {what}: address {address!r} is outside the Modbus address space"
+            f" (0 to {last:#06x} for a {type_}); give the device's register address"
+        )
+    scale = _finite(at("scale"), f"{what}: scale", r.get("scale", 1.0),
+                    "counts per unit, e.g. 100 for 0.01 A a count", positive=True,
+                    high=MAX_SCALE)  # fmt: skip
+    if ("codes" in r or "flags" in r) and role != "protection":
+        raise RegisterMapError(f"{at('codes' if 'codes' in r else 'flags')}: codes and flags"
+                               " belong to a register with role 'protection'")  # fmt: skip
+    if ("on" in r or "off" in r) and role != "output":
+        raise RegisterMapError(f"{at('on' if 'on' in r else 'off')}: on and off belong to a"
+                               " register with role 'output'")  # fmt: skip
+    codes, flags = _codes_and_flags(at, r, name, type_)
+    numbers = _numbers(
+        at, r, Register(name, address, type_, access, role, scale, None, codes, flags)
+    )
+    return Register(name, address, type_, access, role, scale, numbers.get("value"), codes, flags,
+                    numbers.get("on", 1.0), numbers.get("off", 0.0))  # fmt: skip
+
+
+def _codes_and_flags(
+    at: Callable[..., str], r: dict[str, Any], name: str, type_: str
+) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """A protection register's codes and flags: names, no more than it can report."""
+    what = f"register '{name}'"
+    codes = _names(at("codes"), r["codes"]) if "codes" in r else DEFAULT_CODES
+    flags = _names(at("flags"), r["flags"]) if "flags" in r else ()
+    if len(codes) > MAX_CODES or len(flags) > 16 * TYPES[type_]:
+        key = "codes" if len(codes) > MAX_CODES else "flags"
+        raise RegisterMapError(
+            f"{at(key)}: {what} has more {key} than it can report ({MAX_CODES} codes, or one flag"
+            f" a bit of its {16 * TYPES[type_]}); remove the extra ones"
+        )
+    for key, names in (("codes", codes), ("flags", flags)):
+        for code in names:
+            if code:
+                _label(at(key), f"{what}: the {key[:-1]}", code, MAX_NAME_CHARS)
+    return codes, flags
+
+
+def _numbers(at: Callable[..., str], r: dict[str, Any], reg: Register) -> dict[str, float]:
+    """``value``, ``on`` and ``off`` where given: finite, and each fits ``reg``'s type and scale."""
+    numbers: dict[str, float] = {}
+    what = f"register '{reg.name}'"
+    for key in ("value", "on", "off"):
+        if r.get(key) is None:
+            continue
+        numbers[key] = _finite(
+            at(key), f"{what}: {key}", r[key], "give the value it reads or takes"
+        )
+        try:
+            reg.encode(numbers[key])
+        except (ValueError, OverflowError):
+            lo, hi = reg.limits()
+            raise RegisterMapError(
+                f"{at(key)}: {what}: {key} {r[key]!r} does not fit a {reg.type} of scale"
+                f" {reg.scale:g} ({lo:g} to {hi:g}); fix the value, the type or the scale"
+            ) from None
+    return numbers
+
+
+def parse_map(text: str, source: str, *, max_registers: int | None = None) -> RegisterMap:
+    """Parse and check a map's TOML ``text`` (``source``: the file named in every error).
+
+    Refuses, in one line naming the file, line and register and the fix: an unknown key, kind,
+    type, access or role; a register name or model that is not printable text; an address outside
+    0-65535 (a 32-bit register's second word included); a scale, ``v_max`` or ``i_max`` that is
+    not a finite number above 0; a ``value``, ``on`` or ``off`` that is not finite or does not fit
+    its register; overlapping registers; two registers of one name or of one role (``none`` and
+    ``constant`` may repeat); more than ``max_registers`` registers (default
+    :data:`MAX_REGISTERS`). Time linear in the number of registers."""
+    cap = MAX_REGISTERS if max_registers is None else max_registers
+    p = source
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise RegisterMapError(f"{p}: not valid TOML ({exc})") from None
+    dev = raw.get("device", {})
+    registers = raw.get("registers", [])
+    if isinstance(registers, list) and len(registers) > cap:
+        raise RegisterMapError(
+            f"{p}: {len(registers)} registers, more than the {cap} a map may have"
+            " (MAX_REGISTERS); list only the registers the rig uses"
+        )
     lines = _Lines(text)
     _check_keys(lambda key: f"{p}:{lines.top(key)}", raw, TOP_KEYS)
-    dev = raw.get("device", {})
+    if not isinstance(dev, dict):
+        raise RegisterMapError(f"{p}:{lines.top('device')}: 'device' must be a table ([device])")
+    if not isinstance(registers, list):
+        raise RegisterMapError(
+            f"{p}:{lines.top('registers')}: 'registers' must be tables ([[registers]])"
+        )
     _check_keys(lambda key: f"{p}:{lines.of('[device]', 0, key)}", dev, DEVICE_KEYS)
-    regs = []
-    for i, r in enumerate(raw.get("registers", [])):
-
-        def at(key: str | None = None, i: int = i) -> str:
-            return f"{p}:{lines.of('[[registers]]', i, key)}"
-
-        for key in r:
-            if key not in REGISTER_KEYS:
-                raise RegisterMapError(
-                    f"{at(key)}: unknown key '{key}'; {_nearest(key, REGISTER_KEYS)}"
-                )
-        if "name" not in r or "address" not in r:
-            raise RegisterMapError(f"{at()}: registers[{i}] needs a name and an address")
-        type_ = _choice(at("type"), "type", r.get("type"), TYPES)
-        access = _choice(at("access"), "access", r.get("access", "ro"), ACCESS)
-        role = _choice(at("role"), "role", r.get("role", "none"), ROLES)
-        if ("codes" in r or "flags" in r) and role != "protection":
-            raise RegisterMapError(f"{at('codes' if 'codes' in r else 'flags')}: codes and flags"
-                                   " belong to a register with role 'protection'")  # fmt: skip
-        if ("on" in r or "off" in r) and role != "output":
-            raise RegisterMapError(f"{at('on' if 'on' in r else 'off')}: on and off belong to a"
-                                   " register with role 'output'")  # fmt: skip
-        regs.append(Register(
-            str(r["name"]), int(r["address"]), type_, access, role, float(r.get("scale", 1.0)),
-            None if r.get("value") is None else float(r["value"]),
-            _names(at("codes"), r["codes"]) if "codes" in r else DEFAULT_CODES,
-            _names(at("flags"), r["flags"]) if "flags" in r else (),
-            float(r.get("on", 1.0)), float(r.get("off", 0.0)),
-        ))  # fmt: skip
+    regs = _registers(registers, p, lines)
     spans = sorted((r.address, r.address + r.width, r.name) for r in regs)
     for (_, a1, n0), (b0, _, n1) in itertools.pairwise(spans):
         if b0 < a1:
             raise RegisterMapError(
                 f"{p}: registers '{n0}' and '{n1}' overlap at {b0:#06x}; fix an address or a type"
             )
+    return _device(dev, p, lines, tuple(regs))
+
+
+def _registers(registers: list[Any], p: str, lines: _Lines) -> list[Register]:
+    """Every ``[[registers]]`` table checked; no name twice, no role but ``none`` and
+    ``constant`` twice."""
+    regs: list[Register] = []
+    by_name: dict[str, int] = {}
+    by_role: dict[str, str] = {}
+    for i, r in enumerate(registers):
+
+        def at(key: str | None = None, i: int = i) -> str:
+            return f"{p}:{lines.of('[[registers]]', i, key)}"
+
+        reg = _register(at, i, r)
+        if reg.name in by_name:
+            raise RegisterMapError(f"{at('name')}: a second register named '{reg.name}' (the"
+                                   f" first is registers[{by_name[reg.name]}]); rename one")  # fmt: skip
+        by_name[reg.name] = i
+        if reg.role not in REPEATABLE_ROLES:
+            if reg.role in by_role:
+                raise RegisterMapError(
+                    f"{at('role')}: register '{reg.name}' has the role '{reg.role}' of register"
+                    f" '{by_role[reg.role]}' already; give one of them role 'none'"
+                )
+            by_role[reg.role] = reg.name
+        regs.append(reg)
+    return regs
+
+
+def _device(dev: dict[str, Any], p: str, lines: _Lines, regs: tuple[Register, ...]) -> RegisterMap:
+    """The ``[device]`` table checked, with the map's registers: the map."""
     kind = _choice(f"{p}:{lines.of('[device]', 0, 'kind')}", "kind", dev.get("kind"), KINDS)
-    baudrate = dev.get("baudrate")
-    if baudrate is not None and (isinstance(baudrate, bool) or not isinstance(baudrate, int)):
+    model = _label(f"{p}:{lines.of('[device]', 0, 'model')}", "the model",
+                   dev.get("model", Path(p).stem), MAX_MODEL_CHARS)  # fmt: skip
+    limits: dict[str, float] = {}
+    for key, unit in (("v_max", "V"), ("i_max", "A")):
+        where = f"{p}:{lines.of('[device]', 0, key)}"
+        if key in dev:
+            limits[key] = _finite(where, key, dev[key],
+                                  f"the device's full-scale output ({unit})", positive=True)  # fmt: skip
+        elif kind in ("supply", "eload"):
+            raise RegisterMapError(
+                f"{where}: a {kind} map needs {key} (its full-scale output, {unit}); add it"
+            )
+    bipolar = dev.get("bipolar", False)
+    if not isinstance(bipolar, bool):
         raise RegisterMapError(
-            f"{p}:{lines.of('[device]', 0, 'baudrate')}: baudrate must be a whole number, e.g. 9600"
+            f"{p}:{lines.of('[device]', 0, 'bipolar')}: bipolar must be true or false"
         )
+    baudrate = dev.get("baudrate")
+    if baudrate is not None and (
+        isinstance(baudrate, bool)
+        or not isinstance(baudrate, int)
+        or not 50 <= baudrate <= 4_000_000
+    ):
+        raise RegisterMapError(f"{p}:{lines.of('[device]', 0, 'baudrate')}: baudrate must be a"
+                               " whole number of 50 to 4000000, e.g. 9600")  # fmt: skip
     write_function = dev.get("write_function", 6)
     if write_function not in (6, 16) or isinstance(write_function, bool):
         raise RegisterMapError(
             f"{p}:{lines.of('[device]', 0, 'write_function')}: write_function must be 6 or 16"
         )
-    return RegisterMap(kind, str(dev.get("model", p.stem)), tuple(regs), float(dev.get("v_max", 0.0)),
-                       float(dev.get("i_max", 0.0)), bool(dev.get("bipolar", False)), str(p),
-                       baudrate, int(write_function))  # fmt: skip
+    return RegisterMap(kind, model, regs, limits.get("v_max", 0.0), limits.get("i_max", 0.0),
+                       bipolar, str(p), baudrate, int(write_function))  # fmt: skip
+
+
+@lru_cache(maxsize=64)
+def _load(path: str, mtime_ns: int) -> RegisterMap:
+    p = Path(path)
+    size = p.stat().st_size
+    if size > MAX_MAP_BYTES:
+        raise RegisterMapError(
+            f"{p}: {size} bytes, more than the {MAX_MAP_BYTES} a register map may have"
+            " (MAX_MAP_BYTES); list only the registers the rig uses"
+        )
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise RegisterMapError(f"{p}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    return parse_map(text, str(p))
 
 
 def load_map(name_or_path: str) -> RegisterMap:

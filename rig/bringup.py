@@ -30,6 +30,7 @@ from drivers.registry import KINDS, DeviceKind, Found, ProbeTarget, transport_pa
 from drivers.transport.modbus import ModbusLink
 from rig.config import load_rig_config
 from rig.errors import UserInputError
+from rig.io.output_files import check_output, write_output
 
 MODBUS = ("modbus-rtu", "modbus-tcp")
 NAME_PREFIX = {"supply": "psu", "load": "load", "relay": "polarity", "magnetometer": "mag",
@@ -352,10 +353,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write a rig configuration skeleton (TOML) for what answered")  # fmt: skip
 
 
+def _refuse_existing(path: Path) -> None:
+    """Refuse (one line) a ``--write`` file that exists, or a link or non-regular file there."""
+    try:
+        check_output(path, exclusive=True)
+    except FileExistsError:
+        raise UserInputError(
+            f"{path}: exists; choose a new file name (it is not overwritten)"
+        ) from None
+
+
 def run(args: argparse.Namespace) -> int:
     """Scan, print the table, optionally write the skeleton. 0 when something answered."""
     listed = not args.only_given
     tcp = [parse_tcp(t) for t in args.tcp]
+    if args.write is not None:  # a file or a planted link there: refused before the scan
+        _refuse_existing(args.write)
     ports = serial_ports(args.port, listed=listed)
     buses: list[int | str] = list(i2c_buses(args.i2c_bus, listed=listed))
     if not (ports or buses or tcp):
@@ -372,11 +385,14 @@ def run(args: argparse.Namespace) -> int:
         print("rig devices scan: nothing answered; check power and cables, and give --port or"
               " --tcp for ports this computer does not list", file=sys.stderr)  # fmt: skip
     if args.write is not None:
-        if args.write.exists():
-            raise UserInputError(
-                f"{args.write}: exists; choose a new file name (it is not overwritten)"
-            )
-        args.write.write_text(skeleton(found, unknown) + "\n", encoding="utf-8")
+        try:  # atomically, never through a link, never over a file (issue 51)
+            write_output(args.write, (skeleton(found, unknown) + "\n").encode("utf-8"),
+                         exclusive=True)  # fmt: skip
+        except FileExistsError:
+            _refuse_existing(args.write)
+        except OSError as exc:
+            raise UserInputError(f"cannot write {args.write}: {exc.strerror}: choose another"
+                                 " path") from None  # fmt: skip
         load_rig_config(args.write)  # what we write must load
         print(f"wrote {args.write}: check every line marked FILL IN")
     return 0 if found else 1

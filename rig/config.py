@@ -470,7 +470,29 @@ def _nominal(path: Path, nominal: Any) -> tuple[tuple[float, ...], ...] | None:
         return None
     if not isinstance(nominal, list) or len(nominal) != 3:
         raise _err(path, "[cage].nominal_k_ut_per_a", "must be a 3x3 list of lists (uT/A)")
-    return tuple(_numbers(path, "[cage].nominal_k_ut_per_a", row, 3) for row in nominal)
+    k = tuple(_numbers(path, "[cage].nominal_k_ut_per_a", row, 3) for row in nominal)
+    _invertible(path, k)
+    return k
+
+
+MAX_K_CONDITION = 1e6
+"""Largest condition number of the nominal coil matrix: beyond it the currents for a field are
+dominated by rounding (a singular matrix made ``rig check`` an internal error, issue 51)."""
+
+
+def _invertible(path: Path, k: tuple[tuple[float, ...], ...]) -> None:
+    """Refuse a nominal coil matrix (uT/A) the cage model cannot invert for the currents of a
+    field: singular, or with a condition number beyond :data:`MAX_K_CONDITION`."""
+    import numpy as np
+
+    with np.errstate(all="ignore"):
+        cond = float(np.linalg.cond(np.array(k, float)))
+    if not math.isfinite(cond) or cond > MAX_K_CONDITION:
+        what = "is singular" if not math.isfinite(cond) else f"has condition number {cond:.3g}"
+        raise _err(path, "[cage].nominal_k_ut_per_a",
+                   f"{what} (at most {MAX_K_CONDITION:g}), so no currents give every field: write"
+                   " each field axis's uT per A of each coil, e.g. [[40, 0, 0], [0, 40, 0],"
+                   " [0, 0, 40]]")  # fmt: skip
 
 
 def _cage(path: Path, c: dict[str, Any], devices: dict[str, DeviceConfig]) -> CageConfig:

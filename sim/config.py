@@ -6,6 +6,8 @@ the rig never does). ``seed`` drives every random draw, so a file always gives t
 
 from __future__ import annotations
 
+import difflib
+import math
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -236,8 +238,73 @@ def _endpoint(d: dict[str, Any], where: str) -> EndpointConfig:
     )
 
 
+ENDPOINT_KEYS = ("transport", "device_id", "baudrate")
+"""The keys of a device table that make its :class:`EndpointConfig`."""
+
+
+def _keys_of(cls: type) -> tuple[str, ...]:
+    """The keys a table of ``cls`` may hold: its fields (an ``endpoint`` as its own keys)."""
+    names = tuple(f.name for f in fields(cls) if f.name != "endpoint")
+    return names + (ENDPOINT_KEYS if "endpoint" in {f.name for f in fields(cls)} else ())
+
+
+TABLE_KEYS: dict[str, tuple[str, ...]] = {
+    "cage": _keys_of(CageConfig),
+    "ambient": _keys_of(AmbientConfig),
+    "supplies": _keys_of(SupplyConfig),
+    "relay": _keys_of(RelayConfig),
+    "magnetometers": _keys_of(MagnetometerConfig),
+    "thermal": _keys_of(ThermalConfig),
+    "thermometer": _keys_of(ThermometerConfig),
+}
+"""Every key each table (or each entry of an array of tables) may hold, from the dataclasses."""
+TOP_KEYS = ("seed", *TABLE_KEYS, "faults")
+"""The top-level keys of a simulator configuration."""
+
+
+def _unknown(where: str, key: str, valid: tuple[str, ...]) -> SimConfigError:
+    match = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
+    fix = f"did you mean '{match[0]}'?" if match else f"valid keys: {', '.join(valid)}"
+    return SimConfigError(f"{where}: unknown key '{key}'; {fix}")
+
+
+def _check_keys(raw: dict[str, Any]) -> None:
+    """Refuse a key no table has, naming it and the nearest valid one (a misspelt key was
+    silently ignored and its default used, issue 51)."""
+    for key in raw:
+        if key not in TOP_KEYS:
+            raise _unknown("the top level", key, TOP_KEYS)
+    for name, valid in TABLE_KEYS.items():
+        value = raw.get(name)
+        entries = value if isinstance(value, list) else [value] if value is not None else []
+        for i, table in enumerate(entries):
+            where = f"{name}[{i}]" if isinstance(value, list) else name
+            if not isinstance(table, dict):
+                raise SimConfigError(f"{where} must be a table")
+            for key in table:
+                if key not in valid:
+                    raise _unknown(where, key, valid)
+
+
+def _check_finite(raw: dict[str, Any]) -> None:
+    """Refuse NaN, infinity and integers beyond a float anywhere in the file, naming the key
+    (a NaN was an internal error of the physics, issue 51). Walks the document without recursion."""
+    stack: list[tuple[str, Any]] = [("", raw)]
+    while stack:
+        where, value = stack.pop()
+        if isinstance(value, dict):
+            stack.extend((f"{where}.{k}" if where else str(k), v) for k, v in value.items())
+        elif isinstance(value, list):
+            stack.extend((f"{where}[{i}]", v) for i, v in enumerate(value))
+        elif isinstance(value, float) and not math.isfinite(value):
+            raise SimConfigError(f"{where} is {value}: write a finite number")
+        elif isinstance(value, int) and not isinstance(value, bool) and abs(value) > 2**63:
+            raise SimConfigError(f"{where} is {str(value)[:20]}...: write a number of sane size")
+
+
 def load_config(path: str | Path = DEFAULT_CONFIG) -> SimConfig:
-    """Parse and validate a simulator TOML file."""
+    """Parse and validate a simulator TOML file: unknown keys (with the nearest valid one) and
+    numbers that are not finite are refused, naming the key."""
     path = Path(path)
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -245,7 +312,11 @@ def load_config(path: str | Path = DEFAULT_CONFIG) -> SimConfig:
         raise SimConfigError(f"{path}: no such simulator configuration file") from None
     except tomllib.TOMLDecodeError as exc:
         raise SimConfigError(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise SimConfigError(f"{path}: arrays or tables nested too deep; flatten them") from None
     try:
+        _check_keys(raw)
+        _check_finite(raw)
         return _parse(raw, str(path))
     except (KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, SimConfigError):

@@ -71,7 +71,7 @@ def test_hmr2300_stream_resyncs_after_garbage_and_partial_frames(
     garbage: bytes, frames: list[tuple[int, int, int]], tail: bytes
 ) -> None:
     """Garbage, then whole frames, then a partial frame, through a real (loopback) port."""
-    dev = Hmr2300("loop://", device_id=0, timeout_s=0.05)
+    dev = Hmr2300("loop://", device_id=0, timeout_s=0.05, set_reset_auto=False)
     try:
         dev.binary = True
         dev.port.write(garbage + b"".join(_frame(f) for f in frames) + tail)

@@ -80,6 +80,31 @@ class Field:
         return self.now + self.perming.shift_ut
 
 
+def test_a_killed_perming_step_leaves_set_reset_off_and_the_next_opening_turns_it_on() -> None:
+    """Issue 51: a session turns the simulated sensor's automatic set/reset off (as a perming
+    step does) and dies without restoring it; the sensor keeps it off (perming shows); the next
+    session's driver turns it on as it opens, and a strong field's perming is cleared again."""
+    perming = Perming(threshold_ut=60.0, nt_per_ut=2.5)
+    field = Field(perming)
+    device = Hmr2300(field, Faults(), baudrate=9600, perming=perming)
+    try:
+        killed = Hmr2300Driver(device.path, baudrate=9600)
+        killed.set_reset_auto(False)
+        killed.port.close()  # the process dies here: nothing restores the mode
+        assert not device.set_reset
+        driver = Hmr2300Driver(device.path, baudrate=9600)
+        try:
+            assert device.set_reset
+            field.now = np.array([80.0, 0.0, 0.0])
+            driver.read()
+            field.now = np.zeros(3)
+            assert abs(1000.0 * driver.read()[0]) < 7.0  # nT: no perming left
+        finally:
+            driver.close()
+    finally:
+        device.close()
+
+
 def test_the_hmr2300s_set_reset_through_its_own_protocol() -> None:
     """S/R on (the default) hides perming; ``TF`` lets it show; ``]S`` clears it (50 nT: above
     the sensor's 6.7 nT count)."""

@@ -54,10 +54,16 @@ def parse_ascii(frame: bytes) -> tuple[float, float, float]:
 
 
 class Hmr2300:
-    """An HMR2300 on a serial port (path or pyserial URL)."""
+    """An HMR2300 on a serial port (path or pyserial URL).
+
+    Opening it stops a stream left running (ESC), finds its ID and turns its automatic set/reset
+    on (``*ddWE``, ``*ddTN``): a perming step turns it off for its holds and a step killed there
+    left it off (issue 51), so every session starts from the sensor's default. ``set_reset_auto``
+    False leaves the mode as found (a bring-up scan that only looks)."""
 
     def __init__(self, url: str, *, baudrate: int = 9600, device_id: int | None = None,
-                 timeout_s: float = 0.5, retries: int = 2, name: str = "HMR2300") -> None:  # fmt: skip
+                 timeout_s: float = 0.5, retries: int = 2, name: str = "HMR2300",
+                 set_reset_auto: bool = True) -> None:  # fmt: skip
         self.name = name
         self.port = SerialPort(url, baudrate, timeout_s=timeout_s, name=name)
         self.retries = retries
@@ -68,6 +74,8 @@ class Hmr2300:
         self.port.write(ESC)  # stop a stream left running by a previous session
         self.port.drain_input()
         self.device_id = self._query_id() if device_id is None else device_id
+        if set_reset_auto:
+            self.set_reset_auto(True)
 
     # --- commands -------------------------------------------------------------------------------
 

@@ -5,6 +5,7 @@ and still prints and writes what was measured."""
 from __future__ import annotations
 
 import csv
+import io
 import sys
 import threading
 from pathlib import Path
@@ -12,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from rig.cli.common import check_outputs, write_text
 from rig.errors import UserInputError
 
 BIAS_A = 0.5
@@ -43,6 +45,7 @@ def run_hold(rig_config: Path, field_ut: list[float], servo: bool, duration_s: f
 
     cfg = load_rig_config(rig_config)
     cage, inner_name, outside_name = _check(cfg, servo)
+    check_outputs([csv_path])  # a planted link refuses the hold before the cage is driven
     if not 0.05 <= period_s <= 10.0 or report_s < 2 * period_s:
         raise UserInputError("--period must be 0.05-10 s and --report-s at least two periods")
     target = np.array(field_ut, float)
@@ -80,13 +83,15 @@ def _progress(duration_s: float | None) -> Any:
 
 
 def _write_csv(path: Path, record: Any) -> None:
-    with path.open("w", newline="", encoding="utf-8") as f:
-        out = csv.writer(f)
-        out.writerow(["t_s", *(f"inner_{a}_ut" for a in "xyz"),
-                      *(f"outside_change_{a}_ut" for a in "xyz"), *(f"applied_{a}_ut" for a in "xyz")])  # fmt: skip
-        for row in zip(record.t_s, record.inner_ut, record.outside_change_ut, record.applied_ut,
-                       strict=True):  # fmt: skip
-            out.writerow([f"{row[0]:.3f}", *(f"{v:.6f}" for part in row[1:] for v in part)])
+    """The hold's readings (uT) as CSV, written atomically and never through a link."""
+    f = io.StringIO(newline="")
+    out = csv.writer(f)
+    out.writerow(["t_s", *(f"inner_{a}_ut" for a in "xyz"),
+                  *(f"outside_change_{a}_ut" for a in "xyz"), *(f"applied_{a}_ut" for a in "xyz")])  # fmt: skip
+    for row in zip(record.t_s, record.inner_ut, record.outside_change_ut, record.applied_ut,
+                   strict=True):  # fmt: skip
+        out.writerow([f"{row[0]:.3f}", *(f"{v:.6f}" for part in row[1:] for v in part)])
+    write_text(path, f.getvalue())
 
 
 def _summary(record: Any, target: Any, report_s: float, servo: bool, quiet: bool) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rig.calibration.estimators import DEFAULT_METHOD, method_names, spoken
-from rig.cli.common import EXIT_OK, Parser, Subparsers, columns, write_text
+from rig.cli.common import EXIT_OK, Parser, Subparsers, check_outputs, columns, write_text
 from rig.errors import UserInputError
 from rig.io.field_units import UNIT_HELP
 
@@ -285,6 +285,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     # tall and thin (blocks of 32k rows x <= 70 columns), a second thread gains nothing and, on a
     # busy machine, spinning threads took the 100k x 69 fit from 1.1 s to 2.7-3.7 s (ADR 0017).
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    # every file the user named, before the fit: a planted link refuses the command, writes nothing
+    check_outputs([args.out, args.c_header, args.ardupilot, args.px4, args.history])
     if args.data.is_dir():
         return _calibrate_run(args)
     if not args.data.exists():

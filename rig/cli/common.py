@@ -45,11 +45,36 @@ def columns(text: str) -> list[str]:
     return [c.strip() for c in text.split(",") if c.strip()]
 
 
-def write_text(path: Path, text: str) -> None:
-    """Write a user-named output file; a failure is a one-line input error."""
+def check_outputs(paths: list[Path | None], *, exclusive: bool = False) -> None:
+    """Refuse, before any work, user-named output files :func:`write_text` would refuse (a
+    symbolic link, a folder, FIFO or device; with ``exclusive`` any existing file): one line."""
+    from rig.io.output_files import check_output
+
+    for path in paths:
+        if path is None:
+            continue
+        try:
+            check_output(path, exclusive=exclusive)
+        except FileExistsError:
+            raise UserInputError(
+                f"{path}: exists; choose a new file name (it is not overwritten)"
+            ) from None
+
+
+def write_text(path: Path, text: str, *, exclusive: bool = False) -> None:
+    """Write a user-named output file (UTF-8), creating its folder: atomically and never through a
+    symbolic link (:func:`rig.io.output_files.write_output`: a link there is refused in one line,
+    exit 2). ``exclusive``: an existing file is refused, not overwritten. A failure is a one-line
+    input error."""
+    from rig.io.output_files import write_output
+
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text, encoding="utf-8")
+        write_output(path, text.encode("utf-8"), exclusive=exclusive)
+    except FileExistsError:
+        raise UserInputError(
+            f"{path}: exists; choose a new file name (it is not overwritten)"
+        ) from None
     except OSError as exc:
         raise UserInputError(f"cannot write {path}: {exc.strerror}: choose another path") from None
 

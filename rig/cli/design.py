@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rig.cli.common import Parser, Subparsers
+from rig.cli.common import Parser, Subparsers, check_outputs, write_text
 
 if TYPE_CHECKING:
     from rig.prediction.design import Targets
@@ -77,8 +77,8 @@ def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: P
         raise UserInputError(f"--margin must be 0-4 (a fraction), got {margin:g}")
     targets = Targets.load(targets_path)
     cfg = load_rig_config(rig_config)
-    if out is not None and out.exists():
-        raise UserInputError(f"{out}: exists; choose a new file name (it is not overwritten)")
+    if out is not None:
+        check_outputs([out], exclusive=True)  # a link or a file there: refused before the work
     probe = _probe_procedure(targets)
     noise = noise_floor(probe, cfg, runs_dir, noise_nt)
     timing = rig_timing(cfg) or RigTiming()
@@ -88,7 +88,7 @@ def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: P
     if out is None:
         sys.stdout.write(text)
     else:
-        out.write_text(text, encoding="utf-8")
+        write_text(out, text, exclusive=True)  # never through a link, never over a file
     if not quiet:
         verdict = "meets every target" if design.meets else "CANNOT meet: " + "; ".join(
             f"{k}: {v}" for k, v in design.unmet.items())  # fmt: skip

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from rig.cli.common import EXIT_OK, Parser, Subparsers
+from rig.cli.common import EXIT_OK, Parser, Subparsers, write_text
 from rig.errors import UserInputError
 
 
@@ -33,7 +33,7 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
 
 def _cmd_example_data(args: argparse.Namespace) -> int:
     from rig.calibration.synthetic import cage_like, rax_like
-    from rig.io.csv_table import write_columns
+    from rig.io.csv_table import columns_text
 
     if args.samples < 100:
         raise UserInputError(f"--samples must be at least 100, got {args.samples}")
@@ -58,7 +58,7 @@ def _cmd_example_data(args: argparse.Namespace) -> int:
         hint = "--measured mx_ut,my_ut,mz_ut --field hx_ut,hy_ut,hz_ut --telemetry " + ",".join(
             s.channels
         )
-    write_columns(args.out, cols)
+    write_text(args.out, columns_text(cols))
     if not args.quiet:
         print(f"wrote {args.out}: {args.samples} samples ({args.kind}); calibrate it with")
         print(f"  rig calibrate {args.out} {hint} --noise-nt {args.noise_nt:g}")

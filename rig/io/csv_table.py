@@ -64,6 +64,11 @@ def _is_number(cell: str) -> bool:
     return True
 
 
+MAX_ABS_VALUE = 1e30
+"""Largest magnitude a cell may hold: no reading, current or time is this large, and the fits'
+sums of squares and fourth powers overflow not far beyond (a cell of 1e308 was an internal error,
+issue 51). A larger value is refused like NaN (or left out with ``--drop-invalid``)."""
+
 BLOCK_BYTES = 8 << 20
 """The file is parsed this many bytes at a time (whole lines) straight into the result array, so
 reading takes the result's memory plus one block, whatever the file's size."""
@@ -76,7 +81,8 @@ def read_columns(
     no header row and these are its columns, in order.
 
     Raises :class:`UserInputError` naming the file, line and column for a missing column,
-    a non-numeric or empty cell, NaN or infinity, or a file without data rows. The arrays are
+    a non-numeric or empty cell, NaN, infinity or a value beyond :data:`MAX_ABS_VALUE`, or a file
+    without data rows. The arrays are
     the columns of one table (:func:`read_table`), each contiguous.
     """
     table = read_table(path, columns, names)
@@ -93,7 +99,8 @@ def read_table(path: str | Path, columns: list[str], names: list[str] | None = N
     with path.open("rb") as fh:
         lines = sum(block.count(b"\n") for block in iter(lambda: fh.read(BLOCK_BYTES), b""))
     out = np.empty((lines + 1, len(columns)), order="F")
-    filled, bad_rows, first_bad = 0, 0, None
+    filled, bad_rows = 0, 0
+    first_bad: tuple[int, int, float] | None = None
     try:
         with path.open("rb") as fh:
             for _ in range(header_index + 1):
@@ -103,11 +110,12 @@ def read_table(path: str | Path, columns: list[str], names: list[str] | None = N
                     warnings.simplefilter("ignore", UserWarning)  # a block of comments only
                     block = np.loadtxt(io.StringIO(text), delimiter=delimiter, usecols=index,
                                        comments="#", ndmin=2)  # fmt: skip
-                bad = ~np.isfinite(block)
+                bad = ~(np.abs(block) <= MAX_ABS_VALUE)  # NaN, infinite or beyond the bound
                 if bad.any():
                     rows = np.flatnonzero(bad.any(axis=1))
                     if first_bad is None:
-                        first_bad = (filled + int(rows[0]), int(np.flatnonzero(bad[rows[0]])[0]))
+                        col = int(np.flatnonzero(bad[rows[0]])[0])
+                        first_bad = (filled + int(rows[0]), col, float(block[rows[0], col]))
                     bad_rows += rows.size
                 out[filled : filled + block.shape[0]] = block
                 filled += block.shape[0]
@@ -118,10 +126,16 @@ def read_table(path: str | Path, columns: list[str], names: list[str] | None = N
         raise UserInputError(f"{path} has a header but no data rows")
     if first_bad is not None:
         line = _data_line_numbers(path, header_index)[first_bad[0]]
+        value = first_bad[2]
+        what = (
+            "value is NaN or infinite"
+            if not math.isfinite(value)
+            else f"value {value:g} is beyond {MAX_ABS_VALUE:g} in magnitude (MAX_ABS_VALUE: no"
+            " reading is that large)"
+        )
         raise UserInputError(
-            f"{path} line {line}, column '{columns[first_bad[1]]}': value is NaN or infinite"
-            f" ({bad_rows} such rows): remove or repair those rows, or add"
-            " --drop-invalid to leave them out"
+            f"{path} line {line}, column '{columns[first_bad[1]]}': {what} ({bad_rows} such"
+            " rows): remove or repair those rows, or add --drop-invalid to leave them out"
         )
     return out[:filled]
 
@@ -149,7 +163,8 @@ def _line_blocks(fh: BinaryIO) -> Iterator[str]:
 def read_valid_rows(
     path: str | Path, columns: list[str], names: list[str] | None = None
 ) -> tuple[dict[str, Array], list[int]]:
-    """Like :func:`read_columns`, but a row with an empty, non-numeric, NaN or infinite cell in
+    """Like :func:`read_columns`, but a row with an empty, non-numeric, NaN, infinite or huge
+    (beyond :data:`MAX_ABS_VALUE`) cell in
     one of ``columns`` (or too few cells) is left out instead of refused: (columns, line numbers
     of the rows left out). A file with no valid row at all is still an error."""
     path = Path(path)
@@ -167,7 +182,7 @@ def read_valid_rows(
             except (IndexError, ValueError):
                 dropped.append(number)
                 continue
-            if all(math.isfinite(v) for v in values):
+            if all(abs(v) <= MAX_ABS_VALUE for v in values):  # NaN compares False
                 rows.append(values)
             else:
                 dropped.append(number)
@@ -233,13 +248,24 @@ def _raise_bad_cell(
     )
 
 
-def write_columns(path: str | Path, columns: dict[str, Array], fmt: str = "%.6f") -> None:
-    """Write equal-length columns as CSV with a header row."""
-    path = Path(path)
+def columns_text(columns: dict[str, Array], fmt: str = "%.6f") -> str:
+    """Equal-length columns as CSV text with a header row (``rig example-data`` writes it through
+    :func:`rig.cli.common.write_text`: atomically, never through a link)."""
     names = list(columns)
     data = np.column_stack([columns[n] for n in names])
+    buf = io.StringIO()
+    np.savetxt(buf, data, delimiter=",", header=",".join(names), comments="", fmt=fmt)
+    return buf.getvalue()
+
+
+def write_columns(path: str | Path, columns: dict[str, Array], fmt: str = "%.6f") -> None:
+    """Write equal-length columns as CSV with a header row, atomically and never through a
+    symbolic link (:func:`rig.io.output_files.write_output`: a link there is an input error)."""
+    from rig.io.output_files import write_output
+
+    path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt=fmt)
+        write_output(path, columns_text(columns, fmt).encode("utf-8"))
     except OSError as exc:
         raise UserInputError(f"cannot write {path}: {exc.strerror}: choose another path") from None

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
+from rig.io.output_files import write_output
 from rig.lab.queries import Trend
 
 
@@ -45,6 +47,8 @@ def trend_png(trend: Trend, path: Path) -> None:
         ax.legend(fontsize=7, ncol=2)
         fig.tight_layout()
         path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=110)
+        png = io.BytesIO()
+        fig.savefig(png, format="png", dpi=110)
+        write_output(path, png.getvalue())  # atomically, never through a link (issue 51)
     finally:
         plt.close(fig)

@@ -3,8 +3,9 @@ check --rig`` prints it, and ``rig run`` refuses it before the lock or any outpu
 code path, so a run never starts what the check refuses).
 
 Refused outright (one line, :class:`rig.errors.UserInputError`, exit 2): a configuration naming
-one instrument twice (:func:`rig.wire_address.shared_addresses`), a cage device named as a load,
-a load that is no device. Violations (``LIMIT:`` lines of ``rig check``, exit 1; the first one
+one instrument twice (:func:`rig.wire_address.shared_addresses`), a register map of a device that
+the one parser refuses (:func:`regmaps.parse_map`: a scale of 0, an address beyond 65535, ...), a
+cage device named as a load, a load that is no device. Violations (``LIMIT:`` lines of ``rig check``, exit 1; the first one
 refuses a run): fields beyond the cage's field limit, coil currents beyond the cage's current
 limits with the cage model's margin, load set-points beyond a channel's own limits (current, sign,
 power, the DUT temperature a heater would reach: :mod:`rig.procedure.heat_limits`), and what the
@@ -16,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from drivers.regmap import RegisterMapError, load_map
 from rig.config import RigConfig
 from rig.errors import UserInputError
 from rig.output_limits import cage_model, refuse_cage_devices_as_loads
@@ -110,11 +112,27 @@ def unchecked_limits(proc: Procedure, cfg: RigConfig | None, k: Any) -> list[str
     return []
 
 
+def refuse_bad_register_maps(cfg: RigConfig) -> None:
+    """Load every register map the configuration names (``regmap = ...``), as opening its device
+    would: a map the parser refuses is a UserInputError naming the device, the map's file and line,
+    the register and the fix (issue 51: a map with a scale of 0 or an address of 70000 passed
+    ``rig check``; a run found out only when it opened the device)."""
+    for dev in cfg.devices.values():
+        name = dev.get("regmap")
+        if not dev.kind.startswith("regmap-") or not isinstance(name, str):
+            continue
+        try:
+            load_map(name)
+        except RegisterMapError as exc:
+            raise UserInputError(f"{cfg.path}: [devices.{dev.name}].regmap: {exc}") from None
+
+
 def preflight(proc: Procedure, cfg: RigConfig | None) -> Preflight:
     """``proc`` checked against ``cfg`` (None: only what holds for any rig). Raises
     UserInputError for what no run may even be recorded with (see the module's text)."""
     if cfg is not None:
         refuse_shared_addresses(cfg)
+        refuse_bad_register_maps(cfg)
     model = cage_model_view(cfg)
     loads_max = load_limits_a(proc, cfg)
     cage = cfg.cage if cfg is not None else None

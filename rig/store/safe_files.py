@@ -10,6 +10,8 @@ every run-folder file goes through this module:
   then replaces the target by ``rename``, which replaces a link itself, never what it points to;
 * a run folder that is itself a link, or not a folder, is refused.
 
+Output files a user names on the command line go through :mod:`rig.io.output_files` instead.
+
 Every refusal is an :class:`UnsafeFileError` (a ``RigError``: one line, exit 2) naming the file.
 """
 

@@ -19,7 +19,8 @@ from drivers.mag.lis3mdl import Lis3mdl
 from drivers.mag.rm3100 import Rm3100
 from tests.drivers.scripted import Exchange, ScriptedI2CBus, ScriptedSerialPeer
 
-OPEN = [Exchange(b"\x1b", b""), Exchange(b"*99ID=\r", b"ID= 07\r")]
+OPEN = [Exchange(b"\x1b", b""), Exchange(b"*99ID=\r", b"ID= 07\r"),
+        Exchange(b"*07WE\r", b"OK\r"), Exchange(b"*07TN\r", b"S/R ON\r")]  # fmt: skip
 
 
 def test_hmr2300_identity_modes_and_samples() -> None:
@@ -109,6 +110,49 @@ def test_hmr2300_parsers_reject_damage() -> None:
         parse_binary(b"\x00\x01\x02\x03\x04\x05\x0a")
     with pytest.raises(DeviceProtocolError):
         parse_ascii(b"  3,0x0  - 0,750    6,750  \r")
+
+
+def test_hmr2300_opening_turns_automatic_set_reset_on_and_a_scan_leaves_it() -> None:
+    """Issue 51: a perming step killed with automatic set/reset off; the next session's opening
+    sequence turns it on (``*ddWE``, ``*ddTN`` answered ``S/R ON``) before anything else, and a
+    refusal there is the opening's error. A bring-up scan (``set_reset_auto=False``) sends neither."""
+    peer = ScriptedSerialPeer([
+        Exchange(b"\x1b", b""),
+        Exchange(b"*99ID=\r", b"ID= 07\r"),
+        Exchange(b"*07WE\r", b"OK\r"),
+        Exchange(b"*07TN\r", b"S/R ON\r"),
+        Exchange(b"*07#\r", b"SER# 0123\r"),
+        Exchange(b"*07F\r", b"S/W vers: 3.12\r"),
+    ])  # fmt: skip
+    mag = Hmr2300(peer.path, baudrate=19200)
+    try:
+        assert mag.identify().serial == "0123"
+    finally:
+        mag.port.close()
+        peer.close()
+    assert peer.mismatches == []
+    peer = ScriptedSerialPeer([
+        Exchange(b"\x1b", b""),
+        Exchange(b"*03WE\r", b"OK\r"),
+        Exchange(b"*03TN\r", b"WE OFF\r"),
+    ])  # fmt: skip
+    with pytest.raises(DeviceRefusedError, match="'TN' needs write enable"):
+        Hmr2300(peer.path, baudrate=19200, device_id=3, timeout_s=0.2)
+    peer.close()
+    assert peer.mismatches == []
+    peer = ScriptedSerialPeer([
+        Exchange(b"\x1b", b""),
+        Exchange(b"*99ID=\r", b"ID= 07\r"),
+        Exchange(b"*07#\r", b"SER# 0123\r"),
+        Exchange(b"*07F\r", b"S/W vers: 3.12\r"),
+    ])  # fmt: skip
+    mag = Hmr2300(peer.path, baudrate=19200, set_reset_auto=False)
+    try:
+        assert mag.identify().serial == "0123"
+    finally:
+        mag.port.close()
+        peer.close()
+    assert peer.mismatches == []
 
 
 def test_hmr2300_not_an_hmr2300() -> None:

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from rig.config import load_rig_config
 from rig.errors import UserInputError
 from rig.procedure.language import ProcedureError, parse_procedure
-from rig.text import MAX_TEXT_CHARS, is_control, text_problem
+from rig.text import MAX_TEXT_CHARS, is_control, is_invisible, shown, text_problem
 
 RIG = [sys.executable, "-m", "rig.cli"]
 
@@ -188,7 +188,10 @@ def test_file_names_that_land_in_the_record_are_checked_too(tmp_path: Path) -> N
 # --- the rule as a property -----------------------------------------------------------------------
 
 printable = st.text(
-    st.characters(blacklist_categories=("Cs",)).filter(lambda c: not is_control(c)), max_size=59
+    st.characters(blacklist_categories=("Cs",)).filter(
+        lambda c: not is_control(c) and not is_invisible(c)
+    ),
+    max_size=59,
 )
 
 
@@ -215,3 +218,49 @@ def test_any_control_character_in_a_serial_is_refused_and_any_clean_label_is_kep
     clean = (before + after)[:MAX_TEXT_CHARS]
     if clean.strip():
         assert parse_procedure(path, {"dut_serial": clean}).parameters["dut_serial"] == clean
+
+
+# --- invisible characters (issue 51): bidi controls and zero-width characters in labels ----------
+
+BIDI = ["\u202a", "\u202b", "\u202c", "\u202d", "\u202e", "\u2066", "\u2067", "\u2068", "\u2069",
+        "\u200e", "\u200f", "\u061c"]  # fmt: skip
+ZERO_WIDTH = ["\u200b", "\u200c", "\u200d", "\u2060", "\ufeff"]
+
+
+@pytest.mark.parametrize("ch", BIDI + ZERO_WIDTH)
+def test_every_bidi_control_and_zero_width_character_is_refused_in_a_label(ch: str) -> None:
+    problem = text_problem(f"SN-1{ch}01")
+    assert problem is not None and f"U+{ord(ch):04X}" in problem and "at character 5" in problem
+    assert is_invisible(ch)
+    assert text_problem(f"Mount the DUT{ch} here", label=False) is None  # free text keeps them
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "line", "name"),
+    [
+        ("step", '"noise\\u202Efloor"', 10, "U+202E RIGHT-TO-LEFT OVERRIDE"),
+        ("serial", '"SN-1\\u200B01"', 4, "U+200B ZERO WIDTH SPACE"),
+        ("title", '"Accept\\u2067ance"', 1, "U+2067 RIGHT-TO-LEFT ISOLATE"),
+        ("lot", '"7\\uFEFF"', 5, "U+FEFF ZERO WIDTH NO-BREAK SPACE"),
+    ],
+)
+def test_invisible_characters_are_refused_with_file_line_and_name(
+    tmp_path: Path, field: str, value: str, line: int, name: str
+) -> None:
+    path = procedure(tmp_path, **{field: value})
+    done = rig_check(str(path))
+    assert done.returncode == 2
+    err = one_line(done.stderr)
+    assert f"{path}:{line}: " in err and name in err, err
+    assert not any(is_invisible(c) for c in err), err  # shown escaped, never raw
+
+
+def test_invisible_characters_in_set_and_the_rig_configuration_are_refused(tmp_path: Path) -> None:
+    path = procedure(tmp_path)
+    done = rig_check(str(path), "--set", "dut_serial=SN-1\u202e01")
+    assert done.returncode == 2 and "RIGHT-TO-LEFT OVERRIDE" in one_line(done.stderr)
+    assert "\\u202e" in done.stderr and "\u202e" not in done.stderr
+    cfg = config(tmp_path, serial='"A-1\\u200D"')
+    with pytest.raises(UserInputError, match=r"\[devices\.coil_x\]\.serial: .*U\+200D ZERO WIDTH"):
+        load_rig_config(cfg)
+    assert shown("a\u202eb") == "'a\\u202eb'"

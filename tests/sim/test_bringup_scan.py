@@ -134,6 +134,15 @@ def test_the_command_writes_a_loadable_skeleton(
     assert cfg.cage is None and set(cfg.devices) == {"psu1", "load1"}
     with pytest.raises(UserInputError, match="exists"):
         run(args)
+    # issue 51: a link planted at the path (here dangling) is refused before the scan, and its
+    # target is not created
+    planted = tmp_path / "planted.toml"
+    planted.symlink_to(tmp_path / "created-through-the-link.toml")
+    args.write = planted
+    with pytest.raises(UserInputError, match=r"planted\.toml: is a symbolic link.*remove it or"
+                       r" choose another file name"):  # fmt: skip
+        run(args)
+    assert not (tmp_path / "created-through-the-link.toml").exists()
 
 
 def test_bad_tcp_address_names_the_fix() -> None:
