@@ -129,6 +129,20 @@ ATTACKS = [
            "tests/lab/test_lab_forged_runs.py::test_an_unsealed_run_of_the_rig_s_own_is_skipped_with_a_line"),
     Attack("a value of 1e308 in a run, and one already in the index", "the run refused; `rig lab audit` and trend survive, limits unmoved",
            "tests/lab/test_lab_forged_runs.py::test_audit_and_trend_survive_an_extreme_value_an_older_sync_stored"),
+    Attack("links (dangling too) planted at `rig calibrate --out/--c-header/--px4/--history`, `example-data`, `design --out`", "refused in one line, the target untouched and never created",
+           "tests/test_output_no_follow.py::test_a_planted_link_is_refused_and_its_target_left_alone"),
+    Attack("register maps with scale 0/NaN/-1, i_max inf, addresses -1/70000/2^40", "refused in one line naming file, line, register and fix",
+           "tests/drivers/test_regmap_parser.py::test_hostile_values_are_refused_with_file_line_register_and_fix"),
+    Attack("a 30000-register map (`rig safe` busy > 300 s)", "refused at the cap (4096) in the time tomllib takes; parsing linear",
+           "tests/drivers/test_regmap_parser.py::test_a_map_of_more_than_max_registers_is_refused_and_one_at_the_cap_is_read"),
+    Attack("a CSV cell of 1e308", "one line naming its line and column, exit 2",
+           "tests/test_hostile_numbers.py::test_a_huge_csv_cell_names_its_line_and_column"),
+    Attack("a singular nominal coil matrix; NaN and unknown keys in the simulator configuration", "one line each, exit 2",
+           "tests/test_hostile_numbers.py::test_a_singular_nominal_coil_matrix_is_refused_at_load"),
+    Attack("right-to-left override and zero-width characters in a step name or serial", "refused with the character's name",
+           "tests/engine/test_text_rule.py::test_every_bidi_control_and_zero_width_character_is_refused_in_a_label"),
+    Attack("a perming step killed with the DUT's automatic set/reset off", "the next opening of the sensor turns it on",
+           "tests/test_perming.py::test_a_killed_perming_step_leaves_set_reset_off_and_the_next_opening_turns_it_on"),
 ]  # fmt: skip
 
 
