@@ -48,9 +48,10 @@ def start_ticks(pid: int) -> int | None:
         return None
 
 
-def identity() -> dict[str, Any]:
-    """This process: host name, boot id, PID namespace, PID and start time (JSON-ready)."""
-    pid = os.getpid()
+def identity(pid: int | None = None) -> dict[str, Any]:
+    """This process (or process ``pid`` of this host): host name, boot id, PID namespace, PID and
+    start time (JSON-ready)."""
+    pid = os.getpid() if pid is None else pid
     return {"host": socket.gethostname(), "boot_id": boot_id(), "pid_ns": pid_namespace(),
             "pid": pid, "pid_start": start_ticks(pid)}  # fmt: skip
 

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from drivers.errors import DeviceError
+from rig import host_identity
 from rig.analysis import apply_correction
 from rig.calibration.record import latest_calibration
 from rig.config import RigConfig
@@ -245,6 +246,8 @@ class Runner:
         """Open every device through ``rig`` (entered), start the health monitor and the live
         view; everything started stops through the session, after its safe state."""
         self.rig = rig
+        if rig.guardian is not None:  # a reader leaves the run to a live guardian to close
+            w.set_meta(guardian=host_identity.identity(rig.guardian.proc.pid))
         assert self.commands is not None
         self.controller = self.commands.controller = rig.cage()
         instruments = dict(self.controller.instruments())

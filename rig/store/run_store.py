@@ -497,7 +497,17 @@ def _lease_of(con: sqlite3.Connection) -> dict[str, Any]:
 
 def _recorder_gone(con: sqlite3.Connection, meta: dict[str, Any]) -> str | None:
     """Why the recorder of a ``running`` run is gone (the reason to record), None while it may
-    be recording: by PID in its own boot and PID namespace, else by its lease."""
+    be recording (by PID in its own boot and PID namespace, else by its lease) or while its
+    guardian is provably alive (it switches the outputs off, records what it did and closes the
+    run itself: a reader closing it first would leave its record out of the sealed run)."""
+    gone = _recorder_gone_by_lease(con, meta)
+    if gone is not None and host_identity.alive(meta.get("guardian")) is True:
+        return None
+    return gone
+
+
+def _recorder_gone_by_lease(con: sqlite3.Connection, meta: dict[str, Any]) -> str | None:
+    """:func:`_recorder_gone`, the recorder alone."""
     lease = meta.get("lease")
     if not isinstance(lease, dict):  # recorded before leases: its PID, as then
         return None if _owner_alive(meta.get("pid")) else KILLED

@@ -36,7 +36,7 @@ steps:
   - cage_response: {frequencies_hz: [1, 2, 4, 6, 8], amplitude_ut: 5, bias_ut: 20, rate_hz: 50}
     name: cage
   - frequency_response: {frequencies_hz: [0.5, 1, 2, 4, 5.5], cycles: 3, min_s: 4, rate_hz: 40,
-                         amplitude_ut: 10, bias_ut: 30}
+                         amplitude_ut: 7, bias_ut: 30}
     name: bode
   - report: {}
 """
