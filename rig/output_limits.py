@@ -40,7 +40,7 @@ from drivers.registry import KINDS
 from rig.cage.model import CageModel
 from rig.config import DeviceConfig, RigConfig
 from rig.errors import RigError, UserInputError
-from rig.wire_address import lock_addresses, same_device
+from rig.wire_address import lock_addresses
 
 TOLERANCE = 1e-9
 """Set-points this close above a limit count as at it (floating-point rounding)."""
@@ -259,18 +259,25 @@ def limited(cfg: RigConfig | None, dev: DeviceConfig, driver: Any) -> LimitedOut
     return LimitedOutput(driver, with_power_limit(output_limits(cfg, dev, driver), dev))
 
 
+def _named_at(cfg: RigConfig, dev: DeviceConfig, names: list[str | None]) -> int | None:
+    """The index of the first of ``names`` that is ``dev`` by name, else the first that is on
+    ``dev``'s wire address (:func:`rig.wire_address.lock_addresses`, ``dev``'s resolved once);
+    None for none of them."""
+    if dev.name in names:
+        return names.index(dev.name)
+    mine = set(lock_addresses(dev))
+    for i, name in enumerate(names):
+        other = cfg.devices.get(name) if name is not None else None
+        if other is not None and mine & set(lock_addresses(other)):
+            return i
+    return None
+
+
 def cage_axis(cfg: RigConfig, dev: DeviceConfig) -> int | None:
     """The cage axis (0-2) whose coil supply ``dev`` is on the wire, whatever name it is given
     (:func:`rig.wire_address.same_device`); None for any other device."""
     c = cfg.cage
-    if c is None:
-        return None
-    mine = set(lock_addresses(dev))
-    for axis, name in enumerate(c.axes):
-        coil = cfg.devices.get(name)
-        if name == dev.name or (coil is not None and mine & set(lock_addresses(coil))):
-            return axis
-    return None
+    return None if c is None else _named_at(cfg, dev, list(c.axes))
 
 
 def cage_role(cfg: RigConfig, name: str) -> str | None:
@@ -279,7 +286,7 @@ def cage_role(cfg: RigConfig, name: str) -> str | None:
     the wire address: a second name for a cage device has its role ("... (coil_x, on the same
     address)")."""
     c = cfg.cage
-    if c is None:
+    if c is None or name not in cfg.devices:
         return None
     roles: list[tuple[str | None, str]] = [
         (n, f"the cage's {'xyz'[i]} coil supply") for i, n in enumerate(c.axes)
@@ -289,23 +296,21 @@ def cage_role(cfg: RigConfig, name: str) -> str | None:
               "the cage's outside reference magnetometer")]  # fmt: skip
     if c.trim is not None:
         roles += [(n, f"the cage's {'xyz'[i]} trim supply") for i, n in enumerate(c.trim)]
-    for device, role in roles:
-        if device == name:
-            return role
-    for device, role in roles:
-        if device is not None and same_device(cfg, name, device):
-            return f"{role} ({device}, on the same address)"
-    return None
+    found = _named_at(cfg, cfg.devices[name], [device for device, _ in roles])
+    if found is None:
+        return None
+    device, role = roles[found]
+    return role if device == name else f"{role} ({device}, on the same address)"
 
 
 def refuse_cage_devices_as_loads(loads: list[str], cfg: RigConfig, procedure: Path) -> None:
     """Refuse (one line, UserInputError) a procedure whose ``loads:`` name a cage device: a coil
     is driven by field steps within the cage's limits, never as a load channel."""
-    channels = [n for n, d in cfg.devices.items() if d.kind in KINDS
-                and "load" in KINDS[d.kind].roles and cage_role(cfg, n) is None]  # fmt: skip
     for name in loads:
         role = cage_role(cfg, name)
         if role is not None:
+            channels = [n for n, d in cfg.devices.items() if d.kind in KINDS
+                        and "load" in KINDS[d.kind].roles and cage_role(cfg, n) is None]  # fmt: skip
             raise UserInputError(
                 f"{procedure}: loads: '{name}' is {role} in {cfg.path}; a cage device is never"
                 f" a load (coils take field steps, within the cage limits): name a load channel"
