@@ -154,6 +154,16 @@ class DeviceConfig:
         return place
 
 
+def coil_step_a(max_slew_a_per_s: float, dt_s: float, coil_tau_s: float | None) -> float:
+    """The largest set-point change (A) ``dt_s`` after the last one that keeps a coil current's
+    slope within ``max_slew_a_per_s``: ``slew * dt`` for an ideal coil; into a coil of L/R
+    ``tau`` still moving towards the last set-point, ``slew * tau * (1 - exp(-dt / tau))`` (a
+    steady staircase's peak slope, step / (tau (1 - exp(-dt / tau))), at the limit)."""
+    if coil_tau_s is None:
+        return max_slew_a_per_s * dt_s
+    return max_slew_a_per_s * coil_tau_s * -math.expm1(-dt_s / coil_tau_s)
+
+
 @dataclass(frozen=True)
 class CageConfig:
     """Which devices make the cage, and its limits (units as in :data:`CAGE_KEYS`)."""
@@ -183,10 +193,7 @@ class CageConfig:
         ``coil_tau_s`` the rate whose set-point steps (one per ``step_s``) into a first-order
         coil of that L/R peak at exactly ``max_slew_a_per_s``:
         ``max_slew * tau (1 - exp(-step_s / tau)) / step_s``."""
-        tau, step = self.coil_tau_s, self.step_s
-        if tau is None:
-            return self.max_slew_a_per_s
-        return self.max_slew_a_per_s * tau * -math.expm1(-step / tau) / step
+        return coil_step_a(self.max_slew_a_per_s, self.step_s, self.coil_tau_s) / self.step_s
 
 
 @dataclass(frozen=True)

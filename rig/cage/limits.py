@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from rig.config import coil_step_a
 from rig.errors import RigError
 
 Array = npt.NDArray[np.float64]
@@ -49,14 +50,8 @@ class CageLimits:
 
     def step_within_a(self, dt_s: float) -> float:
         """The largest set-point change (A) ``dt_s`` after the last one that keeps the coil
-        current's slope within ``max_slew_a_per_s``: ``slew * dt`` for an ideal coil; into a
-        coil of L/R ``tau`` still moving towards the last set-point, ``slew * tau * (1 -
-        exp(-dt / tau))`` (the steady staircase's peak slope, step / (tau (1 - exp(-dt/tau))),
-        at the limit)."""
-        tau = self.coil_tau_s
-        if tau is None:
-            return self.max_slew_a_per_s * dt_s
-        return self.max_slew_a_per_s * tau * -math.expm1(-dt_s / tau)
+        current's slope within ``max_slew_a_per_s`` (:func:`rig.config.coil_step_a`)."""
+        return coil_step_a(self.max_slew_a_per_s, dt_s, self.coil_tau_s)
 
     def check_currents(self, currents_a: npt.ArrayLike, what: str = "command") -> None:
         """Refuse currents beyond the per-axis limits."""

@@ -8,7 +8,6 @@ the report find every kind there; none of them names a kind.
 
 from __future__ import annotations
 
-import math
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -18,6 +17,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 import numpy as np
 import numpy.typing as npt
 
+from rig.config import coil_step_a
 from rig.errors import RunAborted
 from rig.steps.load_profiles import load_profile
 from rig.steps.vocabulary import Command, Param, RigTiming, Step
@@ -170,14 +170,11 @@ class CageAbilities:
 
     def tracked_slew_a_per_s(self, rate_hz: float) -> float | None:
         """The fastest a coil current may follow set-points sent at ``rate_hz`` (A/s): each
-        step into the coil's L/R peaks at the slew limit (:meth:`rig.cage.limits.CageLimits.
-        step_within_a`); the slew limit itself without an L/R, None without either."""
+        step into the coil's L/R peaks at the slew limit (:func:`rig.config.coil_step_a`); the
+        slew limit itself without an L/R, None without a slew limit."""
         if self.max_slew_a_per_s is None:
             return None
-        if self.coil_tau_s is None:
-            return self.max_slew_a_per_s
-        dt = 1.0 / rate_hz
-        return self.max_slew_a_per_s * self.coil_tau_s * -math.expm1(-dt / self.coil_tau_s) / dt
+        return coil_step_a(self.max_slew_a_per_s, 1.0 / rate_hz, self.coil_tau_s) * rate_hz
 
 
 class StepKind:
