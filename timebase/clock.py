@@ -1,0 +1,149 @@
+"""The clock protocol and the process's current clock (the module-level functions ask it)."""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import threading
+from collections.abc import Callable, Iterator
+from typing import Any, Protocol, TypeVar
+
+T = TypeVar("T")
+
+
+class Clock(Protocol):
+    """What every clock offers. Times in seconds; ``monotonic`` never goes back."""
+
+    simulated: bool
+
+    def monotonic(self) -> float:
+        """Seconds on this clock (an arbitrary origin)."""
+        ...
+
+    def wall_time(self) -> float:
+        """Seconds since the Unix epoch (for dates people read: the store's, the report's)."""
+        ...
+
+    def sleep(self, seconds: float) -> None:
+        """Wait ``seconds`` (<= 0: let others run, then go on)."""
+        ...
+
+    def Event(self) -> threading.Event:  # noqa: N802 - the threading name it stands for
+        """An event as :class:`threading.Event`."""
+        ...
+
+    def Lock(self) -> Any:  # noqa: N802
+        """A lock as :class:`threading.Lock` (safe to hold while waiting on this clock)."""
+        ...
+
+    def RLock(self) -> Any:  # noqa: N802
+        """A re-entrant lock as :class:`threading.RLock`."""
+        ...
+
+    def Condition(self, lock: Any = None) -> threading.Condition:  # noqa: N802
+        """A condition variable as :class:`threading.Condition`."""
+        ...
+
+    def Queue(self) -> queue.Queue[Any]:  # noqa: N802
+        """An unbounded FIFO queue as :class:`queue.Queue`."""
+        ...
+
+    def Thread(self, target: Callable[..., Any], *, name: str | None = None,  # noqa: N802
+               args: tuple[Any, ...] = (), daemon: bool | None = None) -> threading.Thread:  # fmt: skip
+        """A thread as :class:`threading.Thread`; on a simulated clock, a participant."""
+        ...
+
+
+_current: Clock | None = None
+_lock = threading.Lock()
+
+
+def current() -> Clock:
+    """The process's clock (the wall clock unless :func:`use` set another)."""
+    global _current
+    if _current is None:
+        from timebase.wall import WallClock
+
+        with _lock:
+            if _current is None:
+                _current = WallClock()
+    return _current
+
+
+@contextlib.contextmanager
+def use(clock: Clock) -> Iterator[Clock]:
+    """Make ``clock`` the process's clock inside the block (the previous one after it)."""
+    global _current
+    before = current()
+    _current = clock
+    try:
+        yield clock
+    finally:
+        _current = before
+
+
+@contextlib.contextmanager
+def simulated(start_s: float = 0.0, epoch_s: float | None = None) -> Iterator[Any]:
+    """A fresh :class:`~timebase.simulated.SimulatedClock` as the process's clock, with the
+    calling thread as its first participant; on leaving, the thread leaves it. ``epoch_s`` is
+    the wall date (Unix s) at ``start_s`` (default: now)."""
+    from timebase.sim_clock import SimulatedClock
+
+    clock = SimulatedClock(start_s=start_s, epoch_s=epoch_s)
+    with use(clock):
+        clock.enter()
+        try:
+            yield clock
+        finally:
+            clock.leave()
+
+
+def is_simulated() -> bool:
+    """Whether the process runs on simulated time."""
+    return bool(current().simulated)
+
+
+def monotonic() -> float:
+    """Seconds on the current clock."""
+    return current().monotonic()
+
+
+def wall_time() -> float:
+    """The date on the current clock (Unix s)."""
+    return current().wall_time()
+
+
+def sleep(seconds: float) -> None:
+    """Wait ``seconds`` on the current clock."""
+    current().sleep(seconds)
+
+
+def Event() -> threading.Event:  # noqa: N802
+    """A :class:`threading.Event` of the current clock."""
+    return current().Event()
+
+
+def Lock() -> Any:  # noqa: N802
+    """A lock of the current clock (hold it across waits on the clock: others wait on it)."""
+    return current().Lock()
+
+
+def RLock() -> Any:  # noqa: N802
+    """A re-entrant lock of the current clock."""
+    return current().RLock()
+
+
+def Condition(lock: Any = None) -> threading.Condition:  # noqa: N802
+    """A condition variable of the current clock."""
+    return current().Condition(lock)
+
+
+def Queue() -> queue.Queue[Any]:  # noqa: N802
+    """A FIFO queue of the current clock (``queue.Empty`` on a timeout, as the standard one)."""
+    return current().Queue()
+
+
+def Thread(target: Callable[..., Any], *, name: str | None = None,  # noqa: N802
+           args: tuple[Any, ...] = (), daemon: bool | None = None) -> threading.Thread:  # fmt: skip
+    """A thread of the current clock (on a simulated clock, one of its participants)."""
+    return current().Thread(target, name=name, args=args, daemon=daemon)
