@@ -10,9 +10,9 @@
 from __future__ import annotations
 
 import struct
-import time
 from collections.abc import Iterator
 
+import timebase
 from drivers.errors import (
     DeviceNotFoundError,
     DeviceProtocolError,
@@ -236,10 +236,12 @@ class Hmr2300:
 
     def read_stream(self, max_wait_s: float = 0.5) -> list[tuple[float, float, float]]:
         """All complete samples received so far (waits up to ``max_wait_s`` for at least one)."""
-        deadline = time.monotonic() + max_wait_s
+        deadline = timebase.monotonic() + max_wait_s
         out = list(self._frames(self.port.read_available()))
-        while not out and time.monotonic() < deadline:
-            time.sleep(0.002)
+        while not out:
+            left = deadline - timebase.monotonic()
+            if left <= 0 or not self.port.wait_readable(left):  # waits on the port, not a poll
+                break
             out = list(self._frames(self.port.read_available()))
         return out
 

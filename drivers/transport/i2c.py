@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import errno
-import time
 from typing import Any
 
 from smbus2 import SMBus, i2c_msg
 
+import timebase
 from drivers.errors import DeviceNotFoundError, DeviceTimeoutError
 
 
@@ -61,14 +61,14 @@ class I2CDevice:
         self, register: int, mask: int, timeout_s: float, poll_s: float = 0.0005
     ) -> None:
         """Poll ``register`` until ``mask`` is set (data ready), or :class:`DeviceTimeoutError`."""
-        deadline = time.monotonic() + timeout_s
+        deadline = timebase.monotonic() + timeout_s
         while not self.read(register, 1)[0] & mask:
-            if time.monotonic() > deadline:
+            if timebase.monotonic() > deadline:
                 raise DeviceTimeoutError(
                     f"{self.name} at {self.where}: no data ready within {timeout_s:g} s"
                     f" (register 0x{register:02x} bit mask 0x{mask:02x})"
                 )
-            time.sleep(poll_s)
+            timebase.sleep(poll_s)
 
     def write(self, register: int, data: bytes | list[int]) -> None:
         """Write ``data`` starting at ``register`` (auto-increment)."""

@@ -1,17 +1,25 @@
 """The one place that talks to pymodbus (pinned to 3.16): both of its error channels - raised
-exceptions and error responses - become :mod:`drivers.errors`, with bounded retries."""
+exceptions and error responses - become :mod:`drivers.errors`, with bounded retries.
+
+Every wait runs on the process's clock (:mod:`timebase`, ADR 0038). What pymodbus' synchronous
+path times itself is taken over: the serial client's receive loop (:class:`PatientSerialClient`,
+which in simulated time waits on the line instead of polling), the TCP client's ``select`` (in
+simulated time :class:`SimulatedTcpClient` talks over :mod:`timebase.wires`), the transaction
+manager's reply deadline (``monotonic`` of its module, pointed at :func:`timebase.monotonic`, the
+same function on the wall clock) and its request lock (a lock of the clock). pymodbus 3.16's
+synchronous path keeps no inter-frame silence of its own (no sleep between frames)."""
 
 from __future__ import annotations
 
 import logging
-import threading
-import time
 from typing import Any
 
+import pymodbus.transaction.transaction as pymodbus_transaction
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
+import timebase
 from drivers.errors import (
     DeviceAbsentError,
     DeviceError,
@@ -64,6 +72,18 @@ def exception_text(code: int) -> str:
 
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # errors reach the user through ours
 
+# The synchronous transaction's reply deadline (TransactionManager.sync_get_response) on the
+# process's clock: in simulated time a device that keeps sending noise is given up on after the
+# timeout in simulated time, not after as much wall time. On the wall clock it is the same clock.
+if getattr(pymodbus_transaction, "monotonic", None) is not timebase.monotonic:
+    setattr(pymodbus_transaction, "monotonic", timebase.monotonic)  # noqa: B010 - not exported
+
+
+def _clocked(client: Any) -> None:
+    """The lock pymodbus holds across a request, as a lock of the clock (a participant of a
+    simulated clock waiting for it lets the holder's exchange run)."""
+    client.transaction._sync_lock = timebase.RLock()
+
 
 def rtu_reply_length(frame: bytes) -> int | None:
     """Length (bytes, CRC included) of the Modbus RTU reply that ``frame`` starts, once its header
@@ -108,6 +128,10 @@ class PatientSerialClient(ModbusSerialClient):
     """What arrived after the last attempt gave up and before this retry of the same request: the
     device's late answer to it, taken as this attempt's reply if it is one."""
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        _clocked(self)
+
     def connect(self) -> bool:
         """Open the port, with no write timeout: pyserial checks it after the bytes are out, so
         a process stopped or descheduled just after writing a request raised 'Write timeout' on
@@ -137,25 +161,27 @@ class PatientSerialClient(ModbusSerialClient):
     def recv(self, size: int | None) -> bytes:
         if not self.socket:
             raise ConnectionException(str(self))
-        start = last = time.monotonic()
+        start = last = timebase.monotonic()
         window = QUIET_AFTER_WHOLE_S if self._whole else float(self.comm_params.timeout_connect)
         deadline = last + window
         buf, self._late = self._late, b""
         if buf:
             self.heard = True
         quiet_since = last
+        # a simulated line (simpipe://) is waited on; a real port is looked at every interval
+        wait_readable = getattr(self.socket, "wait_readable", None)
         try:
             while True:
                 waiting = int(self.socket.in_waiting)
                 if waiting:
                     buf += self.socket.read(waiting)
-                    quiet_since = time.monotonic()
+                    quiet_since = timebase.monotonic()
                     self.heard = True
                 need = size if size is not None else rtu_reply_length(buf)
                 if buf and need is not None and len(buf) >= need:
                     self._whole = size is None
                     return buf
-                now = time.monotonic()
+                now = timebase.monotonic()
                 if buf and need is None and now - quiet_since > QUIET_UNKNOWN_S:
                     return buf  # a reply of no known form, quiet for a while: let pymodbus judge
                 # whatever kept this loop from looking for longer than one poll was us, not the
@@ -164,10 +190,72 @@ class PatientSerialClient(ModbusSerialClient):
                 last = now
                 if now >= deadline + tty_stall_s(start, now):
                     return buf
-                time.sleep(self._recv_interval)
+                if wait_readable is None:
+                    timebase.sleep(self._recv_interval)
+                    continue
+                # until a byte comes, the deadline or (a reply of no known form) the first look
+                # after its quiet time, as the polling loop would look
+                wake = deadline
+                if buf and need is None:
+                    wake = min(wake, quiet_since + QUIET_UNKNOWN_S + self._recv_interval)
+                wait_readable(wake - now)
         except OSError:
             self.close()  # type: ignore[no-untyped-call]
             raise ConnectionException(str(self)) from None
+
+
+class SimulatedTcpClient(ModbusTcpClient):
+    """pymodbus' TCP client on the simulated loopback network (:mod:`timebase.wires`), for
+    simulated time: ``connect`` opens a pipe to the simulated server at host and port (refused
+    when none listens there), and ``recv`` keeps pymodbus' contract with waits on the clock (the
+    first bytes to arrive within the timeout when ``size`` is None, else up to ``size`` bytes
+    within it; a peer that closed gives what came before, else ConnectionException)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.socket: Any = None  # a timebase.wires.PipeEnd once connected
+        _clocked(self)
+
+    def connect(self) -> bool:
+        if self.socket:
+            return True
+        from timebase.wires import wires
+
+        try:
+            self.socket = wires().connect(str(self.comm_params.host), int(self.comm_params.port))
+        except OSError:
+            self.close()
+        return self.socket is not None
+
+    def close(self) -> None:
+        if self.socket:
+            self.socket.close()
+        self.socket = None
+
+    def send(self, request: bytes, addr: tuple[str, int] | None = None) -> int:
+        if not self.socket:
+            raise ConnectionException(str(self))
+        if not request:
+            return 0
+        try:
+            return int(self.socket.write(request))
+        except OSError:
+            self.close()
+            raise ConnectionException(str(self)) from None
+
+    def recv(self, size: int | None) -> bytes:
+        if not self.socket:
+            raise ConnectionException(str(self))
+        end, start = self.socket, timebase.monotonic()
+        timeout = float(self.comm_params.timeout_connect or 0)
+        if size is None:
+            data = end.read_available(4096) if end.wait_readable(timeout) else b""
+        else:
+            data = end.read(size, timeout)
+        if end.peer_closed and (not data or (size is not None and len(data) < size)):
+            got = [data] if data else []
+            return bytes(self._handle_abrupt_socket_close(size, got, timebase.monotonic() - start))
+        return bytes(data)
 
 
 GARBLED_EXTRA_ATTEMPTS = 3
@@ -209,12 +297,14 @@ class ModbusLink:
         self.tcp = host is not None
         self.line = f"baud rate {baudrate}, parity {parity}"
         self.answered = False  # the device has answered since this link was made: its id is right
-        self._lock = threading.RLock()
+        self._lock = timebase.RLock()  # held across a request: a lock of the clock
         self.failed = False  # the last request went unanswered: try once, not retries + 1 times
         self.stale_replies = 0  # replies to an earlier request, recognized by their size
         self._client: Any
         if host is not None:
-            self._client = ModbusTcpClient(host, port=port, timeout=timeout_s, retries=0)
+            # in simulated time the devices are on the simulated loopback network
+            tcp = SimulatedTcpClient if timebase.is_simulated() else ModbusTcpClient
+            self._client = tcp(host, port=port, timeout=timeout_s, retries=0)
         else:
             assert path is not None
             tty_watch()
@@ -275,7 +365,7 @@ class ModbusLink:
                 continue
             except ModbusException as exc:
                 last = exc
-                time.sleep(0.05 * (attempt + 1))  # let a garbled line settle before retrying
+                timebase.sleep(0.05 * (attempt + 1))  # let a garbled line settle before retrying
                 continue
             self.failed = False
             return self._answer(what, rr)

@@ -1,11 +1,15 @@
-"""A serial port opened by pyserial URL (device path, ``socket://``, ``rfc2217://``, ``loop://``)."""
+"""A serial port opened by pyserial URL (device path, ``socket://``, ``rfc2217://``, ``loop://``,
+and in simulated time ``simpipe://``, a line of :mod:`timebase.wires`).
+
+Timeouts run on the process's clock (:mod:`timebase`): in simulated time a 0.5 s timeout is 0.5 s
+of simulated time, and the compensations for a busy computer (this process descheduled, the
+kernel's terminal layer holding bytes back) are nothing, as neither exists there."""
 
 from __future__ import annotations
 
-import time
-
 import serial
 
+import timebase
 from drivers.errors import DeviceNotFoundError, DeviceTimeoutError
 from drivers.transport.tty_watch import tty_stall_s, tty_watch
 
@@ -16,7 +20,10 @@ OWN_STALL_TOLERANCE_S = 0.05
 def own_stall_s(elapsed_s: float, asked_s: float) -> float:
     """How much of a wait (s) was this process not running: the overshoot beyond ``asked_s``
     when it exceeds :data:`OWN_STALL_TOLERANCE_S`, else 0. Deadlines are extended by it, so a
-    timeout measures the instrument, not the computer it shares."""
+    timeout measures the instrument, not the computer it shares. Always 0 in simulated time: a
+    wait there ends exactly when asked."""
+    if timebase.is_simulated():
+        return 0.0
     over = elapsed_s - asked_s
     return over if over > OWN_STALL_TOLERANCE_S else 0.0
 
@@ -65,7 +72,7 @@ class SerialPort:
         """Move what has arrived into the receive buffer, waiting up to ``timeout_s`` (>= 0) for
         the first byte. One system call per chunk, not per byte: a thread that waits for the
         interpreter lock between reads must not turn a complete reply into a timeout."""
-        t0 = time.monotonic()
+        t0 = timebase.monotonic()
         try:
             waiting = self._port.in_waiting
             if waiting:
@@ -84,7 +91,7 @@ class SerialPort:
             raise DeviceNotFoundError(
                 f"{self.name} on {self.url}: read failed ({exc}); is it still connected?"
             ) from None
-        return own_stall_s(time.monotonic() - t0, timeout_s)
+        return own_stall_s(timebase.monotonic() - t0, timeout_s)
 
     def _take(self, n: int) -> bytes:
         out = bytes(self._rx[:n])
@@ -98,10 +105,10 @@ class SerialPort:
         this process was descheduled, say) is still taken before the reply is declared missing.
         """
         limit_s = self.timeout_s if timeout_s is None else timeout_s
-        start = time.monotonic()
+        start = timebase.monotonic()
         deadline = start + limit_s
         while len(self._rx) < n:
-            remaining = deadline + tty_stall_s(start) - time.monotonic()
+            remaining = deadline + tty_stall_s(start) - timebase.monotonic()
             deadline += self._fill(max(remaining, 0.0))
             if remaining <= 0:
                 break
@@ -119,7 +126,7 @@ class SerialPort:
         :class:`DeviceTimeoutError`. Bytes after the terminator stay for the next read; like
         :meth:`read_exact`, a reply that is already there when the time is up is taken."""
         limit_s = self.timeout_s if timeout_s is None else timeout_s
-        start = time.monotonic()
+        start = timebase.monotonic()
         deadline = start + limit_s
         while True:
             end = self._rx.find(terminator)
@@ -127,7 +134,7 @@ class SerialPort:
                 return self._take(end + len(terminator))
             if len(self._rx) >= max_bytes:
                 return self._take(max_bytes)
-            remaining = deadline + tty_stall_s(start) - time.monotonic()
+            remaining = deadline + tty_stall_s(start) - timebase.monotonic()
             before = len(self._rx)
             deadline += self._fill(max(remaining, 0.0))
             if remaining <= 0 and len(self._rx) == before:
@@ -136,6 +143,13 @@ class SerialPort:
                     f"{self.name} on {self.url}: no complete reply within {limit_s:g} s (got"
                     f" {partial!r}); check power, cable and baud rate"
                 )
+
+    def wait_readable(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` for something to read (True at once when something has
+        arrived already); False when nothing came. A wait on the port, not a polling loop."""
+        if not self._rx:
+            self._fill(max(timeout_s, 0.0))
+        return bool(self._rx)
 
     def has_complete(self, terminator: bytes) -> bool:
         """A whole ``terminator``-ended reply has already arrived (does not wait)."""

@@ -13,6 +13,10 @@ pair of its own and times its arrival. While a canary byte is overdue by more th
 :data:`TOLERANCE_S`, the terminal layer counts as stalled. Serial timeouts add the stall inside
 their window (:func:`tty_stall_s`), so a timeout measures the instrument. On an idle computer the
 stall is 0 and every timeout is exactly what it says.
+
+In simulated time (:mod:`timebase`, ADR 0038) there is no kernel terminal layer between a driver
+and a simulated device (the bytes cross clock-aware pipes), and the intervals would be on another
+clock: no canary is started and every stall is 0.
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ import threading
 import time
 import tty
 from collections import deque
+
+import timebase
 
 PERIOD_S = 0.02
 """Pause between canary bytes (s): a stall is noticed within this plus :data:`TOLERANCE_S`."""
@@ -128,9 +134,12 @@ _watch: TtyWatch | None = None
 _watch_lock = threading.Lock()
 
 
-def tty_watch() -> TtyWatch:
-    """This process's canary, started on first use (and again in a forked child)."""
+def tty_watch() -> TtyWatch | None:
+    """This process's canary, started on first use (and again in a forked child); None in
+    simulated time, which has no terminal layer to watch."""
     global _watch
+    if timebase.is_simulated():
+        return None
     with _watch_lock:
         if _watch is None or _watch.pid != os.getpid():
             _watch = TtyWatch()
@@ -138,7 +147,10 @@ def tty_watch() -> TtyWatch:
 
 
 def _current() -> TtyWatch | None:
-    """This process's canary if one was started (a forked child's copy is not its own)."""
+    """This process's canary if one was started (a forked child's copy is not its own); none in
+    simulated time (its intervals are on the wall clock)."""
+    if timebase.is_simulated():
+        return None
     watch = _watch
     return watch if watch is not None and watch.pid == os.getpid() else None
 
