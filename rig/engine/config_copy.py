@@ -5,7 +5,9 @@ Each session (:class:`rig.engine.session.RigSession`) keeps the raw text of the 
 it drives, once it holds the interlock, in the interlock's lock folder
 (:func:`rig.engine.interlock.lock_dir`: checked private, or shared only with the rig's group),
 as ``config-<sha256 of the file's resolved path>.toml``. Copies are written and read as the lock
-files are: relative to the checked folder, never through a link, replaced atomically.
+files are: relative to the checked folder, never through a link, replaced atomically. None is kept
+in simulated time (:mod:`timebase`): its outputs are simulated inside the process, out of reach of
+``rig safe``, and a copy would stand for a real rig file at that path.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+import timebase
 from rig.engine.interlock import LockFolderError, lock_dir, open_lock_dir
 
 
@@ -31,7 +34,10 @@ def copy_name(path: Path) -> str:
 def keep_config_copy(path: Path, raw: dict[str, Any]) -> bool:
     """Keep the text of the rig file ``path`` as the last configuration a run used, if it still
     says what was parsed (``raw``: its devices as the session has them); False when it was not
-    kept (the file changed since, or the lock folder cannot be used: the previous copy stays)."""
+    kept (the file changed since, or the lock folder cannot be used: the previous copy stays;
+    simulated time)."""
+    if timebase.is_simulated():
+        return False
     try:
         text = Path(path).read_text(encoding="utf-8")
         if tomllib.loads(text).get("devices") != raw.get("devices"):
