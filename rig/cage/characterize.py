@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import datetime as dt
-import time
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+import timebase
 from rig.cage.controller import CageController
 from rig.cage.model import CageModel
 
@@ -83,15 +83,17 @@ def characterize(
     for n, p in enumerate(points):
         controller.set_currents(p)
         controller.sleep(transient_s)
-        t_start = time.monotonic()
+        t_start = timebase.monotonic()
         fields.append(controller.measure_ut(samples))
-        times.append(0.5 * (t_start + time.monotonic()))
+        times.append(0.5 * (t_start + timebase.monotonic()))
         if progress is not None:
             progress(n + 1, len(points))
     controller.set_currents(np.zeros(3))
     k, b0, k_sigma, b0_sigma, rms, drift = fit_cage(points, np.array(fields), np.array(times))
     meta = {
-        "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "date": dt.datetime.fromtimestamp(timebase.wall_time(), dt.UTC).isoformat(
+            timespec="seconds"
+        ),
         "instruments": instruments if instruments is not None else controller.instruments(),
         "amplitude_a": amplitude_a,
         "points": len(points),

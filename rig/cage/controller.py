@@ -7,8 +7,6 @@ current limit and the slew limit hold for every command; the drivers check their
 from __future__ import annotations
 
 import math
-import threading
-import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -17,6 +15,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+import timebase
 from drivers.protocols import SupplyReading
 from rig.cage.limits import CageLimitError, CageLimits, plan_ramp
 from rig.cage.model import CageModel
@@ -86,7 +85,7 @@ class CageController:
         relays: Polarity | None = None,
         reference: FieldSensor | None = None,
         reference_to_cage: tuple[Array, Array] | None = None,
-        sleep: Callable[[float], None] = time.sleep,
+        sleep: Callable[[float], None] = timebase.sleep,
         zero_threshold_a: float = 0.02,
     ) -> None:
         if len(axes) != 3:
@@ -137,7 +136,7 @@ class CageController:
             drive.supply.set_current(abs(value))
         self.currents = point.copy()
         self.sent.append(point.copy())
-        self.last_send_s = time.monotonic()
+        self.last_send_s = timebase.monotonic()
 
     def _flip(self, axis: int, sign: int) -> None:
         """Break before make: wait for the coil current to decay, then switch the relay."""
@@ -155,9 +154,9 @@ class CageController:
         output_current = self.axes[axis].output_current
         if output_current is None:
             return
-        deadline = time.monotonic() + 2.0
+        deadline = timebase.monotonic() + 2.0
         while output_current() > self.zero_threshold_a:
-            if time.monotonic() > deadline:
+            if timebase.monotonic() > deadline:
                 raise RigError(
                     f"axis {'xyz'[axis]}: coil current did not decay below"
                     f" {self.zero_threshold_a:g} A within 2 s; check the supply"
@@ -198,7 +197,9 @@ class CageController:
         if not self.enabled:
             self.enable()
         elapsed = (
-            self.limits.step_s if self.last_send_s is None else time.monotonic() - self.last_send_s
+            self.limits.step_s
+            if self.last_send_s is None
+            else timebase.monotonic() - self.last_send_s
         )
         allowed = self.limits.step_within_a(elapsed)
         flips = [
@@ -237,7 +238,7 @@ class CageController:
         dead = any(getattr(getattr(d.supply, "link", None), "failed", False) for d in self.axes)
         if self.enabled and not dead:  # with a supply not answering, switch off at once
             try:  # plain sleeps: the fault that brought us here must not stop the ramp down
-                self.set_currents(np.zeros(3), sleep=time.sleep)
+                self.set_currents(np.zeros(3), sleep=timebase.sleep)
             except Exception as exc:  # a dead link must not stop the others going safe
                 problems.append(f"ramp to zero failed: {exc}")
 
@@ -248,7 +249,7 @@ class CageController:
                 problems.append(f"axis {'xyz'[axis]} supply: {exc}")
 
         # in parallel: a supply that does not answer must not delay the others
-        threads = [threading.Thread(target=off, args=(i, d), name=f"safe-{'xyz'[i]}")
+        threads = [timebase.Thread(off, args=(i, d), name=f"safe-{'xyz'[i]}")
                    for i, d in enumerate(self.axes)]  # fmt: skip
         for t in threads:
             t.start()
@@ -267,7 +268,7 @@ class CageController:
             if drive.bipolar or self.relays is None or self.signs[axis] == 1:
                 continue
             try:
-                self._await_decay(axis, time.sleep)
+                self._await_decay(axis, timebase.sleep)
                 self.relays.set_polarity(axis, 1)
                 self.signs[axis] = 1
             except Exception as exc:  # a relay left reversed is reported, the rest goes on
@@ -343,13 +344,13 @@ class CageController:
         """True once the running mean of ``average_n`` reference samples has stayed within
         ``tolerance_nt`` of the target for ``settle_s`` without interruption."""
         recent: deque[Array] = deque(maxlen=average_n)
-        start = time.monotonic()
+        start = timebase.monotonic()
         inside_since: float | None = None
         fresh = True
-        while time.monotonic() - start < timeout_s:
+        while timebase.monotonic() - start < timeout_s:
             recent.append(self.measure_ut(1, fresh=fresh))
             fresh = False  # consecutive samples from here on, so mains ripple averages out
-            now = time.monotonic()
+            now = timebase.monotonic()
             if len(recent) < average_n:
                 continue
             err_nt = 1000.0 * float(np.linalg.norm(np.mean(recent, axis=0) - target_ut))

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+import timebase
 from rig.errors import UserInputError
 
 Array = npt.NDArray[np.float64]
@@ -74,7 +75,7 @@ class CageModel:
         ``path`` itself is replaced atomically.
         """
         path = Path(path)
-        now = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+        now = dt.datetime.fromtimestamp(timebase.wall_time(), dt.UTC).isoformat(timespec="seconds")
         stamp = max((str(d) for d in (self.meta.get("date"), self.meta.get("updated")) if d),
                     default=now)  # fmt: skip
         base = f"{path.stem}.{stamp.replace(':', '').replace('-', '')[:15]}"

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -34,6 +33,7 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
+import timebase
 from rig.errors import RigError
 
 Array = npt.NDArray[np.float64]
@@ -104,8 +104,8 @@ class AmbientServo:
     outside: Sensor
     trims: Sequence[Trim]
     settings: ServoSettings
-    sleep: Callable[[float], None] = time.sleep
-    clock: Callable[[], float] = time.monotonic
+    sleep: Callable[[float], None] = timebase.sleep
+    clock: Callable[[], float] = timebase.monotonic
     record: ServoRecord = field(default_factory=ServoRecord)
 
     def hold(self, target_ut: Array, duration_s: float | None, stop: threading.Event,

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-import threading
 from pathlib import Path
 
+import timebase
 from rig.cli.common import Parser, Subparsers
 
 
@@ -113,7 +113,7 @@ def run_characterize(
         raise UserInputError(
             f"--amplitude {amplitude_a:g} A must be positive and within the {min(cfg.cage.max_current_a):g} A limit"
         )
-    stop = threading.Event()
+    stop = timebase.Event()
     with (
         stop_on_signals(stop, interrupt=True),
         RigSession(cfg, command="rig cage characterize") as rig,
@@ -153,7 +153,7 @@ def run_set_field(rig_config: Path, field_ut: list[float], trim: bool, tolerance
     from rig.errors import RigError
 
     cfg = load_rig_config(rig_config)
-    stop = threading.Event()
+    stop = timebase.Event()
     with stop_on_signals(stop, interrupt=True):
         try:
             with RigSession(cfg, command="rig cage set-field") as rig:

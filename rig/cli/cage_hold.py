@@ -7,12 +7,12 @@ from __future__ import annotations
 import csv
 import io
 import sys
-import threading
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+import timebase
 from rig.cli.common import check_outputs, write_text
 from rig.errors import UserInputError
 
@@ -49,7 +49,7 @@ def run_hold(rig_config: Path, field_ut: list[float], servo: bool, duration_s: f
     if not 0.05 <= period_s <= 10.0 or report_s < 2 * period_s:
         raise UserInputError("--period must be 0.05-10 s and --report-s at least two periods")
     target = np.array(field_ut, float)
-    stop = threading.Event()
+    stop = timebase.Event()
     with stop_on_signals(stop, interrupt=False), RigSession(cfg, command="rig cage hold") as rig:
         controller = rig.cage()
         trims = [rig.load(name) for name in (cage.trim or ())]

@@ -45,9 +45,15 @@ def switch_off_after(run: RunInfo) -> None:
     """A run found dead now (its recorder gone; ``run.closed_now``) may have left its outputs on
     when its guardian died too: every output of the run's copy of its rig configuration
     (addresses only) is switched off and read back, one line each on stderr, unless a command
-    holds them (a run going on: never touched)."""
+    holds them (a run going on: never touched). Not a run recorded in simulated time: its outputs
+    were simulated inside the process that ended, and its addresses name nothing out here."""
     import sys
     import tomllib
+
+    if run.meta.get("clock") == "simulated":
+        print(f"rig: {run.run_id} ended without its recorder; it ran in simulated time, so its"
+              " outputs ended with it: nothing to switch off", file=sys.stderr)  # fmt: skip
+        return
 
     from rig.config import RigConfig
     from rig.engine.interlock import holders

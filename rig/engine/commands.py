@@ -4,13 +4,13 @@ done, and told to the change listeners (a live calibration) as they start and en
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+import timebase
 from drivers.protocols import Load
 from rig.steps.base import ChangeListener
 from rig.store.run_store import RunWriter
@@ -53,7 +53,7 @@ class Commands:
                 raise AssertionError(kind)
         finally:
             for listener in listeners:
-                listener.change_ended(time.monotonic())
+                listener.change_ended(timebase.monotonic())
 
     def _set_field(self, step_idx: int, payload: dict[str, Any], now: float) -> None:
         w = self.writer
@@ -71,10 +71,10 @@ class Commands:
         else:
             self.controller.set_field(target)
         # Logged when the ramp has finished: analysis counts settling from here.
-        done = time.monotonic()
+        done = timebase.monotonic()
         w.add_command(done, step_idx, "field", payload | {"t_issued": min(now, done)})
         for ax, amps in enumerate(self.controller.currents):
-            w.add_channel(time.monotonic(), f"coil_{'xyz'[ax]}", float(amps), None)
+            w.add_channel(timebase.monotonic(), f"coil_{'xyz'[ax]}", float(amps), None)
 
     def _set_load(self, step_idx: int, payload: dict[str, Any], now: float) -> None:
         w, book = self.writer, self.loads
@@ -83,7 +83,9 @@ class Commands:
         try:
             book.loads[name].set_current(amps)
         finally:
-            done = time.monotonic()  # logged once written, like a field: settling counts from here
+            done = (
+                timebase.monotonic()
+            )  # logged once written, like a field: settling counts from here
             book.changing[name] = (now, done)
         book.commanded[name] = amps
         w.add_command(done, step_idx, "load", payload | {"t_issued": min(now, done)})

@@ -2,15 +2,15 @@
 sensors and the store at about 5 Hz. A tripped supply, a stalled or frozen sensor, an output that
 stopped answering, a store that cannot write or a run closed by another process while this one was
 stopped (ADR 0036) is a fault (``RigSession.fail``): the main thread
-raises it at its next wait and the run ends through the safe path."""
+raises it at its next wait and the run ends through the safe path. It watches on the process's
+clock (:mod:`timebase`); in simulated time no wait of it is the computer's (no CPU-wait log)."""
 
 from __future__ import annotations
 
 import math
-import threading
-import time
 from collections.abc import Callable
 
+import timebase
 from drivers.errors import DeviceError
 from rig.config import RigConfig
 from rig.engine.commands import LoadBook
@@ -59,10 +59,11 @@ class HealthMonitor:
         self.loads = loads
         self.event = event
         self._unread: dict[str, int] = {}  # output -> read-backs failed in a row
-        self._cpu_wait = CpuWaitLog()  # our threads' waits for a CPU, noted every round
-        self._coil_checked = 0.0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._monitor, name="current-monitor", daemon=True)
+        # our threads' waits for a CPU, noted every round (none to discount in simulated time)
+        self._cpu_wait = None if timebase.is_simulated() else CpuWaitLog()
+        self._coil_checked = -math.inf
+        self._stop = timebase.Event()
+        self._thread = timebase.Thread(self._monitor, name="current-monitor", daemon=True)
 
     def start(self) -> None:
         """Start watching."""
@@ -82,9 +83,9 @@ class HealthMonitor:
                           " no longer watched, so it ends here: report this")  # fmt: skip
 
     def _watch(self) -> None:
-        last = time.monotonic()
+        last = timebase.monotonic()
         while not self._stop.wait(MONITOR_PERIOD_S):
-            now = time.monotonic()
+            now = timebase.monotonic()
             # This thread woke late: the whole process was descheduled (a busy computer). The
             # samplers were too and need a moment to hand over what their sensors sent meanwhile,
             # so their freshness is judged on the next round, not now.
@@ -94,7 +95,7 @@ class HealthMonitor:
             # only the wait is judged for oversleeping: slow load read-backs (a busy bus, long
             # retries) must not count as this process being descheduled, or a frozen sensor
             # would never be judged (a stuck DUT ran on for 27 s under a CPU hog)
-            last = time.monotonic()
+            last = timebase.monotonic()
 
     def read_loads(self) -> None:
         """Read back every load's current; a tripped load is a fault."""
@@ -104,15 +105,15 @@ class HealthMonitor:
                 # On a slow link a read can overlap a change of the same channel (seen: 2.5 A
                 # read back 40 ms after the 0 A command, taken as the current for 0.5 s):
                 # such a reading is dropped; any other holds from when it was asked.
-                t_asked = time.monotonic()
+                t_asked = timebase.monotonic()
                 reading = load.read()
                 started, ended = book.changing.get(name, (math.inf, math.inf))
-                if started <= time.monotonic() and ended >= t_asked:
+                if started <= timebase.monotonic() and ended >= t_asked:
                     continue  # the current changed while it was read: which one is it?
                 book.measured[name] = (t_asked, float(reading.i_out_a))
                 self.writer.add_channel(  # known to within the exchange (ADR 0020)
                     t_asked, name, book.commanded.get(name), float(reading.i_out_a),
-                    time.monotonic() - t_asked,
+                    timebase.monotonic() - t_asked,
                 )  # fmt: skip
                 if reading.protection:
                     self.rig.fail(f"{name}: the output tripped ({reading.protection}) and is off;"
@@ -144,8 +145,9 @@ class HealthMonitor:
         if w.error is not None:
             self.rig.fail(f"cannot write the run data ({w.error}): is the disk full? Free space"
                           f" under {w.folder.parent}; what was recorded before is kept")  # fmt: skip
-        now = time.monotonic()
-        self._cpu_wait.note(now)
+        now = timebase.monotonic()
+        if self._cpu_wait is not None:
+            self._cpu_wait.note(now)
         for name, sampler in list(self.samplers.items()) if judge_sensors else []:
             stall_s = max(STALL_S, 5.0 / sampler.rate_hz)
             # the device's stuck_after, its declared default filled in at load (0: never)
@@ -158,7 +160,7 @@ class HealthMonitor:
 
     def _coil_read(self, t_asked: float, channel: str, amps: float) -> None:
         self._unread.pop(channel, None)  # read now: known to within the exchange (ADR 0020)
-        self.writer.add_channel(t_asked, channel, None, amps, time.monotonic() - t_asked)
+        self.writer.add_channel(t_asked, channel, None, amps, timebase.monotonic() - t_asked)
 
     def _not_answering(self, name: str, exc: Exception) -> None:
         """An output that did not answer a read-back (its link already retried): a warning the

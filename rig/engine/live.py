@@ -1,14 +1,17 @@
-"""A live terminal view of a running procedure: step, progress with ETA, fields and currents."""
+"""A live terminal view of a running procedure: step, progress with ETA, fields and currents.
+
+It is drawn for a person, on the wall clock, from a thread outside any simulated clock (ADR 0038);
+the progress it shows is the run's, on the run's clock (:func:`timebase.monotonic`)."""
 
 from __future__ import annotations
 
 import shutil
 import sys
 import threading
-import time
 
 import numpy as np
 
+import timebase
 from rig.engine.live_state import LiveRun
 
 
@@ -40,7 +43,7 @@ class LiveView:
         if step is None:
             return "starting"
         idx, name, t0, dur = step.index, step.name, step.t_start, step.duration_s
-        done = sum(self.durations[:idx]) + min(max(time.monotonic() - t0, 0.0), dur)
+        done = sum(self.durations[:idx]) + min(max(timebase.monotonic() - t0, 0.0), dur)
         frac = done / self.total_s if self.total_s > 0 else 1.0
         width = 20
         bar = "#" * int(width * frac) + "." * (width - int(width * frac))

@@ -6,6 +6,12 @@ pause, resume and abort go through the same events as the signals and Ctrl-C, an
 operator prompt is handed to :meth:`Runner.ask_operator`, which takes the page's or the
 terminal's, whichever comes first. It creates ``control/`` (0700) as the run starts and takes only
 its owner's requests; any other is ignored and recorded once as a warning event.
+
+Clocks (ADR 0038): the thread serves the page, a reader in the real world, so it paces itself on
+the wall clock and, in simulated time, stays outside the simulated clock (it may set the run's
+events, never wait on them). The times it publishes are the run's (:func:`timebase.monotonic`);
+``wall_time`` says when the file was written. A page's answer rings :attr:`LivePublisher.answered`,
+which the operator's prompt waits on in the run's time.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+import timebase
 from rig.engine.run_tracker import RunTracker
 from rig.procedure.language import Procedure
 from rig.store.run_control import CONTROL_DIR, open_box, take_requests, write_live
@@ -74,10 +81,12 @@ class LivePublisher:
         self.prompt: tuple[int, str] | None = None
         self.answers: dict[int, bool] = {}
         self._prompts = 0
+        # taken by the page's thread and the run's, never across a wait: a plain lock
         self._lock = threading.Lock()
-        self._answered = threading.Condition(self._lock)
+        self.answered = timebase.Event()
+        """Rung when the page answers a prompt (the thread may ring it from outside the clock)."""
         self._stop = threading.Event()
-        self._t_start = time.monotonic()
+        self._t_start = timebase.monotonic()
         self._thread = threading.Thread(target=self._run, name="live-state", daemon=True)
         self.publish_errors = 0
         self.refused: set[str] = set()
@@ -119,9 +128,15 @@ class LivePublisher:
             self.prompt = None
 
     def wait_answer(self, prompt_id: int, timeout_s: float) -> bool | None:
-        """The page's answer to prompt ``prompt_id`` if it comes within ``timeout_s``, else None."""
-        with self._answered:
-            self._answered.wait_for(lambda: prompt_id in self.answers, timeout=timeout_s)
+        """The page's answer to prompt ``prompt_id`` if it comes within ``timeout_s`` (s on the
+        run's clock), else None."""
+        with self._lock:
+            waiting = prompt_id not in self.answers
+            if waiting:
+                self.answered.clear()
+        if waiting:
+            self.answered.wait(timeout_s)
+        with self._lock:
             return self.answers.pop(prompt_id, None)
 
     # --- the thread -------------------------------------------------------------------------------
@@ -150,11 +165,11 @@ class LivePublisher:
             elif action == "resume":
                 r.tracker.pause_requested.clear()
             elif action == "answer":
-                with self._answered:
+                with self._lock:
                     current = self.prompt
                     if current is not None and current[0] == req.get("prompt"):
                         self.answers[current[0]] = bool(req.get("yes"))
-                        self._answered.notify_all()
+                        self.answered.set()
 
     def _publish(self) -> None:
         try:
@@ -165,7 +180,7 @@ class LivePublisher:
     def snapshot(self) -> dict[str, Any]:
         """The state the page shows (JSON-ready; vectors in uT, currents in A, times in s)."""
         r = self.runner
-        now = time.monotonic()
+        now = timebase.monotonic()
         state: dict[str, Any] = {
             "t": round(now - self._t_start, 3),
             "wall_time": time.time(),

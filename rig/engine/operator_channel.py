@@ -1,8 +1,13 @@
 """The operator's channel to a run: yes/no questions answered on the terminal or the web page
-(whichever first), and the signals that pause (SIGUSR1) or end (SIGTERM, SIGHUP) it."""
+(whichever first), and the signals that pause (SIGUSR1) or end (SIGTERM, SIGHUP) it.
+
+A question is waited on in the run's time (:mod:`timebase`): in simulated time the simulated rig
+runs on meanwhile, as a real one would. The terminal's reader thread is outside any simulated
+clock: it only puts lines in a queue of the clock the question was asked on."""
 
 from __future__ import annotations
 
+import queue
 import signal
 import sys
 import threading
@@ -10,6 +15,7 @@ from collections.abc import Callable
 from types import FrameType
 from typing import Any
 
+import timebase
 from rig.engine.live_state import LivePublisher
 from rig.engine.run_tracker import RunTracker
 from rig.engine.session import RigSession
@@ -91,9 +97,7 @@ class _TerminalAnswers:
     on the page leaves no reader behind to steal the next answer (stale lines are dropped)."""
 
     def __init__(self) -> None:
-        import queue
-
-        self.lines: queue.Queue[str] = queue.Queue()
+        self.lines: queue.Queue[str] = timebase.Queue()
         self._thread = threading.Thread(target=self._read, name="terminal-answers", daemon=True)
         self._thread.start()
 
@@ -102,20 +106,13 @@ class _TerminalAnswers:
             self.lines.put(line)
 
     def ask(self, question: str) -> None:
-        """Drop what was typed before and show ``question``."""
-        import queue
-
-        while True:
-            try:
-                self.lines.get_nowait()
-            except queue.Empty:
-                break
+        """Drop what was typed before and show ``question`` (its answers go to a new queue, of
+        the clock the question is asked on)."""
+        self.lines = timebase.Queue()
         print(question, end="", file=sys.stderr, flush=True)
 
     def answer(self) -> str | None:
         """A line typed since :meth:`ask`, or None."""
-        import queue
-
         try:
             return self.lines.get_nowait()
         except queue.Empty:

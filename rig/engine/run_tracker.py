@@ -2,16 +2,17 @@
 
 One object, written by the main thread (state, step) and by the operator's channels (pause,
 abort requests from signals and the page), read by any thread. Its state moves only along the
-table of :mod:`rig.store.run_states`; a move not in it raises ``RunStateError``.
+table of :mod:`rig.store.run_states`; a move not in it raises ``RunStateError``. Its events are the
+clock's (:mod:`timebase`): a thread outside a simulated clock (the page's) may set them.
 """
 
 from __future__ import annotations
 
 import contextlib
-import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+import timebase
 from rig.store.run_states import RunStatus, check_transition
 
 
@@ -32,13 +33,13 @@ class RunTracker:
 
     def __init__(self) -> None:
         self.state = RunStatus.RUNNING
-        self.pause_requested = threading.Event()
+        self.pause_requested = timebase.Event()
         """Set by the operator (SIGUSR1, the page); the schedule holds at its next wait."""
-        self.abort_requested = threading.Event()
+        self.abort_requested = timebase.Event()
         """Set by the operator (the page); the session raises ``RunAborted`` at its next wait."""
         self.abort_reason: str | None = None
         self.step: StepNow | None = None
-        self._lock = threading.Lock()
+        self._lock = timebase.Lock()
 
     def to(self, new: RunStatus) -> None:
         """Move to ``new``; raises ``RunStateError`` if the table does not allow it."""

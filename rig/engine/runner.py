@@ -15,7 +15,6 @@
 from __future__ import annotations
 
 import sys
-import time
 from array import array
 from contextlib import ExitStack
 from dataclasses import dataclass, field
@@ -24,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+import timebase
 from drivers.errors import DeviceError
 from rig import host_identity
 from rig.analysis import apply_correction
@@ -179,7 +179,7 @@ class Runner:
             except BaseException:
                 # when the run learnt of its end, before the safe path runs (fault matrix)
                 seen = self.rig.fault_at if self.rig is not None else None
-                w.set_meta(t_end_detected=seen or time.monotonic())
+                w.set_meta(t_end_detected=seen or timebase.monotonic())
                 raise
 
     def _ended_status(self) -> tuple[RunStatus, str]:
@@ -248,6 +248,8 @@ class Runner:
         self.rig = rig
         if rig.guardian is not None:  # a reader leaves the run to a live guardian to close
             w.set_meta(guardian=host_identity.identity(rig.guardian.proc.pid))
+        elif rig.no_guardian is not None:  # simulated time: nothing to guard outside this process
+            self._event("info", rig.no_guardian)
         assert self.commands is not None
         self.controller = self.commands.controller = rig.cage()
         instruments = dict(self.controller.instruments())
@@ -282,7 +284,7 @@ class Runner:
 
     def _event(self, level: str, message: str) -> None:
         assert self.writer is not None
-        t = time.monotonic()
+        t = timebase.monotonic()
         self.writer.add_event(t, level, message)
         if self.publisher is not None:
             self.publisher.note_event(t, level, message)

@@ -6,17 +6,19 @@ stream's from :class:`rig.engine.stream_clock.StreamClock`, a polled sample's fr
 
 The sampler is the only reader of its sensor. Others (the cage controller's trim) read through
 :class:`BufferedSensor`, which hands out the sampler's samples as they arrive.
+
+Its thread, waits and dates are the process's clock's (:mod:`timebase`): in simulated time the
+sampler is a participant of the simulated clock and its samples are dated in simulated time.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
-import threading
-import time
 from collections import deque
 from collections.abc import Callable, Iterator
 
+import timebase
 from drivers.errors import DeviceError, DeviceProtocolError, DeviceTimeoutError
 from drivers.protocols import Magnetometer
 from drivers.transport.serial_port import own_stall_s
@@ -47,25 +49,25 @@ class SensorSampler:
         self.count = 0
         self.error: Exception | None = None
         self.latest: tuple[float, tuple[float, float, float]] | None = None
-        self._cond = threading.Condition()
+        self._cond = timebase.Condition()
         self._recent: deque[tuple[int, float, tuple[float, float, float], float]] = deque(
             maxlen=1000
         )  # (sequence number, date s, reading uT, date uncertainty s)
         self.listeners: list[Listener] = []
-        self.started_t = time.monotonic()
+        self.started_t = timebase.monotonic()
         self.repeats = 0  # consecutive readings identical to the one before
-        self._stop = threading.Event()
-        self._hold = threading.Event()  # asked to let go of the sensor
-        self._parked = threading.Event()  # the thread has let go (sampling stopped)
-        self._resume = threading.Event()
-        self._hold_lock = threading.Lock()
-        self._thread = threading.Thread(target=self._run, name=f"sampler-{name}", daemon=True)
+        self._stop = timebase.Event()
+        self._hold = timebase.Event()  # asked to let go of the sensor
+        self._parked = timebase.Event()  # the thread has let go (sampling stopped)
+        self._resume = timebase.Event()
+        self._hold_lock = timebase.Lock()  # held while waiting for the thread to let go
+        self._thread = timebase.Thread(self._run, name=f"sampler-{name}", daemon=True)
 
     def start(self) -> None:
         """Let the driver set the sensor up for the rate (it picks its mode and the nearest rate it
         can do), then start the thread."""
         self.rate_hz = self.driver.start_sampling(self.rate_hz)
-        self.started_t = time.monotonic()
+        self.started_t = timebase.monotonic()
         self._thread.start()
 
     def _publish(self, t: float, xyz: tuple[float, float, float], t_unc_s: float) -> None:
@@ -84,33 +86,33 @@ class SensorSampler:
     def _run(self) -> None:
         period = 1.0 / self.rate_hz
         clock = StreamClock(period)  # a self-timed sensor's own clock, from the arrivals
-        next_t = time.monotonic()
+        next_t = timebase.monotonic()
         failures = 0  # consecutive late or unreadable replies
         try:
             while not self._stop.is_set():
                 if self._hold.is_set():
                     self._park()
-                    next_t = time.monotonic()
+                    next_t = timebase.monotonic()
                     clock.reset()  # the stream starts again: count from its first sample
                     continue
                 try:
                     if self.driver.self_timed:  # the sensor sends at its own rate
                         samples = self.driver.read_samples(WAIT_S)
                         if samples:
-                            dates = clock.dated(time.monotonic(), len(samples))
+                            dates = clock.dated(timebase.monotonic(), len(samples))
                             for (t, unc), xyz in zip(dates, samples, strict=True):
                                 self._publish(t, xyz, unc)
                         failures = 0 if samples else failures
                         continue
                     next_t += period
-                    asked = time.monotonic()
+                    asked = timebase.monotonic()
                     for xyz in self.driver.read_samples(WAIT_S):
                         # taken between the request and the reply: dated at the reply, known
                         # to within the whole exchange (a stall in it widens it)
-                        replied = time.monotonic()
+                        replied = timebase.monotonic()
                         self._publish(replied, xyz, replied - asked)
                     failures = 0
-                    self._stop.wait(max(0.0, next_t - time.monotonic()))
+                    self._stop.wait(max(0.0, next_t - timebase.monotonic()))
                 except (DeviceTimeoutError, DeviceProtocolError) as exc:
                     # One late or garbled reply is retried: a busy line or a busy computer is
                     # not a dead sensor. The second in a row ends sampling (and the run).
@@ -120,7 +122,7 @@ class SensorSampler:
                     self.retried += 1
                     if self.on_warning is not None:
                         self.on_warning(f"{self.name}: {exc}; retrying")
-                    next_t = time.monotonic()
+                    next_t = timebase.monotonic()
                     clock.reset()  # samples may have been lost: count from the next one
         except Exception as exc:  # a device error, or a bug in a sink: never a silent end
             self.error = exc
@@ -181,11 +183,11 @@ class SensorSampler:
         published, so that an analysis of the time up to ``t`` sees all of it: on a busy computer
         the sensor's data can sit in a buffer for a second after it was taken. False after
         ``timeout_s`` (the health checks judge a sensor that really stalled)."""
-        deadline = time.monotonic() + timeout_s
+        deadline = timebase.monotonic() + timeout_s
         wanted = t - 0.5 / self.rate_hz
         with self._cond:
             while self.latest is None or self.latest[0] < wanted:
-                remaining = deadline - time.monotonic()
+                remaining = deadline - timebase.monotonic()
                 if self.error is not None or remaining <= 0:
                     return False
                 self._cond.wait(remaining)
@@ -196,7 +198,7 @@ class SensorSampler:
     ) -> tuple[int, float, tuple[float, float, float], float]:
         """The first sample with sequence number > ``after``: (sequence number, date s, reading
         uT, date uncertainty s)."""
-        start = time.monotonic()
+        start = timebase.monotonic()
         deadline = start + timeout_s
         with self._cond:
             while True:
@@ -205,14 +207,14 @@ class SensorSampler:
                 for item in self._recent:
                     if item[0] > after:
                         return item
-                remaining = deadline + tty_stall_s(start) - time.monotonic()
+                remaining = deadline + tty_stall_s(start) - timebase.monotonic()
                 if remaining <= 0:
                     raise DeviceError(
                         f"{self.name}: no sample for {timeout_s:g} s; is it still connected?"
                     )
-                t_wait = time.monotonic()
+                t_wait = timebase.monotonic()
                 self._cond.wait(remaining)
-                deadline += own_stall_s(time.monotonic() - t_wait, remaining)
+                deadline += own_stall_s(timebase.monotonic() - t_wait, remaining)
 
     def stop(self) -> None:
         """Stop the thread (the driver stays open)."""
@@ -235,7 +237,7 @@ class BufferedSensor:
         arrived yet (a busy computer can hold a second of a stream back): a later :meth:`read`
         returns only a sample taken after this moment, by its date and uncertainty (ADR 0020)."""
         self._seen = self.sampler.count
-        self._not_before = time.monotonic()
+        self._not_before = timebase.monotonic()
 
     def read(self) -> tuple[float, float, float]:
         """The next sample after the last one handed out (and taken after the last flush)."""

@@ -1,13 +1,14 @@
 """Carrying out one step on time: its field and load set-points at their times in the step, its
-kind's own commands through its ``StepExecution``, pauses held and faults raised at every wait."""
+kind's own commands through its ``StepExecution``, pauses held and faults raised at every wait.
+On the process's clock (:mod:`timebase`): in simulated time a step's timeline is simulated time."""
 
 from __future__ import annotations
 
 import threading
-import time
 from array import array
 from collections.abc import Callable
 
+import timebase
 from rig.engine.commands import Commands
 from rig.engine.run_tracker import RunTracker, StepNow
 from rig.engine.sampling import SensorSampler
@@ -55,27 +56,27 @@ class StepScheduler:
             if self.tracker.pause_requested.is_set():
                 shift += self._hold()
                 continue
-            remaining = t_target + shift - time.monotonic()
+            remaining = t_target + shift - timebase.monotonic()
             if remaining <= 0:
                 return shift
-            time.sleep(min(remaining, 0.05))
+            timebase.sleep(min(remaining, 0.05))  # faults, aborts and pauses are looked at
 
     def _hold(self) -> float:
         """Hold the schedule while the pause is asked for; returns how long it held (s)."""
-        t_pause = time.monotonic()
+        t_pause = timebase.monotonic()
         self.event("operator", "paused")
         tracker = self.tracker
         with tracker.paused():
             while tracker.pause_requested.is_set() and not tracker.abort_requested.is_set():
                 self.rig.sleep(0.05)
         self.event("operator", "resumed")
-        return time.monotonic() - t_pause
+        return timebase.monotonic() - t_pause
 
     def execute(self, plan: StepPlan, ctx: RunContext) -> None:
         """Carry out one step: its field and load set-points on time, its own action through its
         kind (rig.steps), which also decides what happens before and after."""
         step = plan.step
-        t0 = time.monotonic()
+        t0 = timebase.monotonic()
         self.tracker.step = StepNow(step.index, step.name, t0, plan.duration_s)
         self.writer.set_step(step.index, step.name, step.kind, t0, None)
         self.event("info", f"step {step.index + 1}/{self.n_steps}: {step.name}")
@@ -86,7 +87,7 @@ class StepScheduler:
         except BaseException:
             execution.abort()
             raise
-        t_end = time.monotonic()
+        t_end = timebase.monotonic()
         self.writer.set_step(step.index, step.name, step.kind, t0, t_end)
         # the step's data are all in before it is judged
         for sampler in list(self.samplers.values()):
@@ -105,7 +106,7 @@ class StepScheduler:
             t0 += self.wait_until(t0 + cmd.t_s, stop)
             if stop is not None and stop.is_set():
                 break
-            now = time.monotonic()
+            now = timebase.monotonic()
             pace.issued(cmd.t_s, now, track)
             if cmd.kind in ("field", "load"):
                 self.lateness_s.append(now - (t0 + cmd.t_s))
@@ -116,7 +117,7 @@ class StepScheduler:
                 if cmd.kind == "field" and hold_from_field and not track:
                     # its dwell starts once the field is there; a tracked set-point keeps the
                     # schedule (re-anchored on each, a sine's 4 ms writes stretched it by 11 %)
-                    t0 = time.monotonic() - cmd.t_s
+                    t0 = timebase.monotonic() - cmd.t_s
             elif cmd.kind != "end":
                 execution.run(cmd.payload)
         if pace.slip_s > 0.0:

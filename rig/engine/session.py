@@ -14,7 +14,9 @@ Every command that drives outputs (``rig run`` and ``rig demo`` through the runn
 * the interlock (rig.engine.interlock): no second command drives the same outputs meanwhile;
 * the guardian process (rig.engine.guardian), given the configuration as parsed here and fed a
   heartbeat while the main thread makes progress: it switches every output off if this process
-  dies or hangs; watched in turn, a guardian that dies or is stopped is a fault;
+  dies or hangs; watched in turn, a guardian that dies or is stopped is a fault. In simulated
+  time there is none (:data:`NO_GUARDIAN_SIMULATED`: the simulated outputs live and die with this
+  process), and :attr:`RigSession.no_guardian` says why;
 * the outputs as found: at its start, once it holds the interlock and the guardian runs, every
   output of the configuration (not only those the command opens) is read; one found on (its
   output enabled, a current, a relay reversed: a rig and guardian that both died) is reported
@@ -39,13 +41,13 @@ from __future__ import annotations
 import contextlib
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from pathlib import Path
 from types import TracebackType
 from typing import Any, cast
 
+import timebase
 from drivers.errors import DeviceError
 from drivers.protocols import Load, Magnetometer, ScalarMagnetometer, Thermometer
 from rig.cage.controller import SAFE_TIMEOUT_S, CageController
@@ -79,6 +81,10 @@ WAIT_SLICE_S = 0.05
 """Fault-aware waits look for faults and aborts this often."""
 READ_RETRY_S = 1.0
 """How long an output that does not answer at the session's start is tried again (s)."""
+NO_GUARDIAN_SIMULATED = (
+    "no guardian process: in simulated time the simulated cage lives inside this process (its"
+    " wires are in-process pipes no other process can open), so its outputs end with it"
+)
 
 
 def _warn(message: str) -> None:
@@ -108,7 +114,7 @@ class RigSession:
         self.use_guardian = guardian
         self.lock = lock
         self.i2c_bus = i2c_bus
-        self.abort = abort if abort is not None else threading.Event()
+        self.abort = abort if abort is not None else timebase.Event()
         self.on_unsafe = on_unsafe
         self.on_found_on = on_found_on
         self.found_on: list[str] = []
@@ -121,9 +127,12 @@ class RigSession:
         self.fault: str | None = None
         self.fault_at: float | None = None  # monotonic s when it was reported
         self.guardian: Guardian | None = None
+        self.no_guardian: str | None = None
+        """Why no guardian was started although one was asked for (simulated time), else None."""
         self._stack = ExitStack()
-        self._progress_s = time.monotonic()
+        self._progress_s = timebase.monotonic()
         self._operator_waits = 0
+        # the heartbeat is the guardian's, a real process's: on the wall clock like it
         self._beating = threading.Event()
         self._heart: threading.Thread | None = None
 
@@ -132,11 +141,13 @@ class RigSession:
         heartbeat, then switch off every output found on (:meth:`_outputs_as_found`)."""
         if self.lock is None:
             self.lock = RigLock(self.cfg, self.command)
-        if not self.lock.fds:
+        if not self.lock.held:
             self.lock.acquire()
         try:
             keep_config_copy(self.cfg.path, self.cfg.raw)
-            if self.use_guardian:
+            if self.use_guardian and timebase.is_simulated():
+                self.no_guardian = NO_GUARDIAN_SIMULATED
+            elif self.use_guardian:
                 self.guardian = Guardian(self.cfg, self.folder, tuple(self.lock.fds))
                 self._beating.set()
                 self._heart = threading.Thread(target=self._beat, name="heartbeat", daemon=True)
@@ -215,7 +226,7 @@ class RigSession:
             waited_s = run_delay_s(main_tid)
             if self._progress_s != seen_progress:
                 seen_progress, waited_at_progress = self._progress_s, waited_s
-            stuck_s = time.monotonic() - seen_progress - (waited_s - waited_at_progress)
+            stuck_s = timebase.monotonic() - seen_progress - (waited_s - waited_at_progress)
             if self._operator_waits or stuck_s < MAIN_THREAD_STALL_S:
                 self.guardian.beat()  # a failed write means it is gone: gone() below says how
             elif not told:
@@ -232,12 +243,12 @@ class RigSession:
     def fail(self, message: str) -> None:
         """Report a fault from any thread: the next fault-aware wait raises it (first one wins)."""
         if self.fault is None:
-            self.fault_at = time.monotonic()
+            self.fault_at = timebase.monotonic()
             self.fault = message
 
     def check(self) -> None:
         """The main thread is alive; raise the reported fault, or RunAborted after an abort."""
-        self._progress_s = time.monotonic()
+        self._progress_s = timebase.monotonic()
         if self.fault is not None:
             raise RigError(self.fault)
         if self.abort.is_set():
@@ -245,13 +256,13 @@ class RigSession:
 
     def sleep(self, seconds: float) -> None:
         """Wait ``seconds`` (0 just checks), raising a fault or abort within WAIT_SLICE_S."""
-        end = time.monotonic() + seconds
+        end = timebase.monotonic() + seconds
         while True:
             self.check()
-            remaining = end - time.monotonic()
+            remaining = end - timebase.monotonic()
             if remaining <= 0:
                 return
-            time.sleep(min(remaining, WAIT_SLICE_S))
+            timebase.sleep(min(remaining, WAIT_SLICE_S))
 
     @contextlib.contextmanager
     def waiting_for_operator(self) -> Iterator[None]:
@@ -261,18 +272,18 @@ class RigSession:
             yield
         finally:
             self._operator_waits -= 1
-            self._progress_s = time.monotonic()
+            self._progress_s = timebase.monotonic()
 
     def hold(self, seconds: float | None, stop: threading.Event) -> None:
         """Hold the outputs as they are for ``seconds`` (None: until ``stop``), reading the coil
         supplies' protection flags every second; a tripped supply is a fault."""
-        end = None if seconds is None else time.monotonic() + seconds
-        next_check = time.monotonic()
-        while not stop.is_set() and (end is None or time.monotonic() < end):
-            if time.monotonic() >= next_check:
-                next_check = time.monotonic() + 1.0
+        end = None if seconds is None else timebase.monotonic() + seconds
+        next_check = timebase.monotonic()
+        while not stop.is_set() and (end is None or timebase.monotonic() < end):
+            if timebase.monotonic() >= next_check:
+                next_check = timebase.monotonic() + 1.0
                 self.check_coils()
-            left = WAIT_SLICE_S if end is None else min(WAIT_SLICE_S, end - time.monotonic())
+            left = WAIT_SLICE_S if end is None else min(WAIT_SLICE_S, end - timebase.monotonic())
             self.sleep(max(0.0, left))
 
     def check_coils(
@@ -288,7 +299,7 @@ class RigSession:
             return
         for axis, drive in enumerate(ctl.axes):
             channel = f"coil_{'xyz'[axis]}"
-            t_asked = time.monotonic()  # the reading is from after this
+            t_asked = timebase.monotonic()  # the reading is from after this
             try:
                 reading = drive.supply.read()
             except (DeviceError, OSError) as exc:
@@ -369,7 +380,7 @@ class RigSession:
                 problems.append(f"load {name} did not go safe: {exc}")
 
         # the loads go off beside the coil ramp: a supply that does not answer must not delay them
-        threads = [threading.Thread(target=load_off, args=item, name=f"safe-{item[0]}")
+        threads = [timebase.Thread(load_off, args=item, name=f"safe-{item[0]}")
                    for item in self.loads.items()]  # fmt: skip
         for t in threads:
             t.start()

@@ -7,17 +7,18 @@ when its output (or load input) reads disabled and its current reads at most :da
 a polarity relay board when every axis reads normal.
 
 Apart from :mod:`rig.engine.session` so that the guardian, which the session starts, does not
-import the session back.
+import the session back. Its waits (retries, a coil's decay) and its thread per link are the
+process's clock's (:mod:`timebase`): the wall clock for ``rig safe`` and the guardian, simulated
+time for a session in it.
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
+import timebase
 from drivers.registry import KINDS, output_kinds
 from rig.config import DeviceConfig, RigConfig
 from rig.devices import open_device
@@ -176,18 +177,31 @@ def _per_link(
     for dev in devices.values():
         links.setdefault(wire_link(dev), []).append(dev)
     states: dict[str, OutputState] = {}
-    if not links:
-        return states
-    with ThreadPoolExecutor(max_workers=len(links), thread_name_prefix="safe") as pool:
-        for results in pool.map(lambda devs: [act(d) for d in devs], links.values()):
-            states.update((s.name, s) for s in results)
+    results: list[list[OutputState] | BaseException] = [[] for _ in links]
+
+    def on_link(i: int, devs: list[DeviceConfig]) -> None:
+        try:
+            results[i] = [act(d) for d in devs]
+        except BaseException as exc:  # raised in the caller, as a pool's map would
+            results[i] = exc
+
+    threads = [timebase.Thread(on_link, name=f"safe-{i}", args=(i, devs))
+               for i, devs in enumerate(links.values())]  # fmt: skip
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for found in results:
+        if isinstance(found, BaseException):
+            raise found
+        states.update((s.name, s) for s in found)
     return states
 
 
 def _act(dev: DeviceConfig, *, switch: bool, retry_s: float) -> OutputState:
     """Open ``dev``, call its ``safe()`` when ``switch``, read it back and close it, tried again
     for ``retry_s`` (s) when any of it fails (a port still held by a dying process)."""
-    deadline = time.monotonic() + retry_s
+    deadline = timebase.monotonic() + retry_s
     while True:
         try:
             driver = open_device(dev)
@@ -198,10 +212,10 @@ def _act(dev: DeviceConfig, *, switch: bool, retry_s: float) -> OutputState:
             finally:
                 driver.close()
         except Exception as exc:  # one dead link must not stop the others going safe
-            if time.monotonic() >= deadline:
+            if timebase.monotonic() >= deadline:
                 did = "switching it off" if switch else "reading it"
                 return OutputState(dev.name, None, f"{did} at {dev.where} failed ({exc})")
-            time.sleep(RETRY_PAUSE_S)
+            timebase.sleep(RETRY_PAUSE_S)
 
 
 def _read_back(name: str, driver: Any) -> OutputState:
@@ -216,15 +230,15 @@ def _read_back(name: str, driver: Any) -> OutputState:
         if reversed_axes:
             return OutputState(name, True, f"reversed on {', '.join(reversed_axes)}")
         return OutputState(name, False, "normal")
-    deadline = time.monotonic() + COIL_DECAY_S
+    deadline = timebase.monotonic() + COIL_DECAY_S
     while True:
         r = driver.read()
         amps = abs(float(r.i_out_a))
         if r.output_on or amps <= ON_ABOVE_A:
             break
-        if time.monotonic() > deadline:
+        if timebase.monotonic() > deadline:
             break
-        time.sleep(DECAY_POLL_S)
+        timebase.sleep(DECAY_POLL_S)
     on = bool(r.output_on) or amps > ON_ABOVE_A
     enabled = "output enabled, " if r.output_on else ""
     return OutputState(name, on, f"{enabled}{amps:.3f} A read back", amps)

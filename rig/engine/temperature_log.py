@@ -16,11 +16,10 @@ output that ``heats`` it has a current set-point.
 from __future__ import annotations
 
 import math
-import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import timebase
 from drivers.errors import DeviceError
 from drivers.protocols import Thermometer
 
@@ -72,15 +71,15 @@ class TemperatureLog:
         self.period_s = period_s
         self.readings = 0
         self.failures = 0
-        self.last_reading_s = time.monotonic()  # when the latest good reading was asked
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"thermometer-{name}", daemon=True)
-        self._watchdog = threading.Thread(target=self._watch, name=f"interlock-{name}",
+        self.last_reading_s = timebase.monotonic()  # when the latest good reading was asked
+        self._stop = timebase.Event()
+        self._thread = timebase.Thread(self._run, name=f"thermometer-{name}", daemon=True)
+        self._watchdog = timebase.Thread(self._watch, name=f"interlock-{name}",
                                           daemon=True)  # fmt: skip
 
     def start(self) -> None:
         """Start reading (the first reading at once), and an interlock's watchdog."""
-        self.last_reading_s = time.monotonic()
+        self.last_reading_s = timebase.monotonic()
         self._thread.start()
         if self.interlock is not None:
             self._watchdog.start()
@@ -102,7 +101,7 @@ class TemperatureLog:
         lock = self.interlock
         assert lock is not None
         while not self._stop.wait(WATCH_S):
-            age_s = time.monotonic() - self.last_reading_s
+            age_s = timebase.monotonic() - self.last_reading_s
             if age_s > STALE_S and (heaters := lock.heating()):
                 lock.fail(f"{self.name} has given no temperature for {age_s:.1f} s while"
                           f" {', '.join(heaters)} heat{'s' if len(heaters) == 1 else ''} the DUT;"
@@ -113,7 +112,7 @@ class TemperatureLog:
     def _run(self) -> None:
         failing = False
         while True:
-            t_asked = time.monotonic()  # the reading is from after this moment
+            t_asked = timebase.monotonic()  # the reading is from after this moment
             try:
                 value = self.thermometer.read_temperature_c()
             except (DeviceError, OSError) as exc:
@@ -124,14 +123,14 @@ class TemperatureLog:
                 failing = True
             else:
                 # taken after it was asked, known to within the exchange (ADR 0020)
-                self.sink(t_asked, self.name, None, value, time.monotonic() - t_asked)
+                self.sink(t_asked, self.name, None, value, timebase.monotonic() - t_asked)
                 self._judge(value)
                 self.last_reading_s = t_asked
                 self.readings += 1
                 if failing:
                     self.on_event("info", f"{self.name} answers again ({value:.1f} C)")
                 failing = False
-            if self._stop.wait(max(0.0, self.period_s - (time.monotonic() - t_asked))):
+            if self._stop.wait(max(0.0, self.period_s - (timebase.monotonic() - t_asked))):
                 return
 
     def stop(self) -> None:

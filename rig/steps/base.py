@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 import numpy as np
 import numpy.typing as npt
 
+import timebase
 from rig.config import coil_step_a
 from rig.errors import RunAborted
 from rig.steps.load_profiles import load_profile
@@ -108,7 +109,7 @@ def record_cage_metrology(ctx: RunContext, kind: str, entry: dict[str, Any]) -> 
     if model is None:
         ctx.event("warning", f"no cage calibration record in use: the {kind} result is not kept")
         return None
-    dated = {**entry, "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+    dated = {**entry, "date": dt.datetime.fromtimestamp(timebase.wall_time(), dt.UTC).isoformat(timespec="seconds"),
              "run": ctx.folder.name}  # fmt: skip
     model = model.with_metrology(kind, dated)
     version = None

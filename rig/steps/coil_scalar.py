@@ -4,12 +4,12 @@ no fixture, no operator."""
 
 from __future__ import annotations
 
-import time
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import numpy as np
 
+import timebase
 from rig.errors import RigError
 from rig.steps.base import StepExecution, StepKind, record_cage_metrology
 from rig.steps.coil_axes import AXES, PAIRS
@@ -116,7 +116,7 @@ class ScalarSweep(StepExecution):
         from rig.cage.coil_scalar import ScalarReading
 
         controller = self.ctx.controller
-        start, readings, lost, beyond = time.monotonic(), [], 0, 0
+        start, readings, lost, beyond = timebase.monotonic(), [], 0, 0
         for field_ut in fields:
             controller.limits.check_field(field_ut, f"step '{self.step.name}'")
             target = (
@@ -134,7 +134,7 @@ class ScalarSweep(StepExecution):
             if len(good) < max(2, GOOD_SHARE * samples):
                 lost += 1
                 continue
-            readings.append(ScalarReading(currents, time.monotonic() - start, float(good.mean()),
+            readings.append(ScalarReading(currents, timebase.monotonic() - start, float(good.mean()),
                                           float(good.std(ddof=1) / np.sqrt(len(good)))))  # fmt: skip
         if lost:
             self.ctx.event("warning", f"{self.step.name}: {lost} of {len(fields)} points had no"

@@ -4,12 +4,11 @@ settled sample; stop as soon as each target 1-sigma is met (see rig.steps.live_c
 from __future__ import annotations
 
 import math
-import threading
-import time
 from typing import Any, ClassVar
 
 import numpy as np
 
+import timebase
 from rig.calibration.estimators import method_names
 from rig.calibration.record import CALIBRATION_VALUES
 from rig.errors import RigError
@@ -114,7 +113,7 @@ class LiveStep(StepExecution):
             )
         noise_nt = params["noise_nt"] or self._noise_nt(params["magnetometer"])
         self.channels = list(params["telemetry"])
-        self.live = LiveCalibration(params, noise_nt / 1000.0, time.monotonic(), self._loads_now,
+        self.live = LiveCalibration(params, noise_nt / 1000.0, timebase.monotonic(), self._loads_now,
                                     ctx.correction)  # fmt: skip
         self.ref, self.dut = ref, dut
         ctx.samplers[ref].listeners.append(self.live.on_reference)
@@ -123,8 +122,8 @@ class LiveStep(StepExecution):
         ctx.status_sources.append(self.live.status)
         ctx.live_sources.append(self.live.page_state)
         self.live.start()
-        self._forecaster = threading.Thread(target=self._forecast, args=(noise_nt,),
-                                            name="live-forecast", daemon=True)  # fmt: skip
+        self._forecaster = timebase.Thread(self._forecast, args=(noise_nt,),
+                                           name="live-forecast", daemon=True)  # fmt: skip
         self._forecaster.start()
         self.stop = self.live.done
         ctx.event("info", f"live calibration: {params['method']} at {noise_nt:.3g} nT noise,"
@@ -180,11 +179,11 @@ class LiveStep(StepExecution):
         if self.live.done.is_set():
             for ch in self.step.loads:
                 self.ctx.command(self.step.index, "load", {"channel": ch, "current_a": 0.0},
-                                 time.monotonic())  # fmt: skip
+                                 timebase.monotonic())  # fmt: skip
 
     def finish(self, t_start: float, t_end: float) -> None:
         self._forecaster.join(timeout=FORECAST_WAIT_S)  # a short step: the result has it too
-        result = self.live.finish(self.ctx.folder, self.step.name, time.monotonic())
+        result = self.live.finish(self.ctx.folder, self.step.name, timebase.monotonic())
         self.ctx.record_result(self.step.name, result)
         self.ctx.event(
             "info", f"live calibration '{self.step.name}' stopped: {result['live']['stopped']}"

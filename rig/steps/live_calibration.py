@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import csv
 import math
-import queue
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+import timebase
 from drivers.transport.tty_watch import tty_seen_stall_s
 from rig.analysis import to_cage_frame
 from rig.calibration import Samples
@@ -82,7 +81,7 @@ class LiveCalibration:
         self.names = parameter_names(self.channels, vector=False)
         self.opts = FilterOptions(method=params["method"])
         self.filter = make_filter(self.opts, len(self.channels), noise_ut)
-        self.done = threading.Event()
+        self.done = timebase.Event()
         self.reason = ""
         self.error: Exception | None = None
         self.snapshot = LiveSnapshot()
@@ -91,10 +90,8 @@ class LiveCalibration:
         self.forecast_problem = ""
         self.stop_forecast: StopForecast | None = None
         self.rejected = 0
-        self._queue: queue.SimpleQueue[tuple[float, Array, Array, Array] | None] = (
-            queue.SimpleQueue()
-        )
-        self._lock = threading.Lock()
+        self._queue = timebase.Queue()  # (t, DUT, reference, loads), None to end
+        self._lock = timebase.Lock()
         self._open_change: float | None = None
         self.quiet_after = t0 + float(params["settle_s"])
         self._reference: tuple[float, Array] | None = None
@@ -105,8 +102,8 @@ class LiveCalibration:
         self._next_check = t0 + CHECK_EVERY_S
         self._queued = 0  # DUT samples queued for the worker (written by the DUT sampler only)
         self._taken = 0  # ... and finished with by the worker (written by the worker only)
-        self._caught_up = threading.Condition()
-        self._thread = threading.Thread(target=self._run, name="live-calibration", daemon=True)
+        self._caught_up = timebase.Condition()
+        self._thread = timebase.Thread(self._run, name="live-calibration", daemon=True)
 
     # --- feeds (called from the sampler threads and the runner) ---------------------------------
 
@@ -174,7 +171,7 @@ class LiveCalibration:
         """Wait until the worker has finished with every DUT sample queued so far (True), or
         ``timeout_s`` (s) has passed (False): tests feeding samples faster than real time."""
         with self._caught_up:
-            return self._caught_up.wait_for(lambda: self._taken >= self._queued, timeout_s)
+            return bool(self._caught_up.wait_for(lambda: self._taken >= self._queued, timeout_s))
 
     def _update(self, t: float, m: Array, ref: Array, u: Array) -> None:
         h_mag = float(np.linalg.norm(to_cage_frame(ref[None, :], self.correction)[0]))

@@ -12,7 +12,6 @@ shift after the shock with its sigma and significance, and what the reset left o
 
 from __future__ import annotations
 
-import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +19,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+import timebase
 from drivers.protocols import SetReset
 from rig.analysis import settled_samples, to_cage_frame
 from rig.characterization.perming import HoldMean, OffsetShift, hold_mean, offset_shift
@@ -175,10 +175,10 @@ class MeasurePerming(StepExecution):
     def run(self, payload: dict[str, Any]) -> None:
         if payload.get("action") != "pulse" or not self.resettable:
             return
-        started = time.monotonic()
+        started = timebase.monotonic()
         with self.ctx.samplers[self.dut].paused() as driver:
             driver.set_reset_pulse()
-        self.pulse_t = (started, time.monotonic())
+        self.pulse_t = (started, timebase.monotonic())
 
     def _restore(self) -> None:
         """The DUT's automatic set/reset back on (its state before the step)."""

@@ -18,6 +18,13 @@ that first reads the status and writes nothing once it is no longer ``running``.
 sets :attr:`RunWriter.closed_by_other`; the health monitor ends the run through the safe path, and
 :meth:`RunWriter.close` neither writes the status nor seals again: the run stays as the reader
 closed and sealed it (ADR 0036).
+
+Clocks (ADR 0038): a run's own times and dates (its rows' ``t``, ``start_monotonic``,
+``start_time``, ``end_time``, the folder's date) are on the process's clock (:mod:`timebase`),
+so a run in simulated time is dated in simulated time (meta ``clock``: ``wall`` or
+``simulated``). What other processes compare with their own clock stays on the wall clock: the
+lease (its ``renewed_at`` and the commit thread that renews it, which is outside any simulated
+clock and does not hold it up) and the expiry a reader judges.
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+import timebase
 from rig import host_identity
 from rig.errors import StoreWriteError, UserInputError
 from rig.store import safe_files
@@ -84,8 +92,13 @@ def _meta_rows(values: dict[str, Any]) -> list[tuple[str, str]]:
 
 
 def now_iso() -> str:
-    """UTC time, seconds resolution."""
+    """UTC time, seconds resolution, on the wall clock (when a file was written)."""
     return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+
+
+def run_now(timespec: str = "seconds") -> str:
+    """The date now on the run's clock (the process's, :mod:`timebase`): UTC, ISO 8601."""
+    return dt.datetime.fromtimestamp(timebase.wall_time(), dt.UTC).isoformat(timespec=timespec)
 
 
 def _connect(path: Path) -> sqlite3.Connection:
@@ -298,7 +311,7 @@ class RunWriter:
             ("the last rows", self._drain),
             (
                 "the run's status",
-                lambda: self.set_meta(status=status, reason=reason, end_time=now_iso()),
+                lambda: self.set_meta(status=status, reason=reason, end_time=run_now()),
             ),
             ("the checkpoint", self._checkpoint),
         ):
@@ -555,7 +568,8 @@ def new_run(runs_dir: Path, label: str, **meta: Any) -> RunWriter:
     import re
 
     safe_label = re.sub(r"[^A-Za-z0-9_.-]+", "-", label).strip("-") or "run"
-    stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%d-%H%M%S")
+    started = timebase.wall_time()  # the run's date, on its clock (the lease's is the wall's)
+    stamp = dt.datetime.fromtimestamp(started, dt.UTC).strftime("%Y%m%d-%H%M%S")
     folder = runs_dir / f"{stamp}-{safe_label}"
     n = 1
     while folder.exists():
@@ -576,9 +590,10 @@ def new_run(runs_dir: Path, label: str, **meta: Any) -> RunWriter:
             run_id=folder.name, status=RunStatus.RUNNING, pid=os.getpid(),
             lease={**host_identity.identity(), "seq": 0, "renewed_at": time.time(),
                    "period_s": LEASE_PERIOD_S, "expiry_s": LEASE_EXPIRY_S},
-            # the same instant on both clocks: exports convert sample times to UTC with it
-            start_time=dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds"),
-            start_monotonic=time.monotonic(), **meta)))  # fmt: skip
+            # the same instant on both of the run's clocks: exports convert sample times to UTC
+            start_time=dt.datetime.fromtimestamp(started, dt.UTC).isoformat(timespec="milliseconds"),
+            start_monotonic=timebase.monotonic(),
+            clock="simulated" if timebase.is_simulated() else "wall", **meta)))  # fmt: skip
         con.commit()
     finally:
         con.close()

@@ -46,6 +46,11 @@ class Registers:
             addr, value = struct.unpack(">HH", pdu[1:5])
             self.values[addr] = value
             return pdu[:5]
+        if fc == 16:
+            addr, count = struct.unpack(">HH", pdu[1:5])
+            for i in range(count):
+                self.values[addr + i] = struct.unpack(">H", pdu[6 + 2 * i : 8 + 2 * i])[0]
+            return pdu[:5]
         return bytes([fc | 0x80, 1])
 
 
