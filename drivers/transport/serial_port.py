@@ -44,6 +44,11 @@ class SerialPort:
         tty_watch()
         try:
             self._port = serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s)
+        except timebase.NotOnTheClockError:  # simpipe:// on the wall clock
+            raise DeviceNotFoundError(
+                f"{name}: cannot open {url}: a simulated line exists only in the simulated time"
+                " of the process that serves it"
+            ) from None
         except (serial.SerialException, OSError, ValueError) as exc:
             raise DeviceNotFoundError(
                 f"{name}: cannot open {url}: {exc}; check the cable and the port name"

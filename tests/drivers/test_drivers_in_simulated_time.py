@@ -132,3 +132,8 @@ def test_pymodbus_sync_deadline_and_lock_are_on_the_clock() -> None:
         client = PatientSerialClient("simpipe://x", timeout=0.5, retries=0)
         assert type(client.transaction._sync_lock).__name__ == "SimRLock"
     assert modbus.pymodbus_transaction is transaction
+
+
+def test_a_simulated_line_cannot_be_opened_on_the_wall_clock() -> None:
+    with pytest.raises(DeviceNotFoundError, match="only in the simulated time"):
+        SerialPort("simpipe://coil_x", 9600, name="coil_x")
