@@ -61,28 +61,45 @@ def test_a_silent_line_times_out_exactly_beside_cpu_hogs() -> None:
     assert sim_s == pytest.approx(10.0)
 
 
-def test_modbus_rtu_reply_and_silence() -> None:
-    wall0 = time.monotonic()
+def test_modbus_rtu_reply_and_silence_beside_cpu_hogs() -> None:
+    with cpu_hogs(2):
+        wall0 = time.monotonic()
+        with timebase.simulated():
+            regs = Registers({10: 1234, 11: 5678})
+            serve_rtu("psu", regs, baud=115200)
+            link = ModbusLink(name="psu", path="simpipe://psu", baudrate=115200, timeout_s=0.5)
+            assert isinstance(link._client, PatientSerialClient)
+            t0 = timebase.monotonic()
+            assert link.read_registers(10, 2) == [1234, 5678]
+            # 8 bytes out, 9 back at 115200 Bd: the reply is taken once its last byte is in
+            assert timebase.monotonic() - t0 == pytest.approx(17 * 10 / 115200)
+            link.write_register(20, 7)
+            assert regs.values[20] == 7
+            regs.silent = True
+            t1 = timebase.monotonic()
+            with pytest.raises(DeviceTimeoutError, match="after 3 attempts"):
+                link.read_registers(10, 2)
+            assert timebase.monotonic() - t1 == pytest.approx(1.5)  # 0.5 s x 3 attempts
+            assert len([t for t, _ in regs.requests if t >= t1]) == 3
+            link.close()
+            sim_s = timebase.monotonic()
+        _report("Modbus RTU beside two CPU hogs", sim_s, time.monotonic() - wall0)
+
+
+def test_a_late_rtu_reply_answers_the_retry() -> None:
+    """A reply that comes after the timeout is taken by the retry of the same request; the
+    device's answer to the repeated request is recognized as stale on the next one."""
     with timebase.simulated():
-        regs = Registers({10: 1234, 11: 5678})
-        serve_rtu("psu", regs, baud=115200)
-        link = ModbusLink(name="psu", path="simpipe://psu", baudrate=115200, timeout_s=0.5)
-        assert isinstance(link._client, PatientSerialClient)
+        regs = Registers({10: 1, 11: 2, 12: 3}, delay_s=0.6)
+        serve_rtu("slow", regs, baud=115200)
+        link = ModbusLink(name="slow", path="simpipe://slow", baudrate=115200, timeout_s=0.5)
         t0 = timebase.monotonic()
-        assert link.read_registers(10, 2) == [1234, 5678]
-        # 8 bytes out, 9 back at 115200 Bd: the reply is taken once its last byte is in
-        assert timebase.monotonic() - t0 == pytest.approx(17 * 10 / 115200)
-        link.write_register(20, 7)
-        assert regs.values[20] == 7
-        regs.silent = True
-        t1 = timebase.monotonic()
-        with pytest.raises(DeviceTimeoutError, match="after 3 attempts"):
-            link.read_registers(10, 2)
-        assert timebase.monotonic() - t1 == pytest.approx(1.5)  # 0.5 s x 3 attempts
-        assert len([t for t, _ in regs.requests if t >= t1]) == 3
+        assert link.read_registers(10, 2) == [1, 2]
+        assert timebase.monotonic() - t0 == pytest.approx(0.6 + 17 * 10 / 115200)
+        regs.delay_s = 0.0
+        assert link.read_registers(10, 3) == [1, 2, 3]
+        assert link.stale_replies == 1  # the answer to the repeated request, recognized
         link.close()
-        sim_s = timebase.monotonic()
-    _report("Modbus RTU reply, write and silence", sim_s, time.monotonic() - wall0)
 
 
 def test_modbus_tcp_reply_silence_and_refusal_beside_cpu_hogs() -> None:
