@@ -8,7 +8,7 @@ from __future__ import annotations
 import struct
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import timebase
@@ -29,10 +29,13 @@ class Registers:
     """A holding-register image and what its server saw."""
 
     def __init__(self, values: dict[int, int] | None = None, *, silent: bool = False,
-                 delay_s: float = 0.0) -> None:  # fmt: skip
+                 delay_s: float = 0.0, derive: Callable[[dict[int, int]], None] | None = None
+                 ) -> None:  # fmt: skip
         self.values = dict(values or {})
         self.silent = silent
         self.delay_s = delay_s
+        self.derive = derive
+        """Called with the registers after every write (read-backs that follow set-points)."""
         self.requests: list[tuple[float, bytes]] = []
 
     def answer(self, pdu: bytes) -> bytes:
@@ -45,13 +48,15 @@ class Registers:
         if fc == 6:
             addr, value = struct.unpack(">HH", pdu[1:5])
             self.values[addr] = value
-            return pdu[:5]
-        if fc == 16:
+        elif fc == 16:
             addr, count = struct.unpack(">HH", pdu[1:5])
             for i in range(count):
                 self.values[addr + i] = struct.unpack(">H", pdu[6 + 2 * i : 8 + 2 * i])[0]
-            return pdu[:5]
-        return bytes([fc | 0x80, 1])
+        else:
+            return bytes([fc | 0x80, 1])
+        if self.derive is not None:
+            self.derive(self.values)
+        return pdu[:5]
 
 
 def serve_rtu(name: str, regs: Registers, *, baud: int = 115200, unit: int = 1) -> None:
