@@ -13,10 +13,10 @@ import asyncio
 import contextlib
 import os
 import random
-import threading
 import tty
 from dataclasses import dataclass
 
+import timebase
 from sim.physics import Faults
 
 
@@ -57,21 +57,6 @@ def damage(data: bytes, faults: Faults, rng: random.Random) -> bytes:
         i = rng.randrange(len(data))
         data = data[:i] + bytes([data[i] ^ (1 << rng.randrange(8))]) + data[i + 1 :]
     return data
-
-
-def send_paced(
-    pty: Pty, line: bytes, faults: Faults, rng: random.Random, baudrate: int, stop: threading.Event
-) -> bool:
-    """Write ``line`` (damaged by ``faults``) to a device's pty and wait the time it takes on a
-    UART at ``baudrate`` (or until ``stop``); False when it was lost (nobody reading and the
-    buffer full, as on a UART)."""
-    data = damage(line, faults, rng)
-    try:
-        os.write(pty.master, data)
-    except OSError:
-        return False
-    stop.wait(len(data) * 10.0 / baudrate)
-    return True
 
 
 STALE_PARTIAL_S = 0.5
@@ -119,7 +104,7 @@ class PtyNullModem:
         self._closed = False
         self._pending = b""  # the start of a request frame whose rest has not arrived
         self._pending_since = 0.0
-        attached = threading.Event()
+        attached = timebase.Event()
 
         def attach() -> None:
             loop.add_reader(self.client_side.master, self._from_client)
@@ -198,7 +183,7 @@ class PtyNullModem:
         if self._closed:
             return
         self._closed = True
-        detached = threading.Event()
+        detached = timebase.Event()
 
         def detach() -> None:
             for fd in (self.client_side.master, self.device_side.master):

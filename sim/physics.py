@@ -1,8 +1,9 @@
 """Physics of the simulated cage: supplies, coils, polarity relays, load currents, ambient field
 and magnetometers with hidden truth.
 
-Everything is evaluated lazily at monotonic wall-clock time, so protocol servers running in other
-threads see one consistent, continuously evolving cage. The DUT model is the project's measurement
+Everything is evaluated lazily at the clock's time (:func:`now_s`, :mod:`timebase`: the wall clock's
+monotonic seconds, or simulated time), so protocol servers running in other threads see one
+consistent, continuously evolving cage. The DUT model is the project's measurement
 model (ARCHITECTURE.md, contract)::
 
     m(t) = (1 + s_T dT) L R h(t) + o + o_T dT + sum_j k_j u_j(t - tau_j) + n(t),
@@ -20,14 +21,13 @@ with the DUT's temperature ``T`` a first-order thermal mass warmed by a heater l
 from __future__ import annotations
 
 import math
-import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
+import timebase
 from sim.coils import CageCoils, CoilPair
 from sim.config import MagnetometerConfig, SimConfig, SimConfigError, SupplyConfig
 from sim.lab_field import LabField
@@ -78,8 +78,9 @@ def riden_model(model_id: int) -> RidenSpec:
 
 
 def now_s() -> float:
-    """The simulator's clock: monotonic seconds."""
-    return time.monotonic()
+    """The simulator's clock: ``timebase.monotonic()`` (s; simulated time inside
+    ``timebase.simulated()``)."""
+    return timebase.monotonic()
 
 
 @dataclass
@@ -117,7 +118,7 @@ class Supply:
         self.protection = 0
         self.current = FirstOrderSignal(tau_s)
         self.faults = Faults()
-        self.lock = threading.RLock()
+        self.lock = timebase.RLock()
         self.writes = 0
         self.on_change: Callable[[float, float], None] | None = None
         """Told (time s, target current A) whenever the output's target changes (a heater)."""
@@ -274,7 +275,7 @@ class Magnetometer:
         self.offset_ut_per_k = np.array(cfg.offset_ut_per_k)
         self.faults = Faults()
         self._rng = rng
-        self._lock = threading.Lock()
+        self._lock = timebase.Lock()
         self._last: Array | None = None
         self.wander = OffsetWander(WanderSpec(cfg.offset_drift_nt_per_h, cfg.offset_walk_nt_per_sqrt_h,
                                               cfg.offset_flicker_nt), wander_seed,
@@ -375,7 +376,7 @@ class CagePhysics:
         ph = np.random.default_rng([cfg.seed, 99]).uniform(0, 2 * np.pi, size=6)
         self._drift_phase, self._ripple_phase = ph[:3], ph[3:]
         self._ambient_rng = np.random.default_rng([cfg.seed, 100])
-        self._lock = threading.Lock()
+        self._lock = timebase.Lock()
         self.events: list[tuple[float, str]] = []
         thermal = cfg.thermal
         self.ambient_c = thermal.ambient_c if thermal is not None else 25.0
