@@ -376,6 +376,12 @@ class CagePhysics:
         ph = np.random.default_rng([cfg.seed, 99]).uniform(0, 2 * np.pi, size=6)
         self._drift_phase, self._ripple_phase = ph[:3], ph[3:]
         self._ambient_rng = np.random.default_rng([cfg.seed, 100])
+        self._ambient_rngs = {
+            m.name: np.random.default_rng([cfg.seed, 100, i + 1])
+            for i, m in enumerate(cfg.magnetometers)
+        }
+        """Per magnetometer, its own draws of the lab field's white noise: what one device reads
+        does not depend on how often another was read before it (threads interleaving)."""
         self._lock = timebase.Lock()
         self.events: list[tuple[float, str]] = []
         thermal = cfg.thermal
@@ -520,10 +526,15 @@ class CagePhysics:
         return np.array([0.0 if s is None else s.output_current(t) for s in self.trim_supply])
 
     def ambient_ut(
-        self, t_s: float, noise: bool = True, position_m: tuple[float, ...] | None = None
+        self,
+        t_s: float,
+        noise: bool = True,
+        position_m: tuple[float, ...] | None = None,
+        seen_by: str | None = None,
     ) -> Array:
         """Lab field (uT) at ``position_m`` (default: the centre): constant, drift, mains ripple,
-        the lab field's daily, 1/f, gradient and traffic terms and (optionally) white noise."""
+        the lab field's daily, 1/f, gradient and traffic terms and (optionally) white noise, as
+        magnetometer ``seen_by`` sees it (its own noise draws; None: the cage's)."""
         a = self.cfg.ambient
         since = t_s - self.start_s
         where = np.zeros((1, 3)) if position_m is None else np.asarray([position_m], float)
@@ -534,16 +545,18 @@ class CagePhysics:
         b = b + self.mains_ripple_ut(t_s)
         b = b + self.lab.uniform_ut(since) + self.lab.local_ut(since, where)[0]
         if noise:
-            b = b + self.ambient_noise_ut()
+            b = b + self.ambient_noise_ut(seen_by)
         return np.asarray(b)
 
-    def ambient_noise_ut(self) -> Array:
-        """One draw of the lab field's white noise (uT)."""
+    def ambient_noise_ut(self, seen_by: str | None = None) -> Array:
+        """One draw of the lab field's white noise (uT), from magnetometer ``seen_by``'s own
+        draws (None: the cage's)."""
         a = self.cfg.ambient
         if a.noise_ut <= 0:
             return np.zeros(3)
+        rng = self._ambient_rng if seen_by is None else self._ambient_rngs[seen_by]
         with self._lock:
-            return np.asarray(a.noise_ut * self._ambient_rng.standard_normal(3))
+            return np.asarray(a.noise_ut * rng.standard_normal(3))
 
     def mains_ripple_ut(self, t_s: float) -> Array:
         """The lab field's mains ripple at ``t_s`` (uT, the same everywhere)."""
@@ -564,7 +577,7 @@ class CagePhysics:
         t = now_s() if t_s is None else t_s
         position = self.position_m[name]
         coils = self.coil_matrix_at[name] @ self.true_coil_currents(t)
-        return np.asarray(coils + self.ambient_ut(t, noise, position))
+        return np.asarray(coils + self.ambient_ut(t, noise, position, name))
 
     def load_currents(
         self, t_s: float, delays_s: dict[str, float] | None = None
@@ -588,7 +601,7 @@ class CagePhysics:
         mag = self.magnetometers[name]
         if mag.response.active:  # what it senses of the field's recent past, plus this noise
             field = mag.sensed_field(t, lambda s: self.field_at_ut(name, s, noise=False))
-            field = field + self.ambient_noise_ut()
+            field = field + self.ambient_noise_ut(name)
         else:
             field = self.field_at_ut(name, t)
         return mag.sample(field, self.load_currents(t, mag.cfg.delay_s),
