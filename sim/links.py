@@ -5,6 +5,10 @@
   path themselves (pymodbus' serial server); it can drop, corrupt or delay what the device sends
   and ignores requests to other bus addresses (an RS-485 bus stays silent).
 * :class:`TcpProxy` - a loopback TCP front for a server, with the same faults and disconnects.
+
+These are the wall clock's. In simulated time (ADR 0038) the serial devices use lines of the
+simulated clock (:mod:`sim.serial_line`) and the Modbus servers of :mod:`sim.pipe_modbus` keep
+the faults and the RTU framing rules defined here.
 """
 
 from __future__ import annotations
