@@ -1,4 +1,5 @@
-"""A configurable ASCII-line magnetometer on a pseudo-terminal (reference sensor).
+"""A configurable ASCII-line magnetometer on a serial line (reference sensor): a pseudo-terminal, or
+a line of the simulated clock in simulated time (:mod:`sim.serial_line`).
 
 Streams one line per sample, formatted by ``line_format`` (``{x} {y} {z}`` in uT, ``{t}`` the
 device's seconds since start), at ``rate_hz``, paced at the baud rate like a real UART.
@@ -7,16 +8,15 @@ device's seconds since start), at ``rate_hz``, paced at the baud rate like a rea
 from __future__ import annotations
 
 import random
-import threading
-import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+import timebase
 from sim.device_kind import CageHost, SimKind
-from sim.links import open_pty, send_paced
 from sim.physics import Faults
+from sim.serial_line import open_line, send_paced
 
 if TYPE_CHECKING:
     from sim.config import MagnetometerConfig
@@ -29,51 +29,52 @@ class AsciiMagnetometer:
 
     def __init__(self, read_ut: Callable[[float], np.ndarray], faults: Faults, *, rate_hz: float = 20.0,
                  baudrate: int = 115200, line_format: str = "{x:.4f} {y:.4f} {z:.4f}",
-                 seed: int = 0) -> None:  # fmt: skip
+                 seed: int = 0, name: str = "ascii-mag") -> None:  # fmt: skip
         self.read_ut = read_ut
         self.faults = faults
         self.rate_hz = rate_hz
         self.baudrate = baudrate
         self.line_format = line_format
         self.lines_sent = 0
-        self.pty = open_pty()
+        self.line = open_line(name, baudrate)
         self._rng = random.Random(seed)
-        self._stop = threading.Event()
-        self._t0 = time.monotonic()
-        self._thread = threading.Thread(target=self._run, name="ascii-mag", daemon=True)
+        self._stop = timebase.Event()
+        self._t0 = timebase.monotonic()
+        self._thread = timebase.Thread(self._run, name=name, daemon=True)
         self._thread.start()
 
     @property
     def path(self) -> str:
-        """The serial port path a client opens."""
-        return self.pty.path
+        """The serial port path a client opens (a pty, or ``simpipe://<name>``)."""
+        return self.line.path
 
     def _run(self) -> None:
         period = 1.0 / self.rate_hz
-        next_t = time.monotonic()
-        while not self._stop.wait(max(0.0, next_t - time.monotonic())):
+        next_t = timebase.monotonic()
+        while not self._stop.wait(max(0.0, next_t - timebase.monotonic())):
             sample_t = next_t  # the sensor samples on its own clock, however late we are
             next_t += period
             if self.faults.silent or self.faults.disconnect:
                 continue
             x, y, z = (float(v) for v in self.read_ut(sample_t))
             line = self.line_format.format(x=x, y=y, z=z, t=sample_t - self._t0) + "\n"
-            if send_paced(self.pty, line.encode("ascii"), self.faults, self._rng, self.baudrate,
+            if send_paced(self.line, line.encode("ascii"), self.faults, self._rng, self.baudrate,
                           self._stop):  # fmt: skip
                 self.lines_sent += 1
 
     def close(self) -> None:
-        """Stop streaming and close the pty."""
+        """Stop streaming and close the line."""
         self._stop.set()
-        self._thread.join(timeout=10.0)  # it must not touch the fds once they are closed
-        self.pty.close()
+        self._thread.join(timeout=10.0)  # it must not touch the line once it is closed
+        self.line.close()
 
 
 def _start(host: CageHost, m: MagnetometerConfig, index: int) -> dict[str, Any]:
-    """An ASCII-line magnetometer on a pseudo-terminal (uT, ``line_format``)."""
+    """An ASCII-line magnetometer on a serial line (uT, ``line_format``)."""
     dev = AsciiMagnetometer(host.field_reader(m.name), host.physics.magnetometers[m.name].faults,
                             rate_hz=m.rate_hz, baudrate=m.endpoint.baudrate,
-                            line_format=m.line_format, seed=host.cfg.seed + index)  # fmt: skip
+                            line_format=m.line_format, seed=host.cfg.seed + index,
+                            name=m.name)  # fmt: skip
     host.add_serial(m.name, dev)
     endpoint = {"kind": "ascii-mag", "protocol": "serial", "path": dev.path,
                 "baudrate": m.endpoint.baudrate, "line_format": m.line_format, "unit": "uT"}  # fmt: skip

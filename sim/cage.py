@@ -8,34 +8,59 @@ per kind); the polarity relays and the DUT's thermometer are register-map device
     ...
     cage.stop()
 
-Modbus devices run on one asyncio loop in a background thread (pymodbus 3.16 servers behind
-fault-injecting TCP proxies or pty null modems); serial magnetometers run their own threads on
-ptys; the RM3100 sits on an in-process smbus2-compatible bus (``cage.i2c_bus``).
+On the wall clock, Modbus devices run on one asyncio loop in a background thread (pymodbus 3.16
+servers behind fault-injecting TCP proxies or pty null modems, :mod:`sim.async_modbus`) and
+serial magnetometers run their own threads on ptys. Started inside ``timebase.simulated()``
+(ADR 0038), the cage runs entirely in simulated time: Modbus devices are served synchronously on
+the clock's loopback network and serial lines (:mod:`sim.pipe_modbus`), serial magnetometers on
+``simpipe://<name>`` lines (:mod:`sim.serial_line`), every thread a participant of the clock; the
+endpoints document has the same shape. Stop such a cage before leaving the simulated block. The
+RM3100 and LIS3MDL sit on an in-process smbus2-compatible bus (``cage.i2c_bus``) either way.
 """
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import logging
-import threading
 from collections.abc import Callable
-from concurrent.futures import Future
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
-from pymodbus import FramerType
-from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import SimDevice
 
+import timebase
 from sim.config import EndpointConfig, SimConfig
 from sim.device_kind import SerialDevice
 from sim.device_kinds import sim_kind
-from sim.links import PtyNullModem, TcpProxy
 from sim.modbus_devices import regmap_device, unserved_ids
 from sim.physics import CagePhysics, Faults
 from sim.regmap import load_regmap
 from sim.rm3100 import BusDevice, SimI2CBus
+
+
+class ModbusHost(Protocol):
+    """Where the cage's Modbus devices are served: :class:`sim.async_modbus.AsyncioModbus` (the
+    wall clock) or :class:`sim.pipe_modbus.PipeModbus` (simulated time)."""
+
+    def serve_tcp(self, name: str, devices: list[SimDevice], faults: Faults) -> int: ...
+
+    def serve_rtu(self, name: str, device: SimDevice, device_id: int, baudrate: int,
+                  faults: Faults) -> str: ...  # fmt: skip
+
+    def drop_connections(self, name: str) -> None: ...
+
+    def stop(self) -> None: ...
+
+
+def modbus_host(seed: int) -> ModbusHost:
+    """The Modbus servers for the current clock."""
+    if timebase.is_simulated():
+        from sim.pipe_modbus import PipeModbus
+
+        return PipeModbus(seed)
+    from sim.async_modbus import AsyncioModbus
+
+    return AsyncioModbus(seed)
 
 
 class SimulatedCage:
@@ -47,28 +72,18 @@ class SimulatedCage:
         self.faults: dict[str, Faults] = {}
         self.endpoints: dict[str, dict[str, Any]] = {}
         self.i2c_bus = SimI2CBus()
-        self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(
-            target=self._loop.run_forever, name="sim-modbus", daemon=True
-        )
-        self._servers: list[Any] = []
-        self._proxies: dict[str, TcpProxy] = {}
-        self._modems: list[PtyNullModem] = []
+        self._modbus: ModbusHost | None = None
         self._serial_devices: list[SerialDevice] = []
         self.serial_devices: dict[str, Any] = {}  # name -> device (Hmr2300, AsciiMagnetometer)
         self.i2c_devices: dict[str, BusDevice] = {}
         self._started = False
-
-    def _run(self, coro: Any) -> Any:
-        fut: Future[Any] = asyncio.run_coroutine_threadsafe(coro, self._loop)
-        return fut.result(timeout=10.0)
 
     def start(self) -> dict[str, Any]:
         """Start every device; returns the endpoints document (see :meth:`endpoints_document`)."""
         if self._started:
             return self.endpoints_document()
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-        self._thread.start()
+        self._modbus = modbus_host(self.cfg.seed)
         self._started = True
         try:
             for i, s in enumerate(self.cfg.supplies):
@@ -134,43 +149,26 @@ class SimulatedCage:
 
     def _serve_modbus(self, name: str, device: SimDevice, transport: str, device_id: int,
                       baudrate: int, faults: Faults) -> dict[str, Any]:  # fmt: skip
+        if self._modbus is None:
+            raise RuntimeError("start the cage before serving its devices")
         if transport == "modbus-tcp":
             # unit ids other than the device's get exception 11, as from a gateway (id 0: the
             # device itself is pymodbus' catch-all and answers every id, as some devices do)
             devices = [device] if device_id == 0 else [device, unserved_ids()]
-
-            async def start_tcp() -> ModbusTcpServer:
-                srv = ModbusTcpServer(devices, address=("127.0.0.1", 0))
-                await srv.serve_forever(background=True)
-                return srv
-
-            server = self._run(start_tcp())
-            self._servers.append(server)
-            backend = int(server.transport.sockets[0].getsockname()[1])
-            proxy = TcpProxy(backend, faults, seed=self.cfg.seed)
-            port = self._run(proxy.start())
-            self._proxies[name] = proxy
+            port = self._modbus.serve_tcp(name, devices, faults)
             return {"protocol": "modbus-tcp", "host": "127.0.0.1", "port": port,
                     "device_id": device_id}  # fmt: skip
         if transport == "modbus-rtu":
-            modem = PtyNullModem(faults, self._loop, device_id=device_id, seed=self.cfg.seed)
-            self._modems.append(modem)
-
-            async def start_rtu() -> ModbusSerialServer:
-                srv = ModbusSerialServer(device, framer=FramerType.RTU, port=modem.device_path,
-                                         baudrate=baudrate)  # fmt: skip
-                await srv.serve_forever(background=True)
-                return srv
-
-            self._servers.append(self._run(start_rtu()))
-            return {"protocol": "modbus-rtu", "path": modem.client_path, "baudrate": baudrate,
+            path = self._modbus.serve_rtu(name, device, device_id, baudrate, faults)
+            return {"protocol": "modbus-rtu", "path": path, "baudrate": baudrate,
                     "device_id": device_id, "parity": "N", "stopbits": 1}  # fmt: skip
         raise ValueError(f"device '{name}': transport '{transport}' is not a Modbus transport")
 
     def drop_connections(self, name: str) -> None:
         """Fault on demand: close the TCP connections of a Modbus device now."""
-        proxy = self._proxies[name]
-        self._loop.call_soon_threadsafe(proxy.drop_connections)
+        if self._modbus is None:
+            raise KeyError(name)
+        self._modbus.drop_connections(name)
 
     def endpoints_document(self) -> dict[str, Any]:
         """The endpoints contract: ``{"devices": {name: {...}}}``."""
@@ -183,23 +181,9 @@ class SimulatedCage:
         for dev in self._serial_devices:
             dev.close()
         self._serial_devices.clear()  # closed once: a second stop must not close reused fds
-        if self._started and self._loop.is_running():
-            for proxy in self._proxies.values():
-                with contextlib.suppress(Exception):
-                    self._run(proxy.stop())
-            for server in self._servers:
-                with contextlib.suppress(Exception):
-                    self._run(server.shutdown())
-            for modem in self._modems:  # detached from the loop while it runs
-                modem.close()
-            self._loop.call_soon_threadsafe(self._loop.stop)
-            self._thread.join(timeout=5.0)
-        for modem in self._modems:
-            modem.close()
-        self._servers.clear()
-        self._proxies.clear()
-        self._modems.clear()
-        self._serial_devices.clear()
+        if self._modbus is not None:
+            self._modbus.stop()
+            self._modbus = None
         self._started = False
 
     def __enter__(self) -> SimulatedCage:

@@ -1,4 +1,5 @@
-"""A cesium total-field magnetometer behind a Geometrics CM-201 counter, on a pseudo-terminal.
+"""A cesium total-field magnetometer behind a Geometrics CM-201 counter, on a serial line (a
+pseudo-terminal, or a line of the simulated clock in simulated time: :mod:`sim.serial_line`).
 
 As the maker's counter defines it (G-882/G-858 manuals, the counter's ASCII output): at the cycle
 rate (default 10 Hz) one line per reading, ``$`` then ``1`` or a blank (above or below
@@ -18,19 +19,16 @@ zeros for the field.
 from __future__ import annotations
 
 import math
-import os
 import random
-import select
-import threading
-import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+import timebase
 from sim.device_kind import CageHost, SimKind
-from sim.links import open_pty, send_paced
 from sim.physics import Faults
+from sim.serial_line import open_line, send_paced
 
 if TYPE_CHECKING:
     from sim.config import MagnetometerConfig
@@ -59,7 +57,8 @@ class CesiumCounter:
 
     def __init__(self, field_ut: Callable[[float], np.ndarray], faults: Faults, *,
                  optical_axis: np.ndarray, offset_nt: float, heading_error_nt: float,
-                 dead_zone_deg: float, noise_nt: float, baudrate: int, seed: int) -> None:  # fmt: skip
+                 dead_zone_deg: float, noise_nt: float, baudrate: int, seed: int,
+                 name: str = "cesium") -> None:  # fmt: skip
         self.field_ut = field_ut
         self.faults = faults
         self.axis = np.asarray(optical_axis, float) / np.linalg.norm(optical_axis)
@@ -67,17 +66,17 @@ class CesiumCounter:
         self.dead_zone_deg, self.noise_nt = dead_zone_deg, noise_nt
         self.baudrate = baudrate
         self.cycle_s = 0.1
-        self.pty = open_pty()
+        self.line = open_line(name, baudrate)
         self._rng = random.Random(seed)
         self._noise = np.random.default_rng(seed)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="cesium", daemon=True)
+        self._stop = timebase.Event()
+        self._thread = timebase.Thread(self._run, name=name, daemon=True)
         self._thread.start()
 
     @property
     def path(self) -> str:
-        """The serial port path a client opens."""
-        return self.pty.path
+        """The serial port path a client opens (a pty, or ``simpipe://<name>``)."""
+        return self.line.path
 
     def reading(self, t_s: float) -> tuple[float, int]:
         """The counter's field (nT) and signal level for the cycle ending at ``t_s``."""
@@ -96,12 +95,13 @@ class CesiumCounter:
         return total, LOCKED_SIGNAL + int(self._noise.integers(-40, 40))
 
     def _run(self) -> None:
-        next_t = time.monotonic()
+        next_t = timebase.monotonic()
         pending = b""
         while not self._stop.is_set():
-            ready, _, _ = select.select(
-                [self.pty.master], [], [], max(0.0, next_t - time.monotonic())
-            )
+            try:
+                ready = self.line.wait_readable(max(0.0, next_t - timebase.monotonic()))
+            except (OSError, ValueError):
+                return
             if ready:
                 pending = self._command(pending + self._read())
                 continue
@@ -112,11 +112,10 @@ class CesiumCounter:
             self._send(counter_line(*self.reading(sample_t)))
 
     def _read(self) -> bytes:
-        try:
-            return os.read(self.pty.master, 256)
-        except OSError:
+        data = self.line.read_available()
+        if not data:
             self._stop.wait(0.01)
-            return b""
+        return data
 
     def _command(self, data: bytes) -> bytes:
         """Act on every complete command in ``data``; return the incomplete rest."""
@@ -132,17 +131,17 @@ class CesiumCounter:
         return data[-64:]
 
     def _send(self, line: bytes) -> None:
-        send_paced(self.pty, line, self.faults, self._rng, self.baudrate, self._stop)
+        send_paced(self.line, line, self.faults, self._rng, self.baudrate, self._stop)
 
     def close(self) -> None:
-        """Stop sending and close the pty."""
+        """Stop sending and close the line."""
         self._stop.set()
-        self._thread.join(timeout=10.0)  # it must not touch the fds once they are closed
-        self.pty.close()
+        self._thread.join(timeout=10.0)  # it must not touch the line once it is closed
+        self.line.close()
 
 
 def _start(host: CageHost, m: MagnetometerConfig, index: int) -> dict[str, Any]:
-    """A cesium sensor and CM-201 counter on a pseudo-terminal (nT lines)."""
+    """A cesium sensor and CM-201 counter on a serial line (nT lines)."""
     physics = host.physics
 
     def field_ut(t_s: float) -> np.ndarray:
@@ -152,7 +151,7 @@ def _start(host: CageHost, m: MagnetometerConfig, index: int) -> dict[str, Any]:
                         optical_axis=np.array(m.optical_axis), offset_nt=m.scalar_offset_nt,
                         heading_error_nt=m.heading_error_nt, dead_zone_deg=m.dead_zone_deg,
                         noise_nt=1e3 * m.noise_ut, baudrate=m.endpoint.baudrate,
-                        seed=host.cfg.seed + index)  # fmt: skip
+                        seed=host.cfg.seed + index, name=m.name)  # fmt: skip
     host.add_serial(m.name, dev)
     endpoint = {"kind": "geometrics-cm201", "protocol": "serial", "path": dev.path,
                 "baudrate": m.endpoint.baudrate, "optical_axis": [float(v) for v in dev.axis]}  # fmt: skip

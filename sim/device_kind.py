@@ -22,7 +22,8 @@ if TYPE_CHECKING:
 
 
 class SerialDevice(Protocol):
-    """A device on a pseudo-terminal: the path the rig opens, closed when the cage stops."""
+    """A device on a serial line (a pty, or ``simpipe://<name>`` in simulated time): the path
+    the rig opens, closed when the cage stops."""
 
     @property
     def path(self) -> str: ...

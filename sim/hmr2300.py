@@ -1,4 +1,4 @@
-"""Honeywell HMR2300 on a pseudo-terminal: the datasheet command set, ASCII and binary output.
+"""Honeywell HMR2300 on a serial line: the datasheet command set, ASCII and binary output.
 
 Commands are ``*ddCMD<CR>`` (``dd`` the two-digit ID, 99 = everyone); write-protected commands need
 ``*ddWE`` immediately before. Output: 15000 counts per gauss (150 per uT), +-30000 counts; binary
@@ -6,8 +6,11 @@ frames are ``XH XL YH YL ZH ZL CR`` (two's complement, big-endian); ASCII sample
 The line is paced at 10 bits per byte at the configured baud rate, so the achievable sample rate
 is what the datasheet table gives (binary: 154 sps at 19200 baud; ASCII: 50 sps).
 
+The line is a pseudo-terminal, or in simulated time a line of the simulated clock
+(:mod:`sim.serial_line`).
+
 Timing model: the device keeps its own sample clock (slot ``k`` is due at ``t0 + k / rate``, s,
-``time.monotonic``) and its own UART timeline (each byte occupies the line for ``10 / baud`` s).
+``timebase.monotonic``) and its own UART timeline (each byte occupies the line for ``10 / baud`` s).
 Both are computed, not slept: the device thread never waits for the line, and when it wakes late
 (our process was descheduled, or another thread held the interpreter lock) it sends every frame
 that fell due meanwhile back to back, as the UART would already have delivered them. So the sample
@@ -19,23 +22,20 @@ line's capacity.
 
 from __future__ import annotations
 
-import os
 import random
-import select
 import struct
-import termios
-import threading
-import time
 from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+import timebase
 from sim.device_kind import CageHost, SimKind
-from sim.links import damage, open_pty
+from sim.links import damage
 from sim.perming import Perming
 from sim.physics import Faults
+from sim.serial_line import open_line
 
 if TYPE_CHECKING:
     from sim.config import MagnetometerConfig
@@ -44,7 +44,6 @@ COUNTS_PER_UT = 150.0
 FULL_SCALE_COUNTS = 30000
 RATES_SPS = (10, 20, 25, 30, 40, 50, 60, 100, 123, 154)
 ESC = 0x1B
-BAUD_CONSTANTS = {9600: termios.B9600, 19200: termios.B19200}
 
 
 def counts_from_ut(field_ut: np.ndarray) -> tuple[int, int, int]:
@@ -78,7 +77,7 @@ class Hmr2300:
 
     def __init__(self, read_ut: Callable[[float], np.ndarray], faults: Faults, *, device_id: int = 0,
                  baudrate: int = 9600, serial_number: str = "0123", seed: int = 0,
-                 perming: Perming | None = None) -> None:  # fmt: skip
+                 perming: Perming | None = None, name: str = "hmr2300") -> None:  # fmt: skip
         self.read_ut = read_ut
         self.faults = faults
         self.perming = perming or Perming(0.0, 0.0)
@@ -104,41 +103,32 @@ class Hmr2300:
         # (samples_sent, device time s of that sample's slot), replaced as one tuple per streamed
         # sample so that another thread reads a consistent pair.
         self.stream_clock: tuple[int, float] = (0, 0.0)
-        self.pty = open_pty()
-        self._set_line_speed(baudrate)
+        self.line = open_line(name, baudrate)
         self._rng = random.Random(seed)
-        self._stop = threading.Event()
+        self._stop = timebase.Event()
         self._line_free_at = 0.0  # device time s when the UART has sent everything queued
         self._out: deque[tuple[float, bytes]] = deque()  # (line start time s, bytes), in order
         self._last_start = 0.0  # device time s when the last queued bytes start on the line
         self._clock_t0 = 0.0  # device time s of slot 0 of the stream
         self._slot = 0  # next stream slot
-        self._thread = threading.Thread(target=self._run, name="hmr2300", daemon=True)
+        self._thread = timebase.Thread(self._run, name=name, daemon=True)
         self._thread.start()
 
     @property
     def path(self) -> str:
-        """The serial port path a client opens."""
-        return self.pty.path
+        """The serial port path a client opens (a pty, or ``simpipe://<name>``)."""
+        return self.line.path
 
     @property
     def stream_start_s(self) -> float:
-        """Device time (s, ``time.monotonic``) of slot 0 of the current or last stream."""
+        """Device time (s, ``timebase.monotonic``) of slot 0 of the current or last stream."""
         return self._clock_t0
 
-    def _set_line_speed(self, baud: int) -> None:
-        attrs = termios.tcgetattr(self.pty.master)
-        attrs[4] = attrs[5] = BAUD_CONSTANTS[baud]
-        termios.tcsetattr(self.pty.master, termios.TCSANOW, attrs)
-
     def _client_baud_matches(self) -> bool:
-        """A pty carries no baud rate, but the client's termios speed is visible: a client at the
-        wrong speed would only see garbage on a real line, so the device ignores it."""
-        try:
-            speed = termios.tcgetattr(self.pty.slave)[5]
-        except termios.error:
-            return True
-        return bool(speed == BAUD_CONSTANTS[self.baudrate])
+        """The speed the client set (a pty's termios, a simulated line's setting): a client at
+        the wrong speed would only see garbage on a real line, so the device ignores it."""
+        baud = self.line.client_baud()
+        return baud is None or baud == self.baudrate
 
     # --- output ---------------------------------------------------------------------------------
 
@@ -148,7 +138,7 @@ class Hmr2300:
         if self.faults.silent or self.faults.disconnect:
             return
         data = damage(data, self.faults, self._rng)
-        start = max(time.monotonic() if at_s is None else at_s, self._line_free_at)
+        start = max(timebase.monotonic() if at_s is None else at_s, self._line_free_at)
         self._line_free_at = start + len(data) * 10.0 / self.baudrate
         self._last_start = start
         self._out.append((start, data))
@@ -158,9 +148,7 @@ class Hmr2300:
         while self._out and self._out[0][0] <= now:
             _, data = self._out.popleft()
             try:
-                written = os.write(self.pty.master, data)
-            except BlockingIOError:
-                written = 0
+                written = self.line.write(data)
             except OSError:
                 self._out.clear()
                 return
@@ -171,7 +159,9 @@ class Hmr2300:
 
     def _sample(self, at_s: float | None = None) -> bytes:
         """One output frame of the field at device time ``at_s`` (s; default now)."""
-        reading = np.asarray(self.read_ut(time.monotonic() if at_s is None else at_s), dtype=float)
+        reading = np.asarray(
+            self.read_ut(timebase.monotonic() if at_s is None else at_s), dtype=float
+        )
         if self.average:
             self._avg = reading if self._avg is None else 0.5 * reading + 0.5 * self._avg
             reading = self._avg
@@ -278,6 +268,7 @@ class Hmr2300:
             self._reply("OK")
             self._reply("BAUD= 9600" if baud == 9600 else "BAUD= 19,200")
             self.baudrate = baud  # the client must now reopen the port at the new speed
+            self.line.set_baud(baud)
         elif cmd in ("TN", "TF", "T", "ZN", "ZF", "ZR", "VN", "VF", "V"):
             self._mode(cmd)
         elif cmd in ("Y", "N"):
@@ -303,7 +294,7 @@ class Hmr2300:
         elif cmd[0] == "Z":
             self.zero_on = {"ZN": True, "ZF": False, "ZR": not self.zero_on}[cmd]
             if self.zero_on:
-                self.zero_offset = np.asarray(self.read_ut(time.monotonic()), dtype=float)
+                self.zero_offset = np.asarray(self.read_ut(timebase.monotonic()), dtype=float)
             self._reply("ZERO ON" if self.zero_on else "ZERO OFF")
         else:
             self.average = {"VN": True, "VF": False, "V": not self.average}[cmd]
@@ -314,7 +305,7 @@ class Hmr2300:
 
     def _restart_clock(self) -> None:
         """The sample clock starts now: slot 0 is due immediately."""
-        self._clock_t0 = time.monotonic()
+        self._clock_t0 = timebase.monotonic()
         self._slot = 0
 
     def _slot_due(self) -> float:
@@ -334,50 +325,51 @@ class Hmr2300:
     def _run(self) -> None:
         buf = bytearray()
         while not self._stop.is_set():
-            now = time.monotonic()
+            now = timebase.monotonic()
             wake = now + 0.05
             if self.streaming:
                 wake = min(wake, self._slot_due())
             if self._out:
                 wake = min(wake, self._out[0][0])
             try:
-                ready, _, _ = select.select([self.pty.master], [], [], max(0.0, wake - now))
+                ready = self.line.wait_readable(max(0.0, wake - now))
             except (OSError, ValueError):
                 return
-            self._emit_due(time.monotonic())  # they fell due before we looked at the input
+            self._emit_due(timebase.monotonic())  # they fell due before we looked at the input
             if ready:
-                try:
-                    data = os.read(self.pty.master, 1024)
-                except OSError:
-                    data = b""
+                data = self.line.read_available()
                 if self.faults.disconnect or not self._client_baud_matches():
                     data = b""
-                for byte in data:
-                    if byte == ESC:
-                        self.streaming = False
-                        buf.clear()
-                    elif byte == 0x0D:
-                        line = buf.decode("ascii", errors="replace").strip()
-                        buf.clear()
-                        self.handle(line)
-                    elif byte != 0x0A:
-                        buf.append(byte)
-                self._emit_due(time.monotonic())
-            self._flush(time.monotonic())
+                self._take(data, buf)
+                self._emit_due(timebase.monotonic())
+            self._flush(timebase.monotonic())
+
+    def _take(self, data: bytes, buf: bytearray) -> None:
+        """Act on the client's bytes: ESC stops a stream, CR ends a command (kept in ``buf``)."""
+        for byte in data:
+            if byte == ESC:
+                self.streaming = False
+                buf.clear()
+            elif byte == 0x0D:
+                line = buf.decode("ascii", errors="replace").strip()
+                buf.clear()
+                self.handle(line)
+            elif byte != 0x0A:
+                buf.append(byte)
 
     def close(self) -> None:
-        """Stop the device thread and close the pty."""
+        """Stop the device thread and close the line."""
         self._stop.set()
-        self._thread.join(timeout=10.0)  # it must not touch the fds once they are closed
-        self.pty.close()
+        self._thread.join(timeout=10.0)  # it must not touch the line once it is closed
+        self.line.close()
 
 
 def _start(host: CageHost, m: MagnetometerConfig, index: int) -> dict[str, Any]:
-    """An HMR2300 on a pseudo-terminal at the DUT position."""
+    """An HMR2300 on a serial line at the DUT position."""
     dev = Hmr2300(host.field_reader(m.name), host.physics.magnetometers[m.name].faults,
                   device_id=m.endpoint.device_id, baudrate=m.endpoint.baudrate,
                   serial_number=m.serial_number, seed=host.cfg.seed + index,
-                  perming=host.physics.magnetometers[m.name].perming)  # fmt: skip
+                  perming=host.physics.magnetometers[m.name].perming, name=m.name)  # fmt: skip
     host.add_serial(m.name, dev)
     return {"kind": "hmr2300", "protocol": "serial", "path": dev.path,
             "baudrate": m.endpoint.baudrate, "device_id": m.endpoint.device_id}  # fmt: skip

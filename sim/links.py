@@ -5,6 +5,10 @@
   path themselves (pymodbus' serial server); it can drop, corrupt or delay what the device sends
   and ignores requests to other bus addresses (an RS-485 bus stays silent).
 * :class:`TcpProxy` - a loopback TCP front for a server, with the same faults and disconnects.
+
+These are the wall clock's. In simulated time (ADR 0038) the serial devices use lines of the
+simulated clock (:mod:`sim.serial_line`) and the Modbus servers of :mod:`sim.pipe_modbus` keep
+the faults and the RTU framing rules defined here.
 """
 
 from __future__ import annotations
@@ -13,10 +17,10 @@ import asyncio
 import contextlib
 import os
 import random
-import threading
 import tty
 from dataclasses import dataclass
 
+import timebase
 from sim.physics import Faults
 
 
@@ -57,21 +61,6 @@ def damage(data: bytes, faults: Faults, rng: random.Random) -> bytes:
         i = rng.randrange(len(data))
         data = data[:i] + bytes([data[i] ^ (1 << rng.randrange(8))]) + data[i + 1 :]
     return data
-
-
-def send_paced(
-    pty: Pty, line: bytes, faults: Faults, rng: random.Random, baudrate: int, stop: threading.Event
-) -> bool:
-    """Write ``line`` (damaged by ``faults``) to a device's pty and wait the time it takes on a
-    UART at ``baudrate`` (or until ``stop``); False when it was lost (nobody reading and the
-    buffer full, as on a UART)."""
-    data = damage(line, faults, rng)
-    try:
-        os.write(pty.master, data)
-    except OSError:
-        return False
-    stop.wait(len(data) * 10.0 / baudrate)
-    return True
 
 
 STALE_PARTIAL_S = 0.5
@@ -119,7 +108,7 @@ class PtyNullModem:
         self._closed = False
         self._pending = b""  # the start of a request frame whose rest has not arrived
         self._pending_since = 0.0
-        attached = threading.Event()
+        attached = timebase.Event()
 
         def attach() -> None:
             loop.add_reader(self.client_side.master, self._from_client)
@@ -198,7 +187,7 @@ class PtyNullModem:
         if self._closed:
             return
         self._closed = True
-        detached = threading.Event()
+        detached = timebase.Event()
 
         def detach() -> None:
             for fd in (self.client_side.master, self.device_side.master):

@@ -14,12 +14,12 @@ or disconnected raises ``OSError(121)`` on the bus, as the kernel does.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+import timebase
 from sim.device_kind import CageHost, SimKind
 from sim.physics import Faults
 
@@ -63,7 +63,7 @@ class Lis3mdl:
 
     def _restart(self) -> None:
         mode = self.regs[CTRL_REG3] & 0x03
-        self._since = time.monotonic() if mode in (0, 1) else None
+        self._since = timebase.monotonic() if mode in (0, 1) else None
         self._last = 0
 
     def _latch(self, t_s: float, overwritten: bool) -> None:
@@ -84,7 +84,7 @@ class Lis3mdl:
         if self._since is None:
             return
         period = 1.0 / self.odr_hz()
-        done = int((time.monotonic() - self._since) / period)
+        done = int((timebase.monotonic() - self._since) / period)
         if done <= self._last:
             return
         self._latch(self._since + done * period, done > self._last + 1)

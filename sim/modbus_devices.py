@@ -8,13 +8,13 @@ A Modbus TCP endpoint also answers for the unit ids it does not serve (:func:`un
 from __future__ import annotations
 
 import asyncio
-import time
 from collections.abc import Callable, Coroutine
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from pymodbus.constants import ExcCodes
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+import timebase
 from sim.device_kind import CageHost, SimKind
 from sim.physics import CagePhysics, Faults, Supply, riden_model
 from sim.regmap import Register, RegisterMap, load_regmap
@@ -48,11 +48,24 @@ RIDEN_OCP_MARGIN_A = 0.2
 """Default OCP: the range's full scale plus this (A), 6.2 A on a 6 A range (62 000 counts)."""
 
 
-async def _apply_faults(faults: Faults) -> ExcCodes | None:
+class NoReply(Exception):  # noqa: N818 - what happens, not an error of ours
+    """A silent device in simulated time: the request is never answered. The synchronous server
+    (:mod:`sim.pipe_modbus`) drops it, as the asyncio server's handler, asleep for an hour,
+    never answers it."""
+
+
+async def _apply_faults(faults: Faults, simulated: bool = False) -> ExcCodes | None:
+    """The device's own faults before it answers (``simulated``: the model runs on a simulated
+    clock, where nothing may truly await: delays are ``timebase.sleep`` on it)."""
     if faults.silent:
+        if simulated:
+            raise NoReply
         await asyncio.sleep(3600.0)  # the client times out first
     if faults.reply_delay_s > 0:
-        await asyncio.sleep(faults.reply_delay_s)
+        if simulated:
+            timebase.sleep(faults.reply_delay_s)
+        else:
+            await asyncio.sleep(faults.reply_delay_s)
     if faults.exception_code:
         return ExcCodes(faults.exception_code)
     return None
@@ -78,6 +91,8 @@ class _Model:
 
     faults: Faults
     write_function: int = 6
+    simulated: bool = False
+    """Whether the model was built on a simulated clock (its fault delays then sleep on it)."""
 
     def refresh(self, regs: list[int], base: int) -> None:
         raise NotImplementedError
@@ -93,7 +108,7 @@ class _Model:
     async def action(self, fc: int, start_address: int, address: int, count: int,
                      regs: list[int], values: Any) -> ExcCodes | None:  # fmt: skip
         """pymodbus' hook, run on every access before it answers."""
-        fault = await _apply_faults(self.faults)
+        fault = await _apply_faults(self.faults, self.simulated)
         if fault is not None:
             return fault
         if fc == WRITE_SINGLE and self.write_function == 16:
@@ -113,13 +128,14 @@ class RidenModel(_Model):
 
     def __init__(self, supply: Supply, serial_number: int) -> None:
         self.supply, self.faults, self.serial_number = supply, supply.faults, serial_number
+        self.simulated = timebase.is_simulated()
         self.model_id = supply.cfg.model_id
         self.spec = spec = riden_model(self.model_id)
         self.range = supply.cfg.current_range if len(spec.a_per_count) > 1 else 0
         self.writable_set = RIDEN_WRITABLE | ({R_I_RANGE} if len(spec.a_per_count) > 1 else set())
         self.stored: dict[int, int] = {R_CLOCK[0]: 2026, R_CLOCK[1]: 1, R_CLOCK[2]: 1,
                                        R_SETTINGS[-1]: 4}  # fmt: skip
-        self.start = time.monotonic()
+        self.start = timebase.monotonic()
         self.default_protection()
 
     def i_lsb(self) -> float:
@@ -141,7 +157,7 @@ class RidenModel(_Model):
         sup, v_lsb, i_lsb = self.supply, self.spec.v_per_count, self.i_lsb()
         with sup.lock:
             i_out, v_out = sup.output_current(), sup.output_voltage()
-            temp_c = 28 + min(20.0, (time.monotonic() - self.start) / 600.0 * abs(i_out))
+            temp_c = 28 + min(20.0, (timebase.monotonic() - self.start) / 600.0 * abs(i_out))
             power = round(v_out * i_out / self.spec.w_per_count)
             return {
                 R_ID: self.model_id, R_SN_H: self.serial_number >> 16,
@@ -231,6 +247,7 @@ class RegmapModel(_Model):
     def __init__(self, spec: RegisterMap, physics: CagePhysics, supply: Supply | None,
                  faults: Faults) -> None:  # fmt: skip
         self.spec, self.physics, self.supply, self.faults = spec, physics, supply, faults
+        self.simulated = timebase.is_simulated()
         self.write_function = spec.write_function
         self.stored: dict[str, float] = {
             r.name: r.value for r in spec.registers if r.role != "constant" and r.value is not None
@@ -354,7 +371,8 @@ def unserved_ids() -> SimDevice:
     server reports any error in the datastore as a device failure.
 
     Not for Modbus RTU: there a request for another id never reaches the server
-    (:class:`sim.links.PtyNullModem` keeps the bus silent, as a real RS-485 device does)."""
+    (:class:`sim.links.PtyNullModem`, in simulated time :mod:`sim.pipe_modbus`, keeps the bus
+    silent, as a real RS-485 device does)."""
 
     async def action(fc: int, start_address: int, address: int, count: int,
                      regs: list[int], values: Any) -> ExcCodes | None:  # fmt: skip

@@ -12,11 +12,12 @@ Allan variance for samples at a given rate (the test's truth).
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+
+import timebase
 
 Array = npt.NDArray[np.float64]
 
@@ -57,7 +58,7 @@ class OffsetWander:
         sigma = FLICKER_GAIN * spec.flicker_nt
         if sigma > 0:
             self._gm = sigma * self._rng.standard_normal(self._gm.shape)
-        self._lock = threading.Lock()
+        self._lock = timebase.Lock()
 
     def value(self, t_s: float) -> Array:
         """The wander at ``t_s`` (uT, 3)."""

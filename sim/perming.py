@@ -10,10 +10,10 @@ automatic set/reset is on) restores the sensor's own offset. So a 2 nT shift nee
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import numpy.typing as npt
+
+import timebase
 
 Array = npt.NDArray[np.float64]
 
@@ -26,7 +26,7 @@ class Perming:
         self.nt_per_ut = nt_per_ut
         self._excess_ut = 0.0  # the strongest exposure since the last reset, beyond the threshold
         self._shift_ut = np.zeros(3)
-        self._lock = threading.Lock()
+        self._lock = timebase.Lock()
         self.auto_reset = False
         """Set/reset pulses before every reading (the HMR2300's S/R mode): no shift stays."""
 

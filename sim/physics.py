@@ -1,8 +1,9 @@
 """Physics of the simulated cage: supplies, coils, polarity relays, load currents, ambient field
 and magnetometers with hidden truth.
 
-Everything is evaluated lazily at monotonic wall-clock time, so protocol servers running in other
-threads see one consistent, continuously evolving cage. The DUT model is the project's measurement
+Everything is evaluated lazily at the clock's time (:func:`now_s`, :mod:`timebase`: the wall clock's
+monotonic seconds, or simulated time), so protocol servers running in other threads see one
+consistent, continuously evolving cage. The DUT model is the project's measurement
 model (ARCHITECTURE.md, contract)::
 
     m(t) = (1 + s_T dT) L R h(t) + o + o_T dT + sum_j k_j u_j(t - tau_j) + n(t),
@@ -20,14 +21,13 @@ with the DUT's temperature ``T`` a first-order thermal mass warmed by a heater l
 from __future__ import annotations
 
 import math
-import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
+import timebase
 from sim.coils import CageCoils, CoilPair
 from sim.config import MagnetometerConfig, SimConfig, SimConfigError, SupplyConfig
 from sim.lab_field import LabField
@@ -78,8 +78,9 @@ def riden_model(model_id: int) -> RidenSpec:
 
 
 def now_s() -> float:
-    """The simulator's clock: monotonic seconds."""
-    return time.monotonic()
+    """The simulator's clock: ``timebase.monotonic()`` (s; simulated time inside
+    ``timebase.simulated()``)."""
+    return timebase.monotonic()
 
 
 @dataclass
@@ -117,7 +118,7 @@ class Supply:
         self.protection = 0
         self.current = FirstOrderSignal(tau_s)
         self.faults = Faults()
-        self.lock = threading.RLock()
+        self.lock = timebase.RLock()
         self.writes = 0
         self.on_change: Callable[[float, float], None] | None = None
         """Told (time s, target current A) whenever the output's target changes (a heater)."""
@@ -274,7 +275,7 @@ class Magnetometer:
         self.offset_ut_per_k = np.array(cfg.offset_ut_per_k)
         self.faults = Faults()
         self._rng = rng
-        self._lock = threading.Lock()
+        self._lock = timebase.Lock()
         self._last: Array | None = None
         self.wander = OffsetWander(WanderSpec(cfg.offset_drift_nt_per_h, cfg.offset_walk_nt_per_sqrt_h,
                                               cfg.offset_flicker_nt), wander_seed,
@@ -375,7 +376,13 @@ class CagePhysics:
         ph = np.random.default_rng([cfg.seed, 99]).uniform(0, 2 * np.pi, size=6)
         self._drift_phase, self._ripple_phase = ph[:3], ph[3:]
         self._ambient_rng = np.random.default_rng([cfg.seed, 100])
-        self._lock = threading.Lock()
+        self._ambient_rngs = {
+            m.name: np.random.default_rng([cfg.seed, 100, i + 1])
+            for i, m in enumerate(cfg.magnetometers)
+        }
+        """Per magnetometer, its own draws of the lab field's white noise: what one device reads
+        does not depend on how often another was read before it (threads interleaving)."""
+        self._lock = timebase.Lock()
         self.events: list[tuple[float, str]] = []
         thermal = cfg.thermal
         self.ambient_c = thermal.ambient_c if thermal is not None else 25.0
@@ -519,10 +526,15 @@ class CagePhysics:
         return np.array([0.0 if s is None else s.output_current(t) for s in self.trim_supply])
 
     def ambient_ut(
-        self, t_s: float, noise: bool = True, position_m: tuple[float, ...] | None = None
+        self,
+        t_s: float,
+        noise: bool = True,
+        position_m: tuple[float, ...] | None = None,
+        seen_by: str | None = None,
     ) -> Array:
         """Lab field (uT) at ``position_m`` (default: the centre): constant, drift, mains ripple,
-        the lab field's daily, 1/f, gradient and traffic terms and (optionally) white noise."""
+        the lab field's daily, 1/f, gradient and traffic terms and (optionally) white noise, as
+        magnetometer ``seen_by`` sees it (its own noise draws; None: the cage's)."""
         a = self.cfg.ambient
         since = t_s - self.start_s
         where = np.zeros((1, 3)) if position_m is None else np.asarray([position_m], float)
@@ -533,16 +545,18 @@ class CagePhysics:
         b = b + self.mains_ripple_ut(t_s)
         b = b + self.lab.uniform_ut(since) + self.lab.local_ut(since, where)[0]
         if noise:
-            b = b + self.ambient_noise_ut()
+            b = b + self.ambient_noise_ut(seen_by)
         return np.asarray(b)
 
-    def ambient_noise_ut(self) -> Array:
-        """One draw of the lab field's white noise (uT)."""
+    def ambient_noise_ut(self, seen_by: str | None = None) -> Array:
+        """One draw of the lab field's white noise (uT), from magnetometer ``seen_by``'s own
+        draws (None: the cage's)."""
         a = self.cfg.ambient
         if a.noise_ut <= 0:
             return np.zeros(3)
+        rng = self._ambient_rng if seen_by is None else self._ambient_rngs[seen_by]
         with self._lock:
-            return np.asarray(a.noise_ut * self._ambient_rng.standard_normal(3))
+            return np.asarray(a.noise_ut * rng.standard_normal(3))
 
     def mains_ripple_ut(self, t_s: float) -> Array:
         """The lab field's mains ripple at ``t_s`` (uT, the same everywhere)."""
@@ -563,7 +577,7 @@ class CagePhysics:
         t = now_s() if t_s is None else t_s
         position = self.position_m[name]
         coils = self.coil_matrix_at[name] @ self.true_coil_currents(t)
-        return np.asarray(coils + self.ambient_ut(t, noise, position))
+        return np.asarray(coils + self.ambient_ut(t, noise, position, name))
 
     def load_currents(
         self, t_s: float, delays_s: dict[str, float] | None = None
@@ -587,7 +601,7 @@ class CagePhysics:
         mag = self.magnetometers[name]
         if mag.response.active:  # what it senses of the field's recent past, plus this noise
             field = mag.sensed_field(t, lambda s: self.field_at_ut(name, s, noise=False))
-            field = field + self.ambient_noise_ut()
+            field = field + self.ambient_noise_ut(name)
         else:
             field = self.field_at_ut(name, t)
         return mag.sample(field, self.load_currents(t, mag.cfg.delay_s),

@@ -16,13 +16,12 @@ from __future__ import annotations
 
 import ctypes
 import errno
-import threading
-import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+import timebase
 from sim.device_kind import CageHost, SimKind
 from sim.physics import Faults
 
@@ -67,7 +66,7 @@ class Rm3100:
         self._poll_axes = 0x70  # the PMX/PMY/PMZ bits of the pending single measurement
         self._continuous_since: float | None = None
         self._last_cont_index = -1
-        self._lock = threading.Lock()
+        self._lock = timebase.Lock()
 
     def cycle_counts(self) -> tuple[int, int, int]:
         """CCX, CCY, CCZ."""
@@ -102,7 +101,7 @@ class Rm3100:
         return drdm == DRDM_ALL_AXES and bool(self.regs[CMM] & 0x70)
 
     def _advance(self) -> None:
-        now = time.monotonic()
+        now = timebase.monotonic()
         if self._ready_at is not None and now >= self._ready_at:
             done_s, self._ready_at = self._ready_at, None
             self._measure(done_s, self._poll_axes, drdy=True)
@@ -124,11 +123,11 @@ class Rm3100:
                 if value & 0x70:
                     self.regs[STATUS] &= 0x7F
                     self._poll_axes = value & 0x70
-                    self._ready_at = time.monotonic() + self._conversion_s()
+                    self._ready_at = timebase.monotonic() + self._conversion_s()
             elif r == CMM:
                 self.regs[CMM] = value
                 if value & CMM_START:
-                    self._continuous_since = time.monotonic()
+                    self._continuous_since = timebase.monotonic()
                     self._last_cont_index = 0
                 else:
                     self._continuous_since = None
@@ -169,7 +168,7 @@ class SimI2CBus:
 
     def __init__(self) -> None:
         self.devices: dict[int, BusDevice] = {}
-        self._lock = threading.Lock()
+        self._lock = timebase.Lock()
         self.transfers = 0
 
     def attach(self, device: BusDevice) -> None:

@@ -1,4 +1,5 @@
-"""Time-continuous signals evaluated lazily at wall-clock (monotonic) time.
+"""Time-continuous signals evaluated lazily at the clock's time (:mod:`timebase`: the wall clock's
+monotonic seconds, or simulated time).
 
 A :class:`FirstOrderSignal` follows piecewise-constant targets with a first-order lag
 (``tau = L / R`` for a coil, a few ms for a load channel) and keeps enough history to be read at a
@@ -8,8 +9,9 @@ delayed time ``t - tau_j`` (current-to-bias delay).
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass
+
+import timebase
 
 
 @dataclass(frozen=True)
@@ -34,7 +36,7 @@ class FirstOrderSignal:
         self.tau_s = tau_s
         self.history_s = history_s
         self._segments: list[_Segment] = [_Segment(t0_s, 0.0, 0.0)]
-        self._lock = threading.Lock()
+        self._lock = timebase.Lock()
 
     def _eval(self, seg: _Segment, t_s: float) -> float:
         dt = max(t_s - seg.t0_s, 0.0)

@@ -42,12 +42,14 @@ class _Direction:
         self.line_free_s = float("-inf")
         self.ch = Channel(clock)
         self.closed = False
+        self.unread = 0  # bytes put and not yet read by the receiving end (in flight or arrived)
 
     def put(self, data: bytes) -> None:
         now = self.clock.monotonic()
         start = max(now, self.line_free_s)
         self.line_free_s = start + (len(data) * 10.0 / self.baud if self.baud else 0.0)
         self.chunks.append((self.line_free_s + self.latency_s, bytes(data)))
+        self.unread += len(data)
         self.ch.notify()
 
     def arrived(self) -> bytes:
@@ -102,19 +104,28 @@ class PipeEnd:
     def _collect(self) -> None:
         self._buf += self._rx.arrived()
 
+    def _take(self, n: int) -> bytes:
+        out = bytes(self._buf[:n])
+        del self._buf[:n]
+        self._rx.unread -= len(out)
+        return out
+
     @property
     def in_waiting(self) -> int:
         """Bytes that have arrived and not been read."""
         self._collect()
         return len(self._buf)
 
+    @property
+    def out_waiting(self) -> int:
+        """Bytes this end wrote that the other end has not read yet (on the line or arrived):
+        what fills a receive buffer when nobody reads (a writer may drop data beyond it)."""
+        return self._tx.unread
+
     def read_available(self, limit: int | None = None) -> bytes:
         """What has arrived (at most ``limit`` bytes), without waiting."""
         self._collect()
-        n = len(self._buf) if limit is None else min(limit, len(self._buf))
-        out = bytes(self._buf[:n])
-        del self._buf[:n]
-        return out
+        return self._take(len(self._buf) if limit is None else min(limit, len(self._buf)))
 
     def wait_readable(self, timeout_s: float | None) -> bool:
         """Wait until a byte has arrived or the peer closed (True) or ``timeout_s`` passed."""
@@ -144,14 +155,12 @@ class PipeEnd:
             due = self._rx.next_arrival_s()
             wake = due if deadline is None else deadline if due is None else min(due, deadline)
             clock.block((self._rx.ch,), wake)
-        out = bytes(self._buf[:size])
-        del self._buf[:size]
-        return out
+        return self._take(size)
 
     def discard_input(self) -> None:
         """Throw away what has arrived."""
         self._collect()
-        self._buf.clear()
+        self._take(len(self._buf))
 
 
 def pipe_pair(clock: SimulatedClock, name: str, baud: int | None = None,
@@ -174,6 +183,11 @@ class SerialLine:
     def url(self) -> str:
         """What a client opens (pyserial URL)."""
         return SCHEME + self.name
+
+    def set_baud(self, baud: int | None) -> None:
+        """The line's speed from now on, both ways (a device switched its baud rate): later
+        writes are paced at it (None: no pacing)."""
+        self.device._tx.baud = self.device._rx.baud = baud
 
 
 class Wires:

@@ -216,3 +216,21 @@ def test_the_same_work_gives_the_same_record_under_any_load() -> None:
     for hog in hogs:
         hog.start()
     assert record() == first
+
+
+def test_a_writer_sees_what_its_reader_has_not_taken_and_a_line_changes_speed() -> None:
+    with timebase.simulated():
+        line = wires().serve_serial("backlog", baud=9600)
+        line.device.write(b"abcd")
+        assert line.device.out_waiting == 4  # on the line: 4 bytes at 9600 Bd take 4.17 ms
+        timebase.sleep(0.01)
+        assert line.client.read_available(3) == b"abc"
+        assert line.device.out_waiting == 1
+        line.client.discard_input()
+        assert line.device.out_waiting == 0
+        line.set_baud(19200)
+        t0 = timebase.monotonic()
+        line.device.write(b"x" * 96)
+        assert line.client.read(96, 1.0) == b"x" * 96
+        assert timebase.monotonic() - t0 == pytest.approx(96 * 10 / 19200)
+        assert line.device.out_waiting == 0
