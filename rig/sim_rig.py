@@ -3,16 +3,22 @@ coil constants as nameplate values (``rig sim --rig-config``, tests, benchmarks)
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import re
 import zlib
-from typing import Any
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from drivers.registry import KINDS
 from sim.config import MagnetometerConfig, SimConfig
+
+if TYPE_CHECKING:
+    from sim.cage import SimulatedCage
 
 ENDPOINT_ONLY = frozenset({"role", "stopbits", "line_format", "unit"})
 """What the simulator's endpoints document says of a device that is no rig configuration key: its
@@ -187,3 +193,18 @@ def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig) -> str:
     coil_tau_s = min(inductance / resistance for inductance, resistance
                      in zip(cfg.cage.inductance_h, cfg.cage.resistance_ohm, strict=True))  # fmt: skip
     return rig_config_toml({"devices": devices}, cfg.source, nominal, trims, coil_tau_s)
+
+
+@contextlib.contextmanager
+def cage_in_process(rig_toml: Path, sim_config: Path | None = None) -> Iterator[SimulatedCage]:
+    """The simulated cage of ``sim_config`` (default: the built-in cage) started in this process
+    on the current clock (in simulated time: on its wires, ADR 0038), with ``rig_toml`` written
+    to open it; stopped on leaving."""
+    from sim.cage import SimulatedCage
+    from sim.config import load_config
+
+    cfg = load_config(sim_config) if sim_config is not None else load_config()
+
+    with SimulatedCage(cfg) as cage:
+        rig_toml.write_text(sim_rig_config(cage.endpoints_document(), cfg), encoding="utf-8")
+        yield cage

@@ -107,7 +107,7 @@ class Hmr2300:
         self._rng = random.Random(seed)
         self._stop = timebase.Event()
         self._line_free_at = 0.0  # device time s when the UART has sent everything queued
-        self._out: deque[tuple[float, bytes]] = deque()  # (line start time s, bytes), in order
+        self._out: deque[tuple[float, bytes]] = deque()  # (time due to the line s, bytes), in order
         self._last_start = 0.0  # device time s when the last queued bytes start on the line
         self._clock_t0 = 0.0  # device time s of slot 0 of the stream
         self._slot = 0  # next stream slot
@@ -141,10 +141,13 @@ class Hmr2300:
         start = max(timebase.monotonic() if at_s is None else at_s, self._line_free_at)
         self._line_free_at = start + len(data) * 10.0 / self.baudrate
         self._last_start = start
-        self._out.append((start, data))
+        # handed to the line when its last byte has left (or at its start where the line itself
+        # carries the line time, a simulated line)
+        self._out.append((start if self.line.carries_line_time else self._line_free_at, data))
 
     def _flush(self, now: float) -> None:
-        """Hand the client every queued byte whose transmission has started by ``now`` (s)."""
+        """Hand the line every queued frame due by ``now`` (s): its transmission started (a line
+        that carries the line time) or ended (a pty)."""
         while self._out and self._out[0][0] <= now:
             _, data = self._out.popleft()
             try:

@@ -41,6 +41,17 @@ class SerialLine(Protocol):
     """The device's end of a serial line."""
 
     @property
+    def has_client(self) -> bool:
+        """Someone may be listening (a pty: always; a simulated line: a client has it open). A
+        device may skip making what nobody can receive."""
+        ...
+
+    carries_line_time: bool
+    """The line itself delays each write by its time on the wire (a simulated line); False: the
+    client gets the bytes when they are written (a pty), so the device writes a frame when its
+    last byte would have left, as a UART delivers it."""
+
+    @property
     def path(self) -> str:
         """What the client opens (a device path, or a pyserial URL)."""
         ...
@@ -74,6 +85,9 @@ class SerialLine(Protocol):
 
 class PtyLine:
     """A raw pseudo-terminal at ``baud`` (its termios speed: what a client reads back)."""
+
+    carries_line_time = False
+    has_client = True
 
     def __init__(self, baud: int) -> None:
         self.pty: Pty = open_pty()
@@ -123,6 +137,8 @@ class PipeLine:
     """Line ``name`` of the current simulated clock at ``baud`` (``simpipe://<name>``): a write
     reaches the client when its last byte has crossed the line."""
 
+    carries_line_time = True
+
     def __init__(self, name: str, baud: int) -> None:
         from timebase.wires import wires
 
@@ -134,6 +150,10 @@ class PipeLine:
     @property
     def path(self) -> str:
         return self.line.url
+
+    @property
+    def has_client(self) -> bool:
+        return self.line.client.opened
 
     def write(self, data: bytes) -> int:
         end = self.end
@@ -184,10 +204,14 @@ def send_paced(line: SerialLine, data: bytes, faults: Faults, rng: random.Random
     UART at ``baudrate`` (or until ``stop``, an event of the device's clock); False when it was
     lost (nobody reading and the buffer full, as on a UART)."""
     data = damage(data, faults, rng)
+    line_s = len(data) * 10.0 / baudrate
+    if not line.carries_line_time and stop.wait(line_s):
+        return False  # stopped while the frame was on the wire
     try:
         if line.write(data) == 0 and data:
             return False
     except OSError:
         return False
-    stop.wait(len(data) * 10.0 / baudrate)
+    if line.carries_line_time:
+        stop.wait(line_s)
     return True

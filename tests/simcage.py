@@ -5,10 +5,11 @@ or :func:`sim_cage` for a fixture of wider scope)."""
 from __future__ import annotations
 
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import NamedTuple
 
+import timebase
 from rig.sim_rig import sim_rig_config
 from sim.cage import SimulatedCage
 from sim.config import SimConfig, load_config
@@ -30,9 +31,21 @@ def write_rig_toml(cage: SimulatedCage, folder: Path, cfg: SimConfig | None = No
 
 
 @contextmanager
-def sim_cage(folder: Path, cfg: SimConfig | None = None) -> Iterator[SimRig]:
+def on_clock(simulated: bool) -> Iterator[None]:
+    """A fresh simulated clock joined by this thread (``simulated``), else the wall clock."""
+    with ExitStack() as stack:
+        if simulated:
+            stack.enter_context(timebase.simulated())
+        yield
+
+
+@contextmanager
+def sim_cage(
+    folder: Path, cfg: SimConfig | None = None, *, simulated: bool = True
+) -> Iterator[SimRig]:
     """A fresh simulated cage (``cfg``, else the default) and ``folder/rig.toml`` for it; the
-    cage stops on leaving."""
+    cage stops on leaving. ``simulated``: the cage, and everything this thread starts inside the
+    block, on a fresh simulated clock (ADR 0038); False for the real-time tier."""
     cfg = cfg or load_config()
-    with SimulatedCage(cfg) as cage:
+    with on_clock(simulated), SimulatedCage(cfg) as cage:
         yield SimRig(cage, write_rig_toml(cage, folder, cfg))

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 
+import timebase
 from rig.config import load_rig_config
 from rig.engine.runner import Runner, RunOutcome
 from rig.procedure.language import parse_procedure
@@ -18,15 +17,16 @@ from tests.simcage import sim_cage
 def run_on_sim(
     folder: Path, procedure: str, reply_delay_s: dict[str, float] | None = None,
     sim_config: SimConfig | None = None,
-    operator: Callable[[SimulatedCage, str], bool] | None = None,
+    operator: Callable[[SimulatedCage, str], bool] | None = None, *, simulated: bool = True,
 ) -> RunOutcome:  # fmt: skip
     """Write ``procedure`` (YAML text) to ``folder``, run it on a fresh simulated cage with every
     prompt confirmed and no live view, and return the outcome. ``reply_delay_s`` slows devices'
     replies (device name -> seconds), as a slow link would; ``sim_config`` replaces the default
     simulated cage; ``operator(cage, question)`` answers the prompts instead (and may act on the
-    simulated cage, as an operator turning a fixture does)."""
+    simulated cage, as an operator turning a fixture does). ``simulated``: on a fresh simulated
+    clock (ADR 0038), else in real time."""
     (folder / "procedure.yaml").write_text(procedure)
-    with sim_cage(folder, sim_config) as (cage, rig_toml):
+    with sim_cage(folder, sim_config, simulated=simulated) as (cage, rig_toml):
         for name, delay in (reply_delay_s or {}).items():
             cage.faults[name].reply_delay_s = delay
 
@@ -42,13 +42,13 @@ def run_watched(cage: SimulatedCage, rig_toml: Path, procedure: Path, runs: Path
     """Run ``procedure`` (a file) on the running ``cage`` in this process, every prompt confirmed,
     while ``watch(t)`` (t: monotonic s) is called every ``period_s`` from a thread of its own:
     the simulator's truth read as the run goes (coil currents, field, temperature)."""
-    stop = threading.Event()
+    stop = timebase.Event()
 
     def watching() -> None:
         while not stop.wait(period_s):
-            watch(time.monotonic())
+            watch(timebase.monotonic())
 
-    watcher = threading.Thread(target=watching, name="truth-watch", daemon=True)
+    watcher = timebase.Thread(watching, name="truth-watch", daemon=True)
     watcher.start()
     try:
         return Runner(parse_procedure(procedure), load_rig_config(rig_toml), runs,

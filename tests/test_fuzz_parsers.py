@@ -78,7 +78,7 @@ def test_hmr2300_stream_resyncs_after_garbage_and_partial_frames(
         # everything the port delivers, in as many reads as it takes (a busy computer's reader
         # may see the bytes in pieces): frames split across reads must be recovered too
         got: list[tuple[float, float, float]] = []
-        while chunk := dev.read_stream(0.2):
+        while chunk := dev.read_stream(0.05):
             got += chunk
         want = [tuple(c / 150.0 for c in f) for f in frames]
         assert all(_finite_triple(v, HMR_MAX_UT) for v in got)

@@ -3,15 +3,17 @@
 
 :func:`wait_until` polls a condition up to a generous deadline and fails naming what it waited
 for; :func:`in_background` runs a scripted action (fault injection, signals) on a thread of its
-own, its failure re-raised in the test by :meth:`Background.result`.
+own, its failure re-raised in the test by :meth:`Background.result`. Both on the process's clock
+(ADR 0038): inside a simulated-time test they wait simulated seconds and the action is one of the
+clock's participants, so the scenario is the same on any machine.
 """
 
 from __future__ import annotations
 
-import threading
-import time
 from collections.abc import Callable
 from typing import Generic, TypeVar
+
+import timebase
 
 T = TypeVar("T")
 
@@ -21,14 +23,14 @@ def wait_until(
 ) -> T:
     """The first true value of ``predicate()``, polled every ``interval_s`` (s); an
     AssertionError naming ``what`` if none came within ``timeout_s`` (s)."""
-    deadline = time.monotonic() + timeout_s
+    deadline = timebase.monotonic() + timeout_s
     while True:
         value = predicate()
         if value:
             return value
-        if time.monotonic() > deadline:
+        if timebase.monotonic() > deadline:
             raise AssertionError(f"waited {timeout_s:g} s for {what}, in vain")
-        time.sleep(interval_s)
+        timebase.sleep(interval_s)
 
 
 class Background(Generic[T]):
@@ -39,7 +41,7 @@ class Background(Generic[T]):
         self._fn = fn
         self._value: T | None = None
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread = timebase.Thread(self._run, name=name, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:

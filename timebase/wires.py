@@ -73,6 +73,8 @@ class PipeEnd:
         self._buf = bytearray()
         self.client_baud: int | None = None
         """The speed the client side configured (a serial line's termios, as a device sees it)."""
+        self.opened = True
+        """Someone holds this end open (a serial line's client end: between open and close)."""
 
     @property
     def peer_closed(self) -> bool:
@@ -85,12 +87,14 @@ class PipeEnd:
 
     def close(self) -> None:
         """Close this end: the other end's reads return what is left, then nothing."""
+        self.opened = False
         self._tx.closed = True
         self._tx.ch.notify()
         self._rx.ch.notify()
 
     def reopen(self) -> None:
         """Open again after :meth:`close` (a serial port opened anew)."""
+        self.opened = True
         self._tx.closed = False
 
     def write(self, data: bytes) -> int:
@@ -178,6 +182,7 @@ class SerialLine:
     def __init__(self, clock: SimulatedClock, name: str, baud: int | None) -> None:
         self.name = name
         self.device, self.client = pipe_pair(clock, name, baud)
+        self.client.opened = False  # until a client opens simpipe://<name>
 
     @property
     def url(self) -> str:

@@ -66,6 +66,7 @@ class AsciiLineMagnetometer:
             self.port.write(self.fmt.poll_command)
         for _ in range(self.max_bad_lines + 1):
             line = self.port.read_until(self.fmt.terminator)
+            self._line_bytes = len(line)
             try:
                 return self.fmt.parse(line)
             except DeviceProtocolError:
@@ -91,6 +92,14 @@ class AsciiLineMagnetometer:
             except DeviceProtocolError:
                 self.bad_lines += 1
         return out
+
+    _line_bytes = 0
+
+    @property
+    def frame_line_s(self) -> float:
+        """How long the last line took on the wire (s): 10 bits a byte at the port's speed. A
+        streamed line arrives this long after the sensor sent it (the sampler dates it so)."""
+        return self._line_bytes * 10.0 / self.port.baudrate
 
     @property
     def self_timed(self) -> bool:

@@ -234,6 +234,12 @@ class Hmr2300:
             ):
                 del self._buf[:1]
 
+    @property
+    def frame_line_s(self) -> float:
+        """How long one sample's frame takes on the line (s): 10 bits a byte at the port's speed.
+        A streamed sample arrives this long after the sensor sent it (the sampler dates it so)."""
+        return (BINARY_LEN if self.binary else ASCII_LEN) * 10.0 / self.port.baudrate
+
     def read_stream(self, max_wait_s: float = 0.5) -> list[tuple[float, float, float]]:
         """All complete samples received so far (waits up to ``max_wait_s`` for at least one)."""
         deadline = timebase.monotonic() + max_wait_s

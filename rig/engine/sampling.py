@@ -99,7 +99,9 @@ class SensorSampler:
                     if self.driver.self_timed:  # the sensor sends at its own rate
                         samples = self.driver.read_samples(WAIT_S)
                         if samples:
-                            dates = clock.dated(timebase.monotonic(), len(samples))
+                            # the newest arrived when its frame's last byte had crossed the line
+                            line_s = float(getattr(self.driver, "frame_line_s", 0.0))
+                            dates = clock.dated(timebase.monotonic() - line_s, len(samples))
                             for (t, unc), xyz in zip(dates, samples, strict=True):
                                 self._publish(t, xyz, unc)
                         failures = 0 if samples else failures

@@ -43,6 +43,14 @@ def num(v: float, sig: float | None = None) -> str:
     return f"{v:.{digits}f} ± {sig:.{digits}f}"
 
 
+CLOCK_ROW = "Time"
+SIMULATED_TIME = (
+    "SIMULATED: a dry run on the simulated cage in simulated time (ADR 0038); no instrument was"
+    " driven, dates are the simulation's"
+)
+"""The header row of a run recorded on the simulated clock: its verdict is a rehearsal's."""
+
+
 def header_section(run: RunFacts) -> Section:
     """Who, what, when, on which instruments, and the data's digest."""
     meta = run.meta
@@ -53,6 +61,7 @@ def header_section(run: RunFacts) -> Section:
         ("DUT serial", meta.get("dut_serial", "")), ("DUT model", instruments.get(dut, "")),
         ("Operator", meta.get("operator", "")), ("Date", meta.get("start_time", "")),
         ("Status", f"{meta.get('status', 'incomplete')} ({meta.get('reason', '')})"),
+        *(((CLOCK_ROW, SIMULATED_TIME),) if meta.get("clock") == "simulated" else ()),
         ("Software", f"rig {meta.get('software_version', '')}"),
         ("Rig configuration", meta.get("rig_config", "")),
         ("Cage calibration", cage_record_text(meta.get("cage_model") or {})),

@@ -98,6 +98,30 @@ def data_digest(db_path: Path) -> tuple[str, dict[str, int]]:
     return h.hexdigest(), counts
 
 
+MEASUREMENT_TABLES = ("steps", "commands", "channels", "samples", "results")
+"""What a run measured and did, without its dates and identity (meta) or its log (events)."""
+
+
+def measurement_digest(db_path: Path) -> str:
+    """SHA-256 (hex) of what a run measured and did (:data:`MEASUREMENT_TABLES`, every row in
+    canonical order): in simulated time the same procedure, rig file and seed give the same one
+    on any machine and load (ADR 0038)."""
+    h = hashlib.sha256()
+    con = _open_ro(db_path)
+    try:
+        present = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        for table in MEASUREMENT_TABLES:
+            h.update(f"\x00table {table}\n".encode())
+            if table in present:
+                ncols = len(con.execute(f"SELECT * FROM {table} LIMIT 0").description)
+                order = ", ".join(str(i + 1) for i in range(ncols))
+                for row in con.execute(f"SELECT * FROM {table} ORDER BY {order}"):
+                    h.update(repr(row).encode() + b"\n")
+    finally:
+        con.close()
+    return h.hexdigest()
+
+
 def _open_ro(db_path: Path) -> sqlite3.Connection:
     """A read-only connection to the run's database, after checking it is a regular file (a
     link is refused: :class:`~rig.store.safe_files.UnsafeFileError`)."""

@@ -7,13 +7,13 @@ coil current over real Modbus."""
 from __future__ import annotations
 
 import math
-import threading
 from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import timebase
 from rig.cage.limits import CageLimits, plan_ramp
 from rig.config import load_rig_config
 from rig.devices import build_cage
@@ -68,16 +68,14 @@ def ramp_watched(cage: SimulatedCage, rig_toml: Path) -> list[tuple[float, float
     cfg = load_rig_config(rig_toml)
     physics = cage.physics
     samples: list[tuple[float, float]] = []
-    stop = threading.Event()
+    stop = timebase.Event()
 
     def watch() -> None:
-        import time
-
         while not stop.wait(0.001):
-            t = time.monotonic()
+            t = timebase.monotonic()
             samples.append((t, float(physics.true_coil_currents(t)[2])))
 
-    watcher = threading.Thread(target=watch, daemon=True)
+    watcher = timebase.Thread(watch, name="truth-watch", daemon=True)
     watcher.start()
     try:
         with ExitStack() as stack:

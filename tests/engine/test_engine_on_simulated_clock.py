@@ -107,7 +107,8 @@ def test_a_sampler_dates_a_line_stream_evenly_and_the_same_beside_cpu_hogs() -> 
     assert len(rows) == 400
     dates = np.array([t for t, _, _ in rows])
     assert np.allclose(np.diff(dates), 0.05, atol=1e-9)  # evenly spaced, to the rounding
-    assert dates[0] == pytest.approx(0.05 + 30 * 10 / 115200)  # its last byte in, at 115200 Bd
+    # sent at 0.05 s, its last byte in 30 * 10 / 115200 s later: dated when it was sent
+    assert dates[0] == pytest.approx(0.05, abs=1e-9)
     assert [xyz for _, xyz, _ in rows[:2]] == [(0.0, 0.0, 0.0), (1.0, 2.0, -1.0)]
     # once the envelope is known (10 arrivals), each date within the stream clock's floor and
     # its early period bound: no scheduling jitter of a busy computer in it

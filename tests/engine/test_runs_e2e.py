@@ -339,7 +339,7 @@ def test_live_calibration_stops_on_target_and_reports_convergence(
 def test_pause_and_resume_with_sigusr1(tmp_path: Path) -> None:
     import os
 
-    with sim_cage(tmp_path) as (cage, rig_toml):
+    with sim_cage(tmp_path, simulated=False) as (cage, rig_toml):  # signals: real time
         rc = load_rig_config(rig_toml)
         proc = parse_procedure(find_procedure("smoke"))
         supplies = cage.physics.supplies.values()
