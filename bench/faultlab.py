@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import timebase
 from drivers.transport.tty_watch import tty_stall_s, tty_watch
 from rig.config import load_rig_config
 from rig.engine.cpu_wait import CpuWaitLog
@@ -211,6 +212,8 @@ class Measured:
     guardian_cpu_wait_ms: float = 0.0
     # longest wait for a CPU of a rig thread from the fault until the rig ended (its safe path)
     rig_cpu_wait_after_ms: float = 0.0
+    # why the fault was never injected ("": it was): the outcome then proves nothing
+    not_injected: str = ""
 
     @property
     def safe_after_detection_ms(self) -> float | None:
@@ -223,6 +226,8 @@ class Measured:
     def problems(self) -> list[str]:
         """How the run departed from the fault's expected behaviour (none: as expected)."""
         f, out = self.fault, []
+        if self.not_injected:
+            return [f"the fault was never injected: {self.not_injected}"]
         if self.status != f.expect_status:
             out.append(f"status {self.status}, expected {f.expect_status} ({self.reason})")
         if self.outputs_left_on:
@@ -266,9 +271,12 @@ class _Watch:
         self.t0: float | None = None
         self.t_safe: float | None = None
         self.kernel_stall_ms = 0.0
-        tty_watch()  # the harness's own canary: the kernel stalls the rig's links as well
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
+        if (
+            not timebase.is_simulated()
+        ):  # the harness's own canary: the kernel stalls the rig's links
+            tty_watch()
+        self._stop = timebase.Event()
+        self._thread = timebase.Thread(self._run, name="outputs watch", daemon=True)
 
     def start(self, t0: float) -> None:
         self.t0 = t0
@@ -282,7 +290,7 @@ class _Watch:
     def _run(self) -> None:
         while not self._stop.wait(0.002):
             if not self.on():
-                self.t_safe = time.monotonic()
+                self.t_safe = timebase.monotonic()
                 return
 
     def stop(self) -> float | None:
@@ -291,7 +299,8 @@ class _Watch:
             self._thread.join(1.0)
         if self.t0 is None or self.t_safe is None:
             return None
-        self.kernel_stall_ms = 1000.0 * tty_stall_s(self.t0, self.t_safe)
+        if not timebase.is_simulated():  # a simulated line has no kernel to stall it
+            self.kernel_stall_ms = 1000.0 * tty_stall_s(self.t0, self.t_safe)
         return 1000.0 * (self.t_safe - self.t0)
 
 
@@ -311,28 +320,35 @@ def _current_step(runs: Path) -> str | None:
 
 def _target_started(get_step: Callable[[], str | None], timeout_s: float = 60.0,
                     child: subprocess.Popen[str] | None = None) -> float:  # fmt: skip
-    """When the run enters its target step; a run that ends before says why (its stderr)."""
-    deadline = time.monotonic() + timeout_s
+    """When the run enters its target step (the process's clock: simulated for a rig in this
+    process); a run that ends before says why (its stderr)."""
+    deadline = timebase.monotonic() + timeout_s
     while get_step() != "target":
         if child is not None and child.poll() is not None:
             _, err = child.communicate()
             raise RuntimeError(f"the run ended (exit {child.returncode}) before its target step:"
                                f" {err.strip()}")  # fmt: skip
-        if time.monotonic() > deadline:
+        if timebase.monotonic() > deadline:
             raise TimeoutError("the run never reached the target step")
-        time.sleep(0.01)
-    return time.monotonic()
+        timebase.sleep(0.01)
+    return timebase.monotonic()
 
 
 def run_fault(fault: Fault, workdir: Path, kind: str = "sphere_sweep") -> Measured:
     """Run the fault procedure of step kind ``kind`` with ``fault`` injected 1.5 s into it."""
     workdir.mkdir(parents=True, exist_ok=True)
     cfg = load_config()
-    with SimulatedCage(cfg) as cage:
+    in_process = fault.mode == "in-process"
+    # the rig in this process: the cage and the run on one simulated clock (ADR 0038); a rig
+    # process of its own (killed, stopped, its disk filled) reaches the cage in real time
+    with contextlib.ExitStack() as stack:
+        if in_process:
+            stack.enter_context(timebase.simulated())
+        cage = stack.enter_context(SimulatedCage(cfg))
         (workdir / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
         proc_path = workdir / "faults.yaml"
         proc_path.write_text(procedure(kind, fault.dut))
-        if fault.mode == "in-process":
+        if in_process:
             return _in_process(fault, kind, cage, workdir, proc_path)
         return _child(fault, kind, cage, workdir, proc_path)
 
@@ -345,21 +361,30 @@ def _in_process(
                     guardian=False)  # fmt: skip
     watch = _Watch(cage, fault.dead)
     t_inject: list[float] = []
+    not_injected: list[str] = []
 
     def injector() -> None:
-        t_target = _target_started(lambda: (getattr(runner, "current_step", None) or (0, ""))[1])
-        time.sleep(max(0.0, t_target + INJECT_AFTER_S - time.monotonic()))
+        try:
+            t_target = _target_started(
+                lambda: (getattr(runner, "current_step", None) or (0, ""))[1]
+            )
+        except TimeoutError as exc:  # the outcome then counts for nothing (Measured.problems)
+            not_injected.append(str(exc))
+            return
+        timebase.sleep(max(0.0, t_target + INJECT_AFTER_S - timebase.monotonic()))
         assert fault.inject is not None
-        t_inject.append(time.monotonic())
+        t_inject.append(timebase.monotonic())
         fault.inject(cage)
         watch.start(t_inject[0])
 
-    thread = threading.Thread(target=injector, daemon=True)
+    thread = timebase.Thread(injector, name="fault injection", daemon=True)
     thread.start()
     t0 = time.monotonic()
     outcome = runner.run()
     took = time.monotonic() - t0
     thread.join(1.0)
+    if not t_inject and not not_injected:
+        not_injected.append("the run ended before the fault was due")
     left_on = watch.on()
     time_to_safe = watch.stop() if outcome.status != "complete" else None
     reader = RunReader(outcome.folder)
@@ -377,7 +402,7 @@ def _in_process(
     )
     return Measured(fault, kind, outcome.status, outcome.exit_code, outcome.reason, time_to_safe,
                     detected_ms, stored, received - stored, None, took, left_on,
-                    watch.kernel_stall_ms)  # fmt: skip
+                    watch.kernel_stall_ms, not_injected=" ".join(not_injected))  # fmt: skip
 
 
 def _fill_disk(folder: Path) -> None:

@@ -25,6 +25,8 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
              " computer can, the same data for the same seed on any machine and load; the run"
              " and its report say so. Without it the cage runs beside the rig in real time",
     )  # fmt: skip
+    demo.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                      help="set a procedure parameter (as rig run --set)")  # fmt: skip
     demo.add_argument("--sim-config", type=Path, default=None, metavar="SIM.toml",
                       help="simulator configuration (default: the built-in cage)")  # fmt: skip
     demo.set_defaults(func=_cmd_demo)
@@ -32,21 +34,22 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(args.runs_dir, args.procedure, args.quiet, simulated_time=args.simulated_time,
-                    sim_config=args.sim_config)  # fmt: skip
+                    sim_config=args.sim_config, sets=args.set)  # fmt: skip
 
 
 def run_demo(runs_dir: Path, procedure: str, quiet: bool, *, simulated_time: bool = False,
-             sim_config: Path | None = None) -> int:  # fmt: skip
+             sim_config: Path | None = None, sets: list[str] | None = None) -> int:  # fmt: skip
     """``rig demo``: run a shipped procedure on the simulated cage without prompts; returns the
     run's exit code."""
     import time
 
+    from rig.cli.common import parse_sets
     from rig.cli.run import summarize
     from rig.procedure.language import parse_procedure
     from rig.procedure_files import find_procedure
 
     t0 = time.monotonic()  # the wall clock: how long the user waited
-    proc = parse_procedure(find_procedure(procedure))
+    proc = parse_procedure(find_procedure(procedure), parse_sets(sets or []))
     runs_dir.mkdir(parents=True, exist_ok=True)
     rig_toml = runs_dir / "sim-rig.toml"
     rig_toml.unlink(missing_ok=True)
