@@ -12,8 +12,8 @@ the sigmas the runs reported (achieved), their ratio (goal 0.8-1.2), and the rms
 the simulator's truth over the predicted combined sigma; ``--out DIR`` writes the table (CSV) and a
 plot (predicted against achieved, every parameter, log-log with the +-20 % band).
 
-Each run takes about 2.5 minutes of cage time, bound by the simulated cage's real time rather
-than the CPU: ``--workers 5`` suits two cores (200 runs: about 100 minutes).
+Each run takes about 2.5 minutes of cage time and runs in simulated time (ADR 0038), bound by the
+CPU: ``--workers 2`` suits two cores.
 
 Run: ``nice .venv/bin/python bench/bench_prediction.py [--runs 200] [--workers 5] [--out DIR]``.
 """
@@ -42,6 +42,7 @@ FITTED = ("calibrate", "live_calibrate")
 def run_once(seed: int, procedure: str, folder: Path) -> tuple[Any, dict[str, Any]]:
     """Run ``procedure`` on a fresh simulated cage (seed ``seed``) with runs and rig.toml in
     ``folder``; (outcome, the simulator's DUT truth by calibrate step as flat arrays)."""
+    import timebase
     from bench.bench_cage_budget import truth_values
     from rig.config import load_rig_config
     from rig.engine.runner import Runner
@@ -55,7 +56,8 @@ def run_once(seed: int, procedure: str, folder: Path) -> tuple[Any, dict[str, An
     proc = parse_procedure(find_procedure(procedure))
     # the report (plots, PDF: most of a run's CPU) changes no result: left out, the last step
     proc = replace(proc, steps=tuple(s for s in proc.steps if s.kind != "report"))
-    with SimulatedCage(cfg) as cage:
+    # in simulated time (ADR 0038): as fast as the worker can, the same data on any load
+    with timebase.simulated(), SimulatedCage(cfg) as cage:
         (folder / "rig.toml").write_text(sim_rig_config(cage.endpoints_document(), cfg))
         outcome = Runner(proc, load_rig_config(folder / "rig.toml"), folder / "runs",
                          i2c_bus=cage.i2c_bus, confirm=lambda _q: True, live=False).run()  # fmt: skip
@@ -238,7 +240,7 @@ def main() -> int:
     parser.add_argument("--load", type=Path, help="judge the runs kept by --save (no new runs)")
     from bench.dask_runs import add_dask_arguments, map_on_dask
 
-    add_dask_arguments(parser, workers=5)
+    add_dask_arguments(parser, workers=2)
     args = parser.parse_args()
     start = time.monotonic()
     if args.load is not None:
