@@ -77,12 +77,17 @@ def data_digest(db_path: Path) -> tuple[str, dict[str, int]]:
 
     Opens the database read-only; a table the file lacks counts as empty.
     """
+    return _tables_digest(db_path, TABLES)
+
+
+def _tables_digest(db_path: Path, tables: tuple[str, ...]) -> tuple[str, dict[str, int]]:
+    """SHA-256 (hex) of ``tables``' rows in canonical order, and the row count per table."""
     h = hashlib.sha256()
     counts: dict[str, int] = {}
     con = _open_ro(db_path)
     try:
         present = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
-        for table in TABLES:
+        for table in tables:
             h.update(f"\x00table {table}\n".encode())
             n = 0
             if table in present:
@@ -106,20 +111,7 @@ def measurement_digest(db_path: Path) -> str:
     """SHA-256 (hex) of what a run measured and did (:data:`MEASUREMENT_TABLES`, every row in
     canonical order): in simulated time the same procedure, rig file and seed give the same one
     on any machine and load (ADR 0038)."""
-    h = hashlib.sha256()
-    con = _open_ro(db_path)
-    try:
-        present = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")}
-        for table in MEASUREMENT_TABLES:
-            h.update(f"\x00table {table}\n".encode())
-            if table in present:
-                ncols = len(con.execute(f"SELECT * FROM {table} LIMIT 0").description)
-                order = ", ".join(str(i + 1) for i in range(ncols))
-                for row in con.execute(f"SELECT * FROM {table} ORDER BY {order}"):
-                    h.update(repr(row).encode() + b"\n")
-    finally:
-        con.close()
-    return h.hexdigest()
+    return _tables_digest(db_path, MEASUREMENT_TABLES)[0]
 
 
 def _open_ro(db_path: Path) -> sqlite3.Connection:
