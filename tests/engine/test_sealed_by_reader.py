@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.faultlab import guardian_of
+from bench.faultlab import guardian_cpu_wait_ms, guardian_of
 from rig.engine.recording import AFTER_CLOSE_FILE
 from sim.cage import SimulatedCage
 from tests.engine.test_guardian_pair import OUTPUTS_OFF_WITHIN_S, off_after, start_run
@@ -98,7 +98,9 @@ def test_a_run_sealed_by_a_reader_while_stopped_ends_error_outputs_off_seal_kept
     assert not any(s.output for s in supplies.values())  # those that were off too
     print(f"run sealed by a reader while stopped: {', '.join(on)} off {1000 * took:.0f} ms after"
           f" SIGCONT; rows not stored {note['rows_not_stored']}")  # fmt: skip
-    assert took < OUTPUTS_OFF_WITHIN_S, err
+    # plus the guardian's own measured wait for a CPU (a busy computer's, not the rig's: as in
+    # the fault matrix); beside two CPU hogs it once waited 1525 ms
+    assert took < OUTPUTS_OFF_WITHIN_S + guardian_cpu_wait_ms(err) / 1000.0, err
 
 
 def test_the_guardian_alone_acts_on_the_reader_seal_and_kills_a_rig_still_stopped(
@@ -138,4 +140,6 @@ def test_the_guardian_alone_acts_on_the_reader_seal_and_kills_a_rig_still_stoppe
                             timeout=60)  # fmt: skip
     assert verify.returncode == 0, verify.stdout + verify.stderr
     print(f"guardian alone: {', '.join(on)} off {1000 * took:.0f} ms after its SIGCONT")
-    assert took < OUTPUTS_OFF_WITHIN_S, err
+    # plus the guardian's own measured wait for a CPU (a busy computer's, not the rig's: as in
+    # the fault matrix); beside two CPU hogs it once waited 1525 ms
+    assert took < OUTPUTS_OFF_WITHIN_S + guardian_cpu_wait_ms(err) / 1000.0, err
