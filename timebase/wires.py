@@ -131,13 +131,14 @@ class PipeEnd:
         self._collect()
         return self._take(len(self._buf) if limit is None else min(limit, len(self._buf)))
 
-    def wait_readable(self, timeout_s: float | None) -> bool:
-        """Wait until a byte has arrived or the peer closed (True) or ``timeout_s`` passed."""
+    def _wait_for(self, count: int, timeout_s: float | None) -> bool:
+        """Wait until ``count`` bytes have arrived or the peer closed (True), or ``timeout_s``
+        passed (False; None: no limit), waking when the next write in flight arrives."""
         clock = self._rx.clock
         deadline = clock.deadline(timeout_s)
         while True:
             self._collect()
-            if self._buf or self._rx.closed:
+            if len(self._buf) >= count or self._rx.closed:
                 return True
             if deadline is not None and clock.monotonic() >= deadline:
                 return False
@@ -145,20 +146,14 @@ class PipeEnd:
             wake = due if deadline is None else deadline if due is None else min(due, deadline)
             clock.block((self._rx.ch,), wake)
 
+    def wait_readable(self, timeout_s: float | None) -> bool:
+        """Wait until a byte has arrived or the peer closed (True) or ``timeout_s`` passed."""
+        return self._wait_for(1, timeout_s)
+
     def read(self, size: int, timeout_s: float | None) -> bytes:
         """Up to ``size`` bytes as pyserial reads: wait until there are ``size`` or ``timeout_s``
         passed (None: no limit; 0: what is there), or the peer closed."""
-        clock = self._rx.clock
-        deadline = clock.deadline(timeout_s)
-        while True:
-            self._collect()
-            if len(self._buf) >= size or self._rx.closed:
-                break
-            if deadline is not None and clock.monotonic() >= deadline:
-                break
-            due = self._rx.next_arrival_s()
-            wake = due if deadline is None else deadline if due is None else min(due, deadline)
-            clock.block((self._rx.ch,), wake)
+        self._wait_for(size, timeout_s)
         return self._take(size)
 
     def discard_input(self) -> None:

@@ -13,6 +13,7 @@ import tty
 
 import pytest
 
+from tests.drivers.scripted import crc16
 from tests.waiting import wait_until
 
 READER = r"""
@@ -30,15 +31,6 @@ link = ModbusLink(name="psu", path=sys.argv[1], baudrate=115200, device_id=1, ti
 print("ready", flush=True)
 print(link.read_registers(8, 2), flush=True)
 """
-
-
-def _crc16(frame: bytes) -> bytes:
-    crc = 0xFFFF
-    for byte in frame:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc.to_bytes(2, "little")
 
 
 @pytest.fixture
@@ -105,7 +97,7 @@ def test_a_modbus_rtu_reply_that_came_while_we_were_stopped_is_taken(
     proc.send_signal(signal.SIGSTOP)
     time.sleep(2.5)  # longer than its timeout
     body = bytes([1, 3, 4, 0x12, 0x34, 0x56, 0x78])
-    os.write(master, body + _crc16(body))
+    os.write(master, body + crc16(body))
     proc.send_signal(signal.SIGCONT)
     out, _ = proc.communicate(timeout=10)
     assert proc.returncode == 0, out
@@ -122,7 +114,7 @@ def test_a_modbus_rtu_reply_in_pieces_with_a_stall_between_is_taken(
     proc = _start(MODBUS, path)
     assert _read_request(master, 8)[:2] == bytes([1, 3])
     body = bytes([1, 3, 4, 0x12, 0x34, 0x56, 0x78])
-    frame = body + _crc16(body)
+    frame = body + crc16(body)
     os.write(master, frame[:4])  # the first piece; the kernel delivers the rest later
     time.sleep(0.1)
     proc.send_signal(signal.SIGSTOP)
@@ -163,10 +155,10 @@ def test_a_late_reply_to_an_earlier_request_is_recognized_and_the_request_repeat
     proc = _start(STALE, path)
     assert _read_request(master, 8)[:6] == bytes([1, 3, 0, 8, 0, 2])
     stale = bytes([1, 3, 2, 0x00, 0x07])  # one register: the answer to some earlier read
-    os.write(master, stale + _crc16(stale))
+    os.write(master, stale + crc16(stale))
     assert _read_request(master, 8)[:6] == bytes([1, 3, 0, 8, 0, 2])  # asked again
     body = bytes([1, 3, 4, 0x12, 0x34, 0x56, 0x78])
-    os.write(master, body + _crc16(body))
+    os.write(master, body + crc16(body))
     out, _ = proc.communicate(timeout=10)
     assert proc.returncode == 0, out
     assert out.strip() == f"{[0x1234, 0x5678]} 1"
@@ -196,21 +188,21 @@ def test_a_late_reply_answers_the_retry_of_the_same_request(pty_pair: tuple[int,
     )
     assert client.connect()
     try:
-        request = bytes([1, 3, 0, 8, 0, 2]) + _crc16(bytes([1, 3, 0, 8, 0, 2]))
+        request = bytes([1, 3, 0, 8, 0, 2]) + crc16(bytes([1, 3, 0, 8, 0, 2]))
         client.send(request)
         assert _read_request(master, 8) == request
         assert client.recv(None) == b""  # the deadline passes
         body = bytes([1, 3, 4, 0x12, 0x34, 0x56, 0x78])
-        os.write(master, body + _crc16(body))  # the answer, late
+        os.write(master, body + crc16(body))  # the answer, late
         arrived(client, len(body) + 2)
         client.retrying = True
         client.send(request)  # the retry
-        assert client.recv(None) == body + _crc16(body)
+        assert client.recv(None) == body + crc16(body)
         assert _read_request(master, 1, timeout_s=0.3) == b""  # not sent again
         # a different request never takes an earlier request's late bytes
-        os.write(master, body + _crc16(body))
+        os.write(master, body + crc16(body))
         arrived(client, len(body) + 2)
-        other = bytes([1, 3, 0, 0, 0, 4]) + _crc16(bytes([1, 3, 0, 0, 0, 4]))
+        other = bytes([1, 3, 0, 0, 0, 4]) + crc16(bytes([1, 3, 0, 0, 0, 4]))
         client.send(other)
         assert _read_request(master, 8) == other
         assert client.recv(None) == b""

@@ -12,17 +12,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import timebase
+from tests.drivers.scripted import crc16
 from timebase.wires import PipeEnd, wires
-
-
-def crc16(frame: bytes) -> bytes:
-    """Modbus RTU CRC (little-endian, as appended to a frame)."""
-    crc = 0xFFFF
-    for byte in frame:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return struct.pack("<H", crc)
 
 
 class Registers:
