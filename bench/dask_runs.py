@@ -14,6 +14,10 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
+NO_PROFILER = {"DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
+"""The workers' statistical profiler off: it samples every thread's stack every 10 ms, and a run
+in simulated time has a dozen threads (a lab cluster's workers: start them with this variable)."""
+
 
 def map_on_dask(fn: Callable[..., Any], *iterables: Iterable[Any], workers: int,
                 scheduler: str | None,
@@ -23,7 +27,7 @@ def map_on_dask(fn: Callable[..., Any], *iterables: Iterable[Any], workers: int,
 
     cluster = None if scheduler else LocalCluster(
         n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-        env={"OPENBLAS_NUM_THREADS": "1"})  # fmt: skip
+        env={"OPENBLAS_NUM_THREADS": "1", **NO_PROFILER})  # fmt: skip
     try:
         with Client(scheduler or cluster) as client:
             futures = client.map(fn, *iterables, pure=False)

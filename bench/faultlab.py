@@ -41,7 +41,7 @@ PREAMBLE = """procedure: Fault matrix ({kind})
 parameters:
   dut_serial: {{default: FAULTS}}
 magnetometers: {{dut: {dut}, reference: reference}}
-loads: [load_bus, load_panel]
+loads: [load_bus, load_panel, heater]
 steps:
   - null_field: {{hold_s: 1}}
     name: noise floor
@@ -49,6 +49,9 @@ steps:
 LOADS = """    loads:
       load_bus: {steps: {levels_a: [0.0, 1.0], dwell_s: 1.0}}
       load_panel: {constant: {current_a: 1.5}}
+"""
+HEATER = """    loads:
+      heater: {steps: {levels_a: [2.0, 0.0], dwell_s: 6.0}}
 """
 CHECK = """  - check:
       criteria:
@@ -74,7 +77,9 @@ TARGETS: dict[str, str] = {
     "characterize_cage": "characterize_cage: {amplitude_a: 1.0, samples: 10, repeats: 1}",
     # turns the DUT's automatic set/reset off: back on however the step ends
     "perming": "perming: {shock_ut: 60, shock_s: 1, hold_s: 4, settle_s: 0.5}",
-    "thermal_cycle": "thermal_cycle: {thermometer: dut_temp, hold_s: 10}",
+    # the heater warms the DUT, then lets it cool: a cycle in 12 s, judged in small bins
+    "thermal_cycle": "thermal_cycle: {thermometer: dut_temp, hold_s: 12, settle_s: 0.3,"
+                     " reversal_k: 0.05, bin_k: 0.02, bin_s: 1}",
     "frequency_response": "frequency_response: {frequencies_hz: [1.0], axes: x, cycles: 6, min_s: 0}",
 }  # fmt: skip
 """The step each column of the matrix injects its faults into (named ``target``, about 9 s): every
@@ -95,7 +100,9 @@ def procedure(kind: str, dut: str = "dut") -> str:
     if kind == "hold":
         text += "  - set_field: {field_ut: [20, -15, 10], hold_s: 0.2}\n    name: setup\n"
     text += f"  - {TARGETS[kind]}\n    name: target\n"
-    if KINDS[kind].takes_loads:
+    if kind == "thermal_cycle":
+        text += HEATER
+    elif KINDS[kind].takes_loads:
         text += LOADS
     return text + CHECK
 

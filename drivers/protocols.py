@@ -93,6 +93,17 @@ class Magnetometer(Protocol):
 
 
 @runtime_checkable
+class CountsLostSamples(Protocol):
+    """A self-timed magnetometer that knows which of its samples it lost (damaged or cut-short
+    frames it skipped): ``lost_before[i]`` is how many of the sensor's samples were lost just
+    before sample ``i`` of the last :meth:`Magnetometer.read_samples` (empty when none). The
+    sampler numbers the stream's samples by it, so a lost frame does not misdate the next ones."""
+
+    @property
+    def lost_before(self) -> tuple[int, ...]: ...
+
+
+@runtime_checkable
 class SetReset(Protocol):
     """A magnetometer with set/reset pulses (an AMR sensor's strap: they restore its magnetization,
     so a strong field's perming goes): automatic pulses (the sensor's default, removing perming as

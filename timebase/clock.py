@@ -82,20 +82,34 @@ def use(clock: Clock) -> Iterator[Clock]:
         _current = before
 
 
+STALL_REPORT_S = 120.0
+"""Wall seconds without a hand-over after which a simulated clock reports a stall."""
+
+
 @contextlib.contextmanager
-def simulated(start_s: float = 0.0, epoch_s: float | None = None) -> Iterator[Any]:
+def simulated(
+    start_s: float = 0.0,
+    epoch_s: float | None = None,
+    stall_report_s: float | None = STALL_REPORT_S,
+) -> Iterator[Any]:
     """A fresh :class:`~timebase.simulated.SimulatedClock` as the process's clock, with the
     calling thread as its first participant; on leaving, the thread leaves it. ``epoch_s`` is
-    the wall date (Unix s) at ``start_s`` (default: now)."""
+    the wall date (Unix s) at ``start_s`` (default: now). When no participant gets the turn for
+    ``stall_report_s`` wall seconds, what each waits for and every stack go to standard error
+    (:mod:`timebase.stall_watch`; None: no watch)."""
     from timebase.sim_clock import SimulatedClock
+    from timebase.stall_watch import StallWatch
 
     clock = SimulatedClock(start_s=start_s, epoch_s=epoch_s)
+    watch = None if stall_report_s is None else StallWatch(clock, stall_report_s)
     with use(clock):
         clock.enter()
         try:
             yield clock
         finally:
             clock.leave()
+            if watch is not None:
+                watch.stop()
 
 
 def is_simulated() -> bool:

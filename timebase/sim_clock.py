@@ -37,7 +37,7 @@ class NotOnTheClockError(RuntimeError):
 
 
 class _Participant:
-    __slots__ = ("gate", "gen", "name", "notified", "waiting")
+    __slots__ = ("deadline", "gate", "gen", "name", "notified", "waiting")
 
     def __init__(self, name: str) -> None:
         self.name = name
@@ -46,6 +46,7 @@ class _Participant:
         self.gen = 0  # one per wait: timers and channel entries of older waits are stale
         self.waiting = False
         self.notified = False
+        self.deadline: float | None = None  # of the current wait (simulated s)
 
 
 class Channel:
@@ -117,13 +118,28 @@ class SimulatedClock:
         self._retire(p)
         self._local.p = None
 
+    def members(self) -> int:
+        """How many participants the clock has."""
+        return len(self._members)
+
     def describe(self) -> list[str]:
         """One line per participant: its name and what it does (for a stalled run's report)."""
         with self._state:
             out = []
             for p in self._members:
-                state = "running" if p is self._holder else "waiting" if p.waiting else "ready"
+                if p is self._holder:
+                    state = "has the turn (running, or blocked outside the clock)"
+                elif not p.waiting:
+                    state = "ready"
+                elif p.deadline is None:
+                    state = "waiting, no deadline"
+                else:
+                    state = f"waiting until t = {p.deadline:.6f} s"
                 out.append(f"{p.name}: {state}")
+            if self._holder is None and not self._ready:
+                out.append(
+                    "(nobody has the turn: every participant waits for a thread outside the clock)"
+                )
             return out
 
     def _me(self, what: str) -> _Participant:
@@ -201,6 +217,7 @@ class SimulatedClock:
             p.gen += 1
             p.waiting = True
             p.notified = False
+            p.deadline = deadline
             for ch in channels:
                 waiters = ch._waiters
                 if len(waiters) >= PRUNE_AT:

@@ -48,6 +48,8 @@ class AsciiLineMagnetometer:
         self.port = SerialPort(url, baudrate, timeout_s=timeout_s, name=name)
         self.max_bad_lines = max_bad_lines
         self.bad_lines = 0
+        self.lost_before: tuple[int, ...] = ()
+        """Per line of the last :meth:`read_burst`: unreadable lines just before it (empty: none)."""
 
     def identify(self) -> Identity:
         """Line sensors have no identity query; reads one sample to prove the link."""
@@ -62,38 +64,60 @@ class AsciiLineMagnetometer:
 
     def read(self) -> tuple[float, float, float]:
         """The next complete line as uT."""
+        return self._next()[1]
+
+    def _next(self) -> tuple[int, tuple[float, float, float]]:
+        """(lines lost before it, the next readable line as uT)."""
         if self.fmt.poll_command:
             self.port.write(self.fmt.poll_command)
+        lost, self._carry = self._carry, 0
         for _ in range(self.max_bad_lines + 1):
             line = self.port.read_until(self.fmt.terminator)
-            self._line_bytes = len(line)
             try:
-                return self.fmt.parse(line)
+                value = self.fmt.parse(line)
             except DeviceProtocolError:
                 self.bad_lines += 1
+                lost += self._lines_in(line)
+                continue
+            self._line_bytes = len(line)
+            return lost, value
         raise DeviceProtocolError(
             f"{self.name} on {self.port.url}: {self.max_bad_lines + 1} unreadable lines in a row;"
             " check the baud rate and the line format"
         )
 
+    def _lines_in(self, garbled: bytes) -> int:
+        """How many of the sensor's lines an unreadable one stands for: one, or as many as its
+        length holds (a line whose terminator was lost runs into the next)."""
+        if not self._line_bytes:
+            return 1
+        return max(1, round(len(garbled) / self._line_bytes))
+
     def read_burst(self) -> list[tuple[float, float, float]]:
-        """The next line and every further complete line already received, oldest first (uT).
+        """The next line and every further complete line already received, oldest first (uT);
+        :attr:`lost_before` says how many lines were unreadable before each.
 
         A streaming sensor keeps sending while the reader is busy; the lines that piled up are
         older than the moment they are read, and the caller can date them by the sensor's rate.
         """
-        out = [self.read()]
-        if self.fmt.poll_command:
-            return out
-        while self.port.has_complete(self.fmt.terminator):
-            line = self.port.read_until(self.fmt.terminator)
-            try:
-                out.append(self.fmt.parse(line))
-            except DeviceProtocolError:
-                self.bad_lines += 1
-        return out
+        out = [self._next()]
+        if not self.fmt.poll_command:
+            lost = 0
+            while self.port.has_complete(self.fmt.terminator):
+                line = self.port.read_until(self.fmt.terminator)
+                try:
+                    out.append((lost, self.fmt.parse(line)))
+                    lost = 0
+                except DeviceProtocolError:
+                    self.bad_lines += 1
+                    lost += self._lines_in(line)
+            self._carry = lost  # unreadable lines at the burst's end precede the next burst
+        gaps = tuple(k for k, _ in out)
+        self.lost_before = gaps if any(gaps) else ()
+        return [xyz for _, xyz in out]
 
     _line_bytes = 0
+    _carry = 0
 
     @property
     def frame_line_s(self) -> float:

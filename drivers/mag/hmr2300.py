@@ -71,6 +71,11 @@ class Hmr2300:
         self.streaming = False
         self._buf = bytearray()
         self.resyncs = 0
+        self.samples_lost = 0
+        """Streamed samples lost to damaged or cut-short frames (counted by the bytes skipped)."""
+        self.lost_before: tuple[int, ...] = ()
+        """Per sample of the last :meth:`read_stream`: samples lost just before it (empty: none)."""
+        self._skipped = 0  # bytes skipped since the last whole frame
         self.port.write(ESC)  # stop a stream left running by a previous session
         self.port.drain_input()
         self.device_id = self._query_id() if device_id is None else device_id
@@ -79,12 +84,14 @@ class Hmr2300:
 
     # --- commands -------------------------------------------------------------------------------
 
-    def _command(self, cmd: str, expect: str | None = None, device_id: int | None = None) -> str:
-        """Send ``*ddcmd`` and return the reply line (without CR); retries on timeout."""
+    def _command(self, cmd: str, expect: str | None = None, device_id: int | None = None,
+                 retries: int | None = None) -> str:  # fmt: skip
+        """Send ``*ddcmd`` and return the reply line (without CR); a missing or damaged reply
+        (not ``expect``) is asked again, ``retries`` times (default: the driver's)."""
         dd = self.device_id if device_id is None else device_id
         line = f"*{dd:02d}{cmd}\r".encode("ascii")
         last: Exception | None = None
-        for _ in range(self.retries + 1):
+        for _ in range((self.retries if retries is None else retries) + 1):
             self.port.write(line)
             try:
                 reply = self.port.read_until(b"\r").decode("ascii", errors="replace").rstrip("\r")
@@ -101,16 +108,28 @@ class Hmr2300:
                     f"{self.name} on {self.port.url}: '{cmd}' was not understood (Re-enter)"
                 )
             if expect is not None and reply != expect:
-                raise DeviceProtocolError(
+                last = DeviceProtocolError(
                     f"{self.name} on {self.port.url}: '{cmd}' answered {reply!r}, expected {expect!r}"
                 )
+                self.port.drain_input()
+                continue
             return reply
         assert last is not None
         raise last
 
     def _protected(self, cmd: str, expect: str) -> str:
-        self._command("WE", "OK")
-        return self._command(cmd, expect)
+        """``WE`` then ``cmd``, the pair again when either reply is missing or damaged: the
+        sensor's write enable holds for one command, so a command asked again needs its own."""
+        last: Exception | None = None
+        for _ in range(self.retries + 1):
+            try:
+                self._command("WE", "OK", retries=0)
+                return self._command(cmd, expect, retries=0)
+            except (DeviceTimeoutError, DeviceProtocolError, DeviceRefusedError) as exc:
+                last = exc
+                self.port.drain_input()
+        assert last is not None
+        raise last
 
     def _query_id(self) -> int:
         reply = self._command("ID=", device_id=99)
@@ -200,6 +219,7 @@ class Hmr2300:
     def start_stream(self) -> None:
         """Continuous output at the set rate."""
         self._buf.clear()
+        self._skipped = 0
         self.port.write(f"*{self.device_id:02d}C\r".encode("ascii"))
         self.streaming = True
 
@@ -209,9 +229,12 @@ class Hmr2300:
         self.streaming = False
         self.port.drain_input()
         self._buf.clear()
+        self._skipped = 0
 
-    def _frames(self, data: bytes) -> Iterator[tuple[float, float, float]]:
-        """Frames from the stream buffer, realigning on the stride when a frame is broken."""
+    def _frames(self, data: bytes) -> Iterator[tuple[int, tuple[float, float, float]]]:
+        """(samples lost just before it, sample) for each frame in the stream buffer,
+        realigning on the stride when a frame is broken: the bytes skipped to realign are
+        ``ceil(skipped / frame length)`` lost samples (a damaged frame, or a cut-short one)."""
         self._buf += data
         n = BINARY_LEN if self.binary else ASCII_LEN
         while len(self._buf) >= n:
@@ -223,16 +246,19 @@ class Hmr2300:
                     value = None
                 if value is not None:
                     del self._buf[:n]
-                    yield value
+                    lost, self._skipped = -(-self._skipped // n), 0
+                    yield lost, value
                     continue
             # Misaligned or damaged: drop one byte and look for a frame whose last byte is CR and
             # whose next frame boundary also holds a CR (binary data may contain 0x0D).
             self.resyncs += 1
+            before = len(self._buf)
             del self._buf[:1]
             while len(self._buf) >= 2 * n and not (
                 self._buf[n - 1] == 0x0D and self._buf[2 * n - 1] == 0x0D
             ):
                 del self._buf[:1]
+            self._skipped += before - len(self._buf)
 
     @property
     def frame_line_s(self) -> float:
@@ -241,7 +267,8 @@ class Hmr2300:
         return (BINARY_LEN if self.binary else ASCII_LEN) * 10.0 / self.port.baudrate
 
     def read_stream(self, max_wait_s: float = 0.5) -> list[tuple[float, float, float]]:
-        """All complete samples received so far (waits up to ``max_wait_s`` for at least one)."""
+        """All complete samples received so far (waits up to ``max_wait_s`` for at least one);
+        :attr:`lost_before` says which samples the stream lost before each."""
         deadline = timebase.monotonic() + max_wait_s
         out = list(self._frames(self.port.read_available()))
         while not out:
@@ -249,7 +276,10 @@ class Hmr2300:
             if left <= 0 or not self.port.wait_readable(left):  # waits on the port, not a poll
                 break
             out = list(self._frames(self.port.read_available()))
-        return out
+        lost = tuple(k for k, _ in out)
+        self.lost_before = lost if any(lost) else ()
+        self.samples_lost += sum(lost)
+        return [xyz for _, xyz in out]
 
     def close(self) -> None:
         """Stop any stream and close the port."""

@@ -19,8 +19,13 @@ from collections import deque
 from collections.abc import Callable, Iterator
 
 import timebase
-from drivers.errors import DeviceError, DeviceProtocolError, DeviceTimeoutError
-from drivers.protocols import Magnetometer
+from drivers.errors import (
+    DeviceError,
+    DeviceProtocolError,
+    DeviceRefusedError,
+    DeviceTimeoutError,
+)
+from drivers.protocols import CountsLostSamples, Magnetometer
 from drivers.transport.serial_port import own_stall_s
 from drivers.transport.tty_watch import tty_seen_stall_s, tty_stall_s
 from rig.engine.cpu_wait import CpuWaitLog
@@ -30,6 +35,8 @@ Sink = Callable[[float, str, tuple[float, float, float], float], None]
 """(date s, device, reading uT, date uncertainty s): :meth:`rig.store.RunWriter.add_sample`."""
 Listener = Callable[[float, tuple[float, float, float]], None]
 RETRIES = 1
+RESTART_ATTEMPTS = 3
+"""Tries at starting a sensor's sampling again after a pause (each with the driver's retries)."""
 """Late or unreadable replies retried in a row before a sensor is declared failed."""
 WAIT_S = 0.2
 """Longest wait for a self-timed sensor's samples in one call (s): bounds how late a stop is seen."""
@@ -55,6 +62,10 @@ class SensorSampler:
         )  # (sequence number, date s, reading uT, date uncertainty s)
         self.listeners: list[Listener] = []
         self.started_t = timebase.monotonic()
+        self.resumed_t = self.started_t
+        """When sampling last started again after a pause (monotonic s)."""
+        self.pausing = False
+        """From :meth:`paused` until sampling has started again: not judged silent."""
         self.repeats = 0  # consecutive readings identical to the one before
         self._stop = timebase.Event()
         self._hold = timebase.Event()  # asked to let go of the sensor
@@ -101,7 +112,9 @@ class SensorSampler:
                         if samples:
                             # the newest arrived when its frame's last byte had crossed the line
                             line_s = float(getattr(self.driver, "frame_line_s", 0.0))
-                            dates = clock.dated(timebase.monotonic() - line_s, len(samples))
+                            lost = (self.driver.lost_before
+                                    if isinstance(self.driver, CountsLostSamples) else ())  # fmt: skip
+                            dates = clock.dated(timebase.monotonic() - line_s, len(samples), lost)
                             for (t, unc), xyz in zip(dates, samples, strict=True):
                                 self._publish(t, xyz, unc)
                         failures = 0 if samples else failures
@@ -139,7 +152,21 @@ class SensorSampler:
             self._parked.set()
         self._resume.wait()
         self._resume.clear()
-        self.rate_hz = self.driver.start_sampling(self.rate_hz)
+        try:
+            for attempt in range(RESTART_ATTEMPTS):
+                try:
+                    self.rate_hz = self.driver.start_sampling(self.rate_hz)
+                    break
+                except (DeviceTimeoutError, DeviceProtocolError, DeviceRefusedError) as exc:
+                    # the set-up exchanges on a noisy line: asked again, as the driver asks a
+                    # damaged reply again; a sensor that never takes them ends sampling
+                    if attempt == RESTART_ATTEMPTS - 1:
+                        raise
+                    if self.on_warning is not None:
+                        self.on_warning(f"{self.name}: starting to sample again: {exc}; retrying")
+        finally:
+            self.resumed_t = timebase.monotonic()
+            self.pausing = False
 
     @contextlib.contextmanager
     def paused(self, timeout_s: float = 2.0) -> Iterator[Magnetometer]:
@@ -148,6 +175,7 @@ class SensorSampler:
         does not let go within ``timeout_s`` (it is stuck in a read) is a DeviceTimeoutError."""
         with self._hold_lock:
             self._parked.clear()
+            self.pausing = True
             self._hold.set()
             try:
                 if not self._parked.wait(timeout_s):
@@ -166,7 +194,10 @@ class SensorSampler:
         ``cpu_wait``: this process's threads' waits for a CPU, noted every check round."""
         if self.error is not None:
             return f"{self.name}: sampling stopped: {self.error}"
-        last = self.latest[0] if self.latest is not None else self.started_t
+        if self.pausing:  # paused for a command (a set/reset pulse), or starting again
+            return None
+        # silent since the newest sample, or since sampling (re)started when that was later
+        last = max(self.latest[0] if self.latest is not None else self.started_t, self.resumed_t)
         # time the kernel was seen holding serial bytes back was this computer's, not the
         # sensor's (the strict measure: a busy rig process must not postpone the verdict), and
         # so was time our threads waited for a CPU while the sensor's data sat in a buffer

@@ -86,6 +86,7 @@ class StepScheduler:
             execution.wind_down()
         except BaseException:
             execution.abort()
+            self.rig.on_close(execution.after_safe)  # after the safe state (last in, first out)
             raise
         t_end = timebase.monotonic()
         self.writer.set_step(step.index, step.name, step.kind, t0, t_end)
@@ -95,8 +96,8 @@ class StepScheduler:
         execution.finish(t0, t_end)
 
     def _timeline(self, plan: StepPlan, execution: StepExecution, t0: float) -> None:
-        """Each command of the step at its time from ``t0`` (moved on by pauses, and by a field
-        step's set-point once its field is there)."""
+        """Each command of the step at its time from ``t0`` (moved on by pauses, by a field
+        step's set-point once its field is there, and by the time the step's own actions take)."""
         step, stop = plan.step, execution.stop
         hold_from_field = KINDS[step.kind].hold_from_field
         pace = TrackPace()
@@ -120,6 +121,9 @@ class StepScheduler:
                     t0 = timebase.monotonic() - cmd.t_s
             elif cmd.kind != "end":
                 execution.run(cmd.payload)
+                # what follows the step's own action (a set/reset pulse: the hold after it)
+                # keeps its planned time however long the action took
+                t0 += timebase.monotonic() - now
         if pace.slip_s > 0.0:
             self.event("warning" if pace.slip_s > 1.0 else "info",
                        f"step {step.index + 1}: its tracked set-points ran {pace.slip_s:.2f} s behind"

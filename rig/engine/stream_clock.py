@@ -46,6 +46,15 @@ MIN_ARRIVALS = 10
 """Below this many arrivals in the window the envelope is not yet known: dates +- a period."""
 FIT_SIGMAS = 3.0
 """A fitted period's uncertainty is taken as this many standard errors of the fit (a bound)."""
+TIGHT_BATCHES = 10
+"""An unseen loss (a frame that never arrived, so no byte says it was lost) is recognised only
+in a tight stream: single samples whose arrivals, the last this many, sat within
+:data:`TIGHT_SPREAD` of a period of each other above the sensor's clock ..."""
+TIGHT_SPREAD = 0.25
+"""... (a fraction of the period); then one arriving more than :data:`LOSS_JUMP` of a period
+later than they did was preceded by lost samples (as many periods as it is late). A stream read
+in bursts by a busy computer is never tight: there a loss only widens the dates' uncertainty."""
+LOSS_JUMP = 0.5
 MIN_RATE_UNCERTAINTY = 1e-5
 """A fitted period is never claimed better than this (relative): a crystal's short-term wander."""
 
@@ -72,6 +81,11 @@ class StreamClock:
         self._blocks: deque[tuple[int, float]] = deque(maxlen=BLOCKS)  # lowest (j, a_j) per block
         self._block_start: float | None = None
         self._block_low: tuple[int, float] | None = None
+        self._arrivals: deque[float] = deque(maxlen=TIGHT_BATCHES)  # residuals of single samples
+        self._k_last = -1
+        self.unseen_lost = 0
+        """Samples found lost by their arrival in a tight stream (none said so; negative: a
+        loss was said that the arrivals deny)."""
 
     def _residual(self, point: tuple[int, float]) -> float:
         return point[1] - point[0] * self.period_s
@@ -87,13 +101,23 @@ class StreamClock:
         ``arrival_s`` (a burst: the whole burst shapes the envelope before any is dated)."""
         return [t for t, _ in self.dated(arrival_s, n)]
 
-    def dated(self, arrival_s: float, n: int = 1) -> list[tuple[float, float]]:
+    def dated(self, arrival_s: float, n: int = 1,
+              lost_before: tuple[int, ...] = ()) -> list[tuple[float, float]]:  # fmt: skip
         """(date s, uncertainty s) of the next ``n`` samples, all read at ``arrival_s``: each
         sample was taken within date +- uncertainty on the sensor's clock (as offset by the
-        shortest transmission time, common to the whole stream)."""
-        first = self._k
-        self._k += n
-        for k in range(first, first + n):
+        shortest transmission time, common to the whole stream). ``lost_before[i]``: samples
+        the sensor sent that were lost just before sample ``i`` (they keep their numbers)."""
+        ks = []
+        for i in range(n):
+            self._k += lost_before[i] if i < len(lost_before) else 0
+            ks.append(self._k)
+            self._k += 1
+        if n == 1:
+            ks = self._unseen_loss(ks[0], arrival_s)
+        else:
+            self._arrivals.clear()
+        self._k_last = ks[-1]
+        for k in ks:
             point = (k, arrival_s)
             self._note_block(point)
             self._recent.append(point)
@@ -111,7 +135,7 @@ class StreamClock:
             for q in (self.period_s * (1 - delta), self.period_s * (1 + delta))
         ]
         out = []
-        for k in range(first, first + n):
+        for k in ks:
             t = min(arrival_s, k * self.period_s + c)
             if self._last_t is not None:
                 t = max(t, min(arrival_s, self._last_t + 1e-6))
@@ -120,6 +144,23 @@ class StreamClock:
             reach = max(abs(min(arrival_s, k * q + c_q) - t) for q, c_q in bounds)
             out.append((t, jitter + reach))
         return out
+
+    def _unseen_loss(self, k: int, arrival_s: float) -> list[int]:
+        """The number of a single sample read at ``arrival_s`` (counted ``k``), corrected by its
+        arrival in a tight stream (see :data:`TIGHT_BATCHES`): whole periods later than the last
+        ones, samples were lost unseen; earlier, a loss was counted that was none."""
+        p = self.period_s
+        recent = self._arrivals
+        if len(recent) == TIGHT_BATCHES and max(recent) - min(recent) < TIGHT_SPREAD * p:
+            late = arrival_s - k * p - sum(recent) / len(recent)
+            if abs(late) > LOSS_JUMP * p:
+                shift = max(round(late / p), self._k_last + 1 - k)  # never before the last one
+                if shift:
+                    self._k += shift
+                    self.unseen_lost += shift
+                    k += shift
+        recent.append(arrival_s - k * p)
+        return [k]
 
     def _jitter_s(self, floor: float) -> float:
         """How far the median arrival of the window sits above the envelope (s), at least
@@ -150,6 +191,7 @@ class StreamClock:
             return
         self.period_s, self.rate_uncertainty = line
         self._fitted = True
+        self._arrivals.clear()  # their residuals were taken with the old period
         self._low.clear()
         for point in self._recent:
             self._push(point)

@@ -145,7 +145,13 @@ class StepExecution:
         """The step has ended (monotonic s of its start and end)."""
 
     def abort(self) -> None:
-        """The run is ending with an exception inside this step."""
+        """The run is ending with an exception inside this step (before the safe state: quick,
+        and talking to no device)."""
+
+    def after_safe(self) -> None:
+        """The run ended with an exception inside this step and its outputs are in their safe
+        state: put what the step changed on a device back (its samplers and drivers still open).
+        An exception here is reported, never in the way of the run's end."""
 
 
 @dataclass(frozen=True)

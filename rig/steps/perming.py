@@ -190,7 +190,8 @@ class MeasurePerming(StepExecution):
     def wind_down(self) -> None:
         self._restore()
 
-    def abort(self) -> None:
+    def after_safe(self) -> None:
+        # after the outputs are off: a silent DUT's timeouts must not delay the safe state
         try:
             self._restore()
         except Exception as exc:  # the run is already ending on another error: say, go on

@@ -140,6 +140,10 @@ class MeasureThermalCycle(StepExecution):
                            " sampled; use reference: none (the lab field then stays in)")  # fmt: skip
         (rest,) = offsets_at_rest(self.ctx, dut, ref, [(t_start, t_end)], float(p["settle_s"]))
         t, offsets = rest.t_s, rest.offsets_nt
+        if len(t) < MIN_SAMPLES:
+            raise RigError(f"thermal_cycle '{self.step.name}': {len(t)} settled samples (at least"
+                           f" {MIN_SAMPLES}): lengthen hold_s, or shorten settle_s"
+                           f" ({float(p['settle_s']):g} s) below the loads' dwell")  # fmt: skip
         reader = self.ctx.open_reader()
         try:
             temperature, known = thermometer_at(reader, str(p["thermometer"]), t)

@@ -79,14 +79,15 @@ def test_hmr2300_stream_resyncs_on_the_stride_never_on_cr() -> None:
         f == pytest.approx((13 / 150, 3341 / 150, -13 / 150)) for f in frames
     )
     assert mag.resyncs >= 1
+    assert mag.samples_lost == 1  # the two stray bytes: one frame cut short
     assert peer.mismatches == []
 
 
 def test_hmr2300_refusals_and_truncated_sample() -> None:
     peer = ScriptedSerialPeer([
         *OPEN,
-        Exchange(b"*07WE\r", b"OK\r"),
-        Exchange(b"*07A\r", b"WE OFF\r"),
+        # the pair is asked again (a damaged line may have eaten the first WE): refused 3 times
+        *[Exchange(b"*07WE\r", b"OK\r"), Exchange(b"*07A\r", b"WE OFF\r")] * 3,
         Exchange(b"*07P\r", b"  3,000  - 0,7"),  # truncated, then silence (3 attempts)
         Exchange(b"*07P\r", b""),
         Exchange(b"*07P\r", b""),
@@ -133,8 +134,7 @@ def test_hmr2300_opening_turns_automatic_set_reset_on_and_a_scan_leaves_it() -> 
     assert peer.mismatches == []
     peer = ScriptedSerialPeer([
         Exchange(b"\x1b", b""),
-        Exchange(b"*03WE\r", b"OK\r"),
-        Exchange(b"*03TN\r", b"WE OFF\r"),
+        *[Exchange(b"*03WE\r", b"OK\r"), Exchange(b"*03TN\r", b"WE OFF\r")] * 3,
     ])  # fmt: skip
     with pytest.raises(DeviceRefusedError, match="'TN' needs write enable"):
         Hmr2300(peer.path, baudrate=19200, device_id=3, timeout_s=0.2)
@@ -160,6 +160,27 @@ def test_hmr2300_not_an_hmr2300() -> None:
     with pytest.raises(DeviceNotFoundError, match="is it an HMR2300"):
         Hmr2300(peer.path)
     peer.close()
+
+
+def test_ascii_line_burst_says_which_lines_were_lost() -> None:
+    """A garbled line is a sample the sensor sent: the burst says it was lost before the next,
+    and a line that ran into the next (its terminator lost) stands for two."""
+    peer = ScriptedSerialPeer([
+        Exchange(b"", b"1.0 2.0 3.0\n", delay_s=0.3),
+        Exchange(b"", b"1.5 2.5 3.5\n\x00garbage\n4.0 5.0 6.0\n1.0 2.0 3.01.0 2.0 3.0\n7.0 8.0 9.0\n"),
+    ])  # fmt: skip
+    mag = AsciiLineMagnetometer(peer.path, baudrate=115200, max_bad_lines=3)
+    try:
+        assert mag.read() == (1.0, 2.0, 3.0)
+        burst: list[tuple[float, float, float]] = []
+        deadline = time.monotonic() + 2
+        while len(burst) < 3 and time.monotonic() < deadline:
+            burst = mag.read_burst()
+        assert burst == [(1.5, 2.5, 3.5), (4.0, 5.0, 6.0), (7.0, 8.0, 9.0)]
+        assert mag.lost_before == (0, 1, 2)
+    finally:
+        mag.close()
+        peer.close()
 
 
 def test_ascii_line_formats_and_garbage() -> None:

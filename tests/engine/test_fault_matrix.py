@@ -28,6 +28,25 @@ def test_fault_ends_as_expected(fault: Fault, kind: str, tmp_path: Path) -> None
           f" safe {measured.safe_after_detection_ms} ms after")  # fmt: skip
 
 
+FOUND_OFF_THE_DIAGONAL = [
+    (next(f for f in FAULTS if f.key == key), kind)
+    for key, kind in (
+        ("serial-garbage", "noise_spectrum"),  # lost frames misdated the next ones
+        ("hmr2300-stall", "perming"),  # the DUT's set/reset restored after the safe state
+        ("tcp-disconnect", "thermal_cycle"),  # the matrix's own procedure heats and cools now
+    )
+]
+"""Cells of the full matrix (outside the diagonal) that once ended otherwise than their row says
+(the matrix regenerated in simulated time, issue 52)."""
+
+
+@pytest.mark.parametrize(("fault", "kind"), FOUND_OFF_THE_DIAGONAL,
+                         ids=[f"{f.key}-{k}" for f, k in FOUND_OFF_THE_DIAGONAL])  # fmt: skip
+def test_cells_the_full_matrix_found(fault: Fault, kind: str, tmp_path: Path) -> None:
+    measured = run_fault(fault, tmp_path, kind)
+    assert measured.ok, measured.problems
+
+
 @pytest.mark.parametrize("fault", EXTRA, ids=[f.key for f in EXTRA])
 def test_interlock_and_cage_command_cells(fault: Fault, tmp_path: Path) -> None:
     measured = run_extra(fault, tmp_path)

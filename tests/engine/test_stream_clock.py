@@ -84,3 +84,71 @@ def test_every_date_is_within_its_stated_uncertainty(seed: int, rate_error: floa
     print(f"seed {seed} rate error {rate_error:+.1e}: worst |error|/uncertainty"
           f" {np.max(np.abs(error) / unc):.2f}, median uncertainty {1000 * np.median(unc):.2f} ms,"
           f" largest {1000 * unc.max():.0f} ms")  # fmt: skip
+
+
+def _tight_reads(period_s: float, n: int, lost: set[int]) -> tuple[np.ndarray, list[float]]:
+    """Sent times of the samples that arrived, and their read times: one sample a read, 3 ms
+    after it was sent (an idle computer, or simulated time); samples in ``lost`` never arrive."""
+    kept = np.array([k for k in range(n) if k not in lost])
+    sent = 100.0 + period_s * kept
+    return sent, [float(t) + LATENCY_S for t in sent]
+
+
+def test_lost_samples_said_by_the_driver_keep_their_numbers() -> None:
+    """A driver that skipped damaged frames says how many before each sample (lost_before): the
+    samples after them are dated as exactly as the ones before."""
+    lost = set(range(20, 400, 7))
+    sent, reads = _tight_reads(0.05, 400, lost)
+    clock = StreamClock(0.05)
+    out, k_prev = [], -1
+    for k, t in zip([k for k in range(400) if k not in lost], reads, strict=True):
+        out += clock.dated(t, 1, (k - k_prev - 1,))
+        k_prev = k
+    dated = np.array(out)
+    assert np.abs(dated[:, 0] - (sent + LATENCY_S)).max() < 1e-6
+    assert np.percentile(dated[:, 1], 90) < 0.005
+    assert clock.unseen_lost == 0
+
+
+def test_an_unseen_loss_in_a_tight_stream_is_found_by_its_arrival() -> None:
+    """A frame that never arrived (nothing says so): in a tight stream the next sample comes a
+    period late; it is numbered past the gap, so the dates after it stay exact and narrow. Every
+    date stays within its stated uncertainty throughout."""
+    lost = {50, 120, 121, 300}
+    sent, reads = _tight_reads(0.05, 400, lost)
+    clock = StreamClock(0.05)
+    dated = np.array([clock.dated(t)[0] for t in reads])
+    error = dated[:, 0] - (sent + LATENCY_S)
+    assert clock.unseen_lost == 4
+    assert np.all(np.abs(error) <= dated[:, 1] + 1e-9)
+    assert np.abs(error).max() < 1e-6
+    assert np.percentile(dated[:, 1], 90) < 0.005
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known: a frame lost without a trace while the stream is"
+    " read in bursts misdates the samples after it by up to a period beyond their"
+    " stated uncertainty (22-97x here); the next round of dating (issue 54)",
+)
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_unseen_losses_on_a_busy_computer_widen_dates_never_misdate_them(seed: int) -> None:
+    """Read in bursts (stalls), the arrivals cannot tell a lost frame from a late read: nothing is
+    renumbered, and every date stays within its stated uncertainty."""
+    nominal = 0.05
+    sent_all, reads = stalled_reads(seed, nominal, 120.0)
+    rng = np.random.default_rng(seed)
+    lost = set(rng.choice(np.arange(100, sent_all.size - 100), 20, replace=False).tolist())
+    # the same reader, without the lost samples: each read takes what of its samples arrived
+    out, k = [], 0
+    clock = StreamClock(nominal)
+    kept_sent = []
+    for t_read, n in reads:
+        batch = [j for j in range(k, k + n) if j not in lost]
+        k += n
+        if batch:
+            out += clock.dated(t_read, len(batch))
+            kept_sent += [sent_all[j] for j in batch]
+    dated = np.array(out)
+    error = dated[:, 0] - (np.array(kept_sent) + LATENCY_S)
+    assert np.all(np.abs(error) <= dated[:, 1] + 1e-9), np.max(np.abs(error) / dated[:, 1])

@@ -234,3 +234,31 @@ def test_a_writer_sees_what_its_reader_has_not_taken_and_a_line_changes_speed() 
         assert line.client.read(96, 1.0) == b"x" * 96
         assert timebase.monotonic() - t0 == pytest.approx(96 * 10 / 19200)
         assert line.device.out_waiting == 0
+
+
+def test_a_participant_blocked_outside_the_clock_is_reported_with_what_everyone_waits_for() -> None:
+    import io
+
+    from timebase.stall_watch import StallWatch
+
+    outside = threading.Lock()
+    outside.acquire()  # held by this test's helper thread below, as a database's lock would be
+    out = io.StringIO()
+    with timebase.simulated(stall_report_s=None) as clock:
+        watch = StallWatch(clock, stall_s=0.3, out=out)
+        sleeper = timebase.Thread(lambda: timebase.sleep(5.0), name="sleeper")
+        sleeper.start()
+        timebase.sleep(0.0)  # the sleeper runs and waits for t = 5 s
+        threading.Timer(1.5, outside.release).start()  # a wall-clock thread, no participant
+        t0 = time.monotonic()
+        with outside:  # the participant holding the turn blocks on a plain lock
+            pass
+        sleeper.join()
+        watch.stop()
+    report = out.getvalue()
+    assert watch.reports == 1, report
+    assert time.monotonic() - t0 >= 1.4
+    assert "simulated clock stalled" in report
+    assert "MainThread: has the turn" in report
+    assert "sleeper: waiting until t = 5.000000 s" in report
+    assert "test_simulated_clock.py" in report  # the stacks show where it blocked
