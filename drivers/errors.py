@@ -10,7 +10,12 @@ class DeviceError(Exception):
 
 
 class DeviceTimeoutError(DeviceError):
-    """No (complete) reply within the timeout, after the allowed retries."""
+    """No (complete) reply within the timeout, after the allowed retries; ``partial``: the bytes
+    of an incomplete reply (a device that answered, its reply cut short), empty for silence."""
+
+    def __init__(self, message: str, partial: bytes = b"") -> None:
+        super().__init__(message)
+        self.partial = partial
 
 
 class DeviceProtocolError(DeviceError):

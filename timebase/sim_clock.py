@@ -73,7 +73,8 @@ class SimulatedClock:
         self._now = float(start_s)
         self._epoch_offset = (time.time() if epoch_s is None else float(epoch_s)) - self._now
         self._ready: deque[_Participant] = deque()
-        self._timers: list[tuple[float, int, _Participant, int]] = []
+        # (deadline, order, participant and the wait it ends) or (deadline, order, None, channel)
+        self._timers: list[tuple[float, int, _Participant | None, Any]] = []
         self._seq = itertools.count()
         self._local = threading.local()
         self._holder: _Participant | None = None
@@ -183,6 +184,13 @@ class SimulatedClock:
             return
         while self._timers:
             deadline, _, p, gen = heapq.heappop(self._timers)
+            if p is None:  # a channel's notification at its time (bytes arriving on a line)
+                if deadline > self._now:
+                    self._now = deadline
+                self._notify_locked(gen, None)
+                if self._holder is not None:
+                    return
+                continue
             if p.gen == gen and p.waiting:
                 if deadline > self._now:
                     self._now = deadline
@@ -193,19 +201,22 @@ class SimulatedClock:
 
     def _notify(self, ch: Channel, n: int | None) -> int:
         with self._state:
-            woken = 0
-            keep: list[tuple[_Participant, int]] = []
-            for p, gen in ch._waiters:
-                if p.gen != gen or not p.waiting:
-                    continue
-                if n is not None and woken >= n:
-                    keep.append((p, gen))
-                    continue
-                p.notified = True
-                self._make_ready(p)
-                woken += 1
-            ch._waiters = keep
-            return woken
+            return self._notify_locked(ch, n)
+
+    def _notify_locked(self, ch: Channel, n: int | None) -> int:
+        woken = 0
+        keep: list[tuple[_Participant, int]] = []
+        for p, gen in ch._waiters:
+            if p.gen != gen or not p.waiting:
+                continue
+            if n is not None and woken >= n:
+                keep.append((p, gen))
+                continue
+            p.notified = True
+            self._make_ready(p)
+            woken += 1
+        ch._waiters = keep
+        return woken
 
     # --- waiting ---------------------------------------------------------------------------------
 
@@ -273,6 +284,15 @@ class SimulatedClock:
     def Thread(self, target: Callable[..., Any], *, name: str | None = None,  # noqa: N802
                args: tuple[Any, ...] = (), daemon: bool | None = None) -> threading.Thread:  # fmt: skip
         return SimThread(self, target, name=name, args=args, daemon=daemon)
+
+    def notify_at(self, t_s: float, ch: Channel) -> None:
+        """Notify ``ch``'s waiters when simulated time reaches ``t_s`` (at once when it has): a
+        write that arrives later wakes its reader then, not twice."""
+        if t_s <= self._now:
+            ch.notify()
+            return
+        with self._state:
+            heapq.heappush(self._timers, (t_s, next(self._seq), None, ch))
 
     def deadline(self, timeout: float | None) -> float | None:
         """The simulated time ``timeout`` s from now (None stays None)."""

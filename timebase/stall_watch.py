@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import faulthandler
 import sys
+import tempfile
 import threading
 import time
 from typing import TextIO
@@ -57,13 +58,13 @@ class StallWatch:
             " no participant) stops simulated time; the stacks follow",
         ]
         print("\n".join(lines), file=out, flush=True)
-        try:
-            faulthandler.dump_traceback(file=out, all_threads=True)
-        except (ValueError, OSError, AttributeError):  # an output without a file descriptor
-            for ident, frame in sys._current_frames().items():
-                import traceback
-
-                print(f"thread {ident}:", "".join(traceback.format_stack(frame)), file=out)
+        # faulthandler, never sys._current_frames(): on Python 3.11 a garbage collection inside
+        # that call can deadlock the interpreter (CPython gh-106883; seen as a Dask worker hung
+        # in its profiler); through a file of its own, as ``out`` may have no descriptor
+        with tempfile.TemporaryFile(mode="w+") as stacks:
+            faulthandler.dump_traceback(file=stacks, all_threads=True)
+            stacks.seek(0)
+            print(stacks.read(), file=out, flush=True)
 
     def stop(self) -> None:
         """End the watch (waits for its thread, at most one poll)."""

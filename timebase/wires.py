@@ -48,9 +48,10 @@ class _Direction:
         now = self.clock.monotonic()
         start = max(now, self.line_free_s)
         self.line_free_s = start + (len(data) * 10.0 / self.baud if self.baud else 0.0)
-        self.chunks.append((self.line_free_s + self.latency_s, bytes(data)))
+        arrival_s = self.line_free_s + self.latency_s
+        self.chunks.append((arrival_s, bytes(data)))
         self.unread += len(data)
-        self.ch.notify()
+        self.clock.notify_at(arrival_s, self.ch)  # the reader wakes when it has arrived
 
     def arrived(self) -> bytes:
         now = self.clock.monotonic()

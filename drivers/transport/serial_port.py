@@ -146,7 +146,8 @@ class SerialPort:
                 partial = bytes(self._rx[:max_bytes])
                 raise DeviceTimeoutError(
                     f"{self.name} on {self.url}: no complete reply within {limit_s:g} s (got"
-                    f" {partial!r}); check power, cable and baud rate"
+                    f" {partial!r}); check power, cable and baud rate",
+                    partial,
                 )
 
     def wait_readable(self, timeout_s: float) -> bool:

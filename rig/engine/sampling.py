@@ -37,6 +37,10 @@ Listener = Callable[[float, tuple[float, float, float]], None]
 RETRIES = 1
 RESTART_ATTEMPTS = 3
 """Tries at starting a sensor's sampling again after a pause (each with the driver's retries)."""
+RESTART_WAIT_S = 15.0
+"""How long :meth:`SensorSampler.paused` waits for sampling to start again (s): every attempt's
+set-up exchanges timing out with their retries; a sampler still not started is then judged by
+the health checks."""
 """Late or unreadable replies retried in a row before a sensor is declared failed."""
 WAIT_S = 0.2
 """Longest wait for a self-timed sensor's samples in one call (s): bounds how late a stop is seen."""
@@ -71,6 +75,7 @@ class SensorSampler:
         self._hold = timebase.Event()  # asked to let go of the sensor
         self._parked = timebase.Event()  # the thread has let go (sampling stopped)
         self._resume = timebase.Event()
+        self._restarted = timebase.Event()  # sampling started again after a pause (or failed)
         self._hold_lock = timebase.Lock()  # held while waiting for the thread to let go
         self._thread = timebase.Thread(self._run, name=f"sampler-{name}", daemon=True)
 
@@ -167,6 +172,7 @@ class SensorSampler:
         finally:
             self.resumed_t = timebase.monotonic()
             self.pausing = False
+            self._restarted.set()
 
     @contextlib.contextmanager
     def paused(self, timeout_s: float = 2.0) -> Iterator[Magnetometer]:
@@ -175,17 +181,27 @@ class SensorSampler:
         does not let go within ``timeout_s`` (it is stuck in a read) is a DeviceTimeoutError."""
         with self._hold_lock:
             self._parked.clear()
+            self._resume.clear()
+            self._restarted.clear()
             self.pausing = True
             self._hold.set()
+            parked = False
             try:
-                if not self._parked.wait(timeout_s):
+                parked = self._parked.wait(timeout_s)
+                if not parked:
                     raise DeviceTimeoutError(
                         f"{self.name}: sampling did not pause within {timeout_s:g} s"
                     )
                 yield self.driver
             finally:
                 self._hold.clear()
-                self._resume.set()
+                self._resume.set()  # (a thread that parks only now starts again at once)
+                if parked:
+                    # sampling has started again (or failed) before the caller goes on: what
+                    # it times after the pause (a hold after a set/reset pulse) has samples
+                    self._restarted.wait(RESTART_WAIT_S)
+                else:  # still in its read: it goes on sampling, and is judged as before
+                    self.pausing = False
 
     def health(
         self, now: float, stall_s: float, stuck_after: int, cpu_wait: CpuWaitLog | None = None

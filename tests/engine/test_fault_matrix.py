@@ -32,6 +32,7 @@ FOUND_OFF_THE_DIAGONAL = [
     (next(f for f in FAULTS if f.key == key), kind)
     for key, kind in (
         ("serial-garbage", "noise_spectrum"),  # lost frames misdated the next ones
+        ("serial-garbage", "perming"),  # WE + command asked again; the hold after the pulse
         ("hmr2300-stall", "perming"),  # the DUT's set/reset restored after the safe state
         ("tcp-disconnect", "thermal_cycle"),  # the matrix's own procedure heats and cools now
     )

@@ -771,7 +771,7 @@ def test_perming_finds_the_shift_and_that_the_pulse_clears_it(tmp_path: Path) ->
     assert "Perming 'perm'" in KINDS["perming"].report_lines("perm", r)[0]
 
 
-def test_perming_without_a_shift_passes_and_an_abort_restores_the_set_reset(
+def test_perming_without_a_shift_passes_and_after_an_abort_restores_the_set_reset(
     tmp_path: Path,
 ) -> None:
     ctx, step, driver = perming_context(tmp_path, 0.0)
@@ -780,7 +780,9 @@ def test_perming_without_a_shift_passes_and_an_abort_restores_the_set_reset(
     ctx, step, driver = perming_context(tmp_path / "aborted", 0.0)
     execution = KINDS["perming"].execution(ctx, step)
     assert driver.calls == ["auto off"]  # before the first hold
-    execution.abort()  # the run ends inside the step
+    execution.abort()  # the run ends inside the step: nothing is asked of the DUT yet ...
+    assert driver.calls == ["auto off"]
+    execution.after_safe()  # ... until every output is off
     assert driver.calls == ["auto off", "auto on"]
     plain = FakeContext(make_procedure(step), tmp_path / "plain")  # no set/reset to drive
     assert "has no set/reset" in KINDS["perming"].execution(plain, step)._reset_note()
