@@ -187,8 +187,7 @@ class SimulatedClock:
             if p is None:  # a channel's notification at its time (bytes arriving on a line)
                 if deadline > self._now:
                     self._now = deadline
-                self._notify_locked(gen, None)
-                if self._holder is not None:
+                if self._notify_locked(gen, None):  # the first it woke has the turn
                     return
                 continue
             if p.gen == gen and p.waiting:

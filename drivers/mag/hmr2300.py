@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterator
 
 import timebase
 from drivers.errors import (
+    DeviceError,
     DeviceNotFoundError,
     DeviceProtocolError,
     DeviceRefusedError,
