@@ -140,11 +140,10 @@ def cli_draw_z(case: Any, sc: Scenario, seed: int) -> tuple[tuple[str, ...], np.
 
 
 def local_cluster(workers: int) -> Any:
-    """A local cluster: ``workers`` processes of one thread each, one BLAS thread per process."""
-    from distributed import LocalCluster
+    """A local cluster: ``workers`` processes of one thread each (:func:`bench.dask_runs.local_cluster`)."""
+    from bench.dask_runs import local_cluster as cluster
 
-    return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                        dashboard_address=None, env={"OPENBLAS_NUM_THREADS": "1"})  # fmt: skip
+    return cluster(workers)
 
 
 def report(sc: Scenario, names: tuple[str, ...], z: np.ndarray, wall: float, cpu: float) -> bool:

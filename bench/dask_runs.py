@@ -15,19 +15,29 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 NO_PROFILER = {"DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
-"""The workers' statistical profiler off: it samples every thread's stack every 10 ms, and a run
-in simulated time has a dozen threads (a lab cluster's workers: start them with this variable)."""
+"""The workers' statistical profiler off. It calls ``sys._current_frames()`` every 10 ms, and on
+Python 3.11 a garbage collection inside that call can deadlock the interpreter (CPython
+gh-106883): a worker hung so twice here, its task thread in the middle of a simulated run, its
+event loop in the profiler, no heartbeat. A lab cluster's workers: start them with this variable."""
+
+
+def local_cluster(workers: int) -> Any:
+    """A local cluster: ``workers`` processes of one thread each, one BLAS thread each, no
+    profiler (:data:`NO_PROFILER`)."""
+    from distributed import LocalCluster
+
+    return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                        dashboard_address=None,
+                        env={"OPENBLAS_NUM_THREADS": "1", **NO_PROFILER})  # fmt: skip
 
 
 def map_on_dask(fn: Callable[..., Any], *iterables: Iterable[Any], workers: int,
                 scheduler: str | None,
                 on_result: Callable[[int, Any], None] | None = None) -> list[Any]:  # fmt: skip
     """``[fn(*args) for args in zip(*iterables)]`` on Dask; results in order."""
-    from distributed import Client, LocalCluster, as_completed
+    from distributed import Client, as_completed
 
-    cluster = None if scheduler else LocalCluster(
-        n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-        env={"OPENBLAS_NUM_THREADS": "1", **NO_PROFILER})  # fmt: skip
+    cluster = None if scheduler else local_cluster(workers)
     try:
         with Client(scheduler or cluster) as client:
             futures = client.map(fn, *iterables, pure=False)

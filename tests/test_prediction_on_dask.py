@@ -28,14 +28,14 @@ steps:
 
 @pytest.mark.slow
 def test_predicted_sigmas_are_the_runs_sigmas_on_a_dask_cluster(tmp_path: Path) -> None:
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     from bench.bench_prediction import one_run, predicted, table
+    from bench.dask_runs import local_cluster
 
     path = tmp_path / "short.yaml"
     path.write_text(PROCEDURE)
-    with LocalCluster(n_workers=3, threads_per_worker=1, processes=True, dashboard_address=None,
-                      env={"OPENBLAS_NUM_THREADS": "1"}) as cluster, Client(cluster) as client:  # fmt: skip
+    with local_cluster(3) as cluster, Client(cluster) as client:
         assert len(client.scheduler_info()["workers"]) == 3  # a real cluster of processes
         futures = client.map(one_run, range(6), [str(path)] * 6, pure=False)
         results = client.gather(futures)
