@@ -23,12 +23,15 @@ event loop in the profiler, no heartbeat. A lab cluster's workers: start them wi
 
 def local_cluster(workers: int) -> Any:
     """A local cluster: ``workers`` processes of one thread each, one BLAS thread each, no
-    profiler (:data:`NO_PROFILER`)."""
+    profiler (:data:`NO_PROFILER`: through the configuration each nanny hands its worker, as a
+    worker reads it before its environment is set)."""
+    import dask
     from distributed import LocalCluster
 
-    return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                        dashboard_address=None,
-                        env={"OPENBLAS_NUM_THREADS": "1", **NO_PROFILER})  # fmt: skip
+    with dask.config.set({"distributed.worker.profile.enabled": False}):
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                            dashboard_address=None,
+                            env={"OPENBLAS_NUM_THREADS": "1", **NO_PROFILER})  # fmt: skip
 
 
 def map_on_dask(fn: Callable[..., Any], *iterables: Iterable[Any], workers: int,
