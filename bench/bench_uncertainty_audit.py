@@ -139,13 +139,6 @@ def cli_draw_z(case: Any, sc: Scenario, seed: int) -> tuple[tuple[str, ...], np.
     return tuple(SPRINGMANN_JSON), (estimate - np.array([truth[k] for k in keys])) / sigma
 
 
-def local_cluster(workers: int) -> Any:
-    """A local cluster: ``workers`` processes of one thread each (:func:`bench.dask_runs.local_cluster`)."""
-    from bench.dask_runs import local_cluster as cluster
-
-    return cluster(workers)
-
-
 def report(sc: Scenario, names: tuple[str, ...], z: np.ndarray, wall: float, cpu: float) -> bool:
     """Print one scenario's table; True when every parameter is within the goal."""
     print(f"\n{sc.name}: {z.shape[0]} draws of {sc.samples} samples, {sc.method} fit"
@@ -192,6 +185,8 @@ def main() -> int:
         if other and args.scenario:
             ap.error(f"--cli runs only {', '.join(CLI_SCENARIOS)}, not {', '.join(other)}")
         chosen = [sc for sc in chosen if sc.name in CLI_SCENARIOS]
+    from bench.dask_runs import local_cluster
+
     cluster = None if args.scheduler else local_cluster(args.workers)
     outside = []
     with Client(args.scheduler or cluster) as client:

@@ -14,24 +14,23 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
-NO_PROFILER = {"DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
-"""The workers' statistical profiler off. It calls ``sys._current_frames()`` every 10 ms, and on
-Python 3.11 a garbage collection inside that call can deadlock the interpreter (CPython
-gh-106883): a worker hung so twice here, its task thread in the middle of a simulated run, its
-event loop in the profiler, no heartbeat. A lab cluster's workers: start them with this variable."""
-
 
 def local_cluster(workers: int) -> Any:
-    """A local cluster: ``workers`` processes of one thread each, one BLAS thread each, no
-    profiler (:data:`NO_PROFILER`: through the configuration each nanny hands its worker, as a
-    worker reads it before its environment is set)."""
+    """A local cluster: ``workers`` processes of one thread each, one BLAS thread each, without
+    the workers' statistical profiler.
+
+    The profiler calls ``sys._current_frames()`` every 10 ms, and on Python 3.11 a garbage
+    collection inside that call can deadlock the interpreter (CPython gh-106883): a worker hung
+    so twice here, its task thread mid-run, its event loop in the profiler. It is switched off in
+    the configuration each nanny hands its worker (an environment variable set through ``env``
+    comes too late). A lab cluster's workers: start them with
+    ``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False``."""
     import dask
     from distributed import LocalCluster
 
     with dask.config.set({"distributed.worker.profile.enabled": False}):
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                            dashboard_address=None,
-                            env={"OPENBLAS_NUM_THREADS": "1", **NO_PROFILER})  # fmt: skip
+                            dashboard_address=None, env={"OPENBLAS_NUM_THREADS": "1"})  # fmt: skip
 
 
 def map_on_dask(fn: Callable[..., Any], *iterables: Iterable[Any], workers: int,

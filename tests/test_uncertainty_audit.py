@@ -44,7 +44,7 @@ def client() -> Iterator[Client]:
     thread (many threads on a busy machine made the fits ten times slower)."""
     from distributed import Client
 
-    from bench.bench_uncertainty_audit import local_cluster
+    from bench.dask_runs import local_cluster
 
     with local_cluster(1) as cluster, Client(cluster) as c:
         yield c

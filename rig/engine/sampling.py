@@ -35,13 +35,13 @@ Sink = Callable[[float, str, tuple[float, float, float], float], None]
 """(date s, device, reading uT, date uncertainty s): :meth:`rig.store.RunWriter.add_sample`."""
 Listener = Callable[[float, tuple[float, float, float]], None]
 RETRIES = 1
+"""Late or unreadable replies retried in a row before a sensor is declared failed."""
 RESTART_ATTEMPTS = 3
 """Tries at starting a sensor's sampling again after a pause (each with the driver's retries)."""
 RESTART_WAIT_S = 15.0
 """How long :meth:`SensorSampler.paused` waits for sampling to start again (s): every attempt's
 set-up exchanges timing out with their retries; a sampler still not started is then judged by
 the health checks."""
-"""Late or unreadable replies retried in a row before a sensor is declared failed."""
 WAIT_S = 0.2
 """Longest wait for a self-timed sensor's samples in one call (s): bounds how late a stop is seen."""
 
@@ -66,16 +66,14 @@ class SensorSampler:
         )  # (sequence number, date s, reading uT, date uncertainty s)
         self.listeners: list[Listener] = []
         self.started_t = timebase.monotonic()
-        self.resumed_t = self.started_t
-        """When sampling last started again after a pause (monotonic s)."""
-        self.pausing = False
-        """From :meth:`paused` until sampling has started again: not judged silent."""
+        """When sampling started, or last started again after a pause (monotonic s)."""
         self.repeats = 0  # consecutive readings identical to the one before
         self._stop = timebase.Event()
         self._hold = timebase.Event()  # asked to let go of the sensor
         self._parked = timebase.Event()  # the thread has let go (sampling stopped)
         self._resume = timebase.Event()
-        self._restarted = timebase.Event()  # sampling started again after a pause (or failed)
+        self._restarted = timebase.Event()  # clear from paused() until sampling runs again
+        self._restarted.set()
         self._hold_lock = timebase.Lock()  # held while waiting for the thread to let go
         self._thread = timebase.Thread(self._run, name=f"sampler-{name}", daemon=True)
 
@@ -104,6 +102,7 @@ class SensorSampler:
         clock = StreamClock(period)  # a self-timed sensor's own clock, from the arrivals
         next_t = timebase.monotonic()
         failures = 0  # consecutive late or unreadable replies
+        counter = self.driver if isinstance(self.driver, CountsLostSamples) else None
         try:
             while not self._stop.is_set():
                 if self._hold.is_set():
@@ -117,8 +116,7 @@ class SensorSampler:
                         if samples:
                             # the newest arrived when its frame's last byte had crossed the line
                             line_s = float(getattr(self.driver, "frame_line_s", 0.0))
-                            lost = (self.driver.lost_before
-                                    if isinstance(self.driver, CountsLostSamples) else ())  # fmt: skip
+                            lost = counter.lost_before if counter is not None else ()
                             dates = clock.dated(timebase.monotonic() - line_s, len(samples), lost)
                             for (t, unc), xyz in zip(dates, samples, strict=True):
                                 self._publish(t, xyz, unc)
@@ -170,9 +168,13 @@ class SensorSampler:
                     if self.on_warning is not None:
                         self.on_warning(f"{self.name}: starting to sample again: {exc}; retrying")
         finally:
-            self.resumed_t = timebase.monotonic()
-            self.pausing = False
+            self.started_t = timebase.monotonic()
             self._restarted.set()
+
+    @property
+    def pausing(self) -> bool:
+        """Paused for a command (a set/reset pulse), or starting again: not judged silent."""
+        return not self._restarted.is_set()
 
     @contextlib.contextmanager
     def paused(self, timeout_s: float = 2.0) -> Iterator[Magnetometer]:
@@ -183,7 +185,6 @@ class SensorSampler:
             self._parked.clear()
             self._resume.clear()
             self._restarted.clear()
-            self.pausing = True
             self._hold.set()
             parked = False
             try:
@@ -201,7 +202,7 @@ class SensorSampler:
                     # it times after the pause (a hold after a set/reset pulse) has samples
                     self._restarted.wait(RESTART_WAIT_S)
                 else:  # still in its read: it goes on sampling, and is judged as before
-                    self.pausing = False
+                    self._restarted.set()
 
     def health(
         self, now: float, stall_s: float, stuck_after: int, cpu_wait: CpuWaitLog | None = None
@@ -210,10 +211,10 @@ class SensorSampler:
         ``cpu_wait``: this process's threads' waits for a CPU, noted every check round."""
         if self.error is not None:
             return f"{self.name}: sampling stopped: {self.error}"
-        if self.pausing:  # paused for a command (a set/reset pulse), or starting again
+        if self.pausing:
             return None
         # silent since the newest sample, or since sampling (re)started when that was later
-        last = max(self.latest[0] if self.latest is not None else self.started_t, self.resumed_t)
+        last = max(self.latest[0], self.started_t) if self.latest is not None else self.started_t
         # time the kernel was seen holding serial bytes back was this computer's, not the
         # sensor's (the strict measure: a busy rig process must not postpone the verdict), and
         # so was time our threads waited for a CPU while the sensor's data sat in a buffer

@@ -82,7 +82,6 @@ class StreamClock:
         self._block_start: float | None = None
         self._block_low: tuple[int, float] | None = None
         self._arrivals: deque[float] = deque(maxlen=TIGHT_BATCHES)  # residuals of single samples
-        self._k_last = -1
         self.unseen_lost = 0
         """Samples found lost by their arrival in a tight stream (none said so; negative: a
         loss was said that the arrivals deny)."""
@@ -107,16 +106,16 @@ class StreamClock:
         sample was taken within date +- uncertainty on the sensor's clock (as offset by the
         shortest transmission time, common to the whole stream). ``lost_before[i]``: samples
         the sensor sent that were lost just before sample ``i`` (they keep their numbers)."""
+        first = self._k  # the number after the last sample dated
         ks = []
         for i in range(n):
             self._k += lost_before[i] if i < len(lost_before) else 0
             ks.append(self._k)
             self._k += 1
         if n == 1:
-            ks = self._unseen_loss(ks[0], arrival_s)
+            ks = [self._unseen_loss(ks[0], arrival_s, first)]
         else:
             self._arrivals.clear()
-        self._k_last = ks[-1]
         for k in ks:
             point = (k, arrival_s)
             self._note_block(point)
@@ -145,22 +144,23 @@ class StreamClock:
             out.append((t, jitter + reach))
         return out
 
-    def _unseen_loss(self, k: int, arrival_s: float) -> list[int]:
-        """The number of a single sample read at ``arrival_s`` (counted ``k``), corrected by its
-        arrival in a tight stream (see :data:`TIGHT_BATCHES`): whole periods later than the last
-        ones, samples were lost unseen; earlier, a loss was counted that was none."""
+    def _unseen_loss(self, k: int, arrival_s: float, first: int) -> int:
+        """The number of a single sample read at ``arrival_s`` (counted ``k``, at least
+        ``first``), corrected by its arrival in a tight stream (see :data:`TIGHT_BATCHES`): whole
+        periods later than the last ones, samples were lost unseen; earlier, a loss was counted
+        that was none."""
         p = self.period_s
         recent = self._arrivals
         if len(recent) == TIGHT_BATCHES and max(recent) - min(recent) < TIGHT_SPREAD * p:
             late = arrival_s - k * p - sum(recent) / len(recent)
             if abs(late) > LOSS_JUMP * p:
-                shift = max(round(late / p), self._k_last + 1 - k)  # never before the last one
+                shift = max(round(late / p), first - k)  # never before the last one
                 if shift:
                     self._k += shift
                     self.unseen_lost += shift
                     k += shift
         recent.append(arrival_s - k * p)
-        return [k]
+        return k
 
     def _jitter_s(self, floor: float) -> float:
         """How far the median arrival of the window sits above the envelope (s), at least
