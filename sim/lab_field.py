@@ -93,11 +93,13 @@ class LabField:
         self._flicker_phase = rng.uniform(0, 2 * np.pi, (3, FLICKER_BINS))
         self._flicker_amp = cfg.flicker_ut * math.sqrt(2.0 / FLICKER_BINS)
         self.temperature_phase = float(rng.uniform(0, 2 * np.pi))
+        self._diurnal_ut = np.array(cfg.diurnal_amplitude_ut)
+        self._present: tuple[float, float, list[Vehicle]] = (0.0, 0.0, [])  # (from, to, who)
 
     def uniform_ut(self, t_s: float) -> Array:
         """The terms that are the same everywhere (diurnal, flicker) at ``t_s`` since start."""
         a = self.cfg
-        b = np.array(a.diurnal_amplitude_ut) * np.sin(
+        b = self._diurnal_ut * np.sin(
             2 * np.pi * t_s / a.diurnal_period_s + self._diurnal_phase
         )
         if self._flicker_amp > 0:
@@ -114,11 +116,18 @@ class LabField:
 
     def vehicles_at(self, t_s: float) -> list[Vehicle]:
         """The vehicles present at ``t_s`` (arrived on that day or the day before)."""
+        lo, hi, present = self._present
+        if lo < t_s < hi:  # no vehicle came or went since the last time asked
+            return present
         day = math.floor(t_s / DAY_S)
-        present = []
+        present, lo, hi = [], day * DAY_S, (day + 1) * DAY_S
         for d in (day - 1, day):
             starts, ends, cars = _vehicles(self.cfg, self.seed, d)
             present += [cars[i] for i in np.flatnonzero((starts < t_s) & (t_s < ends))]
+            edges = np.concatenate([starts, ends])
+            lo = max(lo, float(edges[edges <= t_s].max(initial=lo)))
+            hi = min(hi, float(edges[edges >= t_s].min(initial=hi)))
+        self._present = (lo, hi, present)
         return present
 
     def lab_temperature_c(self, t_s: float) -> float:

@@ -23,6 +23,7 @@ Array = npt.NDArray[np.float64]
 
 FLICKER_TAUS_S = (0.3, 3.0, 30.0, 300.0, 3000.0, 30000.0)
 """Time constants of the Gauss-Markov processes whose sum is the flicker noise (s)."""
+_TAUS_S = np.array(FLICKER_TAUS_S)
 FLICKER_GAIN = 1.2807
 """Per-process standard deviation over the flicker floor: the sum of processes a decade apart,
 each with this, has an Allan deviation of 1.00 at 100 s, 0.98-1.04 from 10 s to 3000 s
@@ -116,13 +117,10 @@ class OffsetWander:
         if s.walk_nt_per_sqrt_h > 0:
             q = s.walk_nt_per_sqrt_h**2 / 3600.0  # nT^2/s
             self._walk += math.sqrt(q * dt_s) * self._rng.standard_normal(3)
-        if s.flicker_nt > 0:
-            sigma = FLICKER_GAIN * s.flicker_nt
-            for k, tau in enumerate(FLICKER_TAUS_S):
-                a = math.exp(-dt_s / tau)
-                self._gm[k] = a * self._gm[k] + sigma * math.sqrt(
-                    1 - a * a
-                ) * self._rng.standard_normal(3)
+        if s.flicker_nt > 0:  # every process at once (the same draws, in the same order)
+            a = np.exp(-dt_s / _TAUS_S)[:, None]
+            innovation = self._rng.standard_normal(self._gm.shape)
+            self._gm = a * self._gm + FLICKER_GAIN * s.flicker_nt * np.sqrt(1 - a * a) * innovation
 
 
 def allan_variance_truth(spec: WanderSpec, white_nt: float, rate_hz: float, tau_s: float,

@@ -339,6 +339,10 @@ class Magnetometer:
             return self._last.copy()
 
 
+_CENTRE = np.zeros((1, 3))
+"""The cage's centre as a (1, 3) array of positions (m)."""
+
+
 class CagePhysics:
     """The cage: supplies drive coils through polarity relays; loads bias the magnetometers."""
 
@@ -375,6 +379,11 @@ class CagePhysics:
         """Per magnetometer, the coils' field per ampere (uT/A) at its position."""
         ph = np.random.default_rng([cfg.seed, 99]).uniform(0, 2 * np.pi, size=6)
         self._drift_phase, self._ripple_phase = ph[:3], ph[3:]
+        a = cfg.ambient  # its vectors as arrays once (a reading asks for them 50 times a second)
+        self._ambient_ut = np.array(a.field_ut, float)
+        self._drift_ut = np.array(a.drift_amplitude_ut, float)
+        self._drift_rad_per_s = 2 * np.pi / np.array(a.drift_period_s, float)
+        self._ripple_ut = np.array(a.ripple_amplitude_ut, float)
         self._ambient_rng = np.random.default_rng([cfg.seed, 100])
         self._ambient_rngs = {
             m.name: np.random.default_rng([cfg.seed, 100, i + 1])
@@ -535,12 +544,10 @@ class CagePhysics:
         """Lab field (uT) at ``position_m`` (default: the centre): constant, drift, mains ripple,
         the lab field's daily, 1/f, gradient and traffic terms and (optionally) white noise, as
         magnetometer ``seen_by`` sees it (its own noise draws; None: the cage's)."""
-        a = self.cfg.ambient
         since = t_s - self.start_s
-        where = np.zeros((1, 3)) if position_m is None else np.asarray([position_m], float)
-        b = np.array(a.field_ut)
-        b = b + np.array(a.drift_amplitude_ut) * np.sin(
-            2 * np.pi * since / np.array(a.drift_period_s) + self._drift_phase
+        where = _CENTRE if position_m is None else np.asarray([position_m], float)
+        b = self._ambient_ut + self._drift_ut * np.sin(
+            since * self._drift_rad_per_s + self._drift_phase
         )
         b = b + self.mains_ripple_ut(t_s)
         b = b + self.lab.uniform_ut(since) + self.lab.local_ut(since, where)[0]
@@ -563,8 +570,7 @@ class CagePhysics:
         a = self.cfg.ambient
         since = t_s - self.start_s
         return np.asarray(
-            np.array(a.ripple_amplitude_ut)
-            * np.sin(2 * np.pi * a.ripple_hz * since + self._ripple_phase)
+            self._ripple_ut * np.sin(2 * np.pi * a.ripple_hz * since + self._ripple_phase)
         )
 
     def field_ut(self, t_s: float | None = None, noise: bool = True) -> Array:

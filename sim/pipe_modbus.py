@@ -42,8 +42,6 @@ if TYPE_CHECKING:
 
     from timebase.wires import PipeEnd
 
-POLL_S = 0.1
-"""How often (simulated s) a server thread waiting for a request looks whether it must stop."""
 MAX_BUFFER = 516
 """Bytes a TCP connection keeps while no request frame fits them (pymodbus' own limit)."""
 
@@ -150,8 +148,7 @@ class PipeModbus:
         buf = b""
         try:
             while not self._stop.is_set() and not end.closed:
-                if not end.wait_readable(POLL_S):
-                    continue
+                end.wait_readable(None)  # a request, the client's hang-up or stop()'s close
                 data = end.read_available()
                 if not data or faults.disconnect:
                     return  # the client hung up, or the link drops it at this request
@@ -204,11 +201,10 @@ class PipeModbus:
                     rng: random.Random) -> None:  # fmt: skip
         pending, since = b"", 0.0
         while not self._stop.is_set() and not end.closed:
-            if not end.wait_readable(POLL_S):
-                continue
+            end.wait_readable(None)  # a request, the client's closing or stop()'s close
             data = end.read_available()
             if not data:  # the client closed the port: nothing comes until it opens it again
-                timebase.sleep(POLL_S)
+                end.wait_peer_open(None)  # (or stop() closes the line)
                 continue
             if faults.disconnect or faults.silent:
                 pending = b""

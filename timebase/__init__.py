@@ -31,6 +31,7 @@ from timebase.clock import (
     simulated,
     sleep,
     use,
+    wait_any,
     wall_time,
 )
 from timebase.sim_clock import NotOnTheClockError, SimulatedClock
@@ -53,5 +54,6 @@ __all__ = [
     "simulated",
     "sleep",
     "use",
+    "wait_any",
     "wall_time",
 ]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 import queue
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Protocol, TypeVar
 
 T = TypeVar("T")
@@ -26,6 +26,12 @@ class Clock(Protocol):
 
     def sleep(self, seconds: float) -> None:
         """Wait ``seconds`` (<= 0: let others run, then go on)."""
+        ...
+
+    def wait_any(self, events: Sequence[threading.Event], seconds: float) -> None:
+        """Wait at most ``seconds``, returning early once one of ``events`` is set. It may also
+        return early for no reason (the wall clock returns within :data:`POLL_S`): callers
+        look at what they wait for and wait again."""
         ...
 
     def Event(self) -> threading.Event:  # noqa: N802 - the threading name it stands for
@@ -53,6 +59,10 @@ class Clock(Protocol):
         """A thread as :class:`threading.Thread`; on a simulated clock, a participant."""
         ...
 
+
+POLL_S = 0.05
+"""The longest a wall-clock :func:`wait_any` waits before it returns to be asked again (s): the
+wall clock waits on one event at a time, so it looks at several this often."""
 
 _current: Clock | None = None
 _lock = threading.Lock()
@@ -130,6 +140,12 @@ def wall_time() -> float:
 def sleep(seconds: float) -> None:
     """Wait ``seconds`` on the current clock."""
     current().sleep(seconds)
+
+
+def wait_any(events: Sequence[threading.Event], seconds: float) -> None:
+    """Wait at most ``seconds`` on the current clock, returning early once one of ``events`` is
+    set (or, on the wall clock, within :data:`POLL_S`): loop on what is awaited."""
+    current().wait_any(events, seconds)
 
 
 def Event() -> threading.Event:  # noqa: N802

@@ -25,8 +25,10 @@ import queue
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
+
+from timebase.clock import POLL_S
 
 PRUNE_AT = 64
 """A channel's list of waiters is cleaned of stale entries once it is this long."""
@@ -284,6 +286,18 @@ class SimulatedClock:
                args: tuple[Any, ...] = (), daemon: bool | None = None) -> threading.Thread:  # fmt: skip
         return SimThread(self, target, name=name, args=args, daemon=daemon)
 
+    def wait_any(self, events: Sequence[threading.Event], seconds: float) -> None:
+        """Wait until one of ``events`` is set or ``seconds`` of simulated time have passed (one
+        turn when ``seconds`` <= 0). Events of another clock are looked at every
+        :data:`~timebase.clock.POLL_S` instead."""
+        if any(e.is_set() for e in events):
+            return
+        deadline = self._now + max(float(seconds), 0.0)
+        if not all(isinstance(e, SimEvent) for e in events):
+            deadline = min(deadline, self._now + POLL_S)
+        channels = [e._ch for e in events if isinstance(e, SimEvent)]
+        self.block(channels, deadline)
+
     def notify_at(self, t_s: float, ch: Channel) -> None:
         """Notify ``ch``'s waiters when simulated time reaches ``t_s`` (at once when it has): a
         write that arrives later wakes its reader then, not twice."""
@@ -398,7 +412,8 @@ class SimLock:
         if self._owner is None:
             raise RuntimeError("release unlocked lock")
         self._owner = None
-        self._ch.notify(1)
+        if self._ch._waiters:  # (most releases have nobody waiting: no turn to hand out)
+            self._ch.notify(1)
 
     def locked(self) -> bool:
         return self._owner is not None
@@ -443,7 +458,8 @@ class SimRLock(SimLock):
     def _release_save(self) -> Any:
         count, self._count = self._count, 0
         self._owner = None
-        self._ch.notify(1)
+        if self._ch._waiters:  # (most releases have nobody waiting: no turn to hand out)
+            self._ch.notify(1)
         return count
 
     def _acquire_restore(self, saved: Any) -> None:

@@ -5,8 +5,10 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
+
+from timebase.clock import POLL_S
 
 
 class WallClock:
@@ -26,6 +28,17 @@ class WallClock:
         """``time.sleep`` (nothing for seconds <= 0)."""
         if seconds > 0:
             time.sleep(seconds)
+
+    def wait_any(self, events: Sequence[threading.Event], seconds: float) -> None:
+        """Sleep at most ``seconds`` and at most :data:`~timebase.clock.POLL_S`; at once when one
+        of ``events`` is set."""
+        if seconds <= 0 or any(e.is_set() for e in events):
+            return
+        slice_s = min(seconds, POLL_S)
+        if len(events) == 1:
+            events[0].wait(slice_s)
+        else:
+            time.sleep(slice_s)
 
     def Event(self) -> threading.Event:  # noqa: N802
         return threading.Event()

@@ -94,9 +94,22 @@ class PipeEnd:
         self._rx.ch.notify()
 
     def reopen(self) -> None:
-        """Open again after :meth:`close` (a serial port opened anew)."""
+        """Open again after :meth:`close` (a serial port opened anew): wakes the other end's
+        :meth:`wait_peer_open`."""
         self.opened = True
         self._tx.closed = False
+        self._tx.ch.notify()
+
+    def wait_peer_open(self, timeout_s: float | None) -> bool:
+        """Wait until the other end is open (True) or this end is closed or ``timeout_s`` passed
+        (False; None: no limit)."""
+        clock = self._rx.clock
+        deadline = clock.deadline(timeout_s)
+        while self._rx.closed and not self._tx.closed:
+            if deadline is not None and clock.monotonic() >= deadline:
+                return False
+            clock.block((self._rx.ch,), deadline)
+        return not self._rx.closed
 
     def write(self, data: bytes) -> int:
         """Send ``data``; BrokenPipeError when either end is closed."""
@@ -133,13 +146,13 @@ class PipeEnd:
         return self._take(len(self._buf) if limit is None else min(limit, len(self._buf)))
 
     def _wait_for(self, count: int, timeout_s: float | None) -> bool:
-        """Wait until ``count`` bytes have arrived or the peer closed (True), or ``timeout_s``
+        """Wait until ``count`` bytes have arrived or either end closed (True), or ``timeout_s``
         passed (False; None: no limit), waking when the next write in flight arrives."""
         clock = self._rx.clock
         deadline = clock.deadline(timeout_s)
         while True:
             self._collect()
-            if len(self._buf) >= count or self._rx.closed:
+            if len(self._buf) >= count or self._rx.closed or self._tx.closed:
                 return True
             if deadline is not None and clock.monotonic() >= deadline:
                 return False
@@ -148,7 +161,7 @@ class PipeEnd:
             clock.block((self._rx.ch,), wake)
 
     def wait_readable(self, timeout_s: float | None) -> bool:
-        """Wait until a byte has arrived or the peer closed (True) or ``timeout_s`` passed."""
+        """Wait until a byte has arrived or either end closed (True) or ``timeout_s`` passed."""
         return self._wait_for(1, timeout_s)
 
     def read(self, size: int, timeout_s: float | None) -> bytes:

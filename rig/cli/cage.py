@@ -5,9 +5,15 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import timebase
 from rig.cli.common import Parser, Subparsers
+
+if TYPE_CHECKING:
+    import threading
+
+    from rig.engine.session import RigSession
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
@@ -179,7 +185,7 @@ def run_set_field(rig_config: Path, field_ut: list[float], trim: bool, tolerance
                         f"holding {np.round(target, 3).tolist()} uT "
                         + ("until Ctrl-C" if hold_s is None else f"for {hold_s:g} s")
                     )
-                rig.hold(hold_s, stop)  # a tripped supply or a hang ends it safely
+                _hold(rig, hold_s, stop)  # a tripped supply or a hang ends it safely
         except KeyboardInterrupt:
             if not quiet:
                 print("interrupted: outputs ramped down and off")
@@ -189,3 +195,18 @@ def run_set_field(rig_config: Path, field_ut: list[float], trim: bool, tolerance
     if not quiet:
         print("done: outputs ramped down and off")
     return 0
+
+
+def _hold(rig: RigSession, seconds: float | None, stop: threading.Event) -> None:
+    """Hold the outputs as they are for ``seconds`` (None: until ``stop``), reading the coil
+    supplies' protection flags every second; a tripped supply is a fault, raised at once."""
+    end = None if seconds is None else timebase.monotonic() + seconds
+    next_check = timebase.monotonic()
+    while not stop.is_set() and (end is None or timebase.monotonic() < end):
+        if timebase.monotonic() >= next_check:
+            next_check = timebase.monotonic() + 1.0
+            rig.check_coils()
+        rig.check()
+        until = next_check if end is None else min(next_check, end)
+        timebase.wait_any((stop, *rig.interrupts), until - timebase.monotonic())
+    rig.check()

@@ -59,7 +59,9 @@ class StepScheduler:
             remaining = t_target + shift - timebase.monotonic()
             if remaining <= 0:
                 return shift
-            timebase.sleep(min(remaining, 0.05))  # faults, aborts and pauses are looked at
+            # faults, aborts, pauses and the stop end the wait when they come
+            wake = (*self.rig.interrupts, self.tracker.pause_requested)
+            timebase.wait_any(wake if stop is None else (*wake, stop), remaining)
 
     def _hold(self) -> float:
         """Hold the schedule while the pause is asked for; returns how long it held (s)."""

@@ -77,8 +77,6 @@ MAIN_THREAD_STALL_S = 15.0
 or lost, and the heartbeat stops, so the guardian takes the outputs to the safe state. Longer
 than any single blocking call of a healthy run (a Modbus transaction with its retries, a batch
 calibration of a long run)."""
-WAIT_SLICE_S = 0.05
-"""Fault-aware waits look for faults and aborts this often."""
 READ_RETRY_S = 1.0
 """How long an output that does not answer at the session's start is tried again (s)."""
 NO_GUARDIAN_SIMULATED = (
@@ -126,6 +124,7 @@ class RigSession:
         self.magnetometers: dict[str, Magnetometer] = {}
         self.fault: str | None = None
         self.fault_at: float | None = None  # monotonic s when it was reported
+        self._faulted = timebase.Event()  # set with the first fault: wakes fault-aware waits
         self.guardian: Guardian | None = None
         self.no_guardian: str | None = None
         """Why no guardian was started although one was asked for (simulated time), else None."""
@@ -245,6 +244,7 @@ class RigSession:
         if self.fault is None:
             self.fault_at = timebase.monotonic()
             self.fault = message
+            self._faulted.set()
 
     def check(self) -> None:
         """The main thread is alive; raise the reported fault, or RunAborted after an abort."""
@@ -254,15 +254,21 @@ class RigSession:
         if self.abort.is_set():
             raise RunAborted("aborted")
 
+    @property
+    def interrupts(self) -> tuple[threading.Event, ...]:
+        """The events that end a fault-aware wait: the abort, and the first fault reported."""
+        return (self.abort, self._faulted)
+
     def sleep(self, seconds: float) -> None:
-        """Wait ``seconds`` (0 just checks), raising a fault or abort within WAIT_SLICE_S."""
+        """Wait ``seconds`` (0 just checks), raising a fault or abort as soon as it is reported
+        (on the wall clock within ``timebase.clock.POLL_S``, in simulated time at once)."""
         end = timebase.monotonic() + seconds
         while True:
             self.check()
             remaining = end - timebase.monotonic()
             if remaining <= 0:
                 return
-            timebase.sleep(min(remaining, WAIT_SLICE_S))
+            timebase.wait_any(self.interrupts, remaining)
 
     @contextlib.contextmanager
     def waiting_for_operator(self) -> Iterator[None]:
@@ -273,18 +279,6 @@ class RigSession:
         finally:
             self._operator_waits -= 1
             self._progress_s = timebase.monotonic()
-
-    def hold(self, seconds: float | None, stop: threading.Event) -> None:
-        """Hold the outputs as they are for ``seconds`` (None: until ``stop``), reading the coil
-        supplies' protection flags every second; a tripped supply is a fault."""
-        end = None if seconds is None else timebase.monotonic() + seconds
-        next_check = timebase.monotonic()
-        while not stop.is_set() and (end is None or timebase.monotonic() < end):
-            if timebase.monotonic() >= next_check:
-                next_check = timebase.monotonic() + 1.0
-                self.check_coils()
-            left = WAIT_SLICE_S if end is None else min(WAIT_SLICE_S, end - timebase.monotonic())
-            self.sleep(max(0.0, left))
 
     def check_coils(
         self,

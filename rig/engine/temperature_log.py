@@ -35,7 +35,8 @@ STALE_S = 2.0
 a fault: a read that timed out once with its retries (0.5 s each) is not yet one; at the 2 K/W and
 20 W of the simulated heater the DUT warms by at most 0.7 K meanwhile."""
 WATCH_S = 0.1
-"""How often the interlock's watchdog looks at the age of the latest reading (s)."""
+"""The interlock's watchdog looks at the age of the latest reading when it would pass
+:data:`STALE_S`, and at least this long after its last look (s)."""
 
 
 @dataclass(frozen=True)
@@ -100,7 +101,11 @@ class TemperatureLog:
         fault, even while a read hangs in its timeout."""
         lock = self.interlock
         assert lock is not None
-        while not self._stop.wait(WATCH_S):
+        # asleep until the latest reading would be stale (a fresher one moves that on); once
+        # stale with nothing heating, looked at every WATCH_S until something heats
+        while not self._stop.wait(
+            max(WATCH_S, self.last_reading_s + STALE_S - timebase.monotonic())
+        ):
             age_s = timebase.monotonic() - self.last_reading_s
             if age_s > STALE_S and (heaters := lock.heating()):
                 lock.fail(f"{self.name} has given no temperature for {age_s:.1f} s while"
