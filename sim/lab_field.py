@@ -99,9 +99,7 @@ class LabField:
     def uniform_ut(self, t_s: float) -> Array:
         """The terms that are the same everywhere (diurnal, flicker) at ``t_s`` since start."""
         a = self.cfg
-        b = self._diurnal_ut * np.sin(
-            2 * np.pi * t_s / a.diurnal_period_s + self._diurnal_phase
-        )
+        b = self._diurnal_ut * np.sin(2 * np.pi * t_s / a.diurnal_period_s + self._diurnal_phase)
         if self._flicker_amp > 0:
             arg = 2 * np.pi * self._flicker_hz * t_s + self._flicker_phase
             b = b + self._flicker_amp * np.sin(arg).sum(axis=1)
