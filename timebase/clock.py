@@ -104,15 +104,17 @@ def simulated(
 ) -> Iterator[Any]:
     """A fresh :class:`~timebase.simulated.SimulatedClock` as the process's clock, with the
     calling thread as its first participant; on leaving, the thread leaves it. ``epoch_s`` is
-    the wall date (Unix s) at ``start_s`` (default: now). When no participant gets the turn for
+    the wall date (Unix s) at ``start_s`` (default: now). Its threads run on one CPU
+    (:mod:`timebase.one_cpu`: a tenth of the cost per hand-over). When no participant gets the turn for
     ``stall_report_s`` wall seconds, what each waits for and every stack go to standard error
     (:mod:`timebase.stall_watch`; None: no watch)."""
+    from timebase.one_cpu import one_cpu
     from timebase.sim_clock import SimulatedClock
     from timebase.stall_watch import StallWatch
 
     clock = SimulatedClock(start_s=start_s, epoch_s=epoch_s)
     watch = None if stall_report_s is None else StallWatch(clock, stall_report_s)
-    with use(clock):
+    with one_cpu(), use(clock):
         clock.enter()
         try:
             yield clock
