@@ -16,11 +16,14 @@ from dataclasses import dataclass
 
 from drivers.errors import DeviceNotFoundError, DeviceProtocolError, LimitError
 from drivers.identity import Identity
-from drivers.protocols import SupplyReading
+from drivers.protection import asked_levels, check_read_back
+from drivers.protocols import ProtectionLevel, SupplyReading
 from drivers.transport.modbus import ModbusLink
 
 REG_ID, REG_V_SET, REG_I_SET, REG_V_OUT, REG_I_OUT, REG_P_H = 0, 8, 9, 10, 11, 12
 REG_PROTECT, REG_CVCC, REG_OUTPUT, REG_I_RANGE = 16, 17, 18, 20
+REG_OVP, REG_OCP = 82, 83
+"""M0 OVP and OCP: the active preset's protection levels, at the V and A set-points' scales."""
 
 
 @dataclass(frozen=True)
@@ -205,6 +208,37 @@ class RidenSupply:
             protection={0: "", 1: "OVP", 2: "OCP"}.get(code, f"code {code}"),
             power_w=p / round(1.0 / self.spec.w_per_count),
         )
+
+    def protection_levels(self) -> tuple[ProtectionLevel, ...]:
+        """OVP (V) and OCP (A) of the active preset M0 (registers 82-83); an RD60xx has no OPP."""
+        if self.spec.range_dependent:
+            self._set_range(self.link.read_registers(REG_I_RANGE, 1)[0])
+        ovp, ocp = self.link.read_registers(REG_OVP, 2)
+        return (ProtectionLevel("OVP", ovp / self._v_counts, f"register {REG_OVP} (M0 OVP)"),
+                ProtectionLevel("OCP", ocp / self._i_counts, f"register {REG_OCP} (M0 OCP)"))  # fmt: skip
+
+    def set_protection_levels(self, *, ovp_v: float | None = None, ocp_a: float | None = None,
+                              opp_w: float | None = None) -> tuple[ProtectionLevel, ...]:  # fmt: skip
+        """Write M0 OVP (V) and/or OCP (A) at the model's (and range's) resolution, then read
+        both back. LimitError for an OPP (the RD60xx has none) or a level beyond 65535 counts."""
+        asked = asked_levels(self.name, ovp_v=ovp_v, ocp_a=ocp_a, opp_w=opp_w)
+        if "OPP" in asked:
+            raise LimitError(f"{self.name}: the {self.model} has no over-power protection; leave"
+                             " its OPP level out")  # fmt: skip
+        if self.spec.range_dependent:
+            self._set_range(self.link.read_registers(REG_I_RANGE, 1)[0])
+        scales = {"OVP": (REG_OVP, self._v_counts), "OCP": (REG_OCP, self._i_counts)}
+        for kind, value in asked.items():
+            register, per_unit = scales[kind]
+            if round(value * per_unit) > 0xFFFF:
+                raise LimitError(f"{self.name}: {kind} {value:g} is beyond the {self.model}'s"
+                                 f" register {register} ({0xFFFF / per_unit:g} at most)")  # fmt: skip
+        for kind, value in asked.items():
+            register, per_unit = scales[kind]
+            self.link.write_register(register, round(value * per_unit))
+        levels = self.protection_levels()
+        check_read_back(self.name, {k: (v, 1.0 / scales[k][1]) for k, v in asked.items()}, levels)
+        return levels
 
     def enable_as_load(self, compliance_v: float) -> None:
         """Drive a load harness: current 0, voltage to the compliance (capped), output on."""
