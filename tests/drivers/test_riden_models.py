@@ -181,3 +181,20 @@ def test_m0_ovp_and_ocp_set_and_read_back_in_the_models_counts(
         finally:
             supply.close()
 
+
+def test_power_is_registers_12_and_13_as_one_32_bit_count() -> None:
+    # An RD6030 on a real bench (riden-dongle issue #43) at 27.50 V, 28.03 A: a client reading
+    # register 13 alone at 0.01 W showed 115.46 W; the true 770.8 W is 77082 counts, 1 * 65536 +
+    # 11546: register 12 is the high word. The RD6012P counts 1 mW (its 13.5 W: 13500 counts).
+    with riden_image(60301, r10=2750, r11=2803, r12=1, r13=11546) as image:
+        supply = open_riden(image)
+        try:
+            assert supply.read().power_w == pytest.approx(770.82)
+        finally:
+            supply.close()
+    with riden_image(60125, r12=0, r13=13500) as image:
+        supply = open_riden(image)
+        try:
+            assert supply.read().power_w == pytest.approx(13.5)
+        finally:
+            supply.close()
