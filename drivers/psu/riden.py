@@ -2,8 +2,11 @@
 
 Holding registers (ShayBox/Riden ``register.py``, Baldanos/rd6006 ``registers.md``, the
 riden-dongle firmware's ``riden_modbus_registers.h``): 0 model id, 1-2 serial, 3 firmware
-(x100), 8 V_SET, 9 I_SET, 10 V_OUT, 11 I_OUT, 12-13 power (32-bit), 14 V_IN, 16 protection
-(1 OVP, 2 OCP), 17 CV/CC (1 = CC), 18 output enable, 20 current range (RD6012P only).
+(x100), 8 V_SET, 9 I_SET, 10 V_OUT, 11 I_OUT, 12-13 power, 14 V_IN, 16 protection
+(1 OVP, 2 OCP), 17 CV/CC (1 = CC), 18 output enable, 20 current range (RD6012P only), 82-83 the
+active preset's OVP and OCP. Power is one 32-bit count, register 12 the high word (a real RD6030
+read through register 13 alone wrapped at 655.36 W; ShayBox and libsigrok read 13 alone:
+docs/devices.md weighs the sources).
 
 Every model id and scale in :data:`MODELS` is one that the published tables list (see
 docs/devices.md): ShayBox/Riden ``riden.py``, libsigrok's ``rdtech-dps`` model table and the
