@@ -518,9 +518,10 @@ def _models(
     if "models" not in r:
         return (), unknown
     table = r["models"]
-    if not isinstance(table, dict) or not table:
+    if not isinstance(table, dict) or not table or len(table) > MAX_CODES:
         raise RegisterMapError(f'{at("models")}: register \'{reg.name}\': models must be a table'
-                               ' of code = "model", e.g. { 101 = "Maynuo M9812" }')  # fmt: skip
+                               f' of 1 to {MAX_CODES} code = "model", e.g. {{ 101 = "Maynuo'
+                               ' M9812" }')  # fmt: skip
     lo, hi = _RANGES.get(reg.type, (0, 0xFFFF))
     models = []
     for key, name in table.items():

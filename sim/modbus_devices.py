@@ -263,6 +263,8 @@ class RegmapModel(_Model):
         self.by_address = {r.address: r for r in spec.registers if not r.is_coil}
         self.coils = {r.address: r for r in spec.registers if r.is_coil}
         self.selects_cc = spec.cc_select() is not None
+        if self.selects_cc and supply is not None:  # its power-on mode (the Maynuo: CV)
+            self._follow_mode(supply)
         if supply is not None:  # protection defaults the registers can hold (never wrapped)
             ovp, ocp = spec.role("ovp"), spec.role("ocp")
             supply.set_protection(
@@ -402,9 +404,14 @@ class RegmapModel(_Model):
             raise ValueError(f"{value:g} A is outside 0-{sup.i_max:g} A")
         else:
             self.stored[reg.name] = value
+        self._follow_mode(sup)
+
+    def _follow_mode(self, sup: Supply) -> None:
+        """The physical current set-point of a load that selects its mode: IFIX in constant
+        current, else its full range (what it sinks with its input on)."""
+        mode = self.spec.require("mode")
         ifix = self.stored.get(self.spec.require("i_set").name, 0.0)
-        in_cc = mode.reads_cc(self.stored.get(mode.name, 0.0))
-        sup.set_current(ifix if in_cc else sup.i_max)
+        sup.set_current(ifix if mode.reads_cc(self.stored.get(mode.name, 0.0)) else sup.i_max)
 
     def _set_current(self, sup: Supply, value: float) -> None:
         if self.spec.bipolar and self.axis is not None:

@@ -25,9 +25,15 @@ from drivers.registry import KINDS, Found, OpenSpec
 from rig.bringup import scan, table
 from tests.drivers.register_image import RegisterImage
 
-CMD, IFIX, U, I_MEAS, SETMODE, INPUTMODE, MODEL, EDITION = (
-    0x0A00, 0x0A01, 0x0B00, 0x0B02, 0x0B04, 0x0B05, 0x0B06, 0x0B07,
-)  # fmt: skip
+CMD, IFIX, U, I_MEAS, SETMODE, MODEL, EDITION = (
+    0x0A00,
+    0x0A01,
+    0x0B00,
+    0x0B02,
+    0x0B04,
+    0x0B06,
+    0x0B07,
+)
 PC1, ISTATE = 0x0500, 0x0510
 MODES = {1: "CC", 2: "CV", 3: "CW", 4: "CR"}
 PUBLISHED = [  # (model code, EDITION, the name the rig reports)

@@ -84,7 +84,7 @@ def test_a_load_map_with_every_new_key_loads() -> None:
     ('type = "coil"', 'type = "coil"\nscale = 10', "scale = 10", "register 'remote' is a coil (one bit): remove its scale"),
     ('role = "remote"', 'role = "remote"\nvalue = 2', "value = 2", "register 'remote': value 2 does not fit a coil"),
     ('0x1C = "M9710"', '"M97" = "M9710"', '"M97"', "register 'model': model code 'M97' must be a whole number of 0 to 65535"),
-    ('models = { 101 = "M9812", 0x1C = "M9710" }', "models = {}", "models = {}", "models must be a table of code = \"model\""),
+    ('models = { 101 = "M9812", 0x1C = "M9710" }', "models = {}", "models = {}", "models must be a table of 1 to 256 code = \"model\""),
     ('models = { 101 = "M9812", 0x1C = "M9710" }\n', "", 'role = "model"', "a model register lists its codes: models = "),
     ('role = "model"', 'role = "model"\nunknown = "guess"', "unknown", "unknown unknown 'guess'"),
     ('role = "model"', 'role = "none"\nunknown = "warn"', "models =", "models belongs to a register with role 'model'"),
