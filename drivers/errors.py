@@ -37,3 +37,8 @@ class DeviceAbsentError(DeviceRefusedError):
 
 class LimitError(DeviceError):
     """A set-point outside the device's range or the configured limit was refused before sending."""
+
+
+class DeviceStateError(DeviceError):
+    """A device reads back a state other than the one it was set to (a load not in constant
+    current, a relay that did not switch, remote control not taken): nothing more is switched on."""

@@ -31,7 +31,12 @@ from drivers.mag.hmr2300 import Hmr2300
 from drivers.mag.lis3mdl import WHO_AM_I, WHO_AM_I_VALUE, Lis3mdl
 from drivers.mag.rm3100 import REVID, REVID_VALUE, Rm3100
 from drivers.protocols import Load, Magnetometer, Relay, ScalarMagnetometer, Supply, Thermometer
-from drivers.psu.regmap_device import MappedSupply, MappedThermometer, PolarityRelay
+from drivers.psu.regmap_device import (
+    MappedDevice,
+    MappedSupply,
+    MappedThermometer,
+    PolarityRelay,
+)
 from drivers.psu.riden import MODELS as RIDEN_MODELS
 from drivers.psu.riden import RidenSupply, riden_model
 from drivers.regmap import RegisterMap, load_map, shipped_maps
@@ -286,6 +291,8 @@ class Found:
     serial: str
     params: dict[str, Any]
     where: str
+    warning: str = ""
+    """A caveat about the identification ("" for none), e.g. a model code its map does not list."""
 
 
 Opener = Callable[[OpenSpec], Any]
@@ -473,11 +480,12 @@ def _open_thermometer(spec: OpenSpec) -> MappedThermometer:
 
 
 def _identifiable_maps(map_kind: str) -> list[RegisterMap]:
-    return [m for m in shipped_maps() if m.kind == map_kind and m.constants()]
+    return [m for m in shipped_maps() if m.kind == map_kind and m.identity_registers()]
 
 
 def _probe_maps(kind_name: str, map_kind: str) -> Prober:
-    """Recognize a device by the constant registers (model number) of a shipped map."""
+    """Recognize a device by the identity registers (constants, model code) of a shipped map
+    (:meth:`MappedDevice.identify`, reads only)."""
 
     def probe(target: ProbeTarget) -> list[Found]:
         baud = target.params.get("baudrate")
@@ -489,17 +497,15 @@ def _probe_maps(kind_name: str, map_kind: str) -> Prober:
             except DeviceError:
                 return []
             try:
-                ok = all(
-                    reg.decode(link.read_registers(reg.address, reg.width)) == reg.value
-                    for reg in regmap.constants()
-                )
+                ident: Identity | None = MappedDevice(link, regmap, f"scan:{kind_name}").identify()
             except DeviceError:
-                ok = False
+                ident = None
             finally:
                 link.close()
-            if ok:
+            if ident is not None:
                 params = _connection(target) | {"regmap": regmap.name}
-                return [Found(kind_name, target.protocol, regmap.model, "", params, target.where)]
+                return [Found(kind_name, target.protocol, ident.model, ident.serial, params,
+                              target.where, ident.warning)]  # fmt: skip
         return []
 
     return probe

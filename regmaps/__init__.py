@@ -30,9 +30,23 @@ Format::
     codes = ["", "OVP", "OCP"]   # role "protection", a code per value (this is the default), or
     flags = ["OVP", "OCP"]       # role "protection", one bit each (bit 0 first)
     on = 42                 # role "output" written as a command: the values for on and off (the
-    off = 43                # state is then read from a register of role "output_state")
+    off = 43                # state is then read from a register of role "output_state"); on a
+                            # polarity relay or "remote": the values that switch it (its state
+                            # reads 1/0)
     mirror = "v_set"        # this address is a second one of the named register: it reads and
                             # writes the same value (a DPS's 0x50, the active preset's U-SET)
+    cc = 1                  # role "output" with on/off: the command that selects constant
+                            # current (sent, and read back, before every switch-on); role "mode":
+                            # what it reads in constant current (default 1)
+    mask = 0x00FF           # role "mode": the bits compared with cc (a Maynuo reads 0xFF01)
+    models = { 101 = "Maynuo M9812", 28 = "Maynuo M9710" }   # role "model": code = model
+    unknown = "warn"        # role "model": an unknown code is accepted with a warning naming it
+                            # ("refuse", the default: not this map's device)
+
+``type = "coil"`` is one bit in the coil space (function 1 reads it, 5 writes 0xFF00 for 1 and
+0x0000 for 0); coils and registers are separate address spaces. An electronic load's map must say
+how constant current is selected (``cc`` on its output command, or a writable ``mode`` register),
+and a ``cc`` command needs a ``mode`` register to read it back (docs/adr/0040).
 
 An unknown key, role, kind, type or access is an error naming the file, the line and the nearest
 valid name; so are overlapping registers, two registers of one name or role, an address outside
@@ -57,7 +71,7 @@ from pathlib import Path
 from typing import Any
 
 MAP_DIR = Path(__file__).parent
-TYPES = {"uint16": 1, "int16": 1, "uint32": 2, "int32": 2, "float32": 2}
+TYPES = {"uint16": 1, "int16": 1, "uint32": 2, "int32": 2, "float32": 2, "coil": 1}
 KINDS = ("supply", "eload", "relay", "thermometer")
 ACCESS = ("ro", "rw")
 ROLES = {
@@ -66,19 +80,24 @@ ROLES = {
     "v_out": "measured output voltage (V)",
     "i_out": "measured output current (A)",
     "power": "measured output power (W)",
-    "output": "output (or load input) enable, 0/1 (or the command values 'on'/'off')",
+    "output": "output (or load input) enable, 0/1 (or the command values 'on'/'off', and 'cc'"
+    " the command that selects constant current)",
     "output_state": "output (or load input) state as read, 0/1, where 'output' is a command",
-    "mode": "CV/CC, 1 = constant current",
+    "mode": "operating mode as read: 'cc' (default 1) in constant current, under 'mask'; a"
+    " writable one selects constant current by writing 'cc'",
     "protection": "protection state (see codes/flags)",
     "ovp": "over-voltage protection level (V)",
     "ocp": "over-current protection level (A)",
     "opp": "over-power protection level (W)",
-    "polarity_x": "H-bridge relay of the x coil, 1 = reversed",
-    "polarity_y": "H-bridge relay of the y coil, 1 = reversed",
-    "polarity_z": "H-bridge relay of the z coil, 1 = reversed",
+    "polarity_x": "H-bridge relay of the x coil: 1 (or the command 'on') = reversed; reads 1/0",
+    "polarity_y": "H-bridge relay of the y coil: 1 (or the command 'on') = reversed; reads 1/0",
+    "polarity_z": "H-bridge relay of the z coil: 1 (or the command 'on') = reversed; reads 1/0",
+    "remote": "remote control (the Maynuo's coil PC1): switched on before the driver's first"
+    " write, read back, and off when it closes",
     "temperature": "the DUT's temperature (degrees C)",
     "serial": "serial number",
     "constant": "always reads 'value' (a model number)",
+    "model": "the model register: one of 'models' (code = model name); see 'unknown'",
     "none": "no meaning to the rig (kept by the simulator)",
 }
 DEVICE_KEYS = ("kind", "model", "v_max", "i_max", "bipolar", "baudrate", "write_function",
@@ -86,7 +105,12 @@ DEVICE_KEYS = ("kind", "model", "v_max", "i_max", "bipolar", "baudrate", "write_
 UNDEFINED_READS = ("exception", "zero")
 """What a read of an unlisted address answers: exception 2, or 0 (``[device] undefined_reads``)."""
 REGISTER_KEYS = ("name", "address", "type", "scale", "unit", "access", "role", "value", "codes",
-                 "flags", "on", "off", "mirror")  # fmt: skip
+                 "flags", "on", "off", "mirror", "cc", "mask", "models", "unknown")  # fmt: skip
+SWITCHED_ROLES = ("output", "remote", "polarity_x", "polarity_y", "polarity_z")
+"""Roles whose register is switched between two values (1/0, or the commands 'on'/'off')."""
+UNKNOWN_MODEL = ("refuse", "warn")
+"""What an unknown code in a ``model`` register means: not this map's device, or a member of its
+family accepted with a warning that names the code."""
 TOP_KEYS = ("device", "registers")
 DEFAULT_CODES = ("", "OVP", "OCP")
 REPEATABLE_ROLES = ("none", "constant")
@@ -105,7 +129,7 @@ MAX_SCALE = 1e9
 """Largest scale (counts per unit): a nano-unit a count."""
 MAX_CODES = 256
 """Most protection codes a register may list."""
-_RANGES = {"uint16": (0, 0xFFFF), "int16": (-0x8000, 0x7FFF),
+_RANGES = {"uint16": (0, 0xFFFF), "int16": (-0x8000, 0x7FFF), "coil": (0, 1),
            "uint32": (0, 0xFFFFFFFF), "int32": (-0x80000000, 0x7FFFFFFF)}  # fmt: skip
 
 
@@ -126,14 +150,35 @@ class Register:
     value: float | None = None  # role "constant": what it always reads; else power-on value
     codes: tuple[str, ...] = DEFAULT_CODES
     flags: tuple[str, ...] = ()
-    on: float = 1.0  # role "output": the value written to switch on
+    on: float = 1.0  # a switched role (SWITCHED_ROLES): the value written to switch on
     off: float = 0.0  # and off
+    cc: float | None = None  # "output": the command selecting CC; "mode": what it reads in CC
+    mask: int = 0xFFFF  # role "mode": the bits compared with cc
+    models: tuple[tuple[int, str], ...] = ()  # role "model": (code, model name)
+    unknown: str = "refuse"  # role "model": what an unknown code means (UNKNOWN_MODEL)
     mirror: str | None = None  # the register (by name) this address is a second one of
 
     @property
     def width(self) -> int:
-        """Number of 16-bit registers."""
+        """Number of 16-bit registers (a coil: 1)."""
         return TYPES[self.type]
+
+    @property
+    def is_coil(self) -> bool:
+        """A bit in the coil space (functions 1 and 5), not a holding register."""
+        return self.type == "coil"
+
+    def model_name(self, code: int) -> str | None:
+        """A ``model`` register's name for ``code``, None for a code its map does not list."""
+        return next((name for c, name in self.models if c == code), None)
+
+    def reads_cc(self, value: float) -> bool:
+        """Whether a ``mode`` register reading ``value`` says constant current: ``value`` under
+        ``mask`` equals ``cc`` (1 when not given)."""
+        want = 1.0 if self.cc is None else self.cc
+        if self.type in ("uint16", "int16") and float(value).is_integer():
+            return (int(value) & self.mask) == (int(want) & self.mask)
+        return value == want
 
     def limits(self) -> tuple[float, float]:
         """Lowest and highest physical value the register can hold."""
@@ -191,6 +236,18 @@ class Register:
 
 
 @dataclass(frozen=True)
+class Identified:
+    """A device checked against a map (:meth:`RegisterMap.identify`): the model to report, the
+    model code read (None without a model register), a warning ("" for none: an unknown code
+    accepted for its family) and why the device is not the map's ("" when it is)."""
+
+    model: str
+    code: int | None = None
+    warning: str = ""
+    mismatch: str = ""
+
+
+@dataclass(frozen=True)
 class RegisterMap:
     """A parsed map."""
 
@@ -213,6 +270,54 @@ class RegisterMap:
     def constants(self) -> tuple[Register, ...]:
         """Registers that always read a stated value (the model number): the device's identity."""
         return tuple(r for r in self.registers if r.role == "constant" and r.value is not None)
+
+    def identity_registers(self) -> tuple[Register, ...]:
+        """What identifies the device: its constant registers, then its model register."""
+        model = self.role("model")
+        return self.constants() + ((model,) if model is not None else ())
+
+    def identify(self, read: Callable[[Register], float]) -> Identified:
+        """Check the device against this map, reading each identity register with ``read``:
+        every constant must read its ``value`` and the model register a listed code; an unlisted
+        code is a mismatch, or (``unknown = "warn"``) the map's model with a warning naming it."""
+        for reg in self.constants():
+            got = read(reg)
+            if got != reg.value:
+                return Identified(self.model, mismatch=f"register '{reg.name}' ({reg.address:#06x})"
+                                  f" reads {got:g}, {self.source} expects {reg.value:g}")  # fmt: skip
+        model_reg = self.role("model")
+        if model_reg is None:
+            return Identified(self.model)
+        return self._model_code(model_reg, read(model_reg))
+
+    def _model_code(self, reg: Register, got: float) -> Identified:
+        """What the model register ``reg`` reading ``got`` says (:meth:`identify`)."""
+        code = int(got) if float(got).is_integer() else -1
+        name = reg.model_name(code)
+        if name is not None:
+            return Identified(name, code)
+        known = ", ".join(f"{c} = {n}" for c, n in reg.models)
+        where = f"model register '{reg.name}' ({reg.address:#06x}) reads {got:g}"
+        if reg.unknown == "refuse":
+            return Identified(self.model, code, mismatch=f"{where}, not one of the codes of"
+                              f" {self.source} ({known})")  # fmt: skip
+        return Identified(
+            f"{self.model} (model code {code})",
+            code,
+            warning=f"{where}, a model code the map {self.name} does not list ({known}); accepted as"
+            f" a {self.model}: check its ratings against the map's ({self.v_max:g} V,"
+            f" {self.i_max:g} A) and add the code with its source",
+        )
+
+    def cc_select(self) -> tuple[Register, float] | None:
+        """How constant current is selected, if the map says: (register, value to write): the
+        output's ``cc`` command, else a writable ``mode`` register's ``cc`` (default 1)."""
+        out, mode = self.role("output"), self.role("mode")
+        if out is not None and out.cc is not None:
+            return out, out.cc
+        if mode is not None and mode.access == "rw":
+            return mode, 1.0 if mode.cc is None else mode.cc
+        return None
 
     def role(self, role: str) -> Register | None:
         """The register with ``role``, if the map has one."""
@@ -365,20 +470,82 @@ def _register(at: Callable[..., str], i: int, r: Any) -> Register:
     scale = _finite(at("scale"), f"{what}: scale", r.get("scale", 1.0),
                     "counts per unit, e.g. 100 for 0.01 A a count", positive=True,
                     high=MAX_SCALE)  # fmt: skip
-    if ("codes" in r or "flags" in r) and role != "protection":
-        raise RegisterMapError(f"{at('codes' if 'codes' in r else 'flags')}: codes and flags"
-                               " belong to a register with role 'protection'")  # fmt: skip
-    if ("on" in r or "off" in r) and role != "output":
-        raise RegisterMapError(f"{at('on' if 'on' in r else 'off')}: on and off belong to a"
-                               " register with role 'output'")  # fmt: skip
+    if type_ == "coil" and scale != 1.0:
+        raise RegisterMapError(f"{at('scale')}: {what} is a coil (one bit): remove its scale")
+    _keys_belong(at, r, role)
     codes, flags = _codes_and_flags(at, r, name, type_)
-    numbers = _numbers(
-        at, r, Register(name, address, type_, access, role, scale, None, codes, flags)
-    )
+    bare = Register(name, address, type_, access, role, scale, None, codes, flags)
+    numbers = _numbers(at, r, bare)
     mirror = _label(at("mirror"), f"{what}: mirror", r["mirror"], MAX_NAME_CHARS) \
         if "mirror" in r else None  # fmt: skip
     return Register(name, address, type_, access, role, scale, numbers.get("value"), codes, flags,
-                    numbers.get("on", 1.0), numbers.get("off", 0.0), mirror)  # fmt: skip
+                    numbers.get("on", 1.0), numbers.get("off", 0.0), numbers.get("cc"),
+                    _mask(at, r, bare), *_models(at, r, bare), mirror=mirror)  # fmt: skip
+
+
+KEY_ROLES: dict[str, tuple[str, ...]] = {
+    "codes": ("protection",), "flags": ("protection",), "on": SWITCHED_ROLES,
+    "off": SWITCHED_ROLES, "cc": ("output", "mode"), "mask": ("mode",), "models": ("model",),
+    "unknown": ("model",),
+}  # fmt: skip
+"""The keys that belong to some roles only: the roles each one belongs to."""
+
+
+def _keys_belong(at: Callable[..., str], r: dict[str, Any], role: str) -> None:
+    """Refuse a key given on a register of a role it does not belong to (:data:`KEY_ROLES`), a
+    ``cc`` command on an output that is no command register, and a model register without
+    ``models``."""
+    for key, roles in KEY_ROLES.items():
+        if key in r and role not in roles:
+            names = [f"'{x}'" for x in roles]
+            which = names[0] if len(names) == 1 else f"{', '.join(names[:-1])} or {names[-1]}"
+            raise RegisterMapError(f"{at(key)}: {key} belongs to a register with role {which}")
+    if role == "output" and "cc" in r and not ("on" in r and "off" in r):
+        raise RegisterMapError(f"{at('cc')}: cc on an output is the command that selects constant"
+                               " current: give the output its command values on and off too")  # fmt: skip
+    if role == "model" and "models" not in r:
+        raise RegisterMapError(f'{at("role")}: a model register lists its codes: models = {{ 101 ='
+                               ' "Maynuo M9812" }')  # fmt: skip
+
+
+def _mask(at: Callable[..., str], r: dict[str, Any], reg: Register) -> int:
+    """A mode register's ``mask``: a whole number of 1 to 0xFFFF on a 16-bit integer register."""
+    if "mask" not in r:
+        return 0xFFFF
+    mask = r["mask"]
+    if reg.type not in ("uint16", "int16"):
+        raise RegisterMapError(f"{at('mask')}: register '{reg.name}': a mask needs a uint16 or"
+                               f" int16 register, not a {reg.type}")  # fmt: skip
+    if isinstance(mask, bool) or not isinstance(mask, int) or not 1 <= mask <= 0xFFFF:
+        raise RegisterMapError(f"{at('mask')}: register '{reg.name}': mask {mask!r} must be a"
+                               " whole number of 1 to 0xFFFF, e.g. 0x00FF")  # fmt: skip
+    return mask
+
+
+def _models(
+    at: Callable[..., str], r: dict[str, Any], reg: Register
+) -> tuple[tuple[tuple[int, str], ...], str]:
+    """A model register's ``models`` (code = name, each code fitting it) and ``unknown``."""
+    unknown = _choice(at("unknown"), "unknown", r.get("unknown", "refuse"), UNKNOWN_MODEL)
+    if "models" not in r:
+        return (), unknown
+    table = r["models"]
+    if not isinstance(table, dict) or not table or len(table) > MAX_CODES:
+        raise RegisterMapError(f'{at("models")}: register \'{reg.name}\': models must be a table'
+                               f' of 1 to {MAX_CODES} code = "model", e.g. {{ 101 = "Maynuo'
+                               ' M9812" }')  # fmt: skip
+    lo, hi = _RANGES.get(reg.type, (0, 0xFFFF))
+    models = []
+    for key, name in table.items():
+        try:
+            code = int(key, 0)
+        except ValueError:
+            code = None
+        if code is None or not lo <= code <= hi:
+            raise RegisterMapError(f"{at('models')}: register '{reg.name}': model code {key!r}"
+                                   f" must be a whole number of {lo} to {hi}")  # fmt: skip
+        models.append((code, _label(at("models"), "the model", name, MAX_MODEL_CHARS)))
+    return tuple(models), unknown
 
 
 def _check_mirrors(regs: list[Register], p: str, lines: _Lines) -> None:
@@ -422,7 +589,7 @@ def _numbers(at: Callable[..., str], r: dict[str, Any], reg: Register) -> dict[s
     """``value``, ``on`` and ``off`` where given: finite, and each fits ``reg``'s type and scale."""
     numbers: dict[str, float] = {}
     what = f"register '{reg.name}'"
-    for key in ("value", "on", "off"):
+    for key in ("value", "on", "off", "cc"):
         if r.get(key) is None:
             continue
         numbers[key] = _finite(
@@ -473,13 +640,31 @@ def parse_map(text: str, source: str, *, max_registers: int | None = None) -> Re
     _check_keys(lambda key: f"{p}:{lines.of('[device]', 0, key)}", dev, DEVICE_KEYS)
     regs = _registers(registers, p, lines)
     _check_mirrors(regs, p, lines)
-    spans = sorted((r.address, r.address + r.width, r.name) for r in regs)
-    for (_, a1, n0), (b0, _, n1) in itertools.pairwise(spans):
-        if b0 < a1:
-            raise RegisterMapError(
-                f"{p}: registers '{n0}' and '{n1}' overlap at {b0:#06x}; fix an address or a type"
-            )
-    return _device(dev, p, lines, tuple(regs))
+    for coils in (False, True):  # coils and holding registers are separate address spaces
+        spans = sorted((r.address, r.address + r.width, r.name) for r in regs if r.is_coil == coils)
+        for (_, a1, n0), (b0, _, n1) in itertools.pairwise(spans):
+            if b0 < a1:
+                raise RegisterMapError(f"{p}: registers '{n0}' and '{n1}' overlap at {b0:#06x};"
+                                       " fix an address or a type")  # fmt: skip
+    regmap = _device(dev, p, lines, tuple(regs))
+    _check_cc(regmap, f"{p}:{lines.of('[device]', 0, 'kind')}")
+    return regmap
+
+
+def _check_cc(regmap: RegisterMap, where: str) -> None:
+    """An electronic load says how constant current is selected (a load left in CV, CR or CW
+    does not follow its current set-point: in CV at 0 V it sinks all it can), and a ``cc``
+    command is read back from a ``mode`` register."""
+    out, mode = regmap.role("output"), regmap.role("mode")
+    if out is not None and out.cc is not None and mode is None:
+        raise RegisterMapError(f"{where}: the output's cc command needs a register of role 'mode'"
+                               " to read constant current back; add it")  # fmt: skip
+    if regmap.kind == "eload" and regmap.cc_select() is None:
+        raise RegisterMapError(
+            f"{where}: an electronic load map must say how constant current is selected (cc ="
+            " N on its output command register, or a writable register of role 'mode') and"
+            " where it is read back, so its input is never switched on in CV, CR or CW; add it"
+        )
 
 
 def _registers(registers: list[Any], p: str, lines: _Lines) -> list[Register]:

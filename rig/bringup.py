@@ -206,15 +206,15 @@ def scan(
 
 
 def table(found: list[Found], unknown: list[Unknown]) -> str:
-    """What answered, one row per device: port, kind, model, serial."""
+    """What answered, one row per device: port, kind, model, serial; then a ``WARNING`` line
+    for each device identified with a caveat (a model code its map does not list)."""
     rows = [("port", "kind", "model", "serial")]
     rows += [(f.where, f.kind, f.model, f.serial or "-") for f in found]
     rows += [(u.where, "?", u.describe(), "-") for u in unknown]
     widths = [max(len(r[i]) for r in rows) for i in range(4)]
-    return "\n".join(
-        "  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip()
-        for row in rows
-    )
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip()
+             for row in rows]  # fmt: skip
+    return "\n".join(lines + [f"WARNING: {f.where}: {f.warning}" for f in found if f.warning])
 
 
 def _value(value: Any) -> str:
@@ -286,6 +286,7 @@ def _found_lines(name: str, f: Found) -> list[str]:
         f"[devices.{name}]   # {f.model}"
         + (f", serial {f.serial}" if f.serial else "")
         + f" at {f.where}",
+        *([f"# WARNING: {f.warning}"] if f.warning else []),
         f'kind = "{f.kind}"',
         f'protocol = "{f.protocol}"',
     ]
@@ -308,7 +309,7 @@ def _unknown_lines(i: int, u: Unknown) -> list[str]:
         "# (a relay board has no model register). FILL IN its kind and map, then uncomment:",
         f"# [devices.modbus{i}]",
         '# kind = "regmap-relay"          # or regmap-supply / regmap-eload',
-        '# regmap = "relay-h-bridge"      # a shipped map name or a file',
+        '# regmap = "waveshare-relay"     # or r421a08-relay, relay-h-bridge, a file',
         f'# protocol = "{u.protocol}"',
         *(f"# {k} = {_value(v)}" for k, v in u.params.items()),
         "",

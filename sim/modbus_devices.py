@@ -18,6 +18,7 @@ import timebase
 from sim.device_kind import CageHost, SimKind
 from sim.physics import CagePhysics, Faults, Supply, riden_model
 from sim.regmap import Register, RegisterMap, load_regmap
+from sim.regmap_coils import BIT_ONLY_CODES, COIL_CODES, pack, separate_spaces
 
 if TYPE_CHECKING:
     from sim.config import SupplyConfig
@@ -242,7 +243,13 @@ class RegmapModel(_Model):
     (role ``temperature``) the DUT's temperature. Registers of role ``none`` keep what is written
     (their ``value`` at power-on); a register with ``mirror`` is the named register at a second
     address. A register the map lacks answers exception 2, or reads 0 where the map says the
-    device does (``undefined_reads = "zero"``); a write to it answers exception 2."""
+    device does (``undefined_reads = "zero"``); a write to it answers exception 2. Coils
+    (functions 1 and 5) are served from their own address space (:mod:`sim.regmap_coils`).
+
+    A load whose map selects constant current (``RegisterMap.cc_select``) starts in the mode its
+    ``mode`` register's ``value`` gives (the Maynuo: CV); a command to its output register other
+    than on and off sets the mode's ``mask`` bits, and out of constant current it does not follow
+    its current set-point: with its input on it sinks its full range (a load in CV at 0 V)."""
 
     PROTECTION_NAMES: ClassVar[dict[int, str]] = {1: "OVP", 2: "OCP", 3: "OPP"}
 
@@ -255,8 +262,12 @@ class RegmapModel(_Model):
             r.name: r.value for r in spec.registers if r.role != "constant" and r.value is not None
         }
         self.axis = None if supply is None else supply.cfg.axis
-        self.by_address = {r.address: r for r in spec.registers}
+        self.by_address = {r.address: r for r in spec.registers if not r.is_coil}
         self.by_name = {r.name: r for r in spec.registers}
+        self.coils = {r.address: r for r in spec.registers if r.is_coil}
+        self.selects_cc = spec.cc_select() is not None
+        if self.selects_cc and supply is not None:  # its power-on mode (the Maynuo: CV)
+            self._follow_mode(supply)
         if supply is not None:  # protection defaults the registers can hold (never wrapped)
             ovp, ocp, opp = spec.role("ovp"), spec.role("ocp"), spec.role("opp")
             supply.set_protection(
@@ -277,6 +288,10 @@ class RegmapModel(_Model):
             return self.value_of(self.by_name[reg.mirror])
         if reg.role == "constant":
             return reg.value or 0.0
+        if reg.role == "model":  # its value, else the first code the map lists
+            return reg.value if reg.value is not None else float(reg.models[0][0])
+        if self.selects_cc and reg.role in ("mode", "i_set"):  # as written (the mode: commanded)
+            return self.stored.get(reg.name, 0.0)
         if reg.role == "temperature":
             return self.physics.dut_temperature_c()
         if reg.role.startswith("polarity_"):
@@ -306,9 +321,37 @@ class RegmapModel(_Model):
             "opp": lambda: sup.opp_w or 0.0,
         }  # fmt: skip
 
+    async def action(self, fc: int, start_address: int, address: int, count: int,
+                     regs: list[int], values: Any) -> ExcCodes | None:  # fmt: skip
+        """pymodbus' hook: coils here (exception 1 for the spaces no map describes, 2 for the
+        holding registers of a map without any), the rest as every model does."""
+        if not self.coils:
+            return await super().action(fc, start_address, address, count, regs, values)
+        if fc in BIT_ONLY_CODES or fc == 15:
+            return ExcCodes.ILLEGAL_FUNCTION
+        if fc not in COIL_CODES:
+            if not self.by_address:
+                return ExcCodes.ILLEGAL_ADDRESS
+            return await super().action(fc, start_address, address, count, regs, values)
+        fault = await _apply_faults(self.faults, self.simulated)
+        if fault is not None:
+            return fault
+        if values is None:  # a read; for function 5 pymodbus reading the coil just written back
+            if fc != 5:  # (the reply is an echo of the request)
+                pack(regs, start_address, list(self.coils.values()), self.value_of)
+            return None
+        reg = self.coils.get(address)
+        if reg is None or reg.access != "rw":
+            return ExcCodes.ILLEGAL_ADDRESS
+        try:
+            self.apply(reg, 1.0 if values[0] else 0.0)
+        except ValueError:
+            return ExcCodes.ILLEGAL_VALUE
+        return None
+
     def refresh(self, regs: list[int], base: int) -> None:
         """Every register's value into ``regs`` (holding addresses ``base`` onwards)."""
-        for reg in self.spec.registers:
+        for reg in self.by_address.values():
             for i, w in enumerate(reg.encode(self.value_of(reg), saturate=True)):
                 if 0 <= reg.address + i - base < len(regs):
                     regs[reg.address + i - base] = w
@@ -331,7 +374,11 @@ class RegmapModel(_Model):
         if reg.mirror is not None:
             self.apply(self.by_name[reg.mirror], value)
         elif reg.role.startswith("polarity_"):
-            self.physics.set_polarity("xyz".index(reg.role[-1]), -1 if value else 1)
+            if value not in (reg.on, reg.off):
+                raise ValueError(f"relay command {value:g} is neither {reg.on:g} nor {reg.off:g}")
+            self.physics.set_polarity("xyz".index(reg.role[-1]), -1 if value == reg.on else 1)
+        elif self.selects_cc and sup is not None and reg.role in ("mode", "output", "i_set"):
+            self._apply_load(sup, reg, value)
         elif sup is None or reg.role not in ("v_set", "i_set", "output", "ovp", "ocp", "opp"):
             self.stored[reg.name] = value
         elif reg.role == "v_set":
@@ -350,6 +397,32 @@ class RegmapModel(_Model):
             sup.set_protection(ocp_a=value)
         else:
             sup.set_protection(opp_w=value)
+
+    def _apply_load(self, sup: Supply, reg: Register, value: float) -> None:
+        """A write to a load that selects its mode: on/off and mode commands to the output
+        register, a mode to a writable ``mode`` register, the current set-point; the physical
+        set-point follows it only in constant current (else the load's full range)."""
+        mode = self.spec.require("mode")
+        if reg.role == "output":
+            self.stored[reg.name] = value  # a command register reads back the last command
+            if value in (reg.on, reg.off):
+                sup.set_output(value == reg.on)
+                return
+        if reg.role in ("output", "mode"):  # a mode command: its bits in the mode register
+            old = int(self.stored.get(mode.name, 0.0))
+            self.stored[mode.name] = float((old & ~mode.mask) | (int(value) & mode.mask))
+        elif not 0.0 <= value <= sup.i_max:
+            raise ValueError(f"{value:g} A is outside 0-{sup.i_max:g} A")
+        else:
+            self.stored[reg.name] = value
+        self._follow_mode(sup)
+
+    def _follow_mode(self, sup: Supply) -> None:
+        """The physical current set-point of a load that selects its mode: IFIX in constant
+        current, else its full range (what it sinks with its input on)."""
+        mode = self.spec.require("mode")
+        ifix = self.stored.get(self.spec.require("i_set").name, 0.0)
+        sup.set_current(ifix if mode.reads_cc(self.stored.get(mode.name, 0.0)) else sup.i_max)
 
     def _set_current(self, sup: Supply, value: float) -> None:
         if self.spec.bipolar and self.axis is not None:
@@ -371,8 +444,11 @@ def regmap_device(
     else:
         blocks = [
             SimData(address=r.address, values=r.encode(0.0), datatype=DataType.REGISTERS)
-            for r in sorted(spec.registers, key=lambda r: r.address)
+            for r in sorted(model.by_address.values(), key=lambda r: r.address)
         ]
+    if model.coils:
+        spaces = separate_spaces(blocks, list(model.coils.values()))
+        return SimDevice(id=device_id, simdata=spaces, action=model.action)
     return SimDevice(id=device_id, simdata=blocks, action=model.action)
 
 

@@ -235,6 +235,8 @@ class PolarityRelays:
     hot_switch_limit_a: float
     sign: list[int] = field(default_factory=lambda: [1, 1, 1])
     hot_switches: int = 0
+    switches: list[int] = field(default_factory=lambda: [0, 0, 0])
+    """How many times each axis's relay changed position."""
     faults: Faults = field(default_factory=Faults)
 
 
@@ -484,6 +486,7 @@ class CagePhysics:
             self.events.append((t, f"hot switch on axis {'xyz'[axis]} at {live:.3f} A"))
             supply.trip(2, t)
         self.relays.sign[axis] = sign
+        self.relays.switches[axis] += 1
 
     def set_bipolar_sign(self, axis: int, sign: int, t_s: float | None = None) -> None:
         """Output polarity of a four-quadrant supply: the current reverses through zero.

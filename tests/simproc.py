@@ -39,10 +39,11 @@ def sim_process(
         stop_child(proc, wait_s=stop_wait_s)
 
 
-LOAD_INPUT_STATE = 0x0B05
+LOAD_INPUT_STATE = 0x0510
 LOAD_OFF = (0x0A00, 43)
-"""The simulated Maynuo M97xx load (regmaps/maynuo-m97.toml): input state register; CMD register
-and its input-off command (function 16 only: the M97xx has no function 06)."""
+"""The simulated Maynuo M97xx load (regmaps/maynuo-m97.toml): its input state coil (ISTATE, read by
+function 01); CMD register and its input-off command (function 16 only: the M97xx has no
+function 06)."""
 
 
 def output_registers(
@@ -50,7 +51,8 @@ def output_registers(
 ) -> Iterator[tuple[str, Any, int, int]]:
     """(name, connected client, output-state register, device id) of every supply and load, on
     their own wires (RTU ports are exclusive: only ``tcp_only`` ones while a run holds them). The
-    Maynuo load's state is 0x0B05; it is switched by commands to 0x0A00 (:data:`LOAD_OFF`)."""
+    Maynuo load's state is the coil 0x0510; it is switched by commands to 0x0A00
+    (:data:`LOAD_OFF`)."""
     for name, d in devices.items():
         if d["kind"] not in ("riden-rd60xx", "regmap-eload"):
             continue
@@ -68,6 +70,8 @@ def output_registers(
 def outputs(devices: dict[str, Any], tcp_only: bool = False) -> dict[str, int]:
     """Output-enable state of every supply and load."""
     return {
-        name: client.read_holding_registers(reg, count=1, device_id=dev_id).registers[0]
+        name: int(client.read_coils(reg, count=1, device_id=dev_id).bits[0])
+        if reg == LOAD_INPUT_STATE
+        else client.read_holding_registers(reg, count=1, device_id=dev_id).registers[0]
         for name, client, reg, dev_id in output_registers(devices, tcp_only)
     }

@@ -2,10 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 
-from drivers.errors import DeviceNotFoundError, DeviceProtocolError, LimitError
+from drivers.errors import (
+    DeviceError,
+    DeviceNotFoundError,
+    DeviceProtocolError,
+    DeviceStateError,
+    LimitError,
+)
 from drivers.identity import Identity
 from drivers.protection import asked_levels, check_read_back
 from drivers.protocols import ProtectionLevel, SupplyReading
@@ -14,48 +21,83 @@ from drivers.transport.modbus import ModbusLink
 
 
 class MappedDevice:
-    """Common register access for map-described devices."""
+    """Common register access for map-described devices: holding registers (functions 3, 6 and
+    16) and coils (1 and 5); remote control (role ``remote``) taken before the first write and
+    given back on close."""
 
     def __init__(self, link: ModbusLink, regmap: RegisterMap, name: str) -> None:
         self.link = link
         self.map = regmap
         self.name = name
+        self._remote = regmap.role("remote")
+        self._remote_taken = False
+
+    @property
+    def where(self) -> str:
+        """``name at port``, for messages."""
+        return f"{self.name} at {self.link.where}"
 
     def _read(self, reg: Register) -> float:
+        if reg.is_coil:
+            return 1.0 if self.link.read_coils(reg.address, 1)[0] else 0.0
         return reg.decode(self.link.read_registers(reg.address, reg.width))
 
     def _write(self, reg: Register, value: float) -> None:
         if reg.access != "rw":
             raise RegisterMapError(f"{self.map.source}: register '{reg.name}' is read-only")
+        if self._remote is not None and not self._remote_taken and reg is not self._remote:
+            self._switch(self._remote, True)
+            self._remote_taken = True
         words = reg.encode(value)
-        if len(words) == 1 and self.map.write_function == 6:
+        if reg.is_coil:
+            self.link.write_coil(reg.address, bool(words[0]))
+        elif len(words) == 1 and self.map.write_function == 6:
             self.link.write_register(reg.address, words[0])
         else:
             self.link.write_registers(reg.address, words)
 
+    def _state(self, reg: Register) -> bool:
+        """A switched register's state as it reads: 1 on, 0 off (anything else: an error)."""
+        value = self._read(reg)
+        if value not in (0.0, 1.0):
+            raise DeviceProtocolError(
+                f"{self.where}: '{reg.name}' ({reg.address:#06x}) state {value:g} is not 0 or 1;"
+                f" check that the regmap ({self.map.name}) is this device's"
+            )
+        return value == 1.0
+
+    def _switch(self, reg: Register, on: bool) -> None:
+        """Write ``reg``'s on or off value, then read its state back: DeviceStateError when it
+        does not read what was written."""
+        self._write(reg, reg.on if on else reg.off)
+        if self._state(reg) != on:
+            raise DeviceStateError(
+                f"{self.where}: '{reg.name}' ({reg.address:#06x}) reads {'off' if on else 'on'}"
+                f" after being switched {'on' if on else 'off'}; check the device's power and"
+                " wiring, and that nothing else drives it"
+            )
+
     def close(self) -> None:
-        """Close the Modbus link."""
+        """Give remote control back (where it was taken; never raises), close the Modbus link."""
+        if self._remote is not None and self._remote_taken:
+            with contextlib.suppress(DeviceError):
+                self._write(self._remote, self._remote.off)
+            self._remote_taken = False
         self.link.close()
 
-    def check_model(self) -> None:
-        """Read every ``constant`` register that states its value (the model register, say) and
-        raise :class:`DeviceNotFoundError` if one differs: the device is not what the map says."""
-        for reg in self.map.constants():
-            got = self._read(reg)
-            if got != reg.value:
-                raise DeviceNotFoundError(
-                    f"{self.name} at {self.link.where}: register '{reg.name}' ({reg.address:#06x})"
-                    f" reads {got:g}, {self.map.source} expects {reg.value:g}; is this a"
-                    f" {self.map.model}? Check the regmap and the device id"
-                )
-
     def identify(self) -> Identity:
-        """The map's model name, checked against the device's constant registers (the model
-        register) where the map has them."""
-        self.check_model()
+        """The model, checked against the map's constant registers and its model register
+        (:meth:`RegisterMap.identify`): DeviceNotFoundError for another device; an unknown code
+        of a family map is the family's model with a warning that names the code."""
+        found = self.map.identify(self._read)
+        if found.mismatch:
+            raise DeviceNotFoundError(
+                f"{self.where}: {found.mismatch}; is this a {self.map.model}? Check the regmap"
+                " and the device id"
+            )
         serial_reg = self.map.role("serial")
         serial = str(int(self._read(serial_reg))) if serial_reg else ""
-        return Identity(self.map.model, serial, "")
+        return Identity(found.model, serial, "", found.warning)
 
 
 class MappedSupply(MappedDevice):
@@ -106,12 +148,47 @@ class MappedSupply(MappedDevice):
         return amps
 
     def set_output(self, on: bool) -> None:
-        """Output (or load input) enable (the map's on/off values: 1/0, or a command)."""
-        self._write(self.output_reg, self.output_reg.on if on else self.output_reg.off)
+        """Output (or load input) enable (the map's on/off values: 1/0, or a command).
+
+        Where the map says how constant current is selected (an electronic load: a load left in
+        CV, CR or CW does not follow its current set-point), every switch-on first selects it and
+        reads it back, and reads it again once on: a load that does not read constant current
+        is not switched on, or is switched off again at once (DeviceStateError)."""
+        out = self.output_reg
+        select = self.map.cc_select()
+        if not on or select is None:
+            self._write(out, out.on if on else out.off)
+            return
+        reg, value = select
+        self._write(reg, value)
+        self._require_cc("before its input is switched on; the input stays off")
+        self._write(out, out.on)
+        try:
+            self._require_cc("once its input was switched on; the input is switched off again")
+        except DeviceStateError:
+            with contextlib.suppress(DeviceError):
+                self._write(out, out.off)
+            raise
+
+    def _require_cc(self, when: str) -> None:
+        """DeviceStateError unless the ``mode`` register reads constant current."""
+        mode = self.map.require("mode")
+        raw = self._read(mode)
+        if mode.reads_cc(raw):
+            return
+        shown = f"{int(raw):#06x}" if float(raw).is_integer() else f"{raw:g}"
+        cc = int(1.0 if mode.cc is None else mode.cc)
+        bits = f" under mask {mode.mask:#06x}" if mode.mask != 0xFFFF else ""
+        raise DeviceStateError(
+            f"{self.where}: does not read back constant current {when} ('{mode.name}' at"
+            f" {mode.address:#06x} reads {shown}, CC reads {cc}{bits}): take it out of any"
+            " program on its front panel (list, battery test, dynamic) and check the regmap's"
+            f" cc values ({self.map.name})"
+        )
 
     def read(self) -> SupplyReading:
         """Set-points, measured output and power, protection (registers the map lacks read as 0;
-        power as None)."""
+        power as None); constant current as the ``mode`` register says it (its ``cc``, ``mask``)."""
 
         def get(role: str) -> float:
             reg = self.map.role(role)
@@ -119,10 +196,12 @@ class MappedSupply(MappedDevice):
 
         prot = self.map.role("protection")
         protection = "" if prot is None else prot.protection_name(int(self._read(prot)))
+        mode = self.map.role("mode")
         reading = SupplyReading(
             v_set_v=get("v_set"), i_set_a=get("i_set"), v_out_v=get("v_out"), i_out_a=get("i_out"),
             output_on=bool(get("output_state" if self.map.role("output_state") else "output")),
-            constant_current=bool(get("mode")), protection=protection,
+            constant_current=mode is not None and mode.reads_cc(self._read(mode)),
+            protection=protection,
         )  # fmt: skip
         power = self.map.role("power")
         if power is None:
@@ -184,7 +263,9 @@ def _resolution(reg: Register, value: float) -> float:
 
 
 class PolarityRelay(MappedDevice):
-    """H-bridge relays, one per coil axis: 0 = normal, 1 = reversed.
+    """H-bridge relays, one per coil axis: off = normal, on = reversed (a coil, a register
+    written 1/0, or one switched by command values such as 0x0100/0x0200); every switch is read
+    back.
 
     Switching a coil that carries current arcs the contacts; the cage controller brings the axis to
     zero before calling :meth:`set_polarity` (break before make).
@@ -197,24 +278,27 @@ class PolarityRelay(MappedDevice):
         self.regs = [regmap.require(f"polarity_{ax}") for ax in "xyz"]
 
     def polarity(self, axis: int) -> int:
-        """+1 (normal) or -1 (reversed)."""
-        value = self._read(self.regs[axis])
-        if value not in (0.0, 1.0):
-            raise DeviceProtocolError(
-                f"{self.name} at {self.link.where}: relay state {value:g} is not 0 or 1"
-            )
-        return -1 if value else 1
+        """+1 (normal) or -1 (reversed), as the relay reads."""
+        return -1 if self._state(self.regs[axis]) else 1
 
     def set_polarity(self, axis: int, sign: int) -> None:
-        """Set axis ``axis`` (0-2) to ``sign`` (+1 or -1)."""
-        self._write(self.regs[axis], 1.0 if sign < 0 else 0.0)
+        """Set axis ``axis`` (0-2) to ``sign`` (+1 or -1) and read it back (DeviceStateError when
+        the relay did not switch)."""
+        self._switch(self.regs[axis], sign < 0)
 
     def safe(self) -> None:
-        """Every axis back to normal (0), the position a de-energised relay falls to. Call it only
+        """Every axis back to normal (relay off, the position a de-energised relay falls to),
+        each read back; every axis is tried before the first failure is raised. Call it only
         with the coils off (the cage controller and the guardian switch the supplies off and wait
         for the coil current to decay first)."""
+        failed: list[DeviceError] = []
         for reg in self.regs:
-            self._write(reg, 0.0)
+            try:
+                self._switch(reg, False)
+            except DeviceError as exc:
+                failed.append(exc)
+        if failed:
+            raise failed[0]
 
 
 class MappedThermometer(MappedDevice):

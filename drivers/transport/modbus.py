@@ -473,6 +473,22 @@ class ModbusLink:
         self._call(f"writing {len(values)} registers at {address}", self._client.write_registers,
                    address, values)  # fmt: skip
 
+    def read_coils(self, address: int, count: int = 1) -> list[bool]:
+        """Coils (function 1): ``count`` states, the first at ``address`` (a reply's padding bits
+        past ``count`` are dropped: some devices fill them with noise)."""
+        rr = self._call(f"reading {count} coil(s) at {address}", self._client.read_coils,
+                        address, count=count)  # fmt: skip
+        bits = [bool(b) for b in rr.bits]
+        if len(bits) < count:
+            raise DeviceProtocolError(f"{self.name} at {self.where}: asked for {count} coils at"
+                                      f" {address}, got {len(bits)}")  # fmt: skip
+        return bits[:count]
+
+    def write_coil(self, address: int, on: bool) -> None:
+        """One coil (function 5): 0xFF00 for on, 0x0000 for off."""
+        self._call(f"writing {'on' if on else 'off'} to coil {address}", self._client.write_coil,
+                   address, bool(on))  # fmt: skip
+
     def close(self) -> None:
         """Close the connection."""
         self._client.close()

@@ -25,10 +25,13 @@ from rig.store.run_store import RunWriter
 Event = Callable[[str, str], None]
 
 
-def _identity(device: Any) -> str | None:
-    """'model serial' of ``device``, None if it cannot say (an identity is for the record only)."""
+def _identity(device: Any, warn: Callable[[str], None] | None = None) -> str | None:
+    """'model serial' of ``device``, None if it cannot say (an identity is for the record only);
+    a caveat of its identification (a model code its map does not list) told to ``warn``."""
     with contextlib.suppress(Exception):
         ident = device.identify()
+        if ident.warning and warn is not None:
+            warn(ident.warning)
         return f"{ident.model} {ident.serial}".strip()
     return None
 
@@ -60,15 +63,21 @@ def start_samplers(rig: RigSession, proc: Procedure, cfg: RigConfig, writer: Run
 
 
 def open_loads(rig: RigSession, proc: Procedure, cfg: RigConfig, book: LoadBook,
-               instruments: dict[str, str]) -> None:  # fmt: skip
-    """The procedure's load channels, at 0 A with their outputs on (off when the session ends)."""
+               instruments: dict[str, str], event: Event | None = None) -> None:  # fmt: skip
+    """The procedure's load channels, at 0 A with their outputs on (off when the session ends);
+    a load identified with a caveat (an unlisted model code) is a ``warning`` event."""
     for name in proc.loads:
         if name not in cfg.devices:
             raise RigError(f"{proc.path}: load '{name}' is not a device in {cfg.path}")
         load = rig.load(name)
         book.loads[name] = load
         book.commanded[name] = 0.0
-        if (ident := _identity(load)) is not None:
+
+        def warn(message: str, name: str = name) -> None:
+            if event is not None:
+                event("warning", f"{name}: {message}")
+
+        if (ident := _identity(load, warn)) is not None:
             instruments[name] = ident
 
 

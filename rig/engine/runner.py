@@ -255,7 +255,7 @@ class Runner:
         instruments = dict(self.controller.instruments())
         start_samplers(rig, self.proc, self.cfg, w, self.samplers, instruments, self._event)
         guard_the_field(rig, self.cfg, self.samplers)  # the field limit on what is measured
-        open_loads(rig, self.proc, self.cfg, self.loads, instruments)
+        open_loads(rig, self.proc, self.cfg, self.loads, instruments, self._event)
         thermometers = record_thermometers(rig, self.cfg, w, instruments, self._event)
         check_thermometers(self.proc, self.cfg, thermometers)
         self.correction = reference_correction(self.proc, self.cfg)

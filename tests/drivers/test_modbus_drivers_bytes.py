@@ -135,12 +135,19 @@ def test_riden_over_tcp() -> None:
 
 def test_electronic_load_float32_over_tcp() -> None:
     peer = ScriptedTcpPeer([
+        # remote control first (coil PC1, function 05), read back (function 01)
+        (bytes.fromhex("01 05 05 00 FF 00"), bytes.fromhex("01 05 05 00 FF 00")),
+        (bytes.fromhex("01 01 05 00 00 01"), bytes.fromhex("01 01 01 01")),
         (bytes.fromhex("01 10 0A 01 00 02 04 40 20 00 00"), bytes.fromhex("01 10 0A 01 00 02")),  # 2.5 A
-        # CMD 42 = input on, by function 16 (the M97xx has no function 06)
-        (bytes.fromhex("01 10 0A 00 00 01 02 00 2A"), bytes.fromhex("01 10 0A 00 00 01")),
+        # CMD 1 = CC, by function 16 (the M97xx has no function 06), read back at SETMODE: 0xFF01
+        (bytes.fromhex("01 10 0A 00 00 01 02 00 01"), bytes.fromhex("01 10 0A 00 00 01")),
+        (bytes.fromhex("01 03 0B 04 00 01"), bytes.fromhex("01 03 02 FF 01")),
+        (bytes.fromhex("01 10 0A 00 00 01 02 00 2A"), bytes.fromhex("01 10 0A 00 00 01")),  # 42: on
+        (bytes.fromhex("01 03 0B 04 00 01"), bytes.fromhex("01 03 02 FF 01")),  # still CC
         (bytes.fromhex("01 03 0B 02 00 02"), bytes.fromhex("01 03 04 40 1F FF EF")),  # 2.49999 A
         (bytes.fromhex("01 10 0A 00 00 01 02 00 2B"), bytes.fromhex("01 10 0A 00 00 01")),  # 43: off
         (bytes.fromhex("01 10 0A 01 00 02 04 00 00 00 00"), bytes.fromhex("01 10 0A 01 00 02")),
+        (bytes.fromhex("01 05 05 00 00 00"), bytes.fromhex("01 05 05 00 00 00")),  # local again
     ])  # fmt: skip
     link = ModbusLink(name="load", host="127.0.0.1", port=peer.port, timeout_s=0.5, retries=0)
     load = MappedSupply(link, load_map("maynuo-m97"), name="load")
@@ -152,7 +159,7 @@ def test_electronic_load_float32_over_tcp() -> None:
         with pytest.raises(LimitError):
             load.set_current(-1.0)  # a load is unipolar
     finally:
-        link.close()
+        load.close()
         peer.close()
     assert peer.mismatches == []
 
@@ -160,6 +167,7 @@ def test_electronic_load_float32_over_tcp() -> None:
 def test_polarity_relay_over_tcp() -> None:
     peer = ScriptedTcpPeer([
         (bytes.fromhex("01 06 00 02 00 01"), bytes.fromhex("01 06 00 02 00 01")),
+        (bytes.fromhex("01 03 00 02 00 01"), bytes.fromhex("01 03 02 00 01")),  # read back
         (bytes.fromhex("01 03 00 02 00 01"), bytes.fromhex("01 03 02 00 01")),
         (bytes.fromhex("01 03 00 00 00 01"), bytes.fromhex("01 03 02 00 07")),  # not 0/1
     ])  # fmt: skip
@@ -168,7 +176,7 @@ def test_polarity_relay_over_tcp() -> None:
     try:
         relay.set_polarity(2, -1)
         assert relay.polarity(2) == -1
-        with pytest.raises(DeviceError, match="relay state 7 is not 0 or 1"):
+        with pytest.raises(DeviceError, match="state 7 is not 0 or 1"):
             relay.polarity(0)
     finally:
         link.close()

@@ -40,7 +40,8 @@ def test_a_parameter_name_has_one_type_everywhere() -> None:
 def test_shipped_register_maps_load() -> None:
     maps = {m.name: m for m in shipped_maps()}
     assert {"maynuo-m97", "bipolar-supply", "relay-h-bridge"} <= set(maps)
-    assert [r.value for r in maps["maynuo-m97"].constants()] == [9711.0]
+    model = maps["maynuo-m97"].require("model")
+    assert model.models == ((101, "Maynuo M9812"), (28, "Maynuo M9710"))
 
 
 def write(tmp_path: Path, text: str) -> Path:

@@ -92,7 +92,7 @@ def test_protection_codes_and_flags() -> None:
 def test_command_values_belong_to_an_output_and_write_function_is_6_or_16(tmp_path: Path) -> None:
     path = broken(tmp_path, 'role = "v_set"', 'role = "v_set"\non = 42')
     with pytest.raises(
-        RegisterMapError, match=r"on and off belong to a register with role 'output'"
+        RegisterMapError, match=r"on belongs to a register with role 'output', 'remote', "
     ):
         load_map(str(path))
     path = broken(tmp_path, "baudrate = 9600", "baudrate = 9600\nwrite_function = 7")

@@ -55,7 +55,7 @@ def test_every_identifiable_device_is_found(
         "trim_z": ("riden-rd60xx", "RD6006P"),
         "load_bus": ("riden-rd60xx", "RD6006"),
         "heater": ("riden-rd60xx", "RD6006"),
-        "load_panel": ("regmap-eload", "Maynuo M9711"),
+        "load_panel": ("regmap-eload", "Maynuo M9812"),
         "dut": ("hmr2300", "HMR2300"),
         "reference": ("ascii-mag", "ASCII line magnetometer"),
         "outside": ("ascii-mag", "ASCII line magnetometer"),

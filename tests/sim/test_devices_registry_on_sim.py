@@ -46,7 +46,8 @@ def test_an_electronic_load_has_no_voltage_set_point(
     load = open_load(device(devices, "load_panel"))
     try:
         assert cage.physics.supplies["load_panel"].output
-        assert "M9711" in load.identify().model  # its model register reads 9711
+        assert load.identify().model == "Maynuo M9812"  # its model register reads 101
+        assert load.read().constant_current  # selected before its input was switched on
     finally:
         load.safe()
         load.close()

@@ -76,19 +76,36 @@ def test_exception_replies(devices: dict[str, Any]) -> None:
 
 @needs_mbpoll
 def test_electronic_load_float32_and_bias(devices: dict[str, Any], cage: SimulatedCage) -> None:
+    """The simulated Maynuo as an independent client sees it: no function 06, its coils (remote
+    PC1, input state ISTATE) read by function 01, and constant current only when selected: it
+    powers up in CV (SETMODE 0xFF02), where a client that switches its input on without CMD 1
+    sees it sink its full 30 A, not the 2.5 A asked."""
     dev = devices["load_panel"]
     assert mbpoll(dev, "-r", str(0x0A01), "-t", "4:float", "-B", write=["2.5"]).returncode == 0
     single = mbpoll(dev, "-r", str(0x0A00), "-t", "4", write=["42"])  # function 06
     assert single.returncode != 0 and "Illegal function" in single.stdout + single.stderr
+    assert values(mbpoll(dev, "-r", str(0x0B04), "-t", "4"))[0x0B04] == 0xFF02  # CV
+    assert values(mbpoll(dev, "-r", str(0x0500), "-c", "1", "-t", "0")) == {0x0500: 0}  # local
     client = ModbusTcpClient("127.0.0.1", port=dev["port"])
     assert client.connect()
-    assert not client.write_registers(0x0A00, [42], device_id=dev["device_id"]).isError()  # on
+    uid = dev["device_id"]
+    assert not client.write_registers(0x0A00, [42], device_id=uid).isError()  # on, in CV
+    time.sleep(0.1)
+    assert abs(cage.physics.load_currents(time.monotonic())["load_panel"] - 30.0) < 1e-3
+    assert not client.write_registers(0x0A00, [43], device_id=uid).isError()  # off
+    assert not client.write_coil(0x0500, True, device_id=uid).isError()  # remote
+    assert not client.write_registers(0x0A00, [1], device_id=uid).isError()  # CC
+    assert values(mbpoll(dev, "-r", str(0x0B04), "-t", "4"))[0x0B04] == 0xFF01
+    assert not client.write_registers(0x0A00, [42], device_id=uid).isError()  # on, in CC
     time.sleep(0.1)
     meas = values(mbpoll(dev, "-r", str(0x0B02), "-t", "4:float", "-B"))
     assert abs(meas[0x0B02] - 2.5) < 1e-3
     assert abs(cage.physics.load_currents(time.monotonic())["load_panel"] - 2.5) < 1e-3
-    assert values(mbpoll(dev, "-r", str(0x0B05), "-t", "4"))[0x0B05] == 1  # input state
-    assert not client.write_registers(0x0A00, [43], device_id=dev["device_id"]).isError()  # off
+    coils = values(mbpoll(dev, "-r", str(0x0500), "-c", "17", "-t", "0"))
+    assert (coils[0x0500], coils[0x0510]) == (1, 1)  # remote, input on
+    assert not client.write_registers(0x0A00, [43], device_id=uid).isError()  # off
+    assert values(mbpoll(dev, "-r", str(0x0510), "-c", "1", "-t", "0")) == {0x0510: 0}
+    assert not client.write_coil(0x0500, False, device_id=uid).isError()
     client.close()
     assert not cage.physics.supplies["load_panel"].output
 
