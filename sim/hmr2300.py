@@ -1,7 +1,11 @@
 """Honeywell HMR2300 on a serial line: the datasheet command set, ASCII and binary output.
 
 Commands are ``*ddCMD<CR>`` (``dd`` the two-digit ID, 99 = everyone); write-protected commands need
-``*ddWE`` immediately before. Output: 15000 counts per gauss (150 per uT), +-30000 counts; binary
+``*ddWE`` immediately before, on its own line (answered ``OK``) or on the command's line as the
+datasheet's command table writes it, ``*ddWE *ddA<CR>`` (only the command answers: ``ASCII ON``).
+The serial number and software version replies are as long as the table gives them: ``SER# ``
+and ``S/W vers: `` followed by a 16-character field (22 and 27 bytes with the CR; the field's
+padding, spaces after the value, is not in the table; ``H/W vers:`` is taken to be alike). Output: 15000 counts per gauss (150 per uT), +-30000 counts; binary
 frames are ``XH XL YH YL ZH ZL CR`` (two's complement, big-endian); ASCII samples are 28 bytes.
 The line is paced at 10 bits per byte at the configured baud rate, so the achievable sample rate
 is what the datasheet table gives (binary: 154 sps at 19200 baud; ASCII: 50 sps).
@@ -44,6 +48,8 @@ COUNTS_PER_UT = 150.0
 FULL_SCALE_COUNTS = 30000
 RATES_SPS = (10, 20, 25, 30, 40, 50, 60, 100, 123, 154)
 ESC = 0x1B
+ID_FIELD_CHARS = 16
+"""The width of the serial number and version fields: ``*dd#`` answers 22 bytes, ``*ddF`` 27."""
 
 
 def counts_from_ut(field_ut: np.ndarray) -> tuple[int, int, int]:
@@ -180,10 +186,19 @@ class Hmr2300:
     # --- commands -------------------------------------------------------------------------------
 
     def handle(self, line: str) -> None:
-        """Execute one command line (without the CR)."""
+        """Execute one command line (without the CR): a command, or write enable and the command
+        it covers on one line (``*ddWE *ddCMD``: only the command answers)."""
         if not line.startswith("*"):
             return
-        body = line[1:]
+        first, star, rest = line[1:].partition("*")
+        if star and first.strip().upper()[2:] == "WE" and "*" not in rest:
+            self._execute(first.strip(), quiet=True)
+            self._execute(rest.strip())
+        else:
+            self._execute(line[1:])
+
+    def _execute(self, body: str, quiet: bool = False) -> None:
+        """One command ``ddCMD`` (``quiet``: a write enable that does not answer)."""
         if len(body) >= 10 or len(body) < 2 or not body[:2].isdigit():
             self._reenter()
             return
@@ -191,6 +206,9 @@ class Hmr2300:
         if dd not in (self.device_id, 99):
             return
         cmd = body[2:].upper()
+        if cmd == "WE" and quiet:
+            self.write_enabled = True
+            return
         we, self.write_enabled = self.write_enabled, False
         protected = {
             "A", "B", "TN", "TF", "T", "ZN", "ZF", "ZR", "VN", "VF", "V", "Y", "N", "D", "RST", "SP",
@@ -216,11 +234,11 @@ class Hmr2300:
             self._invalid_after_pulse = 3
             self._reply({"]S": "SET", "]R": "RST", "]": "SET"}[cmd])
         elif cmd == "#":
-            self._reply(f"SER# {self.serial_number}")
+            self._reply(f"SER# {self.serial_number:<{ID_FIELD_CHARS}}")
         elif cmd == "F":
-            self._reply("S/W vers: 3.12")
+            self._reply(f"S/W vers: {'3.12':<{ID_FIELD_CHARS}}")
         elif cmd == "H":
-            self._reply("H/W vers: 2.01")
+            self._reply(f"H/W vers: {'2.01':<{ID_FIELD_CHARS}}")
         elif cmd == "Q":
             fmt = "BINARY ON" if self.binary else "ASCII ON"
             self._reply(
