@@ -29,6 +29,43 @@ class SupplyReading:
     power_w: float | None = None  # the device's own power reading; None where it has none
 
 
+@dataclass(frozen=True)
+class ProtectionLevel:
+    """One protection trip level as the instrument holds it: ``kind`` "OVP" (V), "OCP" (A) or
+    "OPP" (W), its ``value`` in that unit, and ``register``, where it is (for messages), e.g.
+    "register 's_ovp' (0x0052)"."""
+
+    kind: str
+    value: float
+    register: str
+
+    @property
+    def unit(self) -> str:
+        """V, A or W."""
+        return PROTECTION_UNITS[self.kind]
+
+
+PROTECTION_UNITS = {"OVP": "V", "OCP": "A", "OPP": "W"}
+"""The unit of each protection level."""
+
+
+@runtime_checkable
+class Protected(Protocol):
+    """An output whose protection levels can be read and set (every supply and load the rig
+    knows: the Riden's M0 OVP/OCP, a register map's ``ovp``/``ocp``/``opp`` registers)."""
+
+    def protection_levels(self) -> tuple[ProtectionLevel, ...]:
+        """Every protection level the instrument has, as it reads now."""
+        ...
+
+    def set_protection_levels(self, *, ovp_v: float | None = None, ocp_a: float | None = None,
+                              opp_w: float | None = None) -> tuple[ProtectionLevel, ...]:  # fmt: skip
+        """Write the levels given (None: left as is), then read every level back. Raises
+        LimitError for a level the instrument does not have or cannot hold, DeviceProtocolError
+        when one reads back other than written."""
+        ...
+
+
 class Output(Protocol):
     """Anything that can drive current: it identifies itself, goes safe and closes."""
 

@@ -616,6 +616,16 @@ SUPPLY_PARAMS: tuple[Param, ...] = (
           " is refused, and a read-back V_out x I_out beyond it during a run is a fault",
           above=0.0, unit="W",
           fix="write the most power this output may deliver, e.g. max_power_w = 20"),
+    Param("ovp_v", NUMBER, help="over-voltage protection level, written to the instrument (and"
+          " read back) when the rig opens it; rig check warns when it is above the output's"
+          " voltage limit", above=0.0, unit="V",
+          fix="write the voltage at which the instrument must switch off, e.g. ovp_v = 13.0"),
+    Param("ocp_a", NUMBER, help="over-current protection level, written and read back at open;"
+          " rig check warns when it is above the output's current limit", above=0.0, unit="A",
+          fix="write the current at which the instrument must switch off, e.g. ocp_a = 2.0"),
+    Param("opp_w", NUMBER, help="over-power protection level (instruments that have one), written"
+          " and read back at open; rig check warns when it is above max_power_w", above=0.0,
+          unit="W", fix="write the power at which the instrument must switch off, e.g. opp_w = 20"),
     Param("heats", TEXT, help="the thermometer (a device name) this output warms, e.g. a heater"
           " pad on the DUT's mount: rig check predicts that thermometer's temperature, and it"
           " interlocks this output (docs/adr/0035)", nonempty=True,

@@ -12,6 +12,9 @@ Format::
     baudrate = 9600         # factory default on Modbus RTU (optional; 115200 when absent)
     write_function = 16     # 16: every write is Write Multiple Registers (a device without
                             # function 6); 6 (default): one register by 6, wider ones by 16
+    undefined_reads = "zero"  # what a read of an address the map does not list answers on the
+                            # real device: "zero" (it reads 0) or "exception" (exception 2,
+                            # the default); the simulator answers the same
 
     [[registers]]
     name = "i_set"
@@ -28,6 +31,8 @@ Format::
     flags = ["OVP", "OCP"]       # role "protection", one bit each (bit 0 first)
     on = 42                 # role "output" written as a command: the values for on and off (the
     off = 43                # state is then read from a register of role "output_state")
+    mirror = "v_set"        # this address is a second one of the named register: it reads and
+                            # writes the same value (a DPS's 0x50, the active preset's U-SET)
 
 An unknown key, role, kind, type or access is an error naming the file, the line and the nearest
 valid name; so are overlapping registers, two registers of one name or role, an address outside
@@ -76,9 +81,12 @@ ROLES = {
     "constant": "always reads 'value' (a model number)",
     "none": "no meaning to the rig (kept by the simulator)",
 }
-DEVICE_KEYS = ("kind", "model", "v_max", "i_max", "bipolar", "baudrate", "write_function")
+DEVICE_KEYS = ("kind", "model", "v_max", "i_max", "bipolar", "baudrate", "write_function",
+               "undefined_reads")  # fmt: skip
+UNDEFINED_READS = ("exception", "zero")
+"""What a read of an unlisted address answers: exception 2, or 0 (``[device] undefined_reads``)."""
 REGISTER_KEYS = ("name", "address", "type", "scale", "unit", "access", "role", "value", "codes",
-                 "flags", "on", "off")  # fmt: skip
+                 "flags", "on", "off", "mirror")  # fmt: skip
 TOP_KEYS = ("device", "registers")
 DEFAULT_CODES = ("", "OVP", "OCP")
 REPEATABLE_ROLES = ("none", "constant")
@@ -120,6 +128,7 @@ class Register:
     flags: tuple[str, ...] = ()
     on: float = 1.0  # role "output": the value written to switch on
     off: float = 0.0  # and off
+    mirror: str | None = None  # the register (by name) this address is a second one of
 
     @property
     def width(self) -> int:
@@ -194,6 +203,7 @@ class RegisterMap:
     source: str
     baudrate: int | None = None
     write_function: int = 6  # 16: the device has no Write Single Register (function 6)
+    undefined_reads: str = "exception"  # "zero": an unlisted address reads 0 on the device
 
     @property
     def name(self) -> str:
@@ -365,8 +375,27 @@ def _register(at: Callable[..., str], i: int, r: Any) -> Register:
     numbers = _numbers(
         at, r, Register(name, address, type_, access, role, scale, None, codes, flags)
     )
+    mirror = _label(at("mirror"), f"{what}: mirror", r["mirror"], MAX_NAME_CHARS) \
+        if "mirror" in r else None  # fmt: skip
     return Register(name, address, type_, access, role, scale, numbers.get("value"), codes, flags,
-                    numbers.get("on", 1.0), numbers.get("off", 0.0))  # fmt: skip
+                    numbers.get("on", 1.0), numbers.get("off", 0.0), mirror)  # fmt: skip
+
+
+def _check_mirrors(regs: list[Register], p: str, lines: _Lines) -> None:
+    """Every ``mirror`` names another register, not itself a mirror, of the same type and scale."""
+    by_name = {r.name: r for r in regs}
+    for i, reg in enumerate(regs):
+        if reg.mirror is None:
+            continue
+        target = by_name.get(reg.mirror)
+        where = f"{p}:{lines.of('[[registers]]', i, 'mirror')}: register '{reg.name}'"
+        if target is None or target is reg or target.mirror is not None:
+            raise RegisterMapError(f"{where}: mirror '{reg.mirror}' is not another register of"
+                                   f" this map; {_nearest(reg.mirror, by_name)}")  # fmt: skip
+        if (target.type, target.scale) != (reg.type, reg.scale):
+            raise RegisterMapError(f"{where}: mirrors '{target.name}' ({target.type}, scale"
+                                   f" {target.scale:g}) with type {reg.type} and scale"
+                                   f" {reg.scale:g}; give both the same")  # fmt: skip
 
 
 def _codes_and_flags(
@@ -443,6 +472,7 @@ def parse_map(text: str, source: str, *, max_registers: int | None = None) -> Re
         )
     _check_keys(lambda key: f"{p}:{lines.of('[device]', 0, key)}", dev, DEVICE_KEYS)
     regs = _registers(registers, p, lines)
+    _check_mirrors(regs, p, lines)
     spans = sorted((r.address, r.address + r.width, r.name) for r in regs)
     for (_, a1, n0), (b0, _, n1) in itertools.pairwise(spans):
         if b0 < a1:
@@ -512,8 +542,10 @@ def _device(dev: dict[str, Any], p: str, lines: _Lines, regs: tuple[Register, ..
         raise RegisterMapError(
             f"{p}:{lines.of('[device]', 0, 'write_function')}: write_function must be 6 or 16"
         )
+    undefined = _choice(f"{p}:{lines.of('[device]', 0, 'undefined_reads')}", "undefined_reads",
+                        dev.get("undefined_reads", "exception"), UNDEFINED_READS)  # fmt: skip
     return RegisterMap(kind, model, regs, limits.get("v_max", 0.0), limits.get("i_max", 0.0),
-                       bipolar, str(p), baudrate, int(write_function))  # fmt: skip
+                       bipolar, str(p), baudrate, int(write_function), undefined)  # fmt: skip
 
 
 @lru_cache(maxsize=64)

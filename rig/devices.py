@@ -8,14 +8,30 @@ from typing import Any
 
 import numpy as np
 
-from drivers.protocols import Load, Magnetometer, Relay, ScalarMagnetometer, Supply, Thermometer
+from drivers.errors import DeviceError
+from drivers.protocols import (
+    Load,
+    Magnetometer,
+    Protected,
+    Relay,
+    ScalarMagnetometer,
+    Supply,
+    Thermometer,
+)
 from drivers.registry import KINDS, OpenSpec, Role
 from drivers.regmap import RegisterMapError
 from rig.cage.controller import AxisDrive, CageController
 from rig.cage.limits import CageLimits
 from rig.config import DeviceConfig, RigConfig
 from rig.errors import UserInputError
-from rig.output_limits import cage_model, limited
+from rig.output_limits import (
+    PROTECTION_KEYS,
+    cage_model,
+    cage_role,
+    limited,
+    protection_findings,
+    protection_limits,
+)
 
 
 def open_device(dev: DeviceConfig, i2c_bus: Any | None = None) -> Any:
@@ -58,7 +74,27 @@ def open_supply(
     (:mod:`rig.output_limits`; with ``cfg``, the cage's too if it is a cage coil)."""
     _check_role(dev, "supply")
     supply: Supply = limited(cfg, dev, open_device(dev, i2c_bus))
+    try:
+        apply_protection_levels(dev, supply)
+    except BaseException:
+        supply.close()
+        raise
     return supply
+
+
+def apply_protection_levels(dev: DeviceConfig, output: object) -> None:
+    """Write the protection levels ``dev`` gives (``ovp_v``, ``ocp_a``, ``opp_w``) to the opened
+    ``output`` and read them back (the driver raises when one does not read back); a
+    UserInputError for an instrument without protection levels the rig can set."""
+    asked = {
+        key: float(dev.get(key)) for key in PROTECTION_KEYS.values() if dev.get(key) is not None
+    }
+    if not asked:
+        return
+    if not isinstance(output, Protected):
+        raise UserInputError(f"device '{dev.name}' ({dev.kind}) has no protection levels the rig"
+                             f" can set; remove {', '.join(asked)} from its table")  # fmt: skip
+    output.set_protection_levels(**asked)
 
 
 def open_relay(dev: DeviceConfig, i2c_bus: Any | None = None) -> Relay:
@@ -108,6 +144,7 @@ def open_load(dev: DeviceConfig, i2c_bus: Any | None = None, cfg: RigConfig | No
     _check_role(dev, "load")
     load: Load = limited(cfg, dev, open_device(dev, i2c_bus))
     try:
+        apply_protection_levels(dev, load)
         load.enable_as_load(float(dev.get("compliance_v", 12.0)))
     except BaseException:
         with contextlib.suppress(Exception):
@@ -180,3 +217,35 @@ def _reference_correction(
             f"{cfg.path}: [devices.{dev.name}] correction_matrix must be 3x3 and correction_offset_ut 3 numbers"
         ) from None
     return m, o
+
+
+def instrument_protection_findings(
+    cfg: RigConfig, i2c_bus: Any | None = None
+) -> tuple[list[str], list[str]]:
+    """Every supply's and load's protection levels, read from the instrument (opened as a run
+    opens it, nothing switched) and held against its limits in ``cfg``
+    (:func:`rig.output_limits.protection_findings`): the findings, and one sentence per output
+    whose levels could not be read."""
+    findings: list[str] = []
+    unread: list[str] = []
+    for dev in cfg.devices.values():
+        kind = KINDS.get(dev.kind)
+        if kind is None or not {"supply", "load"} & kind.roles:
+            continue
+        try:
+            output = limited(cfg, dev, open_device(dev, i2c_bus))
+        except (DeviceError, UserInputError) as exc:
+            unread.append(f"{dev.name}: its protection levels were not read ({exc})")
+            continue
+        try:
+            if not isinstance(output, Protected):
+                unread.append(f"{dev.name}: {dev.kind} has no protection levels the rig can read")
+                continue
+            allowed = protection_limits(dev, output.limits, sets_voltage=output.sets_voltage,
+                                        cage_device=cage_role(cfg, dev.name) is not None)  # fmt: skip
+            findings += protection_findings(dev, output.protection_levels(), allowed)
+        except DeviceError as exc:
+            unread.append(f"{dev.name}: its protection levels were not read ({exc})")
+        finally:
+            output.close()
+    return findings, unread

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from drivers.identity import Identity
-from drivers.protocols import SupplyReading
+from drivers.protocols import ProtectionLevel, SupplyReading
 from drivers.registry import KINDS
 from rig.cage.model import CageModel
 from rig.config import DeviceConfig, RigConfig
@@ -101,7 +101,11 @@ def output_limits(cfg: RigConfig | None, dev: DeviceConfig, driver: Any) -> Outp
         )
     ]
     volts_max = getattr(driver, "max_voltage_v", None)
-    voltage = [(float(volts_max), f"the voltage range of {name}")] if volts_max is not None else []
+    volts_configured = dev.get("max_voltage_v")
+    voltage = [] if volts_max is None else [(float(volts_max), (
+        f"max_voltage_v of [devices.{name}]"
+        if volts_configured is not None and float(volts_configured) <= float(volts_max)
+        else f"the voltage range of {name}"))]  # fmt: skip
     c = cfg.cage if cfg is not None else None
     axis = cage_axis(cfg, dev) if cfg is not None else None
     if cfg is not None and c is not None and axis is not None:
@@ -316,3 +320,70 @@ def refuse_cage_devices_as_loads(loads: list[str], cfg: RigConfig, procedure: Pa
                 f" a load (coils take field steps, within the cage limits): name a load channel"
                 f" ({', '.join(channels) or 'none in the configuration'})"
             )
+
+
+# --- protection levels: the instrument's own trip levels against the rig's limits ------------
+
+PROTECTION_KEYS = {"OVP": "ovp_v", "OCP": "ocp_a", "OPP": "opp_w"}
+"""The rig configuration's key for each protection level (written when the rig opens the output)."""
+
+
+def protection_limits(dev: DeviceConfig, limits: OutputLimits, *, sets_voltage: bool,
+                      cage_device: bool) -> dict[str, tuple[float, str]]:  # fmt: skip
+    """The most each protection level of output ``dev`` may be, with the words naming where that
+    limit comes from: OCP its current limit, OVP its voltage limit (for a load channel with a
+    voltage set-point also its ``compliance_v``, the most the rig puts across its load), OPP its
+    ``max_power_w``. A level with no finite limit is left out."""
+    allowed = {"OCP": (limits.max_current_a, limits.current_from)}
+    volts = [] if limits.max_voltage_v is None else [(limits.max_voltage_v, limits.voltage_from)]
+    if sets_voltage and not cage_device:
+        volts.append((float(dev.get("compliance_v", 12.0)),
+                      f"compliance_v of [devices.{dev.name}]"))  # fmt: skip
+    if volts:
+        allowed["OVP"] = min(volts, key=lambda v: v[0])
+    if limits.max_power_w is not None:
+        allowed["OPP"] = (limits.max_power_w, limits.power_from)
+    return {kind: v for kind, v in allowed.items() if math.isfinite(v[0])}
+
+
+def protection_findings(dev: DeviceConfig, levels: tuple[ProtectionLevel, ...],
+                        allowed: dict[str, tuple[float, str]]) -> list[str]:  # fmt: skip
+    """One sentence per protection level looser than its limit (``allowed``, from
+    :func:`protection_limits`): the output, the level, where it is, the limit and the fix."""
+    found = []
+    for level in levels:
+        if level.kind not in allowed or level.value <= allowed[level.kind][0] * (1 + TOLERANCE):
+            continue
+        limit, source = allowed[level.kind]
+        u, key = level.unit, PROTECTION_KEYS[level.kind]
+        found.append(
+            f"{dev.name}: {level.kind} is {level.value:g} {u} ({level.register}), above"
+            f" {limit:g} {u}, {source}: the instrument would let the output pass the rig's limit"
+            f" before it switches off; lower it to at most {limit:g} {u} ({key} = {limit:g} in"
+            f" [devices.{dev.name}] is written when the rig opens it, or set it on the instrument)"
+        )
+    return found
+
+
+class _NotOpened:
+    """Output ``dev``'s instrument, not opened: no range of its own, only its configured limits."""
+
+    def __init__(self, dev: DeviceConfig) -> None:
+        self.max_current_a = float(dev.get("max_current_a", math.inf))
+        self.max_voltage_v = float(dev.get("max_voltage_v", math.inf))
+
+
+def configured_protection_findings(cfg: RigConfig) -> list[str]:
+    """The protection levels the configuration gives (``ovp_v``, ``ocp_a``, ``opp_w``) that are
+    looser than the same output's limits, one sentence each; no device is opened."""
+    found = []
+    for dev in cfg.devices.values():
+        levels = tuple(ProtectionLevel(kind, float(dev.get(key)), f"{key} in [devices.{dev.name}]")
+                       for kind, key in PROTECTION_KEYS.items() if dev.get(key) is not None)  # fmt: skip
+        if not levels:
+            continue
+        limits = with_power_limit(output_limits(cfg, dev, _NotOpened(dev)), dev)
+        allowed = protection_limits(dev, limits, sets_voltage=dev.kind != "regmap-eload",
+                                    cage_device=cage_role(cfg, dev.name) is not None)  # fmt: skip
+        found += protection_findings(dev, levels, allowed)
+    return found

@@ -240,9 +240,11 @@ def riden_device(supply: Supply, device_id: int, serial_number: int = 12345) -> 
 class RegmapModel(_Model):
     """A device described by a register map, bound to a supply/e-load, the polarity relays or
     (role ``temperature``) the DUT's temperature. Registers of role ``none`` keep what is written
-    (their ``value`` at power-on); a register the map lacks answers exception 2."""
+    (their ``value`` at power-on); a register with ``mirror`` is the named register at a second
+    address. A register the map lacks answers exception 2, or reads 0 where the map says the
+    device does (``undefined_reads = "zero"``); a write to it answers exception 2."""
 
-    PROTECTION_NAMES: ClassVar[dict[int, str]] = {1: "OVP", 2: "OCP"}
+    PROTECTION_NAMES: ClassVar[dict[int, str]] = {1: "OVP", 2: "OCP", 3: "OPP"}
 
     def __init__(self, spec: RegisterMap, physics: CagePhysics, supply: Supply | None,
                  faults: Faults) -> None:  # fmt: skip
@@ -254,11 +256,13 @@ class RegmapModel(_Model):
         }
         self.axis = None if supply is None else supply.cfg.axis
         self.by_address = {r.address: r for r in spec.registers}
+        self.by_name = {r.name: r for r in spec.registers}
         if supply is not None:  # protection defaults the registers can hold (never wrapped)
-            ovp, ocp = spec.role("ovp"), spec.role("ocp")
+            ovp, ocp, opp = spec.role("ovp"), spec.role("ocp"), spec.role("opp")
             supply.set_protection(
                 None if ovp is None else min(supply.ovp_v, ovp.limits()[1]),
                 None if ocp is None else min(supply.ocp_a, ocp.limits()[1]),
+                opp_w=None if opp is None else opp.value,  # the map's power-on OPP
             )
 
     def sign(self) -> float:
@@ -269,6 +273,8 @@ class RegmapModel(_Model):
 
     def value_of(self, reg: Register) -> float:
         """What ``reg`` reads now (in its unit)."""
+        if reg.mirror is not None:
+            return self.value_of(self.by_name[reg.mirror])
         if reg.role == "constant":
             return reg.value or 0.0
         if reg.role == "temperature":
@@ -297,6 +303,7 @@ class RegmapModel(_Model):
                 reg.protection_value(self.PROTECTION_NAMES.get(sup.protection, ""))),
             "ovp": lambda: sup.ovp_v,
             "ocp": lambda: sup.ocp_a,
+            "opp": lambda: sup.opp_w or 0.0,
         }  # fmt: skip
 
     def refresh(self, regs: list[int], base: int) -> None:
@@ -321,9 +328,11 @@ class RegmapModel(_Model):
     def apply(self, reg: Register, value: float) -> None:
         """A written value to the physics (ValueError: refused)."""
         sup = self.supply
-        if reg.role.startswith("polarity_"):
+        if reg.mirror is not None:
+            self.apply(self.by_name[reg.mirror], value)
+        elif reg.role.startswith("polarity_"):
             self.physics.set_polarity("xyz".index(reg.role[-1]), -1 if value else 1)
-        elif sup is None or reg.role not in ("v_set", "i_set", "output", "ovp", "ocp"):
+        elif sup is None or reg.role not in ("v_set", "i_set", "output", "ovp", "ocp", "opp"):
             self.stored[reg.name] = value
         elif reg.role == "v_set":
             sup.set_voltage(value)
@@ -337,8 +346,10 @@ class RegmapModel(_Model):
             self.stored[reg.name] = value  # a command register reads back the last command
         elif reg.role == "ovp":
             sup.set_protection(ovp_v=value)
-        else:
+        elif reg.role == "ocp":
             sup.set_protection(ocp_a=value)
+        else:
+            sup.set_protection(opp_w=value)
 
     def _set_current(self, sup: Supply, value: float) -> None:
         if self.spec.bipolar and self.axis is not None:
@@ -355,10 +366,13 @@ def regmap_device(
 ) -> SimDevice:
     """A device described by a register map (:class:`RegmapModel`) on Modbus ``device_id``."""
     model = RegmapModel(spec, physics, supply, faults)
-    blocks = [
-        SimData(address=r.address, values=r.encode(0.0), datatype=DataType.REGISTERS)
-        for r in sorted(spec.registers, key=lambda r: r.address)
-    ]
+    if spec.undefined_reads == "zero":  # every address readable: the unlisted ones read 0
+        blocks = [SimData(address=0, count=65536, datatype=DataType.REGISTERS)]
+    else:
+        blocks = [
+            SimData(address=r.address, values=r.encode(0.0), datatype=DataType.REGISTERS)
+            for r in sorted(spec.registers, key=lambda r: r.address)
+        ]
     return SimDevice(id=device_id, simdata=blocks, action=model.action)
 
 

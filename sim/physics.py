@@ -100,8 +100,9 @@ class Supply:
     """A DC supply channel: CV/CC into a resistive (and for coils inductive) load.
 
     Set-points and limits are in V and A; the output current relaxes with the load's time constant.
-    Over-voltage and over-current protection turn the output off and latch ``protection``
-    (1 OVP, 2 OCP) until the output is enabled again.
+    Over-voltage, over-current and (where the instrument has one, ``opp_w`` not None)
+    over-power protection turn the output off and latch ``protection`` (1 OVP, 2 OCP, 3 OPP)
+    until the output is enabled again.
     """
 
     def __init__(self, cfg: SupplyConfig, resistance_ohm: float, tau_s: float, v_max: float,
@@ -114,6 +115,7 @@ class Supply:
         self.i_set = 0.0
         self.ovp_v = v_max * 1.1
         self.ocp_a = i_max * 1.1
+        self.opp_w: float | None = None
         self.output = False
         self.protection = 0
         self.current = FirstOrderSignal(tau_s)
@@ -132,6 +134,10 @@ class Supply:
             return 0.0
         return min(self.v_set / self.resistance_ohm, self.i_set)
 
+    def _target_power_w(self) -> float:
+        """The power (W) the output settles at: I^2 R of its target current."""
+        return self._target() ** 2 * self.resistance_ohm
+
     def cc_mode(self) -> bool:
         """True when the current limit, not the voltage, sets the output."""
         with self.lock:
@@ -142,6 +148,8 @@ class Supply:
             self._trip(t_s, 1)
         elif self.output and self._target() > self.ocp_a:
             self._trip(t_s, 2)
+        elif self.output and self.opp_w is not None and self._target_power_w() > self.opp_w:
+            self._trip(t_s, 3)
         self.current.set_target(t_s, self._target())
         if self.on_change is not None:
             self.on_change(t_s, self._target())
@@ -185,14 +193,16 @@ class Supply:
             self._update(t)
 
     def set_protection(self, ovp_v: float | None = None, ocp_a: float | None = None,
-                       t_s: float | None = None) -> None:  # fmt: skip
-        """New OVP (V) and/or OCP (A) levels; one below the live output trips it at once, as on
-        the instrument (not at the next set-point write)."""
+                       t_s: float | None = None, opp_w: float | None = None) -> None:  # fmt: skip
+        """New OVP (V), OCP (A) and/or OPP (W) levels; one below the live output trips it at
+        once, as on the instrument (not at the next set-point write)."""
         with self.lock:
             if ovp_v is not None:
                 self.ovp_v = ovp_v
             if ocp_a is not None:
                 self.ocp_a = ocp_a
+            if opp_w is not None:
+                self.opp_w = opp_w
             self.writes += 1
             self._update(now_s() if t_s is None else t_s)
 
@@ -201,7 +211,7 @@ class Supply:
         return self.output_voltage(t_s) * self.output_current(t_s)
 
     def trip(self, code: int = 2, t_s: float | None = None) -> None:
-        """Fault on demand: a protection trip (1 OVP, 2 OCP)."""
+        """Fault on demand: a protection trip (1 OVP, 2 OCP, 3 OPP)."""
         with self.lock:
             self._trip(now_s() if t_s is None else t_s, code)
             self._update(now_s() if t_s is None else t_s)

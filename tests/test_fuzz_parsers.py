@@ -1,6 +1,6 @@
 """Hostile input for every parser: never an unhandled exception, always the module's clear error.
 
-HMR2300 binary and ASCII frames and its stream resynchronisation (over a pyserial loopback port),
+HMR2300 binary and ASCII frames and its stream resynchronisation (over a simulated serial line),
 ASCII-line sensor lines, procedure YAML and rig configuration TOML. The CSV reader has its own
 property tests in test_csv_table.py.
 """
@@ -66,26 +66,41 @@ no_cr = st.integers(-32768, 32767).filter(lambda c: 0x0D not in struct.pack(">h"
     garbage=st.binary(max_size=30).map(lambda b: b.replace(b"\r", b"")),
     frames=st.lists(st.tuples(no_cr, no_cr, no_cr), min_size=3, max_size=8),
     tail=st.binary(max_size=BINARY_LEN - 1),
+    pieces=st.integers(1, 5),
 )
 def test_hmr2300_stream_resyncs_after_garbage_and_partial_frames(
-    garbage: bytes, frames: list[tuple[int, int, int]], tail: bytes
+    garbage: bytes, frames: list[tuple[int, int, int]], tail: bytes, pieces: int
 ) -> None:
-    """Garbage, then whole frames, then a partial frame, through a real (loopback) port."""
-    dev = Hmr2300("loop://", device_id=0, timeout_s=0.05, set_reset_auto=False)
-    try:
-        dev.binary = True
-        dev.port.write(garbage + b"".join(_frame(f) for f in frames) + tail)
-        # everything the port delivers, in as many reads as it takes (a busy computer's reader
-        # may see the bytes in pieces): frames split across reads must be recovered too
-        got: list[tuple[float, float, float]] = []
-        while chunk := dev.read_stream(0.05):
-            got += chunk
-        want = [tuple(c / 150.0 for c in f) for f in frames]
-        assert all(_finite_triple(v, HMR_MAX_UT) for v in got)
-        # every frame after the garbage is recovered, at most the first one lost to the resync
-        assert got[-(len(frames) - 1) :] == want[1:], (got, want)
-    finally:
-        dev.close()
+    """Garbage, then whole frames, then a partial frame, through a serial line in simulated time
+    (its 50 ms read timeouts cost no wall time), arriving in ``pieces`` writes 10 ms apart."""
+    import timebase
+    from timebase.wires import wires
+
+    data = garbage + b"".join(_frame(f) for f in frames) + tail
+    with timebase.simulated(stall_report_s=None):
+        line = wires().serve_serial("hmr2300", baud=None)
+        dev = Hmr2300(line.url, device_id=0, timeout_s=0.05, set_reset_auto=False)
+
+        def sensor() -> None:
+            size = -(-len(data) // pieces)
+            for start in range(0, len(data), size):
+                line.device.write(data[start : start + size])
+                timebase.sleep(0.01)
+
+        try:
+            dev.binary = True
+            timebase.Thread(sensor, name="sensor").start()
+            # everything the line delivers, in as many reads as it takes (a busy computer's
+            # reader sees the bytes in pieces): frames split across reads must be recovered too
+            got: list[tuple[float, float, float]] = []
+            while chunk := dev.read_stream(0.05):
+                got += chunk
+        finally:
+            dev.close()
+    want = [tuple(c / 150.0 for c in f) for f in frames]
+    assert all(_finite_triple(v, HMR_MAX_UT) for v in got)
+    # every frame after the garbage is recovered, at most the first one lost to the resync
+    assert got[-(len(frames) - 1) :] == want[1:], (got, want)
 
 
 line_bytes = st.one_of(

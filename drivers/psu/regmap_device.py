@@ -7,7 +7,8 @@ import math
 
 from drivers.errors import DeviceNotFoundError, DeviceProtocolError, LimitError
 from drivers.identity import Identity
-from drivers.protocols import SupplyReading
+from drivers.protection import asked_levels, check_read_back
+from drivers.protocols import ProtectionLevel, SupplyReading
 from drivers.regmap import Register, RegisterMap, RegisterMapError
 from drivers.transport.modbus import ModbusLink
 
@@ -128,6 +129,41 @@ class MappedSupply(MappedDevice):
             return reading
         return dataclasses.replace(reading, power_w=self._read(power))
 
+    PROTECTION_ROLES = (("OVP", "ovp"), ("OCP", "ocp"), ("OPP", "opp"))
+    """Each protection level and the map role of its register."""
+
+    def protection_levels(self) -> tuple[ProtectionLevel, ...]:
+        """The levels of the map's ``ovp`` (V), ``ocp`` (A) and ``opp`` (W) registers, read now."""
+        return tuple(
+            ProtectionLevel(kind, self._read(reg), f"register '{reg.name}' ({reg.address:#06x})")
+            for kind, role in self.PROTECTION_ROLES
+            if (reg := self.map.role(role)) is not None
+        )
+
+    def set_protection_levels(self, *, ovp_v: float | None = None, ocp_a: float | None = None,
+                              opp_w: float | None = None) -> tuple[ProtectionLevel, ...]:  # fmt: skip
+        """Write the levels given to the map's protection registers and read every level back
+        (LimitError for one the map has no register for or that does not fit it)."""
+        asked = asked_levels(self.name, ovp_v=ovp_v, ocp_a=ocp_a, opp_w=opp_w)
+        regs = dict(self.PROTECTION_ROLES)
+        writes = []
+        for kind, value in asked.items():
+            reg = self.map.role(regs[kind])
+            if reg is None:
+                raise LimitError(f"{self.name}: the {self.map.model} has no {kind} register in"
+                                 f" {self.map.source}; leave its {kind} level out")  # fmt: skip
+            if value > reg.limits()[1]:
+                raise LimitError(f"{self.name}: {kind} {value:g} does not fit register"
+                                 f" '{reg.name}' (at most {reg.limits()[1]:g})")  # fmt: skip
+            writes.append((reg, value))
+        for reg, value in writes:
+            self._write(reg, value)
+        levels = self.protection_levels()
+        check_read_back(self.name, {kind: (value, _resolution(reg, value)) for (kind, value),
+                                    (reg, _) in zip(asked.items(), writes, strict=True)},
+                        levels)  # fmt: skip
+        return levels
+
     def enable_as_load(self, compliance_v: float) -> None:
         """Drive a load harness: current 0, the voltage set-point (if the map has one) to the
         compliance voltage (capped at the device's range), output (or load input) on."""
@@ -140,6 +176,11 @@ class MappedSupply(MappedDevice):
         """Output off, current set-point to zero."""
         self.set_output(False)
         self._write(self.i_set_reg, 0.0)
+
+
+def _resolution(reg: Register, value: float) -> float:
+    """One count of ``reg`` in its unit (a float32's: its relative precision at ``value``)."""
+    return abs(value) * 1e-6 if reg.type == "float32" else 1.0 / reg.scale
 
 
 class PolarityRelay(MappedDevice):

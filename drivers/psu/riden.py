@@ -2,8 +2,11 @@
 
 Holding registers (ShayBox/Riden ``register.py``, Baldanos/rd6006 ``registers.md``, the
 riden-dongle firmware's ``riden_modbus_registers.h``): 0 model id, 1-2 serial, 3 firmware
-(x100), 8 V_SET, 9 I_SET, 10 V_OUT, 11 I_OUT, 12-13 power (32-bit), 14 V_IN, 16 protection
-(1 OVP, 2 OCP), 17 CV/CC (1 = CC), 18 output enable, 20 current range (RD6012P only).
+(x100), 8 V_SET, 9 I_SET, 10 V_OUT, 11 I_OUT, 12-13 power, 14 V_IN, 16 protection
+(1 OVP, 2 OCP), 17 CV/CC (1 = CC), 18 output enable, 20 current range (RD6012P only), 82-83 the
+active preset's OVP and OCP. Power is one 32-bit count, register 12 the high word (a real RD6030
+read through register 13 alone wrapped at 655.36 W; ShayBox and libsigrok read 13 alone:
+docs/devices.md weighs the sources).
 
 Every model id and scale in :data:`MODELS` is one that the published tables list (see
 docs/devices.md): ShayBox/Riden ``riden.py``, libsigrok's ``rdtech-dps`` model table and the
@@ -16,11 +19,14 @@ from dataclasses import dataclass
 
 from drivers.errors import DeviceNotFoundError, DeviceProtocolError, LimitError
 from drivers.identity import Identity
-from drivers.protocols import SupplyReading
+from drivers.protection import asked_levels, check_read_back
+from drivers.protocols import ProtectionLevel, SupplyReading
 from drivers.transport.modbus import ModbusLink
 
 REG_ID, REG_V_SET, REG_I_SET, REG_V_OUT, REG_I_OUT, REG_P_H = 0, 8, 9, 10, 11, 12
 REG_PROTECT, REG_CVCC, REG_OUTPUT, REG_I_RANGE = 16, 17, 18, 20
+REG_OVP, REG_OCP = 82, 83
+"""M0 OVP and OCP: the active preset's protection levels, at the V and A set-points' scales."""
 
 
 @dataclass(frozen=True)
@@ -205,6 +211,37 @@ class RidenSupply:
             protection={0: "", 1: "OVP", 2: "OCP"}.get(code, f"code {code}"),
             power_w=p / round(1.0 / self.spec.w_per_count),
         )
+
+    def protection_levels(self) -> tuple[ProtectionLevel, ...]:
+        """OVP (V) and OCP (A) of the active preset M0 (registers 82-83); an RD60xx has no OPP."""
+        if self.spec.range_dependent:
+            self._set_range(self.link.read_registers(REG_I_RANGE, 1)[0])
+        ovp, ocp = self.link.read_registers(REG_OVP, 2)
+        return (ProtectionLevel("OVP", ovp / self._v_counts, f"register {REG_OVP} (M0 OVP)"),
+                ProtectionLevel("OCP", ocp / self._i_counts, f"register {REG_OCP} (M0 OCP)"))  # fmt: skip
+
+    def set_protection_levels(self, *, ovp_v: float | None = None, ocp_a: float | None = None,
+                              opp_w: float | None = None) -> tuple[ProtectionLevel, ...]:  # fmt: skip
+        """Write M0 OVP (V) and/or OCP (A) at the model's (and range's) resolution, then read
+        both back. LimitError for an OPP (the RD60xx has none) or a level beyond 65535 counts."""
+        asked = asked_levels(self.name, ovp_v=ovp_v, ocp_a=ocp_a, opp_w=opp_w)
+        if "OPP" in asked:
+            raise LimitError(f"{self.name}: the {self.model} has no over-power protection; leave"
+                             " its OPP level out")  # fmt: skip
+        if self.spec.range_dependent:
+            self._set_range(self.link.read_registers(REG_I_RANGE, 1)[0])
+        scales = {"OVP": (REG_OVP, self._v_counts), "OCP": (REG_OCP, self._i_counts)}
+        for kind, value in asked.items():
+            register, per_unit = scales[kind]
+            if round(value * per_unit) > 0xFFFF:
+                raise LimitError(f"{self.name}: {kind} {value:g} is beyond the {self.model}'s"
+                                 f" register {register} ({0xFFFF / per_unit:g} at most)")  # fmt: skip
+        for kind, value in asked.items():
+            register, per_unit = scales[kind]
+            self.link.write_register(register, round(value * per_unit))
+        levels = self.protection_levels()
+        check_read_back(self.name, {k: (v, 1.0 / scales[k][1]) for k, v in asked.items()}, levels)
+        return levels
 
     def enable_as_load(self, compliance_v: float) -> None:
         """Drive a load harness: current 0, voltage to the compliance (capped), output on."""

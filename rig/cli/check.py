@@ -27,6 +27,10 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
         metavar="CONFIG.toml",
         help="check currents and fields against its limits",
     )
+    chk.add_argument("--protections", action="store_true",
+                     help="with --rig: also read every supply's and load's protection levels"
+                          " (OVP, OCP, OPP) from the instrument and warn where one is above the"
+                          " rig's limit for that output (opens the devices; switches nothing)")  # fmt: skip
     chk.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                      help="give a procedure parameter a value (repeat for several)")  # fmt: skip
     chk.add_argument("--predict", action="store_true",
@@ -44,7 +48,7 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
-    code = run_check(args.procedure, args.rig, args.set, args.quiet)
+    code = run_check(args.procedure, args.rig, args.set, args.quiet, args.protections)
     if args.predict:
         from rig.cli.prediction_view import run_prediction
 
@@ -94,11 +98,15 @@ def _stale(what: str, when: Any, valid: float, now: dt.datetime, fix: str) -> st
             f" ([cage] calibration_valid_days = {valid:g}): {fix}")  # fmt: skip
 
 
-def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: bool) -> int:
+def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: bool,
+              protections: bool = False) -> int:  # fmt: skip
     """Dry run: timeline, duration, peaks against limits. Exit 0 only when every limit was checked
-    and holds; 1 on a violation or when limits could not be checked (no ``--rig``, no cage model).
-    The rig configuration is loaded (and checked) against the declared keys (:mod:`rig.config`);
-    the limits are :func:`rig.procedure.preflight.preflight`'s, which ``rig run`` refuses by."""
+    and holds; 1 on a violation or when limits could not be checked (no ``--rig``, no cage model;
+    with ``protections``, an instrument whose protection levels could not be read). The rig
+    configuration is loaded (and checked) against the declared keys (:mod:`rig.config`); the
+    limits are :func:`rig.procedure.preflight.preflight`'s, which ``rig run`` refuses by. A
+    protection level looser than its output's limit (configured, or with ``protections`` read from
+    the instrument) is a ``WARNING`` line naming where it is, its value and the fix."""
     from rig.config import load_rig_config
     from rig.procedure.beyond_cage import unmeasured_metrology
     from rig.procedure.language import parse_procedure
@@ -108,7 +116,8 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
     proc = parse_procedure(find_procedure(procedure), parse_sets(sets))
     cfg = load_rig_config(rig_config) if rig_config else None
     checked = preflight(proc, cfg)  # what rig run refuses too, by the same code
-    dr, unchecked = checked.dry_run, checked.unchecked
+    dr, unchecked = checked.dry_run, list(checked.unchecked)
+    loose = _protection_warnings(cfg, protections, unchecked)
     if not quiet:
         _print_plan(proc, dr, cfg, checked.model.k_ut_per_a, checked.model.source,
                     checked.loads_max_a)  # fmt: skip
@@ -122,9 +131,30 @@ def run_check(procedure: str, rig_config: Path | None, sets: list[str], quiet: b
         print(f"WARNING: {stale}")
     for missing in unmeasured_metrology(proc, cfg):
         print(f"WARNING: {missing}")
+    for warning in loose:
+        print(f"WARNING: {warning}")
     if not quiet:
         print(_verdict(dr, unchecked, cfg))
     return 0 if not dr.violations and not unchecked else 1
+
+
+def _protection_warnings(cfg: RigConfig | None, read: bool, unchecked: list[str]) -> list[str]:
+    """The protection levels looser than their outputs' limits: the configured ones, and with
+    ``read`` the instruments' own (an output that could not be read is added to ``unchecked``)."""
+    from rig.output_limits import configured_protection_findings
+
+    if cfg is None:
+        if read:
+            unchecked.append("--protections needs --rig CONFIG.toml: no instrument was read")
+        return []
+    found = configured_protection_findings(cfg)
+    if read:
+        from rig.devices import instrument_protection_findings
+
+        read_found, unread = instrument_protection_findings(cfg)
+        found += read_found
+        unchecked += unread
+    return found
 
 
 def _print_plan(proc: Procedure, dr: DryRun, cfg: RigConfig | None, k: Any, model_source: str,

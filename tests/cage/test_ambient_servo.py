@@ -105,18 +105,18 @@ def test_hold_needs_its_references_and_the_servo_its_trims(tmp_path: Path) -> No
 def test_rig_cage_hold_servo_on_the_simulated_cage(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """The command over the wire, 40 s: the servoed rms is below 1 nT and below the unservoed
-    one measured in the same run (the simulated lab's drift moves tens of nT in minutes)."""
+    """The command over the wire, 120 s of simulated time: the servoed rms is below 1 nT and
+    below the unservoed one measured in the same run (the simulated lab's drift moves tens of nT
+    in minutes). Over 40 s the first 10 s window holds the servo's settling (x 1.18 nT)."""
     from tests.simcage import sim_cage
 
-    # real time (docs/testing.md): in simulated time the servoed rms came out 1.03 nT on x
-    with sim_cage(tmp_path, simulated=False) as (_, rig_toml):
+    with sim_cage(tmp_path) as (_, rig_toml):
         code = main(["cage", "hold", "0", "0", "0", "--rig", str(rig_toml), "--servo",
-                     "--duration", "40", "--csv", str(tmp_path / "hold.csv"), "-q"])  # fmt: skip
+                     "--duration", "120", "--csv", str(tmp_path / "hold.csv"), "-q"])  # fmt: skip
     out = capsys.readouterr().out
     assert code == 0, out
     numbers = [float(v) for v in __import__("re").findall(r"[xyz] ([\d.]+)", out)]
     held, free = np.array(numbers[:3]), np.array(numbers[3:6])
     assert np.all(held < 1.0) and held.max() < free.max(), out
     rows = (tmp_path / "hold.csv").read_text().splitlines()
-    assert rows[0].startswith("t_s,inner_x_ut") and len(rows) > 60
+    assert rows[0].startswith("t_s,inner_x_ut") and len(rows) > 200

@@ -3,7 +3,11 @@ gitlab.com/janoskut/hanmatek-psu; minimalmodbus over Modbus RTU on a pseudo-term
 discovery finds the supply (model 3010 and class 0x4B50 = 19280), it sets and reads back
 voltage, current, output, power and the protection levels, OVP and OCP trip as on the unit, and
 the rig's driver reads the same values. The expected numbers are the register table's (V x 100,
-A x 1000, W x 1000, protection bits 1 OVP / 2 OCP), not the simulator's."""
+A x 1000, power W x 1000, OPP W x 100, protection bits 1 OVP / 2 OCP / 4 OPP), not the
+simulator's: the OEM table as a real HM310T confirmed it (github.com/joeyda3rd/hm310t: OPP
+30000 = 300.00 W at power-on, every unlisted address reads 0). hanmatek-psu scales OPP by 1000
+and so reads it 10x low (30.0 W): asserted as its error, the raw words through its own
+minimalmodbus instrument carry the table's scale."""
 
 from __future__ import annotations
 
@@ -112,8 +116,6 @@ def test_lowered_protection_trips_at_once(
 def test_the_registers_real_units_have(cage: SimulatedCage) -> None:
     psu = client(endpoint(cage, "coil_y")["path"])
     try:
-        psu.write("opp", 150.0)
-        assert psu.read("opp") == pytest.approx(150.0)
         psu.write("m1:voltage", 5.0)
         psu.write("m1:current", 1.234)
         assert (psu.read("m1:voltage"), psu.read("m1:current")) == pytest.approx((5.0, 1.234))
@@ -125,12 +127,45 @@ def test_the_registers_real_units_have(cage: SimulatedCage) -> None:
         psu.instrument.serial.close()
 
 
-def test_a_register_no_table_lists_answers_exception_2(cage: SimulatedCage) -> None:
-    import minimalmodbus
-
+def test_an_address_no_table_lists_reads_0_as_on_a_real_unit(cage: SimulatedCage) -> None:
     psu = client(endpoint(cage, "coil_y")["path"])
-    try:
-        with pytest.raises(minimalmodbus.IllegalRequestError):
-            psu.instrument.read_register(0x0040)
+    try:  # the real HM310T's sweep: 0x0006-0x000F, 0x0024-0x002F and 0x00FF read 0
+        assert psu.instrument.read_registers(0x0006, 10) == [0] * 10
+        assert psu.instrument.read_register(0x00FF) == 0
+        assert psu.instrument.read_register(0x0040) == 3200  # unlisted, read so on the unit
     finally:
         psu.instrument.serial.close()
+
+
+def test_opp_at_the_tables_scale_set_read_back_and_tripping(cage: SimulatedCage) -> None:
+    path = endpoint(cage, "coil_y")["path"]
+    psu = client(path)
+    try:
+        assert psu.instrument.read_long(0x0022) == 30000  # power-on: 300.00 W (W x 100)
+        assert psu.read("opp") == pytest.approx(30.0)  # hanmatek-psu's x 1000: 10x low
+    finally:
+        psu.instrument.serial.close()
+    supply = rig_supply(path)
+    try:
+        assert {p.kind: p.value for p in supply.protection_levels()}["OPP"] == 300.0
+        levels = supply.set_protection_levels(opp_w=150.0)
+        assert [(p.kind, p.value) for p in levels if p.kind == "OPP"] == [("OPP", 150.0)]
+    finally:
+        supply.close()
+    psu = client(path)
+    try:
+        assert psu.instrument.read_registers(0x0022, 2) == [0, 15000]  # high word first
+        psu.instrument.write_long(0x0022, 1000)  # 10.00 W, below 2.5 A into 4.2 ohm (26 W)
+        psu.write("voltage:set", 12.0)
+        psu.write("current:set", 2.5)
+        psu.write("output", True)
+        assert psu.read("protection") == 4 and psu.read("output") is False  # bit 2: OPP
+    finally:
+        psu.instrument.write_long(0x0022, 30000)
+        psu.instrument.serial.close()
+    supply = rig_supply(path)
+    try:
+        assert supply.read().protection == "OPP"
+    finally:
+        supply.safe()
+        supply.close()

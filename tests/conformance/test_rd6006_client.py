@@ -126,3 +126,37 @@ def test_rd6006p_the_library_is_10x_off_the_published_scales(cage: SimulatedCage
     finally:
         supply.safe()
         supply.close()
+
+
+@pytest.fixture(scope="module")
+def rd6018(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimulatedCage]:
+    swap = {"coil_y": 'kind = "riden-rd60xx"\nmodel_id = 60181'}  # an RD6018 on the 4.2 ohm coil
+    with cage_with(tmp_path_factory.mktemp("rd6018"), swap) as c:
+        yield c
+
+
+def test_power_beyond_655_w_is_two_registers(rd6018: SimulatedCage) -> None:
+    """Registers 12-13 are one 32-bit power, high word first (docs/devices.md: a real RD6030
+    read through register 13 alone wrapped at 655.36 W). rd6006's ``measpower`` reads them so;
+    its ``status()`` prints register 13 alone, as libsigrok does."""
+    path = endpoint(rd6018, "coil_y")["path"]
+    psu = client(path)
+    try:
+        psu.voltage = 60.0
+        psu.current = 14.0  # 60 V into 4.2 ohm wants 14.3 A: CC at 14 A, 58.8 V, 823.2 W
+        psu.enable = 1
+        time.sleep(0.3)  # > 10 L/R
+        watts = 14.0 * 14.0 * 4.2
+        high, low = psu._read_register(12), psu._read_register(13)
+        assert high == 1 and (high << 16 | low) == pytest.approx(watts * 100, abs=30)
+        assert psu.measpower == pytest.approx(watts, abs=0.3)  # 0.01 W a count
+        assert psu.instrument.read_long(12) == high << 16 | low  # ESPHome's U_DWORD at 12
+        assert low / 100 == pytest.approx(watts - 655.36, abs=0.3)  # register 13 alone: wrapped
+    finally:
+        psu.instrument.serial.close()
+    supply = rig_supply(path, "coil_y")  # the output is still on: the rig reads it, then safe
+    try:
+        assert supply.read().power_w == pytest.approx(watts, abs=0.3)
+    finally:
+        supply.safe()
+        supply.close()

@@ -1,13 +1,14 @@
 """Byte-exact Modbus RTU exchanges of the RDTech DPS supplies (regmaps/dps*.toml), from the
 published register map (Ruideng "DPS5005 digital power communication protocol V1.2"): holding
 registers 0x00 U-SET (V x 100), 0x01 I-SET (A x 1000, x 100 on the DPS5015/5020), 0x02 UOUT,
-0x03 IOUT, 0x07 PROTECT, 0x08 CV/CC, 0x09 ONOFF, 0x0B MODEL; function codes 03 and 06."""
+0x03 IOUT, 0x07 PROTECT, 0x08 CV/CC, 0x09 ONOFF, 0x0B MODEL, and the active preset's S-OVP 0x52
+(V x 100), S-OCP 0x53 (as I-SET) and S-OPP 0x54 (W x 10); function codes 03 and 06."""
 
 from __future__ import annotations
 
 import pytest
 
-from drivers.errors import DeviceNotFoundError, LimitError
+from drivers.errors import DeviceNotFoundError, DeviceProtocolError, LimitError
 from drivers.psu.regmap_device import MappedSupply
 from drivers.registry import KINDS, OpenSpec
 from drivers.regmap import load_map
@@ -111,6 +112,43 @@ def test_the_registry_opens_it_at_its_factory_baud_rate() -> None:
     try:
         assert supply.link._client.comm_params.baudrate == 9600  # the map's [device] baudrate
         supply.set_output(False)
+    finally:
+        supply.close()
+        peer.close()
+    assert peer.mismatches == []
+
+
+def test_dps5005_protection_levels_set_and_read_back_at_the_tables_scales() -> None:
+    # M0 S-OVP 0x52 (V x 100), S-OCP 0x53 (A x 1000 on a 5 A model), S-OPP 0x54 (W x 10)
+    supply, peer = dps("dps5005", [
+        echo("01 06 00 52 05 28"),  # S-OVP 13.20 V = 1320
+        echo("01 06 00 53 06 40"),  # S-OCP 1.600 A = 1600
+        echo("01 06 00 54 02 5D"),  # S-OPP 60.5 W = 605
+        Exchange(rtu("01 03 00 52 00 01"), rtu("01 03 02 05 28")),
+        Exchange(rtu("01 03 00 53 00 01"), rtu("01 03 02 06 40")),
+        Exchange(rtu("01 03 00 54 00 01"), rtu("01 03 02 02 5D")),
+    ])  # fmt: skip
+    try:
+        levels = supply.set_protection_levels(ovp_v=13.2, ocp_a=1.6, opp_w=60.5)
+        assert [(p.kind, p.value, p.unit) for p in levels] == [
+            ("OVP", 13.2, "V"), ("OCP", 1.6, "A"), ("OPP", 60.5, "W")]  # fmt: skip
+    finally:
+        supply.close()
+        peer.close()
+    assert peer.mismatches == []
+
+
+def test_dps5015_ocp_counts_10_ma_and_a_level_not_taken_is_named() -> None:
+    supply, peer = dps("dps5015", [
+        echo("01 06 00 53 04 D2"),  # S-OCP 12.34 A = 1234 (A x 100 on the 15 A model)
+        Exchange(rtu("01 03 00 52 00 01"), rtu("01 03 02 13 EC")),  # 51.00 V
+        Exchange(rtu("01 03 00 53 00 01"), rtu("01 03 02 05 DC")),  # 15.00 A: not what was sent
+        Exchange(rtu("01 03 00 54 00 01"), rtu("01 03 02 1D 4C")),  # 750.0 W
+    ])  # fmt: skip
+    try:
+        with pytest.raises(DeviceProtocolError, match=r"OCP written as 12.34 A reads back 15 A"
+                                                       r" \(register 's_ocp' \(0x0053\)\)"):  # fmt: skip
+            supply.set_protection_levels(ocp_a=12.34)
     finally:
         supply.close()
         peer.close()

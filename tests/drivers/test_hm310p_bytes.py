@@ -1,7 +1,9 @@
 """Byte-exact Modbus RTU exchanges of the Hanmatek HM310P / HM305P (regmaps/hm3*.toml), from
 the published register table (mckenm/HanmaTekPSUCmd wiki): 0x0001 output, 0x0002 protection bit
 mask, 0x0003 model, 0x0005 decimals (0x0233), 0x0010 V, 0x0011 A, 0x0030 V set (V x 100),
-0x0031 A set (A x 1000); function codes 03 and 06."""
+0x0031 A set (A x 1000), the protection levels OVP 0x0020 (V x 100), OCP 0x0021 (A x 1000) and
+OPP 0x0022-23 (W x 100, 32-bit: the OEM table as a real HM310T confirmed it, github.com/
+joeyda3rd/hm310t); function codes 03, 06 and 16."""
 
 from __future__ import annotations
 
@@ -87,6 +89,31 @@ def test_hm305p_range_and_model() -> None:
             DeviceNotFoundError, match=r"reads 3010, .*expects 305; is this a Hanmatek HM305P"
         ):
             supply.identify()
+    finally:
+        supply.close()
+        peer.close()
+    assert peer.mismatches == []
+
+
+def test_hm310p_protection_levels_at_the_tables_scales() -> None:
+    # a real HM310T's dump: OVP 0x0020 = 1000 (V x 100), OCP 0x0021 = 1000 (A x 1000), OPP
+    # 0x0022-23 = 0, 30000 (W x 100, high word first): 10.00 V, 1.000 A, 300.00 W
+    supply, peer = hm("hm310p", [
+        Exchange(rtu("01 03 00 20 00 01"), rtu("01 03 02 03 E8")),
+        Exchange(rtu("01 03 00 21 00 01"), rtu("01 03 02 03 E8")),
+        Exchange(rtu("01 03 00 22 00 02"), rtu("01 03 04 00 00 75 30")),
+        # OPP 150.00 W = 15000 = 0x3A98: function 16, two registers, high word first
+        Exchange(rtu("01 10 00 22 00 02 04 00 00 3A 98"), rtu("01 10 00 22 00 02")),
+        Exchange(rtu("01 03 00 20 00 01"), rtu("01 03 02 03 E8")),
+        Exchange(rtu("01 03 00 21 00 01"), rtu("01 03 02 03 E8")),
+        Exchange(rtu("01 03 00 22 00 02"), rtu("01 03 04 00 00 3A 98")),
+    ])  # fmt: skip
+    try:
+        assert [(p.kind, p.value) for p in supply.protection_levels()] == [
+            ("OVP", 10.0), ("OCP", 1.0), ("OPP", 300.0)]  # fmt: skip
+        levels = supply.set_protection_levels(opp_w=150.0)
+        opp = levels[2]
+        assert (opp.kind, opp.value, opp.register) == ("OPP", 150.0, "register 'opp' (0x0022)")
     finally:
         supply.close()
         peer.close()

@@ -221,3 +221,25 @@ def test_rig_check_refuses_a_device_whose_map_is_refused(tmp_path: Path) -> None
         f"[devices.coil_x].regmap: {path}:{line_of(path, 'scale = 0')}: register 'v_out'"
         in lines[0]
     )
+
+
+def test_a_mirror_names_another_register_of_its_type_and_undefined_reads_is_closed(
+    tmp_path: Path,
+) -> None:
+    dps = load_map("dps5005")
+    assert (dps.undefined_reads, load_map("hm310p").undefined_reads) == ("exception", "zero")
+    assert {r.name: r.mirror for r in dps.registers if r.mirror} == {
+        "m0_v_set": "v_set", "m0_i_set": "i_set", "m0_backlight": "backlight"}  # fmt: skip
+    path = broken(tmp_path, 'name = "timespan"', 'name = "timespan"\nmirror = "v_sett"')
+    with pytest.raises(RegisterMapError, match=rf"{path}:{line_of(path, 'mirror =')}: register"
+                       r" 'timespan': mirror 'v_sett' is not another register of this map;"
+                       r" did you mean 'v_set'\?"):  # fmt: skip
+        load_map(str(path))
+    path = broken(tmp_path, 'name = "timespan"', 'name = "timespan"\nmirror = "ovp"')
+    with pytest.raises(RegisterMapError, match=r"mirrors 'ovp' \(uint16, scale 100\) with type"
+                                               r" uint16 and scale 1; give both the same"):  # fmt: skip
+        load_map(str(path))
+    path = broken(tmp_path, 'undefined_reads = "zero"', 'undefined_reads = "zeros"')
+    with pytest.raises(RegisterMapError, match=r"unknown undefined_reads 'zeros'; did you mean"
+                                               r" 'zero'\?"):  # fmt: skip
+        load_map(str(path))

@@ -159,3 +159,42 @@ def test_a_configured_rd6012p_range_is_written_at_open_and_refused_elsewhere() -
                 RidenSupply(link, name="coil_x", current_range=0)
         finally:
             link.close()
+
+
+@pytest.mark.parametrize(("model_id", "current_range", "ovp_counts", "ocp_counts"), [
+    (60062, 0, 1320, 1600),  # RD6006: 10 mV, 1 mA
+    (60125, 0, 13200, 16000),  # RD6012P in its 6 A range: 1 mV, 0.1 mA
+    (60125, 1, 13200, 1600),  # RD6012P in its 12 A range: 1 mV, 1 mA
+])  # fmt: skip
+def test_m0_ovp_and_ocp_set_and_read_back_in_the_models_counts(
+    model_id: int, current_range: int, ovp_counts: int, ocp_counts: int
+) -> None:
+    with riden_image(model_id, r20=current_range) as image:
+        supply = open_riden(image)
+        try:
+            levels = supply.set_protection_levels(ovp_v=13.2, ocp_a=1.6)
+            assert (image.regs[82], image.regs[83]) == (ovp_counts, ocp_counts)
+            assert [(p.kind, p.value, p.register) for p in levels] == [
+                ("OVP", 13.2, "register 82 (M0 OVP)"), ("OCP", 1.6, "register 83 (M0 OCP)")]  # fmt: skip
+            with pytest.raises(LimitError, match="has no over-power protection"):
+                supply.set_protection_levels(opp_w=100.0)
+        finally:
+            supply.close()
+
+
+def test_power_is_registers_12_and_13_as_one_32_bit_count() -> None:
+    # An RD6030 on a real bench (riden-dongle issue #43) at 27.50 V, 28.03 A: a client reading
+    # register 13 alone at 0.01 W showed 115.46 W; the true 770.8 W is 77082 counts, 1 * 65536 +
+    # 11546: register 12 is the high word. The RD6012P counts 1 mW (its 13.5 W: 13500 counts).
+    with riden_image(60301, r10=2750, r11=2803, r12=1, r13=11546) as image:
+        supply = open_riden(image)
+        try:
+            assert supply.read().power_w == pytest.approx(770.82)
+        finally:
+            supply.close()
+    with riden_image(60125, r12=0, r13=13500) as image:
+        supply = open_riden(image)
+        try:
+            assert supply.read().power_w == pytest.approx(13.5)
+        finally:
+            supply.close()

@@ -110,8 +110,8 @@ def test_an_abort_inside_the_step_turns_the_automatic_set_reset_back_on(tmp_path
     """The operator aborts while the DUT's automatic set/reset is off: the run ends aborted and
     the DUT is back in the mode it was in (the step's abort path, not only its end)."""
     import threading
-    import time
 
+    import timebase
     from rig.config import load_rig_config
     from rig.engine.runner import Runner
     from rig.procedure.language import parse_procedure
@@ -125,15 +125,15 @@ def test_an_abort_inside_the_step_turns_the_automatic_set_reset_back_on(tmp_path
         device = cage.serial_devices["dut"]
         seen_off = threading.Event()
 
-        def abort_once_off() -> None:
-            deadline = time.monotonic() + 120.0  # only against a hang
-            while device.set_reset and time.monotonic() < deadline:
-                time.sleep(0.02)
+        def abort_once_off() -> None:  # the operator, on the run's (simulated) clock
+            deadline = timebase.monotonic() + 120.0  # only against a hang
+            while device.set_reset and timebase.monotonic() < deadline:
+                timebase.sleep(0.02)
             seen_off.set()
-            time.sleep(1.0)
+            timebase.sleep(1.0)
             runner.tracker.request_abort("aborted by the test")
 
-        threading.Thread(target=abort_once_off, daemon=True).start()
+        timebase.Thread(abort_once_off, name="operator", daemon=True).start()
         outcome = runner.run()
         assert seen_off.is_set() and "aborted by the test" in outcome.reason, outcome.reason
         assert device.set_reset is True

@@ -50,3 +50,32 @@ def test_a_wrong_choice_says_what_to_give(monkeypatch: pytest.MonkeyPatch) -> No
         chosen_cpu({0, 1})
     monkeypatch.setenv(ENV, "4096")
     assert chosen_cpu({0, 1}) is None  # not one of the allowed: left as they were
+
+
+def test_two_simulations_at_once_take_two_cpus(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each claims its CPU (a lock file): the second takes another though both run on the same."""
+    import threading
+
+    from timebase import one_cpu as module
+
+    monkeypatch.delenv(ENV, raising=False)
+    first = min(os.sched_getaffinity(0))
+    monkeypatch.setattr(module, "running_cpu", lambda: first)
+    taken: list[int | None] = []
+    inside, leave = threading.Barrier(3), threading.Event()
+
+    def simulation() -> None:
+        with module.one_cpu() as cpu:
+            taken.append(cpu)
+            inside.wait(10.0)
+            leave.wait(10.0)
+
+    threads = [threading.Thread(target=simulation) for _ in range(2)]
+    for t in threads:
+        t.start()
+    inside.wait(10.0)  # both inside at once
+    leave.set()
+    for t in threads:
+        t.join(10.0)
+    assert sorted(taken, key=str)[0] is not None and len(set(taken)) == 2
+    assert first in taken
