@@ -15,6 +15,7 @@ from pymodbus.simulator import SimDevice
 
 import timebase
 from sim.links import PtyNullModem, TcpProxy
+from sim.modbus_requests import QUANTITY_CHECKED
 from sim.physics import Faults
 
 
@@ -38,7 +39,7 @@ class AsyncioModbus:
         """Serve ``devices`` (one endpoint) on loopback TCP behind a proxy; returns its port."""
 
         async def start_tcp() -> ModbusTcpServer:
-            srv = ModbusTcpServer(devices, address=("127.0.0.1", 0))
+            srv = ModbusTcpServer(devices, address=("127.0.0.1", 0), custom_pdu=QUANTITY_CHECKED)
             await srv.serve_forever(background=True)
             return srv
 
@@ -58,7 +59,7 @@ class AsyncioModbus:
 
         async def start_rtu() -> ModbusSerialServer:
             srv = ModbusSerialServer(device, framer=FramerType.RTU, port=modem.device_path,
-                                     baudrate=baudrate)  # fmt: skip
+                                     baudrate=baudrate, custom_pdu=QUANTITY_CHECKED)  # fmt: skip
             await srv.serve_forever(background=True)
             return srv
 

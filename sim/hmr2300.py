@@ -1,13 +1,20 @@
 """Honeywell HMR2300 on a serial line: the datasheet command set, ASCII and binary output.
 
 Commands are ``*ddCMD<CR>`` (``dd`` the two-digit ID, 99 = everyone); write-protected commands need
-``*ddWE`` immediately before. Output: 15000 counts per gauss (150 per uT), +-30000 counts; binary
+``*ddWE`` immediately before, on its own line (answered ``OK``) or on the command's line as the
+datasheet's command table writes it, ``*ddWE *ddA<CR>`` (only the command answers: ``ASCII ON``).
+The serial number and software version replies are as long as the table gives them: ``SER# ``
+and ``S/W vers: `` followed by a 16-character field (22 and 27 bytes with the CR; the field's
+padding, spaces after the value, is not in the table; ``H/W vers:`` is taken to be alike). Output: 15000 counts per gauss (150 per uT), +-30000 counts; binary
 frames are ``XH XL YH YL ZH ZL CR`` (two's complement, big-endian); ASCII samples are 28 bytes.
 The line is paced at 10 bits per byte at the configured baud rate, so the achievable sample rate
 is what the datasheet table gives (binary: 154 sps at 19200 baud; ASCII: 50 sps).
 
 The line is a pseudo-terminal, or in simulated time a line of the simulated clock
-(:mod:`sim.serial_line`).
+(:mod:`sim.serial_line`). ``half_duplex`` models the RS-485 variant (HMR2300-D21-485): one pair
+carries both ways, so a byte the host sends while the sensor is transmitting collides with it and
+is lost to the sensor (an ESC sent while a streamed frame is on the line does not stop the
+stream); the sensor's own frame is not damaged here.
 
 Timing model: the device keeps its own sample clock (slot ``k`` is due at ``t0 + k / rate``, s,
 ``timebase.monotonic``) and its own UART timeline (each byte occupies the line for ``10 / baud`` s).
@@ -44,6 +51,8 @@ COUNTS_PER_UT = 150.0
 FULL_SCALE_COUNTS = 30000
 RATES_SPS = (10, 20, 25, 30, 40, 50, 60, 100, 123, 154)
 ESC = 0x1B
+ID_FIELD_CHARS = 16
+"""The width of the serial number and version fields: ``*dd#`` answers 22 bytes, ``*ddF`` 27."""
 
 
 def counts_from_ut(field_ut: np.ndarray) -> tuple[int, int, int]:
@@ -77,7 +86,8 @@ class Hmr2300:
 
     def __init__(self, read_ut: Callable[[float], np.ndarray], faults: Faults, *, device_id: int = 0,
                  baudrate: int = 9600, serial_number: str = "0123", seed: int = 0,
-                 perming: Perming | None = None, name: str = "hmr2300") -> None:  # fmt: skip
+                 perming: Perming | None = None, name: str = "hmr2300",
+                 half_duplex: bool = False) -> None:  # fmt: skip
         self.read_ut = read_ut
         self.faults = faults
         self.perming = perming or Perming(0.0, 0.0)
@@ -100,6 +110,9 @@ class Hmr2300:
         self.samples_sent = 0  # every sample output, polled and streamed (silent/disconnect: lost)
         self.samples_skipped = 0  # stream slots not output because the transmitter was full
         self.bytes_overrun = 0  # bytes the client's side refused (its buffer was full): lost
+        self.half_duplex = half_duplex
+        self.bytes_collided = 0  # the host's bytes lost to collisions (half duplex)
+        self._sending: deque[tuple[float, float]] = deque()  # (start, end) s of recent frames
         # (samples_sent, device time s of that sample's slot), replaced as one tuple per streamed
         # sample so that another thread reads a consistent pair.
         self.stream_clock: tuple[int, float] = (0, 0.0)
@@ -140,6 +153,10 @@ class Hmr2300:
         data = damage(data, self.faults, self._rng)
         start = max(timebase.monotonic() if at_s is None else at_s, self._line_free_at)
         self._line_free_at = start + len(data) * 10.0 / self.baudrate
+        if self.half_duplex:
+            while self._sending and self._sending[0][1] < start - 1.0:
+                self._sending.popleft()  # long over: no host byte can still overlap it
+            self._sending.append((start, self._line_free_at))
         self._last_start = start
         # handed to the line when its last byte has left (or at its start where the line itself
         # carries the line time, a simulated line)
@@ -180,10 +197,19 @@ class Hmr2300:
     # --- commands -------------------------------------------------------------------------------
 
     def handle(self, line: str) -> None:
-        """Execute one command line (without the CR)."""
+        """Execute one command line (without the CR): a command, or write enable and the command
+        it covers on one line (``*ddWE *ddCMD``: only the command answers)."""
         if not line.startswith("*"):
             return
-        body = line[1:]
+        first, star, rest = line[1:].partition("*")
+        if star and first.strip().upper()[2:] == "WE" and "*" not in rest:
+            self._execute(first.strip(), quiet=True)
+            self._execute(rest.strip())
+        else:
+            self._execute(line[1:])
+
+    def _execute(self, body: str, quiet: bool = False) -> None:
+        """One command ``ddCMD`` (``quiet``: a write enable that does not answer)."""
         if len(body) >= 10 or len(body) < 2 or not body[:2].isdigit():
             self._reenter()
             return
@@ -191,6 +217,9 @@ class Hmr2300:
         if dd not in (self.device_id, 99):
             return
         cmd = body[2:].upper()
+        if cmd == "WE" and quiet:
+            self.write_enabled = True
+            return
         we, self.write_enabled = self.write_enabled, False
         protected = {
             "A", "B", "TN", "TF", "T", "ZN", "ZF", "ZR", "VN", "VF", "V", "Y", "N", "D", "RST", "SP",
@@ -216,11 +245,11 @@ class Hmr2300:
             self._invalid_after_pulse = 3
             self._reply({"]S": "SET", "]R": "RST", "]": "SET"}[cmd])
         elif cmd == "#":
-            self._reply(f"SER# {self.serial_number}")
+            self._reply(f"SER# {self.serial_number:<{ID_FIELD_CHARS}}")
         elif cmd == "F":
-            self._reply("S/W vers: 3.12")
+            self._reply(f"S/W vers: {'3.12':<{ID_FIELD_CHARS}}")
         elif cmd == "H":
-            self._reply("H/W vers: 2.01")
+            self._reply(f"H/W vers: {'2.01':<{ID_FIELD_CHARS}}")
         elif cmd == "Q":
             fmt = "BINARY ON" if self.binary else "ASCII ON"
             self._reply(
@@ -347,9 +376,28 @@ class Hmr2300:
                 self._emit_due(timebase.monotonic())
             self._flush(timebase.monotonic())
 
+    def _heard(self, data: bytes) -> bytes:
+        """The host's bytes that reached the sensor: on a half-duplex line those that were on
+        it while the sensor transmitted are lost (``data`` has just arrived: its last byte
+        ended now, each took 10 bits at the baud rate)."""
+        if not self.half_duplex or not data:
+            return data
+        now, byte_s = timebase.monotonic(), 10.0 / self.baudrate
+        first = now - len(data) * byte_s
+        while self._sending and self._sending[0][1] <= first:
+            self._sending.popleft()  # over before these bytes began
+        kept = bytearray()
+        for i, byte in enumerate(data):
+            start, end = first + i * byte_s, first + (i + 1) * byte_s
+            if any(s < end and start < e for s, e in self._sending):
+                self.bytes_collided += 1
+            else:
+                kept.append(byte)
+        return bytes(kept)
+
     def _take(self, data: bytes, buf: bytearray) -> None:
         """Act on the client's bytes: ESC stops a stream, CR ends a command (kept in ``buf``)."""
-        for byte in data:
+        for byte in self._heard(data):
             if byte == ESC:
                 self.streaming = False
                 buf.clear()

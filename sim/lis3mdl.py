@@ -1,7 +1,11 @@
 """ST LIS3MDL at register level on the simulated I2C bus (:class:`sim.rm3100.SimI2CBus`).
 
 As the datasheet (DocID024204 Rev 6) gives it: WHO_AM_I (0x0F) reads 0x3D; a multi-byte transfer
-auto-increments only when bit 7 of the sub-address is set. CTRL_REG1 DO (bits 4:2) sets the output
+auto-increments when bit 7 of the sub-address is set (5.1.1), and otherwise stays on its register,
+except on the output registers: a read there moves through OUT_X_L..OUT_Z_H (0x28-0x2D) with or
+without bit 7 and goes back to OUT_X_L after OUT_Z_H, as real parts do (a logic-analyzer trace in
+PX4 issue 12514 of a read without bit 7; ST's community: "standard behavior"; the libraries that
+read six bytes from 0x28 without it, Adafruit's and PX4's, get X, Y and Z). CTRL_REG1 DO (bits 4:2) sets the output
 data rate (0.625 to 80 Hz; FAST_ODR, bit 1, 155 to 1000 Hz by the XY operating mode); CTRL_REG2
 FS (bits 6:5) the full scale (6842 / 3421 / 2281 / 1711 LSB per gauss at +-4 / 8 / 12 / 16 G,
 1 G = 100 uT); CTRL_REG3 MD (bits 1:0) the mode: 00 continuous, 01 single (one conversion, then
@@ -29,6 +33,8 @@ if TYPE_CHECKING:
 WHO_AM_I, CTRL_REG1, CTRL_REG2, CTRL_REG3, STATUS, OUT_X_L = 0x0F, 0x20, 0x21, 0x22, 0x27, 0x28
 WHO_AM_I_VALUE = 0x3D
 AUTO_INCREMENT = 0x80
+OUTPUTS = range(OUT_X_L, OUT_X_L + 6)
+"""OUT_X_L..OUT_Z_H: a read moves through them whatever bit 7 says, and wraps at the end."""
 ZYXDA, ZYXOR = 0x08, 0x80
 LSB_PER_GAUSS = (6842.0, 3421.0, 2281.0, 1711.0)  # by FS = 0..3
 ODR_HZ = (0.625, 1.25, 2.5, 5.0, 10.0, 20.0, 40.0, 80.0)  # by DO = 0..7
@@ -106,12 +112,18 @@ class Lis3mdl:
                 self._restart()
 
     def read(self, reg: int, length: int) -> bytes:
-        """Register read (auto-increment when bit 7 is set); reading the outputs clears ZYXDA."""
-        step = 1 if reg & AUTO_INCREMENT else 0
-        reg &= 0x7F
-        addrs = [reg + step * i for i in range(length)]
+        """Register read: auto-increment when bit 7 is set, and always through the output
+        registers (wrapping from OUT_Z_H to OUT_X_L); reading the outputs clears ZYXDA."""
+        increment = bool(reg & AUTO_INCREMENT)
+        addrs = [reg & 0x7F][:length]
+        while len(addrs) < length:
+            a = addrs[-1]
+            if a == OUTPUTS[-1]:
+                addrs.append(OUTPUTS[0])
+            else:
+                addrs.append(a + 1 if increment or a in OUTPUTS else a)
         out = bytes(self.regs[a] if a < len(self.regs) else 0 for a in addrs)
-        if any(OUT_X_L <= a < OUT_X_L + 6 for a in addrs):
+        if any(a in OUTPUTS for a in addrs):
             self.regs[STATUS] = 0
         return out
 

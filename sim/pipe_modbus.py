@@ -35,6 +35,7 @@ from pymodbus.simulator.simcore import SimCore
 import timebase
 from sim.links import STALE_PARTIAL_S, damage, rtu_request_length
 from sim.modbus_devices import NoReply
+from sim.modbus_requests import QUANTITY_CHECKED
 from sim.physics import Faults
 
 if TYPE_CHECKING:
@@ -62,7 +63,10 @@ class Answerer:
 
     def __init__(self, devices: list[SimDevice], framer: FramerType) -> None:
         self.core = SimCore(devices)
-        self.framer = FRAMER_NAME_TO_CLASS[framer](DecodePDU(True))
+        decoder = DecodePDU(True)
+        for request in QUANTITY_CHECKED:  # a quantity out of range is exception 3, as pymodbus'
+            decoder.register(request)  # server with custom_pdu answers it
+        self.framer = FRAMER_NAME_TO_CLASS[framer](decoder)
 
     def split(self, buf: bytes) -> tuple[int, ModbusPDU | None, bytes | None]:
         """Frame the start of ``buf``: (bytes used, 0 while the frame is incomplete; the request;

@@ -5,12 +5,17 @@
 * Binary samples are 7 bytes ``XH XL YH YL ZH ZL CR`` (two's complement, big-endian). A data byte
   can be 0x0D, so frames are read by fixed length and realigned on the stride of 7, never split on CR.
 * ASCII samples are 28 bytes: per axis sign, two digits, comma, three digits, two spaces; then CR.
+* ESC stops a stream. The driver goes on only once the line has been silent for longer than the
+  gap between two frames (bytes still on their way would be read as the next command's reply),
+  and sends ESC again while frames keep coming: on the half-duplex RS-485 variant an ESC sent
+  while a frame is on the pair collides with it and is lost.
 """
 
 from __future__ import annotations
 
 import struct
 from collections.abc import Callable, Iterator
+from typing import TypeVar
 
 import timebase
 from drivers.errors import (
@@ -23,10 +28,16 @@ from drivers.errors import (
 from drivers.identity import Identity
 from drivers.transport.serial_port import SerialPort
 
+T = TypeVar("T")
 COUNTS_PER_UT = 150.0
 RATES_SPS = (10, 20, 25, 30, 40, 50, 60, 100, 123, 154)
 BINARY_LEN, ASCII_LEN = 7, 28
 ESC = b"\x1b"
+STOP_ESC_ATTEMPTS = 4
+"""ESCs sent to stop a stream before the driver gives up on the line falling silent."""
+SENSOR_LATENCY_S = 0.01
+"""Margin for the sensor's own delay in the silence that shows a stream has stopped (s): the
+datasheet gives about 2 ms from a command's CR to its reply."""
 DAMAGED_RETRIES = 10
 """A command whose reply came back damaged or cut short is asked again up to this many times (the
 sensor answers; the line is noisy): at 28 % of replies damaged, a WE + command pair then fails
@@ -61,7 +72,8 @@ def parse_ascii(frame: bytes) -> tuple[float, float, float]:
 class Hmr2300:
     """An HMR2300 on a serial port (path or pyserial URL).
 
-    Opening it stops a stream left running (ESC), finds its ID and turns its automatic set/reset
+    Opening it stops a stream left running (ESC, then a silence as long as the gap between two
+    frames at the slowest rate: :meth:`stop_stream`), finds its ID and turns its automatic set/reset
     on (``*ddWE``, ``*ddTN``): a perming step turns it off for its holds and a step killed there
     left it off (issue 51), so every session starts from the sensor's default. ``set_reset_auto``
     False leaves the mode as found (a bring-up scan that only looks)."""
@@ -73,6 +85,9 @@ class Hmr2300:
         self.port = SerialPort(url, baudrate, timeout_s=timeout_s, name=name)
         self.retries = retries
         self.binary = False
+        self.rate_sps: int | None = None
+        """The stream rate this session set (None: not known, a stream left running by another
+        session is taken to be at the slowest rate)."""
         self.streaming = False
         self._buf = bytearray()
         self.resyncs = 0
@@ -81,8 +96,7 @@ class Hmr2300:
         self.lost_before: tuple[int, ...] = ()
         """Per sample of the last :meth:`read_stream`: samples lost just before it (empty: none)."""
         self._skipped = 0  # bytes skipped since the last whole frame
-        self.port.write(ESC)  # stop a stream left running by a previous session
-        self.port.drain_input()
+        self.stop_stream()  # a stream left running by a previous session
         self.device_id = self._query_id() if device_id is None else device_id
         if set_reset_auto:
             self.set_reset_auto(True)
@@ -90,9 +104,10 @@ class Hmr2300:
     # --- commands -------------------------------------------------------------------------------
 
     def _command(self, cmd: str, expect: str | None = None, device_id: int | None = None,
-                 retry: bool = True) -> str:  # fmt: skip
+                 retry: bool = True, prefix: str | None = None) -> str:  # fmt: skip
         """Send ``*ddcmd`` and return the reply line (without CR); a missing or damaged reply
-        (not ``expect``) is asked again (:meth:`_asking_again`) unless ``retry`` is False."""
+        (not ``expect``, or not starting with ``prefix``) is asked again
+        (:meth:`_asking_again`) unless ``retry`` is False."""
         dd = self.device_id if device_id is None else device_id
         line = f"*{dd:02d}{cmd}\r".encode("ascii")
 
@@ -107,9 +122,10 @@ class Hmr2300:
                 raise DeviceRefusedError(
                     f"{self.name} on {self.port.url}: '{cmd}' was not understood (Re-enter)"
                 )
-            if expect is not None and reply != expect:
+            wanted = expect if expect is not None else prefix
+            if (expect is not None and reply != expect) or not reply.startswith(prefix or ""):
                 raise DeviceProtocolError(
-                    f"{self.name} on {self.port.url}: '{cmd}' answered {reply!r}, expected {expect!r}"
+                    f"{self.name} on {self.port.url}: '{cmd}' answered {reply!r}, expected {wanted!r}"
                 )
             return reply
 
@@ -125,7 +141,7 @@ class Hmr2300:
             )[1]
         )
 
-    def _asking_again(self, exchange: Callable[[], str]) -> str:
+    def _asking_again(self, exchange: Callable[[], T]) -> T:
         """``exchange()`` until it answers: asked again after silence or a refusal up to the
         driver's ``retries`` times, after a damaged or cut-short reply (a sensor that answers, on
         a noisy line) up to :data:`DAMAGED_RETRIES` times; the last error then."""
@@ -159,12 +175,8 @@ class Hmr2300:
 
     def identify(self) -> Identity:
         """Serial number (``*dd#``) and software version (``*ddF``); the ID is ``device_id``."""
-        serial = self._command("#")
-        if not serial.startswith("SER#"):
-            raise DeviceProtocolError(
-                f"{self.name} on {self.port.url}: serial query answered {serial!r}"
-            )
-        firmware = self._command("F")
+        serial = self._command("#", prefix="SER#")
+        firmware = self._command("F", prefix="S/W")
         return Identity("HMR2300", serial[4:].strip(), firmware.split(":")[-1].strip())
 
     def set_binary(self, binary: bool) -> None:
@@ -177,6 +189,7 @@ class Hmr2300:
         if sps not in RATES_SPS:
             raise ValueError(f"{self.name}: {sps} sps is not one of {RATES_SPS}")
         self._protected(f"R={sps}", "OK")
+        self.rate_sps = sps
 
     def set_averaging(self, on: bool) -> None:
         """The device's IIR average."""
@@ -219,20 +232,18 @@ class Hmr2300:
     # --- data -----------------------------------------------------------------------------------
 
     def read(self) -> tuple[float, float, float]:
-        """One polled sample (uT)."""
+        """One polled sample (uT); a damaged or cut-short frame, or none, is asked again as a
+        command's reply is (:meth:`_asking_again`)."""
         if self.streaming:
             raise RuntimeError("stop the stream before polling")
         n = BINARY_LEN if self.binary else ASCII_LEN
-        for attempt in range(self.retries + 1):
+
+        def once() -> tuple[float, float, float]:
             self.port.write(f"*{self.device_id:02d}P\r".encode("ascii"))
-            try:
-                frame = self.port.read_exact(n)
-                return parse_binary(frame) if self.binary else parse_ascii(frame)
-            except DeviceProtocolError:
-                if attempt == self.retries:
-                    raise
-                self.port.drain_input()
-        raise AssertionError("unreachable")
+            frame = self.port.read_exact(n)
+            return parse_binary(frame) if self.binary else parse_ascii(frame)
+
+        return self._asking_again(once)
 
     def start_stream(self) -> None:
         """Continuous output at the set rate."""
@@ -242,12 +253,29 @@ class Hmr2300:
         self.streaming = True
 
     def stop_stream(self) -> None:
-        """ESC stops the stream; pending bytes are discarded."""
-        self.port.write(ESC)
+        """ESC stops the stream. Returns once the line has been silent for longer than the gap
+        between two frames (:meth:`_stopped_quiet_s`), what came meanwhile discarded; ESC is
+        sent again while frames keep coming (an ESC lost in a collision on RS-485)."""
         self.streaming = False
-        self.port.drain_input()
         self._buf.clear()
         self._skipped = 0
+        quiet_s = self._stopped_quiet_s()
+        for _ in range(STOP_ESC_ATTEMPTS):
+            self.port.write(ESC)
+            if self.port.wait_silent(quiet_s, 2.0 * quiet_s):
+                return
+        raise DeviceProtocolError(
+            f"{self.name} on {self.port.url}: the line did not fall silent after"
+            f" {STOP_ESC_ATTEMPTS} ESC (a stream that does not stop, or another device talking);"
+            " check the baud rate and the cable, and on RS-485 that nothing else talks on the pair"
+        )
+
+    def _stopped_quiet_s(self) -> float:
+        """How long the line must stay silent to show that a stream has stopped (s): the gap
+        between two frames at the rate this session set (the slowest when unknown), two frames'
+        line time (a frame in flight) and :data:`SENSOR_LATENCY_S`."""
+        frame_s = (BINARY_LEN if self.binary else ASCII_LEN) * 10.0 / self.port.baudrate
+        return 1.0 / (self.rate_sps or RATES_SPS[0]) + 2.0 * frame_s + SENSOR_LATENCY_S
 
     def _frames(self, data: bytes) -> Iterator[tuple[int, tuple[float, float, float]]]:
         """(samples lost just before it, sample) for each frame in the stream buffer,
@@ -301,6 +329,8 @@ class Hmr2300:
 
     def close(self) -> None:
         """Stop any stream and close the port."""
-        if self.streaming:
-            self.stop_stream()
-        self.port.close()
+        try:
+            if self.streaming:
+                self.stop_stream()
+        finally:
+            self.port.close()

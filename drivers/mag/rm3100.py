@@ -3,9 +3,12 @@
 Plain register addresses over I2C (the manual's 0x80 read bit is SPI only). Results are 24-bit
 two's complement, big-endian; gain = 0.3671 CC + 1.5 counts per uT (75 at CC = 200).
 
-Continuous mode writes CMM = 0x79: START, CMX/CMY/CMZ, and DRDM = 10, "DRDY high after a full
-measurement of the selected axes" (PNI RM3100 user manual, Table 5-3). With DRDM = 00 (0x71)
-DRDY rises only on an alarm, so with the alarms off a real sensor never signals data ready.
+Continuous mode writes CMM = 0x79: START, CMX/CMY/CMZ, and DRDM = 10, "DRDY to HIGH after a full
+measurement sequence is completed" (PNI RM3100 user manual, Table 5-3): a set of results every
+time, whatever the alarm limits hold. DRDM = 00 (0x71, what ArduPilot and Firmament write) raises
+DRDY when ALARM is 1 and the sequence is done; ALARM is 1 when an axis is above its upper or below
+its lower limit (5.2.2), so with both limits at their power-on 0 any nonzero reading signals, but
+a sensor whose limits were set around the field, or that reads 0 on every axis, never would.
 """
 
 from __future__ import annotations

@@ -7,7 +7,8 @@ which in simulated time waits on the line instead of polling), the TCP client's 
 simulated time :class:`SimulatedTcpClient` talks over :mod:`timebase.wires`), the transaction
 manager's reply deadline (``monotonic`` of its module, pointed at :func:`timebase.monotonic`, the
 same function on the wall clock) and its request lock (a lock of the clock). pymodbus 3.16's
-synchronous path keeps no inter-frame silence of its own (no sleep between frames)."""
+synchronous path keeps no inter-frame silence of its own (no sleep between frames): the serial
+client here keeps the RTU line quiet for t3.5 before each request (:func:`rtu_silence_s`)."""
 
 from __future__ import annotations
 
@@ -85,6 +86,22 @@ def _clocked(client: Any) -> None:
     client.transaction._sync_lock = timebase.RLock()
 
 
+RTU_CHARACTER_BITS = 11
+"""An RTU character on the line: start, 8 data bits, parity (or a second stop bit without one),
+stop (Modbus over Serial Line V1.02, 2.5.1). A line set to 8N1 carries 10: counting 11 only makes
+the silence longer, never shorter than a device that counts 11 expects."""
+RTU_FIXED_SILENCE_S = 0.00175
+"""t3.5 at baud rates above 19200, fixed by the specification (2.5.1.1)."""
+
+
+def rtu_silence_s(baudrate: int) -> float:
+    """t3.5: the silence between two RTU frames (s), 3.5 characters of :data:`RTU_CHARACTER_BITS`
+    up to 19200 Bd (4.01 ms at 9600) and :data:`RTU_FIXED_SILENCE_S` above."""
+    if baudrate > 19200:
+        return RTU_FIXED_SILENCE_S
+    return 3.5 * RTU_CHARACTER_BITS / baudrate
+
+
 def rtu_reply_length(frame: bytes) -> int | None:
     """Length (bytes, CRC included) of the Modbus RTU reply that ``frame`` starts, once its header
     tells it; None while unknown (fewer than 3 bytes, or a function code without a fixed form)."""
@@ -123,6 +140,9 @@ class PatientSerialClient(ModbusSerialClient):
 
     retrying = False
     """Set by the caller while it sends the same request again after a timeout."""
+    _line_used_s: float | None = None
+    """When the line last carried a byte (monotonic s): a reply's last byte taken, or the end of
+    this client's last request on the line. None: nothing since the port opened."""
     _sent = b""
     _late = b""
     """What arrived after the last attempt gave up and before this retry of the same request: the
@@ -144,9 +164,7 @@ class PatientSerialClient(ModbusSerialClient):
 
     def send(self, request: bytes, addr: tuple[str, int] | None = None) -> int:
         self._whole = False
-        late = b""
-        if self.socket is not None and (waiting := int(self.socket.in_waiting)):
-            late = self.socket.read(waiting)  # pymodbus would throw it away
+        late = self._keep_silence()  # what came meanwhile: pymodbus would throw it away
         # A reply that came after the deadline answers the same request, not a different one: on
         # a busy computer (the simulator on the same cores) every reply can come a little late,
         # and throwing each away before the retry turned a slow device into a silent one.
@@ -156,7 +174,43 @@ class PatientSerialClient(ModbusSerialClient):
             # not sent again: the device is answering the first one, and a second copy would
             # get a second answer that lands on the next request
             return len(request)
-        return int(super().send(request, addr))
+        sent = int(super().send(request, addr))
+        # its last bit leaves the UART this long after the write (the UART's queue was empty)
+        self._line_used_s = timebase.monotonic() + self._character_s() * len(request)
+        return sent
+
+    def _character_s(self) -> float:
+        return RTU_CHARACTER_BITS / float(self.comm_params.baudrate or 9600)
+
+    def _keep_silence(self) -> bytes:
+        """Wait until the line has been quiet for t3.5 since it last carried a byte (a byte that
+        comes meanwhile starts the quiet again); returns what came. The quiet is the line's:
+        time the kernel's terminal layer may have held bytes back is not counted (ADR 0013). A
+        line that never falls quiet is given up on after the reply timeout: the request goes,
+        as pymodbus would send it, and its reply decides."""
+        if self.socket is None:
+            return b""
+        got = b""
+        if waiting := int(self.socket.in_waiting):
+            got = self.socket.read(waiting)
+            self._line_used_s = timebase.monotonic()
+        if self._line_used_s is None:
+            return got
+        t35 = rtu_silence_s(int(self.comm_params.baudrate or 9600))
+        give_up = timebase.monotonic() + max(float(self.comm_params.timeout_connect or 0), t35)
+        wait_readable = getattr(self.socket, "wait_readable", None)
+        while True:
+            now = timebase.monotonic()
+            quiet_at = self._line_used_s + t35 + tty_stall_s(self._line_used_s, now)
+            if now >= quiet_at or now >= give_up:
+                return got
+            if wait_readable is None:
+                timebase.sleep(quiet_at - now)  # a byte arriving meanwhile is seen next round
+            else:
+                wait_readable(quiet_at - now)
+            if waiting := int(self.socket.in_waiting):
+                got += self.socket.read(waiting)
+                self._line_used_s = timebase.monotonic()
 
     def recv(self, size: int | None) -> bytes:
         if not self.socket:
@@ -175,7 +229,7 @@ class PatientSerialClient(ModbusSerialClient):
                 waiting = int(self.socket.in_waiting)
                 if waiting:
                     buf += self.socket.read(waiting)
-                    quiet_since = timebase.monotonic()
+                    quiet_since = self._line_used_s = timebase.monotonic()
                     self.heard = True
                 need = size if size is not None else rtu_reply_length(buf)
                 if buf and need is not None and len(buf) >= need:

@@ -15,6 +15,9 @@ from drivers.transport.tty_watch import tty_stall_s, tty_watch
 
 OWN_STALL_TOLERANCE_S = 0.05
 """A wait that ends this much later than asked was this process being descheduled."""
+DRAIN_LIMIT_S = 1.0
+"""How long :meth:`SerialPort.drain_input` discards a line that keeps talking before it gives up
+(a device streaming at its own rate never falls silent; before, the drain waited for ever)."""
 
 
 def own_stall_s(elapsed_s: float, asked_s: float) -> float:
@@ -120,7 +123,8 @@ class SerialPort:
         if len(self._rx) < n:
             raise DeviceTimeoutError(
                 f"{self.name} on {self.url}: got {len(self._rx)} of {n} bytes within"
-                f" {limit_s:g} s; check power, cable and baud rate"
+                f" {limit_s:g} s; check power, cable and baud rate",
+                bytes(self._rx),
             )
         return self._take(n)
 
@@ -172,16 +176,30 @@ class SerialPort:
         return self._take(len(self._rx))
 
     def drain_input(self, quiet_s: float = 0.05) -> None:
-        """Discard input until the line has been quiet for ``quiet_s``."""
+        """Discard input until the line has been quiet for ``quiet_s`` (at most for
+        :data:`DRAIN_LIMIT_S`, or 20 quiet times if longer: a line that never falls silent)."""
+        self.wait_silent(quiet_s, max(DRAIN_LIMIT_S, 20.0 * quiet_s))
+
+    def wait_silent(self, quiet_s: float, limit_s: float) -> bool:
+        """Discard input until nothing has arrived for ``quiet_s`` (s): True then, False when
+        bytes still come after ``limit_s`` (s). Both are the instrument's time: time the kernel's
+        terminal layer may have held received bytes back (:mod:`tty_watch`) is not silence and
+        does not count against the limit, and a quiet begins when the last byte was taken."""
+        self._fill(0.0)  # what has arrived already goes, whatever the quiet asked for
         self._rx.clear()
-        self._port.timeout = quiet_s
-        try:
-            while self._port.read(4096):
-                pass
-        except (serial.SerialException, OSError) as exc:
-            raise DeviceNotFoundError(
-                f"{self.name} on {self.url}: read failed ({exc}); is it still connected?"
-            ) from None
+        start = last = timebase.monotonic()
+        while True:
+            now = timebase.monotonic()
+            silent_until = last + quiet_s + tty_stall_s(last, now)
+            if now >= silent_until:
+                return True
+            limit = start + limit_s + tty_stall_s(start, now)
+            if now >= limit:
+                return False
+            self._fill(min(silent_until, limit) - now)
+            if self._rx:
+                self._rx.clear()
+                last = timebase.monotonic()
 
     def close(self) -> None:
         """Close the port."""

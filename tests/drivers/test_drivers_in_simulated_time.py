@@ -79,7 +79,8 @@ def test_modbus_rtu_reply_and_silence_beside_cpu_hogs() -> None:
             t1 = timebase.monotonic()
             with pytest.raises(DeviceTimeoutError, match="after 3 attempts"):
                 link.read_registers(10, 2)
-            assert timebase.monotonic() - t1 == pytest.approx(1.5)  # 0.5 s x 3 attempts
+            # the line's t3.5 of silence after the last reply, then 0.5 s x 3 attempts
+            assert timebase.monotonic() - t1 == pytest.approx(modbus.rtu_silence_s(115200) + 1.5)
             assert len([t for t, _ in regs.requests if t >= t1]) == 3
             link.close()
             sim_s = timebase.monotonic()

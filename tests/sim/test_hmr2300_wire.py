@@ -72,7 +72,7 @@ def cmd(s: serial.Serial, text: str) -> bytes:
 
 def test_identity_and_write_protection(port: serial.Serial) -> None:
     assert cmd(port, "*99ID=") == b"ID= 00\r"
-    assert cmd(port, "*00#") == b"SER# 0123\r"
+    assert cmd(port, "*00#") == b"SER# 0123" + b" " * 12 + b"\r"  # 22 bytes, as the datasheet
     assert cmd(port, "*00A") == b"WE OFF\r"  # protected without WE
     assert cmd(port, "*00WE") == b"OK\r"
     assert cmd(port, "*00A") == b"ASCII ON\r"

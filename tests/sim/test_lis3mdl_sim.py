@@ -9,12 +9,17 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from smbus2 import i2c_msg
 
+import timebase
 from drivers.errors import DeviceError
 from drivers.mag.lis3mdl import Lis3mdl
 from sim.cage import SimulatedCage
 from sim.config import EndpointConfig, MagnetometerConfig, load_config
-from sim.lis3mdl import STATUS, ZYXDA, ZYXOR
+from sim.lis3mdl import CTRL_REG1, CTRL_REG3, OUT_X_L, STATUS, ZYXDA, ZYXOR
+from sim.lis3mdl import Lis3mdl as SimLis3mdl
+from sim.physics import Faults
+from sim.rm3100 import SimI2CBus
 
 
 def _lis3mdl(**kw: object) -> MagnetometerConfig:
@@ -86,3 +91,50 @@ def test_a_lis3mdl_at_an_address_it_cannot_take_is_refused() -> None:
     cage = SimulatedCage(dataclasses.replace(cfg, magnetometers=(*cfg.magnetometers[:2], bad)))
     with pytest.raises(ValueError, match="0x1C or 0x1E, not 0x20"):
         cage.start()
+
+
+TRUE_UT = (12.34, -45.67, 78.9)
+
+
+def _bus_in_continuous_mode() -> SimI2CBus:
+    """A simulated LIS3MDL at 0x1E on its own bus, +-4 G, in continuous mode for 0.2 s (two
+    conversions at the power-on 10 Hz), reading ``TRUE_UT``."""
+    bus = SimI2CBus()
+    bus.attach(SimLis3mdl(lambda _t: np.array(TRUE_UT), Faults(), 0x1E))
+    bus.write_byte_data(0x1E, CTRL_REG3, 0x00)
+    timebase.sleep(0.2)
+    return bus
+
+
+def _read(bus: SimI2CBus, sub: int, n: int) -> bytes:
+    """What a library reads: the sub-address written, then ``n`` bytes in one combined transfer."""
+    write, read = i2c_msg.write(0x1E, [sub]), i2c_msg.read(0x1E, n)
+    bus.i2c_rdwr(write, read)
+    return bytes(read)
+
+
+def _ut(raw: bytes) -> tuple[float, ...]:
+    return tuple(int.from_bytes(raw[i : i + 2], "little", signed=True) / 68.42 for i in (0, 2, 4))
+
+
+def test_the_output_registers_auto_increment_without_the_sub_address_msb() -> None:
+    """A six-byte read from OUT_X_L without bit 7 of the sub-address gets X, Y and Z, as real
+    parts give it to the libraries that read so (Adafruit's, PX4's I2C driver: a logic-analyzer
+    trace in PX4 issue 12514); before, it got OUT_X_L six times: (285.47, 285.47, 285.47) uT."""
+    with timebase.simulated():
+        bus = _bus_in_continuous_mode()
+        assert _ut(_read(bus, OUT_X_L, 6)) == pytest.approx(TRUE_UT, abs=100 / 6842)
+        with_msb = _read(bus, OUT_X_L | 0x80, 6)
+        assert _read(bus, OUT_X_L, 6) == with_msb
+
+
+def test_a_read_past_out_z_h_wraps_to_out_x_l_and_other_registers_follow_the_datasheet() -> None:
+    """Past OUT_Z_H (0x2D) the pointer goes back to OUT_X_L (PX4 issue 12514's trace; ST's
+    community answer: "standard behavior"); outside the output registers a read without bit 7
+    stays on its register (DocID024204, 5.1.1)."""
+    with timebase.simulated():
+        bus = _bus_in_continuous_mode()
+        eight = _read(bus, OUT_X_L | 0x80, 8)
+        assert eight[6:] == eight[:2] and _read(bus, OUT_X_L, 8) == eight
+        assert _read(bus, CTRL_REG1, 2) == bytes([0x10, 0x10])  # DO = 10 Hz, twice
+        assert _read(bus, CTRL_REG1 | 0x80, 2) == bytes([0x10, 0x00])  # CTRL_REG1, CTRL_REG2

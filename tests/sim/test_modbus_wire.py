@@ -189,6 +189,34 @@ def test_rtu_corrupt_frames_and_silent_bus(devices: dict[str, Any], cage: Simula
         assert c.read_holding_registers(0, count=1, device_id=1).registers == [60062]
 
 
+def test_a_read_of_126_registers_is_exception_3_on_the_wall_clocks_servers(
+    devices: dict[str, Any],
+) -> None:
+    """The Modbus application protocol (6.3): a quantity beyond 125 registers is exception 3
+    under function 3 (``83 03``), not an undecodable frame (``80 01``), on TCP and RTU."""
+    import os
+    import socket
+    import struct
+    import termios
+    import tty
+
+    request = struct.pack(">HHHBBHH", 0x0102, 0, 6, 1, 3, 0, 126)
+    with socket.create_connection(("127.0.0.1", devices["coil_x"]["port"]), timeout=5.0) as s:
+        s.sendall(request)
+        reply = b""
+        while len(reply) < 9 and (chunk := s.recv(64)):
+            reply += chunk
+    assert reply == struct.pack(">HHHBBB", 0x0102, 0, 3, 1, 0x83, 3)
+    fd = os.open(devices["load_bus"]["path"], os.O_RDWR | os.O_NOCTTY)
+    try:
+        tty.setraw(fd)
+        termios.tcflush(fd, termios.TCIOFLUSH)
+        frame, refused = request[6:], bytes([1, 0x83, 3])
+        assert _raw_request(fd, [frame + _crc(frame)]) == refused + _crc(refused)
+    finally:
+        os.close(fd)
+
+
 def _crc(frame: bytes) -> bytes:
     from pymodbus.framer.rtu import FramerRTU
 

@@ -128,6 +128,23 @@ def test_a_foreign_unit_id_gets_exception_11_on_tcp(unit: int) -> None:
         assert not cage.physics.supplies["coil_x"].output  # refused: nothing switched
 
 
+# Modbus application protocol V1.1b3, 6.1-6.4: a quantity outside 1-2000 bits or 1-125 registers
+# is answered with exception 3 (illegal data value) under the request's own function code
+QUANTITY_BEYOND_LIMIT = [(1, 2001), (2, 2001), (3, 126), (4, 126), (3, 0)]
+
+
+@pytest.mark.parametrize(("fc", "count"), QUANTITY_BEYOND_LIMIT)
+def test_a_read_of_more_than_the_protocol_allows_is_exception_3(fc: int, count: int) -> None:
+    with simulated_cage() as (_, devices):
+        end = wires().connect("127.0.0.1", devices["coil_x"]["port"])
+        pdu = struct.pack(">BHH", fc, 0, count)
+        assert tcp_exchange(end, mbap(0x0102, 1, pdu)) == mbap(0x0102, 1, bytes([fc | 0x80, 3]))
+        port = serial.serial_for_url(devices["load_bus"]["path"], baudrate=115200, timeout=0.2)
+        port.write(rtu(1, pdu))
+        assert port.read(5) == rtu(1, bytes([fc | 0x80, 3]))
+        port.close()
+
+
 def test_a_foreign_id_on_rtu_meets_silence() -> None:
     with simulated_cage() as (_, devices):
         port = serial.serial_for_url(devices["coil_y"]["path"], baudrate=115200, timeout=0.3)
