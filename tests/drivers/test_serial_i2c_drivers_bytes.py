@@ -137,7 +137,7 @@ def test_hmr2300_opening_turns_automatic_set_reset_on_and_a_scan_leaves_it() -> 
         *[Exchange(b"*03WE\r", b"OK\r"), Exchange(b"*03TN\r", b"WE OFF\r")] * 3,
     ])  # fmt: skip
     with pytest.raises(DeviceRefusedError, match="'TN' needs write enable"):
-        Hmr2300(peer.path, baudrate=19200, device_id=3, timeout_s=0.2)
+        Hmr2300(peer.path, baudrate=19200, device_id=3, timeout_s=2.0)  # the peer answers at once
     peer.close()
     assert peer.mismatches == []
     peer = ScriptedSerialPeer([
