@@ -2,9 +2,14 @@
 
 The offset is measured in null-field holds before and after the field shock (the DUT less the
 reference, nT): each hold's mean per axis with a sigma from batch means (right for noise whose
-neighbouring samples are alike or opposite), and the shift is the difference with its sigma. Whether
-it is there at all is a chi-square test of the three axes together, reported as the equivalent
-Gaussian significance (3 sigma: one chance in 370 that noise alone made it).
+neighbouring samples are alike or opposite). The shifts between holds are fitted to the holds'
+stretch averages together, with the offset's noise (white, flicker and a random walk, which
+keeps wandering between the holds while the shock is on) estimated alongside
+(:func:`rig.characterization.offset_noise.fit_bins`): a wandering offset widens a shift's sigma
+by what it can have wandered in the time between, where two holds' batch means alone left it
+three to six times too small. Whether a shift is there at all is a chi-square test of the three
+axes together, reported as the equivalent Gaussian significance (3 sigma: one chance in 370
+that noise alone made it).
 """
 
 from __future__ import annotations
@@ -16,11 +21,14 @@ import numpy as np
 import numpy.typing as npt
 from scipy import stats
 
+from rig.characterization.offset_noise import Bins, contiguous_bins, fit_bins
+
 Array = npt.NDArray[np.float64]
 
 MIN_HOLD_SAMPLES = 10
 BATCHES = 20
-"""A hold's mean has its sigma from this many batches (its own precision about 16 %)."""
+"""A hold's mean has its sigma from this many batches (its own precision about 16 %); the
+shifts are fitted to this many stretch averages per hold."""
 DETECTED_SIGMA = 3.0
 """A shift at least this significant (equivalent Gaussian sigma) is reported as detected."""
 
@@ -71,11 +79,32 @@ def hold_mean(offsets_nt: Array) -> HoldMean:
     return HoldMean(tuple(float(v) for v in x.mean(axis=0)), tuple(float(v) for v in sigma), n)
 
 
-def offset_shift(before: HoldMean, after: HoldMean) -> OffsetShift:
-    """``after`` less ``before`` with the significance of the three axes together."""
-    d = np.subtract(after.mean_nt, before.mean_nt)
-    s = np.hypot(after.sigma_nt, before.sigma_nt)
-    chi2 = float(np.sum((d / s) ** 2))
-    p = float(stats.chi2.sf(chi2, len(d)))
-    z = float(stats.norm.isf(p / 2.0)) if p > 0 else math.inf
-    return OffsetShift(tuple(float(v) for v in d), tuple(float(v) for v in s), z)
+def offset_shifts(t_s: list[Array], offsets_nt: list[Array]) -> list[OffsetShift]:
+    """Each hold after the first less the first: ``t_s`` the holds' sample times (s, one
+    clock), ``offsets_nt`` their offsets (samples x 3, nT). Fitted together (module docstring);
+    ValueError when a hold has fewer than :data:`MIN_HOLD_SAMPLES` samples."""
+    starts, ends, counts, members, rates = [], [], [], [], []
+    for k, (t, x) in enumerate(zip(t_s, offsets_nt, strict=True)):
+        if len(t) < MIN_HOLD_SAMPLES:
+            raise ValueError(f"{len(t)} samples in a hold: at least {MIN_HOLD_SAMPLES} are needed")
+        bins, idx = contiguous_bins(np.asarray(t, float), min(BATCHES, len(t) // 2))
+        starts.append(bins.start_s)
+        ends.append(bins.end_s)
+        counts.append(bins.samples)
+        rates.append(bins.rate_hz)
+        members += [(k, np.asarray(x, float)[i].mean(axis=0)) for i in idx]
+    spans = Bins(np.concatenate(starts), np.concatenate(ends), np.concatenate(counts),
+                 float(np.median(rates)))  # fmt: skip
+    holds = len(t_s)
+    design = np.array([[1.0] + [float(k == j) for j in range(1, holds)] for k, _ in members])
+    means = np.array([m for _, m in members])
+    fits = [fit_bins(design, means[:, axis], spans) for axis in range(3)]
+    out = []
+    for j in range(1, holds):
+        d = np.array([float(f.coef[j]) for f in fits])
+        sig = np.array([float(f.sigma[j]) for f in fits])
+        chi2 = float(np.sum((d / sig) ** 2))
+        p = float(stats.chi2.sf(chi2, 3))
+        z = float(stats.norm.isf(p / 2.0)) if p > 0 else math.inf
+        out.append(OffsetShift(tuple(float(v) for v in d), tuple(float(v) for v in sig), z))
+    return out

@@ -13,12 +13,12 @@ smooth temperature dependence, a bias per load current (a heater's current can b
 and it is on while warming: a plateau held at the same current on both branches is what tells
 ``k`` from ``h``), the offset's drift over the campaign (hours: a drift would otherwise pass for
 hysteresis, the branches coming at different times; cycling twice separates them) and the
-hysteresis ``h``. The samples are averaged into bins per branch, temperature, current and
-``bin_s`` of time, and the bins fitted by generalized least squares with the covariance the
-residuals' own noise gives them (white, flicker and random walk from their Allan variance, as
-the stability step's drift sigma): the offset's slow wander between a warming and a cooling
-plateau an hour apart is most of a hysteresis's sigma, which a white-noise fit put at half the
-spread of its estimates.
+hysteresis ``h``. The samples are averaged into bins, runs of consecutive samples on one branch
+at one current spanning at most ``bin_k`` and ``bin_s``, and the bins fitted by generalized least squares with the offset's noise
+(white, flicker and random walk) estimated alongside, as for the stability step's drift
+(:func:`rig.characterization.offset_noise.fit_bins`): the offset's slow wander between a warming
+and a cooling plateau an hour apart is most of a hysteresis's sigma, which a white-noise fit put
+at half the spread of its estimates.
 """
 
 from __future__ import annotations
@@ -30,12 +30,15 @@ import numpy as np
 import numpy.typing as npt
 from scipy import stats
 
-from rig.characterization.stability import noise_model, on_uniform_grid
+from rig.characterization.offset_noise import Bins, fit_bins
 
 Array = npt.NDArray[np.float64]
 
 DETECTED_SIGMA = 3.0
 MIN_BINS = 6
+MAX_BINS = 300
+"""Bins are widened until at most this many remain (the noise fit's work grows with the cube
+of their number; each bin's mean regressors keep the fit exact however wide they are)."""
 
 
 @dataclass(frozen=True)
@@ -94,32 +97,28 @@ def fit_thermal(time_s: Array, temperature_c: Array, offsets_nt: Array,
     if not (np.any(s > 0) and np.any(s < 0)):
         raise ValueError("the temperature must rise and fall by more than twice reversal_k each:"
                          " no warming or no cooling branch")  # fmt: skip
-    bins = _bins(temp[keep], s[keep], np.asarray(offsets_nt, float)[keep], cur[keep],
-                 hours[keep], bin_k, bin_s / 3600.0)  # fmt: skip
-    t_bin, s_bin, y_bin, i_bin, h_bin, n_bin = bins
+    t_keep = np.asarray(time_s, float)[keep]
+    bins = _bins(temp[keep], s[keep], np.asarray(offsets_nt, float)[keep], cur[keep], t_keep,
+                 bin_k, bin_s)  # fmt: skip
+    t_bin, s_bin, y_bin, n_bin, start_s, end_s, index = bins
     t0 = float(np.mean(t_bin)) if reference_c is None else float(reference_c)
-    dt = t_bin - t0
-    x = _design(dt, i_bin, h_bin, s_bin)
+    # each bin's mean regressors (exact for a model linear in them, however wide the bin)
+    xs = _design(temp[keep] - t0, cur[keep], hours[keep], s[keep])
+    x = np.column_stack([np.bincount(index, weights=col) / n_bin for col in xs.T])
     if len(t_bin) < max(MIN_BINS, x.shape[1] + 3) or np.linalg.matrix_rank(x) < x.shape[1]:
         raise ValueError(f"{len(t_bin)} temperature bins cannot separate the hysteresis from the"
                          " temperature and current dependence: hold a temperature on both"
                          " branches at the same heater current")  # fmt: skip
-    xs = _design(temp[keep] - t0, cur[keep], hours[keep], s[keep])
+    spans = Bins(start_s, end_s, n_bin, 1.0 / float(np.median(np.diff(t_keep))))
     h, hs, c, cs, d, ds = [], [], [], [], [], []
     for axis in range(3):
-        y = np.asarray(offsets_nt, float)[keep, axis]
-        first = np.linalg.lstsq(x * np.sqrt(n_bin)[:, None], y_bin[:, axis] * np.sqrt(n_bin),
-                                rcond=None)[0]  # fmt: skip
-        cov_bins = _bin_covariance(np.asarray(time_s, float)[keep], y - xs @ first,
-                                   3600.0 * h_bin + float(np.mean(time_s)), n_bin)  # fmt: skip
-        beta, cov = _gls(x, y_bin[:, axis], cov_bins)
-        sig = np.sqrt(np.diag(cov))
-        h.append(float(beta[-1]))
-        hs.append(float(sig[-1]))
-        c.append(float(beta[1]))
-        cs.append(float(sig[1]))
-        d.append(float(beta[-2]))
-        ds.append(float(sig[-2]))
+        fit = fit_bins(x, y_bin[:, axis], spans)
+        h.append(float(fit.coef[-1]))
+        hs.append(float(fit.sigma[-1]))
+        c.append(float(fit.coef[1]))
+        cs.append(float(fit.sigma[1]))
+        d.append(float(fit.coef[-2]))
+        ds.append(float(fit.sigma[-2]))
     chi2 = float(np.sum((np.asarray(h) / np.asarray(hs)) ** 2))
     p = float(stats.chi2.sf(chi2, 3))
     z = float(stats.norm.isf(p / 2.0)) if p > 0 else math.inf
@@ -134,56 +133,42 @@ def _design(dt: Array, currents: Array, hours: Array, branch: Array) -> Array:
     return np.column_stack([np.ones_like(dt), dt, dt * dt, *currents.T, hours, 0.5 * branch])
 
 
-def _bin_covariance(t_s: Array, resid_nt: Array, t_bin_s: Array, n_bin: Array) -> Array:
-    """The covariance of the bins' mean offsets (nT^2) from the residuals' own noise (white,
-    flicker and random walk fitted to their Allan variance, :func:`noise_model`): white over each
-    bin's samples, the random walk's ``q min(t_i, t_j)``, and flicker as Gauss-Markov processes a
-    decade apart whose Allan variance is the flicker's flat one (:func:`_flicker_kernel`)."""
-    grid, rate = on_uniform_grid(t_s, np.column_stack([resid_nt] * 3))
-    a, b, c = noise_model(grid[:, 0], rate, 0.0)
-    a = max(a, 1e-6 * float(np.var(resid_nt)) / rate)  # a white part, however small: invertible
-    since = t_bin_s - float(t_s[0])
-    lag = np.abs(np.subtract.outer(since, since))
-    record = float(t_s[-1] - t_s[0])
-    cov = (np.diag(a * rate / n_bin) + 3.0 * c * np.minimum.outer(since, since)
-           + b * _flicker_kernel(lag, record))  # fmt: skip
-    return np.asarray(cov, float)
-
-
-def _flicker_kernel(lag_s: Array, record_s: float) -> Array:
-    """The autocovariance (per nT^2 of flat Allan variance) of flicker noise over ``lag_s``: the
-    sum of Gauss-Markov processes with time constants a decade apart from 1 s to ten records,
-    scaled so that their Allan variance at a hundredth of the record is 1."""
-    taus = 10.0 ** np.arange(0.0, np.log10(10.0 * record_s) + 1.0)
-    probe = max(record_s / 100.0, 1.0)
-    x = probe / taus
-    # an OU process of unit variance: AVAR(tau) = (T/tau)^2 (4 e^-x - e^-2x + 2x - 3), x = tau/T
-    avar = float(np.sum((4.0 * np.exp(-x) - np.exp(-2.0 * x) + 2.0 * x - 3.0) / x**2))
-    return np.asarray(sum(np.exp(-lag_s / t) for t in taus) / avar, float)
-
-
-def _gls(x: Array, y: Array, cov: Array) -> tuple[Array, Array]:
-    """Generalized least squares: the coefficients and their covariance."""
-    chol = np.linalg.cholesky(cov)
-    xw = np.linalg.solve(chol, x)
-    yw = np.linalg.solve(chol, y)
-    beta = np.linalg.lstsq(xw, yw, rcond=None)[0]
-    return np.asarray(beta, float), np.asarray(np.linalg.inv(xw.T @ xw), float)
-
-
-def _bins(temp: Array, s: Array, y: Array, cur: Array, hours: Array, bin_k: float,
-          bin_h: float) -> tuple[Array, Array, Array, Array, Array, Array]:  # fmt: skip
-    """Means per (branch, temperature bin, currents, time bin): temperature, branch, offsets,
-    currents, time (h), samples."""
-    keys = np.column_stack([s, np.floor(temp / bin_k), np.round(cur, 3), np.floor(hours / bin_h)])
-    _, index = np.unique(keys, axis=0, return_inverse=True)
-    index = index.ravel()
+def _bins(
+    temp: Array, s: Array, y: Array, cur: Array, t_s: Array, bin_k: float, bin_s: float
+) -> tuple[Array, Array, Array, Array, Array, Array, npt.NDArray[np.intp]]:
+    """Means over runs of consecutive samples on one branch at one set of currents, each ending
+    when the temperature has moved ``bin_k`` (K) from its first sample's, after ``bin_s`` (s) or
+    at a gap in the samples (so each bin is one stretch of the record, as the noise model's
+    covariance wants); both doubled until at most :data:`MAX_BINS` bins remain. Returns the mean
+    temperature, branch and offsets, the samples, each bin's first and last sample's time (s)
+    and each sample's bin."""
+    index = _run_index(temp, s, cur, t_s, bin_k, bin_s)
+    while index[-1] + 1 > MAX_BINS:
+        bin_k, bin_s = 2.0 * bin_k, 2.0 * bin_s
+        index = _run_index(temp, s, cur, t_s, bin_k, bin_s)
     count = np.bincount(index).astype(float)
 
     def mean(v: Array) -> Array:
         return np.asarray(np.bincount(index, weights=v) / count, float)
 
     y_mean = np.column_stack([mean(y[:, k]) for k in range(y.shape[1])])
-    i_mean = np.column_stack([mean(cur[:, k]) for k in range(cur.shape[1])]) if cur.shape[1] else (
-        np.zeros((len(count), 0)))  # fmt: skip
-    return mean(temp), np.sign(mean(s)), y_mean, i_mean, mean(hours), count
+    first = np.full(len(count), np.inf)
+    last = np.full(len(count), -np.inf)
+    np.minimum.at(first, index, t_s)
+    np.maximum.at(last, index, t_s)
+    return mean(temp), np.sign(mean(s)), y_mean, count, first, last, index
+
+
+def _run_index(temp: Array, s: Array, cur: Array, t_s: Array, bin_k: float,
+               bin_s: float) -> npt.NDArray[np.intp]:  # fmt: skip
+    """The bin of each sample (see :func:`_bins`): 0, 1, ... in time order."""
+    step = float(np.median(np.diff(t_s))) if len(t_s) > 1 else 1.0
+    index = np.zeros(len(temp), dtype=np.intp)
+    k, first = 0, 0
+    for i in range(1, len(temp)):
+        if (s[i] != s[first] or abs(temp[i] - temp[first]) >= bin_k
+                or t_s[i] - t_s[first] >= bin_s or t_s[i] - t_s[i - 1] > 2.5 * step
+                or (cur.shape[1] and np.any(np.abs(cur[i] - cur[first]) > 1e-3))):  # fmt: skip
+            k, first = k + 1, i
+        index[i] = k
+    return index

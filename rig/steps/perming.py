@@ -22,7 +22,7 @@ import numpy as np
 import timebase
 from drivers.protocols import SetReset
 from rig.analysis import settled_samples, to_cage_frame
-from rig.characterization.perming import HoldMean, OffsetShift, hold_mean, offset_shift
+from rig.characterization.perming import HoldMean, OffsetShift, hold_mean, offset_shifts
 from rig.errors import RigError
 from rig.steps.at_rest import offsets_at_rest
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
@@ -218,8 +218,9 @@ class MeasurePerming(StepExecution):
                 raise RigError(f"perming '{self.step.name}': {len(rest.offsets_nt)} settled"
                                f" samples in the hold {name}: lengthen hold_s")  # fmt: skip
             holds.append(hold_mean(rest.offsets_nt))
-        shift = offset_shift(holds[0], holds[1])
-        after_reset = offset_shift(holds[0], holds[2]) if len(holds) == 3 else None
+        shifts = offset_shifts([r.t_s for r in rests[: len(holds)]],
+                               [r.offsets_nt for r in rests[: len(holds)]])  # fmt: skip
+        shift, after_reset = shifts[0], (shifts[1] if len(shifts) > 1 else None)
         result = PermingResult(float(p["shock_ut"]), tuple(float(v) for v in p["direction"]),
                                tuple(float(v) for v in field), tuple(holds), shift, after_reset,
                                self._reset_note(), rests[0].calibrated)  # fmt: skip

@@ -18,6 +18,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from rig.characterization.offset_noise import OffsetNoise
 from rig.characterization.stability import (
     MIN_SAMPLES,
     AllanDeviation,
@@ -45,6 +46,7 @@ class StabilityResult:
     calibrated: bool
     samples: int
     hold_s: float
+    noise: tuple[OffsetNoise, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The stored mapping (criteria name ``adev_1s_max_nt``, ``adev_floor_max_nt``,
@@ -62,6 +64,7 @@ class StabilityResult:
             "drift_abs_max_nt_per_12h": max(abs(v) for v in self.drift_nt_per_12h),
             "reference": self.reference, "reference_note": self.reference_note,
             "calibrated": self.calibrated, "samples": self.samples, "hold_s": self.hold_s,
+            "noise_model": [n.to_dict() for n in self.noise], "warnings": list(a.notes),
         }  # fmt: skip
 
 
@@ -100,9 +103,16 @@ class Stability(NullHoldKind):
                           zip(result["drift_nt_per_12h"], result["drift_sigma_nt_per_12h"], strict=True))  # fmt: skip
         at1 = ", ".join(f"{v:.3g}" for v in result["adev_1s_nt"])
         floor = ", ".join(f"{v:.3g}" for v in result["adev_floor_nt"])
-        return [f"Offset stability '{name}' ({result['hold_s']:g} s, {result['reference_note']}):"
-                f" Allan deviation at 1 s {at1} nT, floor {floor} nT (x, y, z); drift {drift}"
-                " nT per 12 h"]  # fmt: skip
+        lines = [f"Offset stability '{name}' ({result['hold_s']:g} s, {result['reference_note']}):"
+                 f" Allan deviation at 1 s {at1} nT, floor {floor} nT (x, y, z); drift {drift}"
+                 " nT per 12 h"]  # fmt: skip
+        noise = result.get("noise_model") or []
+        if noise:
+            lines.append("  offset noise (x, y, z): white " + ", ".join(
+                f"{n['white_nt_per_sqrt_hz']:.3g}" for n in noise) + " nT/sqrt(Hz), flicker "
+                + ", ".join(f"{n['flicker_adev_nt']:.3g}" for n in noise) + " nT, random walk "
+                + ", ".join(f"{n['walk_nt_per_sqrt_h']:.3g}" for n in noise) + " nT/sqrt(h)")  # fmt: skip
+        return lines + [f"  {w}" for w in result.get("warnings") or []]
 
     def figures(self, reader: Any, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
         allan = read_allan(result)
@@ -146,7 +156,10 @@ class MeasureStability(StepExecution):
         allan = allan_deviation(t, offsets)
         drift = offset_drift(t, offsets)
         result = StabilityResult(allan, drift.per_12h_nt, drift.sigma_nt, str(p["reference"]),
-                                 note, rest.calibrated, len(t), float(p["hold_s"]))  # fmt: skip
+                                 note, rest.calibrated, len(t), float(p["hold_s"]),
+                                 drift.noise)  # fmt: skip
+        for warning in allan.notes:
+            self.ctx.event("warning", f"stability '{self.step.name}': {warning}")
         self.ctx.record_result(self.step.name, result.to_dict())
 
     def _reference(self, which: str) -> tuple[str | None, str]:

@@ -31,7 +31,7 @@ steps:
     name: sweep
   - calibrate: {model: vector, steps: [sweep]}
     name: vector calibration
-  - perming: {shock_ut: 60, direction: [1, 0, 0], shock_s: 3, hold_s: 60, settle_s: 1.5}
+  - perming: {shock_ut: 60, direction: [1, 0, 0], shock_s: 3, hold_s: 150, settle_s: 1.5}
     name: perming
   - check:
       criteria:
