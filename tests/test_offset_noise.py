@@ -1,38 +1,19 @@
 """The offset noise model every characterization shares (issue 54), against noise generated
-here, independently of the simulator's wander: white noise, flicker shaped in the frequency
-domain (a one-sided spectrum h/f, whose Allan variance is 2 ln 2 h) and a random walk of
-Gaussian steps. Fixed seeds: each test is deterministic (bench/bench_characterization_audit.py
-runs the 200-draw audits)."""
+by bench/noise_draws.py, independently of the model and of the simulator's wander: white
+noise, flicker shaped in the frequency domain and a random walk of Gaussian steps. Fixed seeds:
+each test is deterministic (bench/bench_characterization_audit.py runs the 200-draw audits)."""
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 import pytest
 
+from bench.noise_draws import offsets as draw
 from rig.characterization.offset_noise import Bins, _flicker_bins, contiguous_bins
 from rig.characterization.perming import offset_shifts
 from rig.characterization.stability import allan_deviation, offset_drift
 
 RATE_HZ = 10.0
-
-
-def draw(rng: np.random.Generator, n: int, rate_hz: float, white_nt: float, flicker_nt: float,
-         walk_nt_per_sqrt_h: float) -> np.ndarray:  # fmt: skip
-    """(n,) offsets (nT): white of sigma ``white_nt`` per sample, flicker of flat Allan deviation
-    ``flicker_nt`` and a random walk of ``walk_nt_per_sqrt_h``."""
-    y = white_nt * rng.standard_normal(n)
-    if flicker_nt > 0:
-        m = 2 * n
-        f = np.fft.rfftfreq(m, 1.0 / rate_hz)
-        amp = np.zeros_like(f)
-        amp[1:] = np.sqrt(flicker_nt**2 / (2.0 * math.log(2.0)) / f[1:] * rate_hz * m / 4.0)
-        spec = amp * (rng.standard_normal(len(f)) + 1j * rng.standard_normal(len(f)))
-        y += np.fft.irfft(spec, m)[:n]
-    if walk_nt_per_sqrt_h > 0:
-        y += np.cumsum(rng.standard_normal(n)) * walk_nt_per_sqrt_h / math.sqrt(3600.0 * rate_hz)
-    return y
 
 
 def test_the_generator_has_the_allan_variance_it_is_built_for() -> None:

@@ -39,7 +39,7 @@ def test_a_holds_sigma_covers_its_true_mean(rho: float) -> None:
     assert 0.85 < float(np.std(z)) < 1.15
 
 
-def test_no_shift_is_detected_no_more_often_than_3_sigma_allows_and_2_nt_is() -> None:
+def test_no_shift_is_detected_no_more_often_than_3_sigma_allows_and_3_nt_is() -> None:
     rng = np.random.default_rng(11)
     t = np.arange(200) / 10.0
     false = 0
@@ -49,12 +49,12 @@ def test_no_shift_is_detected_no_more_often_than_3_sigma_allows_and_2_nt_is() ->
     assert false / 300 < 0.02  # 0.27 % expected (at most 0.27 %: the sigma is widened)
     t = np.arange(1000) / 10.0
     before = rng.standard_normal((1000, 3)) * 5.0
-    after = rng.standard_normal((1000, 3)) * 5.0 + np.array([2.0, 0.0, 0.0])
+    after = rng.standard_normal((1000, 3)) * 5.0 + np.array([3.0, 0.0, 0.0])
     (shift,) = offset_shifts([t, t + 200.0], [before, after])
-    # white noise alone: the sigma is 2-2.6 times the white-noise one (0.22 nT), for the random
-    # walk 100 s of holds cannot rule out over the 100 s between them (module docstring)
+    # white noise alone: the sigma is 2.5-3.5 times the white-noise one (0.22 nT), for the
+    # random walk 100 s holds cannot rule out (ADR 0041): 3 nT is found, 2 nT was at 2.8 sigma
     assert shift.detected and shift.significance_sigma > 3.0
-    assert shift.shift_nt[0] == pytest.approx(2.0, abs=4 * shift.sigma_nt[0])
+    assert shift.shift_nt[0] == pytest.approx(3.0, abs=4 * shift.sigma_nt[0])
 
 
 def test_the_simulated_sensor_perms_beyond_its_threshold_until_a_reset() -> None:

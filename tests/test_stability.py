@@ -60,10 +60,10 @@ def test_allan_deviation_at_1_100_1000_s_within_its_interval_of_the_truth() -> N
 
 def test_the_drift_over_12_h_within_20_percent_and_its_sigma_covers_the_truth() -> None:
     """Every one of 21 holds of 12 h: each axis within 20 % of its drift (at most 6.7, 8.7 and
-    4.7 % when written); the error over the sigma has an rms of 0.4-1.3 (0.67, 0.48, 0.69: a
-    sigma from the noise itself, widened for how little one record says of its flicker and
-    random walk, which here it cannot tell apart: pessimistic, never optimistic; a white-noise
-    sigma from the residuals is several times too small here)."""
+    4.7 % when written); the error over the sigma has an rms of 0.3-1.3 (0.59, 0.36, 0.48: a
+    sigma from the noise itself, with the random walk and flicker one record cannot tell apart
+    or rule out counted (ADR 0041): pessimistic, never optimistic; a white-noise sigma from the
+    residuals is several times too small here)."""
     truth = 12.0 * np.asarray(SPEC.drift_nt_per_h)
     t, y = twelve_hours(seed=1)
     one = offset_drift(t, y)
@@ -75,7 +75,7 @@ def test_the_drift_over_12_h_within_20_percent_and_its_sigma_covers_the_truth() 
         assert np.all(np.abs(np.asarray(d.per_12h_nt) / truth - 1) < 0.2), (seed, d)
         z.append((np.asarray(d.per_12h_nt) - truth) / np.asarray(d.sigma_nt))
     rms = np.sqrt(np.mean(np.square(z), axis=0))
-    assert np.all((rms > 0.4) & (rms < 1.3)), rms
+    assert np.all((rms > 0.3) & (rms < 1.3)), rms
     # the white-noise sigma of the slope, from the residuals, for comparison
     resid = y - np.polyval(np.polyfit(t, y[:, 0], 1), t)[:, None]
     naive = 12 * 3600 * np.std(resid[:, 0]) / np.sqrt(np.sum((t - t.mean()) ** 2))

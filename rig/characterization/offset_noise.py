@@ -10,8 +10,10 @@ averages. :func:`fit_bins` does it as a statistician would with noise of unknown
   decade apart whose Allan variance is flat);
 - the three terms are estimated together with the coefficients by restricted maximum likelihood
   (REML: the likelihood of the residuals, which a fitted slope or step does not flatter), none
-  dropped because its estimate is small (a random walk the data cannot rule out still widens a
-  drift's sigma, where dropping it made that sigma four times too small);
+  dropped because its estimate is small: a term REML puts at 0 still adds to each sigma what
+  the data cannot rule out of it (the coefficients' variance averaged over the term's values,
+  weighted by the likelihood), where dropping a random walk made a drift's sigma four times
+  too small;
 - the coefficients by generalized least squares with that covariance; and because the noise
   itself is estimated from one record (a random walk's share of a drift from a few of its own
   steps), each sigma is widened from its Satterthwaite degrees of freedom ``nu`` (from the
@@ -184,6 +186,8 @@ class BinFit:
 
 INSIDE_SE = 0.1
 """A term whose estimate is below this many of its standard errors is taken as at 0."""
+UNSEEN_GRID = np.array([0.0, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0])
+"""Where a term at 0 is tried, in its standard errors (the likelihood weighs them)."""
 WIDEN_LEVEL = 0.9
 """The one-sided level at which a sigma is widened for its degrees of freedom: the Student-t
 80 % interval (widening for the 95 % one left mixed noise 15-25 % pessimistic)."""
@@ -219,7 +223,10 @@ def _fit_bins(design: Array, y: Array, bins: Bins, start: OffsetNoise | None) ->
 
     def cost(log_theta: Array) -> tuple[float, Array]:
         theta = np.exp(log_theta)
-        value, proj = _reml(x, yv, _combine(parts, theta))
+        try:
+            value, proj = _reml(x, yv, _combine(parts, theta))
+        except np.linalg.LinAlgError:  # numerically singular here: steer the optimizer away
+            return 1e300, np.zeros(3)
         py = proj @ yv
         grad = np.array([float(np.sum(proj * m)) - float(py @ m @ py) for m in parts])
         return value, grad * theta
@@ -248,11 +255,39 @@ def _fit_bins(design: Array, y: Array, bins: Bins, start: OffsetNoise | None) ->
     if inside.any():
         sub = np.ix_(inside, inside)
         theta_cov[sub] = np.linalg.pinv(info[sub])
-    var = np.diag(cov)
+    var = np.diag(cov) + _unseen_variance(x, yv, parts, theta, theta_se * ~inside)
     spread = np.einsum("ip,ij,jp->p", grads, theta_cov, grads)
     dof = np.clip(2.0 * var**2 / np.maximum(spread, 1e-300), MIN_DOF, 1e6)
     widen = stats.t.ppf(WIDEN_LEVEL, dof) / stats.norm.ppf(WIDEN_LEVEL)
     return BinFit(coef, cov, dof, np.sqrt(var) * widen, OffsetNoise(*(float(t) for t in theta)))
+
+
+def _unseen_variance(x: Array, y: Array, parts: tuple[Array, Array, Array], theta: Array,
+                     reach: Array) -> Array:  # fmt: skip
+    """What the terms at 0 that the data cannot rule out add to each coefficient's variance:
+    per such term (``reach`` its standard error, 0 for the others) the coefficients' variance
+    averaged over the term's values from 0 to six standard errors (:data:`UNSEEN_GRID`), weighted
+    by the restricted likelihood (a flat prior on the term), less the variance at 0."""
+    v0 = _combine(parts, theta)
+    best = _reml(x, y, v0)[0]
+    at0 = _coef_variance(x, v0)
+    extra = np.zeros_like(at0)
+    for k in np.flatnonzero(reach > 0):
+        weights, variances = [], []
+        for f in UNSEEN_GRID:
+            trial = theta.copy()
+            trial[k] += f * reach[k]
+            v = _combine(parts, trial)
+            weights.append(math.exp(-0.5 * (_reml(x, y, v)[0] - best)))
+            variances.append(_coef_variance(x, v))
+        w = np.asarray(weights)
+        extra += np.maximum(w @ np.asarray(variances) / w.sum() - at0, 0.0)
+    return np.asarray(extra, float)
+
+
+def _coef_variance(x: Array, v: Array) -> Array:
+    """The GLS coefficients' variances for the noise covariance ``v``."""
+    return np.asarray(np.diag(np.linalg.inv(x.T @ np.linalg.solve(v, x))), float)
 
 
 _MIXES = ((1.0, 1e-3, 1e-3), (0.3, 0.3, 0.3), (1e-3, 1e-3, 1.0), (1e-3, 1.0, 1e-3))
@@ -260,7 +295,10 @@ _MIXES = ((1.0, 1e-3, 1e-3), (0.3, 0.3, 0.3), (1e-3, 1e-3, 1.0), (1e-3, 1.0, 1e-
 
 
 def _combine(parts: tuple[Array, Array, Array], theta: Array) -> Array:
-    return np.asarray(sum(t * m for t, m in zip(theta, parts, strict=True)), float)
+    """The bins' covariance for the terms ``theta``, with a jitter of 1e-9 of its mean variance
+    on the diagonal (a walk or flicker alone is near singular over many bins)."""
+    v = np.asarray(sum(t * m for t, m in zip(theta, parts, strict=True)), float)
+    return v + 1e-9 * float(np.mean(np.diag(v))) * np.eye(len(v))
 
 
 def _reml(x: Array, y: Array, v: Array) -> tuple[float, Array]:

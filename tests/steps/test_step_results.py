@@ -688,8 +688,9 @@ def test_stability_takes_the_reference_out_and_reports_allan_deviation_and_drift
     assert r["reference_note"] == "the reference magnetometer 'reference' subtracted"
     for got, sigma, want in zip(r["drift_nt_per_12h"], r["drift_sigma_nt_per_12h"],
                                 (200, 0, -200), strict=True):  # fmt: skip
-        # white noise of 5.4 nT at 10 Hz over 20 min: a least-squares sigma of 6.3 nT per 12 h
-        assert abs(got - want) < 3 * sigma and 6.0 < sigma < 12.0, (got, sigma)
+        # white noise of 5.4 nT at 10 Hz over 20 min: a least-squares sigma of 6.3 nT per 12 h;
+        # the noise model's is wider by the random walk 20 min cannot rule out (ADR 0041)
+        assert abs(got - want) < 3 * sigma and 6.0 < sigma < 25.0, (got, sigma)
     assert r["adev_1s_nt"] == pytest.approx([np.hypot(5, 2) / np.sqrt(10)] * 3, rel=0.15)
     assert r["allan"]["tau_s"][0] == pytest.approx(0.2) and r["allan"]["tau_s"][-1] <= hold / 4
     assert not r["calibrated"] and r["samples"] >= t.size - 1  # the one at the change: out
