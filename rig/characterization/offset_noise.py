@@ -21,11 +21,11 @@ averages. :func:`fit_bins` does it as a statistician would with noise of unknown
   ``sigma = se * t(0.9, nu) / z(0.9)``, the width of the Student-t 80 % interval in Gaussian
   sigmas (:data:`WIDEN_LEVEL`).
 
-Measured against noise generated outside the model (tests/test_offset_noise.py), 70 records of
-3 axes each: a drift's rms z 0.85 for white noise, 1.05-1.08 where a random walk dominates,
-1.28-1.48 (90-93 % within 1.96 sigma) where a weak random walk hides under white noise and
-flicker and REML sometimes puts it at 0; a perming shift's 0.75-1.02 (93-99 %), also under a
-20 nT/sqrt(h) walk (2.85 with the holds' batch means alone).
+Measured against noise generated outside the model (bench/bench_characterization_audit.py, 200
+records of 3 axes; docs/procedures.md): a drift's rms z 0.91-0.99 (95-96 % within 1.96 sigma)
+where a random walk is mixed with white noise and flicker, a perming shift's 1.03-1.04 under
+20-100 nT/sqrt(h), a thermal campaign's 0.99; with white noise alone a drift's or a shift's
+sigma is about three times too wide (rms z 0.33-0.36: the walk one record cannot rule out).
 """
 
 from __future__ import annotations
