@@ -41,6 +41,8 @@ class RegisterImage:
         self.on_write = on_write
         self._lock = threading.Lock()
         self._ptys: list[tuple[int, int]] = []
+        self._rtu_threads: list[threading.Thread] = []
+        self._stopping = threading.Event()
         image = self
 
         class Handler(socketserver.BaseRequestHandler):
@@ -127,12 +129,14 @@ class RegisterImage:
         tty.setraw(master)
         tty.setraw(slave)
         self._ptys.append((master, slave))
-        threading.Thread(target=self._rtu, args=(master, unit), daemon=True).start()
+        thread = threading.Thread(target=self._rtu, args=(master, unit), daemon=True)
+        self._rtu_threads.append(thread)
+        thread.start()
         return os.ttyname(slave)
 
     def _rtu(self, master: int, unit: int) -> None:
         buf = b""
-        while True:
+        while not self._stopping.is_set():
             try:
                 ready, _, _ = select.select([master], [], [], 0.05)
                 if not ready:
@@ -154,6 +158,13 @@ class RegisterImage:
         """Stop serving."""
         self.server.shutdown()
         self.server.server_close()
+        # the RTU threads end before their descriptors close: a thread still reading a closed
+        # descriptor's number would serve the next image's pty, which reuses it (seen: a scan
+        # found the previous test's model code)
+        self._stopping.set()
+        for thread in self._rtu_threads:
+            thread.join(timeout=5.0)
+        self._rtu_threads.clear()
         for master, slave in self._ptys:
             os.close(master)
             os.close(slave)

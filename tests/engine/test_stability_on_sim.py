@@ -1,5 +1,7 @@
 """The stability step through the wire protocols on the simulated cage: a DUT whose offset
-drifts (the simulator's truth) held at null field for a minute, the reference subtracted."""
+drifts (the simulator's truth) held at null field for two minutes, the reference subtracted (one
+minute knew the drift to 2.9 sigma once the sigma counted the random walk a minute cannot rule
+out: ADR 0041)."""
 
 from __future__ import annotations
 
@@ -12,11 +14,11 @@ import pytest
 from sim.config import load_config
 from tests.simrun import run_on_sim
 
-DRIFT_NT_PER_H = (1200.0, 0.0, -1200.0)  # 20 nT a minute: seen within a 60 s hold
+DRIFT_NT_PER_H = (1200.0, 0.0, -1200.0)  # 20 nT a minute: seen within a 120 s hold
 
 
 @pytest.mark.slow
-def test_a_drifting_dut_held_for_a_minute_shows_its_drift_and_allan_deviation(
+def test_a_drifting_dut_held_for_two_minutes_shows_its_drift_and_allan_deviation(
     tmp_path: Path,
 ) -> None:
     cfg = load_config()
@@ -26,7 +28,7 @@ def test_a_drifting_dut_held_for_a_minute_shows_its_drift_and_allan_deviation(
         tmp_path,
         "procedure: stability\nmagnetometers: {dut: dut, reference: reference}\nsteps:\n"
         "  - null_field: {hold_s: 3}\n    name: floor\n"
-        "  - stability: {hold_s: 60, settle_s: 1}\n    name: offset stability\n"
+        "  - stability: {hold_s: 120, settle_s: 1}\n    name: offset stability\n"
         "  - report: {}\n",
         sim_config=dataclasses.replace(cfg, magnetometers=mags),
     )
