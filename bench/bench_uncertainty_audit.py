@@ -185,6 +185,7 @@ def main() -> int:
         if other and args.scenario:
             ap.error(f"--cli runs only {', '.join(CLI_SCENARIOS)}, not {', '.join(other)}")
         chosen = [sc for sc in chosen if sc.name in CLI_SCENARIOS]
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: bench/
     from bench.dask_runs import local_cluster
 
     cluster = None if args.scheduler else local_cluster(args.workers)

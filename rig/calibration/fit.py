@@ -170,13 +170,17 @@ def calibrate(
 
 
 def _estimate(est: Estimator, data: Samples, request: FitRequest, one_sided: bool) -> Estimate:
-    """``est`` run on ``data``; on ``one_sided`` directions without the noise bias it can remove."""
+    """``est`` run on ``data``; on ``one_sided`` directions without the noise bias where the
+    method can remove it, else with the bias carried in its sigmas (without a robust loss,
+    whose weights the bias does not model)."""
     estimate = est.run(data, request)
-    if one_sided and _removes_noise_bias(est.name, request.robust):
-        from rig.calibration.identifiability import without_noise_bias
+    if not one_sided or request.robust is not None:
+        return estimate
+    from rig.calibration.identifiability import with_noise_bias_in_sigmas, without_noise_bias
 
+    if _removes_noise_bias(est.name, request.robust):
         return without_noise_bias(estimate, data)
-    return estimate
+    return with_noise_bias_in_sigmas(estimate, data)
 
 
 def _profiled(
@@ -287,7 +291,8 @@ def _check_coverage(
         start = scalar_start(s, quick=method not in ("centered", "ellipsoid", "twostep"))
     except (CalibrationError, np.linalg.LinAlgError):
         return None, ()
-    return start, check_identifiable(s, start.p, method, _removes_noise_bias(method, robust))
+    # the bias is removed or carried in the sigmas whenever there is no robust loss
+    return start, check_identifiable(s, start.p, method, robust is None)
 
 
 def _batch_noise_ut(s: Samples, start: Array | None = None) -> float:

@@ -258,6 +258,25 @@ def without_noise_bias(est: Estimate, s: Samples) -> Estimate:
     return replace(est, p=est.p - bias, notes=(*est.notes, note))
 
 
+def with_noise_bias_in_sigmas(est: Estimate, s: Samples) -> Estimate:
+    """``est``, a scalar estimate of the one-sided samples ``s`` by a method that does not remove
+    its :func:`noise_bias` (a filter, a two-step fit), with that bias carried in its covariance
+    (``+ b b^T``: the sigmas become root mean squared errors) and a note naming the largest one
+    in sigmas and the method that removes it instead (issue 54: the filters' sigmas had been 5-20
+    % optimistic on one-sided orbits)."""
+    bias = noise_bias(s, _information_at(s, est.p, True))
+    sigma = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
+    worst = int(np.argmax(np.abs(bias) / sigma))
+    name = parameter_names(s.channels, vector=False)[worst]
+    note = (
+        "the raw noise's bias on one-sided field directions is carried in the sigmas as a mean"
+        f" squared error (largest {_value(name, bias[worst], signed=True)},"
+        f" {abs(bias[worst]) / sigma[worst]:.1f} sigma); --method ml removes it from the estimate"
+        " instead (docs/adr/0026)"
+    )
+    return replace(est, covariance=est.covariance + np.outer(bias, bias), notes=(*est.notes, note))
+
+
 NOISE_BIAS_REMOVED = frozenset({"ml"})
 """Scalar methods whose estimate on one-sided data has :func:`noise_bias` removed
 (:func:`without_noise_bias`; without a robust loss, whose weights the bias does not model)."""
