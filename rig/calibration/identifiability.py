@@ -246,15 +246,9 @@ def without_noise_bias(est: Estimate, s: Samples) -> Estimate:
     :func:`noise_bias` at the estimate subtracted (a first-order correction: on the audit's TRMM
     orbit and hemisphere it takes the mean error from +1 to +2 sigma to within 0.1 sigma) and a
     note naming the largest shift in sigmas."""
-    bias = noise_bias(s, _information_at(s, est.p, True))
-    sigma = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
-    worst = int(np.argmax(np.abs(bias) / sigma))
-    name = parameter_names(s.channels, vector=False)[worst]
-    note = (
-        "the raw noise's bias on one-sided field directions is removed from the estimate"
-        f" (largest shift {_value(name, -bias[worst], signed=True)},"
-        f" {abs(bias[worst]) / sigma[worst]:.1f} sigma; docs/adr/0026)"
-    )
+    bias, largest = _bias_at_estimate(est, s, shift=True)
+    note = ("the raw noise's bias on one-sided field directions is removed from the estimate"
+            f" (largest shift {largest}; docs/adr/0026)")  # fmt: skip
     return replace(est, p=est.p - bias, notes=(*est.notes, note))
 
 
@@ -264,17 +258,22 @@ def with_noise_bias_in_sigmas(est: Estimate, s: Samples) -> Estimate:
     (``+ b b^T``: the sigmas become root mean squared errors) and a note naming the largest one
     in sigmas and the method that removes it instead (issue 54: the filters' sigmas had been 5-20
     % optimistic on one-sided orbits)."""
+    bias, largest = _bias_at_estimate(est, s, shift=False)
+    note = ("the raw noise's bias on one-sided field directions is carried in the sigmas as a mean"
+            f" squared error (largest {largest}); --method ml removes it from the estimate instead"
+            " (docs/adr/0026)")  # fmt: skip
+    return replace(est, covariance=est.covariance + np.outer(bias, bias), notes=(*est.notes, note))
+
+
+def _bias_at_estimate(est: Estimate, s: Samples, shift: bool) -> tuple[Array, str]:
+    """:func:`noise_bias` at ``est``, and its largest part in sigmas as words ('z0 -0.084 uT,
+    2.0 sigma'; as the shift that removes it with ``shift``)."""
     bias = noise_bias(s, _information_at(s, est.p, True))
     sigma = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
     worst = int(np.argmax(np.abs(bias) / sigma))
     name = parameter_names(s.channels, vector=False)[worst]
-    note = (
-        "the raw noise's bias on one-sided field directions is carried in the sigmas as a mean"
-        f" squared error (largest {_value(name, bias[worst], signed=True)},"
-        f" {abs(bias[worst]) / sigma[worst]:.1f} sigma); --method ml removes it from the estimate"
-        " instead (docs/adr/0026)"
-    )
-    return replace(est, covariance=est.covariance + np.outer(bias, bias), notes=(*est.notes, note))
+    value = _value(name, -bias[worst] if shift else bias[worst], signed=True)
+    return bias, f"{value}, {abs(bias[worst]) / sigma[worst]:.1f} sigma"
 
 
 NOISE_BIAS_REMOVED = frozenset({"ml"})
