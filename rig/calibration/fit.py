@@ -176,9 +176,13 @@ def _estimate(est: Estimator, data: Samples, request: FitRequest, one_sided: boo
     estimate = est.run(data, request)
     if not one_sided or request.robust is not None:
         return estimate
-    from rig.calibration.identifiability import with_noise_bias_in_sigmas, without_noise_bias
+    from rig.calibration.identifiability import (
+        NOISE_BIAS_REMOVED,
+        with_noise_bias_in_sigmas,
+        without_noise_bias,
+    )
 
-    if _removes_noise_bias(est.name, request.robust):
+    if est.name in NOISE_BIAS_REMOVED:
         return without_noise_bias(estimate, data)
     return with_noise_bias_in_sigmas(estimate, data)
 
@@ -268,13 +272,6 @@ def _delays_on_the_sample_grid(
     fit = with_resolution(replace(fit, values=values, sigma=np.maximum(fit.sigma, floors)),
                           "delay_s", widths)  # fmt: skip
     return replace(result, profiled=fit, warnings=(*result.warnings, *notes))
-
-
-def _removes_noise_bias(method: str, robust: RobustLoss | None) -> bool:
-    """Whether ``method``'s estimate on one-sided data gets its noise bias removed (ADR 0026)."""
-    from rig.calibration.identifiability import NOISE_BIAS_REMOVED
-
-    return method in NOISE_BIAS_REMOVED and robust is None
 
 
 def _check_coverage(

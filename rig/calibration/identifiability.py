@@ -133,12 +133,12 @@ def missing_caps(coverage: dict[str, float]) -> list[str]:
 
 
 def check_identifiable(
-    s: Samples, start: Array, method: str, bias_removed: bool = False
+    s: Samples, start: Array, method: str, bias_handled: bool = False
 ) -> tuple[str, ...]:
     """Raise CalibrationError (one line) when a combination of the scalar parameters is not
     determined by ``s``; else, when field directions are missing, warnings: what recording them
     would do to the sigmas, and the noise bias when it reaches a sigma (none on a full sphere)
-    and the fit will not remove it (``bias_removed``)."""
+    and the fit will neither remove it nor carry it in its sigmas (``bias_handled``)."""
     info = information(s, start)
     scales = parameter_scales(s)
     names = parameter_names(s.channels, vector=False)
@@ -151,7 +151,7 @@ def check_identifiable(
     if info.converged and rel_sigma <= RELATIVE_SIGMA_LIMIT:
         if not missing:
             return ()
-        bias = bias_warning(s, info, ", ".join(missing), method, bias_removed)
+        bias = bias_warning(s, info, ", ".join(missing), method, bias_handled)
         return (coverage_warning(s, info, coverage, missing),) + ((bias,) if bias else ())
     why = "the fit runs off along it" if not info.converged else _sigma_words(rel_sigma)
     fix = f"record directions with {', '.join(missing)}" if missing else "record more directions"
@@ -282,10 +282,10 @@ NOISE_BIAS_REMOVED = frozenset({"ml"})
 
 
 def bias_warning(
-    s: Samples, info: Information, caps: str, method: str = "ml", removed: bool = False
+    s: Samples, info: Information, caps: str, method: str = "ml", handled: bool = False
 ) -> str | None:
     """The parameters whose :func:`noise_bias` reaches :data:`BIAS_REPORTED` of their sigma
-    (None when the fit will remove it, ``removed``); CalibrationError when one reaches
+    (None when the fit will remove it or carry it in its sigmas, ``handled``); CalibrationError when one reaches
     :data:`BIAS_REFUSED`: beyond what a first-order correction or a sigma can promise."""
     bias = noise_bias(s, info)
     sigma = np.sqrt(np.diag(np.linalg.inv(info.fisher)))
@@ -298,7 +298,7 @@ def bias_warning(
             f" about {', '.join(large)}, beyond what its sigma can cover: record {caps} (turn the"
             " sensor through every attitude), or calibrate against a field vector (--field)"
         )
-    if not large or removed:
+    if not large or handled:
         return None
     return (
         "the raw noise biases a scalar fit on one-sided field directions, here by about "

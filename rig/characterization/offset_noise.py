@@ -52,11 +52,6 @@ class OffsetNoise:
     flicker_nt2: float
     walk_nt2_per_s: float
 
-    def avar_nt2(self, tau_s: Array | float) -> Array:
-        """The Allan variance at averaging times ``tau_s`` (s; nT^2)."""
-        tau = np.asarray(tau_s, float)
-        return np.asarray(self.white_nt2_s / tau + self.flicker_nt2 + self.walk_nt2_per_s * tau)
-
     def to_dict(self) -> dict[str, float]:
         """For a result: the three terms, and each as the deviation a technician quotes."""
         return {"white_nt2_s": self.white_nt2_s, "flicker_nt2": self.flicker_nt2,
@@ -126,6 +121,13 @@ def _flicker_bins(centre_s: Array, length_s: Array, record_s: float) -> Array:
     return np.asarray(sum(_ou_bins(centre_s, length_s, t) for t in taus) / avar, float)
 
 
+def taus_125(shortest_s: float, longest_s: float) -> Array:
+    """1-2-5 averaging times from ``shortest_s`` to ``longest_s`` (s), both included."""
+    decades = np.arange(math.floor(math.log10(shortest_s)), math.ceil(math.log10(longest_s)) + 1)
+    taus = np.array([f * 10.0**d for d in decades for f in (1.0, 2.0, 5.0)])
+    return taus[(taus >= shortest_s * (1 - 1e-6)) & (taus <= longest_s)]
+
+
 HADAMARD_FLICKER = (8.0 * math.log(2.0) - 3.0 * math.log(3.0)) / (4.0 * math.log(2.0))
 """The overlapping Hadamard variance of flicker over its Allan variance (0.811); white noise
 gives 1 and a random walk 1/2."""
@@ -140,10 +142,7 @@ def hadamard_noise(y_nt: Array, rate_hz: float) -> OffsetNoise:
     from scipy.optimize import nnls
 
     y = np.asarray(y_nt, float)
-    record = len(y) / rate_hz
-    decades = np.arange(math.floor(math.log10(1.0 / rate_hz)), math.ceil(math.log10(record)) + 1)
-    taus = np.array([f * 10.0**d for d in decades for f in (1.0, 2.0, 5.0)])
-    taus = taus[(taus >= (1 - 1e-6) / rate_hz) & (taus <= max(record / 4.0, 3.0 / rate_hz))]
+    taus = taus_125(1.0 / rate_hz, max(len(y) / rate_hz / 4.0, 3.0 / rate_hz))
     tau, dev, _, _ = allantools.ohdev(y, rate=rate_hz, data_type="freq", taus=taus)
     tau = np.asarray(tau, float)
     hvar = np.asarray(dev, float) ** 2
@@ -173,13 +172,11 @@ def contiguous_bins(t_s: Array, count: int) -> tuple[Bins, list[npt.NDArray[np.i
 
 @dataclass(frozen=True)
 class BinFit:
-    """A linear model of the bins' averages: the coefficients, their covariance as the fitted
-    noise gives it, their Satterthwaite degrees of freedom, the sigmas widened for those
-    (``se t(LEVEL, nu) / z(LEVEL)``) and the noise model fitted alongside."""
+    """A linear model of the bins' averages: the coefficients, their sigmas (with what the data
+    cannot rule out, widened for their Satterthwaite degrees of freedom: ``se t(LEVEL, nu) /
+    z(LEVEL)``) and the noise model fitted alongside."""
 
     coef: Array
-    cov: Array
-    dof: Array
     sigma: Array
     noise: OffsetNoise
 
@@ -255,22 +252,21 @@ def _fit_bins(design: Array, y: Array, bins: Bins, start: OffsetNoise | None) ->
     if inside.any():
         sub = np.ix_(inside, inside)
         theta_cov[sub] = np.linalg.pinv(info[sub])
-    var = np.diag(cov) + _unseen_variance(x, yv, parts, theta, theta_se * ~inside)
+    at_fit = np.diag(cov)
+    var = at_fit + _unseen_variance(x, yv, parts, theta, theta_se * ~inside, best.fun, at_fit)
     spread = np.einsum("ip,ij,jp->p", grads, theta_cov, grads)
     dof = np.clip(2.0 * var**2 / np.maximum(spread, 1e-300), MIN_DOF, 1e6)
     widen = stats.t.ppf(WIDEN_LEVEL, dof) / stats.norm.ppf(WIDEN_LEVEL)
-    return BinFit(coef, cov, dof, np.sqrt(var) * widen, OffsetNoise(*(float(t) for t in theta)))
+    return BinFit(coef, np.sqrt(var) * widen, OffsetNoise(*(float(t) for t in theta)))
 
 
 def _unseen_variance(x: Array, y: Array, parts: tuple[Array, Array, Array], theta: Array,
-                     reach: Array) -> Array:  # fmt: skip
+                     reach: Array, best: float, at0: Array) -> Array:  # fmt: skip
     """What the terms at 0 that the data cannot rule out add to each coefficient's variance:
     per such term (``reach`` its standard error, 0 for the others) the coefficients' variance
     averaged over the term's values from 0 to six standard errors (:data:`UNSEEN_GRID`), weighted
-    by the restricted likelihood (a flat prior on the term), less the variance at 0."""
-    v0 = _combine(parts, theta)
-    best = _reml(x, y, v0)[0]
-    at0 = _coef_variance(x, v0)
+    by the restricted likelihood (a flat prior on the term), less the variance at the fit
+    (``at0``, where -2 log the likelihood is ``best``)."""
     extra = np.zeros_like(at0)
     for k in np.flatnonzero(reach > 0):
         weights, variances = [], []

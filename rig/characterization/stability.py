@@ -26,6 +26,7 @@ from rig.characterization.offset_noise import (
     contiguous_bins,
     fit_bins,
     hadamard_noise,
+    taus_125,
 )
 
 Array = npt.NDArray[np.float64]
@@ -80,10 +81,7 @@ def on_uniform_grid(t_s: Array, xyz: Array) -> tuple[Array, float]:
 
 def default_taus(n: int, rate_hz: float) -> Array:
     """1-2-5 averaging times from two samples up to a quarter of the record (s)."""
-    top = n / rate_hz / 4.0
-    decades = np.arange(math.floor(math.log10(2.0 / rate_hz)), math.ceil(math.log10(top)) + 1)
-    taus = np.array([f * 10.0**d for d in decades for f in (1.0, 2.0, 5.0)])
-    return taus[(taus >= 2.0 / rate_hz * (1 - 1e-6)) & (taus <= top)]
+    return taus_125(2.0 / rate_hz, n / rate_hz / 4.0)
 
 
 def allan_deviation(t_s: Array, offsets_nt: Array, taus_s: Array | None = None,
