@@ -38,6 +38,7 @@ RMS_GOAL = (0.85, 1.2)
 WITHIN_GOAL = 0.93
 RATE_HZ = 10.0
 Mix = tuple[float, float, float]  # white nT per sample, flicker nT, walk nT/sqrt(h)
+Draw = Callable[[int], tuple[list[float], list[float]]]  # seed -> (z values, sigmas)
 
 
 @dataclass(frozen=True)
@@ -45,12 +46,10 @@ class Scenario:
     """A named audit: ``draw(seed)`` gives the z values and sigmas of one record."""
 
     name: str
-    draw: Callable[[int], tuple[list[float], list[float]]]
+    draw: Draw
 
 
-def drift_draw(
-    mix: Mix, seconds: float = 600.0
-) -> Callable[[int], tuple[list[float], list[float]]]:
+def drift_draw(mix: Mix, seconds: float = 600.0) -> Draw:
     """A stability hold of ``seconds`` at 10 Hz drifting 10 nT/h, three axes."""
 
     def draw(seed: int) -> tuple[list[float], list[float]]:
@@ -66,7 +65,7 @@ def drift_draw(
     return draw
 
 
-def perming_draw(mix: Mix, hold_s: float = 60.0, gap_s: float = 60.0) -> Callable[[int], tuple[list[float], list[float]]]:  # fmt: skip
+def perming_draw(mix: Mix, hold_s: float = 60.0, gap_s: float = 60.0) -> Draw:
     """Two holds of ``hold_s`` ``gap_s`` apart at 10 Hz, shifted by (3, 0, -2) nT."""
     truth = np.array([3.0, 0.0, -2.0])
 
@@ -86,7 +85,7 @@ def perming_draw(mix: Mix, hold_s: float = 60.0, gap_s: float = 60.0) -> Callabl
     return draw
 
 
-def thermal_draw(mix: Mix) -> Callable[[int], tuple[list[float], list[float]]]:
+def thermal_draw(mix: Mix) -> Draw:
     """A 6 h heater campaign at 1 Hz (plateaus held on both branches at one current, the mount
     a first-order 120 s lag): hysteresis (0.5, 0, -0.3) nT, tempco (30, -20, 15) nT/K, drift
     (0.5, -0.3, 0.4) nT/h; z of all nine values."""

@@ -193,9 +193,9 @@ WIDEN_LEVEL = 0.9
 def fit_bins(design: Array, y: Array, bins: Bins, start: OffsetNoise | None = None) -> BinFit:
     """Fit ``y`` (one axis's bin averages, nT) to ``design`` (bins x p) with the offset noise
     estimated by REML (module docstring), from the two likeliest of ``start`` and a few fixed
-    mixtures (the better optimum wins). ValueError when there are no more bins than coefficients. The
-    matrices are small: BLAS runs one thread (several thrash on a busy machine: 18 times
-    slower beside one other process on 2 cores)."""
+    mixtures (the better optimum wins). ValueError when there are no more bins than
+    coefficients. The matrices are small: BLAS runs one thread (several thrash on a busy
+    machine: 18 times slower beside one other process on 2 cores)."""
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1, user_api="blas"):

@@ -14,11 +14,11 @@ and it is on while warming: a plateau held at the same current on both branches 
 ``k`` from ``h``), the offset's drift over the campaign (hours: a drift would otherwise pass for
 hysteresis, the branches coming at different times; cycling twice separates them) and the
 hysteresis ``h``. The samples are averaged into bins, runs of consecutive samples on one branch
-at one current spanning at most ``bin_k`` and ``bin_s``, and the bins fitted by generalized least squares with the offset's noise
-(white, flicker and random walk) estimated alongside, as for the stability step's drift
-(:func:`rig.characterization.offset_noise.fit_bins`): the offset's slow wander between a warming
-and a cooling plateau an hour apart is most of a hysteresis's sigma, which a white-noise fit put
-at half the spread of its estimates.
+at one current spanning at most ``bin_k`` and ``bin_s``, and the bins fitted by generalized
+least squares with the offset's noise (white, flicker and random walk) estimated alongside, as
+for the stability step's drift (:func:`rig.characterization.offset_noise.fit_bins`): the
+offset's slow wander between a warming and a cooling plateau an hour apart is most of a
+hysteresis's sigma, which a white-noise fit put at half the spread of its estimates.
 """
 
 from __future__ import annotations
