@@ -243,6 +243,21 @@ class SensorSampler:
                 self._cond.wait(remaining)
         return True
 
+    def dated_within(self, after_s: float, before_s: float, enough: int) -> int:
+        """How many of the recent samples are dated whole (date +- its uncertainty) inside
+        [``after_s``, ``before_s``) (monotonic s), counted up to ``enough``."""
+        found = 0
+        with self._cond:
+            for _, t, _, t_unc in reversed(self._recent):
+                unc = 0.0 if math.isnan(t_unc) else t_unc
+                if t + unc < after_s:
+                    break  # older still: dates grow with the sequence
+                if t - unc >= after_s and t + unc < before_s:
+                    found += 1
+                    if found >= enough:
+                        break
+        return found
+
     def wait_next(
         self, after: int, timeout_s: float = 2.0
     ) -> tuple[int, float, tuple[float, float, float], float]:

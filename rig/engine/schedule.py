@@ -10,6 +10,7 @@ from collections.abc import Callable
 
 import timebase
 from rig.engine.commands import Commands
+from rig.engine.point_gate import PointGate
 from rig.engine.run_tracker import RunTracker, StepNow
 from rig.engine.sampling import SensorSampler
 from rig.engine.session import RigSession
@@ -84,7 +85,7 @@ class StepScheduler:
         self.event("info", f"step {step.index + 1}/{self.n_steps}: {step.name}")
         execution = KINDS[step.kind].execution(ctx, step)
         try:
-            self._timeline(plan, execution, t0)
+            self._timeline(plan, execution, t0, self._gate(plan, ctx))
             execution.wind_down()
         except BaseException:
             execution.abort()
@@ -97,7 +98,15 @@ class StepScheduler:
             sampler.caught_up(t_end, CATCH_UP_S)
         execution.finish(t0, t_end)
 
-    def _timeline(self, plan: StepPlan, execution: StepExecution, t0: float) -> None:
+    def _gate(self, plan: StepPlan, ctx: RunContext) -> PointGate | None:
+        """The gate holding each field of the step until its settled samples are in, if its kind
+        needs them (:meth:`rig.steps.base.StepKind.settled_need`)."""
+        kind = KINDS[plan.step.kind]
+        need = kind.settled_need(plan.step, ctx.proc.magnetometers)
+        return PointGate(need, self.samplers) if need is not None and kind.hold_from_field else None
+
+    def _timeline(self, plan: StepPlan, execution: StepExecution, t0: float,
+                  gate: PointGate | None) -> None:  # fmt: skip
         """Each command of the step at its time from ``t0`` (moved on by pauses, by a field
         step's set-point once its field is there, and by the time the step's own actions take)."""
         step, stop = plan.step, execution.stop
@@ -107,6 +116,11 @@ class StepScheduler:
             track = bool(cmd.payload.get("track"))
             t0 = pace.slipped(t0, cmd.t_s, track)
             t0 += self.wait_until(t0 + cmd.t_s, stop)
+            if gate is not None and gate.due_before(cmd.t_s):
+                # the field before has its settled samples (or waited its most) before this
+                t0 += gate.hold(
+                    lambda t: self.wait_until(t, stop), lambda: stop is not None and stop.is_set()
+                )
             if stop is not None and stop.is_set():
                 break
             now = timebase.monotonic()
@@ -121,11 +135,16 @@ class StepScheduler:
                     # its dwell starts once the field is there; a tracked set-point keeps the
                     # schedule (re-anchored on each, a sine's 4 ms writes stretched it by 11 %)
                     t0 = timebase.monotonic() - cmd.t_s
+                    if gate is not None:
+                        gate.opened(t0 + cmd.t_s, cmd.t_s)
             elif cmd.kind != "end":
                 execution.run(cmd.payload)
                 # what follows the step's own action (a set/reset pulse: the hold after it)
                 # keeps its planned time however long the action took
                 t0 += timebase.monotonic() - now
+        held = gate.held.summary(step.index + 1) if gate is not None else None
+        if held is not None:
+            self.event(*held)
         if pace.slip_s > 0.0:
             self.event("warning" if pace.slip_s > 1.0 else "info",
                        f"step {step.index + 1}: its tracked set-points ran {pace.slip_s:.2f} s behind"

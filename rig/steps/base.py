@@ -184,6 +184,23 @@ class CageAbilities:
         return coil_step_a(self.max_slew_a_per_s, 1.0 / rate_hz, self.coil_tau_s) * rate_hz
 
 
+MAX_EXTRA_HOLD_S = 10.0
+"""Longest the engine holds a field beyond its planned dwell for its settled samples (s)."""
+
+
+@dataclass(frozen=True)
+class SettledNeed:
+    """What each of a step's held fields needs before the next one: ``samples`` settled samples
+    (dated whole at least ``settle_s`` s after the field was reached) from each of ``devices``
+    (rig configuration device names). The engine holds a field longer until they are in, up to
+    :data:`MAX_EXTRA_HOLD_S` (a busy computer delays samples; it must not
+    end the run, issue 54)."""
+
+    devices: tuple[str, ...]
+    samples: int
+    settle_s: float
+
+
 class StepKind:
     """A kind of procedure step. Subclasses set :attr:`name` and :attr:`params` and override what
     differs from the defaults: one command at time 0 carrying the parameters, no duration."""
@@ -244,6 +261,11 @@ class StepKind:
         """Thermometers (rig configuration device names) whose recording the step reads: the
         run refuses to start unless each is one the rig records."""
         return ()
+
+    def settled_need(self, step: Step, magnetometers: Mapping[str, str]) -> SettledNeed | None:
+        """What each held field of ``step`` needs before the next (``magnetometers``: role to
+        device name, the procedure's); None: nothing (the field keeps its planned dwell)."""
+        return None
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         """A fresh :class:`StepExecution` for ``step`` in the run ``ctx``."""

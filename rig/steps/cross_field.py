@@ -19,7 +19,7 @@ import numpy as np
 from rig.analysis import interpolated_field, settled_samples
 from rig.characterization.cross_field import CrossField, fit_cross_field
 from rig.errors import RigError
-from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+from rig.steps.base import Array, FieldStepKind, RunContext, SettledNeed, StepExecution
 from rig.steps.sensor_axes import in_sensor_axes
 from rig.steps.vocabulary import Param, ProcedureError, RigTiming, Step
 
@@ -92,6 +92,12 @@ class CrossFieldKind(FieldStepKind):
 
     def duration_s(self, step: Step, timing: RigTiming) -> float:
         return len(self.fields(step, timing)) * float(step.params["dwell_s"])
+
+    def settled_need(self, step: Step, magnetometers: Mapping[str, str]) -> SettledNeed:
+        """A settled sample of the DUT and the reference at every field (54 or more in all)."""
+        dut = magnetometers.get(step.params["magnetometer"], step.params["magnetometer"])
+        devices = (dut, magnetometers["reference"]) if "reference" in magnetometers else (dut,)
+        return SettledNeed(devices, 1, float(step.params["settle_s"]))
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return MeasureCrossField(ctx, step)

@@ -9,6 +9,7 @@ residuals are the non-linearity.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -17,7 +18,14 @@ import numpy as np
 from rig.analysis import change_times, settled_samples, to_cage_frame
 from rig.errors import RigError
 from rig.steps import stored
-from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+from rig.steps.base import (
+    MAX_EXTRA_HOLD_S,
+    Array,
+    FieldStepKind,
+    RunContext,
+    SettledNeed,
+    StepExecution,
+)
 from rig.steps.vocabulary import DEFAULT_FIELD_LIMIT_UT, Param, RigTiming, Step
 
 MIN_PER_POINT = 3
@@ -128,6 +136,11 @@ class Linearity(FieldStepKind):
                 out.append((len(out) * p["dwell_s"], f))
         return out
 
+    def settled_need(self, step: Step, magnetometers: Mapping[str, str]) -> SettledNeed:
+        dut = magnetometers.get(step.params["magnetometer"], step.params["magnetometer"])
+        devices = (dut, magnetometers["reference"]) if "reference" in magnetometers else (dut,)
+        return SettledNeed(devices, MIN_PER_POINT, float(step.params["settle_s"]))
+
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return MeasureLinearity(ctx, step)
 
@@ -194,7 +207,10 @@ class MeasureLinearity(StepExecution):
             if len(applied) < 5:
                 raise RigError(
                     f"linearity '{self.step.name}': only {len(applied)} settled points on axis {name}"
-                    " (at least 5): lengthen dwell_s or shorten settle_s"
+                    f" (at least 5), although each field was held up to {MAX_EXTRA_HOLD_S:g} s"
+                    f" longer for its {MIN_PER_POINT} settled samples per magnetometer: a sensor"
+                    " sends too slowly or stalled (see the run's log), or settle_s leaves too little"
+                    " of dwell_s"
                 )
             residual, gain, offset = nonlinearity(np.array(applied), np.array(reading))
             ppm[name] = float(1e6 * np.max(np.abs(residual)) / scale)

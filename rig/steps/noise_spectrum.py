@@ -7,6 +7,7 @@ is detrended and its density estimated by Welch's method (Hann window, 50 % over
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -16,7 +17,7 @@ from rig.analysis import settled_samples
 from rig.characterization.stability import on_uniform_grid
 from rig.errors import RigError
 from rig.steps import stored
-from rig.steps.base import Array, NullHoldKind, RunContext, StepExecution
+from rig.steps.base import Array, NullHoldKind, RunContext, SettledNeed, StepExecution
 from rig.steps.vocabulary import Param, ProcedureError, Step
 
 AROUND_1HZ = (0.8, 1.25)
@@ -118,6 +119,10 @@ class NoiseSpectrum(NullHoldKind):
             raise ProcedureError(
                 f"{where}: hold_s must cover 4 periods of the band's low edge ({4.0 / lo:g} s for {lo:g} Hz)"
             )
+
+    def settled_need(self, step: Step, magnetometers: Mapping[str, str]) -> SettledNeed:
+        device = magnetometers.get(step.params["magnetometer"], step.params["magnetometer"])
+        return SettledNeed((device,), MIN_SAMPLES, float(step.params["settle_s"]))
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return MeasureSpectrum(ctx, step)

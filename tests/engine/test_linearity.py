@@ -11,6 +11,7 @@ from rig.procedure.language import parse_procedure
 from rig.procedure.plan import compile_plan, dry_run
 from rig.steps.linearity import nonlinearity
 from rig.steps.vocabulary import RigTiming
+from rig.store.run_store import RunReader
 from sim.config import load_config
 from tests.simrun import run_on_sim
 
@@ -58,3 +59,28 @@ def test_on_the_simulated_cage(tmp_path: Path) -> None:
         assert res["points"][axis]["gain"][0] == pytest.approx(truth.scale[i], abs=0.01)
     html = (outcome.folder / "report.html").read_text()
     assert "Linearity &#x27;linearity&#x27;" in html and "ppm of" in html
+
+
+@pytest.mark.slow
+def test_a_field_is_held_until_its_settled_samples_are_in(tmp_path: Path) -> None:
+    """Issue 54: 0.02 s of each 0.3 s dwell is settled, too little for the 20 Hz reference's 3
+    samples; the engine holds each field longer instead of ending the run with too few points,
+    and says so in the run's log."""
+    outcome = run_on_sim(
+        tmp_path,
+        "procedure: lin\nmagnetometers: {dut: dut, reference: reference}\nsteps:\n"
+        "  - linearity: {max_ut: 30, points: 5, dwell_s: 0.3, settle_s: 0.28}\n"
+        "    name: linearity\n",
+    )
+    assert outcome.status == "complete", outcome.reason
+    res = outcome.results["linearity"]
+    assert all(len(p["applied_ut"]) == 5 for p in res["points"].values())
+    reader = RunReader(outcome.folder)
+    try:
+        held = [m for _, level, m in reader.events() if "held longer" in m]
+        steps = list(reader.steps())
+    finally:
+        reader.close()
+    assert len(held) == 1 and "15 field(s) held longer" in held[0], held
+    (_, _, _, t0, t1) = steps[0]
+    assert t1 - t0 > 15 * 0.3 + 15 * 3 / 20.0 * 0.5  # each field held for its samples
