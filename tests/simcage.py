@@ -31,21 +31,24 @@ def write_rig_toml(cage: SimulatedCage, folder: Path, cfg: SimConfig | None = No
 
 
 @contextmanager
-def on_clock(simulated: bool) -> Iterator[None]:
-    """A fresh simulated clock joined by this thread (``simulated``), else the wall clock."""
+def on_clock(simulated: bool, busy: timebase.BusyHost | None = None) -> Iterator[None]:
+    """A fresh simulated clock joined by this thread (``simulated``; ``busy``: on a busy host),
+    else the wall clock."""
     with ExitStack() as stack:
         if simulated:
-            stack.enter_context(timebase.simulated())
+            stack.enter_context(timebase.simulated(busy=busy))
         yield
 
 
 @contextmanager
 def sim_cage(
-    folder: Path, cfg: SimConfig | None = None, *, simulated: bool = True
-) -> Iterator[SimRig]:
+    folder: Path, cfg: SimConfig | None = None, *, simulated: bool = True,
+    busy: timebase.BusyHost | None = None,
+) -> Iterator[SimRig]:  # fmt: skip
     """A fresh simulated cage (``cfg``, else the default) and ``folder/rig.toml`` for it; the
     cage stops on leaving. ``simulated``: the cage, and everything this thread starts inside the
-    block, on a fresh simulated clock (ADR 0038); False for the real-time tier."""
+    block, on a fresh simulated clock (ADR 0038); False for the real-time tier. ``busy``: the
+    simulated clock's host threads wake late, as on a busy computer (timebase.busy_host)."""
     cfg = cfg or load_config()
-    with on_clock(simulated), SimulatedCage(cfg) as cage:
+    with on_clock(simulated, busy), SimulatedCage(cfg) as cage:
         yield SimRig(cage, write_rig_toml(cage, folder, cfg))

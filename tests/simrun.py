@@ -18,15 +18,17 @@ def run_on_sim(
     folder: Path, procedure: str, reply_delay_s: dict[str, float] | None = None,
     sim_config: SimConfig | None = None,
     operator: Callable[[SimulatedCage, str], bool] | None = None, *, simulated: bool = True,
+    busy: timebase.BusyHost | None = None,
 ) -> RunOutcome:  # fmt: skip
     """Write ``procedure`` (YAML text) to ``folder``, run it on a fresh simulated cage with every
     prompt confirmed and no live view, and return the outcome. ``reply_delay_s`` slows devices'
     replies (device name -> seconds), as a slow link would; ``sim_config`` replaces the default
     simulated cage; ``operator(cage, question)`` answers the prompts instead (and may act on the
     simulated cage, as an operator turning a fixture does). ``simulated``: on a fresh simulated
-    clock (ADR 0038), else in real time."""
+    clock (ADR 0038), else in real time; ``busy``: that clock's host threads wake late, as on a
+    busy computer (timebase.busy_host)."""
     (folder / "procedure.yaml").write_text(procedure)
-    with sim_cage(folder, sim_config, simulated=simulated) as (cage, rig_toml):
+    with sim_cage(folder, sim_config, simulated=simulated, busy=busy) as (cage, rig_toml):
         for name, delay in (reply_delay_s or {}).items():
             cage.faults[name].reply_delay_s = delay
 

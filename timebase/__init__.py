@@ -14,9 +14,13 @@ directly: ``timebase.monotonic()``, ``timebase.sleep(s)``, ``timebase.Event()``,
     with timebase.simulated() as clock:   # this thread joins the clock
         ...                               # start the simulated cage, run a procedure
 
+A busy computer can be tried on simulated time too (:class:`BusyHost`: the host's threads wake late,
+deterministically, the instruments keep time).
+
 Byte pipes between drivers and simulated devices in simulated time are in :mod:`timebase.wires`.
 """
 
+from timebase.busy_host import BusyHost
 from timebase.clock import (
     Clock,
     Condition,
@@ -38,6 +42,7 @@ from timebase.sim_clock import NotOnTheClockError, SimulatedClock
 from timebase.wall import WallClock
 
 __all__ = [
+    "BusyHost",
     "Clock",
     "Condition",
     "Event",

@@ -6,7 +6,10 @@ import contextlib
 import queue
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
+
+if TYPE_CHECKING:
+    from timebase.busy_host import BusyHost
 
 T = TypeVar("T")
 
@@ -101,18 +104,21 @@ def simulated(
     start_s: float = 0.0,
     epoch_s: float | None = None,
     stall_report_s: float | None = STALL_REPORT_S,
+    busy: BusyHost | None = None,
 ) -> Iterator[Any]:
     """A fresh :class:`~timebase.simulated.SimulatedClock` as the process's clock, with the
     calling thread as its first participant; on leaving, the thread leaves it. ``epoch_s`` is
     the wall date (Unix s) at ``start_s`` (default: now). Its threads run on one CPU
     (:mod:`timebase.one_cpu`: a tenth of the cost per hand-over). When no participant gets the turn for
     ``stall_report_s`` wall seconds, what each waits for and every stack go to standard error
-    (:mod:`timebase.stall_watch`; None: no watch)."""
+    (:mod:`timebase.stall_watch`; None: no watch). ``busy``: the host's threads wake late, as
+    on a busy computer (:mod:`timebase.busy_host`; the instruments' never)."""
     from timebase.one_cpu import one_cpu
     from timebase.sim_clock import SimulatedClock
     from timebase.stall_watch import StallWatch
 
     clock = SimulatedClock(start_s=start_s, epoch_s=epoch_s)
+    clock.busy = busy
     watch = None if stall_report_s is None else StallWatch(clock, stall_report_s)
     with one_cpu(), use(clock):
         clock.enter()

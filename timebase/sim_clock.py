@@ -28,6 +28,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
+from timebase.busy_host import BusyHost, is_host
 from timebase.clock import POLL_S
 
 PRUNE_AT = 64
@@ -39,10 +40,11 @@ class NotOnTheClockError(RuntimeError):
 
 
 class _Participant:
-    __slots__ = ("deadline", "gate", "gen", "name", "notified", "waiting")
+    __slots__ = ("deadline", "gate", "gen", "late", "name", "notified", "waiting")
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, late: Callable[[], float] | None = None) -> None:
         self.name = name
+        self.late = late  # a busy host's delay (s) before each wake is taken (timebase.busy_host)
         self.gate = threading.Lock()
         self.gate.acquire()  # released once per turn it is given
         self.gen = 0  # one per wait: timers and channel entries of older waits are stale
@@ -83,6 +85,12 @@ class SimulatedClock:
         self._members: list[_Participant] = []
         self.switches = 0
         """Turns handed from one participant to another (a measure of the run's events)."""
+        self.busy: BusyHost | None = None
+        """When set, the host's threads that join from now on wake late (:mod:`timebase.busy_host`)."""
+
+    def late_for(self, name: str, target: object) -> Callable[[], float] | None:
+        """A new participant's wake delays: a busy host's for the host's threads, else none."""
+        return self.busy.delays(name) if self.busy is not None and is_host(target) else None
 
     # --- time ----------------------------------------------------------------------------------
 
@@ -109,6 +117,7 @@ class SimulatedClock:
         if self.participant():
             raise RuntimeError("this thread is already on the simulated clock")
         p = _Participant(name or threading.current_thread().name)
+        p.late = self.late_for(p.name, None)  # the thread that enters: the host's
         self._local.p = p
         with self._state:
             self._members.append(p)
@@ -240,7 +249,21 @@ class SimulatedClock:
             if self._holder is p:
                 self._pass_baton()
         self._await_turn(p)
-        return p.notified
+        notified = p.notified
+        if p.late is not None:
+            self._run_late(p)
+        return notified
+
+    def _run_late(self, p: _Participant) -> None:
+        """A busy host takes a while to run a thread that could run (:mod:`timebase.busy_host`)."""
+        delay = p.late() if p.late is not None else 0.0
+        if delay <= 0.0:
+            return
+        late, p.late = p.late, None  # the delay itself is not delayed
+        try:
+            self.block((), self._now + delay)
+        finally:
+            p.late = late
 
     def _await_turn(self, p: _Participant) -> None:
         try:
@@ -320,7 +343,7 @@ class SimThread(threading.Thread):
                  args: tuple[Any, ...], daemon: bool | None) -> None:  # fmt: skip
         super().__init__(target=target, name=name, args=args, daemon=daemon)
         self._clock = clock
-        self._p = _Participant(self.name)
+        self._p = _Participant(self.name, clock.late_for(self.name, target))
         self._finished = Channel(clock)
         self._done = False
 

@@ -234,8 +234,11 @@ def _sinc(x: float) -> float:
 def with_systematics(point: ResponsePoint, image: float, timing_sigma_s: float) -> ResponsePoint:
     """``point`` with two systematic terms added in quadrature to its sigmas: the staircase's
     images on the sine (``image``, relative: on the amplitude and, in radians, on the phase) and
-    the devices' relative date uncertainty (``timing_sigma_s``, 1-sigma: on the phase)."""
-    phase_timing = 360.0 * point.f_hz * timing_sigma_s
-    phase = math.hypot(point.phase_sigma_deg, math.degrees(image), phase_timing)
-    amplitude = math.hypot(point.amplitude_sigma, point.amplitude * image)
+    the devices' relative date uncertainty (``timing_sigma_s``, 1-sigma): on the phase its angle
+    ``2 pi f sigma``, on the amplitude the loss of a sine whose dates wander by that much within
+    the fit (a phase of rms ``phi`` keeps ``E[cos phi] ~ 1 - phi^2 / 2`` of it)."""
+    phi = 2.0 * math.pi * point.f_hz * timing_sigma_s
+    phase = math.hypot(point.phase_sigma_deg, math.degrees(image), math.degrees(phi))
+    amplitude = math.hypot(point.amplitude_sigma, point.amplitude * image,
+                           point.amplitude * phi**2 / 2.0)  # fmt: skip
     return dataclasses.replace(point, amplitude_sigma=amplitude, phase_sigma_deg=phase)

@@ -34,6 +34,7 @@ from rig.steps.sine_fields import (
     reference_response,
     segments,
     sent_sines,
+    slipped,
     span_of,
     within,
 )
@@ -100,20 +101,24 @@ class MeasureCageResponse(StepExecution):
         refs[:, 1:] = to_cage_frame(refs[:, 1:], self.ctx.correction)
         rate = float(p["rate_hz"])
         points: dict[str, list[ResponsePoint]] = {}
+        late: dict[str, list[float]] = {}
         for s in segments(p):
             c = commanded(self.step, sent, s)
+            if slipped(self.step, sent, s) is not None:
+                late.setdefault(AXES[s.axis], []).append(s.f_hz)
             seen = reference_phasor(within(refs, span_of(c, rate)), rate, s.f_hz, s.axis)
             points.setdefault(AXES[s.axis], []).append(
                 cage_point(s.f_hz, seen, phasor(c[:, 0], c[:, 1], s.f_hz), ref.at(s.f_hz))
             )
-        result = cage_result(points, ref.note(), p)
+        result = cage_result(points, ref.note(), p, late)
         self.ctx.record_result(self.step.name, result)
         poor = [f"{axis} at {', '.join(f'{f:g}' for f in fs)} Hz"
                 for axis, fs in result["poorly_measured_hz"].items() if fs]  # fmt: skip
         if poor:
             self.ctx.event("warning", f"cage_response '{self.step.name}': {'; '.join(poor)} measured"
-                           f" no better than {MAX_POINT_SIGMA:g} of the field asked (set-points late"
-                           " on a busy computer?): not counted in the bandwidth; measure again")  # fmt: skip
+                           f" no better than {MAX_POINT_SIGMA:g} of the field asked, or their sines"
+                           " not made on time (set-points late on a busy computer): not counted in"
+                           " the bandwidth; measure again")  # fmt: skip
         record_cage_metrology(self.ctx, self.step.kind, {
             "limit_hz": result["limit_hz"], "bandwidth_hz": result["bandwidth_hz"],
             "amplitude_ut": float(p["amplitude_ut"]), "rate_hz": rate})  # fmt: skip
@@ -125,19 +130,22 @@ decide the bandwidth: on a computer too busy to send the set-points on time the 
 irregular and the reference's view of it noisy (0.025-0.55 seen under a CPU hog)."""
 
 
-def cage_result(points: dict[str, list[ResponsePoint]], note: str,
-                params: Mapping[str, Any]) -> dict[str, Any]:  # fmt: skip
+def cage_result(points: dict[str, list[ResponsePoint]], note: str, params: Mapping[str, Any],
+                late_hz: Mapping[str, list[float]] | None = None) -> dict[str, Any]:  # fmt: skip
     """The stored result: per axis the points, the half-power frequency among the points below
     the first one known no better than :data:`MAX_POINT_SIGMA` (None: above half power at every
     one of them), the limit a later sine is held to (the half-power frequency, or the highest of
     those points: nothing beyond is known; None without one), and the frequencies measured too
-    poorly to count."""
+    poorly to count: known no better than that, or their sines not made on time (``late_hz``
+    per axis: set-points that slipped, :func:`rig.steps.sine_fields.slipped`)."""
     bandwidth: dict[str, float | None] = {}
     limit: dict[str, float | None] = {}
     poor: dict[str, list[float]] = {}
     for axis, ps in points.items():
         ordered = sorted(ps, key=lambda q: q.f_hz)
-        poor[axis] = [q.f_hz for q in ordered if q.amplitude_sigma > MAX_POINT_SIGMA]
+        late = (late_hz or {}).get(axis, [])
+        poor[axis] = [q.f_hz for q in ordered
+                      if q.amplitude_sigma > MAX_POINT_SIGMA or q.f_hz in late]  # fmt: skip
         # known: the points below the first one measured too poorly (what lies beyond is not)
         known = [q for q in ordered if q.f_hz < min(poor[axis], default=math.inf)]
         bandwidth[axis] = half_power_hz([q.f_hz for q in known], [q.amplitude for q in known])

@@ -47,6 +47,7 @@ from rig.steps.sine_fields import (
     reference_response,
     segments,
     sent_sines,
+    slipped,
     span_of,
     staircase,
 )
@@ -55,29 +56,56 @@ from rig.steps.vocabulary import Param, Step
 
 @dataclass(frozen=True)
 class FrequencyResult:
-    """Per axis, the response at each frequency; how the DUT and the reference were taken."""
+    """Per axis, the response at each frequency; how the DUT and the reference were taken; the
+    points whose sine was not made on time (``slips``: per axis and point, why, or None)."""
 
     points: dict[str, tuple[ResponsePoint, ...]]
     frame: str
     reference_response: str
+    slips: dict[str, tuple[str | None, ...]]
 
     def to_dict(self) -> dict[str, Any]:
         """The stored mapping (criteria: ``amplitude_error_max``, ``phase_abs_max_deg`` over the
-        frequencies within the cage's bandwidth; ``cage_bandwidth_hz``)."""
-        judged = [p for ps in self.points.values() for p in ps if p.within_bandwidth]
+        frequencies within the cage's bandwidth whose sines were made on time;
+        ``cage_bandwidth_hz``); ``timing_fault`` when a sine was not (a check judging the result
+        then asks for a re-run)."""
+        axes: dict[str, list[dict[str, Any]]] = {}
+        on_time: list[ResponsePoint] = []
+        for axis, ps in self.points.items():
+            axes[axis] = []
+            for p, slip in zip(ps, self.slips[axis], strict=True):
+                axes[axis].append(_point_dict(p, slip))
+                if slip is None:
+                    on_time.append(p)
+        judged = [p for p in on_time if p.within_bandwidth]
         within = [p.f_hz for p in judged]
-        return {
-            "axes": {axis: [{"f_hz": p.f_hz, "amplitude": p.amplitude,
-                             "amplitude_sigma": p.amplitude_sigma, "phase_deg": p.phase_deg,
-                             "phase_sigma_deg": p.phase_sigma_deg,
-                             "cage_amplitude": p.cage_amplitude, "cage_phase_deg": p.cage_phase_deg,
-                             "within_bandwidth": p.within_bandwidth} for p in ps]
-                     for axis, ps in self.points.items()},
+        slips = [why for whys in self.slips.values() for why in whys if why is not None]
+        total = sum(len(whys) for whys in self.slips.values())
+        out = {
+            "axes": axes,
             "amplitude_error_max": max((abs(p.amplitude - 1.0) for p in judged), default=None),
             "phase_abs_max_deg": max((abs(p.phase_deg) for p in judged), default=None),
             "cage_bandwidth_hz": max(within, default=None),
             "frame": self.frame, "reference_response": self.reference_response,
         }  # fmt: skip
+        if slips:
+            out["timing_fault"] = (
+                f"{len(slips)} of {total} sines not made on"
+                f" time, their set-points held back by a busy computer ({'; '.join(slips[:3])}"
+                f"{'; ...' if len(slips) > 3 else ''}): their points are not judged; measure"
+                " again on a quieter computer"
+            )
+        return out
+
+
+def _point_dict(p: ResponsePoint, slip: str | None) -> dict[str, Any]:
+    """One stored point; ``not_judged`` says why when its sine was not made on time (its cage
+    values, from a stretched sine, mean nothing then)."""
+    d = {"f_hz": p.f_hz, "amplitude": p.amplitude, "amplitude_sigma": p.amplitude_sigma,
+         "phase_deg": p.phase_deg, "phase_sigma_deg": p.phase_sigma_deg,
+         "cage_amplitude": p.cage_amplitude, "cage_phase_deg": p.cage_phase_deg,
+         "within_bandwidth": p.within_bandwidth}  # fmt: skip
+    return d if slip is None else d | {"not_judged": f"set-points {slip}"}
 
 
 class FrequencyResponse(SineStepKind):
@@ -100,7 +128,8 @@ class FrequencyResponse(SineStepKind):
         for axis, points in result["axes"].items():
             cells = [f"{p['f_hz']:g} Hz {p['amplitude']:.4f} +- {p['amplitude_sigma']:.4f},"
                      f" {p['phase_deg']:+.2f} +- {p['phase_sigma_deg']:.2f} deg"
-                     + ("" if p["within_bandwidth"] else " (beyond the cage's bandwidth)")
+                     + (f" (not judged: {p['not_judged']})" if p.get("not_judged")
+                        else "" if p["within_bandwidth"] else " (beyond the cage's bandwidth)")
                      for p in points]  # fmt: skip
             lines.append(f"  {axis}: " + "; ".join(cells))
         return lines
@@ -131,8 +160,10 @@ class MeasureFrequencyResponse(StepExecution):
         m, h, frame = self._frames(rows[:, 1:], to_cage_frame(refs[:, 1:], self.ctx.correction))
         rate = float(p["rate_hz"])
         measured: list[tuple[Segment, ResponsePoint, tuple[float, float], tuple[float, ...]]] = []
+        slips: dict[str, list[str | None]] = {}
         for s in segments(p):
             c = commanded(self.step, sent, s)
+            slips.setdefault(AXES[s.axis], []).append(slipped(self.step, sent, s))
             span = span_of(c, rate)
             kd = (rows[:, 0] >= span[0]) & (rows[:, 0] < span[1])
             kr = (refs[:, 0] >= span[0]) & (refs[:, 0] < span[1])
@@ -151,7 +182,8 @@ class MeasureFrequencyResponse(StepExecution):
             image = image_on_sine(s.f_hz, rate, rates, span[1] - span[0], corners[s.axis])
             timing = math.hypot(*(_date_sigma_s(d, span) for d in dates))
             points.setdefault(AXES[s.axis], []).append(with_systematics(point, image, timing))
-        result = FrequencyResult({k: tuple(v) for k, v in points.items()}, frame, ref.note())
+        result = FrequencyResult({k: tuple(v) for k, v in points.items()}, frame, ref.note(),
+                                 {k: tuple(v) for k, v in slips.items()})  # fmt: skip
         self.ctx.record_result(self.step.name, result.to_dict())
 
     def _frames(self, m: Array, h: Array) -> tuple[Array, Array, str]:

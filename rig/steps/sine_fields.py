@@ -118,16 +118,47 @@ def sine_commands(params: dict[str, Any]) -> list[Command]:
     return cmds
 
 
-def commanded(step: Step, sent: list[tuple[float, dict[str, Any]]], s: Segment) -> Array:
-    """Rows (t s, field uT along the sine's axis) of the segment's fitted set-points as sent
-    (``sent``: the step's field commands, time and payload); RigError when they were not."""
+def _fitted(step: Step, sent: list[tuple[float, dict[str, Any]]],
+            s: Segment) -> list[tuple[float, dict[str, Any]]]:  # fmt: skip
+    """The segment's fitted set-points as sent (time s, payload), ``settle_cycles`` left out;
+    RigError when they were not sent."""
     p = step.params
-    rows = [(t, pl["field_ut"][s.axis]) for t, pl in sent if pl.get("segment") == [s.axis, s.f_hz]]
+    rows = [(t, pl) for t, pl in sent if pl.get("segment") == [s.axis, s.f_hz]]
     skip = round(int(p["settle_cycles"]) / s.f_hz * float(p["rate_hz"]))
     if len(rows) <= skip + 4:
         raise RigError(f"{step.kind} '{step.name}': the {s.f_hz:g} Hz sine on"
                        f" {AXES[s.axis]} was not sent (the step ended early)")  # fmt: skip
-    return np.asarray(rows[skip:], float)
+    return rows[skip:]
+
+
+def commanded(step: Step, sent: list[tuple[float, dict[str, Any]]], s: Segment) -> Array:
+    """Rows (t s, field uT along the sine's axis) of the segment's fitted set-points as sent
+    (``sent``: the step's field commands, time and payload); RigError when they were not."""
+    return np.asarray([(t, pl["field_ut"][s.axis]) for t, pl in _fitted(step, sent, s)], float)
+
+
+MAX_SLIP_CYCLES = 0.005
+"""A sine whose set-points slipped behind their plan by more than this fraction of its period
+within its fitted cycles (a busy computer held them back: :class:`rig.engine.schedule.TrackPace`)
+was not made as a sine at its frequency; its point is not judged. Seen on a busy computer: the
+field made read as 0.06-1.25 of the field asked where the cage made 0.82-1.0 (issue 54)."""
+
+
+def slip_s(step: Step, sent: list[tuple[float, dict[str, Any]]], s: Segment) -> float:
+    """How far (s) the segment's fitted set-points slipped behind their plan from the first to
+    the last (their due time less their plan time; 0 for a run recorded without them)."""
+    lag = [pl["t_due"] - pl["t_plan"] for _, pl in _fitted(step, sent, s)
+           if "t_due" in pl and "t_plan" in pl]  # fmt: skip
+    return max(lag) - min(lag) if lag else 0.0
+
+
+def slipped(step: Step, sent: list[tuple[float, dict[str, Any]]], s: Segment) -> str | None:
+    """Why the segment's point is not judged (its set-points slipped more than
+    :data:`MAX_SLIP_CYCLES` of a period), or None."""
+    w = slip_s(step, sent, s)
+    if w * s.f_hz <= MAX_SLIP_CYCLES:
+        return None
+    return f"{AXES[s.axis]} {s.f_hz:g} Hz slipped {w:.3g} s ({100 * w * s.f_hz:.0f} % of a period)"
 
 
 def sent_sines(reader: Any, step: Step) -> list[tuple[float, dict[str, Any]]]:
@@ -283,10 +314,15 @@ class SineStepKind(FieldStepKind):
 
     def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
         duration = self.duration_s(step, timing)
-        cmds = [
+        # the sines first: an axis's last set-point and the next axis's bias fall at one time,
+        # and the planner's sort keeps this order (the bias after it, never the set-point after
+        # the bias: that put the old axis's field back for the new one's settle_s, and its ramp
+        # in the old sine's fitted cycles)
+        cmds = sine_commands(step.params)
+        cmds += [
             Command(t, "field", self.field_payload(step, f)) for t, f in self.fields(step, timing)
         ]
-        cmds += sine_commands(step.params) + load_commands(step, duration, base)
+        cmds += load_commands(step, duration, base)
         cmds.append(Command(duration, "end", {}))
         return cmds, duration
 

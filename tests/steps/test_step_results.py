@@ -834,10 +834,13 @@ def test_thermal_cycle_fits_hysteresis_and_tempco_and_needs_a_heater_profile(
 # --- frequency_response: sines on an axis, the DUT against the reference -----------------------
 
 
-def record_sines(ctx: FakeContext, step: Any, cage: Any, dut: Any, seed: int) -> float:
+def record_sines(ctx: FakeContext, step: Any, cage: Any, dut: Any, seed: int,
+                 slip_s: Any = None) -> float:  # fmt: skip
     """Record ``step``'s sines as sent (at its ``rate_hz``) on x, the field the cage made of them (``cage(f)``:
     its complex response), the reference reading it at 100 Hz and the DUT through ``dut(f)``
-    (None: no DUT); returns the last sample's time (s)."""
+    (None: no DUT); ``slip_s(t)``: how far the set-point planned at ``t`` had slipped behind its
+    plan when it was due (recorded as the engine does; the field kept as planned). Returns the
+    last sample's time (s)."""
     import math
 
     from rig.steps.sine_fields import segments
@@ -851,9 +854,11 @@ def record_sines(ctx: FakeContext, step: Any, cage: Any, dut: Any, seed: int) ->
     for s in segments(step.params):
         for k in range(1, round(s.length_s * rate) + 1):
             v = [30.0 + 10.0 * math.sin(2 * math.pi * s.f_hz * k / rate), 0.0, 0.0]
-            ctx.recording.commands.append((s.start_s + k / rate, 0, "field",
+            t = s.start_s + k / rate
+            due = {"t_plan": t, "t_due": t + (slip_s(t) if slip_s else 0.0)}
+            ctx.recording.commands.append((t, 0, "field",
                                            {"field_ut": v, "track": True,
-                                            "segment": [s.axis, s.f_hz]}))  # fmt: skip
+                                            "segment": [s.axis, s.f_hz]} | due))  # fmt: skip
         devices = [(t_ref, ref_x, 1.0)] + ([(t_dut, dut_x, dut(s.f_hz))] if dut else [])
         for times, out, resp in devices:
             n = round(s.length_s * 100)
@@ -894,6 +899,35 @@ def test_frequency_response_recovers_a_lagging_dut_and_the_cages_own_response(
     assert r["frame"].startswith("cage") and "taken as ideal" in r["reference_response"]
     assert "Frequency response 'bode'" in KINDS["frequency_response"].report_lines("bode", r)[0]
     assert_bode(KINDS["frequency_response"].figures(None, "bode", r, pyplot()), "Bode plot", 2)
+
+
+def test_a_sine_whose_set_points_slipped_is_not_judged_and_the_run_asks_for_a_rerun(
+    tmp_path: Path,
+) -> None:
+    """Issue 54: on a busy computer the set-points of the 1 Hz sine slipped 50 ms behind their
+    plan halfway (5 % of its period, more than MAX_SLIP_CYCLES): its point is kept, marked not
+    judged, out of the criteria's values, and a check judging the result asks for a re-run; the
+    0.5 Hz sine, on time, is judged."""
+    from rig.analysis import evaluate_criteria
+    from rig.steps.sine_fields import MAX_SLIP_CYCLES, segments
+
+    body = {"frequencies_hz": [0.5, 1.0], "axes": "x", "cycles": 4, "min_s": 0.0, "rate_hz": 25.0}
+    step = make_step("frequency_response", body, name="bode")
+    ctx = FakeContext(make_procedure(step), tmp_path)
+    one_hz = next(s for s in segments(step.params) if s.f_hz == 1.0)
+    middle = one_hz.start_s + one_hz.length_s / 2
+    end = record_sines(ctx, step, lambda f: 1.0, lambda f: 1.0, seed=8,
+                       slip_s=lambda t: 0.05 if t > middle else 0.0)  # fmt: skip
+    r = carry_out(ctx, step, (0.0, end + 1.0))
+    on_time, late = r["axes"]["x"]
+    assert "not_judged" not in on_time and MAX_SLIP_CYCLES < 0.05 * 1.0
+    assert late["not_judged"] == "set-points x 1 Hz slipped 0.05 s (5 % of a period)"
+    assert r["timing_fault"].startswith("1 of 2 sines not made on time")
+    assert r["amplitude_error_max"] == pytest.approx(abs(on_time["amplitude"] - 1.0))
+    assert "not judged: set-points x 1 Hz" in KINDS["frequency_response"].report_lines("b", r)[1]
+    verdict = evaluate_criteria({"bode": r}, [{"result": "bode", "value": "amplitude_error_max",
+                                               "max": 0.05}])  # fmt: skip
+    assert verdict["overall"] == "RE-RUN" and verdict["rerun"][0]["result"] == "bode"
 
 
 def pyplot() -> Any:
@@ -973,6 +1007,10 @@ def test_a_poorly_measured_point_does_not_decide_the_cages_bandwidth() -> None:
     r = cage_result({"x": [*hog[:4], point(8, 0.60, 0.004)]}, "ideal",
                     {"frequencies_hz": [1, 2, 4, 6, 8], "amplitude_ut": 5.0, "rate_hz": 50.0})  # fmt: skip
     assert 6 < r["bandwidth_hz"]["x"] < 7 and r["poorly_measured_hz"]["x"] == []
+    # a sine not made on time (its set-points slipped): as poorly measured, however small its sigma
+    r = cage_result({"x": hog[:4]}, "ideal", {"frequencies_hz": [1, 2, 4, 6], "amplitude_ut": 5.0,
+                                              "rate_hz": 50.0}, {"x": [4.0]})  # fmt: skip
+    assert r["limit_hz"]["x"] == 2 and r["poorly_measured_hz"]["x"] == [4]
     r = cage_result({"x": [point(1, 0.99, 0.03)]}, "ideal",
                     {"frequencies_hz": [1], "amplitude_ut": 5.0, "rate_hz": 50.0})  # fmt: skip
     assert r["limit_hz"]["x"] is None

@@ -262,3 +262,37 @@ def test_a_participant_blocked_outside_the_clock_is_reported_with_what_everyone_
     assert "MainThread: has the turn" in report
     assert "sleeper: waiting until t = 5.000000 s" in report
     assert "test_simulated_clock.py" in report  # the stacks show where it blocked
+
+
+def test_a_busy_host_wakes_its_threads_late_the_instruments_on_time_and_the_same_every_time() -> (
+    None
+):
+    """timebase.busy_host: a host thread's every wake is late by its own seeded delays; a thread
+    of the simulator (sim.*) keeps simulated time exactly."""
+    from sim import links  # any sim module: a target defined there is an instrument's
+
+    def once(seed: int) -> tuple[list[float], list[float]]:
+        host_t: list[float] = []
+        inst_t: list[float] = []
+
+        def instrument() -> None:
+            for _ in range(20):
+                timebase.sleep(0.1)
+                inst_t.append(timebase.monotonic())
+
+        instrument.__module__ = links.__name__
+        with timebase.simulated(busy=timebase.BusyHost(0.05, seed=seed)):
+            thread = timebase.Thread(instrument, name="instrument")
+            thread.start()
+            for _ in range(20):
+                timebase.sleep(0.1)
+                host_t.append(timebase.monotonic())
+            thread.join()
+        return host_t, inst_t
+
+    host, inst = once(1)
+    assert inst == pytest.approx([0.1 * (k + 1) for k in range(20)])
+    late = [b - a - 0.1 for a, b in zip([0.0, *host], host, strict=False)]
+    assert min(late) >= 0.0 and 0.02 < sum(late) / len(late) < 0.1  # mean 0.05 s
+    assert once(1) == (host, inst)  # deterministic
+    assert once(2)[0] != host  # its own stream per seed
