@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import threading
 from array import array
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import timebase
 from rig.engine.commands import Commands
@@ -17,6 +17,7 @@ from rig.engine.session import RigSession
 from rig.procedure.plan import StepPlan
 from rig.steps import KINDS
 from rig.steps.base import RunContext, StepExecution
+from rig.steps.vocabulary import Command
 from rig.store.run_store import RunWriter
 
 CATCH_UP_S = 2.0
@@ -112,10 +113,14 @@ class StepScheduler:
         step, stop = plan.step, execution.stop
         hold_from_field = KINDS[step.kind].hold_from_field
         pace = TrackPace()
-        for cmd in plan.commands:
+        keeping = KeptTime(plan.commands)
+        for i, cmd in enumerate(plan.commands):
             track = bool(cmd.payload.get("track"))
-            t0 = pace.slipped(t0, cmd.t_s, track)
+            keep_time = bool(cmd.payload.get("keep_time"))
+            t0 = pace.slipped(t0, cmd.t_s, track and not keep_time)
             t0 += self.wait_until(t0 + cmd.t_s, stop)
+            if keep_time and keeping.overtaken(i, timebase.monotonic() - t0):
+                continue  # its successor is due already: the sine keeps its time
             if gate is not None and gate.due_before(cmd.t_s):
                 # the field before has its settled samples (or waited its most) before this
                 t0 += gate.hold(
@@ -142,6 +147,11 @@ class StepScheduler:
                 # what follows the step's own action (a set/reset pulse: the hold after it)
                 # keeps its planned time however long the action took
                 t0 += timebase.monotonic() - now
+        if keeping.skipped:
+            self.event("warning" if keeping.skipped > 1 else "info",
+                       f"step {step.index + 1}: {keeping.skipped} of {keeping.total} sine set-points"
+                       " skipped, each due when the next one was (the computer was busy); the"
+                       " sines kept their time")  # fmt: skip
         held = gate.held.summary(step.index + 1) if gate is not None else None
         if held is not None:
             self.event(*held)
@@ -179,3 +189,28 @@ class TrackPace:
         """A command at plan time ``t_s`` was issued at ``now``; a group starts with its first."""
         if track and (self._last is None or t_s > self._last[0]):
             self._last = (t_s, now)
+
+
+class KeptTime:
+    """The commands that keep their time (``keep_time``: a sine's set-points): one whose
+    successor is already due when it could be sent is skipped, never sent late nor slipped (a
+    sine stretched in time is no longer a sine at its frequency, issue 54)."""
+
+    def __init__(self, commands: Sequence[Command]) -> None:
+        self.next_t_s: dict[int, float] = {}
+        later: float | None = None
+        for i in range(len(commands) - 1, -1, -1):
+            if commands[i].payload.get("keep_time"):
+                if later is not None and later > commands[i].t_s:
+                    self.next_t_s[i] = later
+                later = commands[i].t_s
+        self.total = sum(1 for c in commands if c.payload.get("keep_time"))
+        self.skipped = 0
+
+    def overtaken(self, index: int, now_plan_s: float) -> bool:
+        """Whether command ``index`` is to be skipped at ``now_plan_s`` (s from the step's start
+        on its timeline): its successor is due already."""
+        if now_plan_s < self.next_t_s.get(index, float("inf")):
+            return False
+        self.skipped += 1
+        return True

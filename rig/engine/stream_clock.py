@@ -82,6 +82,8 @@ class StreamClock:
         self._block_start: float | None = None
         self._block_low: tuple[int, float] | None = None
         self._arrivals: deque[float] = deque(maxlen=TIGHT_BATCHES)  # residuals of single samples
+        self._suspected = 0  # periods the last single sample arrived late by, not yet confirmed
+        self._tight_residual = 0.0  # the tight arrivals' mean residual it was late against (s)
         self.unseen_lost = 0
         """Samples found lost by their arrival in a tight stream (none said so; negative: a
         loss was said that the arrivals deny)."""
@@ -112,10 +114,13 @@ class StreamClock:
             self._k += lost_before[i] if i < len(lost_before) else 0
             ks.append(self._k)
             self._k += 1
+        widen = 0.0  # a single sample that may be numbered a loss away from its own
         if n == 1:
-            ks = [self._unseen_loss(ks[0], arrival_s, first)]
+            k, widen = self._unseen_loss(ks[0], arrival_s, first)
+            ks = [k]
         else:
             self._arrivals.clear()
+            self._suspected = 0
         for k in ks:
             point = (k, arrival_s)
             self._note_block(point)
@@ -141,26 +146,36 @@ class StreamClock:
             self._last_t = t
             # the date's sensitivity to the period within its uncertainty
             reach = max(abs(min(arrival_s, k * q + c_q) - t) for q, c_q in bounds)
-            out.append((t, jitter + reach))
+            out.append((t, jitter + reach + widen))
         return out
 
-    def _unseen_loss(self, k: int, arrival_s: float, first: int) -> int:
+    def _unseen_loss(self, k: int, arrival_s: float, first: int) -> tuple[int, float]:
         """The number of a single sample read at ``arrival_s`` (counted ``k``, at least
-        ``first``), corrected by its arrival in a tight stream (see :data:`TIGHT_BATCHES`): whole
-        periods later than the last ones, samples were lost unseen; earlier, a loss was counted
-        that was none."""
+        ``first``), corrected by its arrival in a tight stream (see :data:`TIGHT_BATCHES`), and
+        how much wider (s) its date is to be. Whole periods later than the last ones, samples
+        were lost unseen; earlier, a loss was counted that was none. One such arrival is only a
+        suspicion (a busy computer reads a sample late as often): its date keeps its number,
+        widened by the periods in doubt; the next arrival confirms the loss (it is as late) and
+        is numbered past it, or clears the suspicion (issue 54: unconfirmed, late reads on a
+        busy host renumbered the stream and bent the fitted period by 300 ppm)."""
         p = self.period_s
         recent = self._arrivals
+        suspected, self._suspected = self._suspected, 0
+        if suspected:  # as late as the one before, against the same tight arrivals: confirmed
+            late = arrival_s - k * p - self._tight_residual
+            if abs(late - suspected * p) < LOSS_JUMP * p:
+                self._k += suspected
+                self.unseen_lost += suspected
+                return k + suspected, 0.0
         if len(recent) == TIGHT_BATCHES and max(recent) - min(recent) < TIGHT_SPREAD * p:
-            late = arrival_s - k * p - sum(recent) / len(recent)
-            if abs(late) > LOSS_JUMP * p:
-                shift = max(round(late / p), first - k)  # never before the last one
-                if shift:
-                    self._k += shift
-                    self.unseen_lost += shift
-                    k += shift
+            self._tight_residual = sum(recent) / len(recent)
+            late = arrival_s - k * p - self._tight_residual
+            shift = max(round(late / p), first - k) if abs(late) > LOSS_JUMP * p else 0
+            if shift:  # suspected: the same number, its date as wide as the loss would move it
+                self._suspected = shift
+                return k, abs(shift) * p
         recent.append(arrival_s - k * p)
-        return k
+        return k, 0.0
 
     def _jitter_s(self, floor: float) -> float:
         """How far the median arrival of the window sits above the envelope (s), at least

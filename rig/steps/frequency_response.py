@@ -90,9 +90,8 @@ class FrequencyResult:
         }  # fmt: skip
         if slips:
             out["timing_fault"] = (
-                f"{len(slips)} of {total} sines not made on"
-                f" time, their set-points held back by a busy computer ({'; '.join(slips[:3])}"
-                f"{'; ...' if len(slips) > 3 else ''}): their points are not judged; measure"
+                f"{len(slips)} of {total} sines not judged, made or read off time on a busy"
+                f" computer ({'; '.join(slips[:3])}{'; ...' if len(slips) > 3 else ''}): measure"
                 " again on a quieter computer"
             )
         return out
@@ -105,7 +104,7 @@ def _point_dict(p: ResponsePoint, slip: str | None) -> dict[str, Any]:
          "phase_deg": p.phase_deg, "phase_sigma_deg": p.phase_sigma_deg,
          "cage_amplitude": p.cage_amplitude, "cage_phase_deg": p.cage_phase_deg,
          "within_bandwidth": p.within_bandwidth}  # fmt: skip
-    return d if slip is None else d | {"not_judged": f"set-points {slip}"}
+    return d if slip is None else d | {"not_judged": slip}
 
 
 class FrequencyResponse(SineStepKind):
@@ -182,6 +181,10 @@ class MeasureFrequencyResponse(StepExecution):
             image = image_on_sine(s.f_hz, rate, rates, span[1] - span[0], corners[s.axis])
             timing = math.hypot(*(_date_sigma_s(d, span) for d in dates))
             points.setdefault(AXES[s.axis], []).append(with_systematics(point, image, timing))
+            at = len(points[AXES[s.axis]]) - 1
+            if slips[AXES[s.axis]][at] is None and timing * s.f_hz > MAX_DATE_CYCLES:
+                slips[AXES[s.axis]][at] = (f"{AXES[s.axis]} {s.f_hz:g} Hz: its samples' dates known"
+                                           f" to {1e3 * timing:.3g} ms only")  # fmt: skip
         result = FrequencyResult({k: tuple(v) for k, v in points.items()}, frame, ref.note(),
                                  {k: tuple(v) for k, v in slips.items()})  # fmt: skip
         self.ctx.record_result(self.step.name, result.to_dict())
@@ -193,6 +196,11 @@ class MeasureFrequencyResponse(StepExecution):
         if axes.calibration is None:
             return m, h, "cage (no vector calibration: the amplitude holds the DUT's scale error)"
         return axes.readings_ut, axes.field_ut, "sensor"
+
+
+MAX_DATE_CYCLES = 0.02
+"""A point whose samples' dates are known no better than this fraction of its period (1-sigma:
+7 degrees of phase) is not judged: a stream that stalled or restarted within its sine."""
 
 
 def _dates(reader: Any, device: str) -> Array:

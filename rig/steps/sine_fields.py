@@ -113,22 +113,34 @@ def sine_commands(params: dict[str, Any]) -> list[Command]:
             v = np.zeros(3)
             v[s.axis] = float(bias) + amp * math.sin(2.0 * math.pi * s.f_hz * k / rate)
             cmds.append(Command(s.start_s + k / rate, "field",
-                                {"field_ut": [float(x) for x in v], "trim": False, "track": True,
+                                {"field_ut": [float(x) for x in v], "trim": False, "track": True, "keep_time": True,
                                  "segment": [s.axis, s.f_hz]}))  # fmt: skip
     return cmds
 
 
 def _fitted(step: Step, sent: list[tuple[float, dict[str, Any]]],
             s: Segment) -> list[tuple[float, dict[str, Any]]]:  # fmt: skip
-    """The segment's fitted set-points as sent (time s, payload), ``settle_cycles`` left out;
-    RigError when they were not sent."""
+    """The segment's fitted set-points as sent (time s, payload): those planned after its
+    ``settle_cycles`` (by their plan time; a run recorded without it: all but as many as those
+    cycles hold). RigError when fewer than 5 were sent (the step ended early)."""
     p = step.params
     rows = [(t, pl) for t, pl in sent if pl.get("segment") == [s.axis, s.f_hz]]
-    skip = round(int(p["settle_cycles"]) / s.f_hz * float(p["rate_hz"]))
-    if len(rows) <= skip + 4:
+    settled_from = s.start_s + int(p["settle_cycles"]) / s.f_hz
+    if rows and all("t_plan" in pl for _, pl in rows):
+        rows = [(t, pl) for t, pl in rows if pl["t_plan"] > settled_from - 1e-9]
+    else:
+        rows = rows[round(int(p["settle_cycles"]) / s.f_hz * float(p["rate_hz"])) :]
+    if len(rows) < 5:
         raise RigError(f"{step.kind} '{step.name}': the {s.f_hz:g} Hz sine on"
                        f" {AXES[s.axis]} was not sent (the step ended early)")  # fmt: skip
-    return rows[skip:]
+    return rows
+
+
+def planned_setpoints(step: Step, s: Segment) -> int:
+    """How many set-points the segment's fitted cycles were planned with."""
+    p = step.params
+    rate = float(p["rate_hz"])
+    return round(s.length_s * rate) - round(int(p["settle_cycles"]) / s.f_hz * rate)
 
 
 def commanded(step: Step, sent: list[tuple[float, dict[str, Any]]], s: Segment) -> Array:
@@ -152,13 +164,22 @@ def slip_s(step: Step, sent: list[tuple[float, dict[str, Any]]], s: Segment) -> 
     return max(lag) - min(lag) if lag else 0.0
 
 
+MIN_SENT = 0.5
+"""A sine made of fewer than this fraction of its planned set-points (the rest skipped, each due
+when the next one was: a busy computer) is too coarse a staircase to be judged."""
+
+
 def slipped(step: Step, sent: list[tuple[float, dict[str, Any]]], s: Segment) -> str | None:
-    """Why the segment's point is not judged (its set-points slipped more than
-    :data:`MAX_SLIP_CYCLES` of a period), or None."""
+    """Why the segment's point is not judged, or None: its set-points slipped more than
+    :data:`MAX_SLIP_CYCLES` of a period, or fewer than :data:`MIN_SENT` of them were sent."""
     w = slip_s(step, sent, s)
-    if w * s.f_hz <= MAX_SLIP_CYCLES:
-        return None
-    return f"{AXES[s.axis]} {s.f_hz:g} Hz slipped {w:.3g} s ({100 * w * s.f_hz:.0f} % of a period)"
+    where = f"{AXES[s.axis]} {s.f_hz:g} Hz"
+    if w * s.f_hz > MAX_SLIP_CYCLES:
+        return f"{where}: set-points slipped {w:.3g} s ({100 * w * s.f_hz:.0f} % of a period)"
+    made, planned = len(_fitted(step, sent, s)), planned_setpoints(step, s)
+    if made < MIN_SENT * planned:
+        return f"{where}: {planned - made} of {planned} set-points skipped"
+    return None
 
 
 def sent_sines(reader: Any, step: Step) -> list[tuple[float, dict[str, Any]]]:

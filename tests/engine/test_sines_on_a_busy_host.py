@@ -1,8 +1,10 @@
 """Sines on a busy computer, tried deterministically on simulated time (timebase.busy_host: the
-rig's threads wake 2 ms late on average, the instruments keep time): the frequency response's
-set-points slip behind their plan, and every point is then either within 3 sigma of the truth or
-marked not judged, the result asking for a re-run (issue 54: at a load of 35 one axis read
-1.2455 +- 0.0243 against 0.998, silently). On the same seed idle, nothing is flagged."""
+rig's threads wake late, 2 or 10 ms on average; the instruments keep time). Issue 54: at a load of
+35 one axis read 1.2455 +- 0.0243 against 0.998, silently. Now a sine keeps its time (a set-point
+due when the next one is, is skipped: never slipped, never sent late), a stream read late is not
+renumbered, and every point is within 3 sigma of the truth or marked not judged (too few
+set-points made it), the result then asking for a re-run. Before these, at 2 ms every sine slipped
+0.17-0.63 s and the DUT read up to 1.78 (5.2 sigma)."""
 
 from __future__ import annotations
 
@@ -38,7 +40,7 @@ def _z(point: dict[str, float]) -> tuple[float, float]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("late_s", [0.0, 0.002])
+@pytest.mark.parametrize("late_s", [0.0, 0.002, 0.01])
 def test_every_point_is_within_3_sigma_or_not_judged(tmp_path: Path, late_s: float) -> None:
     busy = timebase.BusyHost(late_s, seed=0) if late_s else None
     outcome = run_on_sim(tmp_path, PROCEDURE, sim_config=config(), busy=busy)
@@ -49,9 +51,7 @@ def test_every_point_is_within_3_sigma_or_not_judged(tmp_path: Path, late_s: flo
     for p in judged:
         za, zp = _z(p)
         assert abs(za) < 3 and abs(zp) < 3, p
-    if late_s:
-        assert len(judged) < len(points) and "timing_fault" in r
-        # what was not judged was worth not judging: the worst of them beyond 3 sigma
-        assert max(max(map(abs, _z(p))) for p in points if p not in judged) > 3
-    else:
-        assert {p["f_hz"] for p in points if "not_judged" in p} <= {4.0}  # slew-limited at 4 Hz
+    if late_s < 0.01:  # idle, or a little busy: every sine made on time
+        assert judged == points and "timing_fault" not in r
+    else:  # set-points skipped: the sines kept their time; the coarsest are not judged
+        assert 0 < len(judged) < len(points) and "set-points skipped" in r["timing_fault"]

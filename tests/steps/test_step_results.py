@@ -921,10 +921,13 @@ def test_a_sine_whose_set_points_slipped_is_not_judged_and_the_run_asks_for_a_re
     r = carry_out(ctx, step, (0.0, end + 1.0))
     on_time, late = r["axes"]["x"]
     assert "not_judged" not in on_time and MAX_SLIP_CYCLES < 0.05 * 1.0
-    assert late["not_judged"] == "set-points x 1 Hz slipped 0.05 s (5 % of a period)"
-    assert r["timing_fault"].startswith("1 of 2 sines not made on time")
+    assert late["not_judged"] == "x 1 Hz: set-points slipped 0.05 s (5 % of a period)"
+    assert r["timing_fault"].startswith("1 of 2 sines not judged, made or read off time")
     assert r["amplitude_error_max"] == pytest.approx(abs(on_time["amplitude"] - 1.0))
-    assert "not judged: set-points x 1 Hz" in KINDS["frequency_response"].report_lines("b", r)[1]
+    assert (
+        "not judged: x 1 Hz: set-points slipped"
+        in KINDS["frequency_response"].report_lines("b", r)[1]
+    )
     verdict = evaluate_criteria({"bode": r}, [{"result": "bode", "value": "amplitude_error_max",
                                                "max": 0.05}])  # fmt: skip
     assert verdict["overall"] == "RE-RUN" and verdict["rerun"][0]["result"] == "bode"
