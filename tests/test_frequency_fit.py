@@ -154,3 +154,17 @@ def test_no_image_counts_where_none_lands_on_the_sine() -> None:
     )
     # at 123 Hz the first image on the sine is far up the hold's and the coil's fall
     assert image_on_sine(4.0, 40.0, (123.0,), 4.0, 6.0) < 1e-4
+
+
+def test_a_neighbouring_bin_at_zero_frequency_is_not_taken_for_noise() -> None:
+    """0.2 Hz over 15 s (and a hair): the noise estimate's bin three below the sine lands at
+    1e-13 Hz, a near-singular basis whose coefficient, on the DUT's residuals less the
+    reference's (which keep a small constant), made the noise a million times the residuals'
+    (issue 54: idle points reported +-0.2 of amplitude, +-12 degrees). That bin is the fitted
+    constant's, and is left out: the noise near the sine is the residuals' white noise."""
+    from rig.characterization.frequency import _noise_near
+
+    rng = np.random.default_rng(4)
+    t = 60224.15 + np.arange(301) / 20.0 + 1e-9 * np.arange(301)  # 15 s and 0.3 us
+    apart = 0.002 + 0.01 * rng.standard_normal(t.size)  # a residual constant left by interpolation
+    assert 0.5 * 0.01**2 < _noise_near(t, apart, 0.2, (4.8, 5.2, 9.8)) < 2.0 * 0.01**2

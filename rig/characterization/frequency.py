@@ -130,7 +130,9 @@ def _noise_near(t: Array, resid: Array, f_hz: float, also_hz: tuple[float, ...])
     found = []
     for j in NEIGHBOURS:
         g = f_hz + j / span
-        if g <= 0 or any(abs(g - h) < 1.5 / span for h in also_hz):
+        # a bin at zero frequency is the fitted constant (and, at 1e-17 Hz after rounding, a
+        # near-singular basis whose coefficient came out 1e4 times the noise: issue 54)
+        if g < 0.5 / span or any(abs(g - h) < 1.5 / span for h in also_hz):
             continue
         w = 2.0 * math.pi * g * t
         basis = np.column_stack([np.cos(w), np.sin(w)])
@@ -233,12 +235,15 @@ def _sinc(x: float) -> float:
 
 def with_systematics(point: ResponsePoint, image: float, timing_sigma_s: float) -> ResponsePoint:
     """``point`` with two systematic terms added in quadrature to its sigmas: the staircase's
-    images on the sine (``image``, relative: on the amplitude and, in radians, on the phase) and
+    images on the sine (``image``, relative: a bound on the amplitude and, in radians, on the
+    phase, of unknown sign: counted as a rectangular distribution within it, 1-sigma
+    ``image / sqrt(3)``, GUM 4.3.7) and
     the devices' relative date uncertainty (``timing_sigma_s``, 1-sigma): on the phase its angle
     ``2 pi f sigma``, on the amplitude the loss of a sine whose dates wander by that much within
     the fit (a phase of rms ``phi`` keeps ``E[cos phi] ~ 1 - phi^2 / 2`` of it)."""
     phi = 2.0 * math.pi * point.f_hz * timing_sigma_s
-    phase = math.hypot(point.phase_sigma_deg, math.degrees(image), math.degrees(phi))
-    amplitude = math.hypot(point.amplitude_sigma, point.amplitude * image,
+    image_sigma = image / math.sqrt(3.0)
+    phase = math.hypot(point.phase_sigma_deg, math.degrees(image_sigma), math.degrees(phi))
+    amplitude = math.hypot(point.amplitude_sigma, point.amplitude * image_sigma,
                            point.amplitude * phi**2 / 2.0)  # fmt: skip
     return dataclasses.replace(point, amplitude_sigma=amplitude, phase_sigma_deg=phase)

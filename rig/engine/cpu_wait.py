@@ -58,3 +58,38 @@ class CpuWaitLog:
             base = delays
         newest = self._snapshots[-1][1]
         return max((newest[tid] - base.get(tid, 0.0) for tid in newest), default=0.0)
+
+
+class ReadWaits:
+    """How long a reading thread waits for a CPU while its data sit in a buffer: each read's
+    run-queue wait (the thread's schedstat across the read) and their median over the last
+    :data:`READ_WAITS` reads. A stream whose every arrival we read at least this late has dates
+    that late too (its clock's lower envelope cannot see a delay common to all its arrivals), so
+    it widens their uncertainty. Nothing on simulated time (a participant never waits for a CPU
+    there) or where the kernel does not say."""
+
+    def __init__(self, measure: bool) -> None:
+        self.measure = measure
+        self._waits: deque[float] = deque(maxlen=READ_WAITS)
+        self._tid = 0
+        self._before = 0.0
+
+    def start(self) -> None:
+        """Before a read (from the reading thread)."""
+        if self.measure:
+            import threading
+
+            self._tid = threading.get_native_id()
+            self._before = run_delay_s(self._tid)
+
+    def typical_s(self) -> float:
+        """After the read: the median run-queue wait (s) of the recent reads, this one counted."""
+        if not self.measure:
+            return 0.0
+        self._waits.append(max(0.0, run_delay_s(self._tid) - self._before))
+        ordered = sorted(self._waits)
+        return ordered[len(ordered) // 2]
+
+
+READ_WAITS = 50
+"""Reads the typical wait is taken over."""

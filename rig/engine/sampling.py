@@ -28,7 +28,7 @@ from drivers.errors import (
 from drivers.protocols import CountsLostSamples, Magnetometer
 from drivers.transport.serial_port import own_stall_s
 from drivers.transport.tty_watch import tty_seen_stall_s, tty_stall_s
-from rig.engine.cpu_wait import CpuWaitLog
+from rig.engine.cpu_wait import CpuWaitLog, ReadWaits
 from rig.engine.stream_clock import StreamClock
 
 Sink = Callable[[float, str, tuple[float, float, float], float], None]
@@ -103,6 +103,7 @@ class SensorSampler:
         next_t = timebase.monotonic()
         failures = 0  # consecutive late or unreadable replies
         counter = self.driver if isinstance(self.driver, CountsLostSamples) else None
+        waits = ReadWaits(measure=not timebase.is_simulated())
         try:
             while not self._stop.is_set():
                 if self._hold.is_set():
@@ -112,14 +113,16 @@ class SensorSampler:
                     continue
                 try:
                     if self.driver.self_timed:  # the sensor sends at its own rate
+                        waits.start()
                         samples = self.driver.read_samples(WAIT_S)
                         if samples:
                             # the newest arrived when its frame's last byte had crossed the line
                             line_s = float(getattr(self.driver, "frame_line_s", 0.0))
                             lost = counter.lost_before if counter is not None else ()
                             dates = clock.dated(timebase.monotonic() - line_s, len(samples), lost)
+                            late_s = waits.typical_s()  # read this late while the computer is busy
                             for (t, unc), xyz in zip(dates, samples, strict=True):
-                                self._publish(t, xyz, unc)
+                                self._publish(t, xyz, unc + late_s)
                         failures = 0 if samples else failures
                         continue
                     next_t += period
