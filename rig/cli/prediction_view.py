@@ -32,7 +32,7 @@ def run_prediction(procedure: str, rig_config: Path | None, sets: list[str], run
             print(f"  field at the cage's zero: ({field}) uT, on every set-point not after a"
                   f" characterization: {bg.source}")  # fmt: skip
         for step in pred.steps:
-            _print_step(step)
+            _print_step(step, pred.noise)
         for live in pred.live:
             _print_live(live)
         d = pred.duration
@@ -62,17 +62,27 @@ def _print_live(live: object) -> None:
     print(f"  '{live.step}' (live, {live.noise_nt:.1f} nT): {when}; sigma (target): {sigmas}")
 
 
-def _print_step(step: object) -> None:
+def _print_step(step: object, noise: object) -> None:
+    from rig.prediction.noise import NoiseFloor
     from rig.prediction.predict import StepPrediction
+    from rig.prediction.spread import run_spread
 
-    assert isinstance(step, StepPrediction)
+    assert isinstance(step, StepPrediction) and isinstance(noise, NoiseFloor)
     print(f"  '{step.step}' ({step.method}): {step.samples} samples from"
           f" {', '.join(step.steps) or 'no step'} ({step.seconds:.0f} s planned)")  # fmt: skip
     if step.problem is not None:
         print(f"    cannot be fitted: {step.problem}")
         return
-    print(f"    {'value':<30} {'1-sigma':>10} {'statistical':>12}  limited by")
+    spread = run_spread(noise, step.samples, len(step.parameters))
+    print(
+        f"    {'value':<30} {'1-sigma':>10} {'one run, 68 %':>19} {'statistical':>12}  limited by"
+    )
     for p in step.parameters:
-        print(f"    {p.path:<30} {p.combined:10.3g} {p.statistical:12.3g}  {p.limited_by}")
+        low, high = spread.range_of(p)
+        one_run = f"{low:.3g}-{high:.3g}"
+        print(f"    {p.path:<30} {p.combined:10.3g} {one_run:>19} {p.statistical:12.3g}"
+              f"  {p.limited_by}")  # fmt: skip
+    print(f"    one run, 68 %: where a single run's 1-sigma falls two times in three (the 1-sigma"
+          f" column is the typical run's), from {spread.source}")  # fmt: skip
     for why in step.left_out:
         print(f"    not counted: {why}")
