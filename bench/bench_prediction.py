@@ -151,8 +151,9 @@ def predicted(procedure: str, earlier: list[dict[str, Any]]) -> Any:
     axes = [step["residual_axes"] for run in earlier for step in run["steps"].values()
             if step.get("residual_axes")]  # fmt: skip
     per_axis = np.sqrt(np.mean(np.square(axes), axis=0))
+    each = tuple(float(np.sqrt(np.mean(np.square(a)))) for a in axes)  # each run's, as rig check
     noise = NoiseFloor((float(per_axis[0]), float(per_axis[1]), float(per_axis[2])),
-                       f"the residuals of {len(earlier)} earlier runs")  # fmt: skip
+                       f"the residuals of {len(earlier)} earlier runs", each)  # fmt: skip
     nulls = [f for run in earlier for v in run["null_field"].values()
              if (f := NoiseFloorResult.from_dict(v)) is not None]  # fmt: skip
     pairs = [p for f in nulls if (p := f.pair_noise_nt("dut")) is not None]
@@ -173,13 +174,22 @@ def predicted(procedure: str, earlier: list[dict[str, Any]]) -> Any:
 def table(prediction: Any, runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per fitted step and parameter: predicted, achieved, their ratio, rms error / predicted;
     a live step's settled samples at its stop too (predicted against the runs' mean)."""
+    from rig.prediction.spread import run_spread
+
     rows = []
     for step in [*prediction.steps, *prediction.live]:
         got = [r["steps"][step.step] for r in runs]
         sigma = np.array([g["sigma"] for g in got])
         combined = np.array([g["combined"] for g in got])
         error = np.array([g["error"] for g in got])
+        spread = (run_spread(prediction.noise, step.samples, len(step.parameters))
+                  if step in prediction.steps else None)  # fmt: skip
         for i, p in enumerate(step.parameters):
+            if spread is not None:  # the share of single runs inside the stated 68 % range
+                low, high = spread.range_of(p)
+                inside = float(np.mean((combined[:, i] >= low) & (combined[:, i] <= high)))
+            else:
+                inside = float("nan")
             achieved = float(np.sqrt(np.mean(sigma[:, i] ** 2)))
             achieved_c = float(np.sqrt(np.mean(combined[:, i] ** 2)))
             rows.append({"step": step.step, "parameter": p.path,
@@ -188,14 +198,15 @@ def table(prediction: Any, runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
                          "predicted_combined": p.combined, "achieved_combined": achieved_c,
                          "ratio_combined": p.combined / achieved_c,
                          "error_over_predicted": float(np.sqrt(np.mean(error[:, i] ** 2))) / p.combined,
-                         "limited_by": p.limited_by})  # fmt: skip
+                         "one_run_68_covers": inside, "limited_by": p.limited_by})  # fmt: skip
         if getattr(step, "samples", 0) and all(g.get("live") for g in got):
             n = float(np.mean([g["live"]["updates"] for g in got]))
             rows.append({"step": step.step, "parameter": "samples at the stop",
                          "predicted": float(step.samples), "achieved": n,
                          "ratio": step.samples / n, "predicted_combined": float(step.samples),
                          "achieved_combined": n, "ratio_combined": step.samples / n,
-                         "error_over_predicted": float("nan"), "limited_by": step.limited_by})  # fmt: skip
+                         "error_over_predicted": float("nan"), "one_run_68_covers": float("nan"),
+                         "limited_by": step.limited_by})  # fmt: skip
     return rows
 
 
@@ -277,13 +288,18 @@ def main() -> int:
     rows = table(prediction, runs)
     print(f"\n{len(runs)} runs on the simulated cage in {time.monotonic() - start:.0f} s")
     print(f"  {'step':<20} {'parameter':<28} {'predicted':>10} {'achieved':>10} {'ratio':>6}"
-          f" {'comb. ratio':>11} {'err/pred':>8}")  # fmt: skip
+          f" {'comb. ratio':>11} {'err/pred':>8} {'one run 68 %':>12}")  # fmt: skip
     ok = True
     for r in rows:
         flag = "" if 0.8 <= r["ratio"] <= 1.2 else "  <- outside 0.8-1.2"
         ok &= not flag
         print(f"  {r['step']:<20} {r['parameter']:<28} {r['predicted']:10.3g} {r['achieved']:10.3g}"
-              f" {r['ratio']:6.2f} {r['ratio_combined']:11.2f} {r['error_over_predicted']:8.2f}{flag}")  # fmt: skip
+              f" {r['ratio']:6.2f} {r['ratio_combined']:11.2f} {r['error_over_predicted']:8.2f}"
+              f" {r['one_run_68_covers']:12.0%}{flag}")  # fmt: skip
+    covers = [r["one_run_68_covers"] for r in rows if not np.isnan(r["one_run_68_covers"])]
+    if covers:
+        print(f"single-run 68 % ranges (rig check --predict): {np.mean(covers):.1%} of the runs'"
+              f" combined sigmas inside, {min(covers):.0%}-{max(covers):.0%} per value")  # fmt: skip
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         with (args.out / "prediction.csv").open("w", newline="") as f:

@@ -101,8 +101,10 @@ def measured_floor(runs_dir: Path, dut: str) -> NoiseFloor | None:
     if residuals:
         pooled = np.sqrt(np.mean(np.square(residuals), axis=0))
         runs = f"{len(residuals)} run{'s' if len(residuals) > 1 else ''}"
+        each = tuple(float(np.sqrt(np.mean(np.square(r)))) for r in residuals)
         return NoiseFloor((float(pooled[0]), float(pooled[1]), float(pooled[2])),
-                          f"the vector calibration residuals of the newest {runs} of '{dut}'")  # fmt: skip
+                          f"the vector calibration residuals of the newest {runs} of '{dut}'",
+                          each)  # fmt: skip
     return rest
 
 
