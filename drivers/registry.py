@@ -229,10 +229,10 @@ TRANSPORTS: dict[str, tuple[Param, ...]] = {
 """Each transport's connection parameters."""
 
 RECORD_KEYS: tuple[Param, ...] = (
-    Param("serial", TEXT, help="the instrument's serial number (for the record and the lab index)"),
-    Param("calibrated_on", DATE, help="date of its calibration certificate (lab index)"),
+    Param("serial", TEXT, help="the instrument's serial number (on the report and in the lab index)"),
+    Param("calibrated_on", DATE, help="date of its calibration certificate (on the report and in the lab index)"),
     Param("certificate_expires", DATE,
-          help="the certificate's expiry date (the lab index lists runs made after it)"),
+          help="the certificate's expiry date (a run after it warns, its report flags it, the lab index lists it)"),
 )  # fmt: skip
 """Keys every kind accepts; no driver reads them: they are copied into each run folder and read by
 the lab index (``rig.lab.summary``, ``docs/lab.md``)."""

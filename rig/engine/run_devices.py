@@ -6,9 +6,11 @@ the links close."""
 from __future__ import annotations
 
 import contextlib
+import datetime as dt
 from collections.abc import Callable
 from typing import Any
 
+import timebase
 from drivers.errors import DeviceError
 from rig.cage_budget import certificate_of
 from rig.config import RigConfig
@@ -20,6 +22,7 @@ from rig.engine.temperature_log import Interlock, TemperatureLog
 from rig.errors import RigError
 from rig.procedure.language import Procedure
 from rig.steps import KINDS
+from rig.store.instruments import instruments
 from rig.store.run_store import RunWriter
 
 Event = Callable[[str, str], None]
@@ -145,3 +148,15 @@ def reference_correction(proc: Procedure, cfg: RigConfig) -> dict[str, Any] | No
     """The reference magnetometer's certificate and place (:func:`rig.cage_budget.certificate_of`),
     None without one."""
     return certificate_of(cfg, proc.magnetometers.get("reference"))
+
+
+def warn_expired_certificates(cfg: RigConfig, event: Callable[[str, str], None]) -> None:
+    """A warning in the run's log for every instrument whose calibration certificate
+    (``certificate_expires`` in the rig configuration) has expired by today: the run goes on, and
+    its report flags the certificate beside the verdict."""
+    today = dt.datetime.fromtimestamp(timebase.wall_time(), dt.UTC).date().isoformat()
+    for found in instruments(cfg.raw, today):
+        if found.expired:
+            event("warning", f"the calibration certificate of '{found.name}' (serial"
+                  f" {found.serial or '-'}) expired on {found.certificate_expires}: renew it; this"
+                  " run's report flags it")  # fmt: skip

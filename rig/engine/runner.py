@@ -53,6 +53,7 @@ from rig.engine.run_devices import (
     record_thermometers,
     reference_correction,
     start_samplers,
+    warn_expired_certificates,
 )
 from rig.engine.run_tracker import RunTracker
 from rig.engine.sampling import SensorSampler
@@ -259,6 +260,7 @@ class Runner:
         thermometers = record_thermometers(rig, self.cfg, w, instruments, self._event)
         check_thermometers(self.proc, self.cfg, thermometers)
         self.correction = reference_correction(self.proc, self.cfg)
+        warn_expired_certificates(self.cfg, self._event)
         w.set_meta(instruments=instruments, reference_correction=self.correction,
                    cage_model=self.controller.model.to_dict(),
                    thermometers=thermometers)  # fmt: skip

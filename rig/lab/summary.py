@@ -6,10 +6,8 @@ uT, scale factors 1, angles deg, residual rms nT); times are ISO 8601 UTC string
 
 from __future__ import annotations
 
-import datetime as dt
 import math
 import socket
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,27 +16,13 @@ from rig.errors import StoredResultError
 from rig.lab.url import rig_name
 from rig.steps.check import CheckVerdict, check_verdict
 from rig.store import safe_files
+from rig.store.instruments import Instrument, config_copy, instruments
 from rig.store.run_states import RunStatus
 from rig.store.run_store import RunReader
 from rig.store.seal import REPORT_FILES, read_seal
 
-MAX_CONFIG_BYTES = 1 << 20
-"""A run's rig.toml copy larger than this is not read."""
 UNSEALED = "unsealed"
 """The hash part of the key of a closed run that has no seal (recorded before seals existed)."""
-
-
-@dataclass(frozen=True)
-class Instrument:
-    """A device of the rig configuration the run used, with its certificate dates if given."""
-
-    name: str
-    kind: str
-    serial: str | None
-    calibrated_on: dt.date | None
-    certificate_expires: dt.date | None
-    expired: bool | None
-    """The certificate had expired when the run started (None: no expiry date configured)."""
 
 
 @dataclass(frozen=True)
@@ -120,7 +104,7 @@ def summarize(folder: Path) -> RunSummary | None:
         return None
     seal = read_seal(folder) or {}
     sha = seal.get("data_sha256")
-    config = _config_copy(folder / "rig.toml")
+    config = config_copy(folder / "rig.toml")
     given = meta.get("parameters")
     params: dict[str, Any] = given if isinstance(given, dict) else {}
     started = _str(meta.get("start_time"))
@@ -148,47 +132,6 @@ def summarize(folder: Path) -> RunSummary | None:
 
 def _str(value: Any) -> str | None:
     return str(value) if value not in (None, "") else None
-
-
-def _config_copy(path: Path) -> dict[str, Any]:
-    """The run's copy of the rig configuration ({} when missing or unreadable)."""
-    try:
-        return tomllib.loads(safe_files.read_text(path, MAX_CONFIG_BYTES))
-    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError, safe_files.UnsafeFileError):
-        return {}
-
-
-def _date(value: Any) -> dt.date | None:
-    if isinstance(value, dt.datetime):
-        return value.date()
-    if isinstance(value, dt.date):
-        return value
-    if isinstance(value, str):
-        try:
-            return dt.date.fromisoformat(value[:10])
-        except ValueError:
-            return None
-    return None
-
-
-def instruments(config: dict[str, Any], started_at: str | None) -> list[Instrument]:
-    """Every device of the configuration copy; ``serial``, ``calibrated_on`` and
-    ``certificate_expires`` are the optional device keys (see docs/lab.md)."""
-    devices = config.get("devices")
-    if not isinstance(devices, dict):
-        return []
-    start = _date(started_at)
-    out = []
-    for name, spec in devices.items():
-        if not isinstance(spec, dict):
-            continue
-        expires = _date(spec.get("certificate_expires"))
-        out.append(Instrument(
-            name=str(name), kind=str(spec.get("kind", "")), serial=_str(spec.get("serial")),
-            calibrated_on=_date(spec.get("calibrated_on")), certificate_expires=expires,
-            expired=(expires < start) if expires is not None and start is not None else None,
-        ))  # fmt: skip
-    return out
 
 
 def _number(value: Any) -> float | None:

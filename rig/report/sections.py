@@ -17,6 +17,7 @@ from rig.report.model import Image, Para, Section, Table
 from rig.report.text_report import limit_text, overall_verdict, seal_note
 from rig.steps import KINDS
 from rig.steps.check import CheckVerdict, check_verdict
+from rig.store.instruments import config_copy, instruments
 
 SPRINGMANN_UNITS = {"a": "", "b": "", "c": "", "x0_ut": "uT", "y0_ut": "uT", "z0_ut": "uT",
                     "rho_deg": "deg", "phi_deg": "deg", "lambda_deg": "deg"}  # fmt: skip
@@ -65,10 +66,35 @@ def header_section(run: RunFacts) -> Section:
         ("Software", f"rig {meta.get('software_version', '')}"),
         ("Rig configuration", meta.get("rig_config", "")),
         ("Cage calibration", cage_record_text(meta.get("cage_model") or {})),
-        ("Instruments", "; ".join(f"{k}: {v}" for k, v in instruments.items())),
         ("Data SHA-256", f"data sha256 {run.digest} ({seal_note(run.folder, run.digest)})"),
     ]  # fmt: skip
     return Section("", (Table(("", ""), tuple((k, str(v)) for k, v in rows), row_heads=True),))
+
+
+def instruments_section(run: RunFacts) -> Section:
+    """Every instrument of the run: what it answered, its serial and its calibration certificate
+    (from the run's copy of the rig configuration), an expired one flagged."""
+    answered = run.meta.get("instruments", {})
+    found = instruments(config_copy(run.folder / "rig.toml"), run.meta.get("start_time"))
+    rows = []
+    for i in found:
+        status = ("EXPIRED before the run" if i.expired else "valid" if i.expired is False
+                  else "no expiry date given")  # fmt: skip
+        rows.append((i.name, str(answered.get(i.name) or i.kind), i.serial or "-",
+                     str(i.calibrated_on or "-"), str(i.certificate_expires or "-"), status))  # fmt: skip
+    blocks: list[Para | Table] = []
+    for i in found:
+        if i.expired:
+            blocks.append(Para(f"WARNING: the certificate of '{i.name}' (serial {i.serial or '-'})"
+                               f" expired on {i.certificate_expires}, before this run: what it"
+                               " measured rests on an expired calibration."))  # fmt: skip
+    header = ("device", "model (as it answered)", "serial", "calibrated", "expires", "certificate")
+    return Section(
+        "Instruments",
+        (*blocks, Table(header, tuple(rows)))
+        if rows
+        else (Para("The run's copy of the rig configuration names no instruments."),),
+    )
 
 
 def cage_record_text(record: dict[str, Any]) -> str:
@@ -306,6 +332,7 @@ def report_sections(
     return [
         header_section(run),
         criteria_section(check_verdict(run.results)),
+        instruments_section(run),
         step_results_section(run),
         *(calibration_section(n, r, plain.get(n)) for n, r in calibrations(run.results).items()),
         plots_section(figs),

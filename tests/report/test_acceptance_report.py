@@ -136,3 +136,32 @@ def test_every_user_supplied_string_is_escaped(tmp_path: Path) -> None:
     text = build_report(w.folder)[0].read_text()
     assert "<script" not in text and "<img src=x" not in text and "<b>co</b>" not in text
     assert text.count("&lt;script&gt;alert(1)&lt;/script&gt;") >= 5
+
+
+def test_every_instrument_with_its_serial_and_certificate_an_expired_one_flagged(
+    tmp_path: Path,
+) -> None:
+    """Issue 55: the budget is 'limited by reference certificate', so the signed record names
+    the reference's serial and certificate; one that had expired when the run started is flagged
+    above the table (the lab index kept these, the report did not)."""
+    import datetime as dt
+
+    folder = synthetic_run(tmp_path)
+    reader = RunReader(folder)
+    start = dt.date.fromisoformat(reader.meta()["start_time"][:10])
+    reader.close()
+    expired, valid = start - dt.timedelta(days=1), start + dt.timedelta(days=365)
+    (folder / "rig.toml").write_text(
+        f'[devices.reference]\nkind = "ascii-mag"\nserial = "FGM-3-0815"\n'
+        f"calibrated_on = 2025-03-01\ncertificate_expires = {expired}\n"
+        f'[devices.dut]\nkind = "hmr2300"\nserial = "0001"\ncertificate_expires = {valid}\n'
+        '[devices.coil_x]\nkind = "riden-rd6006"\n'
+    )
+    text = build_report(folder)[0].read_text()
+    section = text[text.index("<h2>Instruments") :]
+    for needle in ("FGM-3-0815", "2025-03-01", str(expired), str(valid), "HMR2300 0001",
+                   "riden-rd6006", "no expiry date given", "valid", "EXPIRED before the run"):  # fmt: skip
+        assert needle in section, needle
+    assert (f"certificate of &#x27;reference&#x27; (serial FGM-3-0815) expired on {expired}"
+            in section)  # fmt: skip
+    assert "certificate of &#x27;dut&#x27;" not in text
