@@ -23,7 +23,7 @@ from rig.report.calibration_figures import (
     convergence_figure,
 )
 from rig.report.model import Image, Section, esc, render_html, render_text
-from rig.report.pdf import PdfSummary, figure_page
+from rig.report.pdf import PdfSummary
 from rig.report.sections import RunFacts, report_sections, verdict_of
 from rig.report.text_report import data_hash
 from rig.steps import KINDS, field_kinds
@@ -118,7 +118,7 @@ def _pdf(
         summary.sections(sections)
         summary.finish_page()
         for title, fig in figs:
-            figure_page(pdf, plt, title, fig)
+            summary.figure(title, fig)
 
 
 def read_run(folder: Path, digest: str) -> RunFacts:

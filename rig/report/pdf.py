@@ -3,6 +3,7 @@ cut), then one page per figure with its title above the axes."""
 
 from __future__ import annotations
 
+import io
 import textwrap
 import warnings
 from collections.abc import Sequence
@@ -13,6 +14,8 @@ from rig.report.model import Section, styled_lines
 COLOURS = {"PASS": "#1a7f37", "FAIL": "#b42318", "note": "#444444"}
 A4_IN = (8.27, 11.69)
 LEFT, TOP, BOTTOM = 0.06, 0.95, 0.05
+FIGURE_DPI = 200
+"""A figure's resolution on its page (dots per inch): a 7 inch plot is 1400 dots across."""
 MONO_CHARS = 112
 """Characters of 7.5 pt monospace across the page between the margins."""
 TEXT_CHARS = 120
@@ -79,19 +82,36 @@ class PdfSummary:
                            color=COLOURS.get(style, "#111111"))  # fmt: skip
             self.y -= 0.016
 
+    def figure(self, title: str, fig: Any) -> None:
+        """One figure on an A4 page of its own, under its title, as wide as the margins allow
+        (or as tall, for a tall one), footed and numbered as every page: drawn at
+        :data:`FIGURE_DPI` and placed, so no page takes the figure's own size (issue 55: plot
+        pages came in 7 sizes, some wider than A4)."""
+        buf = io.BytesIO()
+        with warnings.catch_warnings():  # a projection or twin axes tight_layout cannot fit
+            warnings.simplefilter("ignore")
+            fig.tight_layout()
+        fig.savefig(buf, format="png", dpi=FIGURE_DPI, bbox_inches="tight")
+        self.plt.close(fig)
+        buf.seek(0)
+        image = self.plt.imread(buf)
+        self._new_page()
+        self.page.text(LEFT, self.y, title, fontsize=10, weight="bold")
+        top = self.y - 0.02
+        aspect = image.shape[0] / image.shape[1] * A4_IN[0] / A4_IN[1]  # height per width, page
+        width = 1.0 - 2 * LEFT
+        height = width * aspect
+        if height > top - BOTTOM:
+            height = top - BOTTOM
+            width = height / aspect
+        axes = self.page.add_axes((LEFT, top - height, width, height))
+        axes.imshow(image, interpolation="antialiased")
+        axes.set_axis_off()
+        self.finish_page()
+
     def sections(self, sections: Sequence[Section]) -> None:
         """Every section meant for the PDF, in order."""
         for sec in sections:
             if "pdf" in sec.formats and sec.blocks:
                 for text, style in styled_lines(sec):
                     self.line(text, style)
-
-
-def figure_page(pdf: Any, plt: Any, title: str, fig: Any) -> None:
-    """One figure on a page of its own, its title above the axes (room made for it)."""
-    fig.suptitle(title, fontsize=10)
-    with warnings.catch_warnings():  # a projection or twin axes tight_layout cannot fit exactly
-        warnings.simplefilter("ignore")
-        fig.tight_layout(rect=(0.0, 0.0, 1.0, 0.92))
-    pdf.savefig(fig, bbox_inches="tight")
-    plt.close(fig)

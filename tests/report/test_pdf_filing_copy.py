@@ -76,3 +76,20 @@ def test_no_word_lies_outside_its_page(built: tuple[str, Path], tmp_path: Path) 
             if left < 0 or top < 0 or right > float(width) or bottom > float(height):
                 outside.append((n, word))
     assert not outside, outside[:10]
+
+
+def test_every_page_is_a4_plots_too(built: tuple[str, Path], tmp_path: Path) -> None:
+    """Issue 55: "A4, for filing", yet the plot pages came in 7 sizes, some wider than A4. Every
+    page now A4 portrait (595.3 x 841.9 pt), each plot page under its title and numbered."""
+    pdftotext, folder = built
+    boxes = tmp_path / "boxes.html"
+    subprocess.run([pdftotext, "-bbox", str(folder / "report.pdf"), str(boxes)], check=True)
+    html = boxes.read_text(encoding="utf-8")
+    sizes = re.findall(r'<page width="([\d.]+)" height="([\d.]+)">', html)
+    assert len(sizes) >= 6  # the summary pages and the plots
+    assert all(abs(float(w) - 595.3) < 0.5 and abs(float(h) - 841.9) < 0.5 for w, h in sizes), (
+        sorted(set(sizes))
+    )
+    text = subprocess.run([pdftotext, str(folder / "report.pdf"), "-"], capture_output=True,
+                          text=True, check=True).stdout  # fmt: skip
+    assert f"page {len(sizes)}" in text  # the last plot page numbered as the rest
