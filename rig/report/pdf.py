@@ -14,6 +14,8 @@ from rig.report.model import Section, styled_lines
 COLOURS = {"PASS": "#1a7f37", "FAIL": "#b42318", "note": "#444444"}
 A4_IN = (8.27, 11.69)
 LEFT, TOP, BOTTOM = 0.06, 0.95, 0.05
+KEEP_WITH_HEAD = 3
+"""Lines a table's header needs below it on its page (itself and two rows), else a new page."""
 FIGURE_DPI = 200
 """A figure's resolution on its page (dots per inch): a 7 inch plot is 1400 dots across."""
 MONO_CHARS = 112
@@ -69,6 +71,8 @@ class PdfSummary:
             self.page.text(LEFT, self.y, text, fontsize=11, weight="bold")
             self.y -= 0.024
             return
+        if style == "head":  # a table's header keeps its first rows with it on the page
+            self._room(0.017 * KEEP_WITH_HEAD)
         mono = style not in ("text", "note")
         width = MONO_CHARS if mono else TEXT_CHARS
         for part in textwrap.wrap(text, width, subsequent_indent="    ", drop_whitespace=False) or [

@@ -14,7 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from rig.analysis import noise_floor, paired_noise, to_cage_frame
+from rig.analysis import noise_floor, paired_noise, settled_samples, spread_nt, to_cage_frame
 from rig.steps.base import NullHoldKind, RunContext, StepExecution
 from rig.steps.vocabulary import Param, Step
 
@@ -113,15 +113,17 @@ class NullField(NullHoldKind):
         if window is None:
             return []
         dut = reader.meta().get("magnetometers", {}).get("dut", "dut")
-        t_a, t_b = window[0] + NOISE_SETTLE_S, window[1]
-        rows = np.array([r for r in reader.samples(dut) if t_a <= r[0] <= t_b], dtype=np.float64)
-        if not rows.size:
+        # the samples the noise figure is computed from: settled, every ramp and trim left out
+        # (issue 55: the plot spanned +-40 000 nT of ramp beside its 21 nT figure)
+        rows = settled_samples(reader, dut, window, NOISE_SETTLE_S)
+        if len(rows) < 2:
             return []
         fig, ax = plt.subplots(figsize=(9, 3.0))
         for i, axis in enumerate("xyz"):
-            ax.plot(rows[:, 0] - rows[0, 0], 1000 * (rows[:, 1 + i] - rows[:, 1 + i].mean()), "-",
-                    lw=0.8, label=axis)  # fmt: skip
-        ax.set_xlabel("time in the null-field hold (s)")
+            ax.plot(rows[:, 0] - window[0], 1000 * (rows[:, 1 + i] - rows[:, 1 + i].mean()), ".-",
+                    ms=2, lw=0.6, label=axis)  # fmt: skip
+        ax.set_xlabel(f"time in the null-field hold (s); the {len(rows)} settled samples the"
+                      f" noise floor ({spread_nt(rows[:, 1:]):.1f} nT) is computed from")  # fmt: skip
         ax.set_ylabel("DUT reading minus mean (nT)")
         ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         ax.grid(alpha=0.3)

@@ -1018,3 +1018,31 @@ def test_a_poorly_measured_point_does_not_decide_the_cages_bandwidth() -> None:
                     {"frequencies_hz": [1], "amplitude_ut": 5.0, "rate_hz": 50.0})  # fmt: skip
     assert r["limit_hz"]["x"] is None
     assert "no frequency measured well enough" in KINDS["cage_response"].report_lines("c", r)[1]
+
+
+def test_the_noise_floor_plot_shows_the_samples_its_figure_is_computed_from(tmp_path: Path) -> None:
+    """Issue 55: the noise-floor plot spanned +-40 000 nT (the ramp to null and the trim in it)
+    beside its 21 nT figure. It now draws the settled samples the figure is computed from."""
+    from rig.store.run_store import RunReader, RunWriter
+
+    (tmp_path / "run").mkdir()
+    w = RunWriter(tmp_path / "run")
+    w.set_meta(magnetometers={"dut": "dut", "reference": "reference"})
+    w.set_step(0, "noise floor", "null_field", 100.0, 120.0)
+    # the ramp from 40 uT to null ends at 101 s (its command logged when done)
+    w.add_command(101.0, 0, "field", {"field_ut": [0.0, 0.0, 0.0], "t_issued": 100.0})
+    rng = np.random.default_rng(3)
+    t = np.arange(100.0, 120.0, 0.05)
+    ramp = np.clip(40.0 * (101.0 - t), 0.0, 40.0)  # uT
+    for k, tk in enumerate(t):
+        w.add_sample(float(tk), "dut", (float(ramp[k] + 0.02 * rng.standard_normal()), 0.01, 0.0))
+    w.close("complete", "")
+    reader = RunReader(tmp_path / "run")
+    try:
+        ((_title, fig),) = KINDS["null_field"].figures(reader, "noise floor", {}, pyplot())
+    finally:
+        reader.close()
+    low, high = fig.axes[0].get_ylim()
+    assert high - low < 200.0, (low, high)  # nT: the noise's, not the ramp's 40 000
+    assert "settled samples the noise floor" in fig.axes[0].get_xlabel()
+    pyplot().close(fig)
