@@ -39,8 +39,9 @@ def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
                           " cannot)")  # fmt: skip
     chk.add_argument("--noise-nt", type=float, metavar="NT",
                      help="with --predict: the DUT's noise paired with the reference (nT per"
-                          " axis; default: the newest a null_field step measured in --runs-dir,"
-                          " else the devices' noise_nt)")  # fmt: skip
+                          " axis; default: the vector calibration residuals of the newest 5 runs"
+                          " of the DUT in --runs-dir pooled, else the newest null_field noise"
+                          " there, else the devices' noise_nt)")  # fmt: skip
     chk.add_argument("--runs-dir", type=Path, default=Path("runs"), metavar="DIR",
                      help="with --predict: where earlier runs are, for their measured noise floor"
                           " (default: runs)")  # fmt: skip
