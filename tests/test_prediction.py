@@ -399,3 +399,16 @@ def test_a_single_runs_range_covers_two_runs_in_three() -> None:
         covered += low <= reported <= high
     assert 0.68 <= covered / n <= 0.78, covered / n
     assert noise_between_runs([25.0, 26.0]) is None  # two runs say nothing of the spread
+
+
+def test_the_duration_is_expected_with_its_range_when_a_live_step_stops() -> None:
+    """Issue 55: 'at most 179 s' was printed where a stop was predicted (143-152 s taken). The
+    typical run's time is the total less what the predicted stops leave out, on average, with the
+    range over the earlier runs' noises; the most (every live step at its max_s) still said."""
+    from rig.prediction.duration import PredictedDuration
+
+    d = PredictedDuration(147.0, 50.0, 0, 0, True, (20.0, 30.0, 40.0))
+    assert d.total_s == 197.0 and d.expected_s == pytest.approx(167.0)
+    assert d.range_s == (157.0, 177.0)
+    plain = PredictedDuration(100.0, 10.0, 0, 0, False)
+    assert plain.expected_s == plain.total_s == 110.0 and plain.range_s == (110.0, 110.0)

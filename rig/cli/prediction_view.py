@@ -36,10 +36,14 @@ def run_prediction(procedure: str, rig_config: Path | None, sets: list[str], run
         for live in pred.live:
             _print_live(live)
         d = pred.duration
-        print(f"  duration on the rig: {'at most ' if d.early_stop else 'about '}{d.total_s:.0f} s"
-              f" (planned {d.planned_s:.0f} s, ramps {d.ramps_s:.0f} s, {d.flips} polarity flips,"
-              f" {d.trims} trimmed fields)"
-              + ("; a live calibration may stop earlier" if d.early_stop else ""))  # fmt: skip
+        low, high = d.range_s
+        spread = f" ({low:.0f}-{high:.0f} s over the earlier runs' noises)" if high > low else ""
+        stop_note = (f"; the live calibration stopping where predicted, at most {d.total_s:.0f} s"
+                " at its max_s" if d.saved_s else "; a live calibration may stop earlier"
+                if d.early_stop else "")  # fmt: skip
+        print(f"  duration on the rig: about {d.expected_s:.0f} s{spread} (planned"
+              f" {d.planned_s:.0f} s, ramps {d.ramps_s:.0f} s, {d.flips} polarity flips,"
+              f" {d.trims} trimmed fields){stop_note}")  # fmt: skip
     for c in pred.criteria:
         if c.verdict != "can pass" or not quiet:
             print(f"{'CANNOT PASS' if c.verdict == 'CANNOT PASS' else '  ' + c.verdict}:"

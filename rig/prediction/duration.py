@@ -36,11 +36,27 @@ class PredictedDuration:
     trims: int
     early_stop: bool
     """A live calibration may stop before its ``max_s``: the total is then an upper bound."""
+    saved_s: tuple[float, ...] = ()
+    """Per noise scenario (each earlier run's), the planned seconds its live steps' predicted
+    stops leave out (empty: none predicted)."""
 
     @property
     def total_s(self) -> float:
-        """Everything added up (s)."""
+        """Everything added up (s): with a live step, the most (each at its ``max_s``)."""
         return self.planned_s + self.ramps_s + self.flips * FLIP_S + self.trims * TRIM_S
+
+    @property
+    def expected_s(self) -> float:
+        """The typical run's time (s): the live steps stopping where the earlier runs' noises
+        predict them to, on average."""
+        return self.total_s - (sum(self.saved_s) / len(self.saved_s) if self.saved_s else 0.0)
+
+    @property
+    def range_s(self) -> tuple[float, float]:
+        """The shortest and longest of the scenarios' times (s)."""
+        if not self.saved_s:
+            return self.total_s, self.total_s
+        return self.total_s - max(self.saved_s), self.total_s - min(self.saved_s)
 
 
 def predicted_duration(proc: Procedure, model: CageModel | None, limits: CageLimits | None,

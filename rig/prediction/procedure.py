@@ -3,6 +3,7 @@ predicted value (``rig check --predict``)."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -84,8 +85,15 @@ def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
     lives = {p.step: p for p in live}
     judged = tuple(judge_live(c, lives[c["result"]]) if c["result"] in lives else judge(c, by_name)
                    for c in criteria)  # fmt: skip
-    return ProcedurePrediction(noise, steps, judged, _duration(proc, cfg, timing), live,
-                               background)  # fmt: skip
+    duration = _duration(proc, cfg, timing)
+    saved = tuple(sum(float(_step(proc, name).params["max_s"]) - dwell for name, dwell in stops.items())
+                  for stops in scenarios if stops)  # fmt: skip
+    return ProcedurePrediction(noise, steps, judged, dataclasses.replace(duration, saved_s=saved),
+                               live, background)  # fmt: skip
+
+
+def _step(proc: Procedure, name: str) -> Step:
+    return next(s for s in proc.steps if s.name == name)
 
 
 def _live_stops(proc: Procedure, live: tuple[LivePrediction, ...]) -> list[dict[str, float]]:
