@@ -177,6 +177,10 @@ def main() -> int:
                     help="fit each draw with 'rig calibrate' on a CSV, as its own process (the"
                          f" scalar scenarios without telemetry: {', '.join(CLI_SCENARIOS)})")  # fmt: skip
     args = ap.parse_args()
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: bench/
+    from bench.dask_runs import local_cluster, require_dask
+
+    require_dask()
     from distributed import Client
 
     chosen = [scenario(n) for n in args.scenario] if args.scenario else list(SCENARIOS)
@@ -185,9 +189,6 @@ def main() -> int:
         if other and args.scenario:
             ap.error(f"--cli runs only {', '.join(CLI_SCENARIOS)}, not {', '.join(other)}")
         chosen = [sc for sc in chosen if sc.name in CLI_SCENARIOS]
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: bench/
-    from bench.dask_runs import local_cluster
-
     cluster = None if args.scheduler else local_cluster(args.workers)
     outside = []
     with Client(args.scheduler or cluster) as client:

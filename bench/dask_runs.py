@@ -14,6 +14,19 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
+INSTALL = (
+    "the benches' Monte Carlo runs on Dask, not installed here: .venv/bin/pip install -e"
+    " '.[bench]' (the README's main command installs the rig alone; the dev extra has Dask)"
+)
+
+
+def require_dask() -> None:
+    """Exit with the one line that says how to install Dask, when it is not installed."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        sys.exit(f"bench: {INSTALL}")
+
 
 def local_cluster(workers: int) -> Any:
     """A local cluster: ``workers`` processes of one thread each, one BLAS thread each, without
@@ -37,6 +50,7 @@ def map_on_dask(fn: Callable[..., Any], *iterables: Iterable[Any], workers: int,
                 scheduler: str | None,
                 on_result: Callable[[int, Any], None] | None = None) -> list[Any]:  # fmt: skip
     """``[fn(*args) for args in zip(*iterables)]`` on Dask; results in order."""
+    require_dask()
     from distributed import Client, as_completed
 
     cluster = None if scheduler else local_cluster(workers)
