@@ -412,3 +412,29 @@ def test_the_duration_is_expected_with_its_range_when_a_live_step_stops() -> Non
     assert d.range_s == (157.0, 177.0)
     plain = PredictedDuration(100.0, 10.0, 0, 0, False)
     assert plain.expected_s == plain.total_s == 110.0 and plain.range_s == (110.0, 110.0)
+
+
+def test_the_noise_is_the_duts_own_by_its_serial(tmp_path: Path) -> None:
+    """Issue 55: 'the same DUT' meant the device name, so runs of any unit on that port were
+    pooled; a unit twice as noisy was predicted 14-31 % optimistic until its own runs outweighed
+    the others. Pooled per serial now (a serial with no run yet: the other units, said)."""
+    from rig.prediction.noise import measured_floor, rest_floor
+
+    runs = tmp_path / "runs"
+    for serial, nt in (("SN-A", 20.0), ("SN-B", 40.0), ("SN-A", 22.0)):
+        w = new_run(runs, serial, dut_serial=serial,
+                    magnetometers={"dut": "dut", "reference": "reference"})  # fmt: skip
+        w.set_result("fit", {"residual_rms_axes_nt": [nt, nt, nt]})
+        w.set_result("floor", {"dut_noise_nt": nt, "reference_noise_nt": 5.0,
+                               "dut_paired_noise_nt": nt})  # fmt: skip
+        w.close("complete", "")
+    b = measured_floor(runs, "dut", "SN-B")
+    assert b is not None and b.axes_nt == (40.0, 40.0, 40.0) and "of serial SN-B" in b.source
+    a = measured_floor(runs, "dut", "SN-A")
+    assert a is not None and a.pair_nt == pytest.approx(math.hypot(20.0, 22.0) / math.sqrt(2))
+    new = measured_floor(runs, "dut", "SN-C")
+    assert new is not None and "no run of serial SN-C yet" in new.source
+    rest_b = rest_floor(runs, "dut", "SN-B")
+    assert rest_b is not None and rest_b.pair_nt == 40.0 and "of serial SN-B" in rest_b.source
+    rest_a = rest_floor(runs, "dut", "SN-A")
+    assert rest_a is not None and rest_a.runs_nt == (22.0, 20.0)

@@ -13,6 +13,7 @@ unknown.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -71,7 +72,8 @@ def noise_floor(proc: Procedure, cfg: RigConfig | None, runs_dir: Path | None,
         if not given_nt > 0:
             raise UserInputError(f"--noise-nt must be positive, got {given_nt:g}")
         return even(given_nt, "given (--noise-nt)")
-    measured = measured_floor(runs_dir, dut) if runs_dir is not None else None
+    serial = proc.parameters.get("dut_serial") or None
+    measured = measured_floor(runs_dir, dut, serial) if runs_dir is not None else None
     if measured is not None:
         return measured
     stated = _stated(cfg, dut, proc.magnetometers.get("reference"))
@@ -83,14 +85,30 @@ def noise_floor(proc: Procedure, cfg: RigConfig | None, runs_dir: Path | None,
     )
 
 
-def measured_floor(runs_dir: Path, dut: str) -> NoiseFloor | None:
-    """The noise the newest runs of device ``dut`` measured (None if none): the residuals per
-    axis of their last vector calibrations, pooled over up to :data:`POOLED_RUNS` runs (rms: a
-    run's own figure varies with where its samples fall on the mains ripple), else the newest
-    null-field noise paired with the reference."""
+def measured_floor(runs_dir: Path, dut: str, serial: str | None = None) -> NoiseFloor | None:
+    """The noise the newest runs of the DUT measured (None if none): the residuals per axis of
+    their last vector calibrations, pooled over up to :data:`POOLED_RUNS` runs (rms: a run's own
+    figure varies with where its samples fall on the mains ripple), else the newest null-field
+    noise paired with the reference. The DUT is the unit of serial ``serial`` on device ``dut``
+    (issue 55: runs of any unit on that port had been pooled, a noisier unit predicted 14-31 %
+    optimistic for its first 3-12 runs); a serial with no run yet: any unit on ``dut``, said."""
+    if serial is not None:
+        own = _measured(runs_dir, dut, serial)
+        if own is not None:
+            return own
+        found = _measured(runs_dir, dut, None)
+        if found is None:
+            return None
+        return dataclasses.replace(found, source=f"{found.source} (no run of serial {serial} yet:"
+                                   " other units on that device)")  # fmt: skip
+    return _measured(runs_dir, dut, None)
+
+
+def _measured(runs_dir: Path, dut: str, serial: str | None) -> NoiseFloor | None:
+    """:func:`measured_floor` from the runs of ``dut`` with DUT serial ``serial`` (None: any)."""
     residuals: list[tuple[float, ...]] = []
     rest: NoiseFloor | None = None
-    for run_id, results in results_of(runs_dir, dut):
+    for run_id, results in results_of(runs_dir, dut, serial):
         axes = _residual_axes(results)
         if axes is not None:
             residuals.append(axes)
@@ -101,6 +119,7 @@ def measured_floor(runs_dir: Path, dut: str) -> NoiseFloor | None:
     if residuals:
         pooled = np.sqrt(np.mean(np.square(residuals), axis=0))
         runs = f"{len(residuals)} run{'s' if len(residuals) > 1 else ''}"
+        runs += f" of serial {serial}" if serial is not None else ""
         each = tuple(float(np.sqrt(np.mean(np.square(r)))) for r in residuals)
         return NoiseFloor((float(pooled[0]), float(pooled[1]), float(pooled[2])),
                           f"the vector calibration residuals of the newest {runs} of '{dut}'",
@@ -108,30 +127,40 @@ def measured_floor(runs_dir: Path, dut: str) -> NoiseFloor | None:
     return rest
 
 
-def rest_floor(runs_dir: Path | None, dut: str) -> NoiseFloor | None:
-    """The null-field noises of device ``dut`` paired with the reference (what a live
-    calibration's filter is given) in the newest :data:`REST_RUNS` runs that measured one, pooled
-    with each run's kept; None if no run measured it."""
+def rest_floor(runs_dir: Path | None, dut: str, serial: str | None = None) -> NoiseFloor | None:
+    """The null-field noises of the DUT paired with the reference (what a live calibration's
+    filter is given) in the newest :data:`REST_RUNS` runs that measured one, pooled with each
+    run's kept; None if no run measured it. The DUT: the unit of serial ``serial`` on device
+    ``dut`` when it has such runs, else any unit on ``dut`` (said)."""
     if runs_dir is None:
         return None
-    found: list[NoiseFloor] = []
-    for run_id, results in results_of(runs_dir, dut):
-        floor = _null_field(results, run_id)
-        if floor is not None:
-            found.append(floor)
-            if len(found) == REST_RUNS:
-                break
-    if len(found) < 2:
-        return found[0] if found else None
-    return pooled([f.pair_nt for f in found],
-                  f"the null fields of the newest {len(found)} runs of '{dut}'")  # fmt: skip
+    for wanted in [serial, None] if serial is not None else [None]:
+        found: list[NoiseFloor] = []
+        for run_id, results in results_of(runs_dir, dut, wanted):
+            floor = _null_field(results, run_id)
+            if floor is not None:
+                found.append(floor)
+                if len(found) == REST_RUNS:
+                    break
+        if not found:
+            continue
+        whose = (f" of serial {serial}" if wanted is not None else
+                 f" (no run of serial {serial} yet: other units on that device)" if serial else "")  # fmt: skip
+        if len(found) < 2:
+            return dataclasses.replace(found[0], source=found[0].source + whose)
+        return pooled([f.pair_nt for f in found],
+                      f"the null fields of the newest {len(found)} runs of '{dut}'{whose}")  # fmt: skip
+    return None
 
 
-def results_of(runs_dir: Path, dut: str) -> Iterator[tuple[str, dict[str, Any]]]:
+def results_of(runs_dir: Path, dut: str,
+               serial: str | None = None) -> Iterator[tuple[str, dict[str, Any]]]:  # fmt: skip
     """(run id, results) of the newest runs of device ``dut`` (at most :data:`RUNS_LOOKED_AT`
-    runs looked at), newest first."""
+    runs looked at), newest first; of DUT serial ``serial`` only when given."""
     for info in list_runs(runs_dir)[:RUNS_LOOKED_AT]:
         if (info.meta.get("magnetometers") or {}).get("dut") != dut:
+            continue
+        if serial is not None and str(info.meta.get("dut_serial") or "") != serial:
             continue
         reader = RunReader(info.folder)
         try:

@@ -63,7 +63,7 @@ def predict_procedure(proc: Procedure, cfg: RigConfig | None, timing: RigTiming,
     dut = proc.magnetometers.get("dut", "dut")
     rate = dut_rate_hz(cfg, dut)
     cage = cage_terms_for(proc, cfg)
-    rest = rest or rest_floor(runs_dir, dut)
+    rest = rest or rest_floor(runs_dir, dut, proc.parameters.get("dut_serial") or None)
     background = background or background_field(cfg, runs_dir, dut)
     live = tuple(predict_live(proc, s, timing, rate, rest.pair_nt if rest else noise.pair_nt, seed,
                               background, rest.runs_nt if rest else ())
