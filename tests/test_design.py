@@ -127,3 +127,27 @@ def test_rig_design_writes_the_procedure_and_never_overwrites(
     assert "meets every target" in capsys.readouterr().err
     assert main(args) == 2  # an existing file is not overwritten
     assert "exists" in capsys.readouterr().err
+
+
+def test_rig_design_offers_no_file_it_knows_cannot_meet_and_says_what_would(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 55: '--max-s 25' answered '400 set-points, about 268 s; CANNOT meet: time' though
+    34 s meets the targets, and an impossible set still got a runnable file saying 'the fewest
+    set-points that meet every target'. Now nothing is written; the line says what binds and
+    what would meet it."""
+    from tests.test_prediction import RIG
+
+    (tmp_path / "rig.toml").write_text(RIG)
+    out = tmp_path / "designed.yaml"
+    base = ["design", "--rig", str(tmp_path / "rig.toml"), "--noise-nt", "20", "--out", str(out)]
+    assert main([*base, "--targets", str(targets(tmp_path)), "--max-s", "5"]) == 1
+    err = capsys.readouterr().err
+    assert not out.exists() and "no plan meets every target within --max-s 5" in err
+    assert "The shortest plan that meets every target takes about" in err and "--max-s" in err
+    impossible = targets(tmp_path, scale=1e-6)  # 1 ppm of scale: beyond 400 points of 20 nT
+    assert main([*base, "--targets", str(impossible)]) == 1
+    err = capsys.readouterr().err
+    assert not out.exists() and "Not met by any number of set-points: springmann.a" in err
+    assert "limited by noise" in err and "the best a plan gives: 2.1" in err
+    assert "a target of 2.6" in err and "a quieter DUT" in err

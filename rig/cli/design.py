@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -63,8 +64,8 @@ def _cmd_design(args: argparse.Namespace) -> int:
 
 def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: Path | None,
                noise_nt: float | None, runs_dir: Path, quiet: bool, margin: float = 0.25) -> int:  # fmt: skip
-    """Write the designed procedure; 0 when it meets every target, 1 when none could (the best
-    one found is written, its header saying what it misses)."""
+    """Write the designed procedure; 0 when it meets every target, 1 when none could (nothing
+    written: which target binds, and what would meet it)."""
     from rig.config import load_rig_config
     from rig.errors import UserInputError
     from rig.prediction.design import Targets, design_procedure
@@ -82,20 +83,53 @@ def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: P
     probe = _probe_procedure(targets)
     noise = noise_floor(probe, cfg, runs_dir, noise_nt)
     timing = rig_timing(cfg) or RigTiming()
-    design = design_procedure(targets, cfg, timing, noise, cage_terms_for(probe, cfg), max_s,
-                              margin)  # fmt: skip
+    cage = cage_terms_for(probe, cfg)
+    design = design_procedure(targets, cfg, timing, noise, cage, max_s, margin)
+    if not design.meets:
+        # no runnable file that claims what it cannot give: what binds, and what would meet it
+        untimed = design_procedure(targets, cfg, timing, noise, cage, None, margin)
+        print(f"rig design: no plan meets every target{_within(max_s)}; nothing written."
+              f" {_what_binds(design, untimed, margin)}", file=sys.stderr)  # fmt: skip
+        return 1
     text = _with_header(design, targets, noise, margin)
     if out is None:
         sys.stdout.write(text)
     else:
         write_text(out, text, exclusive=True)  # never through a link, never over a file
     if not quiet:
-        verdict = "meets every target" if design.meets else "CANNOT meet: " + "; ".join(
-            f"{k}: {v}" for k, v in design.unmet.items())  # fmt: skip
         print(f"rig design: {design.points} set-points of {design.dwell_s:g} s, about"
-              f" {design.seconds:.0f} s on the rig; {verdict}"
+              f" {design.seconds:.0f} s on the rig; meets every target"
               + (f"; written to {out}" if out is not None else ""), file=sys.stderr)  # fmt: skip
-    return 0 if design.meets else 1
+    return 0
+
+
+def _within(max_s: float | None) -> str:
+    return f" within --max-s {max_s:g}" if max_s is not None else ""
+
+
+def _what_binds(timed: object, untimed: object, margin: float) -> str:
+    """Which target binds and what would meet it: more time (the shortest plan that meets every
+    target without the time limit), or, for a target no number of points meets, its limiting
+    term and the smallest target the plan could give."""
+    from rig.prediction.design import Design
+
+    assert isinstance(timed, Design) and isinstance(untimed, Design)
+    if untimed.meets:
+        return (f"The shortest plan that meets every target takes about {untimed.seconds:.0f} s"
+                f" ({untimed.points} set-points of {untimed.dwell_s:g} s): give --max-s"
+                f" {math.ceil(untimed.seconds)} or more.")  # fmt: skip
+    lines = []
+    for what, why in untimed.unmet.items():
+        got = untimed.achieved.get(what)
+        reach = (f"; the best a plan gives: {got[0]:.3g}, a target of {got[0] * (1 + margin):.3g}"
+                 f" with the {100 * margin:.0f} % margin" if got is not None else "")  # fmt: skip
+        lines.append(f"{what}: {why}{reach}")
+    fix = ("a better reference (its certificate)" if any("certificate" in w for w in lines)
+           else "a quieter DUT or more set-points than 400")  # fmt: skip
+    return (
+        f"Not met by any number of set-points: {'; '.join(lines)}. What would meet it: a"
+        f" target at least as large as the most a plan gives, or {fix}."
+    )
 
 
 def _probe_procedure(targets: Targets) -> Procedure:
@@ -130,6 +164,4 @@ def _with_header(design: object, targets: object, noise: object, margin: float) 
              " it: a run's noise varies about the floor):"]  # fmt: skip
     for path, (got, limit) in design.achieved.items():
         lines.append(f"  {path}: {got:.3g} (target {limit:g})")
-    for what, why in design.unmet.items():
-        lines.append(f"NOT MET {what}: {why}")
     return "".join(f"# {line}\n" for line in lines) + design.text
