@@ -17,6 +17,7 @@ from rig.prediction.design import (
     d_optimal,
     design_procedure,
     points_needed,
+    procedure_text,
     sizes_up_to,
 )
 from rig.prediction.noise import even
@@ -109,6 +110,12 @@ def test_targets_files_are_checked(tmp_path: Path) -> None:
             Targets.load(bad)
     t = Targets.load(targets(tmp_path))
     assert t.limit("springmann.x0_ut") == 0.005 and t.limit("springmann.rho_deg") is None
+    assert (t.dut, t.reference) == ("dut", "reference")
+    # a DUT on a device of another name (issue 55: design assumed 'dut')
+    bad.write_text("dut: mag_a\nreference: fluxgate\ntargets: {springmann.a: 1e-4}\n")
+    named = Targets.load(bad)
+    text = procedure_text(named, np.eye(3) * 40.0, 0.8, False, [])
+    assert "magnetometers: {dut: mag_a, reference: fluxgate}" in text
 
 
 def test_rig_design_writes_the_procedure_and_never_overwrites(

@@ -57,6 +57,10 @@ class Targets:
     magnitude_ut: tuple[float, float]
     sigma: dict[str, float]
     source: str = ""
+    dut: str = "dut"
+    """The DUT's device name in the rig configuration (``dut:`` in the targets file)."""
+    reference: str = "reference"
+    """The reference magnetometer's device name (``reference:``)."""
 
     @classmethod
     def load(cls, path: Path) -> Targets:
@@ -89,7 +93,8 @@ class Targets:
         sigma = {str(k): float(v) for k, v in raw["targets"].items()}
         if any(not v > 0 for v in sigma.values()):
             raise UserInputError(f"{path}: every target must be a positive 1-sigma")
-        return cls(model, loads, (lo, hi), sigma, str(path))
+        roles = {role: str(raw.get(role) or role) for role in ("dut", "reference")}
+        return cls(model, loads, (lo, hi), sigma, str(path), roles["dut"], roles["reference"])
 
     def limit(self, path: str) -> float | None:
         """The target of a result path (the first pattern that matches), None if it has none."""
@@ -158,7 +163,7 @@ def procedure_text(targets: Targets, fields_ut: Array, dwell_s: float, character
               "description: >",
               f"  Written by rig design for {Path(targets.source).name or 'the targets'}: the fewest"
               " set-points that meet every target, each field chosen by a D-optimal exchange.",
-              "magnetometers: {dut: dut, reference: reference}"]  # fmt: skip
+              f"magnetometers: {{dut: {targets.dut}, reference: {targets.reference}}}"]  # fmt: skip
     if channels:
         lines.append(f"loads: [{', '.join(channels)}]")
     lines.append("steps:")
@@ -254,7 +259,7 @@ def design_procedure(targets: Targets, cfg: Any, timing: Any, noise: Any, cage: 
     characterize = model is None or bool(model.meta.get("nominal"))
     limits = cage_limits(cfg)
     cands = candidates(targets.magnitude_ut)
-    rate = dut_rate_hz(cfg, "dut")
+    rate = dut_rate_hz(cfg, targets.dut)
     tried: dict[tuple[int, float], Design] = {}
 
     def build(n: int, dwell: float) -> Design:
