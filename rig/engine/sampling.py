@@ -142,7 +142,10 @@ class SensorSampler:
                         raise
                     self.retried += 1
                     if self.on_warning is not None:
-                        self.on_warning(f"{self.name}: {exc}; retrying")
+                        self.on_warning(f"{self.name}: {exc}; read again: only what the failed"
+                                        " read held is missing from the record, and a stream's"
+                                        " dates start afresh from the next sample (a second"
+                                        " failure in a row would have ended the run)")  # fmt: skip
                     next_t = timebase.monotonic()
                     clock.reset()  # samples may have been lost: count from the next one
         except Exception as exc:  # a device error, or a bug in a sink: never a silent end
@@ -169,7 +172,9 @@ class SensorSampler:
                     if attempt == RESTART_ATTEMPTS - 1:
                         raise
                     if self.on_warning is not None:
-                        self.on_warning(f"{self.name}: starting to sample again: {exc}; retrying")
+                        self.on_warning(f"{self.name}: starting to sample again: {exc}; asked"
+                                        " again (nothing recorded meanwhile: the step's data"
+                                        " start once sampling does)")  # fmt: skip
         finally:
             self.started_t = timebase.monotonic()
             self._restarted.set()
