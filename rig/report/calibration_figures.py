@@ -15,7 +15,7 @@ from rig.analysis import apply_correction, selected_data
 from rig.calibration.record import CalibrationRecord, LiveBlock
 from rig.calibration.targets import SIGMA_TARGETS, group_of
 from rig.errors import RigError
-from rig.report.scaling import mark_outliers, robust_limits
+from rig.report.scaling import mark_outliers, robust_limits, robust_log_limits
 from rig.steps import field_kinds
 from rig.store import safe_files
 from rig.store.run_store import RunReader
@@ -157,10 +157,12 @@ def convergence_figure(folder: Path, live: LiveBlock, plt: Any) -> Any:
     fig, axes = plt.subplots(1, len(groups), figsize=(3.0 * len(groups), 3.2), squeeze=False)
     t = rows[:, 0]
     for ax, group in zip(axes[0], groups, strict=True):
+        drawn: list[Array] = []
         for i, name in sigma_cols:
             g, factor = group_of(name)
             if g == group:
-                ax.semilogy(t, factor * rows[:, i], lw=1.0, label=name)
+                drawn.append(factor * rows[:, i])
+                ax.semilogy(t, drawn[-1], lw=1.0, label=name)
         if (
             f"forecast_{group}" in header
         ):  # the plan's forecast at this run's noise (no forecast: NaN)
@@ -169,6 +171,12 @@ def convergence_figure(folder: Path, live: LiveBlock, plt: Any) -> Any:
         target = live.targets.get(group)
         if target:
             ax.axhline(target, color="k", ls="--", lw=1.0, label="target")
+        # the axis over the bulk of the sigmas and the target; a spike beyond it counted
+        limits = robust_log_limits(np.concatenate(drawn) if drawn else [], [target or np.nan])
+        ax.set_ylim(limits.lo, limits.hi)
+        if limits.outside:
+            ax.text(0.02, 0.02, f"{limits.outside} beyond the axis (most extreme"
+                    f" {limits.extreme:.3g})", transform=ax.transAxes, fontsize=6, color="red")  # fmt: skip
         ax.axvline(live.elapsed_s or float(t[-1]), color="tab:red", lw=0.8, alpha=0.7)
         ax.set_title(SIGMA_TARGETS[group], fontsize=8)
         ax.set_xlabel("time in step (s)")

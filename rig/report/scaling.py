@@ -16,6 +16,8 @@ SPREAD = 8.0
 """The axis reaches this many robust standard deviations beyond the median ..."""
 MARGIN = 1.1
 """... or 10 % beyond the 0.5 and 99.5 percentiles, whichever is wider."""
+LOG_PAD = 0.25
+"""A logarithmic axis reaches this many decades beyond the 1 and 99 percentiles."""
 
 
 class RobustLimits(NamedTuple):
@@ -67,3 +69,26 @@ def mark_outliers(
     ax.text(0.99, 0.02, f"{limits.outside} beyond the axis (red; most extreme"
             f" {limits.extreme:.0f} {unit})", transform=ax.transAxes, ha="right", va="bottom",
             fontsize=8, color="red")  # fmt: skip
+
+
+def robust_log_limits(values: npt.ArrayLike, also: npt.ArrayLike = ()) -> RobustLimits:
+    """:func:`robust_limits` for a logarithmic axis: found on the decades of the positive finite
+    ``values`` (a filter's sigma that spiked to 1e13 for one update must not flatten the rest),
+    widened to take in ``also`` (a target, a forecast); limits in the values' unit, ``extreme``
+    the value furthest out."""
+    v = np.asarray(values, float).ravel()
+    v = v[np.isfinite(v) & (v > 0)]
+    if v.size == 0:
+        return RobustLimits(0.1, 10.0, 0, 0.0)
+    decades = np.log10(v)
+    p_lo, p_hi = (float(x) for x in np.percentile(decades, [1.0, 99.0]))
+    extra = np.asarray(also, float).ravel()
+    extra = np.log10(extra[np.isfinite(extra) & (extra > 0)])
+    lo = min([p_lo - LOG_PAD, *(extra - 0.05)])
+    hi = max([p_hi + LOG_PAD, *(extra + 0.05)])
+    outside = int(np.count_nonzero((decades < lo) | (decades > hi)))
+    if outside == 0:
+        lo, hi = min(lo, float(decades.min()) - 0.05), max(hi, float(decades.max()) + 0.05)
+    median = float(np.median(decades))
+    extreme = float(v[np.argmax(np.abs(decades - median))])
+    return RobustLimits(10.0**lo, 10.0**hi, outside, extreme)

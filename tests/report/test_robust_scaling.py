@@ -29,3 +29,16 @@ def test_empty_and_constant() -> None:
     assert robust_limits([]).outside == 0
     flat = robust_limits(np.full(10, 5.0))
     assert flat.lo < 5.0 < flat.hi and flat.outside == 0
+
+
+def test_a_logarithmic_axis_is_not_stretched_by_one_spike() -> None:
+    """Issue 55: a live calibration's sigma spiked to 1e13 for one update and its panel spanned
+    fifteen decades. The axis covers the bulk and the target; the spike is counted."""
+    from rig.report.scaling import robust_log_limits
+
+    sigma = np.geomspace(50.0, 5.0, 200)  # a filter's sigma converging, nT
+    sigma[17] = 1e13
+    limits = robust_log_limits(sigma, [2.0])  # the target below the bulk: taken in
+    assert 1.0 < limits.lo < 2.0 and 50.0 < limits.hi < 500.0
+    assert limits.outside == 1 and limits.extreme == 1e13
+    assert robust_log_limits([]).lo == 0.1
