@@ -10,6 +10,7 @@ may have been the one kept waiting, so the largest wait of any thread is what is
 from __future__ import annotations
 
 import os
+import threading
 from collections import deque
 
 
@@ -69,17 +70,15 @@ class ReadWaits:
     there) or where the kernel does not say."""
 
     def __init__(self, measure: bool) -> None:
+        """Made by the reading thread itself (its thread id is the one measured)."""
         self.measure = measure
         self._waits: deque[float] = deque(maxlen=READ_WAITS)
-        self._tid = 0
+        self._tid = threading.get_native_id()
         self._before = 0.0
 
     def start(self) -> None:
         """Before a read (from the reading thread)."""
         if self.measure:
-            import threading
-
-            self._tid = threading.get_native_id()
             self._before = run_delay_s(self._tid)
 
     def typical_s(self) -> float:

@@ -198,14 +198,15 @@ class KeptTime:
 
     def __init__(self, commands: Sequence[Command]) -> None:
         self.next_t_s: dict[int, float] = {}
+        self.total = 0
+        self.skipped = 0
         later: float | None = None
         for i in range(len(commands) - 1, -1, -1):
             if commands[i].payload.get("keep_time"):
+                self.total += 1
                 if later is not None and later > commands[i].t_s:
                     self.next_t_s[i] = later
                 later = commands[i].t_s
-        self.total = sum(1 for c in commands if c.payload.get("keep_time"))
-        self.skipped = 0
 
     def overtaken(self, index: int, now_plan_s: float) -> bool:
         """Whether command ``index`` is to be skipped at ``now_plan_s`` (s from the step's start

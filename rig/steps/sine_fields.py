@@ -156,11 +156,10 @@ was not made as a sine at its frequency; its point is not judged. Seen on a busy
 field made read as 0.06-1.25 of the field asked where the cage made 0.82-1.0 (issue 54)."""
 
 
-def slip_s(step: Step, sent: list[tuple[float, dict[str, Any]]], s: Segment) -> float:
-    """How far (s) the segment's fitted set-points slipped behind their plan from the first to
-    the last (their due time less their plan time; 0 for a run recorded without them)."""
-    lag = [pl["t_due"] - pl["t_plan"] for _, pl in _fitted(step, sent, s)
-           if "t_due" in pl and "t_plan" in pl]  # fmt: skip
+def slip_s(fitted: list[tuple[float, dict[str, Any]]]) -> float:
+    """How far (s) a segment's ``fitted`` set-points (time s, payload) slipped behind their plan
+    from the first to the last (due time less plan time; 0 for a run recorded without them)."""
+    lag = [pl["t_due"] - pl["t_plan"] for _, pl in fitted if "t_due" in pl and "t_plan" in pl]
     return max(lag) - min(lag) if lag else 0.0
 
 
@@ -172,11 +171,12 @@ when the next one was: a busy computer) is too coarse a staircase to be judged."
 def slipped(step: Step, sent: list[tuple[float, dict[str, Any]]], s: Segment) -> str | None:
     """Why the segment's point is not judged, or None: its set-points slipped more than
     :data:`MAX_SLIP_CYCLES` of a period, or fewer than :data:`MIN_SENT` of them were sent."""
-    w = slip_s(step, sent, s)
+    fitted = _fitted(step, sent, s)
+    w = slip_s(fitted)
     where = f"{AXES[s.axis]} {s.f_hz:g} Hz"
     if w * s.f_hz > MAX_SLIP_CYCLES:
         return f"{where}: set-points slipped {w:.3g} s ({100 * w * s.f_hz:.0f} % of a period)"
-    made, planned = len(_fitted(step, sent, s)), planned_setpoints(step, s)
+    made, planned = len(fitted), planned_setpoints(step, s)
     if made < MIN_SENT * planned:
         return f"{where}: {planned - made} of {planned} set-points skipped"
     return None
