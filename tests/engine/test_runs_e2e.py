@@ -282,12 +282,15 @@ def refit_with_delays(folder: Path, out: Path) -> None:
 
 
 @pytest.mark.slow
-def test_live_calibration_stops_on_target_and_reports_convergence(
-    sim_process: tuple[Path, dict[str, Any]], tmp_path: Path
-) -> None:
-    rig_toml, devices = sim_process
-    code = main(["run", "live-calibration", "--rig", str(rig_toml), "--yes", "--runs-dir", str(tmp_path), "-q"])  # fmt: skip
-    folder = next(p for p in tmp_path.iterdir() if (p / "run.sqlite").exists())
+def test_live_calibration_stops_on_target_and_reports_convergence(tmp_path: Path) -> None:
+    # in simulated time (ADR 0038): nothing here needs the wall clock. On it, beside two CPU hogs,
+    # the filter's assumed noise (the null hold's paired noise) once came out 1.6 times its
+    # innovations' (mean NIS 0.41, 1 run in 8): a real-time effect, studied apart from this test
+    with sim_cage(tmp_path) as (cage, rig_toml):
+        code = main(["run", "live-calibration", "--rig", str(rig_toml), "--yes",
+                     "--runs-dir", str(tmp_path / "runs"), "-q"])  # fmt: skip
+        on = [name for name, supply in cage.physics.supplies.items() if supply.output]
+    folder = next(p for p in (tmp_path / "runs").iterdir() if (p / "run.sqlite").exists())
     reader = RunReader(folder)
     meta, results, events = reader.meta(), reader.results(), reader.events()
     steps = {name: (t0, t1) for _, name, _, t0, t1 in reader.steps()}
@@ -335,7 +338,7 @@ def test_live_calibration_stops_on_target_and_reports_convergence(
     html = (folder / "report.html").read_text()
     assert "Live calibration &#x27;live calibration&#x27;: 1-sigma converging" in html
     assert "targets met after" in html
-    assert all(v == 0 for v in outputs(devices).values())
+    assert on == [], on
 
 
 def test_pause_and_resume_with_sigusr1(tmp_path: Path) -> None:

@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from bench.faultlab import guardian_cpu_wait_ms, guardian_of
+from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.recording import AFTER_CLOSE_FILE
 from sim.cage import SimulatedCage
 from tests.engine.test_guardian_pair import OUTPUTS_OFF_WITHIN_S, off_after, start_run
@@ -48,6 +49,15 @@ def reader_elsewhere(folder: Path) -> str:
     return done.stdout.strip()
 
 
+def cage_wait_s(waits: CpuWaitLog, since: float) -> float:
+    """The longest any thread of this process (the simulated cage's, which records when each
+    output went off) waited for a CPU since ``since`` (s): this computer's delay, not the
+    guardian's; with four test workers on two cores the cage once recorded the guardian's
+    180 ms switch-off 1124 ms after SIGCONT."""
+    waits.note(time.monotonic())
+    return waits.waited_since(since)
+
+
 def test_a_run_sealed_by_a_reader_while_stopped_ends_error_outputs_off_seal_kept(
     cage: SimulatedCage, rig_toml: Path, tmp_path: Path
 ) -> None:
@@ -69,10 +79,11 @@ def test_a_run_sealed_by_a_reader_while_stopped_ends_error_outputs_off_seal_kept
         )
         assert all(s.output for s in (supplies[n] for n in ("coil_x", "coil_y", "coil_z")))
         on = tuple(n for n, s in supplies.items() if s.output)
-        t_cont = time.monotonic()
+        t_cont, cage_waits = time.monotonic(), CpuWaitLog()
+        cage_waits.note(t_cont)
         os.kill(guardian, signal.SIGCONT)
         os.kill(child.pid, signal.SIGCONT)
-        took = off_after(cage, t_cont, on, 30.0)
+        took = off_after(cage, t_cont, on, 30.0) - cage_wait_s(cage_waits, t_cont)
         _, err = child.communicate(timeout=60)
     finally:
         if child.poll() is None:
@@ -122,9 +133,10 @@ def test_the_guardian_alone_acts_on_the_reader_seal_and_kills_a_rig_still_stoppe
         by_reader, seal = status_of(folder), (folder / "seal.json").read_bytes()
         on = tuple(n for n, s in supplies.items() if s.output)
         assert on
-        t_cont = time.monotonic()
+        t_cont, cage_waits = time.monotonic(), CpuWaitLog()
+        cage_waits.note(t_cont)
         os.kill(guardian, signal.SIGCONT)
-        took = off_after(cage, t_cont, on, 30.0)
+        took = off_after(cage, t_cont, on, 30.0) - cage_wait_s(cage_waits, t_cont)
         _, err = child.communicate(timeout=60)
     finally:
         if child.poll() is None:
