@@ -78,11 +78,20 @@ def one_run(seed: int, procedure: str) -> dict[str, Any]:
     """One run on Dask: per fitted step the sigmas reported, the errors against the truth and
     (a live step) its ``live`` block; the null-field results as they are."""
     from rig.calibration.record import CalibrationRecord
+    from rig.store import RunReader
 
     with tempfile.TemporaryDirectory(prefix="prediction-") as tmp:
         outcome, truth = run_once(3000 + seed, procedure, Path(tmp))
-    if outcome.exit_code not in (0, 1):
-        return {"failed": f"run {seed}: {outcome.reason}"}
+        if outcome.exit_code not in (0, 1):
+            return {"failed": f"run {seed}: {outcome.reason}"}
+        reader = RunReader(outcome.folder)
+        steps = reader.steps()
+        reader.close()
+    verdict = outcome.results.get("verdict") or {}
+    judged = {"verdict": verdict.get("overall"),
+              "failed_criteria": [c["name"] for c in verdict.get("criteria", [])
+                                  if c.get("verdict") != "PASS"],
+              "cage_s": max(t1 for *_, t1 in steps if t1) - min(t0 for *_, t0, _ in steps)}  # fmt: skip
     out = {}
     for name, true in truth.items():
         r = outcome.results[name]
@@ -98,7 +107,7 @@ def one_run(seed: int, procedure: str) -> dict[str, Any]:
 
     nulls = {k: v for k, v in outcome.results.items()
              if isinstance(v, dict) and NoiseFloorResult.from_dict(v) is not None}  # fmt: skip
-    return {"steps": out, "null_field": nulls}
+    return {"steps": out, "null_field": nulls, **judged}
 
 
 MAX_RESIDUAL_NT = 60.0
@@ -210,6 +219,20 @@ def table(prediction: Any, runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
+def verdicts(runs: list[dict[str, Any]]) -> None:
+    """The predicted runs' verdicts, the criteria that failed (how often) and their cage time."""
+    from collections import Counter
+
+    if not runs or "verdict" not in runs[0]:
+        return
+    counts = Counter(str(r["verdict"]) for r in runs)
+    failed = Counter(name for r in runs for name in r["failed_criteria"])
+    cage = np.array([r["cage_s"] for r in runs])
+    print(f"verdicts: {', '.join(f'{n} {v}' for v, n in counts.most_common())}"
+          + (f"; failed: {', '.join(f'{k} x{n}' for k, n in failed.most_common())}" if failed else "")
+          + f"; cage time {np.median(cage):.1f} s median, {cage.min():.1f}-{cage.max():.1f} s")  # fmt: skip
+
+
 def plot(rows: list[dict[str, Any]], path: Path) -> None:
     """Predicted against achieved sigma (relative to the achieved), every parameter."""
     import matplotlib
@@ -287,6 +310,7 @@ def main() -> int:
         )
     rows = table(prediction, runs)
     print(f"\n{len(runs)} runs on the simulated cage in {time.monotonic() - start:.0f} s")
+    verdicts(runs)
     print(f"  {'step':<20} {'parameter':<28} {'predicted':>10} {'achieved':>10} {'ratio':>6}"
           f" {'comb. ratio':>11} {'err/pred':>8} {'one run 68 %':>12}")  # fmt: skip
     ok = True

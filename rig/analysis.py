@@ -621,15 +621,29 @@ def unresolved_note(unresolved: int, total: int) -> str:
             " the field the DUT saw is unknown")  # fmt: skip
 
 
+AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
+
+
 def lookup(results: dict[str, Any], result: str, path: str) -> float:
-    """``results[result]`` then a dotted path (``springmann.a``, ``residual_rms_nt``)."""
+    """``results[result]`` then a dotted path (``springmann.a``, ``residual_rms_nt``); a part
+    ``name[x]`` (or ``[0]``) takes one element of a per-axis list (``mounting_deg[z]``)."""
     if result not in results:
         raise KeyError(f"no result '{result}' (results so far: {', '.join(results) or 'none'})")
     value: Any = results[result]
     for part in path.split("."):
-        if not isinstance(value, dict) or part not in value:
+        name, _, index = part.partition("[")
+        if not isinstance(value, dict) or name not in value:
             raise KeyError(f"result '{result}' has no '{path}'")
-        value = value[part]
+        value = value[name]
+        if index:
+            i = (
+                AXIS_INDEX.get(index.rstrip("]"), -1)
+                if not index[:-1].isdigit()
+                else int(index[:-1])
+            )
+            if not index.endswith("]") or not isinstance(value, list) or not 0 <= i < len(value):
+                raise KeyError(f"result '{result}' has no '{path}'")
+            value = value[i]
     if not isinstance(value, int | float):
         raise KeyError(f"'{result}.{path}' is not a number")
     return float(value)

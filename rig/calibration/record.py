@@ -89,7 +89,8 @@ CALIBRATION_VALUES = (
     "noise_nt", "noise_floor_nt", "noise_estimated_nt", "unresolved_field_samples",
     "misdated_samples", "timing_error_s", "springmann.*", "sigma.*", "crlb_ratio.*",
     "crlb_sigma.*", "crassidis.*", "chi2.*", "angular_uncertainty_deg.*", "correlations.*",
-    "temperature.*", "mounting.*", "correction.*", "covariance.*",
+    "temperature.*", "mounting.*", "correction.*", "covariance.*", "combined_sigma.*",
+    "uncertainty_budget.*",
 )  # fmt: skip
 """The values a calibration result holds, as a check criterion names them (dotted paths,
 ``fnmatch`` patterns)."""

@@ -68,6 +68,7 @@ def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: P
     written: which target binds, and what would meet it)."""
     from rig.config import load_rig_config
     from rig.errors import UserInputError
+    from rig.prediction.acceptance import read_replaced
     from rig.prediction.design import Targets, design_procedure
     from rig.prediction.noise import noise_floor
     from rig.prediction.procedure import cage_terms_for
@@ -77,6 +78,8 @@ def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: P
     if not 0.0 <= margin <= 4.0:
         raise UserInputError(f"--margin must be 0-4 (a fraction), got {margin:g}")
     targets = Targets.load(targets_path)
+    if targets.acceptance is not None:  # the procedure it replaces, checked before the design
+        read_replaced(targets.acceptance.replaces)
     cfg = load_rig_config(rig_config)
     if out is not None:
         check_outputs([out], exclusive=True)  # a link or a file there: refused before the work
@@ -84,23 +87,64 @@ def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: P
     noise = noise_floor(probe, cfg, runs_dir, noise_nt)
     timing = rig_timing(cfg) or RigTiming()
     cage = cage_terms_for(probe, cfg)
-    design = design_procedure(targets, cfg, timing, noise, cage, max_s, margin)
+    overhead_s = 0.0
+    if targets.acceptance is not None and max_s is not None:  # --max-s: the whole acceptance's
+        first = design_procedure(targets, cfg, timing, noise, cage, None, margin)
+        overhead_s = _acceptance(first, targets, cfg, timing)[1] - first.seconds
+    design = design_procedure(targets, cfg, timing, noise, cage,
+                              None if max_s is None else max_s - overhead_s, margin)  # fmt: skip
     if not design.meets:
         # no runnable file that claims what it cannot give: what binds, and what would meet it
         untimed = design_procedure(targets, cfg, timing, noise, cage, None, margin)
         print(f"rig design: no plan meets every target{_within(max_s)}; nothing written."
               f" {_what_binds(design, untimed, margin)}", file=sys.stderr)  # fmt: skip
         return 1
-    text = _with_header(design, targets, noise, margin)
+    body, seconds, not_carried = design.text, design.seconds, list[str]()
+    if targets.acceptance is not None:
+        body, seconds, not_carried = _acceptance(design, targets, cfg, timing)
+    text = _with_header(design, targets, noise, margin, seconds, not_carried) + body
     if out is None:
         sys.stdout.write(text)
     else:
         write_text(out, text, exclusive=True)  # never through a link, never over a file
     if not quiet:
-        print(f"rig design: {design.points} set-points of {design.dwell_s:g} s, about"
-              f" {design.seconds:.0f} s on the rig; meets every target"
+        what = "an acceptance with" if targets.acceptance is not None else ""
+        print(f"rig design: {what} {design.points} set-points of {design.dwell_s:g} s, about"
+              f" {seconds:.0f} s on the rig; meets every target"
               + (f"; written to {out}" if out is not None else ""), file=sys.stderr)  # fmt: skip
     return 0
+
+
+def _acceptance(design: object, targets: Targets, cfg: object,
+                timing: object) -> tuple[str, float, list[str]]:  # fmt: skip
+    """The designed acceptance (YAML), its predicted time on the rig (s) and the criteria it
+    could not carry; the text is parsed as ``rig run`` would (a criterion naming no step is
+    refused here, not on the rig)."""
+    import tempfile
+
+    from rig.output_limits import cage_model
+    from rig.prediction.acceptance import acceptance_text
+    from rig.prediction.design import Design
+    from rig.prediction.duration import PredictedDuration, predicted_duration
+    from rig.prediction.procedure import cage_limits
+    from rig.procedure.language import parse_procedure
+    from rig.procedure_files import find_procedure
+
+    assert isinstance(design, Design) and targets.acceptance is not None
+    model, limits = cage_model(cfg), cage_limits(cfg)  # type: ignore[arg-type]
+
+    def seconds_of(path: Path) -> PredictedDuration:
+        return predicted_duration(parse_procedure(path), model, limits, timing)  # type: ignore[arg-type]
+
+    text, _ = acceptance_text(targets, design.text, "calibration", design.achieved)
+    with tempfile.TemporaryDirectory(prefix="rig-design-") as tmp:
+        path = Path(tmp) / "acceptance.yaml"
+        path.write_text(text)
+        own, replaced = seconds_of(path), seconds_of(find_procedure(targets.acceptance.replaces))
+    seconds = (own.total_s, replaced.total_s, replaced.early_stop)
+    text, not_carried = acceptance_text(targets, design.text, "calibration", design.achieved,
+                                        seconds)  # fmt: skip
+    return text, own.total_s, not_carried
 
 
 def _within(max_s: float | None) -> str:
@@ -149,8 +193,10 @@ def _probe_procedure(targets: Targets) -> Procedure:
         return parse_procedure(path)
 
 
-def _with_header(design: object, targets: object, noise: object, margin: float) -> str:
-    """The procedure with a comment block: how it was designed, what it is predicted to give."""
+def _with_header(design: object, targets: object, noise: object, margin: float,
+                 seconds: float, not_carried: list[str]) -> str:  # fmt: skip
+    """The comment block above the procedure: how it was designed, what it is predicted to give,
+    (an acceptance) what it replaces and which of its criteria it could not carry."""
     from rig.prediction.design import Design, Targets
     from rig.prediction.noise import NoiseFloor
 
@@ -158,10 +204,14 @@ def _with_header(design: object, targets: object, noise: object, margin: float) 
     assert isinstance(noise, NoiseFloor)
     lines = [f"Designed by rig design for {targets.source}: {design.points} field set-points"
              f" (D-optimal, Fedorov exchange), {design.dwell_s:g} s each;"
-             f" about {design.seconds:.0f} s on the rig.",
+             f" about {seconds:.0f} s on the rig.",
              f"Noise floor {noise.pair_nt:.1f} nT per axis ({noise.source}).",
              f"Predicted combined 1-sigma against each target (sized {100 * margin:.0f} % below"
              " it: a run's noise varies about the floor):"]  # fmt: skip
     for path, (got, limit) in design.achieved.items():
         lines.append(f"  {path}: {got:.3g} (target {limit:g})")
-    return "".join(f"# {line}\n" for line in lines) + design.text
+    if targets.acceptance is not None:
+        lines.append(f"Replaces '{targets.acceptance.replaces}': its parameters, prompts and"
+                     " criteria, each sigma target above a criterion too.")  # fmt: skip
+        lines += [f"Not carried: {why}" for why in not_carried]
+    return "".join(f"# {line}\n" for line in lines)

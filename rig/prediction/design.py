@@ -32,6 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from rig.errors import UserInputError
+from rig.prediction.acceptance import Acceptance
 from rig.steps.geometry import fibonacci_directions
 
 Array = npt.NDArray[np.float64]
@@ -61,6 +62,8 @@ class Targets:
     """The DUT's device name in the rig configuration (``dut:`` in the targets file)."""
     reference: str = "reference"
     """The reference magnetometer's device name (``reference:``)."""
+    acceptance: Acceptance | None = None
+    """With it, a whole acceptance procedure is written (:mod:`rig.prediction.acceptance`)."""
 
     @classmethod
     def load(cls, path: Path) -> Targets:
@@ -94,7 +97,9 @@ class Targets:
         if any(not v > 0 for v in sigma.values()):
             raise UserInputError(f"{path}: every target must be a positive 1-sigma")
         roles = {role: str(raw.get(role) or role) for role in ("dut", "reference")}
-        return cls(model, loads, (lo, hi), sigma, str(path), roles["dut"], roles["reference"])
+        acceptance = Acceptance.from_raw(raw.get("acceptance"), str(path))
+        return cls(model, loads, (lo, hi), sigma, str(path), roles["dut"], roles["reference"],
+                   acceptance)  # fmt: skip
 
     def limit(self, path: str) -> float | None:
         """The target of a result path (the first pattern that matches), None if it has none."""
@@ -168,7 +173,9 @@ def procedure_text(targets: Targets, fields_ut: Array, dwell_s: float, character
         lines.append(f"loads: [{', '.join(channels)}]")
     lines.append("steps:")
     if characterize:
-        lines += ["  - characterize_cage: {amplitude_a: 1.0, samples: 10, repeats: 1}",
+        # 5 samples a direction: the model places the fields and sizes the trim; the calibration
+        # uses the field the reference measures (10 cost 3.5 s more of a one-minute acceptance)
+        lines += ["  - characterize_cage: {amplitude_a: 1.0, samples: 5, repeats: 1}",
                   "    name: cage model"]  # fmt: skip
     lines += ["  - null_field: {hold_s: 4, trim: yes}", "    name: noise floor",
               "  - field_points:", f"      dwell_s: {dwell_s:g}", "      fields_ut:"]  # fmt: skip
