@@ -364,6 +364,13 @@ class Runner:
 
         return live_forecast(self.proc, step, self.cfg, self.runs_dir, noise_nt, self.results)
 
+    def predict_after_null(self, null_name: str) -> None:
+        """Beside the run, from its null hold: the calibrations to come predicted again when this
+        DUT's noise differs from its history (rig.engine.after_null), kept in the run's meta."""
+        from rig.engine.after_null import start_after_null
+
+        start_after_null(self, null_name)
+
     def set_meta(self, **values: Any) -> None:
         """Store run metadata."""
         assert self.writer is not None

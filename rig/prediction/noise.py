@@ -64,16 +64,17 @@ def pooled(runs_nt: list[float], source: str) -> NoiseFloor:
 
 
 def noise_floor(proc: Procedure, cfg: RigConfig | None, runs_dir: Path | None,
-                given_nt: float | None) -> NoiseFloor:  # fmt: skip
-    """The noise floor the prediction uses (see the module's order); UserInputError naming the
-    fixes when none is known."""
+                given_nt: float | None, exclude: str | None = None) -> NoiseFloor:  # fmt: skip
+    """The noise floor the prediction uses (see the module's order; the runs without run id
+    ``exclude``: a run predicting its own steps); UserInputError naming the fixes when none is
+    known."""
     dut = proc.magnetometers.get("dut", "dut")
     if given_nt is not None:
         if not given_nt > 0:
             raise UserInputError(f"--noise-nt must be positive, got {given_nt:g}")
         return even(given_nt, "given (--noise-nt)")
     serial = proc.parameters.get("dut_serial") or None
-    measured = measured_floor(runs_dir, dut, serial) if runs_dir is not None else None
+    measured = measured_floor(runs_dir, dut, serial, exclude) if runs_dir is not None else None
     if measured is not None:
         return measured
     stated = _stated(cfg, dut, proc.magnetometers.get("reference"))
@@ -85,7 +86,8 @@ def noise_floor(proc: Procedure, cfg: RigConfig | None, runs_dir: Path | None,
     )
 
 
-def measured_floor(runs_dir: Path, dut: str, serial: str | None = None) -> NoiseFloor | None:
+def measured_floor(runs_dir: Path, dut: str, serial: str | None = None,
+                   exclude: str | None = None) -> NoiseFloor | None:  # fmt: skip
     """The noise the newest runs of the DUT measured (None if none): the residuals per axis of
     their last vector calibrations, pooled over up to :data:`POOLED_RUNS` runs (rms: a run's own
     figure varies with where its samples fall on the mains ripple), else the newest null-field
@@ -93,22 +95,23 @@ def measured_floor(runs_dir: Path, dut: str, serial: str | None = None) -> Noise
     (issue 55: runs of any unit on that port had been pooled, a noisier unit predicted 14-31 %
     optimistic for its first 3-12 runs); a serial with no run yet: any unit on ``dut``, said."""
     if serial is not None:
-        own = _measured(runs_dir, dut, serial)
+        own = _measured(runs_dir, dut, serial, exclude)
         if own is not None:
             return own
-        found = _measured(runs_dir, dut, None)
+        found = _measured(runs_dir, dut, None, exclude)
         if found is None:
             return None
         return dataclasses.replace(found, source=f"{found.source} (no run of serial {serial} yet:"
                                    " other units on that device)")  # fmt: skip
-    return _measured(runs_dir, dut, None)
+    return _measured(runs_dir, dut, None, exclude)
 
 
-def _measured(runs_dir: Path, dut: str, serial: str | None) -> NoiseFloor | None:
+def _measured(runs_dir: Path, dut: str, serial: str | None,
+              exclude: str | None = None) -> NoiseFloor | None:  # fmt: skip
     """:func:`measured_floor` from the runs of ``dut`` with DUT serial ``serial`` (None: any)."""
     residuals: list[tuple[float, ...]] = []
     rest: NoiseFloor | None = None
-    for run_id, results in results_of(runs_dir, dut, serial):
+    for run_id, results in results_of(runs_dir, dut, serial, exclude):
         axes = _residual_axes(results)
         if axes is not None:
             residuals.append(axes)
@@ -127,7 +130,8 @@ def _measured(runs_dir: Path, dut: str, serial: str | None) -> NoiseFloor | None
     return rest
 
 
-def rest_floor(runs_dir: Path | None, dut: str, serial: str | None = None) -> NoiseFloor | None:
+def rest_floor(runs_dir: Path | None, dut: str, serial: str | None = None,
+               exclude: str | None = None) -> NoiseFloor | None:  # fmt: skip
     """The null-field noises of the DUT paired with the reference (what a live calibration's
     filter is given) in the newest :data:`REST_RUNS` runs that measured one, pooled with each
     run's kept; None if no run measured it. The DUT: the unit of serial ``serial`` on device
@@ -136,7 +140,7 @@ def rest_floor(runs_dir: Path | None, dut: str, serial: str | None = None) -> No
         return None
     for wanted in [serial, None] if serial is not None else [None]:
         found: list[NoiseFloor] = []
-        for run_id, results in results_of(runs_dir, dut, wanted):
+        for run_id, results in results_of(runs_dir, dut, wanted, exclude):
             floor = _null_field(results, run_id)
             if floor is not None:
                 found.append(floor)
@@ -153,11 +157,14 @@ def rest_floor(runs_dir: Path | None, dut: str, serial: str | None = None) -> No
     return None
 
 
-def results_of(runs_dir: Path, dut: str,
-               serial: str | None = None) -> Iterator[tuple[str, dict[str, Any]]]:  # fmt: skip
+def results_of(runs_dir: Path, dut: str, serial: str | None = None,
+               exclude: str | None = None) -> Iterator[tuple[str, dict[str, Any]]]:  # fmt: skip
     """(run id, results) of the newest runs of device ``dut`` (at most :data:`RUNS_LOOKED_AT`
-    runs looked at), newest first; of DUT serial ``serial`` only when given."""
+    runs looked at), newest first; of DUT serial ``serial`` only when given; never run
+    ``exclude``."""
     for info in list_runs(runs_dir)[:RUNS_LOOKED_AT]:
+        if info.run_id == exclude:
+            continue
         if (info.meta.get("magnetometers") or {}).get("dut") != dut:
             continue
         if serial is not None and str(info.meta.get("dut_serial") or "") != serial:

@@ -75,6 +75,11 @@ class RunContext(Protocol):
         the run and closed with it."""
         ...
 
+    def predict_after_null(self, null_name: str) -> None:
+        """From null hold ``null_name``'s result: the calibrations to come predicted again, beside
+        the run (rig.prediction.at_null)."""
+        ...
+
     def live_forecast(self, step: Step, noise_nt: float) -> SigmaForecast | None:
         """A live calibration step's sigmas forecast from its plan at the filter's noise
         ``noise_nt`` (nT; rig.prediction.live); None when its plan cannot be fitted."""

@@ -154,6 +154,7 @@ class NoiseFloor(StepExecution):
             residual,
         )
         self.ctx.record_result(self.step.name, result.to_dict())
+        self.ctx.predict_after_null(self.step.name)
 
     def _null_residual(self, reader: Any, ref: str | None,
                        window: tuple[float, float]) -> tuple[float, float, float] | None:  # fmt: skip
