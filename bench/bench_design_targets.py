@@ -94,7 +94,9 @@ def main() -> int:
         for name in SCALE:
             code, said, out = design(name, Path(tmp))
             if code != 0:
-                print(f"{name:<10} no plan (exit {code}, file written: {out.exists()}): {said}")
+                print(
+                    f"{name:<10} no plan (exit {code}, file written: {out.exists()}): {said[:400]} ..."
+                )
                 ok &= name == "impossible" and not out.exists()
                 continue
             text = out.read_text()
@@ -107,6 +109,9 @@ def main() -> int:
     for name, (_, predicted, said) in plans.items():
         mine = [r for (n, _), r in zip(jobs, results, strict=True) if n == name]
         done = [r for r in mine if "verdict" in r]
+        for r in mine:
+            if "failed_run" in r:
+                print(f"{name:<10} a run did not finish: {r['failed_run']}")
         passed = sum(r["verdict"] == "PASS" for r in done)
         failed = sorted({f for r in done for f in r["failed"]})
         cage = [r["cage_s"] for r in done]

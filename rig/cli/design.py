@@ -68,7 +68,7 @@ def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: P
     written: which target binds, and what would meet it)."""
     from rig.config import load_rig_config
     from rig.errors import UserInputError
-    from rig.prediction.acceptance import read_replaced
+    from rig.prediction.acceptance import other_models, read_replaced
     from rig.prediction.design import Targets, design_procedure
     from rig.prediction.noise import noise_floor
     from rig.prediction.procedure import cage_terms_for
@@ -78,8 +78,9 @@ def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: P
     if not 0.0 <= margin <= 4.0:
         raise UserInputError(f"--margin must be 0-4 (a fraction), got {margin:g}")
     targets = Targets.load(targets_path)
+    also_fit: tuple[str, ...] = ()
     if targets.acceptance is not None:  # the procedure it replaces, checked before the design
-        read_replaced(targets.acceptance.replaces)
+        also_fit = other_models(read_replaced(targets.acceptance.replaces), targets.model)
     cfg = load_rig_config(rig_config)
     if out is not None:
         check_outputs([out], exclusive=True)  # a link or a file there: refused before the work
@@ -89,13 +90,13 @@ def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: P
     cage = cage_terms_for(probe, cfg)
     overhead_s = 0.0
     if targets.acceptance is not None and max_s is not None:  # --max-s: the whole acceptance's
-        first = design_procedure(targets, cfg, timing, noise, cage, None, margin)
+        first = design_procedure(targets, cfg, timing, noise, cage, None, margin, also_fit)
         overhead_s = _acceptance(first, targets, cfg, timing)[1] - first.seconds
     design = design_procedure(targets, cfg, timing, noise, cage,
-                              None if max_s is None else max_s - overhead_s, margin)  # fmt: skip
+                              None if max_s is None else max_s - overhead_s, margin, also_fit)  # fmt: skip
     if not design.meets:
         # no runnable file that claims what it cannot give: what binds, and what would meet it
-        untimed = design_procedure(targets, cfg, timing, noise, cage, None, margin)
+        untimed = design_procedure(targets, cfg, timing, noise, cage, None, margin, also_fit)
         print(f"rig design: no plan meets every target{_within(max_s)}; nothing written."
               f" {_what_binds(design, untimed, margin)}", file=sys.stderr)  # fmt: skip
         return 1

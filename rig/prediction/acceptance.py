@@ -92,6 +92,15 @@ def read_replaced(name: str) -> Replaced:
                     [s for s in steps if step_kind(s) == "prompt"], _named(steps), criteria)  # fmt: skip
 
 
+def other_models(replaced: Replaced, model: str) -> tuple[str, ...]:
+    """The calibration models besides ``model`` whose results the replaced criteria read: the
+    designed set-points must give those fits too."""
+    reads = {str(c["result"]) for c in replaced.criteria}
+    found = {str(s["calibrate"].get("model", "vector")) for n, s in replaced.steps.items()
+             if n in reads and step_kind(s) == "calibrate"}  # fmt: skip
+    return tuple(sorted(found - {model}))
+
+
 def acceptance_steps(
     acceptance: Acceptance, replaced: Replaced, designed: dict[str, Any], fit_name: str,
     targets_achieved: dict[str, tuple[float, float]],

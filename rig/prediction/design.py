@@ -248,11 +248,14 @@ def sizes_up_to(max_points: int) -> list[int]:
 
 
 def design_procedure(targets: Targets, cfg: Any, timing: Any, noise: Any, cage: Any,
-                     max_s: float | None = None, margin: float = MARGIN) -> Design:  # fmt: skip
+                     max_s: float | None = None, margin: float = MARGIN,
+                     also_fit: tuple[str, ...] = ()) -> Design:  # fmt: skip
     """The shortest designed procedure meeting ``targets`` (each predicted sigma times ``1 +
     margin`` within its target: a run's noise varies about the floor) on the rig ``cfg`` with
     the noise floor ``noise`` and the cage's terms ``cage``, within ``max_s`` of time on the rig
-    when given; when none meets them, the best found with what it cannot meet."""
+    when given; when none meets them, the best found with what it cannot meet. ``also_fit``: the
+    other calibration models the same set-points must give (an acceptance's scalar fit: 12
+    set-points met the vector targets, and the scalar fit's ellipsoid was not valid on them)."""
     import tempfile
 
     from rig.output_limits import cage_model
@@ -279,10 +282,13 @@ def design_procedure(targets: Targets, cfg: Any, timing: Any, noise: Any, cage: 
             path.write_text(text)
             proc = parse_procedure(path)
             fit = next(s for s in proc.steps if s.kind == "calibrate")
-            pred = predict_step(fit.name, fit.params, planned_data(proc, fit, timing, rate),
-                                noise, cage)  # fmt: skip
+            planned = planned_data(proc, fit, timing, rate)
+            pred = predict_step(fit.name, fit.params, planned, noise, cage)
             seconds = predicted_duration(proc, model, limits, timing).total_s
+            others = {m: predict_step(m, fit.params | {"model": m}, planned, noise, cage).problem
+                      for m in also_fit}  # fmt: skip
         achieved, unmet = judge(targets, pred.by_path(), margin)
+        unmet |= {f"the {m} calibration": why for m, why in others.items() if why is not None}
         if pred.problem is not None:
             unmet = {"the calibration": pred.problem}
         if max_s is not None and seconds > max_s:
