@@ -201,6 +201,8 @@ class FakeContext:
     readers: list[FakeReader] = field(default_factory=list)
     scalars: dict[str, Any] = field(default_factory=dict)
     forecast: Any = None  # a live step's SigmaForecast (rig.calibration.forecast), if any
+    null_holds: list[str] = field(default_factory=list)
+    """The null holds whose prediction update a step asked for (predict_after_null)."""
     """Total-field magnetometers by name (what :meth:`scalar_magnetometer` opens)."""
 
     def __post_init__(self) -> None:
@@ -223,6 +225,9 @@ class FakeContext:
 
     def scalar_magnetometer(self, name: str) -> Any:
         return self.scalars[name]
+
+    def predict_after_null(self, null_name: str) -> None:
+        self.null_holds.append(null_name)
 
     def live_forecast(self, step: Any, noise_nt: float) -> Any:
         return self.forecast.scaled(noise_nt) if self.forecast is not None else None

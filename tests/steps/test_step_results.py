@@ -119,6 +119,7 @@ def test_null_field_reports_each_magnetometers_noise_floor(tmp_path: Path) -> No
     assert result["dut_noise_nt"] == pytest.approx(1000 * np.hypot(0.02, 0.05), rel=0.05)
     assert result["reference_noise_nt"] == pytest.approx(1000 * np.hypot(0.02, 0.01), rel=0.05)
     assert result["dut_paired_noise_nt"] == pytest.approx(1000 * np.hypot(0.05, 0.01), rel=0.05)
+    assert ctx.null_holds == [step.name]  # the run predicts again from this hold (at_null)
     # untrimmed, the rig's own cage model: the field it leaves at zero is recorded
     assert result["null_residual_ut"] == pytest.approx([0, 0, 0], abs=3e-3)
 
