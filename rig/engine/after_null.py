@@ -24,7 +24,9 @@ def _after_null(run: Any, null_name: str) -> None:
                                        dict(run.results), null_name, run.folder.name)  # fmt: skip
         if record is not None:
             run.set_meta(prediction_after_null=record)
-            run.event("info", summary_line(record))
+            # a unit unlike its history is worth the report's log (a warning: it says the
+            # consequence), one that agrees only the events
+            run.event("warning" if record["changed"] else "info", summary_line(record))
     except Exception as exc:
         with contextlib.suppress(Exception):
             run.event("info", f"no prediction after '{null_name}': {type(exc).__name__}: {exc}")

@@ -125,12 +125,15 @@ def _by_path(step: Any) -> dict[str, float]:
 
 def summary_line(record: Mapping[str, Any]) -> str:
     """One line for the run's events and report."""
+    head = (f"prediction after '{record['null']}': this DUT's noise at null field"
+            f" {record['null_noise_nt']:.1f} nT")  # fmt: skip
+    expected = (
+        f"{record['expected_null_noise_nt']:.1f} nT expected (from {record['history_source']})"
+    )
     if record["changed"]:
-        return (f"prediction after '{record['null']}': this DUT's noise at null field"
-                f" {record['null_noise_nt']:.1f} nT against {record['expected_null_noise_nt']:.1f}"
-                f" nT from its history (more than {100 * record['threshold']:.0f} % apart): the"
-                f" calibrations are predicted again at {record['noise_nt']:.1f} nT")  # fmt: skip
-    return (f"prediction after '{record['null']}': this DUT's noise at null field"
-            f" {record['null_noise_nt']:.1f} nT agrees with its history's"
-            f" {record['expected_null_noise_nt']:.1f} nT; the prediction at"
-            f" {record['noise_nt']:.1f} nT stands")  # fmt: skip
+        return (f"{head} against {expected}, more than {100 * record['threshold']:.0f} % apart:"
+                f" the calibrations are predicted again at {record['noise_nt']:.1f} nT, the"
+                " sigmas they report scale with it")  # fmt: skip
+    return (
+        f"{head} agrees with the {expected}; the prediction at {record['noise_nt']:.1f} nT stands"
+    )
