@@ -47,9 +47,9 @@ from pathlib import Path
 
 from drivers.registry import output_kinds
 from rig.config import RigConfig
+from rig.engine import guardian_findings as findings
 from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.frozen_config import FrozenConfigError, freeze, thaw
-from rig.engine.guardian_findings import process_stopped, record_in_run, run_closed_by_other
 from rig.errors import RigError
 
 OUTPUT_KINDS = output_kinds()
@@ -169,7 +169,7 @@ class Guardian:
     def _stopped(self) -> bool:
         """True while the guardian process is stopped (state T or t in /proc): it would not act
         if the rig died now (a busy computer's waiting for a CPU is state R, not this)."""
-        self.stopped = process_stopped(self.proc.pid)
+        self.stopped = findings.process_stopped(self.proc.pid)
         return self.stopped
 
     def release(self) -> None:
@@ -305,7 +305,7 @@ def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
     """Wait for the rig to finish; act if it died or hung, or if another process closed its run,
     on ``cfg`` (the frozen copy). Returns the exit status."""
     waits = CpuWaitLog(keep=64)
-    closed = None if folder is None else (lambda: run_closed_by_other(folder))
+    closed = None if folder is None else (lambda: findings.run_closed_by_other(folder))
     why = wait_for_rig(fd, pid, waits=waits, closed=closed)
     if why is None:
         return 0
@@ -317,7 +317,7 @@ def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
     cpu = _cpu_wait_note(waits.waited_since(t_found - CPU_WAIT_LOOKBACK_S))
     if folder is not None:
         with contextlib.suppress(sqlite3.Error, OSError):
-            record_in_run(folder, t_found, why, done, problems, cpu)
+            findings.record_in_run(folder, t_found, why, done, problems, cpu)
     return _tell(why, t_found, done, problems, cpu)
 
 
@@ -342,7 +342,7 @@ def _closed_by_other(fd: int, cfg: RigConfig, pid: int, why: str, waits: CpuWait
     rig is given :data:`CLOSED_GRACE_S` to end (else killed), and whatever was not reached is
     switched off once it has. The closed run is never written to."""
     t_found = time.monotonic()
-    if process_stopped(pid):
+    if findings.stays_stopped(pid):
         _kill_and_wait(fd, pid)
         done, problems = safe_outputs(cfg)
         return _tell(f"{why}; the rig process was still stopped and was killed", t_found, done,

@@ -83,3 +83,20 @@ def process_stopped(pid: int) -> bool:
     except OSError:
         return False
     return stat.rsplit(")", 1)[-1].split()[:1] in (["T"], ["t"])
+
+
+STILL_STOPPED_S = 0.3
+"""How long a rig found stopped must stay stopped before the guardian kills it (s): two processes
+continued together (a thawed cgroup; a harness continuing the guardian, then the rig) are continued
+a moment apart, and beside two CPU hogs the guardian ran in between and killed a rig that was
+being continued (it would have ended through its own safe path)."""
+
+
+def stays_stopped(pid: int, grace_s: float = STILL_STOPPED_S) -> bool:
+    """True when process ``pid`` is stopped and still is ``grace_s`` later (polled every 20 ms)."""
+    deadline = time.monotonic() + grace_s
+    while process_stopped(pid):
+        if time.monotonic() >= deadline:
+            return True
+        time.sleep(0.02)
+    return False
