@@ -85,7 +85,7 @@ def process_stopped(pid: int) -> bool:
     return stat.rsplit(")", 1)[-1].split()[:1] in (["T"], ["t"])
 
 
-STILL_STOPPED_S = 0.3
+STILL_STOPPED_S = 0.2
 """How long a rig found stopped must stay stopped before the guardian kills it (s): two processes
 continued together (a thawed cgroup; a harness continuing the guardian, then the rig) are continued
 a moment apart, and beside two CPU hogs the guardian ran in between and killed a rig that was
