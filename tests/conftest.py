@@ -38,27 +38,3 @@ def private_lock_folder(tmp_path_factory: pytest.TempPathFactory) -> None:
     folder.chmod(0o700)
     os.environ["RIG_LOCK_DIR"] = str(folder)
 
-
-LONGEST_FIRST = (
-    "tests/engine/test_runs_e2e.py",
-    "tests/web/test_page_in_browser.py",
-    "tests/test_uncertainty_audit.py",
-    "tests/engine/test_fault_matrix.py",
-    "tests/test_cli_newcomer.py",
-    "tests/engine/test_frequency_response_on_sim.py",
-    "tests/engine/test_sines_on_a_busy_host.py",
-    "tests/lab/test_lab_index.py",
-)
-"""The files that take longest (``--durations`` on an idle run, 2026-11-29: 40-145 s each), run
-first: with ``--dist loadfile`` a file runs whole on one worker, and one of these started last
-kept the suite waiting a minute and a half for it alone (an idle clean-clone run: 620 s)."""
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The longest files first (:data:`LONGEST_FIRST`), every other test in collection order."""
-    rank = {path: i for i, path in enumerate(LONGEST_FIRST)}
-
-    def key(item: pytest.Item) -> int:
-        return rank.get(item.nodeid.split("::", 1)[0], len(rank))
-
-    items.sort(key=key)  # stable: the order within a file and among the rest is kept
