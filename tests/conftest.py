@@ -37,4 +37,3 @@ def private_lock_folder(tmp_path_factory: pytest.TempPathFactory) -> None:
     folder = tmp_path_factory.mktemp("rig-locks")
     folder.chmod(0o700)
     os.environ["RIG_LOCK_DIR"] = str(folder)
-
