@@ -39,6 +39,8 @@ class NullCheck:
     history: NoiseFloor
     threshold: float
     """The relative change (|measured/expected - 1|) beyond which the DUT counts as changed."""
+    rest: NoiseFloor | None = None
+    """The history's null-field noises (None: no earlier run measured one)."""
 
     @property
     def changed(self) -> bool:
@@ -62,7 +64,7 @@ def null_check(proc: Procedure, cfg: RigConfig | None, runs_dir: Path | None,
     rest = rest_floor(runs_dir, dut, serial, exclude=exclude)
     expected = rest.pair_nt if rest is not None else history.pair_nt
     spread = _relative_spread(rest.runs_nt if rest is not None else ())
-    return NullCheck(measured, expected, history, max(MIN_CHANGE, SPREAD_SIGMAS * spread))
+    return NullCheck(measured, expected, history, max(MIN_CHANGE, SPREAD_SIGMAS * spread), rest)
 
 
 def _relative_spread(values: tuple[float, ...]) -> float:
@@ -74,11 +76,12 @@ def _relative_spread(values: tuple[float, ...]) -> float:
     return math.sqrt(var) / mean
 
 
-def updated_floor(check: NullCheck, rest: NoiseFloor | None) -> NoiseFloor:
+def updated_floor(check: NullCheck) -> NoiseFloor:
     """The noise floor for the steps to come: the history's, or (changed) this run's null noise
     scaled by the history's ratio of sweep to null noise."""
     if not check.changed:
         return check.history
+    rest = check.rest
     ratio = check.history.pair_nt / rest.pair_nt if rest is not None else 1.0
     return even(check.measured_nt * ratio,
                 f"this run's null hold: {check.measured_nt:.1f} nT paired against"
@@ -99,11 +102,9 @@ def prediction_after_null(proc: Procedure, cfg: RigConfig | None, timing: RigTim
     check = null_check(proc, cfg, runs_dir, this_run, null_name, exclude)
     if check is None:
         return None
-    dut = proc.magnetometers.get("dut", "dut")
-    rest = rest_floor(runs_dir, dut, proc.parameters.get("dut_serial") or None, exclude=exclude)
-    floor = updated_floor(check, rest)
+    floor = updated_floor(check)  # the history's runs read once, by null_check
     prediction = predict_procedure(proc, cfg, timing or RigTiming(), runs_dir, None, noise=floor,
-                                   rest=rest)  # fmt: skip
+                                   rest=check.rest)  # fmt: skip
     return {
         "null": null_name,
         "changed": check.changed,
