@@ -288,19 +288,6 @@ def _kill_and_wait(fd: int, pid: int) -> None:
             break
 
 
-CPU_WAIT_LOOKBACK_S = 0.15
-"""The guardian's account of its own CPU wait starts at its last round this long before it found
-the rig dead or hung (one select period and a margin), so it covers the rig's death and the
-guardian's waking to it."""
-
-
-def _cpu_wait_note(wait_s: float) -> str:
-    """``; the guardian waited N ms for a CPU`` (its threads' longest wait, Linux schedstat) when
-    that is worth saying (>= 50 ms): on a busy computer it is part of the time to safe, and not
-    the rig's or the hardware's."""
-    return f"; the guardian waited {1000.0 * wait_s:.0f} ms for a CPU" if wait_s >= 0.05 else ""
-
-
 def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
     """Wait for the rig to finish; act if it died or hung, or if another process closed its run,
     on ``cfg`` (the frozen copy). Returns the exit status."""
@@ -313,8 +300,7 @@ def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
         return _closed_by_other(fd, cfg, pid, why, waits)
     t_found = time.monotonic()
     done, problems = safe_outputs(cfg)
-    waits.note(time.monotonic())
-    cpu = _cpu_wait_note(waits.waited_since(t_found - CPU_WAIT_LOOKBACK_S))
+    cpu = findings.busy_note(waits, t_found)
     if folder is not None:
         with contextlib.suppress(sqlite3.Error, OSError):
             findings.record_in_run(folder, t_found, why, done, problems, cpu)
@@ -348,8 +334,7 @@ def _closed_by_other(fd: int, cfg: RigConfig, pid: int, why: str, waits: CpuWait
         return _tell(f"{why}; the rig process was still stopped and was killed", t_found, done,
                      problems)  # fmt: skip
     done, held = safe_outputs(cfg)
-    waits.note(time.monotonic())
-    cpu = _cpu_wait_note(waits.waited_since(t_found - CPU_WAIT_LOOKBACK_S))
+    cpu = findings.busy_note(waits, t_found)
     left = f"; {len(held)} not reached yet (held by the rig, which is going safe)" if held else ""
     _tell(why, t_found, done, [], cpu + left)
     later = wait_for_rig(fd, pid, waits=waits, kill_at=time.monotonic() + CLOSED_GRACE_S)

@@ -21,6 +21,9 @@ import sqlite3
 import time
 from pathlib import Path
 
+from drivers.transport.tty_watch import tty_seen_stall_s
+from rig.engine.cpu_wait import CpuWaitLog
+
 
 def record_in_run(
     folder: Path, t_found: float, why: str, done: list[str], problems: list[str], cpu: str = ""
@@ -100,3 +103,32 @@ def stays_stopped(pid: int, grace_s: float = STILL_STOPPED_S) -> bool:
             return True
         time.sleep(0.02)
     return False
+
+
+CPU_WAIT_LOOKBACK_S = 0.15
+"""The guardian's account of its own CPU wait starts at its last round this long before it found
+the rig dead or hung (one select period and a margin), so it covers the rig's death and the
+guardian's waking to it."""
+WORTH_SAYING_S = 0.05
+"""A wait shorter than this (s) is not mentioned in the guardian's line."""
+
+
+def busy_note(waits: CpuWaitLog, t_found: float) -> str:
+    """What this computer, not the rig or the hardware, added to the guardian's time to safe since
+    ``t_found`` (monotonic s), when worth saying (>= 50 ms): ``; the guardian waited N ms for a
+    CPU`` (its threads' longest wait, Linux schedstat) and ``; the terminal layer held serial data
+    N ms`` (the kernel's tty worker, as the canary of :mod:`drivers.transport.tty_watch` saw it
+    once the guardian opened a serial link: a request to a supply on a pty or USB adapter waits
+    there, beside two CPU hogs for seconds)."""
+    now = time.monotonic()
+    waits.note(now)
+    cpu_s = waits.waited_since(t_found - CPU_WAIT_LOOKBACK_S)
+    tty_s = tty_seen_stall_s(t_found, now)
+    note = (
+        f"; the guardian waited {1000.0 * cpu_s:.0f} ms for a CPU"
+        if cpu_s >= WORTH_SAYING_S
+        else ""
+    )
+    if tty_s >= WORTH_SAYING_S:
+        note += f"; the terminal layer held serial data {1000.0 * tty_s:.0f} ms"
+    return note

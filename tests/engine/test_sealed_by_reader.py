@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from bench.faultlab import guardian_cpu_wait_ms, guardian_of
+from drivers.transport.tty_watch import tty_seen_stall_s, tty_watch
 from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.recording import AFTER_CLOSE_FILE
 from sim.cage import SimulatedCage
@@ -49,19 +50,23 @@ def reader_elsewhere(folder: Path) -> str:
     return done.stdout.strip()
 
 
-def cage_wait_s(waits: CpuWaitLog, since: float) -> float:
-    """The longest any thread of this process (the simulated cage's, which records when each
-    output went off) waited for a CPU since ``since`` (s): this computer's delay, not the
-    guardian's; with four test workers on two cores the cage once recorded the guardian's
-    180 ms switch-off 1124 ms after SIGCONT."""
-    waits.note(time.monotonic())
-    return waits.waited_since(since)
+def computer_delay_s(waits: CpuWaitLog, since: float) -> float:
+    """This computer's delay since ``since`` (s), not the guardian's: the longest any thread of
+    this process (the simulated cage's, which records when each output went off) waited for a
+    CPU, plus the time the kernel's terminal layer held serial data (coil_y is on a pty; the
+    canary of :mod:`drivers.transport.tty_watch`, started before the freeze). With four test
+    workers on two cores the cage once recorded the guardian's 180 ms switch-off 1124 ms after
+    SIGCONT, and once every output off 3481 ms after it with the guardian's own CPU wait 0."""
+    now = time.monotonic()
+    waits.note(now)
+    return waits.waited_since(since) + tty_seen_stall_s(since, now)
 
 
 def test_a_run_sealed_by_a_reader_while_stopped_ends_error_outputs_off_seal_kept(
     cage: SimulatedCage, rig_toml: Path, tmp_path: Path
 ) -> None:
     other_namespace()
+    tty_watch()  # the canary runs before the freeze, so it sees the whole window
     child, runs = start_run(rig_toml, tmp_path)
     try:
         guardian = guardian_of(child.pid)
@@ -83,7 +88,7 @@ def test_a_run_sealed_by_a_reader_while_stopped_ends_error_outputs_off_seal_kept
         cage_waits.note(t_cont)
         os.kill(guardian, signal.SIGCONT)
         os.kill(child.pid, signal.SIGCONT)
-        took = off_after(cage, t_cont, on, 30.0) - cage_wait_s(cage_waits, t_cont)
+        took = off_after(cage, t_cont, on, 30.0) - computer_delay_s(cage_waits, t_cont)
         _, err = child.communicate(timeout=60)
     finally:
         if child.poll() is None:
@@ -121,6 +126,7 @@ def test_the_guardian_alone_acts_on_the_reader_seal_and_kills_a_rig_still_stoppe
     (which holds its serial ports and cannot go safe) and switches every output off; the reader's
     record stands."""
     other_namespace()
+    tty_watch()  # the canary runs before the freeze, so it sees the whole window
     child, runs = start_run(rig_toml, tmp_path)
     try:
         guardian = guardian_of(child.pid)
@@ -136,7 +142,7 @@ def test_the_guardian_alone_acts_on_the_reader_seal_and_kills_a_rig_still_stoppe
         t_cont, cage_waits = time.monotonic(), CpuWaitLog()
         cage_waits.note(t_cont)
         os.kill(guardian, signal.SIGCONT)
-        took = off_after(cage, t_cont, on, 30.0) - cage_wait_s(cage_waits, t_cont)
+        took = off_after(cage, t_cont, on, 30.0) - computer_delay_s(cage_waits, t_cont)
         _, err = child.communicate(timeout=60)
     finally:
         if child.poll() is None:
