@@ -9,7 +9,6 @@ embedded as data URIs; the HTML loads nothing from outside.
 from __future__ import annotations
 
 import datetime as dt
-import io
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +22,7 @@ from rig.report.calibration_figures import (
     convergence_figure,
 )
 from rig.report.model import Image, Section, esc, render_html, render_text
-from rig.report.pdf import PdfSummary
+from rig.report.pdf import PdfSummary, render_figure, scaled_png
 from rig.report.sections import RunFacts, report_sections, verdict_of
 from rig.report.text_report import data_hash
 from rig.steps import KINDS, field_kinds
@@ -44,10 +43,8 @@ STYLE = (
 )  # fmt: skip
 
 
-def _png(fig: Any) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    return buf.getvalue()
+HTML_DPI = 110
+"""The HTML page's plots (dots per inch of the figure): a 7 inch plot about 770 dots across."""
 
 
 def make_figures(
@@ -105,7 +102,7 @@ def _text(run: RunFacts, sections: list[Section], verdict: str) -> str:
 
 
 def _pdf(
-    path: Path, run: RunFacts, sections: list[Section], verdict: str, figs: list[tuple[str, Any]]
+    path: Path, run: RunFacts, sections: list[Section], verdict: str, drawn: list[tuple[str, bytes]]
 ) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.backends.backend_pdf import PdfPages
@@ -117,8 +114,8 @@ def _pdf(
         summary.title("Pre-flight acceptance report", verdict, COLOURS.get(verdict, "#b42318"))
         summary.sections(sections)
         summary.finish_page()
-        for title, fig in figs:
-            summary.figure(title, fig)
+        for title, png in drawn:
+            summary.figure(title, png)
 
 
 def read_run(folder: Path, digest: str) -> RunFacts:
@@ -147,12 +144,14 @@ def build_report(folder: Path) -> tuple[Path, Path]:
         plain = {n: without_telemetry(reader, r) for n, r in calibrations(run.results).items()}
     finally:
         reader.close()
-    sections = report_sections(run, plain, [Image(title, _png(fig)) for title, fig in figs])
+    drawn = [(title, render_figure(fig, plt)) for title, fig in figs]  # each drawn once
+    images = [Image(title, scaled_png(png, HTML_DPI)) for title, png in drawn]
+    sections = report_sections(run, plain, images)
     verdict = verdict_of(run)
     paths = (folder / "report.txt", folder / "report.html", folder / "report.pdf")
     safe_files.write_text(paths[0], _text(run, sections, verdict))
     safe_files.write_text(paths[1], _html(run, sections, verdict))
-    _pdf(paths[2], run, sections, verdict, figs)
+    _pdf(paths[2], run, sections, verdict, drawn)
     # the closed run's manifest learns the reports' digests: 'rig verify' tells an edit from these
     record_written(folder, list(paths), "the rig wrote the reports")
     return paths[1], paths[2]

@@ -184,5 +184,4 @@ def convergence_figure(folder: Path, live: LiveBlock, plt: Any) -> Any:
         ax.legend(fontsize=6, loc="upper right")
     axes[0][0].set_ylabel("1-sigma")
     fig.suptitle(live.stopped, fontsize=9)
-    fig.tight_layout()
     return fig

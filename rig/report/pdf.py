@@ -16,8 +16,9 @@ A4_IN = (8.27, 11.69)
 LEFT, TOP, BOTTOM = 0.06, 0.95, 0.05
 KEEP_WITH_HEAD = 3
 """Lines a table's header needs below it on its page (itself and two rows), else a new page."""
-FIGURE_DPI = 200
-"""A figure's resolution on its page (dots per inch): a 7 inch plot is 1400 dots across."""
+FIGURE_DPI = 150
+"""A figure's resolution (dots per inch), embedded in the PDF as drawn: a 7 inch plot is about
+1050 dots across, printed at about 150 dots per inch of A4."""
 MONO_CHARS = 112
 """Characters of 7.5 pt monospace across the page between the margins."""
 TEXT_CHARS = 120
@@ -86,19 +87,12 @@ class PdfSummary:
                            color=COLOURS.get(style, "#111111"))  # fmt: skip
             self.y -= 0.016
 
-    def figure(self, title: str, fig: Any) -> None:
-        """One figure on an A4 page of its own, under its title, as wide as the margins allow
-        (or as tall, for a tall one), footed and numbered as every page: drawn at
-        :data:`FIGURE_DPI` and placed, so no page takes the figure's own size (issue 55: plot
-        pages came in 7 sizes, some wider than A4)."""
-        buf = io.BytesIO()
-        with warnings.catch_warnings():  # a projection or twin axes tight_layout cannot fit
-            warnings.simplefilter("ignore")
-            fig.tight_layout()
-        fig.savefig(buf, format="png", dpi=FIGURE_DPI, bbox_inches="tight")
-        self.plt.close(fig)
-        buf.seek(0)
-        image = self.plt.imread(buf)
+    def figure(self, title: str, png: bytes) -> None:
+        """One figure (a PNG from :func:`render_figure`) on an A4 page of its own, under its
+        title, as wide as the margins allow (or as tall, for a tall one), footed and numbered as
+        every page; its pixels embedded as drawn, never resampled (so no page takes the figure's
+        own size, issue 55: plot pages came in 7 sizes, some wider than A4)."""
+        image = self.plt.imread(io.BytesIO(png))
         self._new_page()
         self.page.text(LEFT, self.y, title, fontsize=10, weight="bold")
         top = self.y - 0.02
@@ -109,7 +103,7 @@ class PdfSummary:
             height = top - BOTTOM
             width = height / aspect
         axes = self.page.add_axes((LEFT, top - height, width, height))
-        axes.imshow(image, interpolation="antialiased")
+        axes.imshow(image, interpolation="none")  # a vector backend embeds it as it is
         axes.set_axis_off()
         self.finish_page()
 
@@ -119,3 +113,28 @@ class PdfSummary:
             if "pdf" in sec.formats and sec.blocks:
                 for text, style in styled_lines(sec):
                     self.line(text, style)
+
+
+def render_figure(fig: Any, plt: Any) -> bytes:
+    """``fig`` laid out (tight) and drawn once as a PNG at :data:`FIGURE_DPI`, then closed: the
+    PDF page embeds these pixels, the HTML a smaller copy (:func:`scaled_png`)."""
+    buf = io.BytesIO()
+    with warnings.catch_warnings():  # a projection or twin axes tight_layout cannot fit
+        warnings.simplefilter("ignore")
+        fig.tight_layout()
+    fig.savefig(buf, format="png", dpi=FIGURE_DPI, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def scaled_png(png: bytes, dpi: float) -> bytes:
+    """``png`` (drawn at :data:`FIGURE_DPI`) resampled to ``dpi`` (area average), for a page that
+    shows it smaller."""
+    from PIL import Image
+
+    with Image.open(io.BytesIO(png)) as image:
+        size = (max(1, round(image.width * dpi / FIGURE_DPI)),
+                max(1, round(image.height * dpi / FIGURE_DPI)))  # fmt: skip
+        buf = io.BytesIO()
+        image.resize(size, Image.Resampling.BOX).save(buf, format="PNG")
+    return buf.getvalue()

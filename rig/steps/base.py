@@ -277,7 +277,8 @@ class StepKind:
         return StepExecution(ctx, step)
 
     def figures(self, reader: RunReader, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
-        """(title, matplotlib figure) for the report, from the step's result and recorded data."""
+        """(title, matplotlib figure) for the report, from the step's result and recorded data;
+        the report lays each out (tight) and draws it once (rig.report.pdf.render_figure)."""
         return []
 
     def report_lines(self, name: str, result: Any) -> list[str]:

@@ -158,7 +158,6 @@ class Linearity(FieldStepKind):
         ax.set_ylabel("DUT minus straight line (nT)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes
-        fig.tight_layout()
         return [(f"Linearity '{name}' (full scale {found.full_scale_ut:g} uT)", fig)]
 
     def report_lines(self, name: str, result: Any) -> list[str]:

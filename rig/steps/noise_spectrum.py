@@ -147,7 +147,6 @@ class NoiseSpectrum(NullHoldKind):
         ax.set_ylabel("noise density (nT/rtHz)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes
-        fig.tight_layout()
         return [(f"Noise spectrum '{name}'", fig)]
 
     def report_lines(self, name: str, result: Any) -> list[str]:
