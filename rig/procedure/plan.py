@@ -142,6 +142,17 @@ def dry_run(
     return walk.result()
 
 
+def envelope_fields(radius_ut: float | None, k_ut_per_a: Array | None) -> list[Array]:
+    """The fields on a sphere of ``radius_ut`` (uT) that drive each coil hardest, both signs:
+    along the rows of the inverse coil matrix when it is known (the coil currents are linear in
+    the field), else along the cage axes. None: no fields."""
+    if radius_ut is None:
+        return []
+    rows = np.eye(3) if k_ut_per_a is None else np.linalg.inv(k_ut_per_a)
+    dirs = [r / np.linalg.norm(r) for r in rows]
+    return [sign * radius_ut * d for d in dirs for sign in (1.0, -1.0)]
+
+
 @dataclass
 class _DryRunWalk:
     """:func:`dry_run`'s walk through a plan, one step at a time."""
@@ -165,6 +176,7 @@ class _DryRunWalk:
         """Walk one step: its fields, its own peak current, its loads, the time it takes."""
         s = plan.step
         fields = [np.array(c.payload["field_ut"]) for c in plan.commands if c.kind == "field"]
+        fields += envelope_fields(KINDS[s.kind].field_envelope_ut(s), self.k_ut_per_a)
         summary = (
             f"{s.kind}"
             + (f", {len(fields)} fields" if fields else "")

@@ -258,6 +258,12 @@ class StepKind:
         """The step's commands (any order; the planner sorts them) and its duration (s)."""
         return [Command(0.0, self.name, dict(step.params))], self.duration_s(step, timing)
 
+    def field_envelope_ut(self, step: Step) -> float | None:
+        """The largest field (uT) the step may ask for in any direction, beyond its planned
+        field commands (a closed loop's, known only as it runs); ``rig check`` checks the
+        worst direction of each coil against the limits. None: only its commands."""
+        return None
+
     def peak_coil_current_a(self, step: Step) -> float | None:
         """Coil current (A, every axis) the step drives outside its field commands, if any."""
         return None

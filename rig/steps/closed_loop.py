@@ -1,0 +1,197 @@
+"""``closed_loop``: hardware in the loop (ADR 0043). A spacecraft whose attitude Basilisk
+propagates; every tick the field in its body frame (IGRF along the TLE's orbit, turned by the
+attitude) is made by the cage through the same limits and tracking as any field; every control
+period the DUT's readings of it (raw, or corrected by the run's latest calibration) go to the
+flight software under test (B-dot), whose dipole commands turn the spacecraft. Afterwards the
+same scenario runs all in software (a model magnetometer with the DUT's measured noise) and the
+two are compared: the difference is what the hardware changed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, ClassVar
+
+import timebase
+from rig.errors import RigError
+from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
+from rig.steps.closed_loop_run import LoopRunner, read_ticks, scenario_of
+from rig.steps.vocabulary import (
+    MAX_FIELD_SETPOINTS_PER_STEP,
+    Command,
+    Param,
+    ProcedureError,
+    RigTiming,
+    Step,
+)
+
+
+class ClosedLoop(FieldStepKind):
+    name = "closed_loop"
+    summary = (
+        "close the loop: Basilisk's spacecraft, the cage's field, the DUT, B-dot flight software"
+    )
+    takes_loads = False  # the loop owns the step's time; load profiles would race its commands
+    result_values = ("detumble_s", "software_detumble_s", "difference_pct", "final_rate_deg_s",
+                     "ticks", "late_ticks", "latency_ms.*", "readings", "field_model", "dynamics",
+                     "history_file", "software_history_file", "noise_nt", "peak_field_ut",
+                     "until_deg_s", "summary")  # fmt: skip
+    params: ClassVar[dict[str, Param]] = {
+        "tle": Param("list_str", required=True),
+        "start": Param("str", required=True),
+        "time_scale": Param("float", 1.0, 0.01, 1000.0),
+        "duration_s": Param("float", required=True, minimum=1.0, maximum=86400.0),
+        "rate_hz": Param("float", 50.0, 1.0, 200.0),
+        "control_hz": Param("float", 2.0, 0.05, 50.0),
+        "inertia_kg_m2": Param("vec3", [0.0333, 0.0333, 0.0067], 1e-6, 1e4),
+        "max_dipole_am2": Param("float", 0.2, 1e-4, 100.0),
+        "rate_deg_s": Param("vec3", [5.77, 5.77, 5.77], -360.0, 360.0),
+        "gain": Param("float", 0.0, 0.0, 1e6),
+        "until_deg_s": Param("float", 0.0, 0.0, 360.0),
+        "readings": Param("str", "raw", choices=("raw", "calibrated")),
+        "field_scale": Param("float", 1.0, 0.05, 1.0),
+        "noise_nt": Param("float", 0.0, 0.0, 1e6),
+        "seed": Param("int", 0, 0, 2**31),
+        "magnetometer": Param("str", "dut"),
+    }
+    """``inertia_kg_m2``: the principal moments (body axes = cage axes); ``rate_deg_s``: the
+    initial body rate; ``gain``: B-dot's (A m^2 per uT/s; 0: full dipole at 1 deg/s in 30 uT);
+    ``until_deg_s``: the body rate at which the spacecraft counts as detumbled and the step ends
+    (0: it runs ``duration_s``); ``time_scale``: orbit seconds per second of the loop (the orbit's
+    field turns faster than in orbit, the attitude at its own pace); ``noise_nt``: the
+    all-software run's magnetometer noise (0: the DUT's from the run's latest null field)."""
+
+    def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
+        from rig.steps.orbit import parse_start
+
+        if len(params["tle"]) != 2:
+            raise ProcedureError(f"{where}: 'tle' must be the two TLE lines")
+        try:
+            parse_start(params["start"])
+        except ValueError as exc:
+            raise ProcedureError(f"{where}: {exc}") from None
+        ticks = params["duration_s"] * params["rate_hz"]
+        if ticks > MAX_FIELD_SETPOINTS_PER_STEP:
+            raise ProcedureError(
+                f"{where}: duration_s x rate_hz makes {ticks:.0f} ticks, more than"
+                f" {MAX_FIELD_SETPOINTS_PER_STEP} (MAX_FIELD_SETPOINTS_PER_STEP): lower the rate"
+            )
+        if params["control_hz"] > params["rate_hz"]:
+            raise ProcedureError(f"{where}: control_hz must not exceed rate_hz (the tick rate)")
+        if min(params["inertia_kg_m2"]) <= 0:
+            raise ProcedureError(f"{where}: every principal moment of inertia must be > 0")
+        if max(abs(v) for v in params["rate_deg_s"]) > 360.0:
+            raise ProcedureError(f"{where}: 'rate_deg_s' must be at most 360 deg/s on each axis")
+
+    def duration_s(self, step: Step, timing: RigTiming) -> float:
+        return float(step.params["duration_s"])
+
+    def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:
+        """The field at the start: the initial attitude in the orbit's field at its start."""
+        return [(0.0, scenario_of(step.params).initial_field_ut())]
+
+    def field_envelope_ut(self, step: Step) -> float | None:
+        """Any direction in the body may see the orbit's largest field (uT, scaled)."""
+        return scenario_of(step.params).peak_field_ut()
+
+    def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
+        """The starting field (ramped there and settled), the loop itself, its end."""
+        try:
+            start = self.fields(step, timing)[0][1]
+        except ValueError as exc:
+            raise ProcedureError(
+                f"{step.where}: step {step.index + 1} (closed_loop): {exc}"
+            ) from None
+        duration = self.duration_s(step, timing)
+        return [Command(0.0, "field", self.field_payload(step, start)),
+                Command(0.0, self.name, {}), Command(duration, "end", {})], duration  # fmt: skip
+
+    def execution(self, ctx: RunContext, step: Step) -> StepExecution:
+        return ClosedLoopStep(ctx, step)
+
+    def figures(self, reader: Any, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
+        """The body rate and the dipoles against time, through the cage and all in software."""
+        folder = getattr(reader, "folder", None)
+        if not isinstance(result, dict) or folder is None:
+            return []
+        runs = [(label, read_ticks(folder, result.get(key)))
+                for label, key in (("through the cage", "history_file"),
+                                   ("all software", "software_history_file"))]  # fmt: skip
+        if any(ticks is None for _, ticks in runs):
+            return []
+        fig, (rate_ax, dipole_ax) = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
+        for (label, ticks), style in zip(runs, ("-", "--"), strict=True):
+            assert ticks is not None
+            rate_ax.plot(ticks["t_s"], ticks["rate_deg_s"], style, lw=1.0, label=label)
+            dipole_ax.plot(ticks["t_s"], ticks["dipole_am2"], style, lw=0.8, label=label)
+        until = float(result.get("until_deg_s") or 0.0)
+        if until > 0:
+            rate_ax.axhline(until, color="k", ls=":", lw=0.8, label="detumbled below")
+        rate_ax.set_ylabel("body rate (deg/s)")
+        dipole_ax.set_ylabel("|dipole| (A m^2)")
+        dipole_ax.set_xlabel("time in step (s)")
+        for ax in (rate_ax, dipole_ax):
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7, loc="upper right")
+        return [
+            (
+                f"Closed loop '{name}': body rate and dipoles, through the cage and all in software",
+                fig,
+            )
+        ]
+
+
+class ClosedLoopStep(StepExecution):
+    """The loop on its own thread from the step's command until detumbled, out of time or the
+    step ends; then the all-software run and the comparison, recorded as the step's result."""
+
+    def __init__(self, ctx: RunContext, step: Step) -> None:
+        super().__init__(ctx, step)
+        role = step.params["magnetometer"]
+        dut = ctx.proc.magnetometers.get(role, role)
+        if dut not in ctx.samplers:
+            raise RigError(
+                f"{ctx.proc.path}: closed_loop needs the '{role}' magnetometer under"
+                " 'magnetometers' (its readings go to the flight software)"
+            )
+        self.runner = LoopRunner(ctx, step, dut)
+        self.stop = self.runner.detumbled
+        ctx.samplers[dut].listeners.append(self.runner.on_sample)
+        ctx.status_sources.append(self.runner.status)
+        self._dut = dut
+        self._thread: Any = None
+
+    def run(self, payload: dict[str, Any]) -> None:
+        """The step's command: the loop starts (the starting field is made and settled)."""
+        self._thread = timebase.Thread(self.runner.run, name="closed-loop", daemon=True)
+        self._thread.start()
+
+    def _detach(self) -> None:
+        listeners = self.ctx.samplers[self._dut].listeners
+        if self.runner.on_sample in listeners:
+            listeners.remove(self.runner.on_sample)
+        if self.runner.status in self.ctx.status_sources:
+            self.ctx.status_sources.remove(self.runner.status)
+
+    def wind_down(self) -> None:
+        """The step's time is over, or the spacecraft detumbled: the loop ends."""
+        self.runner.halt()
+        if self._thread is not None:
+            self._thread.join()
+        self._detach()
+        if self.runner.error is not None:
+            raise self.runner.error
+
+    def finish(self, t_start: float, t_end: float) -> None:
+        result = self.runner.finish(self.ctx.folder, self.step.name)
+        self.ctx.record_result(self.step.name, result)
+        late = result["late_ticks"]
+        level = "warning" if late else "info"
+        self.ctx.event(level, f"closed loop '{self.step.name}': {result['summary']}")
+
+    def abort(self) -> None:
+        self.runner.halt()
+        self._detach()
+
+
+KIND = ClosedLoop()

@@ -1,0 +1,281 @@
+"""The closed loop as it runs (:mod:`rig.steps.closed_loop`): the scenario from the step's
+parameters, the ticks on the run's clock, the DUT's readings in, the cage's field out, the
+per-tick record and, at the end, the all-software run it is compared with."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import timebase
+from rig.calibration.record import latest_calibration
+from rig.errors import RigError
+from rig.hil.dynamics import Spacecraft
+from rig.hil.flight_software import BDot, default_gain
+from rig.hil.loop import Loop, LoopPlan, OrbitField, Tick, percentile_ms, software_only
+from rig.steps.base import Array, RunContext
+from rig.steps.null_field import latest_noise_floor
+from rig.steps.vocabulary import Step
+from rig.store import safe_files
+
+DEFAULT_NOISE_NT = 20.0
+"""The all-software run's magnetometer noise (nT) when neither ``noise_nt`` nor a null field of
+the run gives the DUT's."""
+FIELD_MODEL = "IGRF (ppigrf) along the TLE's orbit (sgp4), turned into the body by the attitude"
+DYNAMICS = "Basilisk Spacecraft hub (rigid body) with an MtbEffector (three torque rods)"
+
+
+def mrp_to_dcm(mrp: Array) -> Array:
+    """[BN] of modified Rodrigues parameters (rows: body axes in the inertial frame)."""
+    s = np.asarray(mrp, float)
+    s2 = float(s @ s)
+    k = np.array([[0.0, -s[2], s[1]], [s[2], 0.0, -s[0]], [-s[1], s[0], 0.0]])
+    return np.asarray(np.eye(3) + (8.0 * k @ k - 4.0 * (1.0 - s2) * k) / (1.0 + s2) ** 2)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """The step's spacecraft, orbit and loop, from its parameters."""
+
+    params: dict[str, Any]
+
+    @cached_property
+    def orbit(self) -> OrbitField:
+        """The orbit's inertial field on a 1 s grid of orbit time over the step (uT)."""
+        from rig.steps.orbit import orbit_track, parse_start
+
+        p = self.params
+        span = float(p["duration_s"]) * float(p["time_scale"]) + 2.0
+        t = np.arange(0.0, span + 1.0, 1.0)
+        track = orbit_track(p["tle"][0], p["tle"][1], parse_start(p["start"]), t, "inertial")
+        return OrbitField(t, track.field_body_ut, float(p["time_scale"]))
+
+    @property
+    def craft(self) -> Spacecraft:
+        p = self.params
+        ixx, iyy, izz = (float(v) for v in p["inertia_kg_m2"])
+        rate = tuple(float(v) for v in p["rate_deg_s"])
+        return Spacecraft(((ixx, 0.0, 0.0), (0.0, iyy, 0.0), (0.0, 0.0, izz)),
+                          float(p["max_dipole_am2"]), (rate[0], rate[1], rate[2]))  # fmt: skip
+
+    @property
+    def plan(self) -> LoopPlan:
+        p = self.params
+        return LoopPlan(float(p["rate_hz"]), float(p["control_hz"]), float(p["duration_s"]),
+                        float(p["until_deg_s"]))  # fmt: skip
+
+    def software(self) -> BDot:
+        """A fresh flight software (B-dot) for one run."""
+        dipole = float(self.params["max_dipole_am2"])
+        return BDot(float(self.params["gain"]) or default_gain(dipole), dipole)
+
+    @property
+    def scale(self) -> float:
+        return float(self.params["field_scale"])
+
+    def initial_field_ut(self) -> Array:
+        """The field the cage makes first (uT, cage frame, scaled)."""
+        c_bn = mrp_to_dcm(np.array(self.craft.mrp))
+        return np.asarray(c_bn @ self.orbit.at(0.0)) * self.scale
+
+    def peak_field_ut(self) -> float:
+        """The largest field the loop may ask of the cage, in any direction (uT, scaled)."""
+        return self.orbit.peak_ut * self.scale
+
+
+def scenario_of(params: dict[str, Any]) -> Scenario:
+    return Scenario(params)
+
+
+class LoopRunner:
+    """The loop's thread (:meth:`run`), fed by the DUT's sampler (:meth:`on_sample`)."""
+
+    def __init__(self, ctx: RunContext, step: Step, dut: str) -> None:
+        self.ctx, self.step = ctx, step
+        self.scenario = scenario_of(step.params)
+        self.correction = self._correction(ctx, step)
+        self.loop = Loop(self.scenario.craft, self.scenario.plan, self.scenario.orbit,
+                         self.scenario.software())  # fmt: skip
+        self.detumbled = timebase.Event()
+        self._halt = timebase.Event()
+        self._lock = timebase.Lock()
+        self._pending: list[tuple[float, Array]] = []
+        self.ticks: list[Tick] = []
+        self.latency_s: list[float] = []
+        self.late = 0
+        self.samples = 0
+        self.error: BaseException | None = None
+
+    @staticmethod
+    def _correction(ctx: RunContext, step: Step) -> tuple[Array, Array] | None:
+        """(matrix, offset uT) of the run's latest calibration for ``readings: calibrated``."""
+        if step.params["readings"] != "calibrated":
+            return None
+        found = latest_calibration(ctx.results)
+        if found is None:
+            raise RigError(
+                f"{step.where}: closed_loop with readings: calibrated needs a calibration earlier"
+                " in the run (a calibrate or live_calibrate step), or readings: raw"
+            )
+        corr = found[1].correction
+        return np.array(corr["matrix"], float), np.array(corr["offset_ut"], float)
+
+    def on_sample(self, t: float, xyz: tuple[float, float, float]) -> None:
+        """A DUT reading (its sampler's thread): kept for the tick after it."""
+        with self._lock:
+            self._pending.append((t, np.asarray(xyz, float)))
+            self.samples += 1
+
+    def status(self) -> str:
+        rate = float(np.linalg.norm(self.ticks[-1].rate_deg_s)) if self.ticks else math.nan
+        return f"closed loop: t {self.loop.t_s:.1f} s, body rate {rate:.2f} deg/s"
+
+    def halt(self) -> None:
+        self._halt.set()
+
+    def _body_reading(self, xyz: Array) -> Array:
+        """The DUT's reading as the flight software gets it (uT): corrected when asked, and
+        divided by the field scale (the flight software sees the orbit's field)."""
+        if self.correction is not None:
+            matrix, offset = self.correction
+            xyz = matrix @ (xyz - offset)
+        return np.asarray(xyz / self.scenario.scale)
+
+    def run(self) -> None:
+        """Tick until detumbled, out of time or halted; an exception is kept for wind_down."""
+        try:
+            self._ticks()
+        except BaseException as exc:  # the run's thread re-raises it, through the safe path
+            self.error = exc
+        finally:
+            self.detumbled.set()  # the step's timeline ends now either way
+
+    def _ticks(self) -> None:
+        loop, period = self.loop, 1.0 / self.scenario.plan.rate_hz
+        t0 = timebase.monotonic()
+        newest: float | None = None  # the newest reading handed to the loop (monotonic s)
+        carried: float | None = None  # the newest reading behind the dipole not yet sent
+        while not loop.done and not self._halt.is_set():
+            due = t0 + loop.k * period
+            if self._halt.wait(max(0.0, due - timebase.monotonic())):
+                break
+            with self._lock:
+                pending, self._pending = self._pending, []
+            for t, xyz in pending:
+                loop.reading(self._body_reading(xyz))
+                newest = t if newest is None else max(newest, t)
+            field_ut = loop.field_now()
+            self.ctx.command(self.step.index, "field",
+                             {"field_ut": [float(v) for v in field_ut * self.scenario.scale],
+                              "track": True}, timebase.monotonic())  # fmt: skip
+            sent = timebase.monotonic()
+            if sent > due + period:
+                self.late += 1
+                self.ctx.event(
+                    "warning",
+                    f"closed loop: tick {loop.k} sent {1000.0 * (sent - due):.0f} ms after it was due",
+                )
+            # from the reading to the first command its dipole moved: this one
+            self.latency_s.append(math.nan if carried is None else sent - carried)
+            tick = loop.advance(field_ut)
+            self.ticks.append(tick)
+            carried = newest if tick.reading_ut is not None else None
+        if loop.detumbled_at_s is not None:
+            self.detumbled.set()
+
+    def finish(self, folder: Path, name: str) -> dict[str, Any]:
+        """The all-software run of the same scenario, the per-tick records and the result."""
+        noise_nt = self._noise_nt()
+        scenario = self.scenario
+        ticks_sw, detumble_sw = software_only(scenario.craft, scenario.plan, scenario.orbit,
+                                              scenario.software(), noise_nt / 1000.0,
+                                              self._dut_rate_hz(), int(scenario.params["seed"]))  # fmt: skip
+        slug = re.sub(r"[^A-Za-z0-9]+", "-", name).strip("-").lower() or "loop"
+        files = (f"closed-loop-{slug}.csv", f"closed-loop-{slug}-software.csv")
+        latency = self.latency_s
+        _write_ticks(folder / files[0], self.ticks, latency)
+        _write_ticks(folder / files[1], ticks_sw, [math.nan] * len(ticks_sw))
+        return _result(self, detumble_sw, noise_nt, latency, files)
+
+    def _noise_nt(self) -> float:
+        given = float(self.step.params["noise_nt"])
+        if given > 0:
+            return given
+        floor = latest_noise_floor(self.ctx.results)
+        role = self.step.params["magnetometer"]
+        found = floor.noise_nt.get(role) if floor is not None else None
+        return float(found) if found is not None else DEFAULT_NOISE_NT
+
+    def _dut_rate_hz(self) -> float:
+        """The DUT's readings per second over the loop (the all-software run samples so)."""
+        span = self.loop.t_s
+        return self.samples / span if span > 0 and self.samples else 20.0
+
+
+MAX_TICKS_BYTES = 200_000_000
+"""The largest per-tick record the report reads (bytes)."""
+
+
+def read_ticks(folder: Path, name: Any) -> dict[str, Array] | None:
+    """A per-tick record of the run folder (a file name, never a path elsewhere): ``t_s``,
+    ``rate_deg_s`` (magnitude) and ``dipole_am2`` (magnitude); None when missing or unreadable."""
+    if not isinstance(name, str) or "/" in name or "\\" in name or name.startswith("."):
+        return None
+    try:
+        text = safe_files.read_text(folder / name, MAX_TICKS_BYTES)
+        rows = list(csv.DictReader(io.StringIO(text, newline="")))
+        col = {k: np.array([float(r[k]) for r in rows]) for k in rows[0]} if rows else None
+    except (OSError, ValueError, KeyError, safe_files.UnsafeFileError):
+        return None
+    if col is None:
+        return None
+    rate = np.linalg.norm([col[f"rate_{a}_deg_s"] for a in "xyz"], axis=0)
+    dipole = np.linalg.norm([col[f"dipole_{a}_am2"] for a in "xyz"], axis=0)
+    return {"t_s": col["t_s"], "rate_deg_s": rate, "dipole_am2": dipole}
+
+
+def _write_ticks(path: Path, ticks: list[Tick], latency_s: list[float]) -> None:
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t_s", "mrp_1", "mrp_2", "mrp_3", "rate_x_deg_s", "rate_y_deg_s",
+                    "rate_z_deg_s", "field_x_ut", "field_y_ut", "field_z_ut", "reading_x_ut",
+                    "reading_y_ut", "reading_z_ut", "dipole_x_am2", "dipole_y_am2",
+                    "dipole_z_am2", "latency_ms"])  # fmt: skip
+        for tick, lat in zip(ticks, latency_s, strict=True):
+            reading = tick.reading_ut if tick.reading_ut is not None else np.full(3, math.nan)
+            row = [tick.t_s, *tick.mrp, *tick.rate_deg_s, *tick.field_ut, *reading,
+                   *tick.dipole_am2, lat * 1000.0]  # fmt: skip
+            w.writerow(f"{v:.9g}" for v in row)
+
+
+def _result(run: LoopRunner, detumble_sw: float | None, noise_nt: float, latency: list[float],
+            files: tuple[str, str]) -> dict[str, Any]:  # fmt: skip
+    detumble = run.loop.detumbled_at_s
+    final = float(np.linalg.norm(run.ticks[-1].rate_deg_s)) if run.ticks else math.nan
+    diff = (100.0 * (detumble - detumble_sw) / detumble_sw
+            if detumble is not None and detumble_sw else None)  # fmt: skip
+    until = float(run.step.params["until_deg_s"])
+    said = (f"detumbled below {until:g} deg/s in {detumble:.1f} s (all software: "
+            + (f"{detumble_sw:.1f} s, {diff:+.1f} %)" if detumble_sw and diff is not None
+               else "not within the step)")
+            if detumble is not None else f"body rate {final:.2f} deg/s at the end")  # fmt: skip
+    late = f"; {run.late} of {len(run.ticks)} ticks late (more than a period)" if run.late else ""
+    p99 = percentile_ms(latency, 99)
+    return {
+        "detumble_s": detumble, "software_detumble_s": detumble_sw, "difference_pct": diff,
+        "final_rate_deg_s": final, "ticks": len(run.ticks), "late_ticks": run.late,
+        "latency_ms": {"p50": percentile_ms(latency, 50), "p99": p99,
+                       "max": percentile_ms(latency, 100)},
+        "until_deg_s": until, "readings": run.step.params["readings"], "field_model": FIELD_MODEL, "dynamics": DYNAMICS,
+        "noise_nt": noise_nt, "peak_field_ut": run.scenario.peak_field_ut(),
+        "history_file": files[0], "software_history_file": files[1],
+        "summary": f"{said}{late}; latency p99 {p99:.0f} ms",
+    }  # fmt: skip
