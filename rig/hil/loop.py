@@ -2,11 +2,14 @@
 (a model magnetometer): every tick the body-frame field goes out, every control period the flight
 software turns the period's readings into a dipole, and Basilisk moves the spacecraft one tick on.
 
-Order within tick ``k`` at loop time ``t_k = k / rate_hz``: the field in the body frame at
-``t_k`` (the attitude now, the orbit's inertial field at ``t_k``) is what the cage is to make;
-when a control period ends at ``t_k`` the flight software gets the mean of the readings dated in
-it; the dynamics then step to ``t_(k+1)`` with that dipole held. The frames: the body frame is the
-cage frame (the DUT mounted as on the spacecraft, its axes along the cage's).
+Order within tick ``k`` at loop time ``t_k = k / rate_hz``: the readings dated up to ``t_k``
+come in; when one of them is dated at or after the end of the current control period, the period
+is closed and the flight software gets the mean of its readings (so a period ends with the
+reading that closes it, at the first tick after it, not up to a period later); the dynamics step
+to ``t_(k+1)`` with the dipole held; the field in the body frame at ``t_(k+1)`` (the new
+attitude, the orbit's inertial field then) goes to the cage at once, so the command a reading
+causes follows it by at most a tick. The frames: the body frame is the cage frame (the DUT
+mounted as on the spacecraft, its axes along the cage's).
 """
 
 from __future__ import annotations
@@ -61,10 +64,6 @@ class LoopPlan:
     def ticks(self) -> int:
         return round(self.duration_s * self.rate_hz)
 
-    @property
-    def ticks_per_control(self) -> int:
-        return max(1, round(self.rate_hz / self.control_hz))
-
 
 @dataclass
 class Tick:
@@ -93,6 +92,8 @@ class Loop:
     dipole: Array = field(default_factory=lambda: np.zeros(3))
     detumbled_at_s: float | None = None
     _readings: list[Array] = field(default_factory=list)
+    _newest_s: float = -math.inf
+    _period_end_s: float = 0.0
     _dynamics: BasiliskDynamics | None = None
 
     def __post_init__(self) -> None:
@@ -111,13 +112,15 @@ class Loop:
         assert self._dynamics is not None
         return np.degrees(self._dynamics.state()[1])
 
-    def reading(self, field_ut: Array) -> None:
-        """One magnetometer reading (uT, body frame) dated within the current control period."""
+    def reading(self, field_ut: Array, t_s: float) -> None:
+        """One magnetometer reading (uT, body frame) dated ``t_s`` (s of the loop)."""
         self._readings.append(np.asarray(field_ut, float))
+        self._newest_s = max(self._newest_s, t_s)
 
     def advance(self, field_ut: Array) -> Tick:
-        """End tick ``k`` (``field_ut``: the field asked of the cage at it): the flight software
-        when a period ends here, then the dynamics one tick on. The tick as it went."""
+        """End tick ``k`` (``field_ut``: the field the cage holds over it): the flight software
+        when a reading has closed the control period, then the dynamics one tick on. The tick as
+        it went."""
         assert self._dynamics is not None
         sigma, omega = self._dynamics.state()
         rate = np.degrees(omega)
@@ -125,10 +128,13 @@ class Loop:
         if self.detumbled_at_s is None and until > 0 and float(np.linalg.norm(rate)) <= until:
             self.detumbled_at_s = self.t_s
         mean = None
-        if (self.k + 1) % self.plan.ticks_per_control == 0 and self._readings:
+        if self._readings and self._newest_s >= self._period_end_s:
             mean = np.mean(self._readings, axis=0)
             self._readings.clear()
             self.dipole = np.asarray(self.software.dipole(mean, self.t_s), float)
+            period = 1.0 / self.plan.control_hz
+            while self._period_end_s <= self._newest_s:
+                self._period_end_s += period
         tick = Tick(self.t_s, sigma, rate, np.asarray(field_ut, float), mean, self.dipole.copy())
         self._dynamics.step(self.dipole, self.orbit.at(self.t_s))
         self.k += 1
@@ -150,14 +156,14 @@ def software_only(craft: Spacecraft, plan: LoopPlan, orbit: OrbitField, software
     rng = np.random.default_rng(seed)
     ticks: list[Tick] = []
     period = 1.0 / sample_hz
-    next_sample = 0.0
+    next_sample = 0.5 * period
+    held = loop.field_now()  # the cage's starting field, made before the loop starts
     while not loop.done:
-        field_ut = loop.field_now()
-        t_end = loop.t_s + 1.0 / plan.rate_hz
-        while next_sample < t_end - 1e-12:
-            loop.reading(field_ut + rng.normal(0.0, noise_ut, 3))
+        while next_sample <= loop.t_s + 1e-12:  # sampled while the last command held
+            loop.reading(held + rng.normal(0.0, noise_ut, 3), next_sample)
             next_sample += period
-        tick = loop.advance(field_ut)
+        tick = loop.advance(held)
+        held = loop.field_now()  # commanded at once, held until the next tick
         ticks.append(tick)
         if progress is not None:
             progress(tick)

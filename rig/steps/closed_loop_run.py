@@ -29,6 +29,8 @@ from rig.store import safe_files
 DEFAULT_NOISE_NT = 20.0
 """The all-software run's magnetometer noise (nT) when neither ``noise_nt`` nor a null field of
 the run gives the DUT's."""
+LATE_LOGGED = 3
+"""Late ticks logged one by one before only the count goes on."""
 FIELD_MODEL = "IGRF (ppigrf) along the TLE's orbit (sgp4), turned into the body by the attitude"
 DYNAMICS = "Basilisk Spacecraft hub (rigid body) with an MtbEffector (three torque rods)"
 
@@ -161,8 +163,10 @@ class LoopRunner:
     def _ticks(self) -> None:
         loop, period = self.loop, 1.0 / self.scenario.plan.rate_hz
         t0 = timebase.monotonic()
+        with self._lock:  # readings of the ramp to the starting field are not the loop's
+            self._pending = [(t, xyz) for t, xyz in self._pending if t >= t0]
+        held = loop.field_now()  # made by the step's starting command
         newest: float | None = None  # the newest reading handed to the loop (monotonic s)
-        carried: float | None = None  # the newest reading behind the dipole not yet sent
         while not loop.done and not self._halt.is_set():
             due = t0 + loop.k * period
             if self._halt.wait(max(0.0, due - timebase.monotonic())):
@@ -170,26 +174,31 @@ class LoopRunner:
             with self._lock:
                 pending, self._pending = self._pending, []
             for t, xyz in pending:
-                loop.reading(self._body_reading(xyz))
+                loop.reading(self._body_reading(xyz), t - t0)
                 newest = t if newest is None else max(newest, t)
-            field_ut = loop.field_now()
+            tick = loop.advance(held)
+            self.ticks.append(tick)
+            held = loop.field_now()
             self.ctx.command(self.step.index, "field",
-                             {"field_ut": [float(v) for v in field_ut * self.scenario.scale],
+                             {"field_ut": [float(v) for v in held * self.scenario.scale],
                               "track": True}, timebase.monotonic())  # fmt: skip
             sent = timebase.monotonic()
+            # from the newest reading behind a new dipole to the command that carries it
+            self.latency_s.append(sent - newest if tick.reading_ut is not None and newest
+                                  is not None else math.nan)  # fmt: skip
             if sent > due + period:
-                self.late += 1
-                self.ctx.event(
-                    "warning",
-                    f"closed loop: tick {loop.k} sent {1000.0 * (sent - due):.0f} ms after it was due",
-                )
-            # from the reading to the first command its dipole moved: this one
-            self.latency_s.append(math.nan if carried is None else sent - carried)
-            tick = loop.advance(field_ut)
-            self.ticks.append(tick)
-            carried = newest if tick.reading_ut is not None else None
+                self._late(loop.k - 1, sent - due)
         if loop.detumbled_at_s is not None:
             self.detumbled.set()
+
+    def _late(self, k: int, late_s: float) -> None:
+        """Count a tick whose command went out more than a period after it was due; the first
+        few are logged one by one, the count always goes to the result."""
+        self.late += 1
+        if self.late <= LATE_LOGGED:
+            more = " (later ones are counted, not logged)" if self.late == LATE_LOGGED else ""
+            self.ctx.event("warning", f"closed loop: tick {k} sent {1000.0 * late_s:.0f} ms after"
+                                      f" it was due{more}")  # fmt: skip
 
     def finish(self, folder: Path, name: str) -> dict[str, Any]:
         """The all-software run of the same scenario, the per-tick records and the result."""
