@@ -62,20 +62,11 @@ class ClosedLoop(FieldStepKind):
     all-software run's magnetometer noise (0: the DUT's from the run's latest null field)."""
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
-        from rig.steps.orbit import parse_start
+        from rig.steps.orbit import validate_orbit
 
-        if len(params["tle"]) != 2:
-            raise ProcedureError(f"{where}: 'tle' must be the two TLE lines")
-        try:
-            parse_start(params["start"])
-        except ValueError as exc:
-            raise ProcedureError(f"{where}: {exc}") from None
-        ticks = params["duration_s"] * params["rate_hz"]
-        if ticks > MAX_FIELD_SETPOINTS_PER_STEP:
-            raise ProcedureError(
-                f"{where}: duration_s x rate_hz makes {ticks:.0f} ticks, more than"
-                f" {MAX_FIELD_SETPOINTS_PER_STEP} (MAX_FIELD_SETPOINTS_PER_STEP): lower the rate"
-            )
+        problem = validate_orbit(params, where, MAX_FIELD_SETPOINTS_PER_STEP)
+        if problem is not None:
+            raise ProcedureError(problem)
         if params["control_hz"] > params["rate_hz"]:
             raise ProcedureError(f"{where}: control_hz must not exceed rate_hz (the tick rate)")
         if min(params["inertia_kg_m2"]) <= 0:

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import datetime as dt
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -190,6 +192,24 @@ def panel_current(track: OrbitTrack, face: str, max_a: float) -> Array:
     return np.asarray(max_a * np.clip(track.sun_body @ normal, 0.0, None) * track.sunlit)
 
 
+def validate_orbit(params: Mapping[str, Any], where: str, max_setpoints: int) -> str | None:
+    """What is wrong with a step's ``tle``, ``start`` and ``duration_s`` x ``rate_hz`` (one
+    sentence naming ``where`` and the fix), None when nothing is."""
+    tle = params["tle"]
+    if not isinstance(tle, list) or len(tle) != 2:
+        return f"{where}: 'tle' must be the two TLE lines"
+    try:
+        parse_start(str(params["start"]))
+    except ValueError as exc:
+        return f"{where}: {exc}"
+    setpoints = float(params["duration_s"]) * float(params["rate_hz"])
+    if setpoints > max_setpoints:
+        return (f"{where}: duration_s x rate_hz makes {setpoints:.0f} field set-points, more than"
+                f" {max_setpoints} (MAX_FIELD_SETPOINTS_PER_STEP): lower the rate or split the"
+                " step into several")  # fmt: skip
+    return None
+
+
 def parse_start(text: str) -> dt.datetime:
     """ISO date-time (UTC)."""
     try:
@@ -201,4 +221,12 @@ def parse_start(text: str) -> dt.datetime:
     return value.astimezone(dt.UTC).replace(tzinfo=None) if value.tzinfo else value
 
 
-__all__ = ["FACES", "OrbitTrack", "math", "orbit_track", "panel_current", "parse_start"]
+__all__ = [
+    "FACES",
+    "OrbitTrack",
+    "math",
+    "orbit_track",
+    "panel_current",
+    "parse_start",
+    "validate_orbit",
+]

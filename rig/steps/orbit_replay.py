@@ -39,21 +39,11 @@ class OrbitReplay(FieldStepKind):
     field's direction and the panels' currents are unchanged."""
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
-        from rig.steps.orbit import FACES, parse_start
+        from rig.steps.orbit import FACES, validate_orbit
 
-        if len(params["tle"]) != 2:
-            raise ProcedureError(f"{where}: 'tle' must be the two TLE lines")
-        try:
-            parse_start(params["start"])
-        except ValueError as exc:
-            raise ProcedureError(f"{where}: {exc}") from None
-        setpoints = params["duration_s"] * params["rate_hz"]
-        if setpoints > MAX_FIELD_SETPOINTS_PER_STEP:
-            raise ProcedureError(
-                f"{where}: duration_s x rate_hz makes {setpoints:.0f} field set-points, more than"
-                f" {MAX_FIELD_SETPOINTS_PER_STEP} (MAX_FIELD_SETPOINTS_PER_STEP): lower the rate"
-                " or split the replay into several steps"
-            )
+        problem = validate_orbit(params, where, MAX_FIELD_SETPOINTS_PER_STEP)
+        if problem is not None:
+            raise ProcedureError(problem)
         for panel in params["panels"]:
             ch, face, max_a = panel.get("channel"), panel.get("face"), panel.get("max_a")
             if ch not in loads or face not in FACES or not isinstance(max_a, int | float):
