@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import timebase
-from rig.errors import RigError
+from rig.errors import RigError, UserInputError
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.closed_loop_run import LoopRunner, read_ticks, scenario_of
 from rig.steps.vocabulary import (
@@ -25,6 +25,10 @@ from rig.steps.vocabulary import (
     Step,
 )
 
+ABORT_JOIN_S = 10.0
+"""Longest wait for the loop's command in flight when the run aborts (s): a Modbus write with its
+retries."""
+
 
 class ClosedLoop(FieldStepKind):
     name = "closed_loop"
@@ -35,7 +39,7 @@ class ClosedLoop(FieldStepKind):
     result_values = ("detumble_s", "software_detumble_s", "difference_pct", "final_rate_deg_s",
                      "ticks", "late_ticks", "latency_ms.*", "readings", "field_model", "dynamics",
                      "history_file", "software_history_file", "noise_nt", "peak_field_ut",
-                     "until_deg_s", "summary")  # fmt: skip
+                     "until_deg_s", "summary", "flight_software", "flight_computer.*")  # fmt: skip
     params: ClassVar[dict[str, Param]] = {
         "tle": Param("list_str", required=True),
         "start": Param("str", required=True),
@@ -53,13 +57,17 @@ class ClosedLoop(FieldStepKind):
         "noise_nt": Param("float", 0.0, 0.0, 1e6),
         "seed": Param("int", 0, 0, 2**31),
         "magnetometer": Param("str", "dut"),
+        "flight_computer": Param("str", ""),
+        "reply_timeout_s": Param("float", 0.1, 0.001, 10.0),
     }
     """``inertia_kg_m2``: the principal moments (body axes = cage axes); ``rate_deg_s``: the
     initial body rate; ``gain``: B-dot's (A m^2 per uT/s; 0: full dipole at 1 deg/s in 30 uT);
     ``until_deg_s``: the body rate at which the spacecraft counts as detumbled and the step ends
     (0: it runs ``duration_s``); ``time_scale``: orbit seconds per second of the loop (the orbit's
     field turns faster than in orbit, the attitude at its own pace); ``noise_nt``: the
-    all-software run's magnetometer noise (0: the DUT's from the run's latest null field)."""
+    all-software run's magnetometer noise (0: the DUT's from the run's latest null field);
+    ``flight_computer``: an external one at ``udp://HOST:PORT`` (docs/hil.md's protocol; its
+    answer awaited ``reply_timeout_s``), empty for the in-process B-dot."""
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
         from rig.steps.orbit import validate_orbit
@@ -67,6 +75,13 @@ class ClosedLoop(FieldStepKind):
         problem = validate_orbit(params, where, MAX_FIELD_SETPOINTS_PER_STEP)
         if problem is not None:
             raise ProcedureError(problem)
+        if params["flight_computer"]:
+            from rig.hil.external import parse_address
+
+            try:
+                parse_address(params["flight_computer"])
+            except UserInputError as exc:
+                raise ProcedureError(f"{where}: {exc}") from None
         if params["control_hz"] > params["rate_hz"]:
             raise ProcedureError(f"{where}: control_hz must not exceed rate_hz (the tick rate)")
         if min(params["inertia_kg_m2"]) <= 0:
@@ -176,12 +191,16 @@ class ClosedLoopStep(StepExecution):
     def finish(self, t_start: float, t_end: float) -> None:
         result = self.runner.finish(self.ctx.folder, self.step.name)
         self.ctx.record_result(self.step.name, result)
-        late = result["late_ticks"]
-        level = "warning" if late else "info"
+        link = result["flight_computer"]
+        level = "warning" if result["late_ticks"] or (link and link["missed"]) else "info"
         self.ctx.event(level, f"closed loop '{self.step.name}': {result['summary']}")
 
     def abort(self) -> None:
+        """The run is ending: the loop stops before the safe state is made (a command in flight
+        finishes first, so none can follow the switch-off)."""
         self.runner.halt()
+        if self._thread is not None:
+            self._thread.join(timeout=ABORT_JOIN_S)
         self._detach()
 
 

@@ -19,7 +19,8 @@ import timebase
 from rig.calibration.record import latest_calibration
 from rig.errors import RigError
 from rig.hil.dynamics import Spacecraft
-from rig.hil.flight_software import BDot, default_gain
+from rig.hil.external import ExternalFlightComputer
+from rig.hil.flight_software import BDot, FlightSoftware, default_gain
 from rig.hil.loop import Loop, LoopPlan, OrbitField, Tick, percentile_ms, software_only
 from rig.steps.base import Array, RunContext
 from rig.steps.null_field import latest_noise_floor
@@ -74,10 +75,19 @@ class Scenario:
         return LoopPlan(float(p["rate_hz"]), float(p["control_hz"]), float(p["duration_s"]),
                         float(p["until_deg_s"]))  # fmt: skip
 
-    def software(self) -> BDot:
-        """A fresh flight software (B-dot) for one run."""
+    def software(self) -> FlightSoftware:
+        """The flight software for one run: the external flight computer when the step names
+        one (the all-software run then uses it too: software in the loop), else a fresh B-dot."""
+        address = str(self.params["flight_computer"])
+        if address:
+            return ExternalFlightComputer(address, float(self.params["reply_timeout_s"]))
         dipole = float(self.params["max_dipole_am2"])
         return BDot(float(self.params["gain"]) or default_gain(dipole), dipole)
+
+    @property
+    def software_name(self) -> str:
+        address = str(self.params["flight_computer"])
+        return f"external flight computer at {address}" if address else "B-dot in process"
 
     @property
     def scale(self) -> float:
@@ -179,6 +189,8 @@ class LoopRunner:
             tick = loop.advance(held)
             self.ticks.append(tick)
             held = loop.field_now()
+            if self._halt.is_set():  # the run is ending: no command after the halt
+                break
             self.ctx.command(self.step.index, "field",
                              {"field_ut": [float(v) for v in held * self.scenario.scale],
                               "track": True}, timebase.monotonic())  # fmt: skip
@@ -204,9 +216,13 @@ class LoopRunner:
         """The all-software run of the same scenario, the per-tick records and the result."""
         noise_nt = self._noise_nt()
         scenario = self.scenario
-        ticks_sw, detumble_sw = software_only(scenario.craft, scenario.plan, scenario.orbit,
-                                              scenario.software(), noise_nt / 1000.0,
-                                              self._dut_rate_hz(), int(scenario.params["seed"]))  # fmt: skip
+        software = scenario.software()
+        try:
+            ticks_sw, detumble_sw = software_only(scenario.craft, scenario.plan, scenario.orbit,
+                                                  software, noise_nt / 1000.0, self._dut_rate_hz(),
+                                                  int(scenario.params["seed"]))  # fmt: skip
+        finally:
+            _link_figures(software)  # closes an external flight computer's link
         slug = re.sub(r"[^A-Za-z0-9]+", "-", name).strip("-").lower() or "loop"
         files = (f"closed-loop-{slug}.csv", f"closed-loop-{slug}-software.csv")
         latency = self.latency_s
@@ -265,6 +281,15 @@ def _write_ticks(path: Path, ticks: list[Tick], latency_s: list[float]) -> None:
             w.writerow(f"{v:.9g}" for v in row)
 
 
+def _link_figures(software: Any) -> dict[str, Any] | None:
+    """An external flight computer's answers, misses, first problem and round trip (ms)."""
+    if not isinstance(software, ExternalFlightComputer):
+        return None
+    software.close()
+    return {"answered": software.answered, "missed": software.missed, "problem": software.problem,
+            "round_trip_ms_p99": percentile_ms(software.round_trips_s, 99)}  # fmt: skip
+
+
 def _result(run: LoopRunner, detumble_sw: float | None, noise_nt: float, latency: list[float],
             files: tuple[str, str]) -> dict[str, Any]:  # fmt: skip
     detumble = run.loop.detumbled_at_s
@@ -277,13 +302,19 @@ def _result(run: LoopRunner, detumble_sw: float | None, noise_nt: float, latency
                else "not within the step)")
             if detumble is not None else f"body rate {final:.2f} deg/s at the end")  # fmt: skip
     late = f"; {run.late} of {len(run.ticks)} ticks late (more than a period)" if run.late else ""
+    link = _link_figures(run.loop.software)
+    if link is not None and link["missed"]:
+        late += (f"; the flight computer did not answer {link['missed']} of"
+                 f" {link['missed'] + link['answered']} periods (first: {link['problem']})")  # fmt: skip
     p99 = percentile_ms(latency, 99)
     return {
         "detumble_s": detumble, "software_detumble_s": detumble_sw, "difference_pct": diff,
         "final_rate_deg_s": final, "ticks": len(run.ticks), "late_ticks": run.late,
         "latency_ms": {"p50": percentile_ms(latency, 50), "p99": p99,
                        "max": percentile_ms(latency, 100)},
-        "until_deg_s": until, "readings": run.step.params["readings"], "field_model": FIELD_MODEL, "dynamics": DYNAMICS,
+        "until_deg_s": until, "flight_software": run.scenario.software_name,
+        "flight_computer": link,
+        "readings": run.step.params["readings"], "field_model": FIELD_MODEL, "dynamics": DYNAMICS,
         "noise_nt": noise_nt, "peak_field_ut": run.scenario.peak_field_ut(),
         "history_file": files[0], "software_history_file": files[1],
         "summary": f"{said}{late}; latency p99 {p99:.0f} ms",

@@ -121,3 +121,38 @@ def test_the_documented_demo_of_the_shipped_procedure_passes(
     assert result["readings"] == "raw" and abs(result["difference_pct"]) <= 10.0
     assert (folder / result["history_file"]).exists()
     assert "docs/hil.md" in Path("procedures/closed-loop-detumble.yaml").read_text()
+
+
+def test_a_supply_failing_mid_loop_ends_the_run_error_with_every_output_off(tmp_path: Path) -> None:
+    """Every exit path as for any step: coil_x answers every request with a Modbus exception 10 s
+    into the loop; the loop stops before the safe state, the run ends error naming coil_x, and
+    every output of the simulated cage is off."""
+    import timebase
+
+    seen: dict[str, object] = {}
+
+    def operator(cage: object, question: str) -> bool:
+        def fail_later() -> None:
+            timebase.sleep(12.0)  # the null hold (2 s), then 10 s of the loop
+            cage.faults["coil_x"].exception_code = 4  # type: ignore[attr-defined]
+
+        timebase.Thread(fail_later, name="fault", daemon=True).start()
+        seen["cage"] = cage
+        return True
+
+    text = PROCEDURE.replace("steps:\n", 'steps:\n  - prompt: "Mount the DUT"\n', 1)
+    outcome = run_on_sim(tmp_path, text, operator=operator)
+    assert outcome.status == "error", outcome
+    assert "coil_x" in outcome.reason, outcome.reason
+    cage = seen["cage"]
+    supplies = cage.physics.supplies  # type: ignore[attr-defined]
+    assert not any(s.output for s in supplies.values()), [
+        n for n, s in supplies.items() if s.output
+    ]
+    run = next((tmp_path / "runs").iterdir())
+    reader = RunReader(run)
+    try:
+        steps = reader.steps()
+    finally:
+        reader.close()
+    assert any(kind == "closed_loop" for _, _, kind, _, _ in steps)
