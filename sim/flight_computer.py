@@ -27,8 +27,6 @@ class BDotComputer:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((host, port))
         self.port = int(self.sock.getsockname()[1])
-        self.received = 0
-        self.rejected = 0
         self._last: tuple[float, np.ndarray] | None = None
         self._thread = threading.Thread(target=self._serve, name="flight-computer", daemon=True)
 
@@ -43,11 +41,8 @@ class BDotComputer:
             except OSError:
                 return  # closed
             answer = self._answer(raw)
-            if answer is None:
-                self.rejected += 1
-                continue
-            self.received += 1
-            self.sock.sendto(answer, peer)
+            if answer is not None:  # anything else goes unanswered, as on a flight computer
+                self.sock.sendto(answer, peer)
 
     def _answer(self, raw: bytes) -> bytes | None:
         if len(raw) != _HEADER.size + 32:

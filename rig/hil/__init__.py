@@ -4,6 +4,6 @@ it handed to the flight software under test, whose dipole commands turn the spac
 
 Nothing here talks to a device: the ``closed_loop`` step kind (:mod:`rig.steps.closed_loop`)
 carries the field out through the run's cage controller and brings the DUT's readings in;
-:mod:`rig.hil.software_loop` runs the same scenario with a model magnetometer instead, the
+:func:`rig.hil.loop.software_only` runs the same scenario with a model magnetometer instead, the
 all-software run the closed-loop run is compared with.
 """

@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from rig.errors import UserInputError
-from rig.hil.packets import PacketError, decode, dipole_of, readings_packet
+from rig.hil.packets import SEQUENCE_MODULUS, PacketError, decode, dipole_of, readings_packet
 
 Array = npt.NDArray[np.float64]
 
@@ -49,7 +49,7 @@ class ExternalFlightComputer:
 
     def dipole(self, field_ut: Array, t_s: float) -> Array:
         """Send the period's reading, wait for its answer; the dipoles (A m^2) to hold."""
-        seq = self.sequence % (1 << 14)
+        seq = self.sequence % SEQUENCE_MODULUS
         self.sequence += 1
         sent = time.monotonic()
         try:

@@ -15,7 +15,6 @@ mounted as on the spacecraft, its axes along the cage's).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,7 +50,8 @@ class OrbitField:
 @dataclass(frozen=True)
 class LoopPlan:
     """``rate_hz``: ticks per second (the field's updates and the dynamics' steps);
-    ``control_hz``: the flight software's periods per second (a divisor of ``rate_hz``);
+    ``control_hz``: the flight software's periods per second (a period closes with the
+    first reading dated at or after its end, at the tick after that reading);
     ``duration_s``: the longest the loop runs (s); ``until_deg_s``: the body rate (deg/s) at
     which the spacecraft counts as detumbled and the loop ends (0: never)."""
 
@@ -108,10 +108,6 @@ class Loop:
         assert self._dynamics is not None
         return np.asarray(self._dynamics.body_from_inertial() @ self.orbit.at(self.t_s))
 
-    def rate_deg_s(self) -> Array:
-        assert self._dynamics is not None
-        return np.degrees(self._dynamics.state()[1])
-
     def reading(self, field_ut: Array, t_s: float) -> None:
         """One magnetometer reading (uT, body frame) dated ``t_s`` (s of the loop)."""
         self._readings.append(np.asarray(field_ut, float))
@@ -147,8 +143,8 @@ class Loop:
 
 
 def software_only(craft: Spacecraft, plan: LoopPlan, orbit: OrbitField, software: FlightSoftware,
-                  noise_ut: float, sample_hz: float, seed: int = 0,
-                  progress: Callable[[Tick], None] | None = None) -> tuple[list[Tick], float | None]:  # fmt: skip
+                  noise_ut: float, sample_hz: float,
+                  seed: int = 0) -> tuple[list[Tick], float | None]:  # fmt: skip
     """The same scenario with a model magnetometer in place of the cage and the DUT: the field of
     each tick held until the next (as the cage holds a set-point), sampled at ``sample_hz`` with
     white noise of ``noise_ut`` (uT, each axis). (ticks, detumble time s or None)."""
@@ -165,8 +161,6 @@ def software_only(craft: Spacecraft, plan: LoopPlan, orbit: OrbitField, software
         tick = loop.advance(held)
         held = loop.field_now()  # commanded at once, held until the next tick
         ticks.append(tick)
-        if progress is not None:
-            progress(tick)
     return ticks, loop.detumbled_at_s
 
 

@@ -202,6 +202,7 @@ class ClosedLoopStep(StepExecution):
         if self._thread is not None:
             self._thread.join(timeout=ABORT_JOIN_S)
         self._detach()
+        self.runner.close()
 
 
 KIND = ClosedLoop()

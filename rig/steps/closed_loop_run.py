@@ -153,6 +153,10 @@ class LoopRunner:
     def halt(self) -> None:
         self._halt.set()
 
+    def close(self) -> None:
+        """The run ended before the step's result: let go of an external flight computer."""
+        _close_link(self.loop.software)
+
     def _body_reading(self, xyz: Array) -> Array:
         """The DUT's reading as the flight software gets it (uT): corrected when asked, and
         divided by the field scale (the flight software sees the orbit's field)."""
@@ -222,7 +226,7 @@ class LoopRunner:
                                                   software, noise_nt / 1000.0, self._dut_rate_hz(),
                                                   int(scenario.params["seed"]))  # fmt: skip
         finally:
-            _link_figures(software)  # closes an external flight computer's link
+            _close_link(software)
         slug = re.sub(r"[^A-Za-z0-9]+", "-", name).strip("-").lower() or "loop"
         files = (f"closed-loop-{slug}.csv", f"closed-loop-{slug}-software.csv")
         latency = self.latency_s
@@ -281,8 +285,9 @@ def _write_ticks(path: Path, ticks: list[Tick], latency_s: list[float]) -> None:
             w.writerow(f"{v:.9g}" for v in row)
 
 
-def _link_figures(software: Any) -> dict[str, Any] | None:
-    """An external flight computer's answers, misses, first problem and round trip (ms)."""
+def _close_link(software: Any) -> dict[str, Any] | None:
+    """Close an external flight computer's link; its answers, misses, first problem and round
+    trip (ms). None for the in-process flight software."""
     if not isinstance(software, ExternalFlightComputer):
         return None
     software.close()
@@ -302,7 +307,7 @@ def _result(run: LoopRunner, detumble_sw: float | None, noise_nt: float, latency
                else "not within the step)")
             if detumble is not None else f"body rate {final:.2f} deg/s at the end")  # fmt: skip
     late = f"; {run.late} of {len(run.ticks)} ticks late (more than a period)" if run.late else ""
-    link = _link_figures(run.loop.software)
+    link = _close_link(run.loop.software)
     if link is not None and link["missed"]:
         late += (f"; the flight computer did not answer {link['missed']} of"
                  f" {link['missed'] + link['answered']} periods (first: {link['problem']})")  # fmt: skip

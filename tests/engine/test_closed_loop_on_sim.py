@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from rig.cli import main
+from rig.procedure_files import find_procedure
 from rig.store import RunReader
 from tests.simcage import sim_cage
 from tests.simrun import run_on_sim
@@ -120,7 +121,7 @@ def test_the_documented_demo_of_the_shipped_procedure_passes(
         reader.close()
     assert result["readings"] == "raw" and abs(result["difference_pct"]) <= 10.0
     assert (folder / result["history_file"]).exists()
-    assert "docs/hil.md" in Path("procedures/closed-loop-detumble.yaml").read_text()
+    assert "docs/hil.md" in find_procedure("closed-loop-detumble").read_text()
 
 
 def test_a_supply_failing_mid_loop_ends_the_run_error_with_every_output_off(tmp_path: Path) -> None:
