@@ -34,6 +34,7 @@ from rig.calibration.residuals import (
     Samples,
     scalar_noise_gain,
     scalar_residuals,
+    vector_residual_values,
     vector_residuals,
 )
 from rig.errors import CalibrationError
@@ -213,7 +214,7 @@ def profile_fit(
             est = refit(data)
         except (CalibrationError, np.linalg.LinAlgError):
             return float("inf")
-        r, _ = weighted_residuals(est, data)
+        r = weighted_residual_values(est, data)
         return float(r @ r)
 
     from scipy.optimize import minimize_scalar  # here: importing scipy.optimize costs 0.25 s
@@ -246,6 +247,13 @@ def profile_fit(
     return ProfileFit(params, values, sigma, crlb, est, data, coupling, correlation, sigma, others)
 
 
+def weighted_residual_values(est: Estimate, s: Samples) -> Array:
+    """The residuals of :func:`weighted_residuals` without their Jacobian (the profile's cost)."""
+    if est.rotation_ref is not None:
+        return vector_residual_values(est.p, s, est.rotation_ref)
+    return weighted_residuals(est, s)[0]
+
+
 def weighted_residuals(est: Estimate, s: Samples) -> tuple[Array, Array]:
     """Residuals in units of the raw noise per axis (uT) and their Jacobian in ``est.p``: vector
     residuals as they are, scalar ones divided by their noise gain (as the ML fit weighs them)."""
@@ -275,8 +283,8 @@ def _uncertainty(
         up, down = values.copy(), values.copy()
         up[i] += prm.step
         down[i] -= prm.step
-        r_up, _ = weighted_residuals(est, samples_at(up))
-        r_down, _ = weighted_residuals(est, samples_at(down))
+        r_up = weighted_residual_values(est, samples_at(up))
+        r_down = weighted_residual_values(est, samples_at(down))
         cols.append((r_up - r_down) / (2.0 * prm.step))
     jac = np.column_stack([jac_p, *cols])
     try:

@@ -301,28 +301,40 @@ def scalar_residuals_and_gain(p: Array, s: Samples) -> tuple[Array, Array]:
     return r, gain
 
 
-def vector_residuals(p: Array, s: Samples, rotation_ref: Array) -> tuple[Array, Array]:
-    """Vector residuals ``m - L R h - o - K^T u`` flattened (3N,) uT and Jacobian (3N, 12 + 3J)."""
+def _vector_model(p: Array, s: Samples, rotation_ref: Array) -> tuple[Array, Array, Array]:
+    """Residuals ``m - L R h - o - K^T u`` (N, 3) uT, the field in the DUT frame ``R h`` (N, 3)
+    and the sensor matrix ``L``."""
     if s.field_ut is None:
         raise ValueError("vector residuals need the field vector")
-    shape = _shape(p)
-    lower = springmann_matrix(shape)
+    lower = springmann_matrix(_shape(p))
     rot = rotation_from_vector(p[9:12]) @ rotation_ref
     k = p[12:].reshape(-1, 3)
     hr = s.field_ut @ rot.T  # R h, field in the DUT frame
     pred = hr @ lower.T + p[3:6]
     if k.size:
         pred = pred + s.telemetry @ k
-    r = s.measured_ut - pred
+    return s.measured_ut - pred, hr, lower
+
+
+def vector_residual_values(p: Array, s: Samples, rotation_ref: Array) -> Array:
+    """Vector residuals ``m - L R h - o - K^T u`` flattened (3N,) uT, without the Jacobian."""
+    return _vector_model(p, s, rotation_ref)[0].reshape(-1)
+
+
+def vector_residuals(p: Array, s: Samples, rotation_ref: Array) -> tuple[Array, Array]:
+    """Vector residuals ``m - L R h - o - K^T u`` flattened (3N,) uT and Jacobian (3N, 12 + 3J)."""
+    r, hr, lower = _vector_model(p, s, rotation_ref)
+    shape = _shape(p)
+    k = p[12:].reshape(-1, 3)
     n = s.n
     jac = np.zeros((n, 3, p.size))
     d_lower = springmann_matrix_derivatives(shape)  # (6, 3, 3)
-    d_shape = -np.einsum("iab,nb->nai", d_lower, hr)
+    d_shape = -np.tensordot(hr, d_lower, axes=([1], [2])).transpose(0, 2, 1)  # (N, 3, 6)
     jac[:, :, 0:3] = d_shape[:, :, 0:3]
     jac[:, :, 6:9] = d_shape[:, :, 3:6]
     jac[:, :, 3:6] = -np.eye(3)
     # d(exp([d]x) R h)/dd = -[R h]x at d = 0 (first order about the reference); residual sign flips.
-    jac[:, :, 9:12] = np.einsum("ab,nbc->nac", lower, _skew_rows(hr))
+    jac[:, :, 9:12] = lower @ _skew_rows(hr)
     for j in range(k.shape[0]):
         jac[:, :, 12 + 3 * j : 15 + 3 * j] = -s.telemetry[:, j, None, None] * np.eye(3)
     return r.reshape(-1), jac.reshape(3 * n, p.size)
@@ -439,6 +451,7 @@ __all__ = [
     "scalar_residuals",
     "skew",
     "theta_from_p",
+    "vector_residual_values",
     "vector_residuals",
     "z_residuals",
 ]

@@ -147,5 +147,5 @@ def per_axis_covariance(jac: Array, residuals: Array) -> Array:
     v = axis_variances(residuals, jac.shape[1])
     h_inv = covariance_from_normal(jac.T @ jac, 1.0)
     rows = jac.reshape(-1, 3, jac.shape[1])
-    middle = np.einsum("nap,naq,a->pq", rows, rows, v)
+    middle = sum(v[a] * (rows[:, a, :].T @ rows[:, a, :]) for a in range(3))
     return np.asarray(h_inv @ middle @ h_inv)

@@ -35,7 +35,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import optimize, stats
 
 Array = npt.NDArray[np.float64]
 
@@ -229,6 +228,8 @@ def _fit_bins(design: Array, y: Array, bins: Bins, start: OffsetNoise | None) ->
         return value, grad * theta
 
     starts = sorted((np.clip(s0, low, high) for s0 in starts), key=lambda s0: cost(s0)[0])
+    from scipy import optimize  # here, not at the top: scipy's import costs every CLI 0.8 s
+
     fits = [optimize.minimize(cost, s0, jac=True, method="L-BFGS-B",
                               bounds=list(zip(low, high, strict=True))) for s0 in starts[:2]]  # fmt: skip
     best = min(fits, key=lambda r: float(r.fun))
@@ -256,6 +257,8 @@ def _fit_bins(design: Array, y: Array, bins: Bins, start: OffsetNoise | None) ->
     var = at_fit + _unseen_variance(x, yv, parts, theta, theta_se * ~inside, best.fun, at_fit)
     spread = np.einsum("ip,ij,jp->p", grads, theta_cov, grads)
     dof = np.clip(2.0 * var**2 / np.maximum(spread, 1e-300), MIN_DOF, 1e6)
+    from scipy import stats
+
     widen = stats.t.ppf(WIDEN_LEVEL, dof) / stats.norm.ppf(WIDEN_LEVEL)
     return BinFit(coef, np.sqrt(var) * widen, OffsetNoise(*(float(t) for t in theta)))
 
@@ -306,3 +309,12 @@ def _reml(x: Array, y: Array, v: Array) -> tuple[float, Array]:
     proj = vinv - vinv @ x @ left
     value = 2.0 * float(np.sum(np.log(np.diag(chol)))) + float(np.linalg.slogdet(xtvx)[1])
     return value + float(y @ proj @ y), np.asarray(proj, float)
+
+
+def joint_z(chi2: float, dof: int) -> float:
+    """The two-sided normal z of a chi-square statistic with ``dof`` degrees of freedom (inf when
+    its p-value underflows): how many sigma a joint shift is from none."""
+    from scipy import stats
+
+    p = float(stats.chi2.sf(chi2, dof))
+    return float(stats.norm.isf(p / 2.0)) if p > 0 else math.inf

@@ -14,14 +14,12 @@ that noise alone made it).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
-from rig.characterization.offset_noise import Bins, contiguous_bins, fit_bins
+from rig.characterization.offset_noise import Bins, contiguous_bins, fit_bins, joint_z
 
 Array = npt.NDArray[np.float64]
 
@@ -104,7 +102,6 @@ def offset_shifts(t_s: list[Array], offsets_nt: list[Array]) -> list[OffsetShift
         d = np.array([float(f.coef[j]) for f in fits])
         sig = np.array([float(f.sigma[j]) for f in fits])
         chi2 = float(np.sum((d / sig) ** 2))
-        p = float(stats.chi2.sf(chi2, 3))
-        z = float(stats.norm.isf(p / 2.0)) if p > 0 else math.inf
+        z = joint_z(chi2, 3)
         out.append(OffsetShift(tuple(float(v) for v in d), tuple(float(v) for v in sig), z))
     return out

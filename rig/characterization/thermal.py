@@ -23,14 +23,12 @@ hysteresis's sigma, which a white-noise fit put at half the spread of its estima
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
-from rig.characterization.offset_noise import Bins, fit_bins
+from rig.characterization.offset_noise import Bins, fit_bins, joint_z
 
 Array = npt.NDArray[np.float64]
 
@@ -120,8 +118,7 @@ def fit_thermal(time_s: Array, temperature_c: Array, offsets_nt: Array,
         d.append(float(fit.coef[-2]))
         ds.append(float(fit.sigma[-2]))
     chi2 = float(np.sum((np.asarray(h) / np.asarray(hs)) ** 2))
-    p = float(stats.chi2.sf(chi2, 3))
-    z = float(stats.norm.isf(p / 2.0)) if p > 0 else math.inf
+    z = joint_z(chi2, 3)
     return ThermalFit(tuple(h), tuple(hs), tuple(c), tuple(cs), tuple(d), tuple(ds), z, t0,
                       tuple(float(v) for v in t_bin), tuple(int(v) for v in s_bin),
                       tuple(tuple(float(v) for v in r) for r in y_bin),

@@ -21,8 +21,6 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from scipy import stats
-
 from rig.prediction.noise import NoiseFloor
 from rig.prediction.predict import ParameterPrediction
 
@@ -50,6 +48,8 @@ class RunSpread:
 def run_spread(noise: NoiseFloor, samples: int, parameters: int) -> RunSpread:
     """The spread for a fit of ``parameters`` values to ``samples`` three-axis samples under
     ``noise`` (see the module)."""
+    from scipy import stats  # here, not at the top: scipy's import costs every CLI 0.8 s
+
     dof = max(3 * samples - parameters, 1)
     own_low = math.sqrt(stats.chi2.ppf(LOW, dof) / dof)
     own_high = math.sqrt(stats.chi2.ppf(HIGH, dof) / dof)
@@ -75,5 +75,7 @@ def noise_between_runs(runs_nt: Sequence[float]) -> tuple[float, float] | None:
     logs = [math.log(v / rms) for v in values]
     mean = sum(logs) / n
     sd = math.sqrt(sum((x - mean) ** 2 for x in logs) / (n - 1))
+    from scipy import stats
+
     half = float(stats.t.ppf(HIGH, n - 1)) * sd * math.sqrt(1.0 + 1.0 / n)
     return math.exp(mean - half), math.exp(mean + half)
