@@ -30,8 +30,10 @@ sigma is about three times too wide (rms z 0.33-0.36: the walk one record cannot
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -195,10 +197,17 @@ def fit_bins(design: Array, y: Array, bins: Bins, start: OffsetNoise | None = No
     mixtures (the better optimum wins). ValueError when there are no more bins than
     coefficients. The matrices are small: BLAS runs one thread (several thrash on a busy
     machine: 18 times slower beside one other process on 2 cores)."""
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=1, user_api="blas"):
+    with _blas_controller().limit(limits=1, user_api="blas"):
         return _fit_bins(design, y, bins, start)
+
+
+@functools.cache
+def _blas_controller() -> Any:
+    """The process's thread-pool controller, found once (finding the BLAS libraries reads the
+    process's memory map: 5 ms, a tenth of a small fit)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 def _fit_bins(design: Array, y: Array, bins: Bins, start: OffsetNoise | None) -> BinFit:
