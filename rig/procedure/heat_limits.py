@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from drivers.registry import KINDS, output_range
 from rig.config import DeviceConfig, RigConfig
 from rig.procedure.plan import compile_plan, rig_timing
+from rig.steps import KINDS as STEP_KINDS
 from rig.steps.vocabulary import Procedure, Step
 
 TOLERANCE = 1e-9
@@ -109,6 +110,9 @@ def plan_setpoints(proc: Procedure, cfg: RigConfig) -> Iterator[SetPoint]:
             if c.kind == "load":
                 yield SetPoint(t0 + c.t_s, plan.step, str(c.payload["channel"]),
                                float(c.payload["current_a"]))  # fmt: skip
+        # what a step may set only as it runs (a closed loop's rods): its largest, from its start
+        for channel, amps in STEP_KINDS[plan.step.kind].load_envelope_a(plan.step).items():
+            yield SetPoint(t0, plan.step, channel, amps)
         t0 += plan.duration_s
 
 

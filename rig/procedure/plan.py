@@ -189,6 +189,8 @@ class _DryRunWalk:
         for c in plan.commands:
             if c.kind == "load":
                 self._load(s, c.payload["channel"], abs(c.payload["current_a"]))
+        for ch, amps in KINDS[s.kind].load_envelope_a(s).items():
+            self._load(s, ch, amps)
         if KINDS[s.kind].measures_cage_model:  # ... the run measures the ambient it cancels
             self.u = self.given
         self.t += plan.duration_s

@@ -264,6 +264,12 @@ class StepKind:
         worst direction of each coil against the limits. None: only its commands."""
         return None
 
+    def load_envelope_a(self, step: Step) -> dict[str, float]:
+        """The largest current (A) the step may set on each load channel beyond its planned load
+        commands (a closed loop's torque rods, known only as it runs); ``rig check`` checks each
+        against the channel's limit. Empty: only its commands."""
+        return {}
+
     def peak_coil_current_a(self, step: Step) -> float | None:
         """Coil current (A, every axis) the step drives outside its field commands, if any."""
         return None

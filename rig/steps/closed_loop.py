@@ -39,7 +39,7 @@ class ClosedLoop(FieldStepKind):
     result_values = ("detumble_s", "software_detumble_s", "difference_pct", "final_rate_deg_s",
                      "ticks", "late_ticks", "latency_ms.*", "readings", "field_model", "dynamics",
                      "history_file", "software_history_file", "noise_nt", "peak_field_ut",
-                     "until_deg_s", "summary", "flight_software", "flight_computer.*")  # fmt: skip
+                     "until_deg_s", "summary", "flight_software", "flight_computer.*", "torque_rods.*")  # fmt: skip
     params: ClassVar[dict[str, Param]] = {
         "tle": Param("list_str", required=True),
         "start": Param("str", required=True),
@@ -59,6 +59,9 @@ class ClosedLoop(FieldStepKind):
         "magnetometer": Param("str", "dut"),
         "flight_computer": Param("str", ""),
         "reply_timeout_s": Param("float", 0.1, 0.001, 10.0),
+        "torque_rods": Param("list_str", []),
+        "rod_a_per_am2": Param("float", 0.0, 0.0, 1000.0),
+        "rod_bias_a": Param("float", 0.0, 0.0, 1000.0),
     }
     """``inertia_kg_m2``: the principal moments (body axes = cage axes); ``rate_deg_s``: the
     initial body rate; ``gain``: B-dot's (A m^2 per uT/s; 0: full dipole at 1 deg/s in 30 uT);
@@ -67,7 +70,10 @@ class ClosedLoop(FieldStepKind):
     field turns faster than in orbit, the attitude at its own pace); ``noise_nt``: the
     all-software run's magnetometer noise (0: the DUT's from the run's latest null field);
     ``flight_computer``: an external one at ``udp://HOST:PORT`` (docs/hil.md's protocol; its
-    answer awaited ``reply_timeout_s``), empty for the in-process B-dot."""
+    answer awaited ``reply_timeout_s``), empty for the in-process B-dot; ``torque_rods``: the
+    load channels of the x, y and z rods (``none`` for an axis without one), each carrying
+    ``rod_bias_a + dipole * rod_a_per_am2`` (A) so that its stray field reaches the DUT
+    (rig.hil.torque_rods)."""
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
         from rig.steps.orbit import validate_orbit
@@ -82,6 +88,11 @@ class ClosedLoop(FieldStepKind):
                 parse_address(params["flight_computer"])
             except UserInputError as exc:
                 raise ProcedureError(f"{where}: {exc}") from None
+        from rig.hil.torque_rods import rods_problem
+
+        rods = rods_problem(params, loads)
+        if rods is not None:
+            raise ProcedureError(f"{where}: {rods}")
         if params["control_hz"] > params["rate_hz"]:
             raise ProcedureError(f"{where}: control_hz must not exceed rate_hz (the tick rate)")
         if min(params["inertia_kg_m2"]) <= 0:
@@ -100,6 +111,11 @@ class ClosedLoop(FieldStepKind):
         """Any direction in the body may see the orbit's largest field (uT, scaled)."""
         return scenario_of(step.params).peak_field_ut()
 
+    def load_envelope_a(self, step: Step) -> dict[str, float]:
+        """Each rod's load at the rod's largest dipole (A)."""
+        rods = scenario_of(step.params).rods
+        return {} if rods is None else rods.peak_a(float(step.params["max_dipole_am2"]))
+
     def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
         """The starting field (ramped there and settled), the loop itself, its end."""
         try:
@@ -109,7 +125,11 @@ class ClosedLoop(FieldStepKind):
                 f"{step.where}: step {step.index + 1} (closed_loop): {exc}"
             ) from None
         duration = self.duration_s(step, timing)
-        return [Command(0.0, "field", self.field_payload(step, start)),
+        rods = scenario_of(step.params).rods
+        at_rest = [] if rods is None else [
+            Command(0.0, "load", {"channel": ch, "current_a": amps})
+            for ch, amps in rods.currents_a((0.0, 0.0, 0.0)).items()]  # fmt: skip
+        return [Command(0.0, "field", self.field_payload(step, start)), *at_rest,
                 Command(0.0, self.name, {}), Command(duration, "end", {})], duration  # fmt: skip
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
@@ -187,6 +207,7 @@ class ClosedLoopStep(StepExecution):
         self._detach()
         if self.runner.error is not None:
             raise self.runner.error
+        self.runner.rods_off()
 
     def finish(self, t_start: float, t_end: float) -> None:
         result = self.runner.finish(self.ctx.folder, self.step.name)

@@ -22,6 +22,7 @@ from rig.hil.dynamics import Spacecraft
 from rig.hil.external import ExternalFlightComputer
 from rig.hil.flight_software import BDot, FlightSoftware, default_gain
 from rig.hil.loop import Loop, LoopPlan, OrbitField, Tick, percentile_ms, software_only
+from rig.hil.torque_rods import RodLog, TorqueRods, stray_bias_ut
 from rig.steps.base import Array, RunContext
 from rig.steps.null_field import latest_noise_floor
 from rig.steps.vocabulary import Step
@@ -84,6 +85,10 @@ class Scenario:
         dipole = float(self.params["max_dipole_am2"])
         return BDot(float(self.params["gain"]) or default_gain(dipole), dipole)
 
+    @cached_property
+    def rods(self) -> TorqueRods | None:
+        return TorqueRods.of(self.params)
+
     @property
     def software_name(self) -> str:
         address = str(self.params["flight_computer"])
@@ -113,7 +118,10 @@ class LoopRunner:
     def __init__(self, ctx: RunContext, step: Step, dut: str) -> None:
         self.ctx, self.step = ctx, step
         self.scenario = scenario_of(step.params)
-        self.correction = self._correction(ctx, step)
+        self.rods = self.scenario.rods
+        self.rod_log = RodLog()
+        self.rod_a: list[Array] = []  # per tick: the rods' currents over it (A; NaN: no rod)
+        self.correction = self._correction(ctx, step, self.rods)
         self.loop = Loop(self.scenario.craft, self.scenario.plan, self.scenario.orbit,
                          self.scenario.software())  # fmt: skip
         self.detumbled = timebase.Event()
@@ -127,8 +135,10 @@ class LoopRunner:
         self.error: BaseException | None = None
 
     @staticmethod
-    def _correction(ctx: RunContext, step: Step) -> tuple[Array, Array] | None:
-        """(matrix, offset uT) of the run's latest calibration for ``readings: calibrated``."""
+    def _correction(ctx: RunContext, step: Step,
+                    rods: TorqueRods | None) -> tuple[Array, Array, dict[str, Array]] | None:  # fmt: skip
+        """(matrix, offset uT, current-to-bias coefficients uT/A per load channel) of the run's
+        latest calibration for ``readings: calibrated``."""
         if step.params["readings"] != "calibrated":
             return None
         found = latest_calibration(ctx.results)
@@ -137,8 +147,17 @@ class LoopRunner:
                 f"{step.where}: closed_loop with readings: calibrated needs a calibration earlier"
                 " in the run (a calibrate or live_calibrate step), or readings: raw"
             )
-        corr = found[1].correction
-        return np.array(corr["matrix"], float), np.array(corr["offset_ut"], float)
+        name, cal = found
+        k = {ch: np.asarray(v, float) for ch, v in cal.k_ut_per_unit.items()}
+        unfitted = [ch for ch in (rods.used if rods is not None else ()) if ch not in k]
+        if unfitted:
+            raise RigError(
+                f"{step.where}: closed_loop with readings: calibrated and a torque rod on"
+                f" {unfitted[0]} needs a calibration that fitted {unfitted[0]}'s current-to-bias"
+                f" coefficients ('{name}' did not: add it to the calibrate step's telemetry)"
+            )
+        corr = cal.correction
+        return np.array(corr["matrix"], float), np.array(corr["offset_ut"], float), k
 
     def on_sample(self, t: float, xyz: tuple[float, float, float]) -> None:
         """A DUT reading (its sampler's thread): kept for the tick after it."""
@@ -157,13 +176,43 @@ class LoopRunner:
         """The run ended before the step's result: let go of an external flight computer."""
         _close_link(self.loop.software)
 
-    def _body_reading(self, xyz: Array) -> Array:
-        """The DUT's reading as the flight software gets it (uT): corrected when asked, and
-        divided by the field scale (the flight software sees the orbit's field)."""
+    def _body_reading(self, xyz: Array, t_s: float) -> Array:
+        """The DUT's reading dated ``t_s`` (monotonic s) as the flight software gets it (uT):
+        corrected when asked (the loads' bias from their currents then, the rods' as the loop
+        commanded them), and divided by the field scale (the flight software sees the orbit's
+        field)."""
         if self.correction is not None:
-            matrix, offset = self.correction
-            xyz = matrix @ (xyz - offset)
+            matrix, offset, k = self.correction
+            currents = dict(self.ctx.commanded_loads) | self.rod_log.at(t_s)
+            xyz = matrix @ (xyz - offset - stray_bias_ut(k, currents))
         return np.asarray(xyz / self.scenario.scale)
+
+    def _command_rods(self, dipole_am2: Array) -> None:
+        """The rods' currents for the dipole the flight software holds from now."""
+        if self.rods is None:
+            return
+        currents = self.rods.currents_a(dipole_am2)
+        if currents == (self.rod_log.currents_a[-1] if self.rod_log.currents_a else None):
+            return
+        for ch, amps in currents.items():
+            self.ctx.command(self.step.index, "load", {"channel": ch, "current_a": amps},
+                             timebase.monotonic())  # fmt: skip
+        self.rod_log.add(timebase.monotonic(), currents)
+
+    def rods_off(self) -> None:
+        """The step ended: the rods' loads to 0 A (a run that ends otherwise: the safe state)."""
+        if self.rods is None:
+            return
+        for ch in self.rods.used:
+            self.ctx.command(self.step.index, "load", {"channel": ch, "current_a": 0.0},
+                             timebase.monotonic())  # fmt: skip
+
+    def _rod_row(self) -> Array:
+        """The rods' currents now (A) in body-axis order, NaN for an axis without one."""
+        if self.rods is None or not self.rod_log.currents_a:
+            return np.full(3, math.nan)
+        now = self.rod_log.currents_a[-1]
+        return np.array([now[ch] if ch is not None else math.nan for ch in self.rods.channels])
 
     def run(self) -> None:
         """Tick until detumbled, out of time or halted; an exception is kept for wind_down."""
@@ -179,6 +228,8 @@ class LoopRunner:
         t0 = timebase.monotonic()
         with self._lock:  # readings of the ramp to the starting field are not the loop's
             self._pending = [(t, xyz) for t, xyz in self._pending if t >= t0]
+        if self.rods is not None:  # the step's first commands set them at rest
+            self.rod_log.add(t0, self.rods.currents_a(np.zeros(3)))
         held = loop.field_now()  # made by the step's starting command
         newest: float | None = None  # the newest reading handed to the loop (monotonic s)
         while not loop.done and not self._halt.is_set():
@@ -188,10 +239,11 @@ class LoopRunner:
             with self._lock:
                 pending, self._pending = self._pending, []
             for t, xyz in pending:
-                loop.reading(self._body_reading(xyz), t - t0)
+                loop.reading(self._body_reading(xyz, t), t - t0)
                 newest = t if newest is None else max(newest, t)
             tick = loop.advance(held)
             self.ticks.append(tick)
+            self.rod_a.append(self._rod_row())
             held = loop.field_now()
             if self._halt.is_set():  # the run is ending: no command after the halt
                 break
@@ -199,6 +251,7 @@ class LoopRunner:
                              {"field_ut": [float(v) for v in held * self.scenario.scale],
                               "track": True}, timebase.monotonic())  # fmt: skip
             sent = timebase.monotonic()
+            self._command_rods(loop.dipole)  # after the field: its latency is the field's
             # from the newest reading behind a new dipole to the command that carries it
             self.latency_s.append(sent - newest if tick.reading_ut is not None and newest
                                   is not None else math.nan)  # fmt: skip
@@ -230,8 +283,9 @@ class LoopRunner:
         slug = re.sub(r"[^A-Za-z0-9]+", "-", name).strip("-").lower() or "loop"
         files = (f"closed-loop-{slug}.csv", f"closed-loop-{slug}-software.csv")
         latency = self.latency_s
-        _write_ticks(folder / files[0], self.ticks, latency)
-        _write_ticks(folder / files[1], ticks_sw, [math.nan] * len(ticks_sw))
+        _write_ticks(folder / files[0], self.ticks, latency, self.rod_a)
+        _write_ticks(folder / files[1], ticks_sw, [math.nan] * len(ticks_sw),
+                     [np.full(3, math.nan)] * len(ticks_sw))  # fmt: skip
         return _result(self, detumble_sw, noise_nt, latency, files)
 
     def _noise_nt(self) -> float:
@@ -271,17 +325,18 @@ def read_ticks(folder: Path, name: Any) -> dict[str, Array] | None:
     return {"t_s": col["t_s"], "rate_deg_s": rate, "dipole_am2": dipole}
 
 
-def _write_ticks(path: Path, ticks: list[Tick], latency_s: list[float]) -> None:
+def _write_ticks(path: Path, ticks: list[Tick], latency_s: list[float],
+                 rod_a: list[Array]) -> None:  # fmt: skip
     with path.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["t_s", "mrp_1", "mrp_2", "mrp_3", "rate_x_deg_s", "rate_y_deg_s",
                     "rate_z_deg_s", "field_x_ut", "field_y_ut", "field_z_ut", "reading_x_ut",
                     "reading_y_ut", "reading_z_ut", "dipole_x_am2", "dipole_y_am2",
-                    "dipole_z_am2", "latency_ms"])  # fmt: skip
-        for tick, lat in zip(ticks, latency_s, strict=True):
+                    "dipole_z_am2", "latency_ms", "rod_x_a", "rod_y_a", "rod_z_a"])  # fmt: skip
+        for tick, lat, rods in zip(ticks, latency_s, rod_a, strict=True):
             reading = tick.reading_ut if tick.reading_ut is not None else np.full(3, math.nan)
             row = [tick.t_s, *tick.mrp, *tick.rate_deg_s, *tick.field_ut, *reading,
-                   *tick.dipole_am2, lat * 1000.0]  # fmt: skip
+                   *tick.dipole_am2, lat * 1000.0, *rods]  # fmt: skip
             w.writerow(f"{v:.9g}" for v in row)
 
 
@@ -322,5 +377,15 @@ def _result(run: LoopRunner, detumble_sw: float | None, noise_nt: float, latency
         "readings": run.step.params["readings"], "field_model": FIELD_MODEL, "dynamics": DYNAMICS,
         "noise_nt": noise_nt, "peak_field_ut": run.scenario.peak_field_ut(),
         "history_file": files[0], "software_history_file": files[1],
+        "torque_rods": _rods_result(run),
         "summary": f"{said}{late}; latency p99 {p99:.0f} ms",
     }  # fmt: skip
+
+
+def _rods_result(run: LoopRunner) -> dict[str, Any] | None:
+    """The rods as they ran: channels, scale and bias, and how often their currents changed."""
+    rods = run.rods
+    if rods is None:
+        return None
+    return {"channels": [c or "none" for c in rods.channels], "a_per_am2": rods.a_per_am2,
+            "bias_a": rods.bias_a, "changes": max(len(run.rod_log.times_s) - 1, 0)}  # fmt: skip

@@ -19,6 +19,7 @@ from rig.errors import RigError
 from rig.hil.dynamics import Spacecraft
 from rig.hil.flight_software import BDot, default_gain
 from rig.hil.loop import LoopPlan, OrbitField, software_only
+from rig.hil.torque_rods import RodLog, TorqueRods, stray_bias_ut
 from rig.steps import KINDS
 from rig.steps.closed_loop_run import mrp_to_dcm, scenario_of
 from rig.steps.vocabulary import ProcedureError
@@ -238,3 +239,60 @@ def test_only_the_dynamics_module_imports_basilisk_and_a_rig_without_it_says_how
         "the closed loop needs Basilisk, which is not installed: pip install -e '.[hil]'"
         " (Basilisk, the package 'bsk')"
     )
+
+
+RODS = {**LOOP, "torque_rods": ["load_bus", "none", "load_panel"], "rod_a_per_am2": 5.0,
+        "rod_bias_a": 1.0}  # fmt: skip
+LOADS = ("load_bus", "load_panel")
+
+
+def test_rods_on_loads_start_at_their_bias_and_rig_check_meets_their_largest_current() -> None:
+    step = make_step("closed_loop", RODS, loads=LOADS)
+    cmds, _ = compile_step(step)
+    assert [(c.kind, c.payload.get("channel"), c.payload.get("current_a")) for c in cmds[:4]] == [
+        ("field", None, None), ("load", "load_bus", 1.0), ("load", "load_panel", 1.0),
+        ("closed_loop", None, None)]  # fmt: skip
+    assert KINDS["closed_loop"].load_envelope_a(step) == {"load_bus": 2.0, "load_panel": 2.0}
+    assert KINDS["closed_loop"].load_envelope_a(make_step("closed_loop", LOOP)) == {}
+    rods = TorqueRods.of(step.params)
+    assert rods is not None and rods.used == LOADS
+    # x's dipole on load_bus, z's on load_panel; the y rod is not on a load
+    assert rods.currents_a([0.2, -0.1, -0.2]) == {"load_bus": 2.0, "load_panel": 0.0}
+    assert rods.currents_a([-0.05, 0.0, 0.1]) == {"load_bus": 0.75, "load_panel": 1.5}
+
+
+def test_the_rods_currents_are_known_at_each_readings_date_and_their_bias_subtracts() -> None:
+    log = RodLog()
+    assert log.at(5.0) == {}
+    log.add(1.0, {"load_bus": 1.0})
+    log.add(2.0, {"load_bus": 1.5})
+    assert log.at(0.5) == {} and log.at(1.0) == {"load_bus": 1.0}
+    assert log.at(1.99) == {"load_bus": 1.0} and log.at(7.0) == {"load_bus": 1.5}
+    k = {"load_bus": np.array([0.9, -0.3, 0.4]), "load_panel": np.array([0.0, 0.6, 0.0])}
+    assert stray_bias_ut(k, {"load_bus": 2.0}) == pytest.approx([1.8, -0.6, 0.8])
+    assert stray_bias_ut(k, {"load_bus": 1.0, "load_panel": 0.5, "other": 9.0}) == pytest.approx(
+        [0.9, 0.0, 0.4]
+    )
+
+
+@pytest.mark.parametrize(
+    ("change", "says"),
+    [
+        ({"torque_rods": ["load_bus", "load_panel"]}, "three names"),
+        ({"torque_rods": ["none", "none", "none"]}, "names no load channel"),
+        ({"torque_rods": ["load_bus", "load_bus", "none"]}, "names a load channel twice"),
+        ({"torque_rods": ["load_bus", "heater", "none"]}, "'heater' is not one of the procedure's"),
+        ({"rod_a_per_am2": 0.0}, "'rod_a_per_am2' .* must be > 0 with rods"),
+        ({"rod_bias_a": 0.5}, "'rod_bias_a' 0.5 A is below the 1 A a rod's largest dipole"),
+    ],
+)
+def test_rods_refused_with_the_fix(change: dict[str, Any], says: str) -> None:
+    with pytest.raises(ProcedureError, match=says):
+        make_step("closed_loop", {**RODS, **change}, loads=LOADS)
+
+
+def test_calibrated_readings_with_rods_need_their_channels_fitted(tmp_path: Path) -> None:
+    step = make_step("closed_loop", {**RODS, "readings": "calibrated"}, loads=LOADS)
+    ctx = FakeContext(make_procedure(step, loads=LOADS), tmp_path, results=dict(CORRECTION))
+    with pytest.raises(RigError, match="torque rod on load_bus needs a calibration that fitted"):
+        KINDS["closed_loop"].execution(ctx, step)
