@@ -1,21 +1,27 @@
-"""A simulated external flight computer for the closed loop's tests (docs/hil.md): B-dot over UDP,
-in the protocol the rig speaks (CCSDS space packets: readings in, dipoles out), written apart from
-the rig's side so each checks the other.
+"""A simulated external flight computer for the closed loop's tests (docs/hil.md): B-dot over UDP
+or a serial line, in the protocol the rig speaks (CCSDS space packets: readings in, dipoles out;
+on a serial line each after the sync marker 1A CF FC 1D), written apart from the rig's side so
+each checks the other.
 
     python -m sim.flight_computer --port 5005 [--gain 0.38] [--max-dipole 0.2]
+    python -m sim.flight_computer --pty        (prints the serial port to give the rig)
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import socket
 import struct
 import threading
+import tty
 
 import numpy as np
 
 _HEADER = struct.Struct(">HHH")
 READINGS_APID, DIPOLE_APID = 0x0A1, 0x0A2
+SYNC = b"\x1a\xcf\xfc\x1d"
 
 
 class BDotComputer:
@@ -64,6 +70,57 @@ class BDotComputer:
         self.sock.close()
 
 
+class SerialFrontEnd:
+    """The same B-dot on a serial line: the flight computer's end of a pseudo-terminal (its
+    other end, :attr:`port`, is what the rig opens), packets found by their sync marker."""
+
+    def __init__(self, computer: BDotComputer) -> None:
+        self.computer = computer
+        self.fd, follower = os.openpty()
+        tty.setraw(follower)  # bytes as they are: no echo, no line editing on the rig's end
+        self.port = os.ttyname(follower)
+        self._follower = follower
+        self._buf = b""
+        self._thread = threading.Thread(target=self.serve, name="flight-computer-serial",
+                                        daemon=True)  # fmt: skip
+
+    def start(self) -> SerialFrontEnd:
+        self._thread.start()
+        return self
+
+    def serve(self) -> None:
+        while True:
+            try:
+                chunk = os.read(self.fd, 4096)
+            except OSError:
+                return  # closed
+            if not chunk:
+                return
+            self._buf += chunk
+            for packet in self._packets():
+                answer = self.computer._answer(packet)
+                if answer is not None:
+                    os.write(self.fd, SYNC + answer)
+
+    def _packets(self) -> list[bytes]:
+        out = []
+        while (at := self._buf.find(SYNC)) >= 0:
+            head = at + len(SYNC)
+            if len(self._buf) < head + _HEADER.size:
+                break
+            end = head + _HEADER.size + _HEADER.unpack_from(self._buf, head)[2] + 1
+            if len(self._buf) < end:
+                break
+            out.append(self._buf[head:end])
+            self._buf = self._buf[end:]
+        return out
+
+    def close(self) -> None:
+        for fd in (self.fd, self._follower):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="a simulated B-dot flight computer on UDP")
     parser.add_argument(
@@ -79,15 +136,24 @@ def main(argv: list[str] | None = None) -> int:
         default=0.2,
         help="each rod's largest dipole, A m^2 (default 0.2)",
     )
+    parser.add_argument(
+        "--pty",
+        action="store_true",
+        help="answer on a new pseudo-terminal (a serial line) instead of UDP; prints its path",
+    )
     args = parser.parse_args(argv)
     computer = BDotComputer(args.gain, args.max_dipole, args.port, args.host)
-    print(f"flight computer: B-dot on udp://{args.host}:{computer.port}", flush=True)
+    serial = SerialFrontEnd(computer) if args.pty else None
+    where = f"serial://{serial.port}" if serial else f"udp://{args.host}:{computer.port}"
+    print(f"flight computer: B-dot on {where}", flush=True)
     try:
-        computer._serve()
+        serial.serve() if serial else computer._serve()
     except KeyboardInterrupt:
         pass
     finally:
         computer.close()
+        if serial:
+            serial.close()
     return 0
 
 

@@ -1,5 +1,6 @@
 """An external flight computer as the flight software under test: the readings go out and the
-dipoles come back over UDP in the protocol of :mod:`rig.hil.packets` (docs/hil.md).
+dipoles come back over UDP or a serial line (:mod:`rig.hil.links`) in the protocol of
+:mod:`rig.hil.packets` (docs/hil.md).
 
 Each control period the mean reading goes out with the period's number as the sequence count;
 the answer with the same count is awaited for at most ``reply_timeout_s`` (wall clock: the flight
@@ -11,35 +12,24 @@ so a loop with a silent flight computer is flagged, never silently open.
 from __future__ import annotations
 
 import math
-import socket
 import time
-from urllib.parse import urlsplit
 
 import numpy as np
 import numpy.typing as npt
 
-from rig.errors import UserInputError
+from rig.hil.links import parse_address
 from rig.hil.packets import SEQUENCE_MODULUS, PacketError, decode, dipole_of, readings_packet
 
 Array = npt.NDArray[np.float64]
 
 
-def parse_address(text: str) -> tuple[str, int]:
-    """``udp://HOST:PORT`` to (host, port); UserInputError naming the form otherwise."""
-    parts = urlsplit(text)
-    if parts.scheme != "udp" or not parts.hostname or parts.port is None:
-        raise UserInputError(f"flight computer {text!r}: give it as udp://HOST:PORT")
-    return parts.hostname, parts.port
-
-
 class ExternalFlightComputer:
-    """The flight software at ``address`` (``udp://HOST:PORT``)."""
+    """The flight software at ``address`` (``udp://HOST:PORT`` or ``serial:///dev/PORT``)."""
 
     def __init__(self, address: str, reply_timeout_s: float) -> None:
         self.address = parse_address(address)
         self.reply_timeout_s = reply_timeout_s
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.connect(self.address)
+        self.link = self.address.open()
         self.sequence = 0
         self.dipole_am2 = np.zeros(3)
         self.answered = 0
@@ -53,7 +43,7 @@ class ExternalFlightComputer:
         self.sequence += 1
         sent = time.monotonic()
         try:
-            self.sock.send(readings_packet(seq, t_s, (float(field_ut[0]), float(field_ut[1]),
+            self.link.send(readings_packet(seq, t_s, (float(field_ut[0]), float(field_ut[1]),
                                                       float(field_ut[2]))))  # fmt: skip
             answer = self._answer(seq, sent + self.reply_timeout_s)
         except OSError as exc:
@@ -69,12 +59,7 @@ class ExternalFlightComputer:
 
     def _answer(self, seq: int, deadline: float) -> Array | str:
         """The dipoles answering ``seq``, or why there are none (an older answer is passed by)."""
-        while (left := deadline - time.monotonic()) > 0:
-            self.sock.settimeout(left)
-            try:
-                raw = self.sock.recv(2048)
-            except TimeoutError:
-                break
+        while (raw := self.link.receive(deadline)) is not None:
             try:
                 packet = decode(raw)
                 dipole = dipole_of(packet)
@@ -87,4 +72,4 @@ class ExternalFlightComputer:
         return f"no answer within {1000.0 * self.reply_timeout_s:.0f} ms"
 
     def close(self) -> None:
-        self.sock.close()
+        self.link.close()

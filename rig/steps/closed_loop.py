@@ -69,8 +69,9 @@ class ClosedLoop(FieldStepKind):
     (0: it runs ``duration_s``); ``time_scale``: orbit seconds per second of the loop (the orbit's
     field turns faster than in orbit, the attitude at its own pace); ``noise_nt``: the
     all-software run's magnetometer noise (0: the DUT's from the run's latest null field);
-    ``flight_computer``: an external one at ``udp://HOST:PORT`` (docs/hil.md's protocol; its
-    answer awaited ``reply_timeout_s``), empty for the in-process B-dot; ``torque_rods``: the
+    ``flight_computer``: an external one at ``udp://HOST:PORT`` or
+    ``serial:///dev/PORT[?baud=N]`` (docs/hil.md's protocol; its answer awaited
+    ``reply_timeout_s``), empty for the in-process B-dot; ``torque_rods``: the
     load channels of the x, y and z rods (``none`` for an axis without one), each carrying
     ``rod_bias_a + dipole * rod_a_per_am2`` (A) so that its stray field reaches the DUT
     (rig.hil.torque_rods)."""
@@ -82,7 +83,7 @@ class ClosedLoop(FieldStepKind):
         if problem is not None:
             raise ProcedureError(problem)
         if params["flight_computer"]:
-            from rig.hil.external import parse_address
+            from rig.hil.links import parse_address
 
             try:
                 parse_address(params["flight_computer"])

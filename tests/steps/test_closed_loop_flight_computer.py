@@ -1,7 +1,9 @@
-"""The closed loop with an external flight computer over UDP (issue 56): the protocol's packets
-(CCSDS space packets, docs/hil.md) both ways, the simulated B-dot flight computer of ``sim/``
-(written apart from the rig's side) detumbling the same spacecraft as the in-process B-dot, and a
-silent or garbled flight computer counted and said, the rods holding their last dipoles."""
+"""The closed loop with an external flight computer over UDP or a serial line (issue 56): the
+protocol's packets (CCSDS space packets, docs/hil.md) both ways, on a serial line each after the
+sync marker and found again after garbage, the simulated B-dot flight computer of ``sim/``
+(written apart from the rig's side) detumbling the same spacecraft as the in-process B-dot over
+either, and a silent or garbled flight computer counted and said, the rods holding their last
+dipoles."""
 
 from __future__ import annotations
 
@@ -13,11 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.hil.external import ExternalFlightComputer, parse_address
+from rig.errors import UserInputError
+from rig.hil.external import ExternalFlightComputer
 from rig.hil.flight_software import default_gain
+from rig.hil.links import SYNC_MARKER, Address, SerialLink, parse_address
 from rig.hil.packets import DIPOLE_APID, PacketError, decode, dipole_of, encode, readings_packet
 from rig.steps.vocabulary import ProcedureError
-from sim.flight_computer import BDotComputer
+from sim.flight_computer import BDotComputer, SerialFrontEnd
 from tests.steps.fake_context import make_step
 from tests.steps.test_closed_loop_step import LOOP, closed_loop_on_a_perfect_cage
 
@@ -40,9 +44,19 @@ def test_packets_round_trip_and_refuse_what_is_not_one() -> None:
 
 
 def test_an_address_that_is_not_udp_is_refused_when_the_procedure_is_read() -> None:
-    assert parse_address("udp://127.0.0.1:5005") == ("127.0.0.1", 5005)
-    with pytest.raises(ProcedureError, match="give it as udp://HOST:PORT"):
-        make_step("closed_loop", {**LOOP, "flight_computer": "tcp://127.0.0.1:5005"})
+    assert parse_address("udp://127.0.0.1:5005") == Address("udp", "127.0.0.1", 5005)
+    assert parse_address("serial:///dev/ttyUSB0") == Address("serial", "/dev/ttyUSB0", 115200)
+    assert parse_address("serial:///dev/ttyS1?baud=9600") == Address("serial", "/dev/ttyS1", 9600)
+    for bad in ("tcp://127.0.0.1:5005", "serial://dev/ttyUSB0", "serial:///dev/ttyS1?baud=fast",
+                "serial:///dev/ttyS1?speed=9600", "udp://127.0.0.1"):  # fmt: skip
+        with pytest.raises(
+            ProcedureError, match="give it as udp://HOST:PORT or serial:///dev/PORT"
+        ):
+            make_step("closed_loop", {**LOOP, "flight_computer": bad})
+    with pytest.raises(
+        UserInputError, match=r"cannot open it .* check the cable and the port name"
+    ):
+        ExternalFlightComputer("serial:///dev/no-such-port", 0.1)
 
 
 def test_the_simulated_flight_computer_detumbles_the_same_spacecraft(tmp_path: Path) -> None:
@@ -93,3 +107,80 @@ def test_a_silent_or_garbled_flight_computer_is_counted_and_the_rods_hold() -> N
     assert garbled == pytest.approx(first) and silent == pytest.approx(first)  # the rods hold
     assert (fc.answered, fc.missed) == (1, 2)
     assert fc.problem is not None and fc.problem.startswith("a packet that is not a dipole packet")
+
+
+def test_the_simulated_flight_computer_on_a_serial_line_detumbles_the_same_spacecraft(
+    tmp_path: Path,
+) -> None:
+    """The flight computer on a pseudo-terminal (as on a USB serial adapter): the rig's end opens
+    it as a serial port, each packet after the sync marker."""
+    front = SerialFrontEnd(BDotComputer(default_gain(0.2), 0.2)).start()
+    try:
+        body = {**LOOP, "flight_computer": f"serial://{front.port}", "reply_timeout_s": 5.0}
+        serial = closed_loop_on_a_perfect_cage(tmp_path / "serial", body, lambda b: b)
+    finally:
+        front.close()
+    inside = closed_loop_on_a_perfect_cage(tmp_path / "inside", LOOP, lambda b: b)
+    link = serial["flight_computer"]
+    assert link["missed"] == 0 and link["answered"] > 100, link
+    assert serial["flight_software"] == f"external flight computer at serial://{front.port}"
+    assert serial["detumble_s"] == pytest.approx(inside["detumble_s"], rel=0.05)
+    print(f"serial flight computer: {serial['summary']}; round trip p99"
+          f" {link['round_trip_ms_p99']:.2f} ms")  # fmt: skip
+
+
+def test_a_serial_line_finds_each_packet_after_garbage_and_split_reads() -> None:
+    """Bytes lost or garbled on the line cost only the packets they touch: the receiver hunts
+    for the marker, passes over a false marker whose length no packet has, and joins a packet
+    that arrives in pieces."""
+    import os
+    import tty
+
+    leader, follower = os.openpty()
+    tty.setraw(follower)
+    link = SerialLink(Address("serial", os.ttyname(follower), 115200))
+    try:
+        good = encode(1, DIPOLE_APID, 7, struct.pack(">3d", 0.1, -0.2, 0.05))
+        false_marker = SYNC_MARKER + b"\x10\xa2\xc0\x07\xff\xff"  # 65536 bytes: no packet of ours
+        os.write(leader, b"\x00noise" + false_marker + SYNC_MARKER + good[:10])
+        import time
+
+        assert link.receive(time.monotonic() + 0.2) is None  # not all there yet
+        os.write(leader, good[10:] + b"\x1a\xcf" + SYNC_MARKER + good)
+        first = link.receive(time.monotonic() + 2.0)
+        second = link.receive(time.monotonic() + 2.0)
+        assert first == good and second == good
+        assert dipole_of(decode(first)) == (0.1, -0.2, 0.05)
+        assert link.skipped == len(b"\x00noise") + len(false_marker) + 2
+        link.send(good)
+        assert os.read(leader, 100) == SYNC_MARKER + good
+    finally:
+        link.close()
+        os.close(leader)
+        os.close(follower)
+
+
+@pytest.mark.parametrize("how", [["--port", "0"], ["--pty"]])
+def test_the_documented_flight_computer_commands_answer_a_readings_packet(how: list[str]) -> None:
+    """docs/hil.md's ``python -m sim.flight_computer --port 5005`` (here any free port) and
+    ``--pty``: each prints where it answers, and answers two readings with B-dot's dipoles."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "sim.flight_computer", *how],
+                            stdout=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        said = proc.stdout.readline().strip()
+        assert said.startswith("flight computer: B-dot on "), said
+        fc = ExternalFlightComputer(said.rsplit(" ", 1)[1], reply_timeout_s=10.0)
+        try:
+            fc.dipole(np.array([30.0, 0.0, 0.0]), 0.5)
+            second = fc.dipole(np.array([30.0, 1.0, 0.0]), 1.0)  # 2 uT/s along y
+        finally:
+            fc.close()
+        assert (fc.answered, fc.missed) == (2, 0)
+        assert second == pytest.approx([0.0, -0.2, 0.0])  # clipped at the 0.2 A m^2 default
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
