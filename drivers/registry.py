@@ -358,11 +358,6 @@ def register(kind: DeviceKind) -> DeviceKind:
     return KINDS[kind.name]
 
 
-def get_kind(name: str) -> DeviceKind:
-    """A registered kind by name (KeyError if there is none)."""
-    return KINDS[name]
-
-
 def kinds_with_role(role: Role) -> list[str]:
     """Names of the kinds that can play ``role``."""
     return [k.name for k in KINDS.values() if role in k.roles]

@@ -35,7 +35,6 @@ class AsciiMagnetometer:
         self.rate_hz = rate_hz
         self.baudrate = baudrate
         self.line_format = line_format
-        self.lines_sent = 0
         self.line = open_line(name, baudrate)
         self._rng = random.Random(seed)
         self._stop = timebase.Event()
@@ -58,9 +57,8 @@ class AsciiMagnetometer:
                 continue  # (nobody listening: no reading to make; simulated time runs faster)
             x, y, z = (float(v) for v in self.read_ut(sample_t))
             line = self.line_format.format(x=x, y=y, z=z, t=sample_t - self._t0) + "\n"
-            if send_paced(self.line, line.encode("ascii"), self.faults, self._rng, self.baudrate,
-                          self._stop):  # fmt: skip
-                self.lines_sent += 1
+            send_paced(self.line, line.encode("ascii"), self.faults, self._rng, self.baudrate,
+                       self._stop)  # fmt: skip
 
     def close(self) -> None:
         """Stop streaming and close the line."""

@@ -222,7 +222,6 @@ class SimI2CBus:
     def __init__(self) -> None:
         self.devices: dict[int, BusDevice] = {}
         self._lock = timebase.Lock()
-        self.transfers = 0
 
     def attach(self, device: BusDevice) -> None:
         """Put a device on the bus at its address."""
@@ -237,7 +236,6 @@ class SimI2CBus:
     def i2c_rdwr(self, *msgs: Any) -> None:
         """Combined transfer: a register-address write, then reads or more writes."""
         with self._lock:
-            self.transfers += 1
             pointer: int | None = None
             for msg in msgs:
                 dev = self._device(int(msg.addr))

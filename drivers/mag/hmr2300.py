@@ -191,10 +191,6 @@ class Hmr2300:
         self._protected(f"R={sps}", "OK")
         self.rate_sps = sps
 
-    def set_averaging(self, on: bool) -> None:
-        """The device's IIR average."""
-        self._protected("VN" if on else "VF", "AVG ON" if on else "AVG OFF")
-
     def set_reset_auto(self, on: bool) -> None:
         """Automatic set/reset pulses (S/R mode: on by default, clearing perming as the sensor
         reads); off, a strong field's perming stays until :meth:`set_reset_pulse`."""

@@ -51,12 +51,6 @@ class Springmann:
             [self.a, self.b, self.c, self.x0, self.y0, self.z0, self.rho, self.phi, self.lam]
         )
 
-    @staticmethod
-    def from_vector(v: npt.ArrayLike) -> Springmann:
-        """Inverse of :meth:`as_vector`."""
-        a, b, c, x0, y0, z0, rho, phi, lam = (float(x) for x in np.asarray(v, dtype=float))
-        return Springmann(a, b, c, x0, y0, z0, rho, phi, lam)
-
     @property
     def offset_ut(self) -> Array:
         """The offset vector ``o`` (uT)."""

@@ -226,11 +226,6 @@ def _read_yaml(path: Path) -> tuple[str, dict[str, Any], dict[int, dict[Any, int
     return text, data, loader.key_lines
 
 
-def load_yaml(path: Path) -> dict[str, Any]:
-    """Parse with line numbers, within the limits; YAML syntax errors cite the line."""
-    return _read_yaml(path)[1]
-
-
 def _label(keys: list[Any]) -> str:
     """Where a value sits, as the guide names it: ``step 2 (hold): 'hold_s'``."""
 
@@ -590,7 +585,7 @@ def _parse_step(
         raise ProcedureError(
             f"{where}: the step's name {shown(name)} (parameters substituted) {problem}"
         )
-    return Step(i, kind, name, params, step_loads, Where(str(path), line), loads)
+    return Step(i, kind, name, params, step_loads, Where(str(path), line))
 
 
 def _step_kind(raw: dict[str, Any], where: str) -> str:

@@ -55,11 +55,3 @@ def limit_text(row: CriterionResult) -> tuple[str, str, str]:
     if row.uncertainty is None:
         return f"{row.value:.4g}{u}", limits, margin
     return f"{row.value:.6g} +- {row.uncertainty:.2g}{u} (k=2)", limits, f"{margin} after U"
-
-
-def criterion_line(row: CriterionResult) -> str:
-    """One criterion as a line: verdict, name, value with unit, limits, margin."""
-    if row.value is None:
-        return f"{row.verdict:<4}  {row.name}: {row.reason}"
-    value, limits, margin = limit_text(row)
-    return f"{row.verdict:<4}  {row.name}: {value} ({limits}; margin {margin})"

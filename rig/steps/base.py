@@ -303,10 +303,6 @@ class StepKind:
         does, from its summary."""
         return f"{(self.summary.split(':')[0] or self.name)} (step {index + 1})"
 
-    live_panel: ClassVar[str] = ""
-    """The live page's panel for this kind's values (``live_sources``), e.g. ``calibration``;
-    the page draws the panel a running step's values name, never a kind by name."""
-
 
 class FieldStepKind(StepKind):
     """A step that sets fields at planned times, with load profiles running meanwhile."""

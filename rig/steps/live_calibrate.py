@@ -14,7 +14,7 @@ from rig.calibration.record import CALIBRATION_VALUES
 from rig.errors import RigError
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.geometry import sphere_fields
-from rig.steps.live_calibration import LIVE_PANEL, LiveCalibration
+from rig.steps.live_calibration import LiveCalibration
 from rig.steps.null_field import latest_noise_floor
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
@@ -33,7 +33,6 @@ class LiveCalibrate(FieldStepKind):
     name = "live_calibrate"
     summary = "sweep while a sequential filter calibrates; stop when the target sigmas are met"
     result_values = (*CALIBRATION_VALUES, "live.*", "filter.*")
-    live_panel = LIVE_PANEL
     params: ClassVar[dict[str, Param]] = {
         "method": Param("str", "ukf", choices=method_names(kind="sequential")),
         "telemetry": Param("list_str", []),

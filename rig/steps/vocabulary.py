@@ -118,7 +118,6 @@ class Step:
     params: dict[str, Any]
     loads: dict[str, tuple[str, dict[str, Any]]]
     where: Where
-    loads_allowed: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

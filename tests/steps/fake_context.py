@@ -46,7 +46,6 @@ def make_step(
         params,
         step_loads or {},
         Where("test.yaml", 1),
-        loads,
     )
 
 

@@ -174,17 +174,10 @@ def _telemetry_products(u: Array, out: Array | None = None) -> Array:
     return out
 
 
-def independent_columns(x: Array, rel_tol: float = 1e-9) -> Array:
-    """Indices of a maximal linearly independent subset of the columns of ``x``, in order.
-
-    Greedy Gram-Schmidt on the (small) Gram matrix: a column is kept when its part orthogonal to
-    the kept ones carries more than ``rel_tol`` of its own norm squared.
-    """
-    return independent_from_gram(x.T @ x, rel_tol)
-
-
 def independent_from_gram(gram: Array, rel_tol: float = 1e-9) -> Array:
-    """:func:`independent_columns` given the Gram (information) matrix ``X^T X`` itself.
+    """Indices of a maximal linearly independent subset of the columns of ``X``, in order, from
+    their Gram (information) matrix ``X^T X``: a column is kept when its part orthogonal to the
+    kept ones carries more than ``rel_tol`` of its own norm squared.
 
     Left-looking Cholesky in column order that skips a column whose pivot (the squared norm of
     its part orthogonal to the kept ones, the Schur complement) is below ``rel_tol`` of its own

@@ -20,7 +20,6 @@ if TYPE_CHECKING:
     from rig.calibration.sequential.zmodel import ZModel, ZSample
 
 Variant = Literal["energy", "paper", "paper-augmented"]
-VARIANTS: tuple[Variant, ...] = ("energy", "paper", "paper-augmented")
 Backend = Literal["numpy", "filterpy"]
 
 
