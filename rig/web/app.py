@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, BinaryIO
 from urllib.parse import quote
 
+import jinja2
 from starlette.applications import Starlette
 from starlette.background import BackgroundTask
 from starlette.requests import Request
@@ -122,6 +123,8 @@ class Site:
         self.csrf_secret = csrf_secret
         self.lab_url = lab_url
         self.templates = Jinja2Templates(directory=str(HERE / "templates"))
+        # a name a template reads and the page does not give is an error, not an empty cell
+        self.templates.env.undefined = jinja2.StrictUndefined
         self.templates.env.filters["seg"] = segment
 
     def page(self, request: Request, name: str, status: int = 200, **context: Any) -> Response:
