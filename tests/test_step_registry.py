@@ -45,3 +45,18 @@ def test_field_kinds_are_those_that_take_loads() -> None:
         "linearity",
     } <= field_kinds()
     assert not {"prompt", "calibrate", "check", "report", "characterize_cage"} & field_kinds()
+
+
+def test_every_module_that_defines_a_kind_is_registered_and_named_once() -> None:
+    """A step module whose registry line is forgotten is named with the fix (before: a bare
+    KeyError in a test fake); the registry names each module once."""
+    from rig.steps import STEP_MODULES
+
+    defining = sorted(p.stem for p in (ROOT / "rig/steps").glob("*.py")
+                      if re.search(r"^KIND = ", p.read_text(), re.MULTILINE))  # fmt: skip
+    missing = [f"rig/steps/{m}.py" for m in defining if m not in STEP_MODULES]
+    assert not missing, (
+        f"{', '.join(missing)} defines a step kind (KIND) that is not registered: add its module"
+        " name to STEP_MODULES in rig/steps/__init__.py"
+    )
+    assert len(set(STEP_MODULES)) == len(STEP_MODULES) == len(KINDS) == len(defining)
