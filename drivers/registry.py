@@ -39,10 +39,10 @@ from drivers.psu.regmap_device import (
 )
 from drivers.psu.riden import MODELS as RIDEN_MODELS
 from drivers.psu.riden import RidenSupply, riden_model
-from drivers.regmap import RegisterMap, load_map, shipped_maps
 from drivers.transport.i2c import I2CDevice
 from drivers.transport.modbus import ModbusLink
 from drivers.transport.serial_port import SerialPort
+from regmaps import RegisterMap, load_map, shipped_maps
 
 Role = Literal["supply", "load", "relay", "magnetometer", "scalar", "thermometer"]
 OUTPUT_ROLES: frozenset[Role] = frozenset({"supply", "load", "relay"})

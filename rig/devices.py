@@ -19,7 +19,7 @@ from drivers.protocols import (
     Thermometer,
 )
 from drivers.registry import KINDS, OpenSpec, Role
-from drivers.regmap import RegisterMapError
+from regmaps import RegisterMapError
 from rig.cage.controller import AxisDrive, CageController
 from rig.cage.limits import CageLimits
 from rig.config import DeviceConfig, RigConfig

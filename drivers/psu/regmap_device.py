@@ -16,8 +16,8 @@ from drivers.errors import (
 from drivers.identity import Identity
 from drivers.protection import asked_levels, check_read_back
 from drivers.protocols import ProtectionLevel, SupplyReading
-from drivers.regmap import Register, RegisterMap, RegisterMapError
 from drivers.transport.modbus import ModbusLink
+from regmaps import Register, RegisterMap, RegisterMapError
 
 
 class MappedDevice:

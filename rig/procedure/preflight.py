@@ -17,7 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.regmap import RegisterMapError, load_map
+from regmaps import RegisterMapError, load_map
 from rig.config import RigConfig
 from rig.errors import UserInputError
 from rig.output_limits import cage_model, refuse_cage_devices_as_loads

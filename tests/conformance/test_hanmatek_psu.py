@@ -19,8 +19,8 @@ import pytest
 hanmatek = pytest.importorskip("hanmatek", reason="hanmatek-psu is a dev dependency")
 
 from drivers.psu.regmap_device import MappedSupply  # noqa: E402
-from drivers.regmap import load_map  # noqa: E402
 from drivers.transport.modbus import ModbusLink  # noqa: E402
+from regmaps import load_map  # noqa: E402
 from sim.cage import SimulatedCage  # noqa: E402
 from tests.conformance.simcage import cage_with, endpoint  # noqa: E402
 

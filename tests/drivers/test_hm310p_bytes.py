@@ -11,8 +11,8 @@ import pytest
 
 from drivers.errors import DeviceNotFoundError, LimitError
 from drivers.psu.regmap_device import MappedSupply
-from drivers.regmap import load_map
 from drivers.transport.modbus import ModbusLink
+from regmaps import load_map
 from tests.drivers.scripted import Exchange, ScriptedSerialPeer, rtu
 
 

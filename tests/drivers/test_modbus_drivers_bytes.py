@@ -14,8 +14,8 @@ from drivers.errors import (
 )
 from drivers.psu.regmap_device import MappedSupply, PolarityRelay
 from drivers.psu.riden import RidenSupply
-from drivers.regmap import load_map
 from drivers.transport.modbus import GARBLED_EXTRA_ATTEMPTS, ModbusLink
+from regmaps import load_map
 from tests.drivers.scripted import Exchange, ScriptedSerialPeer, ScriptedTcpPeer, crc16, rtu
 
 MODEL_RD6006P = rtu("01 03 02 EA A1")  # 60065

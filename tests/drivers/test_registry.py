@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from drivers.registry import KINDS, TRANSPORTS, all_params, kinds_with_role, output_kinds
-from drivers.regmap import shipped_maps
+from regmaps import shipped_maps
 from rig.config import DEVICE_KINDS, load_rig_config
 from rig.engine.guardian import OUTPUT_KINDS
 from rig.errors import UserInputError

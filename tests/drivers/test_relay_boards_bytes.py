@@ -9,8 +9,8 @@ import pytest
 
 from drivers.errors import DeviceStateError
 from drivers.psu.regmap_device import PolarityRelay
-from drivers.regmap import load_map
 from drivers.transport.modbus import ModbusLink
+from regmaps import load_map
 from tests.drivers.scripted import Exchange, ScriptedSerialPeer, rtu
 
 

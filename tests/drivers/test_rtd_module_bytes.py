@@ -8,8 +8,8 @@ import pytest
 
 from drivers.errors import DeviceProtocolError
 from drivers.psu.regmap_device import MappedThermometer
-from drivers.regmap import RegisterMapError, load_map
 from drivers.transport.modbus import ModbusLink
+from regmaps import RegisterMapError, load_map
 from tests.drivers.scripted import Exchange, ScriptedSerialPeer, rtu
 
 

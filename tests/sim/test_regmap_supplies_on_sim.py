@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.regmap import shipped_maps
+from regmaps import shipped_maps
 from rig.config import load_rig_config
 from rig.devices import build_cage, open_load
 from sim.cage import SimulatedCage
