@@ -12,7 +12,7 @@ from rig.calibration.forecast import SigmaForecast, forecast_stop
 from rig.calibration.residuals import Samples
 from rig.calibration.synthetic import cage_like
 from rig.calibration.targets import group_sigmas
-from rig.prediction.live import filter_forecast
+from rig.prediction.live_calibrate_stop import filter_forecast
 
 
 def falling(noise_nt: float = 20.0) -> SigmaForecast:

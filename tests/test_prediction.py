@@ -250,7 +250,7 @@ steps:
 
 
 def test_the_live_calibration_is_predicted_to_stop_when_its_targets_are_met(tmp_path: Path) -> None:
-    from rig.prediction.live import predict_live
+    from rig.prediction.live_calibrate_stop import predict_live
 
     path = tmp_path / "live.yaml"
     path.write_text(LIVE.format(bias=30))
@@ -280,7 +280,7 @@ def test_a_live_step_is_predicted_over_the_noises_earlier_runs_gave_their_filter
     before a load level leaves its coefficients far less known): over 200 simulated runs the
     prediction at the runs' rms noise put 6 values 21-29 % below what the runs reported; over
     the noises of 5 earlier runs all 33 came within 0.84-1.09 (bench/bench_prediction.py)."""
-    from rig.prediction.live import predict_live
+    from rig.prediction.live_calibrate_stop import predict_live
     from rig.prediction.noise import pooled
 
     path = tmp_path / "live.yaml"

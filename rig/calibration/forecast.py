@@ -1,7 +1,7 @@
 """A live calibration's sigmas forecast over its samples, and when its targets will be met.
 
 The forecast is the step's own sequential filter run over the samples its plan will give it
-(:mod:`rig.prediction.live`): each target group's 1-sigma after so many filter updates. During
+(:mod:`rig.prediction.live_calibrate_stop`): each target group's 1-sigma after so many filter updates. During
 the run the filter's sigmas are compared with the forecast at the same number of updates; their
 ratio (how much noisier or quieter this run is than planned, per group) carries the rest of the
 forecast forward, and the first update count at which every scaled group meets its target is the

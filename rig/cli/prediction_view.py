@@ -52,7 +52,7 @@ def run_prediction(procedure: str, rig_config: Path | None, sets: list[str], run
 
 
 def _print_live(live: object) -> None:
-    from rig.prediction.live import LivePrediction
+    from rig.prediction.live_calibrate_stop import LivePrediction
 
     assert isinstance(live, LivePrediction)
     if live.problem is not None:

@@ -16,7 +16,7 @@ from types import FrameType
 from typing import Any
 
 import timebase
-from rig.engine.live_state import LivePublisher
+from rig.engine.page_feed import LivePublisher
 from rig.engine.run_tracker import RunTracker
 from rig.engine.session import RigSession
 from rig.errors import RigError, RunAborted

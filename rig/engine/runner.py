@@ -33,9 +33,8 @@ from rig.engine.commands import Commands, LoadBook
 from rig.engine.field_guard import guard_the_field
 from rig.engine.health import HealthMonitor, closed_by_other_line
 from rig.engine.interlock import RigLock
-from rig.engine.live import LiveView
-from rig.engine.live_state import LivePublisher
 from rig.engine.operator_channel import Confirm, OperatorChannel, install_signals, restore_signals
+from rig.engine.page_feed import LivePublisher
 from rig.engine.recording import (
     LAB_TIMEOUT_S as LAB_TIMEOUT_S,
 )
@@ -59,6 +58,7 @@ from rig.engine.run_tracker import RunTracker
 from rig.engine.sampling import SensorSampler
 from rig.engine.schedule import StepScheduler
 from rig.engine.session import RigSession
+from rig.engine.terminal_view import LiveView
 from rig.errors import RigError, RunAborted
 from rig.lab.url import resolve_url
 from rig.procedure.language import Procedure
@@ -358,9 +358,9 @@ class Runner:
         return self.rig.scalar_magnetometer(name)
 
     def live_forecast(self, step: Step, noise_nt: float) -> Any:
-        """A live step's sigmas forecast from its plan (rig.prediction.live); None when its plan
+        """A live step's sigmas forecast from its plan (rig.prediction.live_calibrate_stop); None when its plan
         cannot be fitted."""
-        from rig.prediction.live import live_forecast
+        from rig.prediction.live_calibrate_stop import live_forecast
 
         return live_forecast(self.proc, step, self.cfg, self.runs_dir, noise_nt, self.results)
 

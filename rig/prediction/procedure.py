@@ -16,7 +16,7 @@ from rig.calibration.budget import CageTerms
 from rig.config import RigConfig
 from rig.prediction.background import Background, background_field
 from rig.prediction.duration import PredictedDuration, predicted_duration
-from rig.prediction.live import LivePrediction, predict_live
+from rig.prediction.live_calibrate_stop import LivePrediction, predict_live
 from rig.prediction.noise import NoiseFloor, noise_floor, rest_floor
 from rig.prediction.planned import dut_rate_hz, planned_data
 from rig.prediction.predict import StepPrediction, pooled_steps, predict_step

@@ -82,7 +82,7 @@ class RunContext(Protocol):
 
     def live_forecast(self, step: Step, noise_nt: float) -> SigmaForecast | None:
         """A live calibration step's sigmas forecast from its plan at the filter's noise
-        ``noise_nt`` (nT; rig.prediction.live); None when its plan cannot be fitted."""
+        ``noise_nt`` (nT; rig.prediction.live_calibrate_stop); None when its plan cannot be fitted."""
         ...
 
     def ask_operator(self, text: str) -> bool: ...

@@ -1,5 +1,5 @@
 """``live_calibrate``: sweep random fields while a sequential filter calibrates the DUT from every
-settled sample; stop as soon as each target 1-sigma is met (see rig.steps.live_calibration)."""
+settled sample; stop as soon as each target 1-sigma is met (see rig.steps.live_calibrate_run)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from rig.calibration.record import CALIBRATION_VALUES
 from rig.errors import RigError
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
 from rig.steps.geometry import sphere_fields
-from rig.steps.live_calibration import LiveCalibration
+from rig.steps.live_calibrate_run import LiveCalibration
 from rig.steps.null_field import latest_noise_floor
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,

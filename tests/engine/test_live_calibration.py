@@ -11,7 +11,7 @@ import pytest
 
 from rig.calibration.params import Calibration
 from rig.calibration.synthetic import cage_like
-from rig.steps.live_calibration import LiveCalibration
+from rig.steps.live_calibrate_run import LiveCalibration
 
 NOISE_UT = 0.03
 RATE_HZ = 20.0

@@ -6,7 +6,7 @@ thread of its own (the samplers never wait for it). Twice a second of sample tim
 1-sigma of each target group is worked out; once every target is met (and ``min_s`` has passed)
 the step is told to stop. The history of estimates and sigmas goes to a CSV in the run folder for
 the report's convergence plot. When the step's forecast (its plan's sigmas, from the engine:
-rig.prediction.live) is there, every evaluation also says when the targets will be met
+rig.prediction.live_calibrate_stop) is there, every evaluation also says when the targets will be met
 (:func:`rig.calibration.forecast.forecast_stop`): in the status line, on the page, in the CSV.
 """
 

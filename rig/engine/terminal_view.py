@@ -12,7 +12,7 @@ import threading
 import numpy as np
 
 import timebase
-from rig.engine.live_state import LiveRun
+from rig.engine.page_feed import LiveRun
 
 
 def _fmt_s(seconds: float) -> str:

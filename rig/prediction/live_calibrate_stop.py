@@ -154,7 +154,7 @@ def planned_live(proc: Procedure, step: Step, timing: RigTiming, dut_rate_hz: fl
     p = step.params
     channels = tuple(str(c) for c in p.get("telemetry") or ())
     plan = compile_step(step, proc.path.parent, timing)
-    # the step's own rule (rig.steps.live_calibration): a DUT sample counts from settle_s after a
+    # the step's own rule (rig.steps.live_calibrate_run): a DUT sample counts from settle_s after a
     # change until the next one starts, once a settled reference sample has come to pair it with
     # (half a reference period later on average); no window before a change, as a batch fit has
     settle_s = float(p["settle_s"]) + PAIRING_PERIODS / timing.reference_rate_hz
