@@ -227,10 +227,6 @@ class CageController:
             return lim.step_s
         return max(0.0, -lim.coil_tau_s * math.log1p(-fraction) - elapsed_s)
 
-    def null_field(self) -> Array:
-        """Cancel the ambient field (target 0 uT)."""
-        return self.set_field(np.zeros(3))
-
     def safe(self, relays: bool = True) -> list[str]:
         """Ramp to zero if possible, then every output off, then (``relays``) the polarity relays
         to normal once their coils have decayed; never raises. Returns problems seen."""

@@ -14,9 +14,9 @@ import pytest
 import rig.web.app as web_app
 
 
-def runs_page(site_dir: Path, runs: Path) -> tuple[int, str]:
-    """The runs page served from the templates under ``site_dir`` (the application in this
-    process, over httpx's ASGI transport)."""
+def runs_page(runs: Path) -> tuple[int, str]:
+    """The runs page (the application in this process, over httpx's ASGI transport), from the
+    templates where ``rig.web.app.HERE`` points."""
     app = web_app.create_app(runs, access_token="t")
 
     async def get() -> httpx.Response:
@@ -37,9 +37,9 @@ def test_a_name_the_page_does_not_give_is_an_error_not_an_empty_cell(
     runs = tmp_path / "runs"
     runs.mkdir()
     monkeypatch.setattr(web_app, "HERE", site)
-    status, body = runs_page(site, runs)
+    status, body = runs_page(runs)
     assert status == 200 and str(runs) in body
     page = site / "templates" / "runs.html"
     page.write_text(page.read_text().replace("{{ runs_dir }}", "{{ run_dir }}", 1))
-    status, body = runs_page(site, runs)
+    status, body = runs_page(runs)
     assert status == 500 and "UndefinedError" in body and "'run_dir' is undefined" in body, body
