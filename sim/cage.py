@@ -32,10 +32,10 @@ import timebase
 from sim.config import EndpointConfig, SimConfig
 from sim.device_kind import SerialDevice
 from sim.device_kinds import sim_kind
+from sim.i2c_bus import BusDevice, SimI2CBus
 from sim.modbus_devices import regmap_device, unserved_ids
 from sim.physics import CagePhysics, Faults
 from sim.regmap import load_regmap
-from sim.rm3100 import BusDevice, SimI2CBus
 
 
 class ModbusHost(Protocol):

@@ -17,8 +17,8 @@ if TYPE_CHECKING:
     from pymodbus.simulator import SimDevice
 
     from sim.config import EndpointConfig, SimConfig
+    from sim.i2c_bus import BusDevice, SimI2CBus
     from sim.physics import CagePhysics, Faults
-    from sim.rm3100 import BusDevice, SimI2CBus
 
 
 class SerialDevice(Protocol):

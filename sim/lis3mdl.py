@@ -1,4 +1,4 @@
-"""ST LIS3MDL at register level on the simulated I2C bus (:class:`sim.rm3100.SimI2CBus`).
+"""ST LIS3MDL at register level on the simulated I2C bus (:class:`sim.i2c_bus.SimI2CBus`).
 
 As the datasheet (DocID024204 Rev 6) gives it: WHO_AM_I (0x0F) reads 0x3D; a multi-byte transfer
 auto-increments when bit 7 of the sub-address is set (5.1.1), and otherwise stays on its register,

@@ -23,9 +23,9 @@ with warnings.catch_warnings():
 
 from smbus2 import i2c_msg
 
+from sim.i2c_bus import SimI2CBus
 from sim.physics import Faults
 from sim.rm3100 import Rm3100 as SimRm3100
-from sim.rm3100 import SimI2CBus
 
 FIELD_UT = (12.5, -20.0, 31.0)
 PNI_GAIN_CC200 = 0.3671 * 200 + 1.5  # counts per uT (PNI)

@@ -16,10 +16,10 @@ from drivers.errors import DeviceError
 from drivers.mag.lis3mdl import Lis3mdl
 from sim.cage import SimulatedCage
 from sim.config import EndpointConfig, MagnetometerConfig, load_config
+from sim.i2c_bus import SimI2CBus
 from sim.lis3mdl import CTRL_REG1, CTRL_REG3, OUT_X_L, STATUS, ZYXDA, ZYXOR
 from sim.lis3mdl import Lis3mdl as SimLis3mdl
 from sim.physics import Faults
-from sim.rm3100 import SimI2CBus
 
 
 def _lis3mdl(**kw: object) -> MagnetometerConfig:

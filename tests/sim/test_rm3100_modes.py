@@ -14,9 +14,9 @@ import pytest
 import drivers.mag.rm3100 as rm3100_driver
 import timebase
 from drivers.mag.rm3100 import Rm3100
+from sim.i2c_bus import SimI2CBus
 from sim.physics import Faults
 from sim.rm3100 import Rm3100 as SimRm3100
-from sim.rm3100 import SimI2CBus
 
 FIELD_UT = (12.5, -20.0, 31.0)
 GAIN = 0.3671 * 200 + 1.5  # counts per uT at the default cycle count
