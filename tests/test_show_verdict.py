@@ -4,8 +4,8 @@ aborted, no check step only for a finished run without one."""
 from __future__ import annotations
 
 from rig.cli.show import verdict_line
-from rig.steps.check import CheckVerdict
 from rig.store.run_states import Verdict
+from rig.verdict import CheckVerdict
 
 
 def test_verdict_line_says_why_there_is_none() -> None:

@@ -22,10 +22,10 @@ from rig.report.sections import RunFacts, criteria_section, step_results_section
 from rig.report.text_report import limit_text, overall_verdict
 from rig.steps import KINDS
 from rig.steps.characterize_cage import CageCharacterizationResult
-from rig.steps.check import CheckVerdict, CriterionResult, check_verdict
 from rig.steps.linearity import LinearityResult
 from rig.steps.noise_spectrum import NoiseSpectrumResult
 from rig.store.run_states import Verdict
+from rig.verdict import CheckVerdict, CriterionResult, check_verdict
 from tests.steps.fake_context import FakeContext, carry_out, held_fields, make_procedure, make_step
 from tests.steps.test_step_results import LinearCage
 

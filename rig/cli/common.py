@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, TypeAlias
 from rig.errors import UserInputError
 
 if TYPE_CHECKING:
-    from rig.steps.check import CriterionResult
+    from rig.verdict import CriterionResult
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 

@@ -96,8 +96,8 @@ def auto_confirm(quiet: bool) -> Callable[[str], bool]:
 def summarize(outcome: Any, quiet: bool) -> None:
     """A short terminal summary of a finished run. With ``quiet`` only a run that did not complete
     says so: one line on stderr with its status and reason (``-q`` means errors only, not nothing)."""
-    from rig.steps.check import check_verdict  # here: building the parser stays light
     from rig.store.run_states import RunStatus
+    from rig.verdict import check_verdict  # here: building the parser stays light
 
     verdict = check_verdict(outcome.results)
     if quiet:

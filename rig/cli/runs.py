@@ -26,8 +26,8 @@ def run_verdict(folder: Path) -> str | None:
     """The overall verdict (PASS/FAIL/RE-RUN) stored by a run's check step, None without one,
     "?" when the stored verdict cannot be read (``rig show`` says why)."""
     from rig.errors import StoredResultError
-    from rig.steps.check import check_verdict
     from rig.store import RunReader
+    from rig.verdict import check_verdict
 
     reader = RunReader(folder)
     try:

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 from rig.cli.common import Parser, Subparsers, add_run, add_runs_dir, criterion_value, resolve_run
 
 if TYPE_CHECKING:
-    from rig.steps.check import CheckVerdict
+    from rig.verdict import CheckVerdict
 
 
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
@@ -135,7 +135,7 @@ def _print_header(folder: Path, meta: dict[str, Any], counts: dict[str, int]) ->
 
 
 def _print_results(steps: list[Any], results: dict[str, Any]) -> None:
-    from rig.steps.check import VERDICT_RESULT, check_verdict
+    from rig.verdict import VERDICT_RESULT, check_verdict
 
     print("steps")
     for idx, name, kind, t0, t1 in steps:
@@ -156,7 +156,7 @@ def _print_results(steps: list[Any], results: dict[str, Any]) -> None:
 def show_run(run: str, runs_dir: Path, as_json: bool = False) -> int:
     """``rig show``: a summary of one run; ``as_json`` prints everything stored as one JSON
     document (meta, samples per device, steps, results) and nothing else."""
-    from rig.steps.check import check_verdict
+    from rig.verdict import check_verdict
 
     folder = resolve_run(run, runs_dir)
     meta, results, counts, steps = _read(folder)

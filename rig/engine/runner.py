@@ -65,11 +65,11 @@ from rig.procedure.language import Procedure
 from rig.procedure.plan import compile_plan, rig_timing, step_duration
 from rig.procedure.preflight import refuse_what_check_refuses
 from rig.steps.base import ChangeListener
-from rig.steps.check import check_verdict
 from rig.steps.vocabulary import Step
 from rig.store.run_control import run_page_url
 from rig.store.run_states import EXIT_CODES, RunStatus, Verdict
 from rig.store.run_store import RunReader, RunWriter
+from rig.verdict import check_verdict
 
 
 @dataclass

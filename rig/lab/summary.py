@@ -14,12 +14,12 @@ from typing import Any
 
 from rig.errors import StoredResultError
 from rig.lab.url import rig_name
-from rig.steps.check import CheckVerdict, check_verdict
 from rig.store import safe_files
 from rig.store.instruments import Instrument, config_copy, instruments
 from rig.store.run_states import RunStatus
 from rig.store.run_store import RunReader
 from rig.store.seal import REPORT_FILES, read_seal
+from rig.verdict import CheckVerdict, check_verdict
 
 UNSEALED = "unsealed"
 """The hash part of the key of a closed run that has no seal (recorded before seals existed)."""

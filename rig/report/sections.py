@@ -16,8 +16,8 @@ from rig.calibration.record import CalibrationRecord, calibrations
 from rig.report.model import Image, Para, Section, Table
 from rig.report.text_report import limit_text, overall_verdict, seal_note
 from rig.steps import KINDS
-from rig.steps.check import CheckVerdict, check_verdict
 from rig.store.instruments import config_copy, instruments
+from rig.verdict import CheckVerdict, check_verdict
 
 SPRINGMANN_UNITS = {"a": "", "b": "", "c": "", "x0_ut": "uT", "y0_ut": "uT", "z0_ut": "uT",
                     "rho_deg": "deg", "phi_deg": "deg", "lambda_deg": "deg"}  # fmt: skip

@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Any
 
 from rig.analysis import value_unit
-from rig.steps.check import CriterionResult, check_verdict
 from rig.store.run_states import ACCEPTANCE, RunStatus, Verdict
 from rig.store.seal import data_digest, read_seal
+from rig.verdict import CriterionResult, check_verdict
 
 
 def data_hash(folder: Path) -> str:

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from rig.steps import stored
+from rig import stored
 from rig.steps.base import StepExecution, StepKind
 from rig.steps.vocabulary import Param, RigTiming, Step
 

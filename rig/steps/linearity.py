@@ -15,9 +15,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from rig import stored
 from rig.analysis import change_times, settled_samples, to_cage_frame
 from rig.errors import RigError
-from rig.steps import stored
 from rig.steps.base import (
     MAX_EXTRA_HOLD_S,
     Array,

@@ -13,10 +13,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from rig import stored
 from rig.analysis import settled_samples
 from rig.characterization.stability import on_uniform_grid
 from rig.errors import RigError
-from rig.steps import stored
 from rig.steps.base import Array, NullHoldKind, RunContext, SettledNeed, StepExecution
 from rig.steps.vocabulary import Param, ProcedureError, Step
 

@@ -18,8 +18,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from rig import stored
 from rig.errors import RigError
-from rig.steps import stored
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution, record_cage_metrology
 from rig.steps.vocabulary import Param, RigTiming, Step
 

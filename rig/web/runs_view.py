@@ -14,9 +14,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rig.steps.check import check_verdict
 from rig.store import RunReader, safe_files
 from rig.store.run_control import LIVE_FILE, read_live
+from rig.verdict import check_verdict
 
 DOWNLOADS = {
     "report.pdf": "application/pdf",
