@@ -4,8 +4,11 @@ next `rig run smoke` ran with the heater at 2 A throughout and said every output
 
 The heater at 2 A and coil_x at 1 A are driven through the drivers and their links closed, as the
 two dead processes leave them; then `rig run procedures/smoke.yaml` as a child process on the
-simulated cage over real Modbus, with the heater's true output sampled every 2 ms from the
-simulator's physics."""
+simulated cage over real Modbus, with the heater's true output sampled every 10 ms from the
+simulator's physics (the sampling thread shares this process's GIL with the simulated cage, so it
+samples no faster than the question needs: at every 2 ms, beside two CPU hogs and three other test
+workers, one run ended error for a reason the test did not print; it prints the run's output
+now)."""
 
 from __future__ import annotations
 
@@ -57,7 +60,7 @@ def test_outputs_found_on_are_switched_off_before_the_first_step(
     stop = threading.Event()
 
     def watch() -> None:
-        while not stop.wait(0.002):
+        while not stop.wait(0.01):  # not faster: the simulated cage shares this process's GIL
             samples.append((time.monotonic(), heater.output, heater.output_current()))
 
     watcher = threading.Thread(target=watch, daemon=True)
@@ -70,7 +73,7 @@ def test_outputs_found_on_are_switched_off_before_the_first_step(
     finally:
         stop.set()
         watcher.join(1.0)
-    assert done.returncode == 0, done.stderr
+    assert done.returncode == 0, f"{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
     said = [ln for ln in done.stderr.splitlines() if "was found on at the start" in ln]
     assert len(said) == 2, done.stderr  # the heater and coil_x, one line each
     heater_line = next(ln for ln in said if "heater was found on" in ln)
@@ -94,7 +97,7 @@ def test_outputs_found_on_are_switched_off_before_the_first_step(
     assert found[0][0] < t_first_step and found[0][0] < first_command
     assert end in [m for _, lvl, m in events if lvl == "info"]  # recorded in the run too
     during = [(on, amps) for t, on, amps in samples if t >= t_first_step]
-    assert len(during) > 1000, len(during)  # the run's ~15 s, sampled every few ms
+    assert len(during) > 300, len(during)  # the run's ~15 s, sampled every 10 ms or so
     assert not any(on for on, _ in during)
     peak = max(amps for _, amps in during)
     assert peak < 0.01, peak
