@@ -113,6 +113,15 @@ def file_chunks(fh: BinaryIO) -> Iterator[bytes]:
             yield chunk
 
 
+class PageUndefined(jinja2.Undefined):
+    """A name a template prints or loops over that the page does not give is an error (a 500
+    naming it), never an empty cell; testing it (``{% if error %}``) is false, as the templates
+    test the names a page gives only sometimes."""
+
+    __slots__ = ()
+    __str__ = __iter__ = __len__ = jinja2.Undefined._fail_with_undefined_error
+
+
 class Site:
     """The state one server shares between its requests."""
 
@@ -123,8 +132,7 @@ class Site:
         self.csrf_secret = csrf_secret
         self.lab_url = lab_url
         self.templates = Jinja2Templates(directory=str(HERE / "templates"))
-        # a name a template reads and the page does not give is an error, not an empty cell
-        self.templates.env.undefined = jinja2.StrictUndefined
+        self.templates.env.undefined = PageUndefined
         self.templates.env.filters["seg"] = segment
 
     def page(self, request: Request, name: str, status: int = 200, **context: Any) -> Response:

@@ -1,6 +1,7 @@
-"""A template typo fails loudly (issue 57): the page's templates render with Jinja's
-``StrictUndefined``, so a name a template reads that the page does not give is an error (500,
-one line naming it) where it used to render as an empty cell that every page test passed."""
+"""A template typo fails loudly (issue 57): a name a template prints or loops over that the page
+does not give is an error (500, one line naming it, ``rig.web.app.PageUndefined``) where it used
+to render as an empty cell that every page test passed; testing a name the page gives only
+sometimes (``{% if error %}``) stays false."""
 
 from __future__ import annotations
 
