@@ -136,6 +136,40 @@ class ClosedLoop(FieldStepKind):
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return ClosedLoopStep(ctx, step)
 
+    def report_lines(self, name: str, result: Any) -> list[str]:
+        """The comparison the step exists for, in words: the detumble through the cage against
+        all in software, what the loop ran on, how late it ran, the rods and the link."""
+        if not isinstance(result, dict):
+            return []
+        r = result
+        lines = [
+            _detumble_line(r),
+            f"Flight software: {r.get('flight_software', '-')}; the DUT's readings"
+            f" {r.get('readings', '-')}; field: {r.get('field_model', '-')}; dynamics:"
+            f" {r.get('dynamics', '-')}.",
+        ]
+        latency = r.get("latency_ms") or {}
+        lines.append(
+            f"Loop: {r.get('ticks', 0)} ticks, {r.get('late_ticks', 0)} late (a command more than"
+            f" a period after it was due); latency from the newest DUT reading to the command it"
+            f" moved: p50 {latency.get('p50', float('nan')):.0f} ms, p99"
+            f" {latency.get('p99', float('nan')):.0f} ms, max {latency.get('max', float('nan')):.0f} ms."
+        )  # fmt: skip
+        rods = r.get("torque_rods")
+        if isinstance(rods, dict):
+            lines.append(
+                f"Torque rods on loads {', '.join(str(c) for c in rods.get('channels', []))}"
+                f" (x, y, z): {rods.get('bias_a', 0):g} A + {rods.get('a_per_am2', 0):g} A per A m^2;"
+                f" their currents changed {rods.get('changes', 0)} times."
+            )  # fmt: skip
+        link = r.get("flight_computer")
+        if isinstance(link, dict):
+            first = f" (first: {link.get('problem')})" if link.get("missed") else ""
+            trip = float(link.get("round_trip_ms_p99") or float("nan"))
+            lines.append(f"Flight computer link: {link.get('answered', 0)} answers,"
+                         f" {link.get('missed', 0)} missed{first}; round trip p99 {trip:.1f} ms.")  # fmt: skip
+        return lines
+
     def figures(self, reader: Any, name: str, result: Any, plt: Any) -> list[tuple[str, Any]]:
         """The body rate and the dipoles against time, through the cage and all in software."""
         folder = getattr(reader, "folder", None)
@@ -225,6 +259,21 @@ class ClosedLoopStep(StepExecution):
             self._thread.join(timeout=ABORT_JOIN_S)
         self._detach()
         self.runner.close()
+
+
+def _detumble_line(r: dict[str, Any]) -> str:
+    """Through the cage against all in software, and the difference: what the hardware changed."""
+    nan = float("nan")
+    until = float(r.get("until_deg_s") or 0.0)
+    goal = f"below {until:g} deg/s" if until > 0 else "(no detumble rate set)"
+    cage, soft, diff = r.get("detumble_s"), r.get("software_detumble_s"), r.get("difference_pct")
+    through = (f"{cage:.1f} s" if cage is not None
+               else f"not reached ({float(r.get('final_rate_deg_s') or nan):.2f} deg/s at the end)")  # fmt: skip
+    software = f"{soft:.1f} s" if soft is not None else "not reached"
+    changed = f"; the hardware changed it by {diff:+.1f} %." if diff is not None else "."
+    return (f"Detumble {goal}: through the cage {through}; all in software (the same scenario, a"
+            f" model magnetometer with {float(r.get('noise_nt') or nan):.1f} nT of noise)"
+            f" {software}{changed}")  # fmt: skip
 
 
 KIND = ClosedLoop()

@@ -113,7 +113,8 @@ def test_the_documented_demo_of_the_shipped_procedure_passes(
     out = capsys.readouterr().out
     assert code == 0 and "VERDICT: PASS" in out, out
     folder = next(p for p in runs.iterdir() if (p / "run.sqlite").exists())
-    assert "detumble_s" in (folder / "report.txt").read_text()
+    report = (folder / "report.txt").read_text()
+    assert "Detumble below 4 deg/s: through the cage" in report and "all in software" in report
     reader = RunReader(folder)
     try:
         result = reader.results()["detumble"]

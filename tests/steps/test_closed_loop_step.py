@@ -296,3 +296,28 @@ def test_calibrated_readings_with_rods_need_their_channels_fitted(tmp_path: Path
     ctx = FakeContext(make_procedure(step, loads=LOADS), tmp_path, results=dict(CORRECTION))
     with pytest.raises(RigError, match="torque rod on load_bus needs a calibration that fitted"):
         KINDS["closed_loop"].execution(ctx, step)
+
+
+def test_the_report_says_what_the_hardware_changed_and_how_the_loop_ran() -> None:
+    result = {"detumble_s": 66.7, "software_detumble_s": 56.0, "difference_pct": 19.1,
+              "final_rate_deg_s": 3.9, "until_deg_s": 4.0, "noise_nt": 21.3, "ticks": 668,
+              "late_ticks": 2, "latency_ms": {"p50": 50.0, "p99": 27.0, "max": 80.0},
+              "readings": "raw", "flight_software": "B-dot in process", "field_model": "IGRF",
+              "dynamics": "Basilisk", "torque_rods": {"channels": ["load_bus", "none", "load_panel"],
+              "a_per_am2": 7.5, "bias_a": 1.5, "changes": 40},
+              "flight_computer": {"answered": 130, "missed": 2, "problem": "no answer within 100 ms",
+                                  "round_trip_ms_p99": 13.0}}  # fmt: skip
+    lines = KINDS["closed_loop"].report_lines("detumble", result)
+    assert lines[0] == (
+        "Detumble below 4 deg/s: through the cage 66.7 s; all in software (the same scenario, a"
+        " model magnetometer with 21.3 nT of noise) 56.0 s; the hardware changed it by +19.1 %."
+    )
+    text = "\n".join(lines)
+    assert "668 ticks, 2 late" in text and "p99 27 ms" in text and "readings raw" in text
+    assert "load_bus, none, load_panel (x, y, z): 1.5 A + 7.5 A per A m^2" in text
+    assert "130 answers, 2 missed (first: no answer within 100 ms); round trip p99 13.0 ms" in text
+    never = {**result, "detumble_s": None, "difference_pct": None, "torque_rods": None,
+             "flight_computer": None}  # fmt: skip
+    lines = KINDS["closed_loop"].report_lines("detumble", never)
+    assert lines[0].startswith("Detumble below 4 deg/s: through the cage not reached (3.90 deg/s")
+    assert len(lines) == 3 and KINDS["closed_loop"].report_lines("detumble", "junk") == []
