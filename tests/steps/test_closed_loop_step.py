@@ -321,3 +321,21 @@ def test_the_report_says_what_the_hardware_changed_and_how_the_loop_ran() -> Non
     lines = KINDS["closed_loop"].report_lines("detumble", never)
     assert lines[0].startswith("Detumble below 4 deg/s: through the cage not reached (3.90 deg/s")
     assert len(lines) == 3 and KINDS["closed_loop"].report_lines("detumble", "junk") == []
+
+
+def test_the_3u_bench_runs_the_shipped_procedure_with_a_3u_cubesat(tmp_path: Path) -> None:
+    """docs/hil.md's ``bench/bench_closed_loop_3u.py``: the shipped procedure with the step's
+    default spacecraft (a 3U CubeSat) in the orbit's own field, without the small craft's check."""
+    from bench.bench_closed_loop_3u import procedure
+    from rig.procedure.language import parse_procedure
+
+    path = tmp_path / "cubesat.yaml"
+    path.write_text(procedure(2.0, 5.0, 14400.0))
+    proc = parse_procedure(path)
+    (loop,) = [s for s in proc.steps if s.kind == "closed_loop"]
+    assert loop.params["inertia_kg_m2"] == [0.0333, 0.0333, 0.0067]
+    assert loop.params["max_dipole_am2"] == 0.2 and loop.params["time_scale"] == 1.0
+    assert (loop.params["until_deg_s"], loop.params["rate_hz"]) == (2.0, 5.0)
+    assert [s.kind for s in proc.steps][-1] == "report" and "check" not in {
+        s.kind for s in proc.steps
+    }
