@@ -14,20 +14,9 @@ import pytest
 
 from sim.config import SimConfig, load_config
 from sim.physics import Magnetometer
-from tests.engine.test_closed_loop_rods_on_sim import FIELDS, TLE
+from tests.engine.closed_loop_scenario import LOOP, calibration_steps, loop_step
 from tests.simrun import run_on_sim
 from tests.steps.test_closed_loop_step import software_detumble_s
-
-LOOP = {"tle": TLE, "start": "2019-12-09T12:00:00Z", "time_scale": 30, "duration_s": 240,
-        "rate_hz": 10, "control_hz": 2, "inertia_kg_m2": [0.001, 0.001, 0.0008],
-        "max_dipole_am2": 0.2, "rate_deg_s": [5.77, 5.77, 5.77], "until_deg_s": 4}  # fmt: skip
-
-
-def loop_yaml(name: str, readings: str) -> str:
-    body = "\n".join(f"      {k}: {v!r}" if isinstance(v, str) else f"      {k}: {v}"
-                     for k, v in {**LOOP, "readings": readings}.items())  # fmt: skip
-    return f"  - closed_loop:\n{body.replace(chr(39), chr(34))}\n    name: {name}\n"
-
 
 PROCEDURE = (
     """
@@ -38,17 +27,10 @@ steps:
     name: cage model
   - null_field: {hold_s: 2}
     name: noise floor
-  - field_points:
-      dwell_s: 0.8
-      fields_ut: """
-    + str(FIELDS)
-    + """
-    name: fields
-  - calibrate: {model: vector, steps: [fields]}
-    name: calibration
 """
-    + loop_yaml("raw", "raw")
-    + loop_yaml("calibrated", "calibrated")
+    + calibration_steps(loads=False)
+    + loop_step("raw", duration_s=240, readings="raw")
+    + loop_step("calibrated", readings="calibrated")
 )
 
 
@@ -74,7 +56,7 @@ def test_a_miscalibrated_dut_changes_the_loop_as_predicted_and_its_calibration_t
     # truth without noise: scale, axes, the turn and the offset), with the noise the run measured
     truth = Magnetometer(next(m for m in cfg.magnetometers if m.name == "dut"),
                          np.random.default_rng(0))  # fmt: skip
-    noise = {**LOOP, "noise_nt": float(raw["noise_nt"])}
+    noise = {**LOOP, "duration_s": 240, "noise_nt": float(raw["noise_nt"])}
     predicted = software_detumble_s(lambda b: truth.truth_reading(b, {}), noise)
     print(f"turned DUT, raw: {raw['summary']} (predicted with its error {predicted:.1f} s);"
           f" calibrated: {cal['summary']}")  # fmt: skip

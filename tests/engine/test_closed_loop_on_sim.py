@@ -15,32 +15,17 @@ import pytest
 from rig.cli import main
 from rig.procedure_files import find_procedure
 from rig.store import RunReader
+from tests.engine.closed_loop_scenario import loop_step
 from tests.simcage import sim_cage
 from tests.simrun import run_on_sim
 
-TLE = [
-    "1 25544U 98067A   19343.69339541  .00001764  00000-0  38792-4 0  9991",
-    "2 25544  51.6439 211.2001 0007417  17.6667  85.6398 15.50103472202482",
-]
-PROCEDURE = f"""
+PROCEDURE = """
 procedure: closed loop detumble
-magnetometers: {{dut: dut, reference: reference}}
+magnetometers: {dut: dut, reference: reference}
 steps:
-  - null_field: {{hold_s: 2}}
+  - null_field: {hold_s: 2}
     name: noise floor
-  - closed_loop:
-      tle: ["{TLE[0]}", "{TLE[1]}"]
-      start: "2019-12-09T12:00:00Z"
-      time_scale: 30
-      duration_s: 150
-      rate_hz: 10
-      control_hz: 2
-      inertia_kg_m2: [0.001, 0.001, 0.0008]
-      max_dipole_am2: 0.2
-      rate_deg_s: [5.77, 5.77, 5.77]
-      until_deg_s: 4
-    name: detumble
-"""
+""" + loop_step("detumble")
 
 
 def detumble(folder: Path) -> tuple[dict[str, object], str]:

@@ -16,38 +16,11 @@ import pytest
 from rig.cli import main
 from rig.procedure.language import ProcedureError, parse_procedure
 from rig.store import RunReader
+from tests.engine.closed_loop_scenario import calibration_steps, loop_step
 from tests.simcage import sim_cage
 from tests.simrun import run_on_sim
 
-TLE = [
-    "1 25544U 98067A   19343.69339541  .00001764  00000-0  38792-4 0  9991",
-    "2 25544  51.6439 211.2001 0007417  17.6667  85.6398 15.50103472202482",
-]
-FIELDS = [[44.5, -5.27, -4.12], [39.13, -19.78, -10.13], [43.75, 10.35, 1.87],
-          [22.72, 27.56, -27.38], [-12.21, 25.68, -34.87], [-0.81, -9.97, -43.88],
-          [12.68, -11.47, -41.62], [-25.26, -21.55, -30.38], [-28.4, -31.69, -14.62],
-          [-44.91, -2.57, -1.12], [-43.61, 7.01, 8.62], [-23.04, 31.7, 22.12],
-          [-2.28, 36.75, 25.87], [16.37, 29.65, 29.62], [-6.49, 44.53, 0.37],
-          [0.48, -23.08, 38.62], [-10.03, -29.33, 32.62], [15.76, -23.67, 34.88],
-          [4.44, -42.81, 13.12]]  # fmt: skip
-LOOP = """
-  - closed_loop:
-      tle: ["{tle0}", "{tle1}"]
-      start: "2019-12-09T12:00:00Z"
-      time_scale: 30
-      duration_s: 150
-      rate_hz: 10
-      control_hz: 2
-      inertia_kg_m2: [0.001, 0.001, 0.0008]
-      max_dipole_am2: 0.2
-      rate_deg_s: [5.77, 5.77, 5.77]
-      until_deg_s: 4
-      torque_rods: [load_bus, load_panel, none]
-      rod_a_per_am2: 7.5
-      rod_bias_a: 1.5
-      readings: {readings}
-    name: {name}
-"""
+RODS = {"torque_rods": ["load_bus", "load_panel", "none"], "rod_a_per_am2": 7.5, "rod_bias_a": 1.5}
 PROCEDURE = (
     """
 procedure: closed loop with rods on loads
@@ -56,20 +29,10 @@ loads: [load_bus, load_panel]
 steps:
   - null_field: {hold_s: 2}
     name: noise floor
-  - field_points:
-      dwell_s: 0.8
-      fields_ut: """
-    + str(FIELDS)
-    + """
-    name: fields
-    loads:
-      load_bus: {steps: {levels_a: [0, 0.8, 1.6], dwell_s: 2.4}}
-      load_panel: {steps: {levels_a: [0, 1, 2, 2.5], dwell_s: 3.2}}
-  - calibrate: {model: vector, telemetry: [load_bus, load_panel], steps: [fields]}
-    name: calibration
 """
-    + LOOP.format(tle0=TLE[0], tle1=TLE[1], readings="raw", name="raw")
-    + LOOP.format(tle0=TLE[0], tle1=TLE[1], readings="calibrated", name="calibrated")
+    + calibration_steps(loads=True)
+    + loop_step("raw", **RODS, readings="raw")
+    + loop_step("calibrated", **RODS, readings="calibrated")
 )
 
 
@@ -120,13 +83,13 @@ def test_rods_are_refused_off_the_procedures_loads_or_with_too_little_bias(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     path = tmp_path / "p.yaml"
-    path.write_text(PROCEDURE.replace("[load_bus, load_panel, none]", "[load_bus, heater, none]"))
+    path.write_text(PROCEDURE.replace('"load_panel", "none"]', '"heater", "none"]'))
     with pytest.raises(ProcedureError, match="'heater' is not one of the procedure's loads"):
         parse_procedure(path)
     path.write_text(PROCEDURE.replace("rod_bias_a: 1.5", "rod_bias_a: 1.0"))
     with pytest.raises(ProcedureError, match=r"'rod_bias_a' 1 A is below the 1\.5 A"):
         parse_procedure(path)
-    path.write_text(PROCEDURE.replace("[load_bus, load_panel, none]", "[load_bus, none]"))
+    path.write_text(PROCEDURE.replace('"load_panel", "none"]', '"none"]'))
     with pytest.raises(ProcedureError, match="three names"):
         parse_procedure(path)
     # rig check: each rod's load at the rod's largest dipole (3 A) against the channel's limit
