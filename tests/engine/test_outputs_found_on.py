@@ -3,32 +3,27 @@ the run states what was read back (issue 51: after SIGKILL of both the rig and i
 next `rig run smoke` ran with the heater at 2 A throughout and said every output was off).
 
 The heater at 2 A and coil_x at 1 A are driven through the drivers and their links closed, as the
-two dead processes leave them; then `rig run procedures/smoke.yaml` as a child process on the
-simulated cage over real Modbus, with the heater's true output sampled every 10 ms from the
-simulator's physics (the sampling thread shares this process's GIL with the simulated cage, so it
-samples no faster than the question needs: at every 2 ms, beside two CPU hogs and three other test
-workers, one run ended error for a reason the test did not print; it prints the run's output
-now)."""
+two dead processes leave them; then procedures/smoke.yaml is run on the simulated cage in
+simulated time, with the heater's true output sampled every 2 ms from the simulator's physics."""
 
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
-import threading
-import time
 from pathlib import Path
 
 import pytest
 
+import timebase
 from rig.config import load_rig_config
 from rig.devices import open_device
+from rig.engine.runner import Runner
 from rig.engine.session import RigSession
 from rig.errors import RigError
+from rig.procedure.language import parse_procedure
 from rig.store import RunReader
 from sim.cage import SimulatedCage
+from tests.simcage import sim_cage
 
-RIG = [sys.executable, "-m", "rig.cli"]
 SMOKE = Path(__file__).resolve().parents[2] / "procedures" / "smoke.yaml"
 
 pytestmark = pytest.mark.usefixtures("own_lock_dir")
@@ -48,39 +43,44 @@ def drive(rig_toml: Path) -> None:
 
 
 def test_outputs_found_on_are_switched_off_before_the_first_step(
-    cage: SimulatedCage, rig_toml: Path, tmp_path: Path
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    heater = cage.physics.supplies["heater"]
-    drive(rig_toml)
-    deadline = time.monotonic() + 2.0
-    while heater.output_current() < 1.9 and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert heater.output and heater.output_current() > 1.9
-    samples: list[tuple[float, bool, float]] = []  # (monotonic s, output on, true current A)
-    stop = threading.Event()
+    """In simulated time: the run and the cage on one clock, the heater's true output sampled
+    every 2 ms of it (in real time, beside two CPU hogs and three other test workers, the cage
+    sharing this process starved: "reference: no data for 1.8 s", a fault no idle rig shows)."""
+    with sim_cage(tmp_path) as (cage, rig_toml):
+        heater = cage.physics.supplies["heater"]
+        drive(rig_toml)
+        deadline = timebase.monotonic() + 2.0
+        while heater.output_current() < 1.9 and timebase.monotonic() < deadline:
+            timebase.sleep(0.01)
+        assert heater.output and heater.output_current() > 1.9
+        samples: list[tuple[float, bool, float]] = []  # (monotonic s, output on, true current A)
+        stop = timebase.Event()
 
-    def watch() -> None:
-        while not stop.wait(0.01):  # not faster: the simulated cage shares this process's GIL
-            samples.append((time.monotonic(), heater.output, heater.output_current()))
+        def watch() -> None:
+            while not stop.wait(0.002):
+                samples.append((timebase.monotonic(), heater.output, heater.output_current()))
 
-    watcher = threading.Thread(target=watch, daemon=True)
-    watcher.start()
-    runs = tmp_path / "runs"
-    try:
-        done = subprocess.run([*RIG, "run", str(SMOKE), "--rig", str(rig_toml), "--yes",
-                               "--runs-dir", str(runs)], capture_output=True, text=True,
-                              timeout=180)  # fmt: skip
-    finally:
-        stop.set()
-        watcher.join(1.0)
-    assert done.returncode == 0, f"{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
-    said = [ln for ln in done.stderr.splitlines() if "was found on at the start" in ln]
-    assert len(said) == 2, done.stderr  # the heater and coil_x, one line each
+        watcher = timebase.Thread(watch, name="heater-watch", daemon=True)
+        watcher.start()
+        runs = tmp_path / "runs"
+        try:
+            outcome = Runner(parse_procedure(SMOKE), load_rig_config(rig_toml), runs,
+                             i2c_bus=cage.i2c_bus, confirm=lambda q: True, live=False).run()  # fmt: skip
+        finally:
+            stop.set()
+            watcher.join(1.0)
+        off_at = heater.off_since_s
+    err = capsys.readouterr().err
+    assert outcome.status == "complete", (outcome.reason, err[-2000:])
+    said = [ln for ln in err.splitlines() if "was found on at the start" in ln]
+    assert len(said) == 2, err  # the heater and coil_x, one line each
     heater_line = next(ln for ln in said if "heater was found on" in ln)
     assert re.search(r"heater was found on at the start \(output enabled, 2\.\d{3} A read"
                      r" back\); switched off before anything else, read back: heater: off"
                      r" \(0\.0[01]\d A read back\)", heater_line), heater_line  # fmt: skip
-    end = next(ln for ln in done.stdout.splitlines() if ln.startswith("outputs:"))
+    end = outcome.outputs
     assert end.startswith("outputs: read back off: coil_x 0.0"), end
     assert "heater 0.0" in end and end.endswith("polarity normal"), end
     folder = next(p for p in runs.iterdir() if (p / "run.sqlite").exists())
@@ -97,11 +97,10 @@ def test_outputs_found_on_are_switched_off_before_the_first_step(
     assert found[0][0] < t_first_step and found[0][0] < first_command
     assert end in [m for _, lvl, m in events if lvl == "info"]  # recorded in the run too
     during = [(on, amps) for t, on, amps in samples if t >= t_first_step]
-    assert len(during) > 300, len(during)  # the run's ~15 s, sampled every 10 ms or so
+    assert len(during) > 3000, len(during)  # the run's ~15 s, every 2 ms of the run's clock
     assert not any(on for on, _ in during)
     peak = max(amps for _, amps in during)
     assert peak < 0.01, peak
-    off_at = heater.off_since_s
     assert off_at is not None and off_at < t_first_step
     print(
         f"heater found on at 2 A: off {t_first_step - off_at:.2f} s before the first step;"
