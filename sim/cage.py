@@ -34,6 +34,7 @@ from sim.device_kind import SerialDevice
 from sim.device_kinds import sim_kind
 from sim.i2c_bus import BusDevice, SimI2CBus
 from sim.modbus_devices import regmap_device, unserved_ids
+from sim.own_processor import instrument_priority
 from sim.physics import CagePhysics, Faults
 from sim.regmap import load_regmap
 
@@ -77,12 +78,19 @@ class SimulatedCage:
         self.serial_devices: dict[str, Any] = {}  # name -> device (Hmr2300, AsciiMagnetometer)
         self.i2c_devices: dict[str, BusDevice] = {}
         self._started = False
+        self.own_processor = False  # its threads run at a raised priority (see start)
 
     def start(self) -> dict[str, Any]:
         """Start every device; returns the endpoints document (see :meth:`endpoints_document`)."""
         if self._started:
             return self.endpoints_document()
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+        # the devices' threads start at an instrument's priority (sim.own_processor)
+        with instrument_priority() as self.own_processor:
+            self._start_devices()
+        return self.endpoints_document()
+
+    def _start_devices(self) -> None:
         self._modbus = modbus_host(self.cfg.seed)
         self._started = True
         try:
@@ -108,7 +116,6 @@ class SimulatedCage:
         except BaseException:
             self.stop()
             raise
-        return self.endpoints_document()
 
     # --- what a device kind's start uses (sim.device_kind.CageHost) -----------------------------
 

@@ -19,6 +19,8 @@ import tty
 
 import numpy as np
 
+from sim.own_processor import instrument_priority
+
 _HEADER = struct.Struct(">HHH")
 READINGS_APID, DIPOLE_APID = 0x0A1, 0x0A2
 SYNC = b"\x1a\xcf\xfc\x1d"
@@ -37,7 +39,8 @@ class BDotComputer:
         self._thread = threading.Thread(target=self._serve, name="flight-computer", daemon=True)
 
     def start(self) -> BDotComputer:
-        self._thread.start()
+        with instrument_priority():  # a flight computer has its own processor
+            self._thread.start()
         return self
 
     def _serve(self) -> None:
@@ -85,7 +88,8 @@ class SerialFrontEnd:
                                         daemon=True)  # fmt: skip
 
     def start(self) -> SerialFrontEnd:
-        self._thread.start()
+        with instrument_priority():  # a flight computer has its own processor
+            self._thread.start()
         return self
 
     def serve(self) -> None:

@@ -88,6 +88,9 @@ def run_sim(
                 for path in (endpoints_json, rig_config):
                     if path is not None:
                         print(f"wrote {path}")
+                if not cage.own_processor:
+                    print("note: the simulated instruments run at normal CPU priority (not root,"
+                          " no CAP_SYS_NICE); on a busy computer the rig may see them stall")  # fmt: skip
                 print("press Ctrl-C to stop", flush=True)
             deadline = None if duration_s is None else time.monotonic() + duration_s
             while not stop.wait(0.2):

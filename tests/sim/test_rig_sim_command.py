@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -10,6 +11,9 @@ import time
 from pathlib import Path
 
 from pymodbus.client import ModbusTcpClient
+
+from sim.own_processor import INSTRUMENT_NICE
+from tests.sim.nice import nice_of
 
 
 def test_rig_sim_publishes_endpoints_and_stops_on_sigint(tmp_path: Path) -> None:
@@ -41,6 +45,9 @@ def test_rig_sim_publishes_endpoints_and_stops_on_sigint(tmp_path: Path) -> None
             ]
             assert not c.write_register(18, 1, device_id=1).isError()  # output on
         assert f"port = {x['port']}" in cfg.read_text()
+        # its instruments' threads run at a raised priority (sim.own_processor), the main one not
+        nices = sorted(nice_of(int(tid), proc.pid) for tid in os.listdir(f"/proc/{proc.pid}/task"))
+        assert nices[-1] == 0 and nices.count(INSTRUMENT_NICE if os.geteuid() == 0 else 0) >= 4
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=15)
     finally:
@@ -48,6 +55,7 @@ def test_rig_sim_publishes_endpoints_and_stops_on_sigint(tmp_path: Path) -> None
             proc.kill()
     assert proc.returncode == 0, err
     assert "stopped; all outputs off" in out
+    assert ("normal CPU priority" in out) is (os.geteuid() != 0)
     assert "Traceback" not in err
 
 
