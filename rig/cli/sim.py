@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from rig.cli.common import Parser, Subparsers
 
@@ -79,19 +80,8 @@ def run_sim(
                     except OSError as exc:
                         raise UserInputError(f"cannot write {path}: {exc.strerror}") from None
             if not quiet:
-                print(f"simulated cage running ({cfg.source}); loopback only. Devices:")
-                for name, dev in endpoints["devices"].items():
-                    where = dev.get("path") or f"{dev.get('host', '')}:{dev.get('port', '')}"
-                    if dev.get("protocol") == "i2c":
-                        where = f"in-process bus, address 0x{dev['address']:02x}"
-                    print(f"  {name:<12} {dev['kind']:<14} {dev['protocol']:<11} {where}")
-                for path in (endpoints_json, rig_config):
-                    if path is not None:
-                        print(f"wrote {path}")
-                if not cage.own_processor:
-                    print("note: the simulated instruments run at normal CPU priority (not root,"
-                          " no CAP_SYS_NICE); on a busy computer the rig may see them stall")  # fmt: skip
-                print("press Ctrl-C to stop", flush=True)
+                _print_started(cfg.source, endpoints, (endpoints_json, rig_config),
+                               cage.own_processor)  # fmt: skip
             deadline = None if duration_s is None else time.monotonic() + duration_s
             while not stop.wait(0.2):
                 if deadline is not None and time.monotonic() >= deadline:
@@ -101,3 +91,21 @@ def run_sim(
     if not quiet:
         print("simulated cage stopped; all outputs off", flush=True)
     return 0
+
+
+def _print_started(source: str, endpoints: dict[str, Any], written: tuple[Path | None, ...],
+                   own_processor: bool) -> None:  # fmt: skip
+    """The lines ``rig sim`` prints once its devices answer."""
+    print(f"simulated cage running ({source}); loopback only. Devices:")
+    for name, dev in endpoints["devices"].items():
+        where = dev.get("path") or f"{dev.get('host', '')}:{dev.get('port', '')}"
+        if dev.get("protocol") == "i2c":
+            where = f"in-process bus, address 0x{dev['address']:02x}"
+        print(f"  {name:<12} {dev['kind']:<14} {dev['protocol']:<11} {where}")
+    for path in written:
+        if path is not None:
+            print(f"wrote {path}")
+    if not own_processor:
+        print("note: the simulated instruments run at normal CPU priority (not root,"
+              " no CAP_SYS_NICE); on a busy computer the rig may see them stall")  # fmt: skip
+    print("press Ctrl-C to stop", flush=True)
