@@ -1,6 +1,6 @@
 """The uncertainty budget over many simulated DUT runs: does the combined sigma match the errors?
 
-First the shipped ``procedures/cage-field-map.yaml`` runs once on a simulated cage (the operator
+First the shipped ``rig/shipped_procedures/cage-field-map.yaml`` runs once on a simulated cage (the operator
 played: the reference moved to each position asked) and leaves the cage calibration record with
 its field maps, as a lab has one record for its cage. Then each DUT run is the acceptance
 procedure's calibration part (cage characterization, the two sphere sweeps with and without the
@@ -34,6 +34,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from rig.procedure_files import PROCEDURES_DIR
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench.dask_runs
 
@@ -85,7 +87,7 @@ def field_map_record(folder: Path) -> Path:
                 cage.physics.move("reference", tuple(float(v) / 100.0 for v in found))
             return True
 
-        procedure = parse_procedure(ROOT / "procedures" / "cage-field-map.yaml")
+        procedure = parse_procedure(PROCEDURES_DIR / "cage-field-map.yaml")
         outcome = Runner(procedure, load_rig_config(folder / "rig.toml"), folder / "runs",
                          i2c_bus=cage.i2c_bus, confirm=operator, live=False).run()  # fmt: skip
     if outcome.exit_code != 0 or not record.exists():

@@ -1,6 +1,6 @@
 """Coil axes by the turned reference, over many simulated procedures: are the reported sigmas true?
 
-Each procedure is the shipped ``procedures/cage-metrology.yaml`` run by the engine on a simulated
+Each procedure is the shipped ``rig/shipped_procedures/cage-metrology.yaml`` run by the engine on a simulated
 cage of its own (a seed of its own: noise, lab field, traffic; Biot-Savart coils, supply drift),
 through the real wire protocols, with the operator played here: at each prompt the simulated
 reference is turned to the position asked, off by 30 arcsec (1-sigma per axis, seeded) as a real
@@ -29,9 +29,11 @@ from typing import Any
 
 import numpy as np
 
+from rig.procedure_files import PROCEDURES_DIR
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench.dask_runs
 
-PROCEDURE = Path(__file__).resolve().parents[1] / "procedures" / "cage-metrology.yaml"
+PROCEDURE = PROCEDURES_DIR / "cage-metrology.yaml"
 FIXTURE_ERROR_ARCSEC = 30.0
 NAMES = ("constant x", "constant y", "constant z", "skew xy", "skew xz", "skew yz")
 

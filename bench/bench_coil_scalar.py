@@ -1,7 +1,7 @@
 """Coil constants by the scalar method, over many simulated procedures: are the reported sigmas
 true, and how do they compare with the turned reference's?
 
-Each procedure is the shipped ``procedures/cage-metrology-scalar.yaml`` run by the engine on a
+Each procedure is the shipped ``rig/shipped_procedures/cage-metrology-scalar.yaml`` run by the engine on a
 simulated cage of its own (a seed of its own: noise, lab field, traffic; Biot-Savart coils, supply
 drift), through the real wire protocols: the cesium sensor behind its CM-201 counter at the centre
 (0.02 nT noise, 1.4 nT offset, 0.5 nT heading error, dead zones of 10 deg). Per procedure
@@ -29,8 +29,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench.*
 
 from bench.bench_coil_axes import NAMES, summarize, z_of
+from rig.procedure_files import PROCEDURES_DIR
 
-PROCEDURE = Path(__file__).resolve().parents[1] / "procedures" / "cage-metrology-scalar.yaml"
+PROCEDURE = PROCEDURES_DIR / "cage-metrology-scalar.yaml"
 
 
 def one_procedure(seed: int) -> dict[str, Any]:

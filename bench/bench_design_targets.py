@@ -2,7 +2,7 @@
 every plan ``rig design`` writes give its verdict with every target met, in the time it said, and
 does an impossible set get no file?
 
-For each target set (the shipped ``procedures/targets/acceptance.yaml``, a looser one, a tighter
+For each target set (the shipped ``rig/shipped_procedures/targets/acceptance.yaml``, a looser one, a tighter
 one, and one below the reference certificate's 50 ppm of scale), ``rig design`` on the simulated
 cage's rig configuration (its stated noise: no earlier runs); each written plan is then run
 ``--runs`` times, each on a cage of its own seed, in simulated time (ADR 0038) on Dask. Per set it
@@ -26,10 +26,12 @@ from typing import Any
 
 import yaml
 
+from rig.procedure_files import TARGETS_DIR
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED = ROOT / "procedures" / "targets" / "acceptance.yaml"
+SHIPPED = TARGETS_DIR / "acceptance.yaml"
 SCALE = {"loose": 2.0, "shipped": 1.0, "tight": 0.6, "impossible": 0.1}
 """Each set: the shipped targets times this factor (0.1: scale targets of 20 ppm, below the
 reference certificate's 50 ppm, which no number of set-points meets)."""

@@ -182,7 +182,7 @@ def cage_terms(
     elif np.any(ref_m != DUT_M):
         left_out.append(
             "the cage's homogeneity between the reference and the DUT: no field map"
-            " in the cage calibration record (run procedures/cage-field-map.yaml)"
+            " in the cage calibration record (rig run cage-field-map)"
         )
     terms += lab_field_terms(gradient_sigma_nt_per_m, ref_m, DUT_M)
     return CageTerms(correction, tuple(terms), tuple(left_out))

@@ -45,7 +45,7 @@ def test_a_sine_above_the_measured_bandwidth_is_a_limit(
     limits = [line for line in out.splitlines() if line.startswith("LIMIT:")]
     assert code == 1 and len(limits) == 1, out
     assert "6 Hz on y beyond the cage's measured bandwidth there (5.8 Hz" in limits[0]
-    assert "procedures/cage-response.yaml" in limits[0]
+    assert "rig run cage-response" in limits[0]
     code, out = check(tmp_path, sines("1, 2, 5.5"), RECORD, capsys)
     assert code == 0 and "LIMIT" not in out, out
 

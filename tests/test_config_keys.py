@@ -234,7 +234,7 @@ def test_record_keys_are_accepted_by_every_kind(tmp_path: Path) -> None:
 
 
 def test_the_key_tables_in_docs_devices_md_match_the_declarations() -> None:
-    text = DOC_FILE.read_text(encoding="utf-8")
+    text = (ROOT / DOC_FILE).read_text(encoding="utf-8")
     assert with_keys_doc(text) == text, "run: python -m rig.config --doc --write"
     for kind in KINDS.values():
         for protocol in kind.transports:

@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 
 from rig.procedure.language import parse_procedure
-from rig.procedure_files import find_procedure
+from rig.procedure_files import PROCEDURES_DIR, find_procedure
 from rig.steps.vocabulary import ProcedureError
 
-SHIPPED = Path(__file__).resolve().parents[1] / "procedures"
+SHIPPED = PROCEDURES_DIR
 
 PROCEDURE = """
 procedure: typo hunt

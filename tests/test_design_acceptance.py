@@ -17,12 +17,12 @@ from rig.cli import main
 from rig.errors import UserInputError
 from rig.prediction.acceptance import Acceptance
 from rig.prediction.design import Targets
-from rig.procedure_files import find_procedure
+from rig.procedure_files import TARGETS_DIR, find_procedure
 from rig.sim_rig import cage_in_process
 from rig.store import RunReader
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED_TARGETS = ROOT / "procedures" / "targets" / "acceptance.yaml"
+SHIPPED_TARGETS = TARGETS_DIR / "acceptance.yaml"
 
 
 def demo_rig(folder: Path) -> Path:
@@ -49,8 +49,8 @@ def test_the_shipped_designed_acceptance_is_what_rig_design_writes_for_the_simul
     written = out.read_text()
     shipped = find_procedure("dut-acceptance-designed").read_text()
     assert body(written) == body(shipped), (
-        "procedures/dut-acceptance-designed.yaml is not what rig design writes now: regenerate it"
-        " as docs/procedures.md says (rig design --targets procedures/targets/acceptance.yaml on"
+        "rig/shipped_procedures/dut-acceptance-designed.yaml is not what rig design writes now: regenerate it"
+        " as docs/procedures.md says (rig design --targets acceptance on"
         " the simulated cage's sim-rig.toml)"
     )
     # every criterion of the long form is carried but the live step's, which the header names

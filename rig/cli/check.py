@@ -78,10 +78,9 @@ def stale_cage_model(cfg: RigConfig | None, now: dt.datetime | None = None) -> s
     return "; ".join(said) if said else None
 
 
-METROLOGY_PROCEDURES = {"coil_axes": "procedures/cage-metrology.yaml",
-                        "field_map": "procedures/cage-field-map.yaml",
-                        "supply_stability": "procedures/cage-supply-stability.yaml",
-                        "cage_response": "procedures/cage-response.yaml"}  # fmt: skip
+METROLOGY_PROCEDURES = {"coil_axes": "rig run cage-metrology", "field_map": "rig run cage-field-map",
+                        "supply_stability": "rig run cage-supply-stability",
+                        "cage_response": "rig run cage-response"}  # fmt: skip
 """The shipped procedure that measures each metrology result of the cage record."""
 
 

@@ -18,10 +18,10 @@ if TYPE_CHECKING:
 def add_parser(sub: Subparsers, parents: list[Parser]) -> None:
     d = sub.add_parser("design", parents=parents,
                        help="write the shortest calibration procedure that meets sigma targets")  # fmt: skip
-    d.add_argument("--targets", type=Path, required=True, metavar="FILE",
+    d.add_argument("--targets", required=True, metavar="FILE|NAME",
                    help="the targets (YAML: model, loads and their levels, magnitude_ut, targets:"
-                        " result value -> largest combined 1-sigma), e.g."
-                        " procedures/targets/acceptance.yaml")  # fmt: skip
+                        " result value -> largest combined 1-sigma), or a shipped set's name: acceptance"
+                        " (rig/shipped_procedures/targets/acceptance.yaml)")  # fmt: skip
     d.add_argument(
         "--rig",
         type=Path,
@@ -62,10 +62,12 @@ def _cmd_design(args: argparse.Namespace) -> int:
                       args.quiet, args.margin)  # fmt: skip
 
 
-def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: Path | None,
+def run_design(targets_path: Path | str, rig_config: Path, max_s: float | None, out: Path | None,
                noise_nt: float | None, runs_dir: Path, quiet: bool, margin: float = 0.25) -> int:  # fmt: skip
     """Write the designed procedure; 0 when it meets every target, 1 when none could (nothing
     written: which target binds, and what would meet it)."""
+    import dataclasses
+
     from rig.config import load_rig_config
     from rig.errors import UserInputError
     from rig.prediction.acceptance import other_models, read_replaced
@@ -73,11 +75,14 @@ def run_design(targets_path: Path, rig_config: Path, max_s: float | None, out: P
     from rig.prediction.noise import noise_floor
     from rig.prediction.procedure import cage_terms_for
     from rig.procedure.plan import rig_timing
+    from rig.procedure_files import TARGETS_DIR, find_targets, shipped_name
     from rig.steps.vocabulary import RigTiming
 
     if not 0.0 <= margin <= 4.0:
         raise UserInputError(f"--margin must be 0-4 (a fraction), got {margin:g}")
-    targets = Targets.load(targets_path)
+    targets = Targets.load(find_targets(str(targets_path)))
+    if Path(targets.source).is_relative_to(TARGETS_DIR):  # a shipped set, by name
+        targets = dataclasses.replace(targets, source=shipped_name(Path(targets.source)))
     also_fit: tuple[str, ...] = ()
     if targets.acceptance is not None:  # the procedure it replaces, checked before the design
         also_fit = other_models(read_replaced(targets.acceptance.replaces), targets.model)

@@ -50,7 +50,7 @@ def unmeasured_metrology(proc: Procedure, cfg: RigConfig | None) -> list[str]:
         if used is not None and used not in known and used not in measured:
             out.append(f"step '{step.name}' ({step.kind}) is held to the cage's {used}, which the"
                        f" cage record does not have yet: measure it ({used} step,"
-                       " procedures/cage-response.yaml); until then only the step's own view of"
+                       " rig run cage-response); until then only the step's own view of"
                        " the cage decides which of its points are judged")  # fmt: skip
         measured.add(step.kind)
     return out

@@ -191,7 +191,9 @@ def _read_yaml(path: Path) -> tuple[str, dict[str, Any], dict[int, dict[Any, int
         with path.open("rb") as fh:
             raw = fh.read(MAX_PROCEDURE_FILE_BYTES + 1)  # never more, whatever the file is
     except FileNotFoundError:
-        raise ProcedureError(f"{path}: no such procedure; see the procedures/ folder") from None
+        raise ProcedureError(
+            f"{path}: no such procedure file; give a path, or run a shipped one by name"
+        ) from None
     except OSError as exc:
         raise ProcedureError(f"{path}: cannot read it ({exc.strerror})") from None
     if len(raw) > MAX_PROCEDURE_FILE_BYTES:

@@ -269,7 +269,7 @@ def beyond_the_cage(step: Step, cage: CageAbilities) -> list[str]:
             out.append(f"{step.kind} '{step.name}': {', '.join(f'{f:g}' for f in over)} Hz on"
                        f" {axis} beyond the cage's measured bandwidth there ({top:.3g} Hz,"
                        f" cage_response of {when}): lower the frequencies, or measure the cage"
-                       " again (procedures/cage-response.yaml)")  # fmt: skip
+                       " again (rig run cage-response)")  # fmt: skip
     top_slew = cage.tracked_slew_a_per_s(float(p["rate_hz"]))
     if cage.k_ut_per_a is not None and top_slew is not None:
         inverse = np.linalg.inv(np.asarray(cage.k_ut_per_a, float))

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from rig.cage.coil_axes import DEFAULT_POSITIONS, rotation
+from rig.procedure_files import PROCEDURES_DIR
 from sim.cage import SimulatedCage
 from tests.simrun import run_on_sim
 
-PROCEDURE = Path(__file__).parents[2] / "procedures" / "cage-metrology.yaml"
+PROCEDURE = PROCEDURES_DIR / "cage-metrology.yaml"
 ARCSEC = math.radians(1 / 3600)
 
 

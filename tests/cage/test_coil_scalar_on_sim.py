@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from rig.cage.model import CageModel
+from rig.procedure_files import PROCEDURES_DIR
 from sim.cage import SimulatedCage
 from tests.cage.test_coil_axes_on_sim import skews_arcsec
 from tests.simrun import run_on_sim
 
-PROCEDURE = Path(__file__).parents[2] / "procedures" / "cage-metrology-scalar.yaml"
+PROCEDURE = PROCEDURES_DIR / "cage-metrology-scalar.yaml"
 
 
 @pytest.mark.slow

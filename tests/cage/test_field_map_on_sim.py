@@ -13,10 +13,11 @@ import pytest
 
 from rig.cage.homogeneity import FieldMap
 from rig.cage.model import CageModel
+from rig.procedure_files import PROCEDURES_DIR
 from sim.cage import SimulatedCage
 from tests.simrun import run_on_sim
 
-PROCEDURE = Path(__file__).parents[2] / "procedures" / "cage-field-map.yaml"
+PROCEDURE = PROCEDURES_DIR / "cage-field-map.yaml"
 
 
 def move_reference(cage: SimulatedCage, question: str) -> bool:

@@ -13,6 +13,7 @@ import drivers
 import regmaps
 import sim.regmap
 from regmaps import MAP_DIR, RegisterMapError, load_map, shipped_maps
+from rig.procedure_files import PROCEDURES_DIR
 from sim.config import SimConfigError
 
 HM310P = (MAP_DIR / "hm310p.toml").read_text(encoding="utf-8")
@@ -212,7 +213,7 @@ def test_rig_check_refuses_a_device_whose_map_is_refused(tmp_path: Path) -> None
     rig = tmp_path / "rig.toml"
     rig.write_text(f'[devices.coil_x]\nkind = "regmap-supply"\nregmap = "{path}"\n'
                    'protocol = "modbus-tcp"\nhost = "127.0.0.1"\nport = 1502\n')  # fmt: skip
-    proc = Path(regmaps.__file__).parents[1] / "procedures" / "cage-characterization.yaml"
+    proc = PROCEDURES_DIR / "cage-characterization.yaml"
     done = subprocess.run([sys.executable, "-m", "rig.cli", "check", str(proc), "--rig", str(rig)],
                           capture_output=True, text=True, timeout=120)  # fmt: skip
     assert done.returncode == 2, done.stderr

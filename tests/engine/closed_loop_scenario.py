@@ -23,7 +23,7 @@ FIELDS = [[44.5, -5.27, -4.12], [39.13, -19.78, -10.13], [43.75, 10.35, 1.87],
           [-2.28, 36.75, 25.87], [16.37, 29.65, 29.62], [-6.49, 44.53, 0.37],
           [0.48, -23.08, 38.62], [-10.03, -29.33, 32.62], [15.76, -23.67, 34.88],
           [4.44, -42.81, 13.12]]  # fmt: skip
-"""The 19 field set-points rig design chose for the built-in cage (procedures/
+"""The 19 field set-points rig design chose for the built-in cage (rig/shipped_procedures/
 dut-acceptance-designed.yaml)."""
 
 

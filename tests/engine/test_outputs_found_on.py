@@ -3,7 +3,7 @@ the run states what was read back (issue 51: after SIGKILL of both the rig and i
 next `rig run smoke` ran with the heater at 2 A throughout and said every output was off).
 
 The heater at 2 A and coil_x at 1 A are driven through the drivers and their links closed, as the
-two dead processes leave them; then procedures/smoke.yaml is run on the simulated cage in
+two dead processes leave them; then rig/shipped_procedures/smoke.yaml is run on the simulated cage in
 simulated time, with the heater's true output sampled every 2 ms from the simulator's physics."""
 
 from __future__ import annotations
@@ -20,11 +20,12 @@ from rig.engine.runner import Runner
 from rig.engine.session import RigSession
 from rig.errors import RigError
 from rig.procedure.language import parse_procedure
+from rig.procedure_files import PROCEDURES_DIR
 from rig.store import RunReader
 from sim.cage import SimulatedCage
 from tests.simcage import sim_cage
 
-SMOKE = Path(__file__).resolve().parents[2] / "procedures" / "smoke.yaml"
+SMOKE = PROCEDURES_DIR / "smoke.yaml"
 
 pytestmark = pytest.mark.usefixtures("own_lock_dir")
 

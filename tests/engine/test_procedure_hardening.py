@@ -12,6 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from bench.fuzz_procedures import Case, cases, check, make_folder
 from rig.procedure.language import NotFiniteError, ProcedureError, parse_procedure
 from rig.procedure.plan import compile_plan, dry_run
+from rig.procedure_files import PROCEDURES_DIR
 from rig.steps import load_profiles
 from rig.steps.load_profiles import load_profile
 from rig.steps.vocabulary import MAX_STEPS, MAX_TOTAL_DURATION_S
@@ -315,7 +316,7 @@ def test_any_procedure_text_parses_or_is_refused_clearly(fuzz_folder: Path, case
 
 
 def test_field_set_points_of_orbit_replay_and_live_calibration_are_bounded(tmp_path: Path) -> None:
-    shipped = Path(__file__).resolve().parents[2] / "procedures"
+    shipped = PROCEDURES_DIR
     with pytest.raises(
         ProcedureError,
         match=r"4320000 field set-points, more than 1000000 \(MAX_FIELD_SETPOINTS_PER_STEP\)",

@@ -49,7 +49,7 @@ def test_a_drifting_dut_held_for_two_minutes_shows_its_drift_and_allan_deviation
 
 @pytest.mark.slow
 def test_the_shipped_characterization_passes_a_good_dut(tmp_path: Path) -> None:
-    """procedures/dut-characterization.yaml on the simulated cage (its hold cut to 30 s, and so
+    """rig/shipped_procedures/dut-characterization.yaml on the simulated cage (its hold cut to 30 s, and so
     its drift limit lifted: 30 s know the drift to about 6000 nT per 12 h): every figure
     recorded, the default DUT (no cross-field, a small wander, no perming) passes every
     criterion."""
