@@ -19,6 +19,25 @@ def cage_case() -> SyntheticCase:
     return cage_like(1500, seed=12)
 
 
+TIERS = ("quick", "simcage", "realtime", "montecarlo", "services")
+"""The test tiers (pyproject.toml's markers, docs/testing.md): a module names its tier in its
+``pytestmark``; a test without one is quick."""
+QUICK_TIMEOUT_S = 120.0
+"""A quick test that has not finished in this long (s) is hung, not slow (they take seconds)."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every test in exactly one tier; an unmarked one is quick, with the quick timeout."""
+    for item in items:
+        tiers = {m.name for m in item.iter_markers() if m.name in TIERS}
+        if len(tiers) > 1:
+            raise pytest.UsageError(f"{item.nodeid}: in tiers {sorted(tiers)}; give it one")
+        if not tiers:
+            item.add_marker(pytest.mark.quick)
+            if item.get_closest_marker("timeout") is None:
+                item.add_marker(pytest.mark.timeout(QUICK_TIMEOUT_S))
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
         "--rig-config",

@@ -134,7 +134,7 @@ def test_an_old_metrology_result_in_the_record_is_flagged(
     assert main(["check", str(proc), "--rig", str(cfg)]) == 0
     warning = [line for line in capsys.readouterr().out.splitlines() if line.startswith("WARNING")]
     assert len(warning) == 1 and "its field map result of 2024-11-01 is" in warning[0], warning
-    assert "cage-field-map.yaml" in warning[0] and "coil axes" not in warning[0]
+    assert "rig run cage-field-map" in warning[0] and "coil axes" not in warning[0]
 
 
 def test_a_metrology_result_saves_a_new_version_and_keeps_the_old(tmp_path: Path) -> None:

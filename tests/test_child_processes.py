@@ -15,6 +15,8 @@ import pytest
 
 from tests.simproc import sim_process
 
+pytestmark = pytest.mark.realtime
+
 linux_only = pytest.mark.skipif(
     not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux-only"
 )

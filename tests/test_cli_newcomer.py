@@ -39,6 +39,8 @@ from rig.store.export import export_csv, export_hdf5
 from rig.store.run_store import new_run
 from tests.simproc import sim_process
 
+pytestmark = pytest.mark.simcage
+
 START_UTC = "2026-03-04T05:06:07+00:00"
 START_MONO = 1000.0
 
@@ -178,7 +180,6 @@ def run_folder(runs: Path, label: str) -> Path:
     return next(p for p in runs.iterdir() if p.name.endswith(label))
 
 
-@pytest.mark.slow
 def test_calibrate_takes_a_bare_run_id(sim_runs: tuple[Path, Path], tmp_path: Path) -> None:
     _, runs = sim_runs
     folder = run_folder(runs, "SN-SWEEP")
@@ -199,7 +200,6 @@ def test_calibrate_takes_a_bare_run_id(sim_runs: tuple[Path, Path], tmp_path: Pa
 # --- 10. smoke writes its report ----------------------------------------------------------------
 
 
-@pytest.mark.slow
 def test_smoke_runs_on_the_simulator_and_writes_its_report(sim_runs: tuple[Path, Path]) -> None:
     folder = run_folder(sim_runs[1], "SN-NEWCOMER")
     assert any(s.kind == "report" for s in parse_procedure(find_procedure("smoke")).steps)
@@ -225,7 +225,6 @@ def test_characterization_counts_its_sweep_in_the_dry_run(tmp_path: Path) -> Non
     assert shipped.timeline[2][0] > 20.0  # the null check starts after the ~25 s sweep
 
 
-@pytest.mark.slow
 def test_characterization_estimate_within_20_percent_of_the_simulator(
     sim_runs: tuple[Path, Path],
 ) -> None:

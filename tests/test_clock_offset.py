@@ -17,6 +17,8 @@ from rig.calibration.profiled import (
 )
 from rig.calibration.residuals import Samples
 
+pytestmark = pytest.mark.montecarlo
+
 RATE_HZ = 20.0
 NOISE_UT = 0.03
 TRUE_DELAYS_S = (0.0, 0.05)
@@ -90,7 +92,6 @@ def test_no_offset_is_found_where_there_is_none() -> None:
     assert np.all(np.abs(z) < 3), (joint.values, joint.sigma)
 
 
-@pytest.mark.slow
 def test_delay_sigmas_cover_the_truth_under_correlated_noise_and_an_offset() -> None:
     zs = []
     for seed in range(8):

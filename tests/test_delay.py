@@ -12,6 +12,8 @@ from rig.calibration.residuals import Samples
 from rig.calibration.synthetic import DELAY_K_UT_PER_A, delayed_currents
 from rig.errors import CalibrationError
 
+pytestmark = pytest.mark.montecarlo
+
 TRUE_DELAYS_S = (0.35, -0.12)
 K_TRUE = DELAY_K_UT_PER_A  # uT per A
 NOISE_UT = 0.05
@@ -88,7 +90,6 @@ def test_the_other_parameters_carry_the_delays_uncertainty() -> None:
                                atol=1e-9 * float(np.max(np.abs(sandwich[:k, :k]))))  # fmt: skip
 
 
-@pytest.mark.slow
 def test_delay_sigma_matches_the_monte_carlo_spread() -> None:
     errs, sigmas = [], []
     runs = 15

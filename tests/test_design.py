@@ -24,6 +24,8 @@ from rig.prediction.noise import even
 from rig.steps.geometry import fibonacci_directions
 from rig.steps.vocabulary import RigTiming
 
+pytestmark = pytest.mark.montecarlo
+
 TARGETS = """
 model: vector
 loads:

@@ -21,6 +21,8 @@ from rig.procedure_files import TARGETS_DIR, find_procedure
 from rig.sim_rig import cage_in_process
 from rig.store import RunReader
 
+pytestmark = pytest.mark.simcage
+
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED_TARGETS = TARGETS_DIR / "acceptance.yaml"
 
@@ -138,7 +140,6 @@ def test_a_criterion_reads_one_axis_of_a_per_axis_value() -> None:
             lookup(results, "fit", bad)
 
 
-@pytest.mark.slow
 def test_the_designed_acceptance_gives_the_verdict_within_a_minute_of_cage_time(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -20,6 +20,8 @@ from rig.calibration.residuals import (
     z_noise_mean,
 )
 
+pytestmark = pytest.mark.montecarlo
+
 B_UT = np.array([5.0, 3.0, 6.0])
 D = np.array([[0.05, 0.02, 0.01], [0.02, 0.10, 0.03], [0.01, 0.03, 0.06]])
 NOISE_UT = 1.0
@@ -107,7 +109,6 @@ def test_the_compensation_is_the_mean_correlation_of_regressor_and_residual() ->
     assert np.all(np.abs(predicted.mean(axis=0)[3:6]) > 10.0 * standard_error[3:6])
 
 
-@pytest.mark.slow
 def test_energy_filter_has_no_errors_in_variables_bias() -> None:
     """The default sequential filter (energy-state, Jacobian projection) subtracts the same
     correlation per sample, at its current estimate, and weights each sample by the reference

@@ -30,6 +30,8 @@ from rig.calibration.sequential.zmodel import ZModel, z_sample
 from rig.calibration.synthetic import cage_like, rax_like
 from rig.errors import CalibrationError
 
+pytestmark = pytest.mark.montecarlo
+
 
 def _zs(case, k):
     s = case.samples
@@ -118,7 +120,6 @@ def test_nine_and_twelve_state_ukf_agree_closely() -> None:
     assert np.all(np.abs(a.p - b.p) < 0.05 * sig)
 
 
-@pytest.mark.slow
 def test_energy_filters_are_consistent_over_monte_carlo() -> None:
     """NEES of the final estimate in theta over 12 noise draws inside the 95 % chi-square band,
     mean NIS (second half) near 1, for the EKF and UKF started at zero; telemetry states included."""

@@ -9,6 +9,8 @@ from rig.calibration import calibrate
 from rig.calibration.residuals import p_from_calibration
 from rig.calibration.synthetic import SyntheticCase, cage_like, rax_like
 
+pytestmark = pytest.mark.montecarlo
+
 DRAWS = 40
 
 
@@ -31,7 +33,6 @@ def _monte_carlo(case: SyntheticCase, method: str, noise_nt: float, vector: bool
     return errors_a, spread, np.mean(sigmas, axis=0), np.mean(crlbs, axis=0)
 
 
-@pytest.mark.slow
 def test_ml_reaches_the_cramer_rao_bound() -> None:
     case = rax_like(2000, seed=31)
     errors, spread, sigma, crlb = _monte_carlo(case, "ml", 100.0, vector=False)
@@ -48,7 +49,6 @@ def test_ml_reaches_the_cramer_rao_bound() -> None:
     np.testing.assert_allclose(sigma / crlb, 1.0, atol=0.05)
 
 
-@pytest.mark.slow
 def test_centered_is_consistent_but_above_the_bound() -> None:
     case = rax_like(2000, seed=32)
     _, spread, sigma, crlb = _monte_carlo(case, "centered", 100.0, vector=False)
@@ -56,7 +56,6 @@ def test_centered_is_consistent_but_above_the_bound() -> None:
     assert np.mean(sigma / crlb) > 1.05  # but the centering approximation costs efficiency
 
 
-@pytest.mark.slow
 def test_vector_covariance_matches_spread() -> None:
     case = cage_like(600, seed=33, noise_ut=0.05)
     _, spread, sigma, crlb = _monte_carlo(case, "vector", 50.0, vector=True)

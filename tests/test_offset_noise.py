@@ -13,6 +13,8 @@ from rig.characterization.offset_noise import Bins, _flicker_bins, contiguous_bi
 from rig.characterization.perming import offset_shifts
 from rig.characterization.stability import allan_deviation, offset_drift
 
+pytestmark = pytest.mark.montecarlo
+
 RATE_HZ = 10.0
 
 

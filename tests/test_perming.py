@@ -16,6 +16,8 @@ from sim.hmr2300 import Hmr2300
 from sim.perming import Perming
 from sim.physics import Faults
 
+pytestmark = pytest.mark.montecarlo
+
 
 def ar1(rng: np.random.Generator, n: int, rho: float, sigma: float) -> np.ndarray:
     """(n, 3) AR(1) noise with lag-1 correlation ``rho`` and standard deviation ``sigma``."""

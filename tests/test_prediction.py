@@ -24,6 +24,8 @@ from rig.procedure.language import parse_procedure
 from rig.steps.vocabulary import RigTiming
 from rig.store.run_store import new_run
 
+pytestmark = pytest.mark.montecarlo
+
 SWEEP = """
 procedure: Predicted
 magnetometers: {{dut: dut, reference: reference}}

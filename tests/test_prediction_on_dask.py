@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.montecarlo
+
 PROCEDURE = """\
 procedure: Short calibration
 magnetometers: {dut: dut, reference: reference}
@@ -26,7 +28,6 @@ steps:
 """
 
 
-@pytest.mark.slow
 def test_predicted_sigmas_are_the_runs_sigmas_on_a_dask_cluster(tmp_path: Path) -> None:
     from distributed import Client
 

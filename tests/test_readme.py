@@ -59,16 +59,22 @@ def test_the_readme_states_the_number_of_tests_there_are() -> None:
     import subprocess
     import sys
 
-    stated = re.search(r"(\d+) tests\. Tests marked `slow`", README.read_text())
-    assert stated, "the README no longer states the number of tests"
+    stated = re.search(r"(\d+) tests\.\nEvery test is in one tier", README.read_text())
+    quick = re.search(r"\*\*quick\*\* \((\d+) tests", README.read_text())
+    assert stated and quick, "the README no longer states the number of tests and quick ones"
     proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider"],
+        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
+         "-m", "quick"],
         cwd=README.parent, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
-    collected = re.search(r"(\d+) tests? collected", proc.stdout)
+    collected = re.search(r"(\d+)/(\d+) tests collected", proc.stdout)
     assert collected, proc.stdout[-500:] + proc.stderr[-500:]
-    assert int(stated.group(1)) == int(collected.group(1)), (
-        f"README says {stated.group(1)} tests, pytest collects {collected.group(1)}: update it"
+    assert (int(stated.group(1)), int(quick.group(1))) == (
+        int(collected.group(2)),
+        int(collected.group(1)),
+    ), (
+        f"README says {stated.group(1)} tests, {quick.group(1)} quick; pytest collects"
+        f" {collected.group(2)}, {collected.group(1)} quick: update it"
     )
 
 

@@ -15,6 +15,8 @@ import pytest
 from rig.characterization.stability import allan_deviation, offset_drift
 from sim.offset_wander import OffsetWander, WanderSpec, allan_variance_truth
 
+pytestmark = pytest.mark.montecarlo
+
 SPEC = WanderSpec(drift_nt_per_h=(2.0, -1.5, 2.5), walk_nt_per_sqrt_h=0.1, flicker_nt=0.3)
 WHITE_NT = 10.0
 RATE_HZ = 2.0

@@ -16,6 +16,8 @@ from rig.characterization.thermal import branches, fit_thermal
 from sim.offset_wander import OffsetWander, WanderSpec
 from sim.thermal_hysteresis import ThermalHysteresis
 
+pytestmark = pytest.mark.montecarlo
+
 RATE_HZ = 2.0  # a campaign's offsets averaged to 2 Hz (the noise per sample scaled to match)
 NOISE_NT = 21.0 / np.sqrt(20.0 / RATE_HZ)  # the DUT less the reference at 20 Hz: about 21 nT
 TEMPCO_NT_PER_K = np.array([30.0, -20.0, 15.0])  # the default DUT's offset_ut_per_k

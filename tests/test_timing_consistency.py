@@ -19,6 +19,8 @@ import pytest
 
 from rig.timing import misdated_samples
 
+pytestmark = pytest.mark.realtime
+
 EVIDENCE = Path(__file__).parent / "data" / "loaded-demo-wrong-fail"
 PERIOD_S = 0.05
 NOISE_UT = 0.02
@@ -84,7 +86,6 @@ def test_holds_are_judged_separately_and_short_ones_not_at_all() -> None:
     assert not misdated_samples(t, dut, keep, ref_t, ref, np.array([t[4]]))[0].any()
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("method", ["vector", "ml"])
 def test_the_loaded_machine_run_refits_within_its_criteria(tmp_path: Path, method: str) -> None:
     """The run that gave a wrong FAIL (vector residual 990 nT, scalar 1419 nT, criteria 60 nT):

@@ -18,13 +18,14 @@ import pytest
 from rig.calibration import Samples, calibrate
 from rig.calibration.audit import SCENARIOS, audit, coloured_noise, make_case, scenario, summary
 
+pytestmark = pytest.mark.montecarlo
+
 if TYPE_CHECKING:
     from distributed import Client
 
 CHECKED = ("a", "b", "c", "x0", "y0", "z0")
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize(
     "name", ["white", "AR(1) tau 1", "AR(1) tau 3", "AR(1) tau 10", "AR(1) tau 30"]
 )
@@ -94,7 +95,6 @@ def test_a_hemisphere_fits_with_the_warning_and_its_noise_bias_removed(client: C
     assert all(abs(m) < 0.7 for m in mean.values()), mean
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize(
     "name",
     ["delays, smooth currents", "delays, steps at random times", "delays, steps on the grid"],
@@ -107,7 +107,6 @@ def test_delays_have_honest_sigmas(client: Client, name: str) -> None:
     assert_rms_within(rms, ("delay[i_a]", "delay[i_b]"))
 
 
-@pytest.mark.slow
 def test_current_coefficients_with_step_currents_have_honest_sigmas(client: Client) -> None:
     """Steps at random times: the misfit sits at the steps, where the coefficients' columns
     change, not on the held levels that carry most of their information; one residual variance
@@ -120,7 +119,6 @@ def test_current_coefficients_with_step_currents_have_honest_sigmas(client: Clie
     assert len(k) == 6 and 0.85 <= pooled <= 1.2, rms
 
 
-@pytest.mark.slow
 def test_temperature_coefficients_have_honest_sigmas(client: Client) -> None:
     rms, _ = rms_by_name(client, "temperature", 20)
     names = ("scale per kelvin", "k[temperature].x", "k[temperature].y", "k[temperature].z")

@@ -15,6 +15,8 @@ from rig.cage.servo import AmbientServo, ServoSettings
 from rig.cli import main
 from rig.errors import UserInputError
 
+pytestmark = pytest.mark.simcage
+
 PER_A = (2.0, 2.0, 2.0)
 
 
@@ -101,7 +103,6 @@ def test_hold_needs_its_references_and_the_servo_its_trims(tmp_path: Path) -> No
     assert _check(Cfg, servo=False)[1:] == ("reference", "outside")
 
 
-@pytest.mark.slow
 def test_rig_cage_hold_servo_on_the_simulated_cage(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

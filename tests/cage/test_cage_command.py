@@ -13,6 +13,8 @@ from pymodbus.client import ModbusTcpClient
 
 from tests.simproc import sim_process
 
+pytestmark = pytest.mark.realtime
+
 
 @pytest.fixture(scope="module")
 def sim_rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, dict]]:  # type: ignore[type-arg]
@@ -35,7 +37,6 @@ def outputs_on(devices: dict) -> list[bool]:  # type: ignore[type-arg]
     return states
 
 
-@pytest.mark.slow
 def test_characterize_then_trimmed_field(sim_rig: tuple[Path, dict]) -> None:  # type: ignore[type-arg]
     rig_toml, devices = sim_rig
     proc = rig(

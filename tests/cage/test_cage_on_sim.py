@@ -21,6 +21,8 @@ from sim.cage import SimulatedCage
 from sim.config import SimConfig, load_config
 from sim.physics import springmann_matrix
 
+pytestmark = pytest.mark.simcage
+
 
 def fast_reference_config(tmp_path: Path) -> Path:
     """The default cage with the reference streaming at 100 Hz (shorter tests)."""
@@ -65,7 +67,6 @@ def controller(sim_and_config: tuple[SimulatedCage, Path]) -> Iterator[CageContr
     assert not any(s.output for s in cage.physics.supplies.values()), "outputs left on"
 
 
-@pytest.mark.slow
 def test_characterization_recovers_k_and_b0(
     controller: CageController, sim_and_config: tuple[SimulatedCage, Path], tmp_path: Path
 ) -> None:
@@ -99,7 +100,6 @@ def test_characterization_recovers_k_and_b0(
     assert back.meta["instruments"] == {"reference": "sim"}
 
 
-@pytest.mark.slow
 def test_trim_reaches_10_nt_of_null_and_of_a_field(
     controller: CageController, sim_and_config: tuple[SimulatedCage, Path]
 ) -> None:

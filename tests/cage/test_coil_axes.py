@@ -20,6 +20,8 @@ from rig.cage.coil_axes import (
 )
 from rig.errors import UserInputError
 
+pytestmark = pytest.mark.montecarlo
+
 CONSTANTS = np.array([40.2, 39.1, 41.3])
 SKEW_XY_DEG = 0.5
 NOISE_UT_PER_A = 6e-4  # 5 nT reference noise, 40 readings per level, 1 A

@@ -17,6 +17,8 @@ from rig.procedure_files import PROCEDURES_DIR
 from sim.cage import SimulatedCage
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 PROCEDURE = PROCEDURES_DIR / "cage-metrology.yaml"
 ARCSEC = math.radians(1 / 3600)
 
@@ -50,7 +52,6 @@ def skews_arcsec(k: np.ndarray) -> np.ndarray:
                      for i, j in ((0, 1), (0, 2), (1, 2))])  # fmt: skip
 
 
-@pytest.mark.slow
 def test_the_metrology_procedure_recovers_the_simulated_coils(tmp_path: Path) -> None:
     operator = FixtureOperator(seed=11)
     truth: dict[str, np.ndarray] = {}

@@ -15,6 +15,8 @@ from rig.errors import UserInputError
 from rig.steps.coil_scalar import design
 from rig.steps.geometry import fibonacci_directions as sphere_directions
 
+pytestmark = pytest.mark.montecarlo
+
 LAB_UT = np.array([19.6, 1.2, -44.8])
 NOMINAL = np.diag([40.0, 40.0, 40.0])
 

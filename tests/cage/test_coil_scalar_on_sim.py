@@ -16,10 +16,11 @@ from sim.cage import SimulatedCage
 from tests.cage.test_coil_axes_on_sim import skews_arcsec
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 PROCEDURE = PROCEDURES_DIR / "cage-metrology-scalar.yaml"
 
 
-@pytest.mark.slow
 def test_the_scalar_procedure_recovers_the_simulated_coils(tmp_path: Path) -> None:
     truth: dict[str, np.ndarray] = {}
 

@@ -20,6 +20,8 @@ from rig.devices import build_cage
 from sim.cage import SimulatedCage
 from tests.simcage import sim_cage
 
+pytestmark = pytest.mark.simcage
+
 SLEW = 10.0
 TAU_S = 0.025
 
@@ -47,7 +49,6 @@ def test_the_steps_into_the_coils_l_over_r_keep_the_slope_within_the_limit() -> 
     assert bound.max_step_a == pytest.approx(SLEW * TAU_S * (1 - math.exp(-2.0)))
 
 
-@pytest.mark.slow
 def test_on_the_simulated_cage_the_true_coil_current_keeps_the_slew(tmp_path: Path) -> None:
     """The simulated rig's configuration states its coils' L/R (25 ms): a ramp of coil z to
     2 A and back is watched in the simulator's truth every 1 ms."""

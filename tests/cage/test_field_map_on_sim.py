@@ -17,6 +17,8 @@ from rig.procedure_files import PROCEDURES_DIR
 from sim.cage import SimulatedCage
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 PROCEDURE = PROCEDURES_DIR / "cage-field-map.yaml"
 
 
@@ -28,7 +30,6 @@ def move_reference(cage: SimulatedCage, question: str) -> bool:
     return True
 
 
-@pytest.mark.slow
 def test_the_field_map_predicts_the_error_at_random_positions(tmp_path: Path) -> None:
     from sim.config import load_config
     from sim.physics import CagePhysics

@@ -27,6 +27,8 @@ from sim.i2c_bus import SimI2CBus
 from sim.physics import Faults
 from sim.rm3100 import Rm3100 as SimRm3100
 
+pytestmark = pytest.mark.realtime
+
 FIELD_UT = (12.5, -20.0, 31.0)
 PNI_GAIN_CC200 = 0.3671 * 200 + 1.5  # counts per uT (PNI)
 

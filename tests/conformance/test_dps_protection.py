@@ -22,6 +22,8 @@ from regmaps import load_map  # noqa: E402
 from sim.cage import SimulatedCage  # noqa: E402
 from tests.conformance.simcage import cage_with, endpoint  # noqa: E402
 
+pytestmark = pytest.mark.realtime
+
 
 @pytest.fixture(scope="module")
 def cage(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimulatedCage]:

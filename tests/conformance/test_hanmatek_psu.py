@@ -24,6 +24,8 @@ from regmaps import load_map  # noqa: E402
 from sim.cage import SimulatedCage  # noqa: E402
 from tests.conformance.simcage import cage_with, endpoint  # noqa: E402
 
+pytestmark = pytest.mark.realtime
+
 RESISTANCE_OHM = 4.2  # coil_y of the default cage
 
 

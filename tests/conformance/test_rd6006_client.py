@@ -22,6 +22,8 @@ from drivers.transport.modbus import ModbusLink  # noqa: E402
 from sim.cage import SimulatedCage  # noqa: E402
 from tests.conformance.simcage import cage_with, endpoint  # noqa: E402
 
+pytestmark = pytest.mark.realtime
+
 LOAD_OHM = 6.0  # load_bus of the default cage (an RD6006 into a resistor)
 
 

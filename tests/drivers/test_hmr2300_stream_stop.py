@@ -24,6 +24,8 @@ from sim.physics import Faults
 from tests.drivers.scripted import Exchange, ScriptedSerialPeer
 from timebase.wires import wires
 
+pytestmark = pytest.mark.realtime
+
 FIELD_UT = (20.0, -5.0, 45.0)
 RATE_SPS = 10
 FRAME_S = 7 * 10 / 9600  # a binary frame on the line at 9600 Bd

@@ -16,6 +16,8 @@ import pytest
 from tests.drivers.scripted import crc16
 from tests.waiting import wait_until
 
+pytestmark = pytest.mark.realtime
+
 READER = r"""
 import sys, time
 from drivers.transport.serial_port import SerialPort

@@ -30,6 +30,8 @@ from drivers.transport.modbus import ModbusLink, rtu_silence_s
 from tests.drivers.scripted import crc16
 from timebase.wires import wires
 
+pytestmark = pytest.mark.realtime
+
 REQUESTS = 100
 BAUDS = (9600, 115200)
 SPEC_T35_S = {9600: 3.5 * 11 / 9600, 115200: 0.00175}  # 4.01 ms and the fixed 1.75 ms

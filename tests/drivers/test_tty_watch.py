@@ -20,6 +20,8 @@ from drivers.transport.serial_port import SerialPort
 from drivers.transport.tty_watch import TOLERANCE_S, TtyWatch
 from tests.drivers.scripted import crc16
 
+pytestmark = pytest.mark.realtime
+
 
 def test_stall_is_the_overlap_of_recorded_spans_with_the_window() -> None:
     watch = TtyWatch()

@@ -18,6 +18,8 @@ from tests.engine.closed_loop_scenario import LOOP, calibration_steps, loop_step
 from tests.simrun import run_on_sim
 from tests.steps.test_closed_loop_step import software_detumble_s
 
+pytestmark = pytest.mark.simcage
+
 PROCEDURE = (
     """
 procedure: closed loop with a miscalibrated DUT

@@ -19,6 +19,8 @@ from tests.engine.closed_loop_scenario import loop_step
 from tests.simcage import sim_cage
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 PROCEDURE = """
 procedure: closed loop detumble
 magnetometers: {dut: dut, reference: reference}

@@ -20,6 +20,8 @@ from tests.engine.closed_loop_scenario import calibration_steps, loop_step
 from tests.simcage import sim_cage
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 RODS = {"torque_rods": ["load_bus", "load_panel", "none"], "rod_a_per_am2": 7.5, "rod_bias_a": 1.5}
 PROCEDURE = (
     """

@@ -13,6 +13,8 @@ from rig.steps.cross_field import pairs
 from sim.config import load_config
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 TRUTH = ((0.0, 300.0, -150.0), (-200.0, 0.0, 100.0), (120.0, 250.0, 0.0))  # ppm/uT
 
 PROCEDURE = """
@@ -29,7 +31,6 @@ steps:
 """
 
 
-@pytest.mark.slow
 def test_the_coefficients_of_a_calibrated_dut_within_three_sigma_of_the_truth(
     tmp_path: Path,
 ) -> None:

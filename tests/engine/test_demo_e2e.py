@@ -13,8 +13,9 @@ from rig.cli import main
 from rig.store import RunReader
 from sim.config import load_config
 
+pytestmark = pytest.mark.simcage
 
-@pytest.mark.slow
+
 def test_demo_recovers_the_hidden_dut_within_3_sigma(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -67,7 +68,6 @@ def test_demo_recovers_the_hidden_dut_within_3_sigma(
     assert len(beyond) <= 1 and all(abs(v) < 4.0 for v in zs_scalar.values()), zs_scalar
 
 
-@pytest.mark.slow
 def test_the_readme_main_command_runs_beside_the_simulator_in_real_time(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -12,6 +12,8 @@ import pytest
 
 from bench.faultlab import EXTRA, FAULTS, STEP_KINDS, Fault, cells, run_extra, run_fault
 
+pytestmark = pytest.mark.realtime
+
 DIAGONAL = cells(full=False)
 
 

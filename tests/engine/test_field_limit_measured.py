@@ -23,7 +23,7 @@ from tests.test_check_cage_model import CHARACTERIZE, write
 Z_95 = "  - set_field: {field_ut: [0, 0, -95], hold_s: 2}\n"  # the lab field is -44.8 uT on z
 Z_50 = "  - set_field: {field_ut: [0, 0, 50], hold_s: 2}\n"
 
-pytestmark = pytest.mark.usefixtures("own_lock_dir")
+pytestmark = [pytest.mark.realtime, pytest.mark.usefixtures("own_lock_dir")]
 
 
 def check(tmp_path: Path, steps: str, capsys: pytest.CaptureFixture[str]) -> tuple[int, list[str]]:

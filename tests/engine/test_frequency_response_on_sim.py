@@ -23,6 +23,8 @@ from sim.config import SimConfig, load_config
 from sim.sensor_response import SensorResponse
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 DUT_TAU_S, REF_TAU_S = 0.008, 0.001
 
 PROCEDURE = """
@@ -64,7 +66,6 @@ def cage_truth(cfg: SimConfig, axis: int, rate_hz: float, f_hz: float) -> float:
     return abs(math.sin(x) / x / complex(1.0, 2.0 * math.pi * f_hz * tau))
 
 
-@pytest.mark.slow
 def test_cage_bandwidth_then_the_dut_within_1_percent_and_1_degree_up_to_it(
     tmp_path: Path,
 ) -> None:

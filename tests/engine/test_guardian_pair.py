@@ -51,7 +51,7 @@ EDITS = {
 DRIVEN = ("coil_x", "coil_y", "coil_z", "load_bus")
 
 
-pytestmark = pytest.mark.usefixtures("own_lock_dir")
+pytestmark = [pytest.mark.realtime, pytest.mark.usefixtures("own_lock_dir")]
 
 
 def start_run(rig_toml: Path, tmp_path: Path) -> tuple[subprocess.Popen[str], Path]:

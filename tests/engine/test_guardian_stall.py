@@ -15,8 +15,12 @@ import termios
 import time
 from pathlib import Path
 
+import pytest
+
 from rig.engine.guardian import HEARTBEAT_TIMEOUT_S
 from tests.waiting import wait_until
+
+pytestmark = pytest.mark.realtime
 
 WAIT = "import sys; from rig.engine.guardian import wait_for_rig; print(wait_for_rig(0, int(sys.argv[1])))"
 

@@ -34,7 +34,7 @@ from tests.simcage import write_rig_toml
 from tests.simrun import run_watched
 
 RIG = [sys.executable, "-m", "rig.cli"]
-pytestmark = pytest.mark.usefixtures("own_lock_dir")
+pytestmark = [pytest.mark.realtime, pytest.mark.usefixtures("own_lock_dir")]
 
 SIM_TAU_S = 10.0
 """The simulated mount's time constant in this module (s): 2 A (16 W, 2 K/W) warms it 3 K in

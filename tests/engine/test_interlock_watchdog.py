@@ -22,6 +22,8 @@ from pymodbus.client import ModbusTcpClient
 from rig.engine.guardian import HEARTBEAT_TIMEOUT_S
 from tests.simproc import sim_process
 
+pytestmark = pytest.mark.realtime
+
 RIG = [sys.executable, "-m", "rig.cli"]
 
 

@@ -15,6 +15,8 @@ from rig.store.run_store import RunReader
 from sim.config import load_config
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 
 def test_a_known_quadratic_term_is_found_in_ppm() -> None:
     """reading = 2 + 1.001 h + q h^2 over +-60 uT: h^2 is even, so the fitted line takes only its
@@ -41,7 +43,6 @@ def test_the_sweep_goes_to_the_rig_field_limit_unless_given(tmp_path: Path) -> N
     assert report.violations  # a limit of 80 uT on a 60 uT cage is caught before any hardware
 
 
-@pytest.mark.slow
 def test_on_the_simulated_cage(tmp_path: Path) -> None:
     outcome = run_on_sim(
         tmp_path,
@@ -61,7 +62,6 @@ def test_on_the_simulated_cage(tmp_path: Path) -> None:
     assert "Linearity &#x27;linearity&#x27;" in html and "ppm of" in html
 
 
-@pytest.mark.slow
 def test_a_field_is_held_until_its_settled_samples_are_in(tmp_path: Path) -> None:
     """Issue 54: 0.02 s of each 0.3 s dwell is settled, too little for the 20 Hz reference's 3
     samples; the engine holds each field longer instead of ending the run with too few points,

@@ -29,6 +29,8 @@ from rig.engine.interlock import (
     output_devices,
 )
 
+pytestmark = pytest.mark.realtime
+
 NOBODY = 65534
 SHARED_GID = 4242  # a group for the shared-folder test (numeric: it needs no /etc/group line)
 

@@ -12,6 +12,8 @@ from rig.engine.health import HealthMonitor
 from rig.errors import UserInputError
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 HOLD = """
 procedure: Hold
 magnetometers: {dut: dut, reference: reference}
@@ -20,7 +22,6 @@ steps:
 """
 
 
-@pytest.mark.slow
 def test_a_monitor_that_fails_ends_the_run_safely(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

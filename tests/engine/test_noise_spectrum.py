@@ -12,6 +12,8 @@ from rig.procedure.language import ProcedureError, parse_procedure
 from rig.steps.noise_spectrum import AROUND_1HZ, amplitude_density, band_mean
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 
 def test_white_noise_density_matches_its_variance_and_a_tone_shows_at_its_frequency() -> None:
     """One-sided white density is sigma * sqrt(2 / fs); jittered timestamps (+-3 ms) and a slow
@@ -46,7 +48,6 @@ def test_a_band_the_hold_cannot_resolve_is_refused(tmp_path: Path) -> None:
         parse_procedure(write(tmp_path, "noise_spectrum: {hold_s: 60, band_hz: [2, 2]}"))
 
 
-@pytest.mark.slow
 def test_on_the_simulated_cage_the_density_agrees_with_the_noise_floor(tmp_path: Path) -> None:
     """The same nulled DUT: its spectrum's band density and its time-domain standard deviation
     (null_field) describe the same (white) noise: density = std * sqrt(2 / rate) within 30 %."""

@@ -17,6 +17,8 @@ from rig.steps.orbit import geodetic, orbit_track, panel_current, sun_direction_
 from rig.store import RunReader
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 ISS = (
     "1 25544U 98067A   19343.69339541  .00001764  00000-0  38792-4 0  9991",
     "2 25544  51.6439 211.2001 0007417  17.6667  85.6398 15.50103472202482",
@@ -96,7 +98,6 @@ steps:
 """
 
 
-@pytest.mark.slow
 def test_a_slow_supply_link_does_not_cost_the_tracked_samples(tmp_path: Path) -> None:
     """Each tracked set-point takes longer than the 50 ms between set-points (a 60 ms reply delay
     on coil_x): the field is still the one the reference follows, so the calibration keeps the DUT

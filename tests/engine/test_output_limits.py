@@ -38,7 +38,7 @@ steps:
 """The attack of issue 29: coil_x at up to 5 A as a load (the cage allows 2.5 A and 120 uT)."""
 
 
-pytestmark = pytest.mark.usefixtures("own_lock_dir")
+pytestmark = [pytest.mark.realtime, pytest.mark.usefixtures("own_lock_dir")]
 
 
 @pytest.mark.parametrize(("device", "role"), [("coil_x", "x coil supply"), ("polarity", "polarity relays"),

@@ -27,7 +27,7 @@ from tests.simcage import sim_cage
 
 SMOKE = PROCEDURES_DIR / "smoke.yaml"
 
-pytestmark = pytest.mark.usefixtures("own_lock_dir")
+pytestmark = [pytest.mark.realtime, pytest.mark.usefixtures("own_lock_dir")]
 
 
 def drive(rig_toml: Path) -> None:

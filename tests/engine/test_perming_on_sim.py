@@ -21,6 +21,8 @@ import pytest
 from sim.config import SimConfig, load_config
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 THRESHOLD_UT, NT_PER_UT = 72.0, 0.1
 
 PROCEDURE = """
@@ -66,7 +68,6 @@ def run(tmp_path: Path, perming: bool) -> tuple[Any, dict[str, Any]]:
     return outcome, seen
 
 
-@pytest.mark.slow
 def test_a_2_nt_perming_shift_is_found_at_3_sigma_and_the_reset_clears_it(tmp_path: Path) -> None:
     outcome, seen = run(tmp_path, perming=True)
     assert outcome.reason == "acceptance checks failed"  # the shift is over the 1.5 nT limit
@@ -86,7 +87,6 @@ def test_a_2_nt_perming_shift_is_found_at_3_sigma_and_the_reset_clears_it(tmp_pa
     assert outcome.results["verdict"]["overall"] == "FAIL"
 
 
-@pytest.mark.slow
 def test_a_dut_that_does_not_perm_passes(tmp_path: Path) -> None:
     outcome, seen = run(tmp_path, perming=False)
     assert outcome.status == "complete", outcome.reason
@@ -105,7 +105,6 @@ steps:
 """
 
 
-@pytest.mark.slow
 def test_an_abort_inside_the_step_turns_the_automatic_set_reset_back_on(tmp_path: Path) -> None:
     """The operator aborts while the DUT's automatic set/reset is off: the run ends aborted and
     the DUT is back in the mode it was in (the step's abort path, not only its end)."""

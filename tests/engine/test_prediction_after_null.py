@@ -15,6 +15,8 @@ from rig.store import RunReader
 from sim.config import SimConfig, load_config
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 PROCEDURE = """
 procedure: short calibration
 parameters:
@@ -50,7 +52,6 @@ def run(folder: Path, serial: str, seed: int, cfg: SimConfig | None = None) -> d
             "events": [f"{level}: {m}" for _, level, m in events]}  # fmt: skip
 
 
-@pytest.mark.slow
 def test_a_noisier_unit_is_predicted_from_its_own_null_hold(tmp_path: Path) -> None:
     history = [run(tmp_path, "SN-A", seed) for seed in (1, 2)]
     # the first run has no history: its own noise is the stated one's neighbour, nothing changed

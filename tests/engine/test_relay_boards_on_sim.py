@@ -22,6 +22,8 @@ from rig.store import RunReader
 from sim.config import EndpointConfig, load_config
 from tests.simcage import sim_cage
 
+pytestmark = pytest.mark.simcage
+
 PROCEDURE = """
 procedure: Polarity through the relay board
 magnetometers: {dut: dut, reference: reference}

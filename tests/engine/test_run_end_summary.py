@@ -12,8 +12,9 @@ from rig.cli.run import summarize
 from rig.store import RunReader
 from tests.simrun import TINY_PROCEDURE, run_on_sim
 
+pytestmark = pytest.mark.simcage
 
-@pytest.mark.slow
+
 def test_the_end_of_a_run_says_the_outputs_are_off_and_how_to_get_the_report(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -21,7 +21,7 @@ from tests.engine.test_guardian_pair import DRIVEN, start_run
 
 RIG = [sys.executable, "-m", "rig.cli"]
 
-pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("own_lock_dir")]
+pytestmark = [pytest.mark.realtime, pytest.mark.usefixtures("own_lock_dir")]
 
 
 def kill_both(child: subprocess.Popen[str]) -> None:

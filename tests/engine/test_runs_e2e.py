@@ -32,6 +32,8 @@ from tests.simproc import LOAD_INPUT_STATE, LOAD_OFF, output_registers, outputs
 from tests.simproc import sim_process as start_sim
 from tests.waiting import in_background, wait_until
 
+pytestmark = pytest.mark.realtime
+
 
 @pytest.fixture(scope="module")
 def sim_process(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, dict[str, Any]]]:
@@ -234,7 +236,6 @@ def switch_off(devices: dict[str, Any]) -> None:
             client.write_register(reg, 0, device_id=dev_id)
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize(
     ("name", "sets"),
     [("cage-characterization", []), ("orbit-replay", ["duration_s=60", "tumble_deg_s=4.5"])],
@@ -307,7 +308,6 @@ def refit_with_delays(folder: Path, out: Path) -> None:
     assert "combined 1-sigma with the cage's terms" in proc.stdout
 
 
-@pytest.mark.slow
 def test_live_calibration_stops_on_target_and_reports_convergence(tmp_path: Path) -> None:
     # in simulated time (ADR 0038): nothing here needs the wall clock. On it, beside two CPU hogs,
     # the filter's assumed noise (the null hold's paired noise) once came out 1.6 times its

@@ -47,7 +47,7 @@ UNPARSABLE: dict[str, Callable[[str], str]] = {
     "5000-deep array": lambda t: t + "\ndeep = " + "[" * 5000 + "]" * 5000 + "\n",
 }
 
-pytestmark = pytest.mark.usefixtures("own_lock_dir")
+pytestmark = [pytest.mark.realtime, pytest.mark.usefixtures("own_lock_dir")]
 
 
 @pytest.fixture(autouse=True)

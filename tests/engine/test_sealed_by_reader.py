@@ -28,7 +28,7 @@ from sim.cage import SimulatedCage
 from tests.engine.test_guardian_pair import OUTPUTS_OFF_WITHIN_S, off_after, start_run
 from tests.store.test_run_lease import other_namespace, status_of
 
-pytestmark = pytest.mark.usefixtures("own_lock_dir")
+pytestmark = [pytest.mark.realtime, pytest.mark.usefixtures("own_lock_dir")]
 
 RIG = [sys.executable, "-m", "rig.cli"]
 EXPIRY_S = 2.0

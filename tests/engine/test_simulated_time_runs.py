@@ -8,9 +8,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from rig.store.run_store import RunReader
 from rig.store.seal import measurement_digest
 from tests.drivers.wire_devices import cpu_hogs
+
+pytestmark = pytest.mark.simcage
 
 
 def demo(runs: Path, procedure: str = "smoke") -> Path:

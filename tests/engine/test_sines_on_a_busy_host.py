@@ -19,6 +19,8 @@ from sim.sensor_response import SensorResponse
 from tests.engine.test_frequency_response_on_sim import DUT_TAU_S, config
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 PROCEDURE = """
 procedure: sines on a busy host
 magnetometers: {dut: dut, reference: reference}
@@ -39,7 +41,6 @@ def _z(point: dict[str, float]) -> tuple[float, float]:
             (point["phase_deg"] - math.degrees(cmath.phase(want))) / point["phase_sigma_deg"])  # fmt: skip
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("late_s", [0.0, 0.002, 0.01])
 def test_every_point_is_within_3_sigma_or_not_judged(tmp_path: Path, late_s: float) -> None:
     busy = timebase.BusyHost(late_s, seed=0) if late_s else None

@@ -13,6 +13,8 @@ from rig.steps import field_kinds
 from rig.store import RunReader
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 PROCEDURE = """
 procedure: load steps over a slow link
 magnetometers: {dut: dut, reference: reference}
@@ -26,7 +28,6 @@ steps:
 """
 
 
-@pytest.mark.slow
 def test_load_telemetry_of_every_settled_sample_is_the_current_then_set(tmp_path: Path) -> None:
     """0.1 s per reply on the load: the monitor's read-backs overlap every change. Each settled
     sample's telemetry must be the level the load was set to (before: the old level for up to

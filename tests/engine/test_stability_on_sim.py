@@ -14,10 +14,11 @@ import pytest
 from sim.config import load_config
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 DRIFT_NT_PER_H = (1200.0, 0.0, -1200.0)  # 20 nT a minute: seen within a 120 s hold
 
 
-@pytest.mark.slow
 def test_a_drifting_dut_held_for_two_minutes_shows_its_drift_and_allan_deviation(
     tmp_path: Path,
 ) -> None:
@@ -47,7 +48,6 @@ def test_a_drifting_dut_held_for_two_minutes_shows_its_drift_and_allan_deviation
     assert "Offset stability (&#x27;offset stability&#x27;): Allan deviation" in html
 
 
-@pytest.mark.slow
 def test_the_shipped_characterization_passes_a_good_dut(tmp_path: Path) -> None:
     """rig/shipped_procedures/dut-characterization.yaml on the simulated cage (its hold cut to 30 s, and so
     its drift limit lifted: 30 s know the drift to about 6000 nT per 12 h): every figure

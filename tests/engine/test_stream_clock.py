@@ -10,6 +10,8 @@ import pytest
 
 from rig.engine.stream_clock import StreamClock
 
+pytestmark = pytest.mark.realtime
+
 LATENCY_S = 0.003  # the shortest transmission time: the envelope's own offset
 
 

@@ -14,6 +14,8 @@ from sim.cage import SimulatedCage
 from sim.config import load_config
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 DRIFT_PPM_PER_H = 40000.0  # a supply far out of spec, so that 40 s show it
 
 PROCEDURE = """
@@ -26,7 +28,6 @@ steps:
 """
 
 
-@pytest.mark.slow
 def test_the_coils_drift_is_found_under_the_lab_fields_changes(tmp_path: Path) -> None:
     cfg = load_config()
     cfg = replace(cfg, supplies=tuple(replace(s, gain_drift_ppm_per_h=DRIFT_PPM_PER_H)

@@ -18,6 +18,8 @@ import pytest
 from sim.config import SimConfig, load_config
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 HYSTERESIS_NT = (10.0, 0.0, 0.0)
 
 PROCEDURE = """
@@ -52,7 +54,6 @@ def config() -> SimConfig:
                                thermal=dataclasses.replace(cfg.thermal, tau_s=8.0))  # fmt: skip
 
 
-@pytest.mark.slow
 def test_a_dut_with_thermal_hysteresis_shows_it_within_its_sigma(tmp_path: Path) -> None:
     outcome = run_on_sim(tmp_path, PROCEDURE, sim_config=config())
     assert outcome.status == "complete", outcome.reason

@@ -18,6 +18,8 @@ from rig.store import RunReader
 from sim.config import load_config
 from tests.simrun import run_on_sim
 
+pytestmark = pytest.mark.simcage
+
 PROCEDURE = """
 procedure: thermal coefficients
 description: sphere sweeps while a heater on the DUT's mount warms it, then while it cools

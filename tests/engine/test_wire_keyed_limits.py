@@ -40,7 +40,7 @@ steps:
   - set_field: {field_ut: [0, 0, 110], hold_s: 2}
 """
 
-pytestmark = pytest.mark.usefixtures("own_lock_dir")
+pytestmark = [pytest.mark.realtime, pytest.mark.usefixtures("own_lock_dir")]
 
 
 def with_aux(rig_toml: Path, host: str = "localhost") -> Path:

@@ -27,6 +27,8 @@ from rig.lab.sync import run_folders, sync_runs
 from rig.store import new_run
 from rig.store.seal import seal_run, verify_run
 
+pytestmark = pytest.mark.services
+
 OTHER_UID = 54321
 """An account that is not the rig's (no such user needed: only the number is stored)."""
 

@@ -25,6 +25,8 @@ from rig.lab.sync import run_folders, sync_runs
 from rig.lab.url import config_url, masked
 from rig.store import new_run
 
+pytestmark = pytest.mark.services
+
 RIGS = ("cage-1", "cage-2", "cage-3", "cage-4")
 PER_RIG = 250
 
@@ -76,7 +78,6 @@ def synced(pg: PgServer, rig_dirs: list[Path]) -> Iterator[str]:
     yield url
 
 
-@pytest.mark.slow
 def test_four_concurrent_syncs_index_every_run_once(synced: str, rig_dirs: list[Path]) -> None:
     assert scalar(synced, "SELECT count(*) FROM lab_runs") == 4 * PER_RIG
     assert scalar(synced, "SELECT count(DISTINCT run_uid) FROM lab_runs") == 4 * PER_RIG
@@ -92,7 +93,6 @@ def test_four_concurrent_syncs_index_every_run_once(synced: str, rig_dirs: list[
     assert scalar(synced, "SELECT count(*) FROM lab_results") == 5 * 4 * PER_RIG
 
 
-@pytest.mark.slow
 def test_resync_adds_nothing(synced: str, rig_dirs: list[Path]) -> None:
     proc = rig_lab("sync", "--runs-dir", str(rig_dirs[1]), "--json", url=synced)
     assert proc.returncode == 0, proc.stderr
@@ -102,7 +102,6 @@ def test_resync_adds_nothing(synced: str, rig_dirs: list[Path]) -> None:
     assert scalar(synced, "SELECT count(*) FROM lab_runs") == 4 * PER_RIG
 
 
-@pytest.mark.slow
 def test_killed_sync_is_completed_by_the_next(pg: PgServer, rig_dirs: list[Path]) -> None:
     url = fresh_db(pg, f"lab_killed_{os.getpid()}")
     assert rig_lab("runs", url=url).returncode == 0  # the schema exists before the count polls
@@ -138,7 +137,6 @@ def test_killed_sync_is_completed_by_the_next(pg: PgServer, rig_dirs: list[Path]
     assert scalar(url, "SELECT count(*) FROM lab_runs") == PER_RIG
 
 
-@pytest.mark.slow
 def test_queries_answer_from_the_index(synced: str, rig_dirs: list[Path], tmp_path: Path) -> None:
     from rig.store import RunReader
 
@@ -304,7 +302,6 @@ def test_lab_help_and_no_heavy_import() -> None:
     assert proc.returncode == 0, proc.stderr
 
 
-@pytest.mark.slow
 def test_a_run_on_the_simulator_lands_in_the_index_at_close(
     lab_url: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -347,7 +344,6 @@ def test_a_password_in_the_rig_configuration_refuses_the_run(tmp_path: Path) -> 
     assert not (tmp_path / "runs").exists()
 
 
-@pytest.mark.slow
 def test_the_same_views_on_the_rig_serve_page(synced: str, rig_dirs: list[Path]) -> None:
     """`rig serve --lab URL` shows runs, a DUT's acceptances, a trend with its plot and the audit,
     in Debian's chromium; without the index the Lab page says how to configure it."""

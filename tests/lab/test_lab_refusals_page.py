@@ -8,8 +8,12 @@ import signal
 import sqlite3
 from pathlib import Path
 
+import pytest
+
 from bench.labfixture import generate_runs
 from rig.lab.sync import run_folders, sync_runs
+
+pytestmark = pytest.mark.services
 
 
 def test_the_refusals_page_lists_every_refused_run(lab_url: str, tmp_path: Path) -> None:

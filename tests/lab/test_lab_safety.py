@@ -24,6 +24,8 @@ from rig.lab.sync import run_folders, sync_runs
 from rig.lab.url import config_url, has_password, masked
 from rig.store import new_run
 
+pytestmark = pytest.mark.services
+
 
 def rig_lab(*args: str, url: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "rig.cli", "lab", *args, "--lab", url],

@@ -17,6 +17,8 @@ from rig.store import new_run
 
 from .test_lab_index import fresh_db
 
+pytestmark = pytest.mark.services
+
 SOURCES = {"vector calibration": 20.0, "scalar calibration": 35.0, "with telemetry": 18.0}
 
 

@@ -20,6 +20,8 @@ from rig.report.acceptance import build_report
 from rig.store.seal import SEAL_FILE, data_digest, verify_run
 from tests.simcage import sim_cage
 
+pytestmark = pytest.mark.simcage
+
 PROCEDURE = """procedure: Record test
 parameters:
   dut_serial: {default: SN-REC}
@@ -65,7 +67,6 @@ def _pdf_text(path: Path) -> str:
     ).stdout
 
 
-@pytest.mark.slow
 def test_the_report_the_run_wrote_shows_final_status_verdict_and_digest(
     recorded_run: Path,
 ) -> None:
@@ -86,7 +87,6 @@ def test_the_report_the_run_wrote_shows_final_status_verdict_and_digest(
     assert verify_run(recorded_run).intact, verify_run(recorded_run).problems
 
 
-@pytest.mark.slow
 def test_rebuilding_the_report_keeps_the_digest_and_verify_notices_changes(
     recorded_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -22,6 +22,8 @@ from rig.errors import UserInputError
 from sim.cage import SimulatedCage
 from sim.config import load_config
 
+pytestmark = pytest.mark.realtime
+
 
 @pytest.fixture(scope="module")
 def scanned(cage: SimulatedCage, devices: dict[str, Any]) -> Iterator[tuple[list[Any], list[Any]]]:

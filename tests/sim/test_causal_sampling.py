@@ -17,12 +17,15 @@ import threading
 import time
 
 import numpy as np
+import pytest
 import serial
 
 from drivers.mag.hmr2300 import Hmr2300 as Hmr2300Driver
 from sim.ascii_mag import AsciiMagnetometer
 from sim.hmr2300 import Hmr2300
 from sim.physics import Faults
+
+pytestmark = pytest.mark.realtime
 
 PERIOD_S = 0.05  # 20 samples/s, both devices' default
 HOLD_SLOT = 40  # the thread is held while taking this slot's sample: 2 s into the stream, as the

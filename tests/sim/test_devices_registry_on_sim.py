@@ -16,6 +16,8 @@ from rig.errors import UserInputError
 from sim.cage import SimulatedCage
 from tests.sim.rig_toml import rig_toml
 
+pytestmark = pytest.mark.realtime
+
 
 def device(devices: dict[str, Any], name: str) -> DeviceConfig:
     spec = dict(devices[name])

@@ -6,11 +6,14 @@ import time
 from typing import Any
 
 import numpy as np
+import pytest
 
 from drivers.mag.ascii_line import AsciiLineMagnetometer
 from drivers.mag.hmr2300 import Hmr2300
 from drivers.mag.rm3100 import Rm3100
 from sim.cage import SimulatedCage
+
+pytestmark = pytest.mark.realtime
 
 
 def truth(cage: SimulatedCage, name: str) -> np.ndarray:

@@ -17,6 +17,8 @@ from drivers.mag.hmr2300 import Hmr2300 as Hmr2300Driver
 from sim.hmr2300 import Hmr2300
 from sim.physics import Faults
 
+pytestmark = pytest.mark.realtime
+
 
 @pytest.fixture()
 def sensor() -> Iterator[Hmr2300]:

@@ -18,6 +18,8 @@ from drivers.mag.hmr2300 import Hmr2300 as Hmr2300Driver
 from sim.cage import SimulatedCage
 from sim.hmr2300 import Hmr2300
 
+pytestmark = pytest.mark.realtime
+
 STREAM_S = 5.0  # device time
 DEADLINE_S = 120.0  # wall time, only against a hang
 

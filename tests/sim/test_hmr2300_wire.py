@@ -14,6 +14,8 @@ import serial
 from sim.cage import SimulatedCage
 from sim.hmr2300 import Hmr2300
 
+pytestmark = pytest.mark.realtime
+
 
 def decode_binary(frame: bytes) -> np.ndarray:
     assert len(frame) == 7 and frame[6] == 0x0D

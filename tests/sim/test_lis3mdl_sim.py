@@ -21,6 +21,8 @@ from sim.lis3mdl import CTRL_REG1, CTRL_REG3, OUT_X_L, STATUS, ZYXDA, ZYXOR
 from sim.lis3mdl import Lis3mdl as SimLis3mdl
 from sim.physics import Faults
 
+pytestmark = pytest.mark.realtime
+
 
 def _lis3mdl(**kw: object) -> MagnetometerConfig:
     return MagnetometerConfig(name="lis", kind="lis3mdl", endpoint=EndpointConfig("i2c"),

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from sim.cage import SimulatedCage
 from sim.config import load_config
+
+pytestmark = pytest.mark.realtime
 
 
 def listening_addresses() -> dict[int, str]:

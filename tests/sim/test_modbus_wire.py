@@ -16,6 +16,8 @@ from pymodbus.exceptions import ModbusException
 from sim.cage import SimulatedCage
 from tests.tools import require_tool
 
+pytestmark = pytest.mark.realtime
+
 MBPOLL = shutil.which("mbpoll")
 
 

@@ -16,6 +16,8 @@ from drivers.registry import KINDS, OpenSpec
 from drivers.transport.modbus import ModbusLink
 from sim.cage import SimulatedCage
 
+pytestmark = pytest.mark.realtime
+
 
 def tcp_exchange(port: int, unit: int, pdu: str) -> bytes:
     """One Modbus TCP request (transaction id 0x1234) on a fresh connection; the raw reply."""

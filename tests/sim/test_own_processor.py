@@ -14,6 +14,8 @@ from sim.config import load_config
 from sim.own_processor import INSTRUMENT_NICE, instrument_priority
 from tests.sim.nice import nice_of
 
+pytestmark = pytest.mark.realtime
+
 
 def allowed() -> bool:
     """Whether this process may lower a nice value (root or CAP_SYS_NICE)."""

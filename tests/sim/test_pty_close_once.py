@@ -7,7 +7,11 @@ from __future__ import annotations
 
 import os
 
+import pytest
+
 from sim.links import open_pty
+
+pytestmark = pytest.mark.realtime
 
 
 def test_closing_twice_leaves_the_next_pty_with_the_same_numbers_open() -> None:

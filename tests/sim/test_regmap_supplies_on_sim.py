@@ -21,6 +21,8 @@ from sim.cage import SimulatedCage
 from sim.config import load_config
 from tests.sim.rig_toml import rig_toml
 
+pytestmark = pytest.mark.realtime
+
 SUPPLY_MAPS = sorted(m.name for m in shipped_maps() if m.kind == "supply" and not m.bipolar)
 
 

@@ -22,6 +22,8 @@ from sim.config import load_config
 from sim.physics import RIDEN_MODELS, riden_model
 from tests.drivers.riden_published import NOT_RIDEN_IDS, PUBLISHED
 
+pytestmark = pytest.mark.realtime
+
 
 def test_the_simulators_model_table_is_the_published_one() -> None:
     sim_ids = {i for ids in RIDEN_MODELS for i in ids}

@@ -10,10 +10,13 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 from pymodbus.client import ModbusTcpClient
 
 from sim.own_processor import INSTRUMENT_NICE
 from tests.sim.nice import nice_of
+
+pytestmark = pytest.mark.realtime
 
 
 def test_rig_sim_publishes_endpoints_and_stops_on_sigint(tmp_path: Path) -> None:

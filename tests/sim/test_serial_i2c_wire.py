@@ -14,6 +14,8 @@ from smbus2 import i2c_msg
 from sim.cage import SimulatedCage
 from sim.rm3100 import SECONDS_PER_CYCLE
 
+pytestmark = pytest.mark.realtime
+
 
 def test_ascii_reference_streams_lines_in_microtesla(
     devices: dict[str, Any], cage: SimulatedCage

@@ -27,6 +27,8 @@ from sim.config import load_config
 from sim.hmr2300 import Hmr2300
 from timebase.wires import PipeEnd, wires
 
+pytestmark = pytest.mark.simcage
+
 EPOCH_S = 1_767_225_600.0  # 2026-01-01 00:00 UTC: the simulated date at simulated time 0
 R_V_SET, R_I_SET, R_I_OUT, R_OUTPUT = 8, 9, 11, 18  # Riden holding registers
 RTU_BYTE_S = 10.0 / 115200  # one byte on the RTU lines of the default cage

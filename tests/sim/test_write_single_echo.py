@@ -16,6 +16,8 @@ from regmaps import load_map
 from sim.cage import SimulatedCage
 from tests.conformance.simcage import cage_with, endpoint
 
+pytestmark = pytest.mark.realtime
+
 SWAPS = {
     "coil_x": 'kind = "regmap"\nregmap = "hm310p"',
     "coil_z": 'kind = "regmap"\nregmap = "dps5005"',

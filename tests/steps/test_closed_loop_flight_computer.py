@@ -25,6 +25,8 @@ from sim.flight_computer import BDotComputer, SerialFrontEnd
 from tests.steps.fake_context import make_step
 from tests.steps.test_closed_loop_step import LOOP, closed_loop_on_a_perfect_cage
 
+pytestmark = pytest.mark.realtime
+
 
 def test_packets_round_trip_and_refuse_what_is_not_one() -> None:
     raw = readings_packet(16385, 12.5, (30.0, -1.5, 2.25))

@@ -27,6 +27,8 @@ from rig.store import new_run
 from rig.store.run_store import LEASE_EXPIRY_S, LEASE_WATCH_S, RunReader
 from tests.simproc import outputs, sim_process
 
+pytestmark = pytest.mark.realtime
+
 RIG = [sys.executable, "-m", "rig.cli"]
 
 LONG_RUN = """

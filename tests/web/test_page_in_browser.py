@@ -24,7 +24,7 @@ from tests.simproc import outputs
 from tests.simproc import sim_process as start_sim
 from tests.web.conftest import read_url, screenshot, serve_process, split_token, wait_js
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.realtime
 
 
 @pytest.fixture(scope="module")

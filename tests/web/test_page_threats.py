@@ -36,6 +36,8 @@ from rig.web.security import MAX_BODY
 from tests.simrun import TINY_PROCEDURE, run_on_sim
 from tests.web.conftest import owner_client, serve_process, split_token
 
+pytestmark = pytest.mark.realtime
+
 NOBODY = 65534
 ODD_IDS = ["run?q=1", "run#frag", "run%41", "run with space"]
 SECRET = "TOP SECRET, not for the page"
@@ -515,7 +517,6 @@ print("planted")
 """
 
 
-@pytest.mark.slow
 def test_another_account_cannot_answer_or_abort_a_live_run(tmp_path: Path) -> None:
     """A run in a runs folder every account may write to, waiting at its first prompt: another
     account gets 401 from the page and cannot write into control/; the control folder it puts in

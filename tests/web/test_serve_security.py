@@ -22,6 +22,8 @@ from rig.store import run_control
 from tests.simrun import TINY_PROCEDURE, run_on_sim
 from tests.web.conftest import owner_client, serve_process
 
+pytestmark = pytest.mark.realtime
+
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory) -> Path:

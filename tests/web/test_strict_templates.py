@@ -14,6 +14,8 @@ import pytest
 
 import rig.web.app as web_app
 
+pytestmark = pytest.mark.realtime
+
 
 def runs_page(runs: Path) -> tuple[int, str]:
     """The runs page (the application in this process, over httpx's ASGI transport), from the
