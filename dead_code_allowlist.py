@@ -60,6 +60,7 @@ _.readfrom_into  # unused method (tests/conformance/test_circuitpython_rm3100.py
 _.writeto_then_readfrom  # unused method (tests/conformance/test_circuitpython_rm3100.py:59)
 pytest_addoption  # unused function (tests/conftest.py)
 pytest_collection_modifyitems  # unused function (tests/conftest.py)
+pytest_sessionstart  # unused function (tests/conftest.py)
 private_lock_folder  # unused function (tests/conftest.py:30)
 _.daemon_threads  # unused attribute (tests/drivers/register_image.py:63)
 sources  # unused variable (tests/drivers/riden_published.py:29)

@@ -1,6 +1,11 @@
-"""Shared synthetic-truth fixtures (generated here, seeded)."""
+"""Shared synthetic-truth fixtures (generated here, seeded), the test tiers, and the check that
+an installed-package run really tests the installed package."""
 
 from __future__ import annotations
+
+import importlib
+import os
+from pathlib import Path
 
 import pytest
 
@@ -24,6 +29,24 @@ TIERS = ("quick", "simcage", "realtime", "montecarlo", "services")
 ``pytestmark``; a test without one is quick."""
 QUICK_TIMEOUT_S = 120.0
 """A quick test that has not finished in this long (s) is hung, not slow (they take seconds)."""
+
+
+INSTALLED_ENV = "RIG_TEST_INSTALLED"
+"""Set to 1 when the suite runs against a non-editable install (``.ci/run``'s second stage): the
+product must then be imported from the install, never from the source tree beside the tests."""
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Refuse an installed-package run that would import the source tree instead."""
+    if os.environ.get(INSTALLED_ENV) != "1":
+        return
+    checkout = Path(__file__).resolve().parents[1]
+    for name in ("rig", "drivers", "sim", "regmaps", "timebase"):
+        where = Path(importlib.import_module(name).__file__ or "").resolve()
+        if where.is_relative_to(checkout):
+            raise pytest.UsageError(f"{INSTALLED_ENV}=1 but {name} is imported from {where}: run"
+                                    " 'python -P -m pytest --import-mode=append' from a venv with"
+                                    " a non-editable install")  # fmt: skip
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
