@@ -640,6 +640,13 @@ def guardian_cpu_wait_ms(message: str) -> float:
     return float(found.group(1)) if found else 0.0
 
 
+def killed_rig_end_ms(message: str) -> float:
+    """How long a rig the guardian killed took to end (ms), from its message (``the killed rig
+    took N ms to end``: the kernel's teardown, on a busy computer waiting for a CPU); 0."""
+    found = re.search(r"the killed rig took (\d+) ms to end", message)
+    return float(found.group(1)) if found else 0.0
+
+
 def _cage_sigkill(fault: Fault, cage: SimulatedCage, rig_toml: Path) -> Measured:
     t0 = time.monotonic()
     child = subprocess.Popen([sys.executable, "-m", "rig.cli", "cage", "set-field", "--hold", "60",

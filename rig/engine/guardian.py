@@ -278,14 +278,19 @@ def wait_for_rig(
             )
 
 
-def _kill_and_wait(fd: int, pid: int) -> None:
-    """SIGKILL the rig and wait (up to 1 s) for its end of the pipe to close as it dies."""
+def _kill_and_wait(fd: int, pid: int) -> str:
+    """SIGKILL the rig and wait (up to 1 s) for its end of the pipe to close as it dies; says how
+    long that took when worth saying (a killed process's ports are free only once the kernel has
+    ended it, which on a busy computer waits for a CPU too)."""
+    t0 = time.monotonic()
     with contextlib.suppress(OSError):
         os.kill(pid, signal.SIGKILL)
-    deadline = time.monotonic() + 1.0
+    deadline = t0 + 1.0
     while time.monotonic() < deadline and select.select([fd], [], [], 0.05)[0]:
         if not os.read(fd, 4096):
             break
+    took_s = time.monotonic() - t0
+    return f"; the killed rig took {1000.0 * took_s:.0f} ms to end" if took_s >= 0.05 else ""
 
 
 def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
@@ -329,10 +334,10 @@ def _closed_by_other(fd: int, cfg: RigConfig, pid: int, why: str, waits: CpuWait
     switched off once it has. The closed run is never written to."""
     t_found = time.monotonic()
     if findings.stays_stopped(pid):
-        _kill_and_wait(fd, pid)
+        ended = _kill_and_wait(fd, pid)
         done, problems = safe_outputs(cfg)
         return _tell(f"{why}; the rig process was still stopped and was killed", t_found, done,
-                     problems)  # fmt: skip
+                     problems, findings.busy_note(waits, t_found) + ended)  # fmt: skip
     done, held = safe_outputs(cfg)
     cpu = findings.busy_note(waits, t_found)
     left = f"; {len(held)} not reached yet (held by the rig, which is going safe)" if held else ""

@@ -60,13 +60,15 @@ def test_the_guardians_own_wait_for_a_cpu_extends_the_time_to_safe_bound() -> No
     """A busy computer can keep the guardian from a CPU between a kill and its switch-off (the
     bound's 200 ms detection + 1000 ms switch-off then fails by the time it waited). The guardian
     measures that wait itself and says so; the harness adds what it said, and only that."""
-    from bench.faultlab import Measured, guardian_cpu_wait_ms
+    from bench.faultlab import Measured, guardian_cpu_wait_ms, killed_rig_end_ms
 
     cage_kill = next(f for f in EXTRA if f.key == "cage-sigkill")
     said = ("rig guardian: the rig process died without going safe; switched off coil_x, coil_y,"
             " coil_z, load_bus, relays in 612 ms; the guardian waited 820 ms for a CPU")  # fmt: skip
     assert guardian_cpu_wait_ms(said) == 820.0
     assert guardian_cpu_wait_ms("rig guardian: ... switched off coil_x in 40 ms") == 0.0
+    killed = "...; switched off coil_x in 1312 ms; the killed rig took 940 ms to end"
+    assert (killed_rig_end_ms(killed), killed_rig_end_ms(said)) == (940.0, 0.0)
 
     def measured(wait_ms: float) -> Measured:
         return Measured(cage_kill, "rig cage set-field", "safe", 0, said, 3384.0, 2772.0, 0, None,

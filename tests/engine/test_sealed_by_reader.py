@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.faultlab import guardian_cpu_wait_ms, guardian_of
+from bench.faultlab import guardian_cpu_wait_ms, guardian_of, killed_rig_end_ms
 from drivers.transport.tty_watch import tty_seen_stall_s, tty_watch
 from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.recording import AFTER_CLOSE_FILE
@@ -158,6 +158,9 @@ def test_the_guardian_alone_acts_on_the_reader_seal_and_kills_a_rig_still_stoppe
                             timeout=60)  # fmt: skip
     assert verify.returncode == 0, verify.stdout + verify.stderr
     print(f"guardian alone: {', '.join(on)} off {1000 * took:.0f} ms after its SIGCONT")
-    # plus the guardian's own measured wait for a CPU (a busy computer's, not the rig's: as in
-    # the fault matrix); beside two CPU hogs it once waited 1525 ms
-    assert took < OUTPUTS_OFF_WITHIN_S + guardian_cpu_wait_ms(err) / 1000.0, err
+    # plus the guardian's own measured wait for a CPU and the killed rig's end (the kernel's
+    # teardown, which frees its ports): a busy computer's, not the rig's, as in the fault matrix.
+    # Beside two CPU hogs and four workers the guardian once took 3931 ms here, saying neither.
+    assert (
+        took < OUTPUTS_OFF_WITHIN_S + (guardian_cpu_wait_ms(err) + killed_rig_end_ms(err)) / 1000.0
+    ), err
