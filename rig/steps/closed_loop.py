@@ -15,7 +15,8 @@ from typing import Any, ClassVar
 import timebase
 from rig.errors import RigError, UserInputError
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
-from rig.steps.closed_loop_run import LoopRunner, read_ticks, scenario_of
+from rig.steps.closed_loop_run import LoopRunner, scenario_of
+from rig.steps.closed_loop_ticks import read_ticks
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
     Command,

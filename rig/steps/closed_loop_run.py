@@ -4,8 +4,6 @@ per-tick record and, at the end, the all-software run it is compared with."""
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 import re
 from dataclasses import dataclass
@@ -24,15 +22,19 @@ from rig.hil.flight_software import BDot, FlightSoftware, default_gain
 from rig.hil.loop import Loop, LoopPlan, OrbitField, Tick, percentile_ms, software_only
 from rig.hil.torque_rods import RodLog, TorqueRods, stray_bias_ut
 from rig.steps.base import Array, RunContext
+from rig.steps.closed_loop_ticks import write_ticks
 from rig.steps.null_field import latest_noise_floor
 from rig.steps.vocabulary import Step
-from rig.store import safe_files
 
 DEFAULT_NOISE_NT = 20.0
 """The all-software run's magnetometer noise (nT) when neither ``noise_nt`` nor a null field of
 the run gives the DUT's."""
 LATE_LOGGED = 3
 """Late ticks logged one by one before only the count goes on."""
+TICK_AFTER_READING = 0.25
+"""The first tick comes this fraction of a period after a DUT reading arrives (room for the
+arrival's jitter); LOCK_WAIT_PERIODS: how long the loop waits for that reading (periods)."""
+LOCK_WAIT_PERIODS = 3.0
 FIELD_MODEL = "IGRF (ppigrf) along the TLE's orbit (sgp4), turned into the body by the attitude"
 DYNAMICS = "Basilisk Spacecraft hub (rigid body) with an MtbEffector (three torque rods)"
 
@@ -128,6 +130,7 @@ class LoopRunner:
         self._halt = timebase.Event()
         self._lock = timebase.Lock()
         self._pending: list[tuple[float, Array]] = []
+        self._arrived = timebase.Event()  # set by every DUT reading
         self.ticks: list[Tick] = []
         self.latency_s: list[float] = []
         self.late = 0
@@ -164,6 +167,15 @@ class LoopRunner:
         with self._lock:
             self._pending.append((t, np.asarray(xyz, float)))
             self.samples += 1
+        self._arrived.set()
+
+    def _phase_locked_start(self, period_s: float) -> float:
+        """When the first tick is due (monotonic s): :data:`TICK_AFTER_READING` of a period after
+        the next DUT reading arrives, so that a DUT sampling at the tick rate has each reading
+        used by the tick just after it, not up to a period later (50 Hz: 5 ms, not 0-20 ms)."""
+        self._arrived.clear()
+        self._arrived.wait(LOCK_WAIT_PERIODS * period_s)
+        return timebase.monotonic() + TICK_AFTER_READING * period_s
 
     def status(self) -> str:
         rate = float(np.linalg.norm(self.ticks[-1].rate_deg_s)) if self.ticks else math.nan
@@ -225,7 +237,7 @@ class LoopRunner:
 
     def _ticks(self) -> None:
         loop, period = self.loop, 1.0 / self.scenario.plan.rate_hz
-        t0 = timebase.monotonic()
+        t0 = self._phase_locked_start(period)
         with self._lock:  # readings of the ramp to the starting field are not the loop's
             self._pending = [(t, xyz) for t, xyz in self._pending if t >= t0]
         if self.rods is not None:  # the step's first commands set them at rest
@@ -283,8 +295,8 @@ class LoopRunner:
         slug = re.sub(r"[^A-Za-z0-9]+", "-", name).strip("-").lower() or "loop"
         files = (f"closed-loop-{slug}.csv", f"closed-loop-{slug}-software.csv")
         latency = self.latency_s
-        _write_ticks(folder / files[0], self.ticks, latency, self.rod_a)
-        _write_ticks(folder / files[1], ticks_sw, [math.nan] * len(ticks_sw),
+        write_ticks(folder / files[0], self.ticks, latency, self.rod_a)
+        write_ticks(folder / files[1], ticks_sw, [math.nan] * len(ticks_sw),
                      [np.full(3, math.nan)] * len(ticks_sw))  # fmt: skip
         return _result(self, detumble_sw, noise_nt, latency, files)
 
@@ -301,43 +313,6 @@ class LoopRunner:
         """The DUT's readings per second over the loop (the all-software run samples so)."""
         span = self.loop.t_s
         return self.samples / span if span > 0 and self.samples else 20.0
-
-
-MAX_TICKS_BYTES = 200_000_000
-"""The largest per-tick record the report reads (bytes)."""
-
-
-def read_ticks(folder: Path, name: Any) -> dict[str, Array] | None:
-    """A per-tick record of the run folder (a file name, never a path elsewhere): ``t_s``,
-    ``rate_deg_s`` (magnitude) and ``dipole_am2`` (magnitude); None when missing or unreadable."""
-    if not isinstance(name, str) or "/" in name or "\\" in name or name.startswith("."):
-        return None
-    try:
-        text = safe_files.read_text(folder / name, MAX_TICKS_BYTES)
-        rows = list(csv.DictReader(io.StringIO(text, newline="")))
-        col = {k: np.array([float(r[k]) for r in rows]) for k in rows[0]} if rows else None
-    except (OSError, ValueError, KeyError, safe_files.UnsafeFileError):
-        return None
-    if col is None:
-        return None
-    rate = np.linalg.norm([col[f"rate_{a}_deg_s"] for a in "xyz"], axis=0)
-    dipole = np.linalg.norm([col[f"dipole_{a}_am2"] for a in "xyz"], axis=0)
-    return {"t_s": col["t_s"], "rate_deg_s": rate, "dipole_am2": dipole}
-
-
-def _write_ticks(path: Path, ticks: list[Tick], latency_s: list[float],
-                 rod_a: list[Array]) -> None:  # fmt: skip
-    with path.open("w", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh)
-        w.writerow(["t_s", "mrp_1", "mrp_2", "mrp_3", "rate_x_deg_s", "rate_y_deg_s",
-                    "rate_z_deg_s", "field_x_ut", "field_y_ut", "field_z_ut", "reading_x_ut",
-                    "reading_y_ut", "reading_z_ut", "dipole_x_am2", "dipole_y_am2",
-                    "dipole_z_am2", "latency_ms", "rod_x_a", "rod_y_a", "rod_z_a"])  # fmt: skip
-        for tick, lat, rods in zip(ticks, latency_s, rod_a, strict=True):
-            reading = tick.reading_ut if tick.reading_ut is not None else np.full(3, math.nan)
-            row = [tick.t_s, *tick.mrp, *tick.rate_deg_s, *tick.field_ut, *reading,
-                   *tick.dipole_am2, lat * 1000.0, *rods]  # fmt: skip
-            w.writerow(f"{v:.9g}" for v in row)
 
 
 def _close_link(software: Any) -> dict[str, Any] | None:
