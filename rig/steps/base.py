@@ -9,7 +9,8 @@ the report find every kind there; none of them names a kind.
 from __future__ import annotations
 
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
@@ -24,6 +25,8 @@ from rig.steps.load_profiles import load_profile
 from rig.steps.vocabulary import Command, Param, RigTiming, Step
 
 if TYPE_CHECKING:
+    from drivers.protocols import Magnetometer, ScalarMagnetometer
+    from rig.cage.controller import CageController
     from rig.calibration.forecast import SigmaForecast
     from rig.config import RigConfig
     from rig.steps.vocabulary import Procedure
@@ -40,24 +43,40 @@ class ChangeListener(Protocol):
     def change_ended(self, t: float) -> None: ...
 
 
+class SampledSensor(Protocol):
+    """What a step may use of a sensor the run samples (the engine's ``SensorSampler``)."""
+
+    driver: Magnetometer
+    listeners: list[Callable[[float, tuple[float, float, float]], None]]
+    """Called from the sampling thread with each sample (monotonic s, uT)."""
+
+    def paused(self, timeout_s: float = 2.0) -> AbstractContextManager[Magnetometer]:
+        """Sampling held while the caller talks to the driver (e.g. a set/reset pulse)."""
+        ...
+
+
 class RunContext(Protocol):
     """What a step may use of the run carrying it out (the engine's runner provides it)."""
 
     proc: Procedure
     cfg: RigConfig
-    controller: Any  # rig.cage.controller.CageController once the devices are open
+    controller: CageController  # once the devices are open
     results: dict[str, Any]
     correction: dict[str, Any] | None  # the reference magnetometer's certificate
-    samplers: dict[str, Any]  # rig.engine.sampling.SensorSampler per sampled device
     commanded_loads: dict[str, float]  # A
     measured_loads: dict[str, tuple[float, float]]  # device -> (monotonic s, A)
     change_listeners: list[ChangeListener]
-    status_sources: list[Any]  # callables returning a short text for the live view
-    live_sources: list[Any]  # callables returning a dict of values for the web page
+    status_sources: list[Callable[[], str]]  # a short text each for the live view
+    live_sources: list[Callable[[], dict[str, Any]]]  # values for the web page
 
     @property
     def folder(self) -> Path:
         """The run folder."""
+        ...
+
+    @property
+    def samplers(self) -> Mapping[str, SampledSensor]:
+        """The sensors this run samples, by device name."""
         ...
 
     def event(self, level: str, message: str) -> None: ...
@@ -70,9 +89,8 @@ class RunContext(Protocol):
 
     def set_meta(self, **values: Any) -> None: ...
 
-    def scalar_magnetometer(self, name: str) -> Any:
-        """Total-field magnetometer ``name`` (drivers.protocols.ScalarMagnetometer), opened for
-        the run and closed with it."""
+    def scalar_magnetometer(self, name: str) -> ScalarMagnetometer:
+        """Total-field magnetometer ``name``, opened for the run and closed with it."""
         ...
 
     def predict_after_null(self, null_name: str) -> None:

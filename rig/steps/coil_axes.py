@@ -155,7 +155,7 @@ class TurnedReference(StepExecution):
         reference = ctx.cfg.devices.get(cage.reference or "") if cage is not None else None
         certificate = reference.params if reference is not None else {}
         prior = method.SensorPrior(
-            method.lower_triangular_part(np.linalg.inv(correction)),
+            method.lower_triangular_part(np.linalg.inv(np.asarray(correction, float))),
             scale_sigma=float(certificate.get("correction_scale_sigma", 5e-5)),
             skew_sigma_rad=float(certificate.get("correction_angle_sigma_arcsec", 20.0))
             / method.ARCSEC_PER_RAD,

@@ -168,7 +168,8 @@ class MeasurePerming(StepExecution):
         self._auto_off = False
         if self.resettable:
             with sampler.paused() as driver:
-                driver.set_reset_auto(False)
+                if isinstance(driver, SetReset):
+                    driver.set_reset_auto(False)
             self._auto_off = True
             ctx.event("info", f"perming: '{self.dut}' automatic set/reset off for the step")
 
@@ -177,14 +178,16 @@ class MeasurePerming(StepExecution):
             return
         started = timebase.monotonic()
         with self.ctx.samplers[self.dut].paused() as driver:
-            driver.set_reset_pulse()
+            if isinstance(driver, SetReset):
+                driver.set_reset_pulse()
         self.pulse_t = (started, timebase.monotonic())
 
     def _restore(self) -> None:
         """The DUT's automatic set/reset back on (its state before the step)."""
         if self._auto_off:
             with self.ctx.samplers[self.dut].paused() as driver:
-                driver.set_reset_auto(True)
+                if isinstance(driver, SetReset):
+                    driver.set_reset_auto(True)
             self._auto_off = False
 
     def wind_down(self) -> None:
