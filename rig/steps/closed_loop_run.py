@@ -258,6 +258,7 @@ class LoopRunner:
             self.rod_a.append(self._rod_row())
             held = loop.field_now()
             if self._halt.is_set():  # the run is ending: no command after the halt
+                self.latency_s.append(math.nan)  # (one per tick in the record)
                 break
             self.ctx.command(self.step.index, "field",
                              {"field_ut": [float(v) for v in held * self.scenario.scale],

@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import hashlib
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -145,3 +146,45 @@ def test_a_supply_failing_mid_loop_ends_the_run_error_with_every_output_off(tmp_
     finally:
         reader.close()
     assert any(kind == "closed_loop" for _, _, kind, _, _ in steps)
+
+
+def test_a_loop_halted_inside_a_tick_keeps_a_whole_record(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The step's time can run out while the loop is inside a tick (on a busy computer a 50 Hz
+    loop falls behind): the tick is recorded without a command and the record stays whole (it
+    once ended 'internal error: zip() argument 2 is shorter than argument 1' beside two CPU
+    hogs). Here the halt comes inside the 20th tick."""
+    from rig.hil.loop import Loop
+    from rig.steps.closed_loop_run import LoopRunner
+
+    runners: list[LoopRunner] = []
+    made, advance = LoopRunner.__init__, Loop.advance
+
+    def keep(self: LoopRunner, *args: Any) -> None:
+        made(self, *args)
+        runners.append(self)
+
+    def advance_then_halt(self: Loop, *args: Any) -> Any:
+        tick = advance(self, *args)
+        if runners and len(runners[-1].ticks) == 19:  # this is the 20th
+            runners[-1].halt()
+        return tick
+
+    monkeypatch.setattr(LoopRunner, "__init__", keep)
+    monkeypatch.setattr(Loop, "advance", advance_then_halt)
+    procedure = PROCEDURE.replace(loop_step("detumble"), loop_step(
+        "detumble", rate_hz=50, control_hz=50, duration_s=2, until_deg_s=0))  # fmt: skip
+    outcome = run_on_sim(tmp_path, procedure)
+    assert outcome.status == "complete", outcome
+    run = next((tmp_path / "runs").iterdir())
+    reader = RunReader(run)
+    try:
+        result = reader.results()["detumble"]
+    finally:
+        reader.close()
+    assert isinstance(result, dict)
+    with (run / str(result["history_file"])).open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == result["ticks"] == 20
+    assert rows[-1]["latency_ms"] == "nan"  # no command went out for it
