@@ -43,7 +43,7 @@ from rig.steps.vocabulary import (
     MAX_STEPS,
     MAX_TOTAL_DURATION_S,
     NotFiniteError,
-    Param,
+    StepParam,
 )
 
 PARSE_BOUND_S = 5.0
@@ -91,7 +91,7 @@ def make_folder(root: Path) -> Path:
 # --- the texts ------------------------------------------------------------------------------------
 
 
-def _valid(p: Param) -> list[str]:
+def _valid(p: StepParam) -> list[str]:
     """Values of a parameter that its checks accept, or nearly."""
     out: list[str] = []
     for v in (p.default, p.minimum, p.maximum):
@@ -109,7 +109,7 @@ def _valid(p: Param) -> list[str]:
 
 
 @st.composite
-def _value(draw: st.DrawFn, p: Param | None, key: str = "") -> str:
+def _value(draw: st.DrawFn, p: StepParam | None, key: str = "") -> str:
     """A parameter's value as YAML text: one time in eight hostile, else (nearly) valid."""
     if draw(st.integers(0, 7)) == 5:  # not 0, which Hypothesis draws far more often
         return draw(st.sampled_from(HOSTILE))
@@ -118,7 +118,7 @@ def _value(draw: st.DrawFn, p: Param | None, key: str = "") -> str:
 
 
 @st.composite
-def _mapping(draw: st.DrawFn, params: dict[str, Param]) -> str:
+def _mapping(draw: st.DrawFn, params: dict[str, StepParam]) -> str:
     """A flow mapping of parameters: the required ones (usually), some others, rarely junk."""
     required = [k for k, p in params.items() if p.required]
     optional = [k for k, p in params.items() if not p.required]

@@ -7,7 +7,7 @@ the lab index and a 300-character serial made the run folder's name too long (is
 
 * **no control characters**: C0 (U+0000-U+001F), DEL (U+007F) and C1 (U+0080-U+009F) are
   refused, except tab and line feed in free text (a prompt's text, a description: what a step
-  kind declares ``Param(text="free")``) and tab in a rig configuration's values (a ``delimiter``);
+  kind declares ``StepParam(text="free")``) and tab in a rig configuration's values (a ``delimiter``);
 * **labels** (every name, serial, title and parameter value) are at most :data:`MAX_TEXT_CHARS`
   characters; free text, paths, host names and URLs have no limit of their own;
 * **no invisible characters in labels** (issue 51): the bidirectional controls (embeddings,

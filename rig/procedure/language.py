@@ -20,7 +20,7 @@ step and the fix. A file is input from anyone: its size, its YAML (nesting, alia
 aliases expanded), its steps, its duration and its load set-points are bounded by the limits in
 rig.steps.vocabulary, each checked before the work it bounds, and no nan or inf gets through.
 Every string - keys, values, ``--set`` values, step names after substitution - follows the rule
-of :mod:`rig.text`: no control characters (free text, as a step's ``Param`` declares it, may hold
+of :mod:`rig.text`: no control characters (free text, as a step's ``StepParam`` declares it, may hold
 tab and line feed), and names, serials and other labels at most ``MAX_TEXT_CHARS`` characters.
 """
 
@@ -51,11 +51,11 @@ from rig.steps.vocabulary import (
     MAX_YAML_NODES,
     NOT_FINITE_FIX,
     NotFiniteError,
-    Param,
     Procedure,
     ProcedureError,
     RigTiming,
     Step,
+    StepParam,
     Where,
     bind_params,
     finite_number,
@@ -65,10 +65,10 @@ from rig.text import FREE_TEXT_CONTROLS, shown, text_problem
 
 __all__ = [
     "NotFiniteError",
-    "Param",
     "Procedure",
     "ProcedureError",
     "Step",
+    "StepParam",
     "Where",
     "parse_procedure",
 ]
@@ -307,9 +307,11 @@ def _refuse_bad_labels(value: Any, where: str, what: str) -> None:
             _refuse_bad_labels(v, where, what)
 
 
-def _refuse_bad_params_text(specs: dict[str, Param], params: dict[str, Any], where: str) -> None:
+def _refuse_bad_params_text(
+    specs: dict[str, StepParam], params: dict[str, Any], where: str
+) -> None:
     """A step's or load profile's bound parameters (``{parameter}`` substituted) against the rule
-    of :mod:`rig.text`, as each :class:`Param` declares its text (label, free text, file name)."""
+    of :mod:`rig.text`, as each :class:`StepParam` declares its text (label, free text, file name)."""
     for name, value in params.items():
         spec = specs.get(name)
         kind = spec.text if spec is not None else "label"

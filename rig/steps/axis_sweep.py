@@ -7,18 +7,18 @@ from typing import ClassVar
 import numpy as np
 
 from rig.steps.base import Array, FieldStepKind
-from rig.steps.vocabulary import Param, RigTiming, Step
+from rig.steps.vocabulary import RigTiming, Step, StepParam
 
 
 class AxisSweep(FieldStepKind):
     name = "axis_sweep"
     summary = "evenly spaced fields along one axis"
-    params: ClassVar[dict[str, Param]] = {
-        "axis": Param("str", "x", choices=("x", "y", "z")),
-        "from_ut": Param("float", -50.0),
-        "to_ut": Param("float", 50.0),
-        "points": Param("int", 11, 2, 10000),
-        "dwell_s": Param("float", 0.5, 0.05, 3600.0),
+    params: ClassVar[dict[str, StepParam]] = {
+        "axis": StepParam("str", "x", choices=("x", "y", "z")),
+        "from_ut": StepParam("float", -50.0),
+        "to_ut": StepParam("float", 50.0),
+        "points": StepParam("int", 11, 2, 10000),
+        "dwell_s": StepParam("float", 0.5, 0.05, 3600.0),
     }
 
     def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:

@@ -22,7 +22,7 @@ import timebase
 from rig.config import coil_step_a
 from rig.errors import RunAborted
 from rig.steps.load_profiles import load_profile
-from rig.steps.vocabulary import Command, Param, RigTiming, Step
+from rig.steps.vocabulary import Command, RigTiming, Step, StepParam
 
 if TYPE_CHECKING:
     from drivers.protocols import Magnetometer, ScalarMagnetometer
@@ -229,7 +229,7 @@ class StepKind:
     differs from the defaults: one command at time 0 carrying the parameters, no duration."""
 
     name: ClassVar[str]
-    params: ClassVar[dict[str, Param]]
+    params: ClassVar[dict[str, StepParam]]
     summary: ClassVar[str] = ""
     takes_loads: ClassVar[bool] = False
     """Load profiles may run during it; its samples are in 'every field step' of a calibration."""

@@ -38,7 +38,7 @@ from rig.steps.sine_fields import (
     span_of,
     within,
 )
-from rig.steps.vocabulary import Param, Step
+from rig.steps.vocabulary import Step, StepParam
 
 
 class CageResponse(SineStepKind):
@@ -46,11 +46,11 @@ class CageResponse(SineStepKind):
     summary = "sine fields at each frequency: the cage's own amplitude and phase, its bandwidth"
     result_values = ("axes", "bandwidth_hz", "bandwidth_hz.*", "limit_hz", "limit_hz.*",
                      "poorly_measured_hz", "measured_to_hz", "reference_response")  # fmt: skip
-    params: ClassVar[dict[str, Param]] = {
+    params: ClassVar[dict[str, StepParam]] = {
         **SINE_PARAMS,
-        "frequencies_hz": Param("list_float", [0.5, 1.0, 2.0, 3.0, 4.0, 5.0]),
-        "cycles": Param("int", 3, 1, 10000),
-        "min_s": Param("float", 3.0, 0.0, 86400.0),
+        "frequencies_hz": StepParam("list_float", [0.5, 1.0, 2.0, 3.0, 4.0, 5.0]),
+        "cycles": StepParam("int", 3, 1, 10000),
+        "min_s": StepParam("float", 3.0, 0.0, 86400.0),
     }
 
     def beyond_cage(self, step: Step, cage: CageAbilities) -> list[str]:

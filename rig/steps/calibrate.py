@@ -8,24 +8,24 @@ from rig.analysis import calibrate_run
 from rig.calibration.estimators import method_names
 from rig.calibration.record import CALIBRATION_VALUES
 from rig.steps.base import StepExecution, StepKind
-from rig.steps.vocabulary import Param
+from rig.steps.vocabulary import StepParam
 
 
 class Calibrate(StepKind):
     name = "calibrate"
     summary = "fit the DUT from the recorded steps (batch)"
     result_values = CALIBRATION_VALUES
-    params: ClassVar[dict[str, Param]] = {
-        "model": Param("str", "vector", choices=("vector", "scalar")),
-        "method": Param("str", "", choices=("", *method_names(kind="batch"))),
-        "magnetometer": Param("str", "dut"),
-        "telemetry": Param("list_str", []),
-        "steps": Param("list_str", []),
-        "noise_nt": Param("float", 0.0, 0.0, 1e6),
-        "settle_s": Param("float", 0.25, 0.0, 60.0),
+    params: ClassVar[dict[str, StepParam]] = {
+        "model": StepParam("str", "vector", choices=("vector", "scalar")),
+        "method": StepParam("str", "", choices=("", *method_names(kind="batch"))),
+        "magnetometer": StepParam("str", "dut"),
+        "telemetry": StepParam("list_str", []),
+        "steps": StepParam("list_str", []),
+        "noise_nt": StepParam("float", 0.0, 0.0, 1e6),
+        "settle_s": StepParam("float", 0.25, 0.0, 60.0),
         # a thermometer the run recorded (rig configuration): fits the temperature coefficients
-        "temperature": Param("str", ""),
-        "temperature_ref_c": Param("float", 25.0, -100.0, 300.0),
+        "temperature": StepParam("str", ""),
+        "temperature_ref_c": StepParam("float", 25.0, -100.0, 300.0),
     }
 
     def thermometers(self, step: Any) -> tuple[str, ...]:

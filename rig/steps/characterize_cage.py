@@ -10,7 +10,7 @@ import numpy as np
 
 from rig import stored
 from rig.steps.base import StepExecution, StepKind
-from rig.steps.vocabulary import Param, RigTiming, Step
+from rig.steps.vocabulary import RigTiming, Step, StepParam
 
 if TYPE_CHECKING:
     from rig.cage.model import CageModel
@@ -96,10 +96,10 @@ class CharacterizeCage(StepKind):
     summary = "measure the cage's uT per A on every axis (the cage model)"
     result_values = ("residual_rms_nt", "condition_number")
     measures_cage_model = True
-    params: ClassVar[dict[str, Param]] = {
-        "amplitude_a": Param("float", 1.0, 0.01, 100.0),
-        "samples": Param("int", 10, 1, 10000),
-        "repeats": Param("int", 2, 1, 20),
+    params: ClassVar[dict[str, StepParam]] = {
+        "amplitude_a": StepParam("float", 1.0, 0.01, 100.0),
+        "samples": StepParam("int", 10, 1, 10000),
+        "repeats": StepParam("int", 2, 1, 20),
     }
 
     def duration_s(self, step: Step, timing: RigTiming) -> float:

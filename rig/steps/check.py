@@ -11,9 +11,9 @@ from rig.steps.base import StepExecution, StepKind
 from rig.steps.vocabulary import (
     NOT_FINITE_FIX,
     NotFiniteError,
-    Param,
     ProcedureError,
     Step,
+    StepParam,
     finite_number,
     suggest,
 )
@@ -26,7 +26,7 @@ CRITERION_KEYS = {"result", "value", "min", "max", "name", "__line__"}
 class Check(StepKind):
     name = "check"
     summary = "acceptance criteria on the results: PASS/FAIL with margins"
-    params: ClassVar[dict[str, Param]] = {"criteria": Param("list_dict", required=True)}
+    params: ClassVar[dict[str, StepParam]] = {"criteria": StepParam("list_dict", required=True)}
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:
         path = where.split(":", 1)[0]

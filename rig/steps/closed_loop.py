@@ -20,10 +20,10 @@ from rig.steps.closed_loop_ticks import read_ticks
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
     Command,
-    Param,
     ProcedureError,
     RigTiming,
     Step,
+    StepParam,
 )
 
 ABORT_JOIN_S = 10.0
@@ -41,28 +41,28 @@ class ClosedLoop(FieldStepKind):
                      "ticks", "late_ticks", "latency_ms.*", "readings", "field_model", "dynamics",
                      "history_file", "software_history_file", "noise_nt", "peak_field_ut",
                      "until_deg_s", "summary", "flight_software", "flight_computer.*", "torque_rods.*")  # fmt: skip
-    params: ClassVar[dict[str, Param]] = {
-        "tle": Param("list_str", required=True),
-        "start": Param("str", required=True),
-        "time_scale": Param("float", 1.0, 0.01, 1000.0),
-        "duration_s": Param("float", required=True, minimum=1.0, maximum=86400.0),
-        "rate_hz": Param("float", 50.0, 1.0, 200.0),
-        "control_hz": Param("float", 2.0, 0.05, 50.0),
-        "inertia_kg_m2": Param("vec3", [0.0333, 0.0333, 0.0067], 1e-6, 1e4),
-        "max_dipole_am2": Param("float", 0.2, 1e-4, 100.0),
-        "rate_deg_s": Param("vec3", [5.77, 5.77, 5.77], -360.0, 360.0),
-        "gain": Param("float", 0.0, 0.0, 1e6),
-        "until_deg_s": Param("float", 0.0, 0.0, 360.0),
-        "readings": Param("str", "raw", choices=("raw", "calibrated")),
-        "field_scale": Param("float", 1.0, 0.05, 1.0),
-        "noise_nt": Param("float", 0.0, 0.0, 1e6),
-        "seed": Param("int", 0, 0, 2**31),
-        "magnetometer": Param("str", "dut"),
-        "flight_computer": Param("str", ""),
-        "reply_timeout_s": Param("float", 0.1, 0.001, 10.0),
-        "torque_rods": Param("list_str", []),
-        "rod_a_per_am2": Param("float", 0.0, 0.0, 1000.0),
-        "rod_bias_a": Param("float", 0.0, 0.0, 1000.0),
+    params: ClassVar[dict[str, StepParam]] = {
+        "tle": StepParam("list_str", required=True),
+        "start": StepParam("str", required=True),
+        "time_scale": StepParam("float", 1.0, 0.01, 1000.0),
+        "duration_s": StepParam("float", required=True, minimum=1.0, maximum=86400.0),
+        "rate_hz": StepParam("float", 50.0, 1.0, 200.0),
+        "control_hz": StepParam("float", 2.0, 0.05, 50.0),
+        "inertia_kg_m2": StepParam("vec3", [0.0333, 0.0333, 0.0067], 1e-6, 1e4),
+        "max_dipole_am2": StepParam("float", 0.2, 1e-4, 100.0),
+        "rate_deg_s": StepParam("vec3", [5.77, 5.77, 5.77], -360.0, 360.0),
+        "gain": StepParam("float", 0.0, 0.0, 1e6),
+        "until_deg_s": StepParam("float", 0.0, 0.0, 360.0),
+        "readings": StepParam("str", "raw", choices=("raw", "calibrated")),
+        "field_scale": StepParam("float", 1.0, 0.05, 1.0),
+        "noise_nt": StepParam("float", 0.0, 0.0, 1e6),
+        "seed": StepParam("int", 0, 0, 2**31),
+        "magnetometer": StepParam("str", "dut"),
+        "flight_computer": StepParam("str", ""),
+        "reply_timeout_s": StepParam("float", 0.1, 0.001, 10.0),
+        "torque_rods": StepParam("list_str", []),
+        "rod_a_per_am2": StepParam("float", 0.0, 0.0, 1000.0),
+        "rod_bias_a": StepParam("float", 0.0, 0.0, 1000.0),
     }
     """``inertia_kg_m2``: the principal moments (body axes = cage axes); ``rate_deg_s``: the
     initial body rate; ``gain``: B-dot's (A m^2 per uT/s; 0: full dipole at 1 deg/s in 30 uT);

@@ -12,7 +12,7 @@ import numpy as np
 from rig import stored
 from rig.errors import RigError
 from rig.steps.base import StepExecution, StepKind, ask_or_abort, record_cage_metrology
-from rig.steps.vocabulary import Param, RigTiming, Step
+from rig.steps.vocabulary import RigTiming, Step, StepParam
 
 AXES = ("x", "y", "z")
 PAIRS = ("xy", "xz", "yz")
@@ -102,10 +102,10 @@ class CoilAxes(StepKind):
     asks_operator = True
     result_values = ("constants_sigma_ppm.*", "skew_arcsec.*", "skew_sigma_arcsec.*",
                      "chi2_per_dof")  # fmt: skip
-    params: ClassVar[dict[str, Param]] = {
-        "amplitude_a": Param("float", 1.0, 0.01, 100.0),
-        "samples": Param("int", 20, 2, 10000),
-        "fixture_sigma_arcsec": Param("float", 30.0, 0.1, 3600.0),
+    params: ClassVar[dict[str, StepParam]] = {
+        "amplitude_a": StepParam("float", 1.0, 0.01, 100.0),
+        "samples": StepParam("int", 20, 2, 10000),
+        "fixture_sigma_arcsec": StepParam("float", 30.0, 0.1, 3600.0),
     }
 
     def duration_s(self, step: Step, timing: RigTiming) -> float:

@@ -13,7 +13,7 @@ import timebase
 from rig.errors import RigError
 from rig.steps.base import StepExecution, StepKind, record_cage_metrology
 from rig.steps.coil_axes import AXES, PAIRS
-from rig.steps.vocabulary import Param, RigTiming, Step
+from rig.steps.vocabulary import RigTiming, Step, StepParam
 
 CURRENT_STEP_A = 1e-3
 """Currents are rounded to 1 mA, a value every coil supply sets exactly (0.1 or 1 mA steps)."""
@@ -53,11 +53,11 @@ class CoilScalar(StepKind):
     summary = "coil constants and axis angles from a total-field magnetometer (no certificate)"
     result_values = ("constants_sigma_ppm.*", "skew_arcsec.*", "skew_sigma_arcsec.*",
                      "chi2_per_dof", "points")  # fmt: skip
-    params: ClassVar[dict[str, Param]] = {
-        "field_ut": Param("list_float", [22.0, 45.0], 17.0, 1000.0),
-        "directions": Param("int", 30, 8, 500),
-        "samples": Param("int", 10, 2, 1000),
-        "settle_s": Param("float", 0.5, 0.0, 60.0),
+    params: ClassVar[dict[str, StepParam]] = {
+        "field_ut": StepParam("list_float", [22.0, 45.0], 17.0, 1000.0),
+        "directions": StepParam("int", 30, 8, 500),
+        "samples": StepParam("int", 10, 2, 1000),
+        "settle_s": StepParam("float", 0.5, 0.0, 60.0),
     }
 
     def duration_s(self, step: Step, timing: RigTiming) -> float:

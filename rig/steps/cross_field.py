@@ -21,7 +21,7 @@ from rig.characterization.cross_field import CrossField, fit_cross_field
 from rig.errors import RigError
 from rig.steps.base import Array, FieldStepKind, RunContext, SettledNeed, StepExecution
 from rig.steps.sensor_axes import in_sensor_axes
-from rig.steps.vocabulary import Param, ProcedureError, RigTiming, Step
+from rig.steps.vocabulary import ProcedureError, RigTiming, Step, StepParam
 
 AXES = "xyz"
 
@@ -63,12 +63,12 @@ class CrossFieldKind(FieldStepKind):
     summary = "each axis's scale with a field across it: the cross-field coefficients (ppm/uT)"
     result_values = ("cross_field_ppm_per_ut", "sigma_ppm_per_ut", "max_abs_ppm_per_ut",
                      "residual_nt", "samples", "frame", "transverse_ut")  # fmt: skip
-    params: ClassVar[dict[str, Param]] = {
-        "transverse_ut": Param("float", 40.0, 1.0, 1000.0),
-        "levels_ut": Param("list_float", [-45.0, -30.0, -15.0, 15.0, 30.0, 45.0]),
-        "dwell_s": Param("float", 1.0, 0.1, 600.0),
-        "settle_s": Param("float", 0.3, 0.0, 60.0),
-        "magnetometer": Param("str", "dut"),
+    params: ClassVar[dict[str, StepParam]] = {
+        "transverse_ut": StepParam("float", 40.0, 1.0, 1000.0),
+        "levels_ut": StepParam("list_float", [-45.0, -30.0, -15.0, 15.0, 30.0, 45.0]),
+        "dwell_s": StepParam("float", 1.0, 0.1, 600.0),
+        "settle_s": StepParam("float", 0.3, 0.0, 60.0),
+        "magnetometer": StepParam("str", "dut"),
     }
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:

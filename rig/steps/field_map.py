@@ -12,7 +12,7 @@ import numpy as np
 from rig import stored
 from rig.errors import RigError
 from rig.steps.base import StepExecution, StepKind, ask_or_abort, record_cage_metrology
-from rig.steps.vocabulary import Param, RigTiming, Step
+from rig.steps.vocabulary import RigTiming, Step, StepParam
 
 AXES = ("x", "y", "z")
 
@@ -65,13 +65,13 @@ class FieldMap(StepKind):
     summary = "the field over the DUT's volume: the reference moved over a grid by the operator"
     asks_operator = True
     result_values = ("volume_error_ppm.*", "noise_scale.*")
-    params: ClassVar[dict[str, Param]] = {
-        "half_width_m": Param("float", 0.1, 0.01, 0.5),
-        "points_per_axis": Param("int", 3, 3, 5),
-        "degree": Param("int", 6, 2, 8),
-        "reference_m": Param("vec3", [0.0, 0.0, -0.08]),
-        "amplitude_a": Param("float", 1.0, 0.01, 100.0),
-        "samples": Param("int", 10, 2, 10000),
+    params: ClassVar[dict[str, StepParam]] = {
+        "half_width_m": StepParam("float", 0.1, 0.01, 0.5),
+        "points_per_axis": StepParam("int", 3, 3, 5),
+        "degree": StepParam("int", 6, 2, 8),
+        "reference_m": StepParam("vec3", [0.0, 0.0, -0.08]),
+        "amplitude_a": StepParam("float", 1.0, 0.01, 100.0),
+        "samples": StepParam("int", 10, 2, 10000),
     }
 
     def duration_s(self, step: Step, timing: RigTiming) -> float:

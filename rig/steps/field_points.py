@@ -8,15 +8,15 @@ from typing import ClassVar
 import numpy as np
 
 from rig.steps.base import Array, FieldStepKind
-from rig.steps.vocabulary import Param, RigTiming, Step
+from rig.steps.vocabulary import RigTiming, Step, StepParam
 
 
 class FieldPoints(FieldStepKind):
     name = "field_points"
     summary = "hold each field of a list in turn"
-    params: ClassVar[dict[str, Param]] = {
-        "fields_ut": Param("list_vec3", required=True, minimum=-1000.0, maximum=1000.0),
-        "dwell_s": Param("float", 0.8, 0.05, 3600.0),
+    params: ClassVar[dict[str, StepParam]] = {
+        "fields_ut": StepParam("list_vec3", required=True, minimum=-1000.0, maximum=1000.0),
+        "dwell_s": StepParam("float", 0.8, 0.05, 3600.0),
     }
 
     def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:

@@ -51,7 +51,7 @@ from rig.steps.sine_fields import (
     span_of,
     staircase,
 )
-from rig.steps.vocabulary import Param, Step
+from rig.steps.vocabulary import Step, StepParam
 
 
 @dataclass(frozen=True)
@@ -112,7 +112,10 @@ class FrequencyResponse(SineStepKind):
     summary = "sine fields at each frequency: the DUT's amplitude ratio and phase (Bode plot)"
     result_values = ("axes", "amplitude_error_max", "phase_abs_max_deg", "cage_bandwidth_hz",
                      "frame", "reference_response")  # fmt: skip
-    params: ClassVar[dict[str, Param]] = {**SINE_PARAMS, "magnetometer": Param("str", "dut")}
+    params: ClassVar[dict[str, StepParam]] = {
+        **SINE_PARAMS,
+        "magnetometer": StepParam("str", "dut"),
+    }
     cage_metrology_used = "cage_response"
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:

@@ -5,14 +5,14 @@ from __future__ import annotations
 from typing import ClassVar
 
 from rig.steps.base import Array, FieldStepKind
-from rig.steps.vocabulary import Param, RigTiming, Step
+from rig.steps.vocabulary import RigTiming, Step, StepParam
 
 
 class Hold(FieldStepKind):
     name = "hold"
     summary = "keep the present field"
-    params: ClassVar[dict[str, Param]] = {
-        "hold_s": Param("float", required=True, minimum=0.0, maximum=86400.0)
+    params: ClassVar[dict[str, StepParam]] = {
+        "hold_s": StepParam("float", required=True, minimum=0.0, maximum=86400.0)
     }
 
     def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:

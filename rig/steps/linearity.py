@@ -26,7 +26,7 @@ from rig.steps.base import (
     SettledNeed,
     StepExecution,
 )
-from rig.steps.vocabulary import DEFAULT_FIELD_LIMIT_UT, Param, RigTiming, Step
+from rig.steps.vocabulary import DEFAULT_FIELD_LIMIT_UT, RigTiming, Step, StepParam
 
 MIN_PER_POINT = 3
 """Settled samples a point needs from each magnetometer."""
@@ -116,12 +116,12 @@ class Linearity(FieldStepKind):
     name = "linearity"
     summary = "sweep each axis to the field limit; deviation from linear in ppm of full scale"
     result_values = ("nonlinearity_ppm", "axis_nonlinearity_ppm.*", "full_scale_ut")
-    params: ClassVar[dict[str, Param]] = {
-        "max_ut": Param("float", 0.0, 0.0, 1000.0),
-        "points": Param("int", 9, 5, 1001),
-        "dwell_s": Param("float", 0.6, 0.1, 3600.0),
-        "settle_s": Param("float", 0.25, 0.0, 60.0),
-        "magnetometer": Param("str", "dut"),
+    params: ClassVar[dict[str, StepParam]] = {
+        "max_ut": StepParam("float", 0.0, 0.0, 1000.0),
+        "points": StepParam("int", 9, 5, 1001),
+        "dwell_s": StepParam("float", 0.6, 0.1, 3600.0),
+        "settle_s": StepParam("float", 0.25, 0.0, 60.0),
+        "magnetometer": StepParam("str", "dut"),
     }
 
     def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:

@@ -18,10 +18,10 @@ from rig.steps.live_calibrate_run import LiveCalibration
 from rig.steps.null_field import latest_noise_floor
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
-    Param,
     ProcedureError,
     RigTiming,
     Step,
+    StepParam,
     suggest,
 )
 
@@ -33,19 +33,19 @@ class LiveCalibrate(FieldStepKind):
     name = "live_calibrate"
     summary = "sweep while a sequential filter calibrates; stop when the target sigmas are met"
     result_values = (*CALIBRATION_VALUES, "live.*", "filter.*")
-    params: ClassVar[dict[str, Param]] = {
-        "method": Param("str", "ukf", choices=method_names(kind="sequential")),
-        "telemetry": Param("list_str", []),
-        "targets": Param("dict", {}),
-        "stop_on_target": Param("str", "yes", choices=("yes", "no")),
-        "min_s": Param("float", 5.0, 0.0, 86400.0),
-        "max_s": Param("float", 60.0, 1.0, 86400.0),
-        "magnitude_ut": Param("range2", [20.0, 50.0], 0.0, 1000.0),
-        "dwell_s": Param("float", 0.8, 0.05, 3600.0),
-        "seed": Param("int", 1, 0, 2**31),
-        "noise_nt": Param("float", 0.0, 0.0, 1e6),
-        "settle_s": Param("float", 0.25, 0.0, 60.0),
-        "magnetometer": Param("str", "dut"),
+    params: ClassVar[dict[str, StepParam]] = {
+        "method": StepParam("str", "ukf", choices=method_names(kind="sequential")),
+        "telemetry": StepParam("list_str", []),
+        "targets": StepParam("dict", {}),
+        "stop_on_target": StepParam("str", "yes", choices=("yes", "no")),
+        "min_s": StepParam("float", 5.0, 0.0, 86400.0),
+        "max_s": StepParam("float", 60.0, 1.0, 86400.0),
+        "magnitude_ut": StepParam("range2", [20.0, 50.0], 0.0, 1000.0),
+        "dwell_s": StepParam("float", 0.8, 0.05, 3600.0),
+        "seed": StepParam("int", 1, 0, 2**31),
+        "noise_nt": StepParam("float", 0.0, 0.0, 1e6),
+        "settle_s": StepParam("float", 0.25, 0.0, 60.0),
+        "magnetometer": StepParam("str", "dut"),
     }
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:

@@ -20,38 +20,38 @@ from rig.steps.vocabulary import (
     MAX_LOAD_SETPOINTS_PER_STEP,
     NOT_FINITE_FIX,
     NotFiniteError,
-    Param,
     ProcedureError,
+    StepParam,
     finite_number,
     inside_folder,
 )
 
-LOAD_PROFILES: dict[str, dict[str, Param]] = {
-    "constant": {"current_a": Param("float", required=True, minimum=-1000.0, maximum=1000.0)},
+LOAD_PROFILES: dict[str, dict[str, StepParam]] = {
+    "constant": {"current_a": StepParam("float", required=True, minimum=-1000.0, maximum=1000.0)},
     "steps": {
-        "levels_a": Param("list_float", required=True),
-        "dwell_s": Param("float", required=True, minimum=0.05),
+        "levels_a": StepParam("list_float", required=True),
+        "dwell_s": StepParam("float", required=True, minimum=0.05),
     },
     "square": {
-        "low_a": Param("float", 0.0),
-        "high_a": Param("float", required=True),
-        "period_s": Param("float", required=True, minimum=0.1),
-        "duty": Param("float", 0.5, 0.01, 0.99),
+        "low_a": StepParam("float", 0.0),
+        "high_a": StepParam("float", required=True),
+        "period_s": StepParam("float", required=True, minimum=0.1),
+        "duty": StepParam("float", 0.5, 0.01, 0.99),
     },
     "ramp": {
-        "from_a": Param("float", 0.0),
-        "to_a": Param("float", required=True),
-        "step_s": Param("float", 0.1, 0.02),
+        "from_a": StepParam("float", 0.0),
+        "to_a": StepParam("float", required=True),
+        "step_s": StepParam("float", 0.1, 0.02),
     },
     "beacon": {
-        "base_a": Param("float", 0.0),
-        "pulse_a": Param("float", required=True),
-        "period_s": Param("float", 20.0, 0.1),
-        "width_s": Param("float", 2.0, 0.01),
+        "base_a": StepParam("float", 0.0),
+        "pulse_a": StepParam("float", required=True),
+        "period_s": StepParam("float", 20.0, 0.1),
+        "width_s": StepParam("float", 2.0, 0.01),
     },
     "csv": {
-        "file": Param("str", required=True, text="path"),
-        "column": Param("str", required=True),
+        "file": StepParam("str", required=True, text="path"),
+        "column": StepParam("str", required=True),
     },
 }
 

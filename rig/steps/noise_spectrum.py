@@ -18,7 +18,7 @@ from rig.analysis import settled_samples
 from rig.characterization.stability import on_uniform_grid
 from rig.errors import RigError
 from rig.steps.base import Array, NullHoldKind, RunContext, SettledNeed, StepExecution
-from rig.steps.vocabulary import Param, ProcedureError, Step
+from rig.steps.vocabulary import ProcedureError, Step, StepParam
 
 AROUND_1HZ = (0.8, 1.25)
 """The density 'at 1 Hz' is the mean over this band (Hz): one Welch bin is too noisy a figure."""
@@ -103,12 +103,12 @@ class NoiseSpectrum(NullHoldKind):
     summary = "DUT noise spectral density in a nulled field (nT/rtHz at 1 Hz and over a band)"
     result_values = ("density_1hz_nt_per_rthz", "band_density_nt_per_rthz", "rate_hz", "samples",
                      "settle_s")  # fmt: skip
-    params: ClassVar[dict[str, Param]] = {
-        "hold_s": Param("float", 20.0, 5.0, 86400.0),
-        "band_hz": Param("range2", [0.1, 5.0], 0.001, 10000.0),
-        "trim": Param("str", "no", choices=("yes", "no")),
-        "settle_s": Param("float", 0.5, 0.0, 60.0),
-        "magnetometer": Param("str", "dut"),
+    params: ClassVar[dict[str, StepParam]] = {
+        "hold_s": StepParam("float", 20.0, 5.0, 86400.0),
+        "band_hz": StepParam("range2", [0.1, 5.0], 0.001, 10000.0),
+        "trim": StepParam("str", "no", choices=("yes", "no")),
+        "settle_s": StepParam("float", 0.5, 0.0, 60.0),
+        "magnetometer": StepParam("str", "dut"),
     }
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:

@@ -16,7 +16,7 @@ import numpy as np
 
 from rig.analysis import noise_floor, paired_noise, settled_samples, spread_nt, to_cage_frame
 from rig.steps.base import NullHoldKind, RunContext, StepExecution
-from rig.steps.vocabulary import Param, Step
+from rig.steps.vocabulary import Step, StepParam
 
 NOISE_SETTLE_S = 0.3
 """Samples this long after a change are left out of the noise floor (s)."""
@@ -89,9 +89,9 @@ class NullField(NullHoldKind):
     name = "null_field"
     summary = "cancel the ambient field, hold, measure every magnetometer's noise floor"
     result_values = ("*_noise_nt", "*_paired_noise_nt", "null_residual_ut")
-    params: ClassVar[dict[str, Param]] = {
-        "hold_s": Param("float", 2.0, 0.0, 86400.0),
-        "trim": Param("str", "no", choices=("yes", "no")),
+    params: ClassVar[dict[str, StepParam]] = {
+        "hold_s": StepParam("float", 2.0, 0.0, 86400.0),
+        "trim": StepParam("str", "no", choices=("yes", "no")),
     }
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:

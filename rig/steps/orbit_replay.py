@@ -12,10 +12,10 @@ from rig.steps.base import FieldStepKind, load_commands
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
     Command,
-    Param,
     ProcedureError,
     RigTiming,
     Step,
+    StepParam,
 )
 
 
@@ -23,16 +23,16 @@ class OrbitReplay(FieldStepKind):
     name = "orbit_replay"
     summary = "replay an orbit's field (TLE + IGRF) with panel currents"
     hold_from_field = False  # the replay keeps its schedule; a late set-point is not waited for
-    params: ClassVar[dict[str, Param]] = {
-        "tle": Param("list_str", required=True),
-        "start": Param("str", required=True),
-        "duration_s": Param("float", required=True, minimum=0.1, maximum=86400.0),
-        "time_scale": Param("float", 1.0, 0.01, 10000.0),
-        "rate_hz": Param("float", 10.0, 0.1, 200.0),
-        "attitude": Param("str", "nadir", choices=("inertial", "nadir", "tumbling")),
-        "tumble_deg_s": Param("float", 2.0, 0.0, 360.0),
-        "panels": Param("list_dict", []),
-        "field_scale": Param("float", 1.0, 0.05, 1.0),
+    params: ClassVar[dict[str, StepParam]] = {
+        "tle": StepParam("list_str", required=True),
+        "start": StepParam("str", required=True),
+        "duration_s": StepParam("float", required=True, minimum=0.1, maximum=86400.0),
+        "time_scale": StepParam("float", 1.0, 0.01, 10000.0),
+        "rate_hz": StepParam("float", 10.0, 0.1, 200.0),
+        "attitude": StepParam("str", "nadir", choices=("inertial", "nadir", "tumbling")),
+        "tumble_deg_s": StepParam("float", 2.0, 0.0, 360.0),
+        "panels": StepParam("list_dict", []),
+        "field_scale": StepParam("float", 1.0, 0.05, 1.0),
     }
     """``field_scale``: the fraction of the orbit's field replayed (1 = as in orbit): a cage whose
     limits the full field would reach, with the ambient field to cancel, replays it scaled; the

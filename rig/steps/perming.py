@@ -26,7 +26,7 @@ from rig.characterization.perming import HoldMean, OffsetShift, hold_mean, offse
 from rig.errors import RigError
 from rig.steps.at_rest import offsets_at_rest
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
-from rig.steps.vocabulary import Command, Param, ProcedureError, RigTiming, Step
+from rig.steps.vocabulary import Command, ProcedureError, RigTiming, Step, StepParam
 
 
 @dataclass(frozen=True)
@@ -69,15 +69,15 @@ class Perming(FieldStepKind):
     result_values = ("shock_field_ut", "shock_abs_ut", "shift_nt", "shift_sigma_nt", "shift_abs_nt", "significance_sigma", "detected",
                      "reset_residual_nt", "reset_residual_abs_nt", "offsets_nt", "samples",
                      "calibrated")  # fmt: skip
-    params: ClassVar[dict[str, Param]] = {
-        "shock_ut": Param("float", 90.0, 1.0, 10000.0),
-        "direction": Param("vec3", [1.0, 0.0, 0.0]),
-        "shock_s": Param("float", 5.0, 0.1, 3600.0),
-        "hold_s": Param("float", 60.0, 2.0, 86400.0),
-        "settle_s": Param("float", 2.0, 0.0, 600.0),
-        "reset": Param("str", "auto", choices=("auto", "no")),
-        "trim": Param("str", "yes", choices=("yes", "no")),
-        "magnetometer": Param("str", "dut"),
+    params: ClassVar[dict[str, StepParam]] = {
+        "shock_ut": StepParam("float", 90.0, 1.0, 10000.0),
+        "direction": StepParam("vec3", [1.0, 0.0, 0.0]),
+        "shock_s": StepParam("float", 5.0, 0.1, 3600.0),
+        "hold_s": StepParam("float", 60.0, 2.0, 86400.0),
+        "settle_s": StepParam("float", 2.0, 0.0, 600.0),
+        "reset": StepParam("str", "auto", choices=("auto", "no")),
+        "trim": StepParam("str", "yes", choices=("yes", "no")),
+        "magnetometer": StepParam("str", "dut"),
     }
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:

@@ -5,14 +5,14 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 from rig.steps.base import StepExecution, StepKind, ask_or_abort
-from rig.steps.vocabulary import Param
+from rig.steps.vocabulary import StepParam
 
 
 class Prompt(StepKind):
     name = "prompt"
     summary = "ask the operator to confirm (a 'no' aborts the run)"
     asks_operator = True
-    params: ClassVar[dict[str, Param]] = {"text": Param("str", required=True, text="free")}
+    params: ClassVar[dict[str, StepParam]] = {"text": StepParam("str", required=True, text="free")}
 
     def shorthand(self, body: Any) -> Any:
         return {"text": body} if isinstance(body, str) else body

@@ -6,13 +6,13 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 from rig.steps.base import StepExecution, StepKind
-from rig.steps.vocabulary import Param
+from rig.steps.vocabulary import StepParam
 
 
 class Report(StepKind):
     name = "report"
     summary = "write the acceptance report when the run closes"
-    params: ClassVar[dict[str, Param]] = {}
+    params: ClassVar[dict[str, StepParam]] = {}
 
     def execution(self, ctx: Any, step: Any) -> StepExecution:
         return AskForReport(ctx, step)

@@ -8,17 +8,17 @@ from typing import ClassVar
 import numpy as np
 
 from rig.steps.base import Array, FieldStepKind
-from rig.steps.vocabulary import Param, ProcedureError, RigTiming, Step
+from rig.steps.vocabulary import ProcedureError, RigTiming, Step, StepParam
 
 
 class Rotate(FieldStepKind):
     name = "rotate"
     summary = "a field turning about an axis"
-    params: ClassVar[dict[str, Param]] = {
-        "magnitude_ut": Param("float", 40.0, 0.0, 1000.0),
-        "axis": Param("vec3", [0.0, 0.0, 1.0]),
-        "points": Param("int", 36, 3, 10000),
-        "dwell_s": Param("float", 0.3, 0.02, 3600.0),
+    params: ClassVar[dict[str, StepParam]] = {
+        "magnitude_ut": StepParam("float", 40.0, 0.0, 1000.0),
+        "axis": StepParam("vec3", [0.0, 0.0, 1.0]),
+        "points": StepParam("int", 36, 3, 10000),
+        "dwell_s": StepParam("float", 0.3, 0.02, 3600.0),
     }
 
     def validate(self, params: dict[str, object], loads: tuple[str, ...], where: str) -> None:

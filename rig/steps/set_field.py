@@ -7,16 +7,16 @@ from typing import ClassVar
 import numpy as np
 
 from rig.steps.base import Array, FieldStepKind
-from rig.steps.vocabulary import Param, RigTiming, Step
+from rig.steps.vocabulary import RigTiming, Step, StepParam
 
 
 class SetField(FieldStepKind):
     name = "set_field"
     summary = "ramp to one field and hold it"
-    params: ClassVar[dict[str, Param]] = {
-        "field_ut": Param("vec3", required=True),
-        "hold_s": Param("float", 2.0, 0.0, 86400.0),
-        "trim": Param("str", "no", choices=("yes", "no")),
+    params: ClassVar[dict[str, StepParam]] = {
+        "field_ut": StepParam("vec3", required=True),
+        "hold_s": StepParam("float", 2.0, 0.0, 86400.0),
+        "trim": StepParam("str", "no", choices=("yes", "no")),
     }
     trim_param = "trim"
 

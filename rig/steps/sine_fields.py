@@ -19,24 +19,24 @@ from rig.steps.base import Array, CageAbilities, FieldStepKind, RunContext, load
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
     Command,
-    Param,
     ProcedureError,
     RigTiming,
     Step,
+    StepParam,
 )
 
 AXES = "xyz"
 
-SINE_PARAMS: dict[str, Param] = {
-    "frequencies_hz": Param("list_float", [0.1, 0.2, 0.5, 1.0, 2.0]),
-    "axes": Param("str", "xyz"),
-    "amplitude_ut": Param("float", 10.0, 0.1, 1000.0),
-    "bias_ut": Param("float", 30.0, 0.0, 1000.0),
-    "cycles": Param("int", 4, 1, 10000),
-    "min_s": Param("float", 8.0, 0.0, 86400.0),
-    "settle_cycles": Param("int", 1, 0, 100),
-    "settle_s": Param("float", 2.0, 0.0, 600.0),
-    "rate_hz": Param("float", 25.0, 1.0, 200.0),
+SINE_PARAMS: dict[str, StepParam] = {
+    "frequencies_hz": StepParam("list_float", [0.1, 0.2, 0.5, 1.0, 2.0]),
+    "axes": StepParam("str", "xyz"),
+    "amplitude_ut": StepParam("float", 10.0, 0.1, 1000.0),
+    "bias_ut": StepParam("float", 30.0, 0.0, 1000.0),
+    "cycles": StepParam("int", 4, 1, 10000),
+    "min_s": StepParam("float", 8.0, 0.0, 86400.0),
+    "settle_cycles": StepParam("int", 1, 0, 100),
+    "settle_s": StepParam("float", 2.0, 0.0, 600.0),
+    "rate_hz": StepParam("float", 25.0, 1.0, 200.0),
 }
 """The parameters of a step of sines (docs/procedures.md)."""
 

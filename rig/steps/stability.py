@@ -28,7 +28,7 @@ from rig.characterization.stability import (
 from rig.errors import RigError
 from rig.steps.at_rest import offsets_at_rest
 from rig.steps.base import NullHoldKind, RunContext, StepExecution
-from rig.steps.vocabulary import Param, Step
+from rig.steps.vocabulary import Step, StepParam
 
 REFERENCES = ("reference", "ambient", "none")
 
@@ -85,12 +85,12 @@ class Stability(NullHoldKind):
     result_values = ("adev_1s_nt", "adev_1s_max_nt", "adev_floor_nt", "adev_floor_max_nt",
                      "drift_nt_per_12h", "drift_sigma_nt_per_12h", "drift_abs_max_nt_per_12h",
                      "samples", "hold_s", "calibrated", "reference")  # fmt: skip
-    params: ClassVar[dict[str, Param]] = {
-        "hold_s": Param("float", 600.0, 20.0, 7 * 86400.0),
-        "reference": Param("str", "reference", choices=REFERENCES),
-        "trim": Param("str", "yes", choices=("yes", "no")),
-        "settle_s": Param("float", 2.0, 0.0, 600.0),
-        "magnetometer": Param("str", "dut"),
+    params: ClassVar[dict[str, StepParam]] = {
+        "hold_s": StepParam("float", 600.0, 20.0, 7 * 86400.0),
+        "reference": StepParam("str", "reference", choices=REFERENCES),
+        "trim": StepParam("str", "yes", choices=("yes", "no")),
+        "settle_s": StepParam("float", 2.0, 0.0, 600.0),
+        "magnetometer": StepParam("str", "dut"),
     }
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:

@@ -21,7 +21,7 @@ import numpy as np
 from rig import stored
 from rig.errors import RigError
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution, record_cage_metrology
-from rig.steps.vocabulary import Param, RigTiming, Step
+from rig.steps.vocabulary import RigTiming, Step, StepParam
 
 AXES = ("x", "y", "z")
 SETTLE_S = 2.0
@@ -95,9 +95,9 @@ class SupplyStability(FieldStepKind):
         "hold a coil field; its drift with the lab field's changes taken out (outside reference)"
     )
     result_values = ("drift_nt_per_h.*", "drift_sigma_nt_per_h.*", "residual_nt.*")
-    params: ClassVar[dict[str, Param]] = {
-        "field_ut": Param("vec3", [0.0, 0.0, 40.0]),
-        "hold_s": Param("float", 600.0, 10.0, 86400.0),
+    params: ClassVar[dict[str, StepParam]] = {
+        "field_ut": StepParam("vec3", [0.0, 0.0, 40.0]),
+        "hold_s": StepParam("float", 600.0, 10.0, 86400.0),
     }
 
     def fields(self, step: Step, timing: RigTiming) -> list[tuple[float, Array]]:

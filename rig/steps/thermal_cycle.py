@@ -24,7 +24,7 @@ from rig.characterization.thermal import ThermalFit, fit_thermal
 from rig.errors import RigError
 from rig.steps.at_rest import offsets_at_rest
 from rig.steps.base import NullHoldKind, RunContext, StepExecution
-from rig.steps.vocabulary import Param, ProcedureError, Step
+from rig.steps.vocabulary import ProcedureError, Step, StepParam
 
 MIN_SAMPLES = 100
 
@@ -68,16 +68,16 @@ class ThermalCycle(NullHoldKind):
                      "significance_sigma", "detected", "tempco_nt_per_k", "tempco_sigma_nt_per_k",
                      "tempco_abs_max_nt_per_k", "drift_nt_per_h", "reference_c",
                      "temperature_range_c", "samples", "calibrated")  # fmt: skip
-    params: ClassVar[dict[str, Param]] = {
-        "hold_s": Param("float", 3600.0, 10.0, 7 * 86400.0),
-        "thermometer": Param("str", ""),
-        "reference": Param("str", "reference", choices=("reference", "none")),
-        "trim": Param("str", "yes", choices=("yes", "no")),
-        "settle_s": Param("float", 2.0, 0.0, 600.0),
-        "reversal_k": Param("float", 1.0, 0.01, 100.0),
-        "bin_k": Param("float", 0.5, 0.01, 100.0),
-        "bin_s": Param("float", 60.0, 1.0, 86400.0),
-        "magnetometer": Param("str", "dut"),
+    params: ClassVar[dict[str, StepParam]] = {
+        "hold_s": StepParam("float", 3600.0, 10.0, 7 * 86400.0),
+        "thermometer": StepParam("str", ""),
+        "reference": StepParam("str", "reference", choices=("reference", "none")),
+        "trim": StepParam("str", "yes", choices=("yes", "no")),
+        "settle_s": StepParam("float", 2.0, 0.0, 600.0),
+        "reversal_k": StepParam("float", 1.0, 0.01, 100.0),
+        "bin_k": StepParam("float", 0.5, 0.01, 100.0),
+        "bin_s": StepParam("float", 60.0, 1.0, 86400.0),
+        "magnetometer": StepParam("str", "dut"),
     }
 
     def validate(self, params: dict[str, Any], loads: tuple[str, ...], where: str) -> None:

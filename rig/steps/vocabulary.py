@@ -2,7 +2,7 @@
 a validated step and procedure, and the commands a step compiles to.
 
 Below both the language (which parses files into these) and the step kinds (which declare their
-parameters with :class:`Param` and compile to :class:`Command` lists).
+parameters with :class:`StepParam` and compile to :class:`Command` lists).
 """
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ class Where:
 
 
 @dataclass(frozen=True)
-class Param:
+class StepParam:
     """One named parameter of a step: type, default (None = required), bounds."""
 
     kind: str  # "float", "int", "str", "vec3", "range2", "list_str", "list_float", "list_vec3", "dict", "list_dict"
@@ -176,7 +176,7 @@ def suggest(word: object, options: list[str] | set[str] | dict[str, Any]) -> str
     return f" (did you mean '{close[0]}'?)" if close else ""
 
 
-def coerce(value: Any, p: Param, key: str, where: str) -> Any:
+def coerce(value: Any, p: StepParam, key: str, where: str) -> Any:
     """``value`` of parameter ``key`` as its kind ``p.kind`` wants it, within its bounds and
     choices; else a ProcedureError naming ``where`` (a NotFiniteError for nan and inf)."""
     if p.kind in ("float", "int"):
@@ -188,7 +188,7 @@ def coerce(value: Any, p: Param, key: str, where: str) -> Any:
     if p.kind == "list_vec3":
         if not isinstance(value, list) or not value:
             raise _bad(where, key, f"must be a list of [x, y, z] points, got {value!r}")
-        points = [_numbers(v, Param("vec3"), f"{key}[{i}]", where) for i, v in enumerate(value)]
+        points = [_numbers(v, StepParam("vec3"), f"{key}[{i}]", where) for i, v in enumerate(value)]
         for i, point in enumerate(points):
             if any((p.minimum is not None and v < p.minimum)
                    or (p.maximum is not None and v > p.maximum) for v in point):  # fmt: skip
@@ -219,7 +219,7 @@ def _not_finite(where: str, key: str, got: Any) -> NotFiniteError:
     )
 
 
-def _number(value: Any, p: Param, key: str, where: str) -> int | float:
+def _number(value: Any, p: StepParam, key: str, where: str) -> int | float:
     """A ``float`` or ``int`` parameter (an int stays exact)."""
     if isinstance(value, str):  # a "{parameter}" substituted from --set or a default
         try:
@@ -241,7 +241,7 @@ def _number(value: Any, p: Param, key: str, where: str) -> int | float:
     return v
 
 
-def _text(value: Any, p: Param, key: str, where: str) -> str:
+def _text(value: Any, p: StepParam, key: str, where: str) -> str:
     """A ``str`` parameter (a YAML yes/no is 'yes'/'no'; a number is its text)."""
     if isinstance(value, bool):
         value = "yes" if value else "no"
@@ -256,7 +256,7 @@ def _text(value: Any, p: Param, key: str, where: str) -> str:
     return text
 
 
-def _numbers(value: Any, p: Param, key: str, where: str) -> list[float]:
+def _numbers(value: Any, p: StepParam, key: str, where: str) -> list[float]:
     """A ``vec3``, ``range2`` or ``list_float`` parameter."""
     n = {"vec3": 3, "range2": 2}.get(p.kind)
     if (
@@ -281,14 +281,14 @@ def _numbers(value: Any, p: Param, key: str, where: str) -> list[float]:
     return vals
 
 
-def _bounds(p: Param) -> str:
+def _bounds(p: StepParam) -> str:
     if p.minimum is not None and p.maximum is not None:
         return f"within {p.minimum:g}..{p.maximum:g}"
     return f"at least {p.minimum:g}" if p.minimum is not None else f"at most {p.maximum:g}"
 
 
 def bind_params(
-    spec: dict[str, Param], given: dict[str, Any], where: str, what: str
+    spec: dict[str, StepParam], given: dict[str, Any], where: str, what: str
 ) -> dict[str, Any]:
     out = {}
     for key in given:
