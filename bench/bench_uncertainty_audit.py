@@ -1,6 +1,6 @@
 """Uncertainty audit: is the reported sigma true in every scenario the calibration core serves?
 
-For each scenario of ``rig.calibration.audit.SCENARIOS`` - the vector fit of the synthetic cage
+For each scenario of ``rig.calibration.uncertainty_audit.SCENARIOS`` - the vector fit of the synthetic cage
 sweep (2000 samples, two load channels, 0.05 uT) under white noise, AR(1) noise with correlation
 times of 1, 3, 10 and 30 samples and Student t with 3 dof; the scalar ``ml`` fit of the same
 sweep from |h| only; the TRMM orbit of Crassidis, Lai and Harman (402 km, 35 deg, Earth pointing,
@@ -21,7 +21,7 @@ with ``--scheduler tcp://HOST:8786`` (its workers need this repository installed
 ``pip install -e .``, and should run with ``OPENBLAS_NUM_THREADS=1``). Each task is a chunk of
 ``--chunk`` draws; the data are made once per scenario here and scattered to the workers (the
 delay scenarios make theirs per draw, on the workers). Draw ``k`` has seed ``k`` whatever the
-chunking, so the figures are the same as ``rig.calibration.audit.audit`` gives in one process.
+chunking, so the figures are the same as ``rig.calibration.uncertainty_audit.audit`` gives in one process.
 
 With ``--cli`` the TRMM scenarios (``ml``, ``twostep``, ``ekf``, ``ukf``) are fitted as a
 technician fits them: each draw written to a CSV and calibrated by ``rig calibrate`` in a process
@@ -47,7 +47,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from rig.calibration.audit import (
+from rig.calibration.result import SPRINGMANN_JSON, springmann_json
+from rig.calibration.uncertainty_audit import (
     SCENARIOS,
     Scenario,
     draw_chunk,
@@ -59,7 +60,6 @@ from rig.calibration.audit import (
     summary,
     timed,
 )
-from rig.calibration.result import SPRINGMANN_JSON, springmann_json
 from rig.errors import CalibrationError
 
 if TYPE_CHECKING:

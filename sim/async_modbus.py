@@ -1,6 +1,6 @@
 """The Modbus devices on the wall clock: pymodbus 3.16 asyncio servers on one event loop in a
 background thread, behind fault-injecting loopback TCP proxies or pty null modems
-(:mod:`sim.links`). In simulated time :mod:`sim.pipe_modbus` serves them instead."""
+(:mod:`sim.transports`). In simulated time :mod:`sim.pipe_modbus` serves them instead."""
 
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import SimDevice
 
 import timebase
-from sim.links import PtyNullModem, TcpProxy
 from sim.modbus_requests import QUANTITY_CHECKED
 from sim.physics import Faults
+from sim.transports import PtyNullModem, TcpProxy
 
 
 class AsyncioModbus:

@@ -39,10 +39,10 @@ import numpy as np
 
 import timebase
 from sim.device_kind import CageHost, SimKind
-from sim.links import damage
 from sim.perming import Perming
 from sim.physics import Faults
 from sim.serial_line import open_line
+from sim.transports import damage
 
 if TYPE_CHECKING:
     from sim.config import MagnetometerConfig

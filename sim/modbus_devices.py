@@ -461,7 +461,7 @@ def unserved_ids() -> SimDevice:
     server reports any error in the datastore as a device failure.
 
     Not for Modbus RTU: there a request for another id never reaches the server
-    (:class:`sim.links.PtyNullModem`, in simulated time :mod:`sim.pipe_modbus`, keeps the bus
+    (:class:`sim.transports.PtyNullModem`, in simulated time :mod:`sim.pipe_modbus`, keeps the bus
     silent, as a real RS-485 device does)."""
 
     async def action(fc: int, start_address: int, address: int, count: int,

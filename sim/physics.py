@@ -34,8 +34,8 @@ from sim.lab_field import LabField
 from sim.offset_wander import OffsetWander, WanderSpec
 from sim.perming import Perming
 from sim.sensor_response import SensorResponse
-from sim.signals import FirstOrderSignal
 from sim.thermal_hysteresis import ThermalHysteresis
+from sim.waveforms import FirstOrderSignal
 
 Array = npt.NDArray[np.float64]
 

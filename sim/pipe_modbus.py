@@ -10,9 +10,9 @@ writes the reply frame, as pymodbus' ``ServerRequestHandler`` does.
 
 Kept from the wall clock's path: a TCP endpoint answers exception 11 for unit ids it does not serve
 (:func:`sim.modbus_devices.unserved_ids`); an RTU device stays silent for requests to other ids
-and frames requests by their length (:func:`sim.links.rtu_request_length`, a partial request older
-than :data:`sim.links.STALE_PARTIAL_S` dropped); and the link faults of :class:`sim.links.TcpProxy`
-and :class:`sim.links.PtyNullModem`: replies dropped or corrupted (:func:`sim.links.damage`, a
+and frames requests by their length (:func:`sim.transports.rtu_request_length`, a partial request older
+than :data:`sim.transports.STALE_PARTIAL_S` dropped); and the link faults of :class:`sim.transports.TcpProxy`
+and :class:`sim.transports.PtyNullModem`: replies dropped or corrupted (:func:`sim.transports.damage`, a
 seeded generator per endpoint), delayed, none while silent; while ``disconnect`` a new TCP
 connection is closed at once and an open one at its next request, and an RTU line takes nothing.
 """
@@ -33,10 +33,10 @@ from pymodbus.simulator import SimDevice
 from pymodbus.simulator.simcore import SimCore
 
 import timebase
-from sim.links import STALE_PARTIAL_S, damage, rtu_request_length
 from sim.modbus_devices import NoReply
 from sim.modbus_requests import QUANTITY_CHECKED
 from sim.physics import Faults
+from sim.transports import STALE_PARTIAL_S, damage, rtu_request_length
 
 if TYPE_CHECKING:
     import threading

@@ -20,8 +20,8 @@ import termios
 from typing import TYPE_CHECKING, Protocol
 
 import timebase
-from sim.links import Pty, damage, open_pty
 from sim.physics import Faults
+from sim.transports import Pty, damage, open_pty
 
 if TYPE_CHECKING:
     import threading

@@ -31,3 +31,27 @@ def test_no_engine_module_is_over_400_lines() -> None:
     big = {p.name: n for p in (ROOT / "rig/engine").glob("*.py")
            if (n := len(p.read_text(encoding="utf-8").splitlines())) > MAX_ENGINE_MODULE_LINES}  # fmt: skip
     assert not big, f"rig/engine modules over {MAX_ENGINE_MODULE_LINES} lines: {big}"
+
+
+MIRROR_ROOMS = {"rig/cli", "rig/steps", "rig/web/lab_views", "sim"}
+"""Rooms whose modules are named after what they mirror elsewhere: ``rig/cli/X`` is the command
+``rig X``, ``rig/steps/X`` the step kind X, ``rig/web/lab_views/X`` the page /lab/X, ``sim/X`` the
+simulated twin of a driver or a rig module."""
+
+
+def test_a_module_name_repeats_only_where_its_room_says_what_it_is() -> None:
+    """Issue 57: 'perming.py' three times, 'audit.py' and 'links.py' in rooms that did not say
+    which was which. A name may repeat across the mirror rooms; once outside them at most (each
+    package's own ``errors.py`` aside)."""
+    rooms: dict[str, list[str]] = {}
+    for package in (*PACKAGES, "timebase"):
+        for path in (ROOT / package).rglob("*.py"):
+            if path.name != "__init__.py" and "migrations" not in path.parts:
+                rooms.setdefault(path.name, []).append(str(path.parent.relative_to(ROOT)))
+    unclear = {
+        name: sorted(where)
+        for name, where in rooms.items()
+        if len([r for r in where if r not in MIRROR_ROOMS]) > 1
+        and not (name == "errors.py" and all("/" not in r for r in where))
+    }
+    assert not unclear, f"one name, rooms that do not say which is which: {unclear}"

@@ -15,8 +15,8 @@ import timebase
 from rig.analysis import lookup
 from rig.cli import main
 from rig.errors import UserInputError
-from rig.prediction.acceptance import Acceptance
 from rig.prediction.design import Targets
+from rig.prediction.designed_acceptance import Acceptance
 from rig.procedure_files import TARGETS_DIR, find_procedure
 from rig.sim_rig import cage_in_process
 from rig.store import RunReader

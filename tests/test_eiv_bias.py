@@ -67,8 +67,8 @@ def test_twostep_without_the_noise_given_is_not_over_compensated() -> None:
     as the noise squared, overshot: mean z -1.6 and -1.8 on b and y0 (issue 34 audit). It now
     takes the noise from its own converged residuals."""
     from bench.bench_uncertainty_audit import orbit_field
-    from rig.calibration.audit import coloured_noise, make_case, scenario
     from rig.calibration.residuals import p_from_calibration
+    from rig.calibration.uncertainty_audit import coloured_noise, make_case, scenario
 
     sc = scenario("TRMM orbit, twostep")
     case = make_case(sc, 0, orbit_field)

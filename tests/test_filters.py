@@ -278,7 +278,7 @@ def test_the_energy_filters_report_no_pull_from_their_zero_start(method: str) ->
     200 draws), so c and y0 fell within 1.96 sigma in 93 % of them. Reported from the data
     alone, the filter agrees with ``ml`` to a few hundredths of a sigma."""
     from bench.bench_uncertainty_audit import orbit_field
-    from rig.calibration.audit import make_case, noisy_draw, scenario
+    from rig.calibration.uncertainty_audit import make_case, noisy_draw, scenario
 
     sc = scenario(f"TRMM orbit, {method}")
     case = make_case(sc, 0, orbit_field)

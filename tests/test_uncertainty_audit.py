@@ -16,7 +16,14 @@ import numpy as np
 import pytest
 
 from rig.calibration import Samples, calibrate
-from rig.calibration.audit import SCENARIOS, audit, coloured_noise, make_case, scenario, summary
+from rig.calibration.uncertainty_audit import (
+    SCENARIOS,
+    audit,
+    coloured_noise,
+    make_case,
+    scenario,
+    summary,
+)
 
 pytestmark = pytest.mark.montecarlo
 

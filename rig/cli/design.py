@@ -70,8 +70,8 @@ def run_design(targets_path: Path | str, rig_config: Path, max_s: float | None, 
 
     from rig.config import load_rig_config
     from rig.errors import UserInputError
-    from rig.prediction.acceptance import other_models, read_replaced
     from rig.prediction.design import Targets, design_procedure
+    from rig.prediction.designed_acceptance import other_models, read_replaced
     from rig.prediction.noise import noise_floor
     from rig.prediction.procedure import cage_terms_for
     from rig.procedure.plan import rig_timing
@@ -129,8 +129,8 @@ def _acceptance(design: object, targets: Targets, cfg: object,
     import tempfile
 
     from rig.output_limits import cage_model
-    from rig.prediction.acceptance import acceptance_text
     from rig.prediction.design import Design
+    from rig.prediction.designed_acceptance import acceptance_text
     from rig.prediction.duration import PredictedDuration, predicted_duration
     from rig.prediction.procedure import cage_limits
     from rig.procedure.language import parse_procedure

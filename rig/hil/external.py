@@ -1,5 +1,5 @@
 """An external flight computer as the flight software under test: the readings go out and the
-dipoles come back over UDP or a serial line (:mod:`rig.hil.links`) in the protocol of
+dipoles come back over UDP or a serial line (:mod:`rig.hil.flight_links`) in the protocol of
 :mod:`rig.hil.packets` (docs/hil.md).
 
 Each control period the mean reading goes out with the period's number as the sequence count;
@@ -17,7 +17,7 @@ import time
 import numpy as np
 import numpy.typing as npt
 
-from rig.hil.links import parse_address
+from rig.hil.flight_links import parse_address
 from rig.hil.packets import SEQUENCE_MODULUS, PacketError, decode, dipole_of, readings_packet
 
 Array = npt.NDArray[np.float64]

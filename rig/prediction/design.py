@@ -32,7 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from rig.errors import UserInputError
-from rig.prediction.acceptance import Acceptance
+from rig.prediction.designed_acceptance import Acceptance
 from rig.steps.geometry import fibonacci_directions
 
 Array = npt.NDArray[np.float64]
@@ -63,7 +63,7 @@ class Targets:
     reference: str = "reference"
     """The reference magnetometer's device name (``reference:``)."""
     acceptance: Acceptance | None = None
-    """With it, a whole acceptance procedure is written (:mod:`rig.prediction.acceptance`)."""
+    """With it, a whole acceptance procedure is written (:mod:`rig.prediction.designed_acceptance`)."""
 
     @classmethod
     def load(cls, path: Path) -> Targets:

@@ -21,8 +21,8 @@ from rig.report.calibration_figures import (
     calibration_series,
     convergence_figure,
 )
-from rig.report.model import Image, Section, esc, render_html, render_text
 from rig.report.pdf import PdfSummary, render_figure, scaled_png
+from rig.report.section_model import Image, Section, esc, render_html, render_text
 from rig.report.sections import RunFacts, report_sections, verdict_of
 from rig.report.text_report import data_hash
 from rig.steps import KINDS, field_kinds

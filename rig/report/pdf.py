@@ -9,7 +9,7 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
-from rig.report.model import Section, styled_lines
+from rig.report.section_model import Section, styled_lines
 
 COLOURS = {"PASS": "#1a7f37", "FAIL": "#b42318", "note": "#444444"}
 A4_IN = (8.27, 11.69)

@@ -1,5 +1,5 @@
 """The acceptance report's sections, built once from a closed run and rendered as HTML, PDF and text
-(rig.report.model, rig.report.pdf), so the three files cannot say different things. A step kind's
+(rig.report.section_model, rig.report.pdf), so the three files cannot say different things. A step kind's
 own lines come from the kind (``StepKind.report_lines``); a calibration's from its typed record."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from rig.calibration.record import CalibrationRecord, calibrations
-from rig.report.model import Image, Para, Section, Table
+from rig.report.section_model import Image, Para, Section, Table
 from rig.report.text_report import limit_text, overall_verdict, seal_note
 from rig.steps import KINDS
 from rig.store.instruments import config_copy, instruments

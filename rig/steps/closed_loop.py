@@ -84,7 +84,7 @@ class ClosedLoop(FieldStepKind):
         if problem is not None:
             raise ProcedureError(problem)
         if params["flight_computer"]:
-            from rig.hil.links import parse_address
+            from rig.hil.flight_links import parse_address
 
             try:
                 parse_address(params["flight_computer"])

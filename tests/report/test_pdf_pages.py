@@ -13,8 +13,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.backends.backend_pdf import PdfPages
 
-from rig.report.model import Para, Section, Table
 from rig.report.pdf import PdfSummary
+from rig.report.section_model import Para, Section, Table
 from tests.tools import require_tool
 
 

@@ -9,7 +9,7 @@ import os
 
 import pytest
 
-from sim.links import open_pty
+from sim.transports import open_pty
 
 pytestmark = pytest.mark.realtime
 

@@ -17,8 +17,8 @@ import pytest
 
 from rig.errors import UserInputError
 from rig.hil.external import ExternalFlightComputer
+from rig.hil.flight_links import SYNC_MARKER, Address, SerialLink, parse_address
 from rig.hil.flight_software import default_gain
-from rig.hil.links import SYNC_MARKER, Address, SerialLink, parse_address
 from rig.hil.packets import DIPOLE_APID, PacketError, decode, dipole_of, encode, readings_packet
 from rig.steps.vocabulary import ProcedureError
 from sim.flight_computer import BDotComputer, SerialFrontEnd

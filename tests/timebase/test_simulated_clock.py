@@ -269,7 +269,7 @@ def test_a_busy_host_wakes_its_threads_late_the_instruments_on_time_and_the_same
 ):
     """timebase.busy_host: a host thread's every wake is late by its own seeded delays; a thread
     of the simulator (sim.*) keeps simulated time exactly."""
-    from sim import links  # any sim module: a target defined there is an instrument's
+    from sim import transports  # any sim module: a target defined there is an instrument's
 
     def once(seed: int) -> tuple[list[float], list[float]]:
         host_t: list[float] = []
@@ -280,7 +280,7 @@ def test_a_busy_host_wakes_its_threads_late_the_instruments_on_time_and_the_same
                 timebase.sleep(0.1)
                 inst_t.append(timebase.monotonic())
 
-        instrument.__module__ = links.__name__
+        instrument.__module__ = transports.__name__
         with timebase.simulated(busy=timebase.BusyHost(0.05, seed=seed)):
             thread = timebase.Thread(instrument, name="instrument")
             thread.start()
