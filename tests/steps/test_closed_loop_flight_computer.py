@@ -11,6 +11,7 @@ import socket
 import struct
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -26,6 +27,13 @@ from tests.steps.fake_context import make_step
 from tests.steps.test_closed_loop_step import LOOP, closed_loop_on_a_perfect_cage
 
 pytestmark = pytest.mark.realtime
+
+
+@pytest.fixture(scope="module")
+def inside(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The same scenario with the in-process B-dot: what each external flight computer is held
+    to (run once for the module)."""
+    return closed_loop_on_a_perfect_cage(tmp_path_factory.mktemp("inside"), LOOP, lambda b: b)
 
 
 def test_packets_round_trip_and_refuse_what_is_not_one() -> None:
@@ -61,7 +69,9 @@ def test_an_address_that_is_not_udp_is_refused_when_the_procedure_is_read() -> N
         ExternalFlightComputer("serial:///dev/no-such-port", 0.1)
 
 
-def test_the_simulated_flight_computer_detumbles_the_same_spacecraft(tmp_path: Path) -> None:
+def test_the_simulated_flight_computer_detumbles_the_same_spacecraft(
+    tmp_path: Path, inside: dict[str, Any]
+) -> None:
     computer = BDotComputer(default_gain(0.2), 0.2).start()
     try:
         # a generous wait for each answer: the flight computer's thread may wait for a CPU on a
@@ -71,7 +81,6 @@ def test_the_simulated_flight_computer_detumbles_the_same_spacecraft(tmp_path: P
         external = closed_loop_on_a_perfect_cage(tmp_path / "external", body, lambda b: b)
     finally:
         computer.close()
-    inside = closed_loop_on_a_perfect_cage(tmp_path / "inside", LOOP, lambda b: b)
     link = external["flight_computer"]
     assert link["missed"] == 0 and link["answered"] > 100, link
     assert external["flight_software"].startswith("external flight computer at udp://")
@@ -112,7 +121,7 @@ def test_a_silent_or_garbled_flight_computer_is_counted_and_the_rods_hold() -> N
 
 
 def test_the_simulated_flight_computer_on_a_serial_line_detumbles_the_same_spacecraft(
-    tmp_path: Path,
+    tmp_path: Path, inside: dict[str, Any]
 ) -> None:
     """The flight computer on a pseudo-terminal (as on a USB serial adapter): the rig's end opens
     it as a serial port, each packet after the sync marker."""
@@ -122,7 +131,6 @@ def test_the_simulated_flight_computer_on_a_serial_line_detumbles_the_same_space
         serial = closed_loop_on_a_perfect_cage(tmp_path / "serial", body, lambda b: b)
     finally:
         front.close()
-    inside = closed_loop_on_a_perfect_cage(tmp_path / "inside", LOOP, lambda b: b)
     link = serial["flight_computer"]
     assert link["missed"] == 0 and link["answered"] > 100, link
     assert serial["flight_software"] == f"external flight computer at serial://{front.port}"
