@@ -61,6 +61,7 @@ def test_sigkill_loses_at_most_half_a_second(tmp_path: Path) -> None:
     t_kill = time.monotonic()
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
+    proc.stdout.close()
     r = RunReader(folder)  # opening it marks the killed run incomplete
     meta = r.meta()
     assert meta["status"] == "incomplete" and "killed" in meta["reason"]
