@@ -31,26 +31,37 @@ steps:
 """ + loop_step("detumble")
 
 
-def detumble(folder: Path) -> tuple[dict[str, object], str]:
-    """The closed loop's result and the digest of its per-tick record."""
+def completed_loop(
+    folder: Path, procedure: str
+) -> tuple[Path, dict[str, Any], list[dict[str, str]]]:
+    """Run ``procedure`` on the simulated cage (it must complete): the run folder, the loop's
+    result and its per-tick record's rows."""
     folder.mkdir(parents=True, exist_ok=True)
-    outcome = run_on_sim(folder, PROCEDURE)
+    outcome = run_on_sim(folder, procedure)
     assert outcome.status == "complete", outcome
     run = next((folder / "runs").iterdir())
     reader = RunReader(run)
     try:
         result = reader.results()["detumble"]
-        fields = [c for c in reader.commands() if c[2] == "field"]
     finally:
         reader.close()
     assert isinstance(result, dict)
-    history = run / str(result["history_file"])
-    with history.open() as fh:
-        rows = list(csv.DictReader(fh))
+    with (run / str(result["history_file"])).open() as fh:
+        return run, result, list(csv.DictReader(fh))
+
+
+def detumble(folder: Path) -> tuple[dict[str, object], str]:
+    """The closed loop's result and the digest of its per-tick record."""
+    run, result, rows = completed_loop(folder, PROCEDURE)
+    reader = RunReader(run)
+    try:
+        fields = [c for c in reader.commands() if c[2] == "field"]
+    finally:
+        reader.close()
     # every tick's field went to the cage as a tracked command, recorded in the run's store
     tracked = [c for c in fields if c[3].get("track")]
     assert len(tracked) == len(rows) == result["ticks"]
-    return result, hashlib.sha256(history.read_bytes()).hexdigest()
+    return result, hashlib.sha256((run / str(result["history_file"])).read_bytes()).hexdigest()
 
 
 def test_bdot_detumbles_through_the_cage_within_10_percent_of_the_software_run(
@@ -175,16 +186,6 @@ def test_a_loop_halted_inside_a_tick_keeps_a_whole_record(
     monkeypatch.setattr(Loop, "advance", advance_then_halt)
     procedure = PROCEDURE.replace(loop_step("detumble"), loop_step(
         "detumble", rate_hz=50, control_hz=50, duration_s=2, until_deg_s=0))  # fmt: skip
-    outcome = run_on_sim(tmp_path, procedure)
-    assert outcome.status == "complete", outcome
-    run = next((tmp_path / "runs").iterdir())
-    reader = RunReader(run)
-    try:
-        result = reader.results()["detumble"]
-    finally:
-        reader.close()
-    assert isinstance(result, dict)
-    with (run / str(result["history_file"])).open() as fh:
-        rows = list(csv.DictReader(fh))
+    _, result, rows = completed_loop(tmp_path, procedure)
     assert len(rows) == result["ticks"] == 20
     assert rows[-1]["latency_ms"] == "nan"  # no command went out for it
