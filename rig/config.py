@@ -17,7 +17,7 @@
     port = 5020
     device_id = 1
 
-Every key is declared once, as a :class:`drivers.registry.Param` (type, unit, accepted values,
+Every key is declared once, as a :class:`drivers.config_keys.Param` (type, unit, accepted values,
 default, help): a device's in :mod:`drivers.registry`, the ``[cage]`` table's in
 :data:`CAGE_KEYS`, the ``[lab]`` table's in :data:`LAB_KEYS`. The loader fills in the
 declared defaults and refuses any other key with the file, the line and the nearest valid key.
@@ -46,19 +46,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from drivers.registry import (
-    KINDS,
-    LIST,
-    NUMBER,
-    RECORD_KEYS,
-    TABLE,
-    TEXT,
-    TRANSPORTS,
-    DeviceKind,
-    Param,
-    Role,
-    kinds_with_role,
-)
+from drivers.config_keys import LIST, NUMBER, TABLE, TEXT, Param
+from drivers.registry import KINDS, RECORD_KEYS, TRANSPORTS, DeviceKind, Role, kinds_with_role
 from rig.errors import UserInputError
 from rig.text import shown, text_problem
 

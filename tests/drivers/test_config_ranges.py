@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from drivers.registry import KINDS, TRANSPORTS, Param, transport_param
+from drivers.config_keys import Param
+from drivers.registry import KINDS, TRANSPORTS, transport_param
 from rig.cli import main
 from rig.config import load_rig_config
 from rig.errors import UserInputError
