@@ -74,8 +74,8 @@ function fieldPlot(el) {
   return { plot, data };
 }
 
-// The panels a step kind may name for its live values (StepKind.live_panel): the page draws the
-// one the running step's values name, never a step kind by name.
+// The panels a running step may name in its live values (a live_sources callable returning
+// {"panel": {"name": ..., ...}}, docs/web.md): the page draws the one named, never a kind by name.
 const PANELS = {
   "sigma-targets": (p) => {  // each value (a 1-sigma) against its target
     const cal = document.getElementById("cal"); cal.hidden = false;
