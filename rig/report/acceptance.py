@@ -109,7 +109,10 @@ def _pdf(
 
     info = {"Title": f"Acceptance report {run.meta.get('run_id', '')}",
             "Subject": f"VERDICT: {verdict}; data sha256 {run.digest}"}  # fmt: skip
-    with safe_files.replacing(path) as tmp, PdfPages(tmp, metadata=info) as pdf:
+    # the file is ours to open and close: matplotlib's own handle was left open (a
+    # ResourceWarning in the tests) when it opened the file itself
+    with (safe_files.replacing(path) as tmp, open(tmp, "wb") as fh,
+          PdfPages(fh, metadata=info) as pdf):  # fmt: skip
         summary = PdfSummary(pdf, plt, f"Acceptance report {run.meta.get('run_id', '')}")
         summary.title("Pre-flight acceptance report", verdict, COLOURS.get(verdict, "#b42318"))
         summary.sections(sections)
