@@ -26,16 +26,22 @@ from rig.procedure_files import find_procedure
 from rig.store import RunReader
 
 
-def procedure(until_deg_s: float, rate_hz: float, duration_s: float) -> str:
-    """The shipped closed-loop procedure with a 3U CubeSat in the orbit's own field."""
+def shipped_loop(values: dict[str, float], drop: tuple[str, ...] = ()) -> str:
+    """The shipped closed-loop procedure with its loop's ``values`` set, the keys in ``drop``
+    left out (the step's defaults) and no check step (the benches report figures, not a verdict)."""
     text = find_procedure("closed-loop-detumble").read_text()
-    for key in ("inertia_kg_m2", "max_dipole_am2"):  # the step's defaults: a 3U CubeSat
+    for key in drop:
         text = re.sub(rf"\n +{key}: .*", "", text)
-    text = re.sub(r"time_scale: \S+", "time_scale: 1", text)
-    text = re.sub(r"rate_hz: \S+", f"rate_hz: {rate_hz:g}", text)
-    text = re.sub(r"duration_s: \S+", f"duration_s: {duration_s:g}", text)
-    text = re.sub(r"until_deg_s: \S+", f"until_deg_s: {until_deg_s:g}", text)
+    for key, value in values.items():
+        text = re.sub(rf"\b{key}: \S+", f"{key}: {value:g}", text)
     return re.sub(r"  - check:\n(.*\n)*?  - report", "  - report", text)
+
+
+def procedure(until_deg_s: float, rate_hz: float, duration_s: float) -> str:
+    """The shipped closed-loop procedure with a 3U CubeSat (the step's default inertia and rods)
+    in the orbit's own field."""
+    return shipped_loop({"time_scale": 1, "rate_hz": rate_hz, "duration_s": duration_s,
+                         "until_deg_s": until_deg_s}, drop=("inertia_kg_m2", "max_dipole_am2"))  # fmt: skip
 
 
 def main() -> int:

@@ -25,9 +25,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench_closed_loop_3u import shipped_loop
 from under_load import cpu_hogs
 
-from rig.procedure_files import find_procedure
 from rig.store import RunReader
 from sim.config import DEFAULT_CONFIG
 
@@ -37,12 +37,8 @@ TARGET_P99_MS = {"idle": 20.0, "loaded": 40.0}
 def procedure(seconds: float, rate_hz: float) -> str:
     """The shipped closed-loop procedure at ``rate_hz`` ticks and control, for ``seconds``, no
     early stop (every tick counts) and no check (the latency is the figure)."""
-    text = find_procedure("closed-loop-detumble").read_text()
-    text = re.sub(r"duration_s: \S+", f"duration_s: {seconds:g}", text)
-    text = re.sub(r"rate_hz: \S+", f"rate_hz: {rate_hz:g}", text)
-    text = re.sub(r"control_hz: \S+", f"control_hz: {rate_hz:g}", text)
-    text = re.sub(r"until_deg_s: \S+", "until_deg_s: 0", text)
-    return re.sub(r"  - check:\n(.*\n)*?  - report", "  - report", text)
+    return shipped_loop({"duration_s": seconds, "rate_hz": rate_hz, "control_hz": rate_hz,
+                         "until_deg_s": 0})  # fmt: skip
 
 
 def cage_config(dut_hz: float) -> str:
