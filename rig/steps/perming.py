@@ -12,7 +12,8 @@ shift after the shock with its sigma and significance, and what the reset left o
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -167,9 +168,8 @@ class MeasurePerming(StepExecution):
         self.pulse_t: tuple[float, float] | None = None  # (started, done) monotonic s
         self._auto_off = False
         if self.resettable:
-            with sampler.paused() as driver:
-                if isinstance(driver, SetReset):
-                    driver.set_reset_auto(False)
+            with self._set_reset() as driver:
+                driver.set_reset_auto(False)
             self._auto_off = True
             ctx.event("info", f"perming: '{self.dut}' automatic set/reset off for the step")
 
@@ -177,17 +177,22 @@ class MeasurePerming(StepExecution):
         if payload.get("action") != "pulse" or not self.resettable:
             return
         started = timebase.monotonic()
-        with self.ctx.samplers[self.dut].paused() as driver:
-            if isinstance(driver, SetReset):
-                driver.set_reset_pulse()
+        with self._set_reset() as driver:
+            driver.set_reset_pulse()
         self.pulse_t = (started, timebase.monotonic())
+
+    @contextmanager
+    def _set_reset(self) -> Iterator[SetReset]:
+        """The DUT's driver, its sampling paused, as the set/reset device ``resettable`` found."""
+        with self.ctx.samplers[self.dut].paused() as driver:
+            assert isinstance(driver, SetReset)  # only called when resettable
+            yield driver
 
     def _restore(self) -> None:
         """The DUT's automatic set/reset back on (its state before the step)."""
         if self._auto_off:
-            with self.ctx.samplers[self.dut].paused() as driver:
-                if isinstance(driver, SetReset):
-                    driver.set_reset_auto(True)
+            with self._set_reset() as driver:
+                driver.set_reset_auto(True)
             self._auto_off = False
 
     def wind_down(self) -> None:
