@@ -80,9 +80,10 @@ def run_design(targets_path: Path | str, rig_config: Path, max_s: float | None, 
 
     if not 0.0 <= margin <= 4.0:
         raise UserInputError(f"--margin must be 0-4 (a fraction), got {margin:g}")
-    targets = Targets.load(find_targets(str(targets_path)))
-    if Path(targets.source).is_relative_to(TARGETS_DIR):  # a shipped set, by name
-        targets = dataclasses.replace(targets, source=shipped_name(Path(targets.source)))
+    found = find_targets(str(targets_path))
+    targets = Targets.load(found)
+    if found.is_relative_to(TARGETS_DIR):  # a shipped set, by name
+        targets = dataclasses.replace(targets, source=shipped_name(found))
     also_fit: tuple[str, ...] = ()
     if targets.acceptance is not None:  # the procedure it replaces, checked before the design
         also_fit = other_models(read_replaced(targets.acceptance.replaces), targets.model)
