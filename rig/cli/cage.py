@@ -143,6 +143,9 @@ def run_characterize(
         print(
             f"residual rms {model.meta['residual_rms_nt']:.1f} nT; condition number {model.meta['condition_number']:.2f}"
         )
+        if again := model.meta["remeasured_points"]:
+            print(f"measured again: sweep point(s) {', '.join(str(n + 1) for n in again)}"
+                  " (stood out from the fit: a disturbance during the first reading)")  # fmt: skip
         print(f"wrote {version} (and {cfg.cage.calibration})")
     return 0
 
