@@ -164,7 +164,8 @@ class CalibrationResult:
     def correlations(self, threshold: float = CORRELATION_WARN) -> list[tuple[str, str, float]]:
         """Parameter pairs with ``|correlation| > threshold``, strongest first."""
         sd = self.sigma
-        corr = self.covariance / np.outer(np.maximum(sd, 1e-300), np.maximum(sd, 1e-300))
+        scale = np.outer(sd, sd)  # a parameter held fixed (sigma 0) correlates with nothing
+        corr = np.divide(self.covariance, scale, out=np.zeros_like(scale), where=scale > 0)
         pairs = [
             (self.names[i], self.names[j], float(corr[i, j]))
             for i in range(len(sd))
