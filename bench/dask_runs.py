@@ -41,9 +41,10 @@ def local_cluster(workers: int) -> Any:
     import dask
     from distributed import LocalCluster
 
+    # the scheduler's HTTP server on a free port (its default, 8787, is taken by a second cluster)
     with dask.config.set({"distributed.worker.profile.enabled": False}):
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                            dashboard_address=None, env={"OPENBLAS_NUM_THREADS": "1"})  # fmt: skip
+                            dashboard_address=":0", env={"OPENBLAS_NUM_THREADS": "1"})  # fmt: skip
 
 
 def map_on_dask(fn: Callable[..., Any], *iterables: Iterable[Any], workers: int,

@@ -4,11 +4,12 @@ parameters (types, which are required), its roles and how ``rig devices scan`` r
 The rig derives everything from here: configuration checking (``rig.config``), opening devices
 (``rig.devices``), the guardian's list of outputs and bring-up (``rig.bringup``). Adding a device:
 
-* a Modbus supply, load or relay board whose registers are plain numbers: one register-map TOML in
-  ``regmaps/`` (used as ``kind = "regmap-supply"`` / ``"regmap-eload"`` /
-  ``"regmap-relay"`` with ``regmap = "<file name>"``): no entry here;
+* a Modbus supply, load, relay board or thermometer whose registers are plain numbers: one
+  register-map TOML in ``regmaps/`` (used as ``kind = "regmap-supply"`` / ``"regmap-eload"`` /
+  ``"regmap-relay"`` / ``"regmap-thermometer"`` with ``regmap = "<file name>"``): no entry here;
 * anything else: one driver module satisfying a Protocol of :mod:`drivers.protocols`, plus one
-  :func:`register` call at the end of this file.
+  :class:`DeviceKind` in ``_modbus_kinds()``, ``_magnetometer_kinds()`` or ``_scalar_kinds()``
+  below (and the class in ``_satisfies``).
 
 See ``docs/devices.md``.
 """

@@ -84,6 +84,8 @@ class AsyncioModbus:
                 modem.close()
             self._loop.call_soon_threadsafe(self._loop.stop)
             self._thread.join(timeout=5.0)
+        if not self._loop.is_running() and not self._loop.is_closed():
+            self._loop.close()  # its self-pipe's sockets too (else ResourceWarnings when collected)
         for modem in self._modems:
             modem.close()
         self._servers.clear()

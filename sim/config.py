@@ -90,7 +90,7 @@ class SupplyConfig:
     """A coil supply or a load-current channel (a supply into a resistor, or an electronic load)."""
 
     name: str
-    kind: str  # "riden-rd60xx" or "regmap"
+    kind: str  # a supply kind of sim/device_kinds.py: "riden-rd60xx", "regmap"
     endpoint: EndpointConfig
     axis: int | None = None  # coil axis 0-2, None for a load channel
     trim: int | None = None  # the trim winding of coil axis 0-2 it drives (cage.trim_ut_per_a)
@@ -120,7 +120,7 @@ class MagnetometerConfig:
     from the cage centre, cage frame; the DUT's place is the centre)."""
 
     name: str
-    kind: str  # "hmr2300", "ascii-mag", "rm3100"
+    kind: str  # a magnetometer kind of sim/device_kinds.py: "hmr2300", "ascii-mag", "rm3100", ...
     endpoint: EndpointConfig
     scale: tuple[float, ...] = (1.0, 1.0, 1.0)
     nonorth_deg: tuple[float, ...] = (0.0, 0.0, 0.0)  # rho, phi, lambda

@@ -57,27 +57,37 @@ def test_csv_example_rig_steps(
 
 
 def test_the_readme_states_the_number_of_tests_there_are() -> None:
-    """The README's test count is checked, not remembered (it said 631 when there were 634)."""
+    """The README's test counts and docs/testing.md's per tier are checked, not remembered (it
+    said 631 when there were 634; the tier table said 103 simulated-cage tests when there were
+    104)."""
     import subprocess
     import sys
+    from collections import Counter
+
+    from tests.conftest import TIERS
+    from tests.test_tiers import module_tiers
 
     stated = re.search(r"(\d+) tests\.\nEvery test is in one tier", README.read_text())
     quick = re.search(r"\*\*quick\*\* \((\d+) tests", README.read_text())
     assert stated and quick, "the README no longer states the number of tests and quick ones"
     proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
-         "-m", "quick"],
+        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider"],
         cwd=README.parent, capture_output=True, text=True, timeout=300,
         env={k: v for k, v in os.environ.items() if k != INSTALLED_ENV},  # counting only
     )  # fmt: skip
-    collected = re.search(r"(\d+)/(\d+) tests collected", proc.stdout)
-    assert collected, proc.stdout[-500:] + proc.stderr[-500:]
-    assert (int(stated.group(1)), int(quick.group(1))) == (
-        int(collected.group(2)),
-        int(collected.group(1)),
-    ), (
+    ids = [line for line in proc.stdout.splitlines() if "::" in line]
+    assert ids, proc.stdout[-500:] + proc.stderr[-500:]
+    tiers = {path.relative_to(README.parent).as_posix(): marks & set(TIERS)
+             for path, marks in module_tiers().items()}  # fmt: skip
+    counted = Counter(next(iter(tiers[i.split("::")[0]] or {"quick"})) for i in ids)
+    assert (int(stated.group(1)), int(quick.group(1))) == (len(ids), counted["quick"]), (
         f"README says {stated.group(1)} tests, {quick.group(1)} quick; pytest collects"
-        f" {collected.group(2)}, {collected.group(1)} quick: update it"
+        f" {len(ids)}, {counted['quick']} quick: update it"
+    )
+    table = (README.parent / "docs" / "testing.md").read_text(encoding="utf-8")
+    said = {m.group(1): int(m.group(2)) for m in re.finditer(r"^\| [^|]+ \| `(\w+)` \|[^|]+\| (\d+) \|", table, re.M)}  # fmt: skip
+    assert said == dict(counted), (
+        f"docs/testing.md's tier table says {said}; collected {dict(counted)}"
     )
 
 

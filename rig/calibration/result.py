@@ -392,8 +392,12 @@ def summarize(
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
     check, covariance, crlb = _noise_model(est, s, vector_rows, weighted, sigma_hat, noise_ut,
                                            fisher)  # fmt: skip
-    sd = np.sqrt(np.maximum(np.diag(est.covariance), 1e-300))
-    corr = est.covariance / np.outer(sd, sd) - np.eye(sd.size)
+    sd = np.sqrt(np.maximum(np.diag(est.covariance), 0.0))
+    scale = np.outer(
+        sd, sd
+    )  # a parameter the method holds fixed (variance 0) correlates with nothing
+    corr = np.divide(est.covariance, scale, out=np.zeros_like(scale), where=scale > 0)
+    np.fill_diagonal(corr, 0.0)
     degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if sd.size > 1 else False
     chi = _chi_square(weighted, noise_ut, est.p.size, noise_nt is not None, degenerate)
     result = CalibrationResult(
