@@ -164,8 +164,7 @@ class CalibrationResult:
     def correlations(self, threshold: float = CORRELATION_WARN) -> list[tuple[str, str, float]]:
         """Parameter pairs with ``|correlation| > threshold``, strongest first."""
         sd = self.sigma
-        scale = np.outer(sd, sd)  # a parameter held fixed (sigma 0) correlates with nothing
-        corr = np.divide(self.covariance, scale, out=np.zeros_like(scale), where=scale > 0)
+        corr = correlation_matrix(self.covariance)
         pairs = [
             (self.names[i], self.names[j], float(corr[i, j]))
             for i in range(len(sd))
@@ -360,6 +359,14 @@ DEGENERATE_CORRELATION = 0.999
 """|correlation| between two parameters above which the fit does not determine them."""
 
 
+def correlation_matrix(covariance: Array) -> Array:
+    """The parameters' correlations (1 on the diagonal); a parameter a method holds fixed
+    (variance 0) correlates with nothing (0, also on its diagonal)."""
+    sd = np.sqrt(np.maximum(np.diag(covariance), 0.0))
+    scale = np.outer(sd, sd)
+    return np.asarray(np.divide(covariance, scale, out=np.zeros_like(scale), where=scale > 0))
+
+
 def summarize(
     est: Estimate, s: Samples, noise_nt: float | None, extra_warnings: tuple[str, ...] = ()
 ) -> CalibrationResult:
@@ -392,13 +399,8 @@ def summarize(
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
     check, covariance, crlb = _noise_model(est, s, vector_rows, weighted, sigma_hat, noise_ut,
                                            fisher)  # fmt: skip
-    sd = np.sqrt(np.maximum(np.diag(est.covariance), 0.0))
-    scale = np.outer(
-        sd, sd
-    )  # a parameter the method holds fixed (variance 0) correlates with nothing
-    corr = np.divide(est.covariance, scale, out=np.zeros_like(scale), where=scale > 0)
-    np.fill_diagonal(corr, 0.0)
-    degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if sd.size > 1 else False
+    corr = correlation_matrix(est.covariance) - np.eye(est.p.size)
+    degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if est.p.size > 1 else False
     chi = _chi_square(weighted, noise_ut, est.p.size, noise_nt is not None, degenerate)
     result = CalibrationResult(
         model="vector" if vector else "scalar",
