@@ -162,7 +162,8 @@ def predicted(procedure: str, earlier: list[dict[str, Any]]) -> Any:
     per_axis = np.sqrt(np.mean(np.square(axes), axis=0))
     each = tuple(float(np.sqrt(np.mean(np.square(a)))) for a in axes)  # each run's, as rig check
     noise = NoiseFloor((float(per_axis[0]), float(per_axis[1]), float(per_axis[2])),
-                       f"the residuals of {len(earlier)} earlier runs", each)  # fmt: skip
+                       f"the residuals of {len(earlier)} earlier runs", each,
+                       tuple((float(a[0]), float(a[1]), float(a[2])) for a in axes))  # fmt: skip
     nulls = [f for run in earlier for v in run["null_field"].values()
              if (f := NoiseFloorResult.from_dict(v)) is not None]  # fmt: skip
     pairs = [p for f in nulls if (p := f.pair_noise_nt("dut")) is not None]

@@ -403,6 +403,36 @@ def test_a_single_runs_range_covers_two_runs_in_three() -> None:
     assert noise_between_runs([25.0, 26.0]) is None  # two runs say nothing of the spread
 
 
+def test_a_value_that_follows_one_axis_is_covered_by_the_per_axis_spread() -> None:
+    """Each axis's noise moves between runs on its own (the mains ripple each axis catches): a
+    value following one axis (an offset, a scale) spreads more than the axes' rms says. With each
+    earlier run's axes kept, the range covers two runs in three; from the rms alone it would not."""
+    from rig.prediction.noise import NoiseFloor
+    from rig.prediction.predict import ParameterPrediction
+    from rig.prediction.spread import run_spread
+
+    rng = np.random.default_rng(12)
+    covered = {"per axis": 0, "rms only": 0}
+    n, samples, params = 3000, 200, 12
+    dof = 3 * samples - params
+    for _ in range(n):
+        earlier = 25.0 * np.exp(0.2 * rng.standard_normal((5, 3)))
+        axes = np.sqrt(np.mean(earlier**2, axis=0))
+        each = tuple(float(v) for v in np.sqrt(np.mean(earlier**2, axis=1)))
+        per_run = tuple((float(r[0]), float(r[1]), float(r[2])) for r in earlier)
+        stat = 1e-3 * axes[2] / 25.0  # a z value: its sigma follows the z noise
+        p = ParameterPrediction("springmann.z0_ut", stat, stat, "noise")
+        noise = 25.0 * np.exp(0.2 * rng.standard_normal()) * np.sqrt(rng.chisquare(dof) / dof)
+        reported = 1e-3 * noise / 25.0
+        for name, runs_axes in (("per axis", per_run), ("rms only", ())):
+            floor = NoiseFloor((float(axes[0]), float(axes[1]), float(axes[2])), "test", each,
+                               runs_axes)  # fmt: skip
+            low, high = run_spread(floor, samples, params).range_of(p)
+            covered[name] += low <= reported <= high
+    assert covered["per axis"] / n >= 0.68, covered
+    assert covered["rms only"] / n < 0.6, covered
+
+
 def test_the_duration_is_expected_with_its_range_when_a_live_step_stops() -> None:
     """Issue 55: 'at most 179 s' was printed where a stop was predicted (143-152 s taken). The
     typical run's time is the total less what the predicted stops leave out, on average, with the

@@ -45,6 +45,10 @@ class NoiseFloor:
     source: str
     runs_nt: tuple[float, ...] = ()
     """Each earlier run's own figure (nT) when the floor pools several (their rms is the floor)."""
+    runs_axes_nt: tuple[tuple[float, float, float], ...] = ()
+    """Each earlier run's own figure per axis (nT), when the floor pools runs' residuals: an axis's
+    noise moves between runs more than the three axes' rms does (the mains ripple each axis's
+    samples happen to catch)."""
 
     @property
     def pair_nt(self) -> float:
@@ -126,7 +130,7 @@ def _measured(runs_dir: Path, dut: str, serial: str | None,
         each = tuple(float(np.sqrt(np.mean(np.square(r)))) for r in residuals)
         return NoiseFloor((float(pooled[0]), float(pooled[1]), float(pooled[2])),
                           f"the vector calibration residuals of the newest {runs} of '{dut}'",
-                          each)  # fmt: skip
+                          each, tuple((r[0], r[1], r[2]) for r in residuals))  # fmt: skip
     return rest
 
 

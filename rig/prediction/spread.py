@@ -7,9 +7,13 @@ residuals (a chi-square with its degrees of freedom); the cage's terms do not mo
 run's combined sigma falls, 68 % of the time, within ``hypot(stat * f, sys)`` for ``f`` between
 the two ends of:
 
-* the noise's run-to-run spread: log-normal over the earlier runs whose noises the floor pools
-  (``NoiseFloor.runs_nt``), one standard deviation widened to a prediction interval for a new run
-  (Student's t at 84 % with n - 1 degrees of freedom, times sqrt(1 + 1/n)); unknown with fewer
+* the noise's run-to-run spread: log-normal over the earlier runs whose noises the floor pools,
+  one standard deviation widened to a prediction interval for a new run (Student's t at 84 % with
+  n - 1 degrees of freedom, times sqrt(1 + 1/n)); per axis where the floor keeps each run's axes
+  (``NoiseFloor.runs_axes_nt``), the widest of the three intervals (a value's sigma follows its
+  axis's noise, which moves between runs more than the axes' rms: 30 runs of the shipped
+  acceptance on the simulated cage, the vector fit's y and z values inside their range 7 % of the
+  time from the rms alone), else over each run's rms (``NoiseFloor.runs_nt``); unknown with fewer
   than :data:`MIN_RUNS` runs (a floor given or stated, not measured);
 * the run's own estimate of that noise: ``sqrt(chi2(q, nu) / nu)`` at q = 16 % and 84 %,
   ``nu`` the samples' residual degrees of freedom.
@@ -53,7 +57,10 @@ def run_spread(noise: NoiseFloor, samples: int, parameters: int) -> RunSpread:
     dof = max(3 * samples - parameters, 1)
     own_low = math.sqrt(stats.chi2.ppf(LOW, dof) / dof)
     own_high = math.sqrt(stats.chi2.ppf(HIGH, dof) / dof)
-    between = noise_between_runs(noise.runs_nt)
+    axes = [noise_between_runs([run[i] for run in noise.runs_axes_nt]) for i in range(3)]
+    per_axis = all(a is not None for a in axes)
+    between = ((min(a[0] for a in axes if a), max(a[1] for a in axes if a)) if per_axis
+               else noise_between_runs(noise.runs_nt))  # fmt: skip
     if between is None:
         return RunSpread(own_low, own_high, f"its own noise estimate ({dof} degrees of freedom);"
                          " how the noise moves between runs is not known (no earlier runs"
@@ -61,7 +68,8 @@ def run_spread(noise: NoiseFloor, samples: int, parameters: int) -> RunSpread:
     low, high = between
     return RunSpread(low * own_low, high * own_high,
                      f"the noise of {len(noise.runs_nt)} earlier runs ({min(noise.runs_nt):.1f}-"
-                     f"{max(noise.runs_nt):.1f} nT) and its own estimate of it")  # fmt: skip
+                     f"{max(noise.runs_nt):.1f} nT{', per axis' if per_axis else ''}) and its own"
+                     " estimate of it")  # fmt: skip
 
 
 def noise_between_runs(runs_nt: Sequence[float]) -> tuple[float, float] | None:
