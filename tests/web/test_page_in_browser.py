@@ -232,7 +232,9 @@ def test_prompt_answered_at_the_terminal_first(
             time.sleep(0.1)
         assert "Mount DUT SN-0001" in state["prompt"]["text"]
         os.write(master, b"y\n")
-        assert proc.wait(timeout=90) == 0
+        code = proc.wait(timeout=90)
+        assert proc.stderr is not None
+        assert code == 0, proc.stderr.read().decode(errors="replace")[-2000:]  # why, if not
     finally:
         os.close(master)
         if proc.poll() is None:
