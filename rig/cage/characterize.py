@@ -40,10 +40,7 @@ def fit_cage(
     ``B0`` is the ambient field at the middle of the sweep. Returns K, B0, their 1-sigma, the
     residual RMS (uT) and D.
     """
-    cols = [currents_a, np.ones((currents_a.shape[0], 1))]
-    if times_s is not None:
-        cols.append((times_s - 0.5 * (times_s.min() + times_s.max()))[:, None])
-    x = np.hstack(cols)
+    x = _design(currents_a, times_s)
     coef, *_ = np.linalg.lstsq(x, fields_ut, rcond=None)
     resid = fields_ut - x @ coef
     dof = max(x.shape[0] - x.shape[1], 1)
@@ -58,6 +55,15 @@ def fit_cage(
     return k, b0, k_sigma, b0_sigma, float(np.sqrt(np.mean(resid**2))), drift
 
 
+def _design(currents_a: Array, times_s: Array | None) -> Array:
+    """The regressors of :func:`fit_cage`: the currents (A), 1, and the time from the middle of
+    the sweep (s) when ``times_s`` is given."""
+    cols = [currents_a, np.ones((currents_a.shape[0], 1))]
+    if times_s is not None:
+        cols.append((times_s - 0.5 * (times_s.min() + times_s.max()))[:, None])
+    return np.hstack(cols)
+
+
 TRANSIENT_S = 0.2
 """Wait after each sweep point's ramp before the reference is read (s): coil L/R settling."""
 OUTLIER_T = 6.0
@@ -70,8 +76,7 @@ def outlying_points(currents_a: Array, fields_ut: Array, times_s: Array) -> list
     """Indices of the sweep points whose externally studentized residual (leave-one-out, per
     output axis, the :func:`fit_cage` model) exceeds :data:`OUTLIER_T` in magnitude on any axis,
     worst first; none when the fit has under 4 degrees of freedom to judge by."""
-    t = times_s - 0.5 * (times_s.min() + times_s.max())
-    x = np.hstack([currents_a, np.ones((len(currents_a), 1)), t[:, None]])
+    x = _design(currents_a, times_s)
     dof = x.shape[0] - x.shape[1]
     if dof < 4:
         return []

@@ -57,9 +57,10 @@ def run_spread(noise: NoiseFloor, samples: int, parameters: int) -> RunSpread:
     dof = max(3 * samples - parameters, 1)
     own_low = math.sqrt(stats.chi2.ppf(LOW, dof) / dof)
     own_high = math.sqrt(stats.chi2.ppf(HIGH, dof) / dof)
-    axes = [noise_between_runs([run[i] for run in noise.runs_axes_nt]) for i in range(3)]
-    per_axis = all(a is not None for a in axes)
-    between = ((min(a[0] for a in axes if a), max(a[1] for a in axes if a)) if per_axis
+    axes = [a for i in range(3)
+            if (a := noise_between_runs([run[i] for run in noise.runs_axes_nt])) is not None]  # fmt: skip
+    per_axis = len(axes) == 3
+    between = ((min(a[0] for a in axes), max(a[1] for a in axes)) if per_axis
                else noise_between_runs(noise.runs_nt))  # fmt: skip
     if between is None:
         return RunSpread(own_low, own_high, f"its own noise estimate ({dof} degrees of freedom);"
