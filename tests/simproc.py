@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from collections.abc import Iterator, Sequence
@@ -75,3 +76,18 @@ def outputs(devices: dict[str, Any], tcp_only: bool = False) -> dict[str, int]:
         else client.read_holding_registers(reg, count=1, device_id=dev_id).registers[0]
         for name, client, reg, dev_id in output_registers(devices, tcp_only)
     }
+
+
+def children(pid: int) -> list[int]:
+    """The process ids of ``pid``'s children (Linux ``/proc``; none where it does not say)."""
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return []
+    kids: list[int] = []
+    for tid in tids:
+        try:
+            kids += [int(c) for c in Path(f"/proc/{pid}/task/{tid}/children").read_text().split()]
+        except (OSError, ValueError):
+            continue
+    return kids

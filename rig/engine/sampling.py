@@ -225,12 +225,19 @@ class SensorSampler:
         last = max(self.latest[0], self.started_t) if self.latest is not None else self.started_t
         # time the kernel was seen holding serial bytes back was this computer's, not the
         # sensor's (the strict measure: a busy rig process must not postpone the verdict), and
-        # so was time our threads waited for a CPU while the sensor's data sat in a buffer
-        ours = cpu_wait.waited_since(last) if cpu_wait is not None else 0.0
-        silent_s = now - last - max(tty_seen_stall_s(last, now), ours)
+        # so was time our threads waited for a CPU while the sensor's data sat in a buffer. The
+        # two are added: one after the other they add up, and where they overlap the sum only
+        # postpones the verdict on a sensor really gone by that overlap; the line names both,
+        # as a stall beside two CPU hogs ("reference: no data for 2.6 s") named neither
+        held_s = tty_seen_stall_s(last, now)
+        ours_s = cpu_wait.waited_since(last) if cpu_wait is not None else 0.0
+        silent_s = now - last - held_s - ours_s
         if silent_s > stall_s:
-            return (f"{self.name}: no data for {silent_s:.1f} s (stream stalled or sensor"
-                    " disconnected); check its cable and power")  # fmt: skip
+            computer = (f" beyond {held_s + ours_s:.1f} s this computer held it back (terminal"
+                        f" layer {held_s:.1f} s, waits for a CPU {ours_s:.1f} s)"
+                        if held_s + ours_s >= 0.05 else "")  # fmt: skip
+            return (f"{self.name}: no data for {silent_s:.1f} s{computer} (stream stalled or"
+                    " sensor disconnected); check its cable and power")  # fmt: skip
         if self.repeats >= stuck_after:
             return (f"{self.name}: the last {self.repeats + 1} readings are identical (sensor"
                     " frozen); power-cycle it")  # fmt: skip
