@@ -4,7 +4,7 @@ done, and told to the change listeners (a live calibration) as they start and en
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -13,6 +13,7 @@ import numpy as np
 import timebase
 from drivers.protocols import Load
 from rig.steps.base import ChangeListener
+from rig.steps.vocabulary import FieldCommand, FieldPayload, LoadCommand, LoadPayload
 from rig.store.run_store import RunWriter
 
 
@@ -38,24 +39,26 @@ class Commands:
         self.change_listeners = change_listeners
         self.controller: Any = None  # the cage controller, once the devices are open
 
-    def command(self, step_idx: int, kind: str, payload: dict[str, Any], now: float) -> None:
-        """Carry out a ``field`` or ``load`` command; change listeners are told when it starts
+    def command(self, step_idx: int, command: FieldCommand | LoadCommand, now: float,
+                timing: Mapping[str, float] | None = None) -> None:  # fmt: skip
+        """Carry out a field or load set-point issued at ``now`` (monotonic s) and record it with
+        ``timing`` (the schedule's due and plan times); change listeners are told when it starts
         and ends."""
         listeners = list(self.change_listeners)
         for listener in listeners:
             listener.change_started(now)
+        record: dict[str, Any] = {**command.payload, **(timing or {})}
         try:
-            if kind == "field":
-                self._set_field(step_idx, payload, now)
-            elif kind == "load":
-                self._set_load(step_idx, payload, now)
+            if isinstance(command, FieldCommand):
+                self._set_field(step_idx, command.payload, record, now)
             else:
-                raise AssertionError(kind)
+                self._set_load(step_idx, command.payload, record, now)
         finally:
             for listener in listeners:
                 listener.change_ended(timebase.monotonic())
 
-    def _set_field(self, step_idx: int, payload: dict[str, Any], now: float) -> None:
+    def _set_field(self, step_idx: int, payload: FieldPayload, record: dict[str, Any],
+                   now: float) -> None:  # fmt: skip
         w = self.writer
         target = np.array(payload["field_ut"])
         if payload.get("track"):
@@ -63,7 +66,7 @@ class Commands:
             # follows (interpolated): no interval to leave out (rig.analysis.change_times). A
             # ramp through zero is one. Its window (issued .. done) is when the axes were written.
             ramped = self.controller.track(target)
-            payload = payload | {"ramped": ramped}
+            record["ramped"] = ramped
         elif payload.get("trim"):
             result = self.controller.trim(target)
             if not result.settled:
@@ -72,11 +75,12 @@ class Commands:
             self.controller.set_field(target)
         # Logged when the ramp has finished: analysis counts settling from here.
         done = timebase.monotonic()
-        w.add_command(done, step_idx, "field", payload | {"t_issued": min(now, done)})
+        w.add_command(done, step_idx, "field", record | {"t_issued": min(now, done)})
         for ax, amps in enumerate(self.controller.currents):
             w.add_channel(timebase.monotonic(), f"coil_{'xyz'[ax]}", float(amps), None)
 
-    def _set_load(self, step_idx: int, payload: dict[str, Any], now: float) -> None:
+    def _set_load(self, step_idx: int, payload: LoadPayload, record: dict[str, Any],
+                  now: float) -> None:  # fmt: skip
         w, book = self.writer, self.loads
         name, amps = payload["channel"], float(payload["current_a"])
         book.changing[name] = (now, math.inf)
@@ -88,5 +92,5 @@ class Commands:
             )  # logged once written, like a field: settling counts from here
             book.changing[name] = (now, done)
         book.commanded[name] = amps
-        w.add_command(done, step_idx, "load", payload | {"t_issued": min(now, done)})
+        w.add_command(done, step_idx, "load", record | {"t_issued": min(now, done)})
         w.add_channel(done, name, amps, None)

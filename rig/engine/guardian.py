@@ -209,8 +209,9 @@ def _how_it_ended(code: int) -> str:
     return f"exit status {code}"
 
 
-def safe_outputs(cfg: RigConfig) -> tuple[list[str], list[str]]:
-    """Switch off every supply, load and relay board of ``cfg``: (devices, problems)."""
+def safe_outputs(cfg: RigConfig) -> tuple[list[str], list[str], str]:
+    """Switch off every supply, load and relay board of ``cfg``: (devices, problems, the slowest
+    output when it was slow)."""
     from rig.engine.switch_off import switch_off_every_output  # light to import the guardian
 
     return switch_off_every_output(cfg)
@@ -304,8 +305,8 @@ def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
     if isinstance(why, ClosedByOther):
         return _closed_by_other(fd, cfg, pid, why, waits)
     t_found = time.monotonic()
-    done, problems = safe_outputs(cfg)
-    cpu = findings.busy_note(waits, t_found)
+    done, problems, slowest = safe_outputs(cfg)
+    cpu = findings.busy_note(waits, t_found) + slowest
     if folder is not None:
         with contextlib.suppress(sqlite3.Error, OSError):
             findings.record_in_run(folder, t_found, why, done, problems, cpu)
@@ -335,19 +336,19 @@ def _closed_by_other(fd: int, cfg: RigConfig, pid: int, why: str, waits: CpuWait
     t_found = time.monotonic()
     if findings.stays_stopped(pid):
         ended = _kill_and_wait(fd, pid)
-        done, problems = safe_outputs(cfg)
+        done, problems, slowest = safe_outputs(cfg)
         return _tell(f"{why}; the rig process was still stopped and was killed", t_found, done,
-                     problems, findings.busy_note(waits, t_found) + ended)  # fmt: skip
-    done, held = safe_outputs(cfg)
-    cpu = findings.busy_note(waits, t_found)
+                     problems, findings.busy_note(waits, t_found) + ended + slowest)  # fmt: skip
+    done, held, slowest = safe_outputs(cfg)
+    cpu = findings.busy_note(waits, t_found) + slowest
     left = f"; {len(held)} not reached yet (held by the rig, which is going safe)" if held else ""
     _tell(why, t_found, done, [], cpu + left)
     later = wait_for_rig(fd, pid, waits=waits, kill_at=time.monotonic() + CLOSED_GRACE_S)
     if later is None and not held:
         return 0
     t_again = time.monotonic()
-    done, problems = safe_outputs(cfg)
-    return _tell(later or "the rig process went safe and ended", t_again, done, problems)
+    done, problems, slowest = safe_outputs(cfg)
+    return _tell(later or "the rig process went safe and ended", t_again, done, problems, slowest)
 
 
 def read_config_line(fd: int) -> RigConfig:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import sys
 from array import array
+from collections.abc import Mapping
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -65,7 +66,7 @@ from rig.procedure.language import Procedure
 from rig.procedure.plan import compile_plan, rig_timing, step_duration
 from rig.procedure.preflight import refuse_what_check_refuses
 from rig.steps.base import ChangeListener
-from rig.steps.vocabulary import Step
+from rig.steps.vocabulary import FieldCommand, LoadCommand, Step
 from rig.store.run_control import run_page_url
 from rig.store.run_states import EXIT_CODES, RunStatus, Verdict
 from rig.store.run_store import RunReader, RunWriter
@@ -385,7 +386,8 @@ class Runner:
         """Write the acceptance report once the run is closed and sealed."""
         self.report_requested = True
 
-    def command(self, step_idx: int, kind: str, payload: dict[str, Any], now: float) -> None:
-        """Carry out a ``field`` or ``load`` command (:class:`Commands`)."""
+    def command(self, step_idx: int, command: FieldCommand | LoadCommand, now: float,
+                timing: Mapping[str, float] | None = None) -> None:  # fmt: skip
+        """Carry out a field or load set-point (:class:`Commands`)."""
         assert self.commands is not None
-        self.commands.command(step_idx, kind, payload, now)
+        self.commands.command(step_idx, command, now, timing)

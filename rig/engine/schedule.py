@@ -17,7 +17,7 @@ from rig.engine.session import RigSession
 from rig.procedure.plan import StepPlan
 from rig.steps import KINDS
 from rig.steps.base import RunContext, StepExecution
-from rig.steps.vocabulary import Command
+from rig.steps.vocabulary import ActionCommand, Command, FieldCommand, LoadCommand
 from rig.store.run_store import RunWriter
 
 CATCH_UP_S = 2.0
@@ -115,8 +115,9 @@ class StepScheduler:
         pace = TrackPace()
         keeping = KeptTime(plan.commands)
         for i, cmd in enumerate(plan.commands):
-            track = bool(cmd.payload.get("track"))
-            keep_time = bool(cmd.payload.get("keep_time"))
+            setpoint = cmd if isinstance(cmd, FieldCommand | LoadCommand) else None
+            track = setpoint is not None and bool(setpoint.payload.get("track"))
+            keep_time = isinstance(cmd, FieldCommand) and bool(cmd.payload.get("keep_time"))
             t0 = pace.slipped(t0, cmd.t_s, track and not keep_time)
             t0 += self.wait_until(t0 + cmd.t_s, stop)
             if keep_time and keeping.overtaken(i, timebase.monotonic() - t0):
@@ -130,19 +131,19 @@ class StepScheduler:
                 break
             now = timebase.monotonic()
             pace.issued(cmd.t_s, now, track)
-            if cmd.kind in ("field", "load"):
+            if setpoint is not None:
                 self.lateness_s.append(now - (t0 + cmd.t_s))
                 # logged with when it was due (the timeline slipped) and its time in the plan (s
                 # from the step's start): analysis judges a tracked timeline's spacing by the plan
                 due = {"t_due": t0 + cmd.t_s, "t_plan": cmd.t_s}
-                self.commands.command(step.index, cmd.kind, cmd.payload | due, now)
-                if cmd.kind == "field" and hold_from_field and not track:
+                self.commands.command(step.index, setpoint, now, due)
+                if isinstance(setpoint, FieldCommand) and hold_from_field and not track:
                     # its dwell starts once the field is there; a tracked set-point keeps the
                     # schedule (re-anchored on each, a sine's 4 ms writes stretched it by 11 %)
                     t0 = timebase.monotonic() - cmd.t_s
                     if gate is not None:
                         gate.opened(t0 + cmd.t_s, cmd.t_s)
-            elif cmd.kind != "end":
+            elif isinstance(cmd, ActionCommand):
                 execution.run(cmd.payload)
                 # what follows the step's own action (a set/reset pulse: the hold after it)
                 # keeps its planned time however long the action took
@@ -202,7 +203,8 @@ class KeptTime:
         self.skipped = 0
         later: float | None = None
         for i in range(len(commands) - 1, -1, -1):
-            if commands[i].payload.get("keep_time"):
+            cmd = commands[i]
+            if isinstance(cmd, FieldCommand) and cmd.payload.get("keep_time"):
                 self.total += 1
                 if later is not None and later > commands[i].t_s:
                     self.next_t_s[i] = later

@@ -14,8 +14,8 @@ time for a session in it.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import timebase
@@ -47,6 +47,11 @@ class OutputState:
     on: bool | None
     detail: str
     current_a: float | None = None
+    done_after_s: float | None = None
+    """When it was read back, from the start of the switch-off (s; its link's devices go in
+    turn); None where not timed."""
+    attempts: int = 1
+    """Times it was opened: more than one when its port was still held or its link failed."""
 
     @property
     def off(self) -> bool:
@@ -77,14 +82,32 @@ def output_devices_of(cfg: RigConfig) -> dict[str, DeviceConfig]:
     return {n: d for n, d in cfg.devices.items() if d.kind in kinds}
 
 
-def switch_off_every_output(cfg: RigConfig) -> tuple[list[str], list[str]]:
+def switch_off_every_output(cfg: RigConfig) -> tuple[list[str], list[str], str]:
     """Every supply, load and relay board of ``cfg`` to its safe state and read back
-    (:func:`switch_off_and_confirm`): (devices confirmed off, one problem line for each other)."""
+    (:func:`switch_off_and_confirm`): (devices confirmed off, one problem line for each other,
+    :func:`slowest_note`)."""
     states = switch_off_and_confirm(output_devices_of(cfg))
     done = [n for n, s in states.items() if s.off]
     problems = [f"{n}: {s.detail}" + (" (still on)" if s.on else "")
                 for n, s in states.items() if not s.off]  # fmt: skip
-    return done, problems
+    return done, problems, slowest_note(states.values())
+
+
+SLOW_NOTE_S = 0.3
+"""A switch-off whose slowest output took longer than this (s) names it."""
+
+
+def slowest_note(states: Iterable[OutputState]) -> str:
+    """``; slowest: coil_y read back off after 1412 ms, opened at attempt 3`` when the slowest
+    output took longer than :data:`SLOW_NOTE_S`, else ``""``: where a slow time to safe went."""
+    timed = [s for s in states if s.done_after_s is not None]
+    if not timed:
+        return ""
+    slow = max(timed, key=lambda s: s.done_after_s or 0.0)
+    if (slow.done_after_s or 0.0) <= SLOW_NOTE_S:
+        return ""
+    opened = f", opened at attempt {slow.attempts}" if slow.attempts > 1 else ""
+    return f"; slowest: {slow.name} read back after {1000.0 * (slow.done_after_s or 0.0):.0f} ms{opened}"
 
 
 def switch_off_and_confirm(
@@ -179,9 +202,11 @@ def _per_link(
     states: dict[str, OutputState] = {}
     results: list[list[OutputState] | BaseException] = [[] for _ in links]
 
+    t0 = timebase.monotonic()
+
     def on_link(i: int, devs: list[DeviceConfig]) -> None:
         try:
-            results[i] = [act(d) for d in devs]
+            results[i] = [replace(act(d), done_after_s=timebase.monotonic() - t0) for d in devs]
         except BaseException as exc:  # raised in the caller, as a pool's map would
             results[i] = exc
 
@@ -202,19 +227,22 @@ def _act(dev: DeviceConfig, *, switch: bool, retry_s: float) -> OutputState:
     """Open ``dev``, call its ``safe()`` when ``switch``, read it back and close it, tried again
     for ``retry_s`` (s) when any of it fails (a port still held by a dying process)."""
     deadline = timebase.monotonic() + retry_s
+    attempts = 0
     while True:
+        attempts += 1
         try:
             driver = open_device(dev)
             try:
                 if switch:
                     driver.safe()
-                return _read_back(dev.name, driver)
+                return replace(_read_back(dev.name, driver), attempts=attempts)
             finally:
                 driver.close()
         except Exception as exc:  # one dead link must not stop the others going safe
             if timebase.monotonic() >= deadline:
                 did = "switching it off" if switch else "reading it"
-                return OutputState(dev.name, None, f"{did} at {dev.where} failed ({exc})")
+                return OutputState(dev.name, None, f"{did} at {dev.where} failed ({exc})",
+                                   attempts=attempts)  # fmt: skip
             timebase.sleep(RETRY_PAUSE_S)
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from rig.cage.limits import CageLimits, plan_ramp
 from rig.cage.model import CageModel
 from rig.procedure.plan import compile_step
-from rig.steps.vocabulary import Procedure, RigTiming
+from rig.steps.vocabulary import FieldCommand, Procedure, RigTiming
 
 FLIP_S = 0.025
 """A polarity flip: the coil current's decay and the relay (s, measured on the simulated cage)."""
@@ -69,7 +69,7 @@ def predicted_duration(proc: Procedure, model: CageModel | None, limits: CageLim
         plan = compile_step(step, proc.path.parent, timing)
         planned += plan.duration_s
         for cmd in plan.commands:
-            if cmd.kind != "field" or "field_ut" not in cmd.payload:
+            if not isinstance(cmd, FieldCommand):
                 continue
             trims += bool(cmd.payload.get("trim"))
             if model is None or limits is None:

@@ -20,7 +20,7 @@ from rig.config import RigConfig
 from rig.prediction.background import Background
 from rig.procedure.plan import compile_step
 from rig.steps import field_kinds
-from rig.steps.vocabulary import Command, Procedure, RigTiming, Step
+from rig.steps.vocabulary import Command, FieldCommand, LoadCommand, Procedure, RigTiming, Step
 
 Array = npt.NDArray[np.float64]
 DEFAULT_DUT_RATE_HZ = 20.0
@@ -93,13 +93,13 @@ def step_samples(commands: tuple[Command, ...], duration_s: float, channels: tup
     load_values: dict[str, list[float]] = {ch: [] for ch in channels}
     changes = []
     for cmd in commands:
-        if cmd.kind == "field" and "field_ut" in cmd.payload:
+        if isinstance(cmd, FieldCommand):
             field_times.append(cmd.t_s)
             field_values.append(cmd.payload["field_ut"])
-        elif cmd.kind == "load" and cmd.payload.get("channel") in load_times:
+        elif isinstance(cmd, LoadCommand) and cmd.payload["channel"] in load_times:
             load_times[cmd.payload["channel"]].append(cmd.t_s)
             load_values[cmd.payload["channel"]].append(cmd.payload["current_a"])
-        if cmd.kind in ("field", "load") and not cmd.payload.get("track"):
+        if isinstance(cmd, FieldCommand | LoadCommand) and not cmd.payload.get("track"):
             changes.append(cmd.t_s)
     if not field_times:
         return np.zeros(0), np.zeros((0, 3)), np.zeros((0, len(channels)))

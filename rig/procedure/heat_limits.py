@@ -33,7 +33,7 @@ from drivers.registry import KINDS, output_range
 from rig.config import DeviceConfig, RigConfig
 from rig.procedure.plan import compile_plan, rig_timing
 from rig.steps import KINDS as STEP_KINDS
-from rig.steps.vocabulary import Procedure, Step
+from rig.steps.vocabulary import LoadCommand, Procedure, Step
 
 TOLERANCE = 1e-9
 """Values this close above a limit count as at it (floating-point rounding)."""
@@ -107,9 +107,8 @@ def plan_setpoints(proc: Procedure, cfg: RigConfig) -> Iterator[SetPoint]:
     t0 = 0.0
     for plan in compile_plan(proc, rig_timing(cfg)):
         for c in plan.commands:
-            if c.kind == "load":
-                yield SetPoint(t0 + c.t_s, plan.step, str(c.payload["channel"]),
-                               float(c.payload["current_a"]))  # fmt: skip
+            if isinstance(c, LoadCommand):
+                yield SetPoint(t0 + c.t_s, plan.step, c.payload["channel"], c.payload["current_a"])
         # what a step may set only as it runs (a closed loop's rods): its largest, from its start
         for channel, amps in STEP_KINDS[plan.step.kind].load_envelope_a(plan.step).items():
             yield SetPoint(t0, plan.step, channel, amps)

@@ -20,6 +20,8 @@ from rig.steps.geometry import fibonacci_directions
 from rig.steps.vocabulary import (
     MAX_TOTAL_DURATION_S,
     Command,
+    FieldCommand,
+    LoadCommand,
     Procedure,
     RigTiming,
     Step,
@@ -175,7 +177,9 @@ class _DryRunWalk:
     def step(self, plan: StepPlan) -> None:
         """Walk one step: its fields, its own peak current, its loads, the time it takes."""
         s = plan.step
-        fields = [np.array(c.payload["field_ut"]) for c in plan.commands if c.kind == "field"]
+        fields = [
+            np.array(c.payload["field_ut"]) for c in plan.commands if isinstance(c, FieldCommand)
+        ]
         fields += envelope_fields(KINDS[s.kind].field_envelope_ut(s), self.k_ut_per_a)
         summary = (
             f"{s.kind}"
@@ -187,7 +191,7 @@ class _DryRunWalk:
             self._field(s, f)
         self._kind_peak(s)
         for c in plan.commands:
-            if c.kind == "load":
+            if isinstance(c, LoadCommand):
                 self._load(s, c.payload["channel"], abs(c.payload["current_a"]))
         for ch, amps in KINDS[s.kind].load_envelope_a(s).items():
             self._load(s, ch, amps)

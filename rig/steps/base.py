@@ -22,7 +22,17 @@ import timebase
 from rig.config import coil_step_a
 from rig.errors import RunAborted
 from rig.steps.load_profiles import load_profile
-from rig.steps.vocabulary import Command, RigTiming, Step, StepParam
+from rig.steps.vocabulary import (
+    ActionCommand,
+    Command,
+    EndCommand,
+    FieldCommand,
+    FieldPayload,
+    LoadCommand,
+    RigTiming,
+    Step,
+    StepParam,
+)
 
 if TYPE_CHECKING:
     from drivers.protocols import Magnetometer, ScalarMagnetometer
@@ -105,8 +115,11 @@ class RunContext(Protocol):
 
     def ask_operator(self, text: str) -> bool: ...
 
-    def command(self, step_index: int, kind: str, payload: dict[str, Any], now: float) -> None:
-        """Carry out a ``field`` or ``load`` command now."""
+    def command(self, step_index: int, command: FieldCommand | LoadCommand, now: float,
+                timing: Mapping[str, float] | None = None) -> None:  # fmt: skip
+        """Carry out a field or load set-point now (``now``: when it was issued, monotonic s);
+        ``timing`` is recorded with it (the schedule's ``t_due``, monotonic s, and ``t_plan``, s
+        from the step's start)."""
         ...
 
     def request_report(self) -> None: ...
@@ -274,7 +287,7 @@ class StepKind:
 
     def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
         """The step's commands (any order; the planner sorts them) and its duration (s)."""
-        return [Command(0.0, self.name, dict(step.params))], self.duration_s(step, timing)
+        return [ActionCommand(0.0, self.name, dict(step.params))], self.duration_s(step, timing)
 
     def field_envelope_ut(self, step: Step) -> float | None:
         """The largest field (uT) the step may ask for in any direction, beyond its planned
@@ -337,18 +350,18 @@ class FieldStepKind(StepKind):
     def duration_s(self, step: Step, timing: RigTiming) -> float:
         return len(self.fields(step, timing)) * float(step.params["dwell_s"])
 
-    def field_payload(self, step: Step, field_ut: Array) -> dict[str, Any]:
+    def field_payload(self, step: Step, field_ut: Array) -> FieldPayload:
         """A ``field`` command's payload."""
         trim = self.trim_param is not None and step.params.get(self.trim_param) == "yes"
         return {"field_ut": [float(v) for v in field_ut], "trim": trim}
 
     def compile(self, step: Step, base: Path, timing: RigTiming) -> tuple[list[Command], float]:
         duration = self.duration_s(step, timing)
-        cmds = [
-            Command(t, "field", self.field_payload(step, f)) for t, f in self.fields(step, timing)
+        cmds: list[Command] = [
+            FieldCommand(t, self.field_payload(step, f)) for t, f in self.fields(step, timing)
         ]
         cmds += load_commands(step, duration, base)
-        cmds.append(Command(duration, "end", {}))
+        cmds.append(EndCommand(duration))
         return cmds, duration
 
 
@@ -367,9 +380,9 @@ class NullHoldKind(FieldStepKind):
 
 def load_commands(step: Step, duration_s: float, base: Path) -> list[Command]:
     """The set-points of the step's load profiles, each channel back to 0 A at the end."""
-    cmds = []
+    cmds: list[Command] = []
     for ch, (kind, params) in step.loads.items():
         for t, amps in load_profile(kind, params, duration_s, base):
-            cmds.append(Command(t, "load", {"channel": ch, "current_a": float(amps)}))
-        cmds.append(Command(duration_s, "load", {"channel": ch, "current_a": 0.0}))
+            cmds.append(LoadCommand(t, {"channel": ch, "current_a": float(amps)}))
+        cmds.append(LoadCommand(duration_s, {"channel": ch, "current_a": 0.0}))
     return cmds

@@ -19,7 +19,11 @@ from rig.steps.closed_loop_run import LoopRunner, scenario_of
 from rig.steps.closed_loop_ticks import read_ticks
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
+    ActionCommand,
     Command,
+    EndCommand,
+    FieldCommand,
+    LoadCommand,
     ProcedureError,
     RigTiming,
     Step,
@@ -129,10 +133,10 @@ class ClosedLoop(FieldStepKind):
         duration = self.duration_s(step, timing)
         rods = scenario_of(step.params).rods
         at_rest = [] if rods is None else [
-            Command(0.0, "load", {"channel": ch, "current_a": amps})
+            LoadCommand(0.0, {"channel": ch, "current_a": amps})
             for ch, amps in rods.currents_a((0.0, 0.0, 0.0)).items()]  # fmt: skip
-        return [Command(0.0, "field", self.field_payload(step, start)), *at_rest,
-                Command(0.0, self.name, {}), Command(duration, "end", {})], duration  # fmt: skip
+        return [FieldCommand(0.0, self.field_payload(step, start)), *at_rest,
+                ActionCommand(0.0, self.name, {}), EndCommand(duration)], duration  # fmt: skip
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:
         return ClosedLoopStep(ctx, step)

@@ -24,7 +24,7 @@ from rig.hil.torque_rods import RodLog, TorqueRods, stray_bias_ut
 from rig.steps.base import Array, RunContext
 from rig.steps.closed_loop_ticks import write_ticks
 from rig.steps.null_field import latest_noise_floor
-from rig.steps.vocabulary import Step
+from rig.steps.vocabulary import FieldCommand, FieldPayload, LoadCommand, Step
 
 DEFAULT_NOISE_NT = 20.0
 """The all-software run's magnetometer noise (nT) when neither ``noise_nt`` nor a null field of
@@ -207,7 +207,7 @@ class LoopRunner:
         if currents == (self.rod_log.currents_a[-1] if self.rod_log.currents_a else None):
             return
         for ch, amps in currents.items():
-            self.ctx.command(self.step.index, "load", {"channel": ch, "current_a": amps},
+            self.ctx.command(self.step.index, LoadCommand(0.0, {"channel": ch, "current_a": amps}),
                              timebase.monotonic())  # fmt: skip
         self.rod_log.add(timebase.monotonic(), currents)
 
@@ -216,7 +216,7 @@ class LoopRunner:
         if self.rods is None:
             return
         for ch in self.rods.used:
-            self.ctx.command(self.step.index, "load", {"channel": ch, "current_a": 0.0},
+            self.ctx.command(self.step.index, LoadCommand(0.0, {"channel": ch, "current_a": 0.0}),
                              timebase.monotonic())  # fmt: skip
 
     def _rod_row(self) -> Array:
@@ -260,9 +260,9 @@ class LoopRunner:
             if self._halt.is_set():  # the run is ending: no command after the halt
                 self.latency_s.append(math.nan)  # (one per tick in the record)
                 break
-            self.ctx.command(self.step.index, "field",
-                             {"field_ut": [float(v) for v in held * self.scenario.scale],
-                              "track": True}, timebase.monotonic())  # fmt: skip
+            tracked: FieldPayload = {"field_ut": [float(v) for v in held * self.scenario.scale],
+                                     "track": True}  # fmt: skip
+            self.ctx.command(self.step.index, FieldCommand(0.0, tracked), timebase.monotonic())
             sent = timebase.monotonic()
             self._command_rods(loop.dipole)  # after the field: its latency is the field's
             # from the newest reading behind a new dipole to the command that carries it

@@ -18,6 +18,7 @@ from rig.steps.live_calibrate_run import LiveCalibration
 from rig.steps.null_field import latest_noise_floor
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
+    LoadCommand,
     ProcedureError,
     RigTiming,
     Step,
@@ -177,8 +178,8 @@ class LiveStep(StepExecution):
         self._detach()
         if self.live.done.is_set():
             for ch in self.step.loads:
-                self.ctx.command(self.step.index, "load", {"channel": ch, "current_a": 0.0},
-                                 timebase.monotonic())  # fmt: skip
+                off = LoadCommand(0.0, {"channel": ch, "current_a": 0.0})
+                self.ctx.command(self.step.index, off, timebase.monotonic())
 
     def finish(self, t_start: float, t_end: float) -> None:
         self._forecaster.join(timeout=FORECAST_WAIT_S)  # a short step: the result has it too

@@ -12,6 +12,10 @@ from rig.steps.base import FieldStepKind, load_commands
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
     Command,
+    EndCommand,
+    FieldCommand,
+    LoadCommand,
+    LoadPayload,
     ProcedureError,
     RigTiming,
     Step,
@@ -69,7 +73,7 @@ class OrbitReplay(FieldStepKind):
                 f"{step.where}: step {step.index + 1} (orbit_replay): {exc}"
             ) from None
         field_ut = track.field_body_ut * float(p["field_scale"])
-        cmds = [Command(float(t), "field", {"field_ut": [float(v) for v in f], "track": True})
+        cmds: list[Command] = [FieldCommand(float(t), {"field_ut": [float(v) for v in f], "track": True})
                 for t, f in zip(t_wall, field_ut, strict=True)]  # fmt: skip
         duration = float(p["duration_s"])
         for panel in p["panels"]:
@@ -80,14 +84,14 @@ class OrbitReplay(FieldStepKind):
             jumps = np.r_[True, track.sunlit[1:] != track.sunlit[:-1]]
             for t, a, jump in zip(t_wall, amps, jumps, strict=True):
                 if last is None or abs(a - last) >= 0.002 or (a == 0.0 and last != 0.0):
-                    payload: dict[str, Any] = {"channel": ch, "current_a": float(a)}
+                    payload: LoadPayload = {"channel": ch, "current_a": float(a)}
                     if last is not None and not jump:
                         payload["track"] = True  # followed, not a step to settle after
-                    cmds.append(Command(float(t), "load", payload))
+                    cmds.append(LoadCommand(float(t), payload))
                     last = a
-            cmds.append(Command(duration, "load", {"channel": ch, "current_a": 0.0}))
+            cmds.append(LoadCommand(duration, {"channel": ch, "current_a": 0.0}))
         cmds += load_commands(step, duration, base)
-        cmds.append(Command(duration, "end", {}))
+        cmds.append(EndCommand(duration))
         return cmds, duration
 
 

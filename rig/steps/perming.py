@@ -27,7 +27,15 @@ from rig.characterization.perming import HoldMean, OffsetShift, hold_mean, offse
 from rig.errors import RigError
 from rig.steps.at_rest import offsets_at_rest
 from rig.steps.base import Array, FieldStepKind, RunContext, StepExecution
-from rig.steps.vocabulary import Command, ProcedureError, RigTiming, Step, StepParam
+from rig.steps.vocabulary import (
+    ActionCommand,
+    Command,
+    FieldPayload,
+    ProcedureError,
+    RigTiming,
+    Step,
+    StepParam,
+)
 
 
 @dataclass(frozen=True)
@@ -87,7 +95,7 @@ class Perming(FieldStepKind):
         if params["settle_s"] >= params["hold_s"]:
             raise ProcedureError(f"{where}: settle_s must be shorter than hold_s")
 
-    def field_payload(self, step: Step, field_ut: Array) -> dict[str, Any]:
+    def field_payload(self, step: Step, field_ut: Array) -> FieldPayload:
         # the nulls closed on the reference (the DUT's uncalibrated scale would otherwise turn
         # the lab field's drift between the holds into a shift); the shock as planned
         trim = step.params["trim"] == "yes" and not np.any(field_ut)
@@ -110,7 +118,7 @@ class Perming(FieldStepKind):
         if step.params["reset"] == "auto":
             p = step.params
             t = 2 * float(p["hold_s"]) + float(p["shock_s"])
-            cmds.append(Command(t, self.name, {"action": "pulse"}))
+            cmds.append(ActionCommand(t, self.name, {"action": "pulse"}))
         return cmds, duration
 
     def execution(self, ctx: RunContext, step: Step) -> StepExecution:

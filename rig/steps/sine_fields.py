@@ -19,6 +19,8 @@ from rig.steps.base import Array, CageAbilities, FieldStepKind, RunContext, load
 from rig.steps.vocabulary import (
     MAX_FIELD_SETPOINTS_PER_STEP,
     Command,
+    EndCommand,
+    FieldCommand,
     ProcedureError,
     RigTiming,
     Step,
@@ -107,12 +109,12 @@ def bias_fields(params: dict[str, Any]) -> list[tuple[float, Array]]:
 def sine_commands(params: dict[str, Any]) -> list[Command]:
     """The sines' tracked set-points (each tagged with its ``segment``: axis, frequency)."""
     rate, amp, bias = float(params["rate_hz"]), float(params["amplitude_ut"]), params["bias_ut"]
-    cmds = []
+    cmds: list[Command] = []
     for s in segments(params):
         for k in range(1, round(s.length_s * rate) + 1):
             v = np.zeros(3)
             v[s.axis] = float(bias) + amp * math.sin(2.0 * math.pi * s.f_hz * k / rate)
-            cmds.append(Command(s.start_s + k / rate, "field",
+            cmds.append(FieldCommand(s.start_s + k / rate,
                                 {"field_ut": [float(x) for x in v], "trim": False, "track": True, "keep_time": True,
                                  "segment": [s.axis, s.f_hz]}))  # fmt: skip
     return cmds
@@ -340,11 +342,9 @@ class SineStepKind(FieldStepKind):
         # the bias: that put the old axis's field back for the new one's settle_s, and its ramp
         # in the old sine's fitted cycles)
         cmds = sine_commands(step.params)
-        cmds += [
-            Command(t, "field", self.field_payload(step, f)) for t, f in self.fields(step, timing)
-        ]
+        cmds += [FieldCommand(t, self.field_payload(step, f)) for t, f in self.fields(step, timing)]
         cmds += load_commands(step, duration, base)
-        cmds.append(Command(duration, "end", {}))
+        cmds.append(EndCommand(duration))
         return cmds, duration
 
 

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import difflib
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Required, TypedDict
 
 from rig.errors import UserInputError
 
@@ -133,14 +134,71 @@ class Procedure:
     text: str = field(default="", repr=False)
 
 
+class FieldPayload(TypedDict, total=False):
+    """A field set-point's payload: ``field_ut`` (uT, three components, the cage's axes) and how
+    it is made."""
+
+    field_ut: Required[list[float]]
+    trim: bool
+    """Closed on the reference magnetometer after the ramp (the cage's trim loop)."""
+    track: bool
+    """One of a followed sequence (an orbit, a sine): ramped at the slew limit, never settled."""
+    keep_time: bool
+    """Skipped rather than sent late when its successor is already due (a sine's set-points)."""
+    segment: list[float]
+    """A sine's set-points: its segment (axis index, frequency Hz)."""
+
+
+class LoadPayload(TypedDict, total=False):
+    """A load channel's set-point: ``channel`` (its device name) to ``current_a`` (A)."""
+
+    channel: Required[str]
+    current_a: Required[float]
+    track: bool
+    """Followed (a panel's current along an orbit), not a step to settle after."""
+
+
 @dataclass(frozen=True)
-class Command:
-    """One thing to do at ``t_s`` seconds after its step starts: ``field`` and ``load`` set-points,
-    ``end`` (the step's last instant), or the step kind's own action (its name)."""
+class FieldCommand:
+    """Set the cage's field ``t_s`` seconds after its step starts."""
+
+    t_s: float
+    payload: FieldPayload
+    kind: Literal["field"] = "field"
+
+
+@dataclass(frozen=True)
+class LoadCommand:
+    """Set a load channel's current ``t_s`` seconds after its step starts."""
+
+    t_s: float
+    payload: LoadPayload
+    kind: Literal["load"] = "load"
+
+
+@dataclass(frozen=True)
+class EndCommand:
+    """The step's last instant, ``t_s`` seconds after it starts."""
+
+    t_s: float
+    kind: Literal["end"] = "end"
+    payload: Mapping[str, Any] = field(default_factory=dict)
+    """Nothing (read only by code that treats every command alike)."""
+
+
+@dataclass(frozen=True)
+class ActionCommand:
+    """The step kind's own action (``kind``: the step kind's name) ``t_s`` seconds after its step
+    starts, with ``payload``: the step's parameters, or what the kind planned for the action."""
 
     t_s: float
     kind: str
     payload: dict[str, Any]
+
+
+Command = FieldCommand | LoadCommand | EndCommand | ActionCommand
+"""One thing to do at a time in a step: ``field`` and ``load`` set-points, ``end`` (the step's last
+instant), or the step kind's own action (its name)."""
 
 
 @dataclass(frozen=True)

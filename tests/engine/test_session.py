@@ -51,7 +51,7 @@ def test_an_unknown_device_is_one_line_naming_the_file(tmp_path: Path) -> None:
         cage.faults[
             "load_panel"
         ].silent = True  # one that does not answer is named, the rest go off
-        done, problems = switch_off_every_output(rc)
+        done, problems, _ = switch_off_every_output(rc)
         assert "load_panel" not in done and problems and problems[0].startswith("load_panel")
         assert not any(s.output for n, s in cage.physics.supplies.items() if n != "load_panel")
 

@@ -8,7 +8,7 @@ results are kept in lists and dicts for the test to look at.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -18,7 +18,17 @@ import numpy.typing as npt
 
 from rig.steps import KINDS
 from rig.steps.base import ChangeListener, StepExecution
-from rig.steps.vocabulary import Command, Procedure, RigTiming, Step, Where, bind_params
+from rig.steps.vocabulary import (
+    ActionCommand,
+    Command,
+    FieldCommand,
+    LoadCommand,
+    Procedure,
+    RigTiming,
+    Step,
+    Where,
+    bind_params,
+)
 
 Array = npt.NDArray[np.float64]
 WHERE = "test.yaml:1: step 1"
@@ -235,8 +245,9 @@ class FakeContext:
         self.questions.append(text)
         return self.answer
 
-    def command(self, step_index: int, kind: str, payload: dict[str, Any], now: float) -> None:
-        self.sent.append((step_index, kind, payload))
+    def command(self, step_index: int, command: FieldCommand | LoadCommand, now: float,
+                timing: Mapping[str, float] | None = None) -> None:  # fmt: skip
+        self.sent.append((step_index, command.kind, dict(command.payload)))
 
     def request_report(self) -> None:
         self.report_requested = True
@@ -249,7 +260,7 @@ def carry_out(ctx: FakeContext, step: Step, window: tuple[float, float] = (0.0, 
     execution: StepExecution = KINDS[step.kind].execution(ctx, step)
     try:
         for cmd in compile_step(step)[0]:
-            if cmd.kind == step.kind:
+            if isinstance(cmd, ActionCommand) and cmd.kind == step.kind:
                 execution.run(cmd.payload)
         execution.wind_down()
         execution.finish(*window)

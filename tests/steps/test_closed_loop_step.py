@@ -22,7 +22,7 @@ from rig.hil.loop import LoopPlan, OrbitField, software_only
 from rig.hil.torque_rods import RodLog, TorqueRods, stray_bias_ut
 from rig.steps import KINDS
 from rig.steps.closed_loop_run import mrp_to_dcm, scenario_of
-from rig.steps.vocabulary import ProcedureError
+from rig.steps.vocabulary import FieldCommand, ProcedureError
 from tests.steps.fake_context import FakeContext, compile_step, make_procedure, make_step
 
 TLE = [
@@ -113,9 +113,8 @@ def closed_loop_on_a_perfect_cage(tmp_path: Path, body: dict[str, Any], dut: Any
     with timebase.simulated():
         cage = PerfectCage(ctx, dut, 0.02, seed=3)
         execution = KINDS["closed_loop"].execution(ctx, step)
-        ctx.command(
-            0, "field", {"field_ut": list(scenario_of(step.params).initial_field_ut())}, 0.0
-        )
+        start = FieldCommand(0.0, {"field_ut": list(scenario_of(step.params).initial_field_ut())})
+        ctx.command(0, start, 0.0)
         cage.thread.start()
         execution.run({})
         assert execution.stop is not None

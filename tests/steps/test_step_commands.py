@@ -12,7 +12,10 @@ from rig.steps.characterize_cage import characterization_duration_s
 from rig.steps.load_profiles import LOAD_PROFILES
 from rig.steps.vocabulary import (
     DEFAULT_FIELD_LIMIT_UT,
+    ActionCommand,
     Command,
+    EndCommand,
+    FieldCommand,
     ProcedureError,
     RigTiming,
     bind_params,
@@ -45,15 +48,15 @@ def test_an_action_step_is_one_command_of_its_own_carrying_its_parameters(
 ) -> None:
     step = make_step(kind, body)
     cmds, _ = compile_step(step)
-    assert cmds == [Command(0.0, kind, step.params)]
+    assert cmds == [ActionCommand(0.0, kind, step.params)]
 
 
 def test_null_field_nulls_then_holds() -> None:
     cmds, duration = compile_step(make_step("null_field", {"hold_s": 3}))
     assert duration == 3.0
     assert cmds == [
-        Command(0.0, "field", {"field_ut": [0.0, 0.0, 0.0], "trim": False}),
-        Command(3.0, "end", {}),
+        FieldCommand(0.0, {"field_ut": [0.0, 0.0, 0.0], "trim": False}),
+        EndCommand(3.0),
     ]
     trimmed, _ = compile_step(make_step("null_field", {"trim": "yes"}))
     assert trimmed[0].payload["trim"] is True
@@ -63,8 +66,8 @@ def test_set_field_sets_its_field_and_holds() -> None:
     cmds, duration = compile_step(make_step("set_field", {"field_ut": [10, -20, 30], "hold_s": 4}))
     assert (cmds, duration) == (
         [
-            Command(0.0, "field", {"field_ut": [10.0, -20.0, 30.0], "trim": False}),
-            Command(4.0, "end", {}),
+            FieldCommand(0.0, {"field_ut": [10.0, -20.0, 30.0], "trim": False}),
+            EndCommand(4.0),
         ],
         4.0,
     )
@@ -106,7 +109,7 @@ def test_field_points_holds_each_listed_field_in_turn() -> None:
     cmds, duration = compile_step(make_step("field_points", {"fields_ut": listed, "dwell_s": 1.5}))
     times, fields = fields_of(cmds)
     assert duration == 4.5 and times == [0.0, 1.5, 3.0]
-    assert fields.tolist() == listed and cmds[-1] == Command(4.5, "end", {})
+    assert fields.tolist() == listed and cmds[-1] == EndCommand(4.5)
     for bad, needle in (([], "must be a list of"), ([[1.0, 2.0]], "fields_ut\\[0\\]"),
                         ([[1.0, 2.0, 2000.0]], "within -1000..1000")):  # fmt: skip
         with pytest.raises(ProcedureError, match=needle):
