@@ -48,6 +48,7 @@ from pathlib import Path
 from drivers.registry import output_kinds
 from rig.config import RigConfig
 from rig.engine import guardian_findings as findings
+from rig.engine.cpu_priority import raise_own_priority
 from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.frozen_config import FrozenConfigError, freeze, thaw
 from rig.errors import RigError
@@ -368,6 +369,7 @@ def read_config_line(fd: int) -> RigConfig:
 def main(argv: list[str]) -> int:
     """Entry point of ``python -m rig.engine.guardian RUN_FOLDER|- RIG_PID``."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # only the pipe ends the guardian
+    raise_own_priority()  # before any thread starts: they inherit it
     import rig.engine.switch_off  # noqa: F401 - imported now, so acting after a death takes no import time
 
     try:
