@@ -573,6 +573,10 @@ MAG_PARAMS: tuple[Param, ...] = (
     Param("stuck_after", WHOLE, False, 60, "identical readings in a row that mean a frozen"
           " sensor (0 = never judged)", low=0, high=1_000_000,
           fix="write a whole number of readings, e.g. stuck_after = 60 (3 s at 20 Hz)"),
+    Param("stall_after_s", NUMBER, False, 1.5, "silence that means a stalled stream or a"
+          " disconnected sensor (five sample periods are always allowed; time this computer held"
+          " the data back is not counted)", low=0.1, high=600.0, unit="s",
+          fix="write seconds of silence, e.g. stall_after_s = 1.5"),
 )  # fmt: skip
 """The keys every magnetometer accepts."""
 HMR2300_ID = Param("device_id", WHOLE, help="HMR2300 ID 00-98 (asked with *99ID= when absent)",

@@ -169,10 +169,25 @@ def heater_limits(devices: dict[str, dict[str, Any]], cfg: SimConfig) -> None:
                                   "ambient_c": thermal.ambient_c}  # fmt: skip
 
 
-def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig) -> str:
+SIM_PROCESS_STALL_AFTER_S = 5.0
+"""``stall_after_s`` of the magnetometers of a ``rig sim`` process on the wall clock (s): its
+instruments share this computer's cores with the rig (a real one has its own processor), and beside
+CPU hogs and a full test run one went 2.0 s without streaming while the rig itself waited 0.2 s
+for a CPU. In simulated time no instrument waits for a CPU and the default 1.5 s stands."""
+
+
+def sim_rig_config(endpoints: dict[str, Any], cfg: SimConfig,
+                   stall_after_s: float | None = None) -> str:  # fmt: skip
     """The rig configuration for a running simulated cage: devices, cage section, the reference's
-    certificate and the coil constants as nameplate values."""
+    certificate and the coil constants as nameplate values; ``stall_after_s`` given to every
+    magnetometer that takes it (None: its default)."""
     devices = {name: dict(dev) for name, dev in endpoints["devices"].items()}
+    if stall_after_s is not None:
+        for dev in devices.values():
+            if any(
+                p.name == "stall_after_s" for p in KINDS[dev["kind"]].param_specs(dev["protocol"])
+            ):
+                dev["stall_after_s"] = stall_after_s
     for mag in cfg.magnetometers:
         if mag.name in devices and mag.noise_ut > 0 and mag.kind != "geometrics-cm201":
             devices[mag.name]["noise_nt"] = round(1e3 * mag.noise_ut, 3)  # its datasheet's

@@ -53,7 +53,7 @@ def run_sim(
 
     from rig.cli.signals import stop_on_signals
     from rig.errors import UserInputError
-    from rig.sim_rig import sim_rig_config
+    from rig.sim_rig import SIM_PROCESS_STALL_AFTER_S, sim_rig_config
     from sim.cage import SimulatedCage
     from sim.config import DEFAULT_CONFIG, SimConfigError, load_config
 
@@ -69,7 +69,7 @@ def run_sim(
             text = json.dumps(endpoints, indent=2) + "\n"
             for path, content in (
                 (endpoints_json, text),
-                (rig_config, sim_rig_config(endpoints, cfg)),
+                (rig_config, sim_rig_config(endpoints, cfg, SIM_PROCESS_STALL_AFTER_S)),
             ):
                 if path is not None:
                     try:

@@ -20,8 +20,6 @@ from rig.engine.session import RigSession
 from rig.store.run_store import RunWriter
 
 MONITOR_PERIOD_S = 0.2
-STALL_S = 1.5
-"""A sensor that sends nothing for this long (or 5 of its periods) has stalled."""
 OWN_STALL_S = 0.3
 """The monitor woke this much later than its period: our own process was descheduled."""
 COIL_CHECK_S = 1.0
@@ -149,9 +147,11 @@ class HealthMonitor:
         if self._cpu_wait is not None:
             self._cpu_wait.note(now)
         for name, sampler in list(self.samplers.items()) if judge_sensors else []:
-            stall_s = max(STALL_S, 5.0 / sampler.rate_hz)
-            # the device's stuck_after, its declared default filled in at load (0: never)
-            stuck_after = int(self.cfg.devices[name].get("stuck_after")) or 10**9
+            # a sensor that sends nothing for its stall_after_s (declared default 1.5 s) or five
+            # of its periods has stalled; its stuck_after (0: never) identical readings is frozen
+            dev = self.cfg.devices[name]
+            stall_s = max(float(dev.get("stall_after_s")), 5.0 / sampler.rate_hz)
+            stuck_after = int(dev.get("stuck_after")) or 10**9
             problem = sampler.health(now, stall_s, stuck_after, self._cpu_wait)
             if problem is not None:
                 self.rig.fail(problem)

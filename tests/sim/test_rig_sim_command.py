@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -48,6 +49,10 @@ def test_rig_sim_publishes_endpoints_and_stops_on_sigint(tmp_path: Path) -> None
             ]
             assert not c.write_register(18, 1, device_id=1).isError()  # output on
         assert f"port = {x['port']}" in cfg.read_text()
+        # its instruments share this computer's cores: a stream judged stalled after 5 s, not 1.5
+        written = tomllib.loads(cfg.read_text())["devices"]
+        assert written["dut"]["stall_after_s"] == written["reference"]["stall_after_s"] == 5.0
+        assert "stall_after_s" not in written["cesium"]  # a counter, not a vector stream
         # its instruments' threads run at a raised priority (sim.own_processor), the main one not
         nices = sorted(nice_of(int(tid), proc.pid) for tid in os.listdir(f"/proc/{proc.pid}/task"))
         assert nices[-1] == 0 and nices.count(INSTRUMENT_NICE if os.geteuid() == 0 else 0) >= 4
