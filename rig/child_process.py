@@ -75,7 +75,19 @@ def stop_child(
 ) -> int | None:
     """Ask the child to stop with ``first`` (default SIGINT, a Ctrl-C), wait up to ``wait_s``
     (s), then SIGKILL it and wait up to ``kill_wait_s`` (s) more. Returns its exit code (negative:
-    the signal that ended it), or ``None`` if it still has not gone (not ours to wait for ever)."""
+    the signal that ended it), or ``None`` if it still has not gone (not ours to wait for ever).
+    Once it has gone, its pipes are closed (what it wrote and nobody read is dropped)."""
+    code = _stopped(proc, first, wait_s, kill_wait_s)
+    if code is not None:
+        for pipe in (proc.stdin, proc.stdout, proc.stderr):
+            if pipe is not None:
+                with contextlib.suppress(OSError):  # a broken pipe's unflushed input
+                    pipe.close()
+    return code
+
+
+def _stopped(proc: subprocess.Popen[Any], first: int, wait_s: float,
+             kill_wait_s: float) -> int | None:  # fmt: skip
     if proc.poll() is None:
         with contextlib.suppress(ProcessLookupError):  # it ended meanwhile
             proc.send_signal(first)

@@ -123,6 +123,7 @@ class SerialFrontEnd:
         for fd in (self.fd, self._follower):
             with contextlib.suppress(OSError):
                 os.close(fd)
+        self.computer.close()  # its UDP socket, unused on a serial line
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from rig.child_process import start_child, stop_child
 from tests.simproc import sim_process
 
 pytestmark = pytest.mark.realtime
@@ -74,9 +75,7 @@ def test_child_dies_when_its_parent_is_sigkilled() -> None:
         # the child's exit.
         assert wait_gone(child_pid, 30.0), f"child {child_pid} outlived its SIGKILLed parent"
     finally:
-        if parent.poll() is None:
-            parent.kill()
-            parent.wait(timeout=30)
+        stop_child(parent, first=signal.SIGKILL, wait_s=30.0)  # its pipe closed, whatever came
         if child_pid:
             kill_quietly(child_pid)
 
@@ -101,3 +100,13 @@ def test_sim_process_kills_a_child_that_ignores_sigint(tmp_path: Path) -> None:
         assert not alive(pid), "sim_process returned with its child still running"
     finally:
         kill_quietly(pid)
+
+
+def test_stop_child_closes_the_pipes_of_a_child_that_has_gone() -> None:
+    """A stopped child's pipes are closed (left to the collector they were a ResourceWarning in a
+    later test); one that would not go keeps them (it may still write)."""
+    child = start_child([sys.executable, "-c", "import time; print('up', flush=True); time.sleep(60)"],
+                        stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+    assert child.stdout is not None and child.stdout.readline() == b"up\n"
+    assert stop_child(child, first=signal.SIGTERM, wait_s=10.0) == -signal.SIGTERM
+    assert child.stdout.closed and child.stderr is not None and child.stderr.closed

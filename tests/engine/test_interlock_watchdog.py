@@ -131,7 +131,7 @@ def test_second_command_refused_naming_the_holder_and_no_stale_lock_after_sigkil
         assert tcp_outputs_on(devices) == [False, False]
     finally:
         holder.kill()
-        holder.wait()
+        holder.communicate(timeout=30)  # its pipes read to their end (the guardian's) and closed
     # SIGKILL: the guardian has the rig until it is done; the next command waits for it (the
     # holder is dead) instead of refusing, and then drives the rig
     again = subprocess.run([*RIG, "-q", "cage", "set-field", "0", "0", "0", "--hold", "0.1",
@@ -170,10 +170,8 @@ def test_stopped_process_is_killed_and_outputs_switched_off(
     holder.send_signal(signal.SIGSTOP)
     t_stop = time.monotonic()
     took = wait_off(devices, within_s=HEARTBEAT_TIMEOUT_S + 15.0)
-    holder.wait(timeout=10)
+    _, err = holder.communicate(timeout=30)  # its pipes read to their end and closed
     assert holder.returncode == -signal.SIGKILL  # a stopped process must not resume driving
-    assert holder.stderr is not None
-    err = holder.stderr.read()
     assert "stopped answering" in err and "coil_x" in err, err
     _, own_s = guardian_account(err)
     assert HEARTBEAT_TIMEOUT_S - 0.5 < took < HEARTBEAT_TIMEOUT_S + own_s + 8.0, err
@@ -205,10 +203,8 @@ def test_deadlocked_main_thread_is_caught(
                             stderr=subprocess.PIPE, text=True, env=os.environ.copy())  # fmt: skip
     assert proc.stdout is not None and proc.stdout.readline().startswith("holding")
     took = wait_off(devices, within_s=1.0 + HEARTBEAT_TIMEOUT_S + 15.0)
-    proc.wait(timeout=10)
+    _, err = proc.communicate(timeout=30)  # its pipes read to their end and closed
     assert proc.returncode == -signal.SIGKILL
-    assert proc.stderr is not None
-    err = proc.stderr.read()
     assert "no progress for" in err and "stopped answering" in err, err
     _, own_s = guardian_account(err)
     assert took < 1.0 + HEARTBEAT_TIMEOUT_S + own_s + 8.0, err

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from bench.faultlab import guardian_of
+from rig.child_process import stop_child
 from rig.store import RunReader
 from sim.cage import SimulatedCage
 from tests.engine.test_guardian_pair import DRIVEN, start_run
@@ -31,7 +32,7 @@ def kill_both(child: subprocess.Popen[str]) -> None:
         os.kill(pid, signal.SIGSTOP)
     for pid in (child.pid, guardian):
         os.kill(pid, signal.SIGKILL)
-    child.wait(10)
+    stop_child(child, first=signal.SIGKILL, wait_s=10.0)  # reaped, its pipes closed
     for _ in range(500):  # the guardian is no child of ours: wait until it is gone
         try:
             os.kill(guardian, 0)

@@ -174,8 +174,11 @@ def test_a_serial_line_finds_each_packet_after_garbage_and_split_reads() -> None
 def test_the_documented_flight_computer_commands_answer_a_readings_packet(how: list[str]) -> None:
     """docs/hil.md's ``python -m sim.flight_computer --port 5005`` (here any free port) and
     ``--pty``: each prints where it answers, and answers two readings with B-dot's dipoles."""
+    import signal
     import subprocess
     import sys
+
+    from rig.child_process import stop_child
 
     proc = subprocess.Popen([sys.executable, "-m", "sim.flight_computer", *how],
                             stdout=subprocess.PIPE, text=True)  # fmt: skip
@@ -192,5 +195,4 @@ def test_the_documented_flight_computer_commands_answer_a_readings_packet(how: l
         assert (fc.answered, fc.missed) == (2, 0)
         assert second == pytest.approx([0.0, -0.2, 0.0])  # clipped at the 0.2 A m^2 default
     finally:
-        proc.terminate()
-        proc.wait(timeout=10)
+        stop_child(proc, first=signal.SIGTERM, wait_s=10.0)  # its pipe closed too

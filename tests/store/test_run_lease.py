@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 
 from rig import host_identity
+from rig.child_process import stop_child
 from rig.store import new_run
 from rig.store.run_store import LEASE_EXPIRY_S, LEASE_WATCH_S, RunReader
 from tests.simproc import outputs, sim_process
@@ -136,9 +137,7 @@ def test_a_reader_in_another_pid_namespace_leaves_a_live_run_running(
         run.send_signal(signal.SIGINT)
         assert run.wait(timeout=60) == 130
     finally:
-        if run.poll() is None:
-            run.kill()
-            run.wait()
+        stop_child(run, first=signal.SIGKILL)  # ended or not: its pipe closed
     assert status_of(folder)["status"] == "aborted" and (folder / "seal.json").exists()
 
 
@@ -160,8 +159,7 @@ def test_a_stopped_clock_is_not_an_expired_lease_and_a_dead_recorder_is_found(
         assert f"{folder.name} running" in listing, listing
         assert not (folder / "seal.json").exists()
     finally:
-        writer.kill()
-        writer.wait()
+        stop_child(writer, first=signal.SIGKILL)  # its pipe closed too
     t0 = time.monotonic()
     listing, _ = rig_runs_elsewhere(runs)
     assert time.monotonic() - t0 >= LEASE_WATCH_S  # it watched before it judged

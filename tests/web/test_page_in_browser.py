@@ -74,8 +74,7 @@ def test_run_watched_and_prompt_answered_on_the_page_then_browsed(
         wait_js(page, "document.getElementById('live').dataset.finished === 'complete'", 120)
         assert proc.wait(timeout=60) == 0
     finally:
-        if proc.poll() is None:
-            stop_child(proc, first=signal.SIGTERM)
+        stop_child(proc, first=signal.SIGTERM)  # ended or not: its pipes closed
     folder = next(runs.iterdir())
     reader = RunReader(folder)
     events = [m for _, _, m in reader.events()]
@@ -144,8 +143,7 @@ def test_live_calibration_shows_the_forecast_beside_its_sigmas(
         wait_js(page, "document.getElementById('live').dataset.finished === 'aborted'", 60)
         assert proc.wait(timeout=60) == 130
     finally:
-        if proc.poll() is None:
-            stop_child(proc, first=signal.SIGTERM)
+        stop_child(proc, first=signal.SIGTERM)  # ended or not: its pipes closed
 
 
 def test_abort_from_the_page_leaves_every_output_off(
@@ -202,8 +200,7 @@ def test_abort_from_the_page_leaves_every_output_off(
         screenshot(page, "aborted")
         assert proc.wait(timeout=60) == 130
     finally:
-        if proc.poll() is None:
-            stop_child(proc, first=signal.SIGTERM)
+        stop_child(proc, first=signal.SIGTERM)  # ended or not: its pipes closed
     assert all(v == 0 for v in outputs(devices).values()), outputs(devices)
     reader = RunReader(next(runs.iterdir()))
     meta = reader.meta()
@@ -247,7 +244,6 @@ def test_prompt_answered_at_the_terminal_first(
         assert code == 0, proc.stderr.read().decode(errors="replace")[-2000:]  # why, if not
     finally:
         os.close(master)
-        if proc.poll() is None:
-            stop_child(proc, first=signal.SIGTERM)
+        stop_child(proc, first=signal.SIGTERM)  # ended or not: its pipes closed
     final = read_live(folders[0])
     assert final is not None and final["status"] == "complete" and "prompt" not in final

@@ -539,8 +539,9 @@ def test_another_account_cannot_answer_or_abort_a_live_run(tmp_path: Path) -> No
             try:
                 _another_account_at_the_prompt(proc, runs)
             finally:
-                if proc.poll() is None:
-                    stop_child(proc, first=signal.SIGTERM, wait_s=10.0)
+                stop_child(
+                    proc, first=signal.SIGTERM, wait_s=10.0
+                )  # ended or not: its pipes closed
     finally:
         shutil.rmtree(shared)
 
