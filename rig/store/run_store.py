@@ -232,19 +232,23 @@ class RunWriter:
     # --- the commit thread ----------------------------------------------------------------------
 
     def _drain(self) -> int:
-        batches: dict[str, list[tuple[Any, ...]]] = {}
-        while True:
-            try:
-                item = self._queue.get_nowait()
-            except queue.Empty:
-                break
-            if item is None:
-                continue
-            batches.setdefault(item[0], []).append(item[1])
-        if not batches:
-            return 0
-        n = sum(len(r) for r in batches.values())
+        # Taken off the queue under the lock its commit holds: a flush (a step about to read the
+        # store) waits for rows the writer thread has taken and not yet committed. Taken outside
+        # it, a busy computer descheduled the writer between the two and a step read a store
+        # missing them (a linearity axis found 2 settled points of 5, once, in simulated time).
         with self._lock:
+            batches: dict[str, list[tuple[Any, ...]]] = {}
+            while True:
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if item is None:
+                    continue
+                batches.setdefault(item[0], []).append(item[1])
+            if not batches:
+                return 0
+            n = sum(len(r) for r in batches.values())
             try:
                 if not self._begin_if_ours():
                     self.rows_dropped += n
@@ -260,7 +264,7 @@ class RunWriter:
                 if self._con.in_transaction:
                     self._con.rollback()
                 raise
-        self.rows_written += n
+            self.rows_written += n
         return n
 
     def _renew_lease(self) -> None:
