@@ -26,10 +26,15 @@ class ComputerDelay:
         for log in self.logs:
             log.note(self.t0)
 
-    def seconds(self) -> float:
-        """The watched processes' CPU waits (the longest thread of each, added) and the terminal
-        layer's seen stall since the start (s)."""
+    def cpu_s(self) -> float:
+        """The watched processes' CPU waits since the start (s): the longest thread of each,
+        added."""
         now = time.monotonic()
         for log in self.logs:
             log.note(now)
-        return sum(log.waited_since(self.t0) for log in self.logs) + tty_seen_stall_s(self.t0, now)
+        return sum(log.waited_since(self.t0) for log in self.logs)
+
+    def seconds(self) -> float:
+        """:meth:`cpu_s` and the terminal layer's seen stall since the start (s)."""
+        cpu_s = self.cpu_s()
+        return cpu_s + tty_seen_stall_s(self.t0, time.monotonic())

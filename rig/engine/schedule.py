@@ -206,9 +206,9 @@ class KeptTime:
             cmd = commands[i]
             if isinstance(cmd, FieldCommand) and cmd.payload.get("keep_time"):
                 self.total += 1
-                if later is not None and later > commands[i].t_s:
+                if later is not None and later > cmd.t_s:
                     self.next_t_s[i] = later
-                later = commands[i].t_s
+                later = cmd.t_s
 
     def overtaken(self, index: int, now_plan_s: float) -> bool:
         """Whether command ``index`` is to be skipped at ``now_plan_s`` (s from the step's start

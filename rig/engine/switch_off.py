@@ -100,14 +100,14 @@ SLOW_NOTE_S = 0.3
 def slowest_note(states: Iterable[OutputState]) -> str:
     """``; slowest: coil_y read back off after 1412 ms, opened at attempt 3`` when the slowest
     output took longer than :data:`SLOW_NOTE_S`, else ``""``: where a slow time to safe went."""
-    timed = [s for s in states if s.done_after_s is not None]
+    timed = [(s.done_after_s, s) for s in states if s.done_after_s is not None]
     if not timed:
         return ""
-    slow = max(timed, key=lambda s: s.done_after_s or 0.0)
-    if (slow.done_after_s or 0.0) <= SLOW_NOTE_S:
+    after_s, slow = max(timed, key=lambda pair: pair[0])
+    if after_s <= SLOW_NOTE_S:
         return ""
     opened = f", opened at attempt {slow.attempts}" if slow.attempts > 1 else ""
-    return f"; slowest: {slow.name} read back after {1000.0 * (slow.done_after_s or 0.0):.0f} ms{opened}"
+    return f"; slowest: {slow.name} read back after {1000.0 * after_s:.0f} ms{opened}"
 
 
 def switch_off_and_confirm(

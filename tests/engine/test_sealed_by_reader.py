@@ -21,11 +21,11 @@ from pathlib import Path
 import pytest
 
 from bench.faultlab import guardian_cpu_wait_ms, guardian_of, killed_rig_end_ms
-from drivers.transport.tty_watch import tty_seen_stall_s, tty_watch
+from drivers.transport.tty_watch import tty_watch
 from rig.engine.cpu_priority import GUARDIAN_NICE
-from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.recording import AFTER_CLOSE_FILE
 from sim.cage import SimulatedCage
+from tests.computer_delay import ComputerDelay
 from tests.engine.test_guardian_pair import OUTPUTS_OFF_WITHIN_S, off_after, start_run
 from tests.sim.nice import nice_of
 from tests.store.test_run_lease import other_namespace, status_of
@@ -52,18 +52,6 @@ def reader_elsewhere(folder: Path) -> str:
     return done.stdout.strip()
 
 
-def computer_delay_s(waits: CpuWaitLog, since: float) -> float:
-    """This computer's delay since ``since`` (s), not the guardian's: the longest any thread of
-    this process (the simulated cage's, which records when each output went off) waited for a
-    CPU, plus the time the kernel's terminal layer held serial data (coil_y is on a pty; the
-    canary of :mod:`drivers.transport.tty_watch`, started before the freeze). With four test
-    workers on two cores the cage once recorded the guardian's 180 ms switch-off 1124 ms after
-    SIGCONT, and once every output off 3481 ms after it with the guardian's own CPU wait 0."""
-    now = time.monotonic()
-    waits.note(now)
-    return waits.waited_since(since) + tty_seen_stall_s(since, now)
-
-
 def test_a_run_sealed_by_a_reader_while_stopped_ends_error_outputs_off_seal_kept(
     cage: SimulatedCage, rig_toml: Path, tmp_path: Path
 ) -> None:
@@ -86,11 +74,14 @@ def test_a_run_sealed_by_a_reader_while_stopped_ends_error_outputs_off_seal_kept
         )
         assert all(s.output for s in (supplies[n] for n in ("coil_x", "coil_y", "coil_z")))
         on = tuple(n for n, s in supplies.items() if s.output)
-        t_cont, cage_waits = time.monotonic(), CpuWaitLog()
-        cage_waits.note(t_cont)
+        # the cage's waits for a CPU (it records when each output went off) and the terminal
+        # layer's hold (coil_y is on a pty) are this computer's, not the guardian's: with four
+        # workers on two cores the cage once recorded the guardian's 180 ms switch-off 1124 ms
+        # after SIGCONT, and once every output off 3481 ms after it with the guardian's wait 0
+        t_cont, computer = time.monotonic(), ComputerDelay()
         os.kill(guardian, signal.SIGCONT)
         os.kill(child.pid, signal.SIGCONT)
-        took = off_after(cage, t_cont, on, 30.0) - computer_delay_s(cage_waits, t_cont)
+        took = off_after(cage, t_cont, on, 30.0) - computer.seconds()
         _, err = child.communicate(timeout=60)
     finally:
         if child.poll() is None:
@@ -143,10 +134,13 @@ def test_the_guardian_alone_acts_on_the_reader_seal_and_kills_a_rig_still_stoppe
         by_reader, seal = status_of(folder), (folder / "seal.json").read_bytes()
         on = tuple(n for n, s in supplies.items() if s.output)
         assert on
-        t_cont, cage_waits = time.monotonic(), CpuWaitLog()
-        cage_waits.note(t_cont)
+        # the cage's waits for a CPU (it records when each output went off) and the terminal
+        # layer's hold (coil_y is on a pty) are this computer's, not the guardian's: with four
+        # workers on two cores the cage once recorded the guardian's 180 ms switch-off 1124 ms
+        # after SIGCONT, and once every output off 3481 ms after it with the guardian's wait 0
+        t_cont, computer = time.monotonic(), ComputerDelay()
         os.kill(guardian, signal.SIGCONT)
-        took = off_after(cage, t_cont, on, 30.0) - computer_delay_s(cage_waits, t_cont)
+        took = off_after(cage, t_cont, on, 30.0) - computer.seconds()
         _, err = child.communicate(timeout=60)
     finally:
         if child.poll() is None:

@@ -19,8 +19,8 @@ import pytest
 
 from drivers.transport.tty_watch import tty_stall_s, tty_watch
 from rig.child_process import start_child, stop_child
-from rig.engine.cpu_wait import CpuWaitLog
 from rig.store import RunReader
+from tests.computer_delay import ComputerDelay
 from tests.simproc import children, outputs
 from tests.simproc import sim_process as start_sim
 from tests.web.conftest import read_url, screenshot, serve_process, split_token, wait_js
@@ -180,18 +180,13 @@ def test_abort_from_the_page_leaves_every_output_off(
         page.wait_for_selector("#paused-flag", state="hidden", timeout=30_000)
         # the run and its page server (a child) hand the abort on in turn, and this test looks:
         # time any of them waited, runnable, for a CPU was the computer's (a busy 2-core machine)
-        waits = [CpuWaitLog(pid=pid) for pid in ("self", proc.pid, *children(proc.pid))]
-        t_click = time.monotonic()
-        for w in waits:
-            w.note(t_click)
+        t_click, computer = time.monotonic(), ComputerDelay(proc.pid, *children(proc.pid))
         page.click("#abort")
         while any(v == 1 for v in outputs(devices, tcp_only=True).values()):
             assert time.monotonic() - t_click < 10.0, "outputs still on 10 s after the abort"
         t_safe = time.monotonic() - t_click
-        for w in waits:
-            w.note(t_click + t_safe)
+        waited = computer.cpu_s()
         held = tty_stall_s(t_click, t_click + t_safe)
-        waited = sum(w.waited_since(t_click) for w in waits)
         print(f"time to safe after the page's abort: {t_safe * 1000:.0f} ms ({held * 1000:.0f} ms"
               f" of it the kernel held serial data back; the run, its page server and this test"
               f" waited {waited * 1000:.0f} ms for a CPU)")  # fmt: skip
