@@ -155,7 +155,8 @@ def test_abort_from_the_page_leaves_every_output_off(
     proc, url = start_run(rig_toml, runs, "dut-acceptance", "--yes")
     try:
         page = browser.new_page(viewport={"width": 1280, "height": 900})
-        page.on("dialog", lambda d: d.accept())  # "Abort the run?"
+        confirmed: list[float] = []  # when the test, as the operator, said yes to "Abort the run?"
+        page.on("dialog", lambda d: (d.accept(), confirmed.append(time.monotonic())))
         run_page = read_url(proc, "this run's page:", stream=proc.stderr)
         base, token = split_token(url)
         assert run_page.startswith(base) and "/runs/" in run_page and run_page.endswith(token)
@@ -184,13 +185,17 @@ def test_abort_from_the_page_leaves_every_output_off(
         page.click("#abort")
         while any(v == 1 for v in outputs(devices, tcp_only=True).values()):
             assert time.monotonic() - t_click < 10.0, "outputs still on 10 s after the abort"
-        t_safe = time.monotonic() - t_click
+        t_off = time.monotonic()
         waited = computer.cpu_s()
-        held = tty_stall_s(t_click, t_click + t_safe)
-        print(f"time to safe after the page's abort: {t_safe * 1000:.0f} ms ({held * 1000:.0f} ms"
-              f" of it the kernel held serial data back; the run, its page server and this test"
-              f" waited {waited * 1000:.0f} ms for a CPU)")  # fmt: skip
-        assert t_safe - held - waited < 1.0
+        # from the operator's yes to the confirmation: the browser's dialog and the round trip to
+        # its driver before it are the test's tools, not the rig (seen: 1354 ms from the click)
+        assert confirmed and confirmed[-1] >= t_click, "the abort was not confirmed"
+        t_safe = t_off - confirmed[-1]
+        held = tty_stall_s(confirmed[-1], t_off)
+        print(f"time to safe after the page's abort: {t_safe * 1000:.0f} ms from the operator's"
+              f" yes, {(t_off - t_click) * 1000:.0f} ms from the click ({held * 1000:.0f} ms of it"
+              f" the kernel held serial data back; the run, its page server and this test waited"
+              f" {waited * 1000:.0f} ms for a CPU)")  # fmt: skip
         wait_js(page, "document.getElementById('live').dataset.finished === 'aborted'", 30)
         screenshot(page, "aborted")
         assert proc.wait(timeout=60) == 130
@@ -203,6 +208,10 @@ def test_abort_from_the_page_leaves_every_output_off(
     reader.close()
     assert meta["status"] == "aborted" and meta["reason"] == "aborted from the web page"
     assert ("operator", "paused") in events and ("operator", "resumed") in events
+    # judged once the run has said when it took the abort (monotonic s, this computer's clock):
+    # a slow time to safe then says whether the request or the safe path was slow
+    noticed_ms = 1000.0 * (float(meta["t_end_detected"]) - confirmed[-1])
+    assert t_safe - held - waited < 1.0, f"the run took the abort {noticed_ms:.0f} ms after the yes"
 
 
 def test_prompt_answered_at_the_terminal_first(
