@@ -51,6 +51,7 @@ from rig.engine import guardian_findings as findings
 from rig.engine.cpu_priority import raise_own_priority
 from rig.engine.cpu_wait import CpuWaitLog
 from rig.engine.frozen_config import FrozenConfigError, freeze, thaw
+from rig.engine.killed_rig import kill_rig
 from rig.errors import RigError
 
 OUTPUT_KINDS = output_kinds()
@@ -255,7 +256,7 @@ def wait_for_rig(
                 f" {stored})"
             )
         if kill_at is not None and now >= kill_at:
-            _kill_and_wait(fd, pid)
+            kill_rig(fd, pid)
             return (
                 f"the rig process did not end within {CLOSED_GRACE_S:g} s of its run being closed"
                 " by another process and was killed"
@@ -268,7 +269,7 @@ def wait_for_rig(
             last_beat, own_stall_s = now, 0.0
             continue
         if now - last_beat - own_stall_s > timeout_s:
-            _kill_and_wait(fd, pid)
+            kill_rig(fd, pid)
             ours = (
                 f", {own_stall_s:.1f} s more while the guardian waited for a CPU"
                 if own_stall_s
@@ -278,21 +279,6 @@ def wait_for_rig(
                 f"the rig process stopped answering (no heartbeat for {now - last_beat - own_stall_s:.1f} s{ours}:"
                 " hung, stopped or deadlocked) and was killed"
             )
-
-
-def _kill_and_wait(fd: int, pid: int) -> str:
-    """SIGKILL the rig and wait (up to 1 s) for its end of the pipe to close as it dies; says how
-    long that took when worth saying (a killed process's ports are free only once the kernel has
-    ended it, which on a busy computer waits for a CPU too)."""
-    t0 = time.monotonic()
-    with contextlib.suppress(OSError):
-        os.kill(pid, signal.SIGKILL)
-    deadline = t0 + 1.0
-    while time.monotonic() < deadline and select.select([fd], [], [], 0.05)[0]:
-        if not os.read(fd, 4096):
-            break
-    took_s = time.monotonic() - t0
-    return f"; the killed rig took {1000.0 * took_s:.0f} ms to end" if took_s >= 0.05 else ""
 
 
 def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
@@ -314,9 +300,11 @@ def watch(fd: int, cfg: RigConfig, folder: Path | None, pid: int) -> int:
     return _tell(why, t_found, done, problems, cpu)
 
 
-def _tell(why: str, t_found: float, done: list[str], problems: list[str], cpu: str = "") -> int:
-    """The guardian's lines on what it did (stderr); its exit status (1: an output not off)."""
-    took_ms = 1000.0 * (time.monotonic() - t_found)
+def _tell(why: str, t_found: float, done: list[str], problems: list[str], cpu: str = "",
+          t_done: float | None = None) -> int:  # fmt: skip
+    """The guardian's lines on what it did (stderr; ``t_done``: when the switch-off ended,
+    monotonic s, now when None); its exit status (1: an output not off)."""
+    took_ms = 1000.0 * ((time.monotonic() if t_done is None else t_done) - t_found)
     print(f"rig guardian: {why}; switched off {', '.join(done) or 'nothing'} in {took_ms:.0f} ms"
           f"{cpu}", file=sys.stderr)  # fmt: skip
     for p in problems:
@@ -336,10 +324,11 @@ def _closed_by_other(fd: int, cfg: RigConfig, pid: int, why: str, waits: CpuWait
     switched off once it has. The closed run is never written to."""
     t_found = time.monotonic()
     if findings.stays_stopped(pid):
-        ended = _kill_and_wait(fd, pid)
+        ended = kill_rig(fd, pid)
         done, problems, slowest = safe_outputs(cfg)
+        t_done = time.monotonic()
         return _tell(f"{why}; the rig process was still stopped and was killed", t_found, done,
-                     problems, findings.busy_note(waits, t_found) + ended + slowest)  # fmt: skip
+                     problems, findings.busy_note(waits, t_found) + ended() + slowest, t_done)  # fmt: skip
     done, held, slowest = safe_outputs(cfg)
     cpu = findings.busy_note(waits, t_found) + slowest
     left = f"; {len(held)} not reached yet (held by the rig, which is going safe)" if held else ""

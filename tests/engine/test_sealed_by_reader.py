@@ -155,7 +155,9 @@ def test_the_guardian_alone_acts_on_the_reader_seal_and_kills_a_rig_still_stoppe
     verify = subprocess.run([*RIG, "verify", str(folder)], capture_output=True, text=True,
                             timeout=60)  # fmt: skip
     assert verify.returncode == 0, verify.stdout + verify.stderr
-    print(f"guardian alone: {', '.join(on)} off {1000 * took:.0f} ms after its SIGCONT")
+    print(
+        f"guardian alone: {', '.join(on)} off {1000 * took:.0f} ms after its SIGCONT: {err.strip()}"
+    )
     # plus the guardian's own measured wait for a CPU and the killed rig's end (the kernel's
     # teardown, which frees its ports): a busy computer's, not the rig's, as in the fault matrix.
     # Beside two CPU hogs and four workers the guardian once took 3931 ms here, saying neither.
