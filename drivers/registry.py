@@ -178,6 +178,19 @@ Prober = Callable[[ProbeTarget], list[Found]]
 
 
 @dataclass(frozen=True)
+class OutputRange:
+    """What a supply or load's kind and configuration say of its range before it is opened: the
+    most current (A) and voltage (V) it can give, whether its current is signed, whether it has a
+    voltage set-point (an electronic load has none), and where that comes from (words)."""
+
+    max_current_a: float
+    max_voltage_v: float
+    bipolar: bool
+    sets_voltage: bool
+    source: str
+
+
+@dataclass(frozen=True)
 class DeviceKind:
     """A registered kind of device.
 
@@ -185,7 +198,9 @@ class DeviceKind:
     (optional) recognizes the device on a bring-up target of one of ``transports`` at each of
     ``probe_baudrates`` (serial lines only); ``probe_first`` kinds are tried before the others on a
     serial port (a passive listen before any request). ``transport_keys`` holds this kind's own
-    version of a transport key (the HMR2300's baud rate defaults to 9600 Bd).
+    version of a transport key (the HMR2300's baud rate defaults to 9600 Bd). ``range_of``
+    (supplies and loads) tells an output's range from its configuration before it is opened
+    (``rig check``'s heat limits).
     """
 
     name: str
@@ -198,6 +213,7 @@ class DeviceKind:
     probe_baudrates: tuple[int, ...] = ()
     probe_first: bool = False
     transport_keys: Mapping[str, Param] = field(default_factory=dict)
+    range_of: Callable[[Mapping[str, Any]], OutputRange | None] | None = None
 
     @property
     def is_output(self) -> bool:
@@ -595,7 +611,7 @@ def _modbus_kinds() -> Iterator[DeviceKind]:
     yield DeviceKind(
         "riden-rd60xx", frozenset({"supply", "load"}), modbus, (*SUPPLY_PARAMS, CURRENT_RANGE),
         _open_riden, "Riden RD60xx bench supply (RD6006, RD6006P, RK6006, RD6012, RD6012P, RD6018,"
-        " RD6024, RD6030)", _probe_riden, (115200, 9600),
+        " RD6024, RD6030)", _probe_riden, (115200, 9600), range_of=_riden_range,
     )  # fmt: skip
     map_kinds: tuple[tuple[str, frozenset[Role], str, tuple[Param, ...], Opener, str], ...] = (
         ("regmap-supply", frozenset({"supply", "load"}), "supply", (REGMAP, *SUPPLY_PARAMS),
@@ -611,8 +627,8 @@ def _modbus_kinds() -> Iterator[DeviceKind]:
     )  # fmt: skip
     for name, roles, map_kind, params, opener, description in map_kinds:
         yield DeviceKind(name, roles, modbus, params, opener, description,
-                         _probe_maps(name, map_kind), _map_bauds(map_kind),
-                         transport_keys=MAP_BAUD)  # fmt: skip
+                         _probe_maps(name, map_kind), _map_bauds(map_kind), transport_keys=MAP_BAUD,
+                         range_of=_map_range if map_kind in ("supply", "eload") else None)  # fmt: skip
 
 
 def _magnetometer_kinds() -> Iterator[DeviceKind]:
@@ -679,38 +695,30 @@ def _scalar_kinds() -> Iterator[DeviceKind]:
     )  # fmt: skip
 
 
-@dataclass(frozen=True)
-class OutputRange:
-    """What a supply or load's kind and configuration say of its range before it is opened: the
-    most current (A) and voltage (V) it can give, whether its current is signed, whether it has a
-    voltage set-point (an electronic load has none), and where that comes from (words)."""
-
-    max_current_a: float
-    max_voltage_v: float
-    bipolar: bool
-    sets_voltage: bool
-    source: str
-
-
 def output_range(kind: str, params: Mapping[str, Any]) -> OutputRange | None:
     """The range of an output of ``kind`` configured with ``params``, as known without opening
-    it: a register-map device's from its map, a Riden's as the largest of its family (the model
-    is read when it is opened); None for another kind or a map that cannot be read."""
-    if kind == "riden-rd60xx":
-        biggest = max(RIDEN_MODELS, key=lambda m: max(r.i_max_a for r in m.ranges))
-        return OutputRange(max(r.i_max_a for r in biggest.ranges),
-                           max(m.v_max_v for m in RIDEN_MODELS), False, True,
-                           f"the largest range of any {kind} ({biggest.name}); the model is read"
-                           " when it is opened")  # fmt: skip
-    if kind in ("regmap-supply", "regmap-eload"):
-        try:
-            regmap = load_map(str(params.get("regmap")))
-        except (OSError, ValueError):  # RegisterMapError is a ValueError; opening says more
-            return None
-        return OutputRange(regmap.i_max, regmap.v_max, regmap.bipolar,
-                           regmap.role("v_set") is not None,
-                           f"the range of its register map {regmap.name}")  # fmt: skip
-    return None
+    it (its kind's ``range_of``); None for a kind that does not say or a map that cannot be read."""
+    found = KINDS.get(kind)
+    return found.range_of(params) if found is not None and found.range_of is not None else None
+
+
+def _riden_range(params: Mapping[str, Any]) -> OutputRange:
+    """A Riden's range as the largest of its family: the model is read when it is opened."""
+    biggest = max(RIDEN_MODELS, key=lambda m: max(r.i_max_a for r in m.ranges))
+    return OutputRange(max(r.i_max_a for r in biggest.ranges), max(m.v_max_v for m in RIDEN_MODELS),
+                       False, True, f"the largest range of any riden-rd60xx ({biggest.name}); the"
+                       " model is read when it is opened")  # fmt: skip
+
+
+def _map_range(params: Mapping[str, Any]) -> OutputRange | None:
+    """A register-map output's range from its map (None when the map cannot be read: opening
+    the device says more)."""
+    try:
+        regmap = load_map(str(params.get("regmap")))
+    except (OSError, ValueError):  # RegisterMapError is a ValueError
+        return None
+    return OutputRange(regmap.i_max, regmap.v_max, regmap.bipolar, regmap.role("v_set") is not None,
+                       f"the range of its register map {regmap.name}")  # fmt: skip
 
 
 def _iter_registered() -> Iterator[DeviceKind]:

@@ -7,10 +7,18 @@ back the very mapping it was read from (``to_dict``).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from typing import Any, TypeVar, cast
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, TypeAlias, TypeVar, cast
 
 from rig.errors import StoredResultError
+
+JsonValue: TypeAlias = (
+    "str | int | float | bool | Sequence[JsonValue] | Mapping[str, JsonValue] | None"
+)
+"""What a run's store can keep as JSON (its results and meta): nested mappings and sequences of
+strings, numbers, booleans and None."""
+JsonObject: TypeAlias = Mapping[str, JsonValue]
+"""A step's result or a run meta value as stored: a JSON object."""
 
 R = TypeVar("R")
 

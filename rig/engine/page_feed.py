@@ -20,8 +20,9 @@ import collections
 import contextlib
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -30,6 +31,11 @@ from rig.engine.run_tracker import RunTracker
 from rig.procedure.language import Procedure
 from rig.store.run_control import CONTROL_DIR, open_box, take_requests, write_live
 from rig.store.run_states import RunStatus
+from rig.stored import JsonObject
+
+if TYPE_CHECKING:
+    from rig.cage.controller import CageController
+    from rig.engine.sampling import SensorSampler
 
 POLL_S = 0.1
 """How often the requests are looked for (s): an abort reaches the safe path within this."""
@@ -49,12 +55,12 @@ class LiveRun(Protocol):
 
     tracker: RunTracker
     proc: Procedure
-    controller: Any  # rig.cage.controller.CageController once the devices are open
-    samplers: dict[str, Any]  # rig.engine.sampling.SensorSampler per sampled device
+    controller: CageController  # once the devices are open
+    samplers: dict[str, SensorSampler]  # by sampled device name
     commanded_loads: dict[str, float]
     measured_loads: dict[str, tuple[float, float]]
-    status_sources: list[Any]
-    live_sources: list[Any]
+    status_sources: list[Callable[[], str]]
+    live_sources: list[Callable[[], JsonObject]]
 
     @property
     def folder(self) -> Path: ...

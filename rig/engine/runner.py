@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import sys
 from array import array
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,6 +70,7 @@ from rig.steps.vocabulary import FieldCommand, LoadCommand, Step
 from rig.store.run_control import run_page_url
 from rig.store.run_states import EXIT_CODES, RunStatus, Verdict
 from rig.store.run_store import RunReader, RunWriter
+from rig.stored import JsonObject, JsonValue
 from rig.verdict import check_verdict
 
 
@@ -106,13 +107,13 @@ class Runner:
         self.page_url = page_url  # the web page serving this run (rig run --serve), if any
         self.tracker = RunTracker()
         self.operator = OperatorChannel(confirm, page_url, self._event)
-        self.results: dict[str, Any] = {}
+        self.results: dict[str, JsonObject] = {}
         self.loads = LoadBook()
         self.commanded_loads = self.loads.commanded
         self.measured_loads = self.loads.measured
         self.change_listeners: list[ChangeListener] = []
-        self.status_sources: list[Any] = []  # callables returning a short text, for the terminal
-        self.live_sources: list[Any] = []  # callables returning a dict, for the page
+        self.status_sources: list[Callable[[], str]] = []  # a short text each, for the terminal
+        self.live_sources: list[Callable[[], JsonObject]] = []  # the page's values from steps
         self.samplers: dict[str, SensorSampler] = {}
         self.controller: Any = None
         self.correction: dict[str, Any] | None = None
@@ -341,7 +342,7 @@ class Runner:
         """Record an event (info, warning, error, operator)."""
         self._event(level, message)
 
-    def record_result(self, name: str, value: Any) -> None:
+    def record_result(self, name: str, value: JsonObject) -> None:
         """Keep a result for later steps and store it."""
         assert self.writer is not None
         self.results[name] = value
@@ -372,8 +373,8 @@ class Runner:
 
         start_after_null(self, null_name)
 
-    def set_meta(self, **values: Any) -> None:
-        """Store run metadata."""
+    def set_meta(self, **values: JsonValue) -> None:
+        """Store run metadata (JSON values)."""
         assert self.writer is not None
         self.writer.set_meta(**values)
 

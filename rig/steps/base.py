@@ -33,6 +33,7 @@ from rig.steps.vocabulary import (
     Step,
     StepParam,
 )
+from rig.stored import JsonObject, JsonValue
 
 if TYPE_CHECKING:
     from drivers.protocols import Magnetometer, ScalarMagnetometer
@@ -71,13 +72,14 @@ class RunContext(Protocol):
     proc: Procedure
     cfg: RigConfig
     controller: CageController  # once the devices are open
-    results: dict[str, Any]
+    results: dict[str, JsonObject]
+    """The steps' results so far, by step name (each as stored)."""
     correction: dict[str, Any] | None  # the reference magnetometer's certificate
     commanded_loads: dict[str, float]  # A
     measured_loads: dict[str, tuple[float, float]]  # device -> (monotonic s, A)
     change_listeners: list[ChangeListener]
     status_sources: list[Callable[[], str]]  # a short text each for the live view
-    live_sources: list[Callable[[], dict[str, Any]]]  # values for the web page
+    live_sources: list[Callable[[], JsonObject]]  # values for the web page
 
     @property
     def folder(self) -> Path:
@@ -91,13 +93,17 @@ class RunContext(Protocol):
 
     def event(self, level: str, message: str) -> None: ...
 
-    def record_result(self, name: str, value: Any) -> None: ...
+    def record_result(self, name: str, value: JsonObject) -> None:
+        """Keep step result ``name`` for later steps and in the run's store."""
+        ...
 
     def open_reader(self) -> RunReader:
         """The run's store as recorded so far (flushed); the caller closes it."""
         ...
 
-    def set_meta(self, **values: Any) -> None: ...
+    def set_meta(self, **values: JsonValue) -> None:
+        """Store run metadata (JSON values)."""
+        ...
 
     def scalar_magnetometer(self, name: str) -> ScalarMagnetometer:
         """Total-field magnetometer ``name``, opened for the run and closed with it."""

@@ -48,6 +48,7 @@ from rig.errors import StoreWriteError, UserInputError
 from rig.store import safe_files
 from rig.store.run_states import RunStatus
 from rig.store.seal import damaged, seal_run
+from rig.stored import JsonObject, JsonValue
 
 COMMIT_INTERVAL_S = 0.2
 """At most this much data (plus one commit's duration) is at risk if the process is killed."""
@@ -203,7 +204,7 @@ class RunWriter:
                     f" space under {self.folder.parent}; what was recorded before is kept"
                 ) from None
 
-    def set_meta(self, **values: Any) -> None:
+    def set_meta(self, **values: JsonValue) -> None:
         """Metadata, written and committed at once."""
         with self._writing() as ours:
             if ours:
@@ -220,7 +221,7 @@ class RunWriter:
                 )
                 self._con.commit()
 
-    def set_result(self, name: str, value: Any) -> None:
+    def set_result(self, name: str, value: JsonObject) -> None:
         """A named result (calibration, check verdict), JSON-serializable."""
         with self._writing() as ours:
             if ours:

@@ -7,7 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from drivers.registry import KINDS, TRANSPORTS, all_params, kinds_with_role, output_kinds
+from drivers.registry import (
+    KINDS,
+    TRANSPORTS,
+    all_params,
+    kinds_with_role,
+    output_kinds,
+    output_range,
+)
 from regmaps import shipped_maps
 from rig.config import DEVICE_KINDS, load_rig_config
 from rig.engine.guardian import OUTPUT_KINDS
@@ -28,6 +35,18 @@ def test_outputs_and_roles_come_from_the_registry() -> None:
     # the shipped ones at least (a new magnetometer kind needs no edit here)
     assert set(kinds_with_role("magnetometer")) >= {"hmr2300", "ascii-mag", "rm3100", "lis3mdl"}
     assert set(kinds_with_role("load")) >= {"riden-rd60xx", "regmap-eload"}
+
+
+def test_every_supply_and_load_kind_tells_its_range_before_it_is_opened() -> None:
+    """``rig check``'s heat limits bound a heater by its output's range (docs/devices.md, "How to
+    add any other device", step 2)."""
+    currents = set(kinds_with_role("supply")) | set(kinds_with_role("load"))
+    assert currents and not [k for k in currents if KINDS[k].range_of is None]
+    assert output_range("riden-rd60xx", {}) is not None
+    mapped = output_range("regmap-supply", {"regmap": "dps5005"})
+    assert mapped is not None and mapped.max_current_a == 5.0 and mapped.sets_voltage
+    assert output_range("regmap-relay", {"regmap": "waveshare-relay"}) is None
+    assert output_range("regmap-supply", {"regmap": "no-such-map"}) is None
 
 
 DEVICES_MD = Path(__file__).resolve().parents[2] / "docs" / "devices.md"
