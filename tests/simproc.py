@@ -6,7 +6,7 @@ import json
 import os
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -49,7 +49,7 @@ function 06)."""
 
 def output_registers(
     devices: dict[str, Any], tcp_only: bool = False
-) -> Iterator[tuple[str, Any, int, int]]:
+) -> Generator[tuple[str, Any, int, int], None, None]:
     """(name, connected client, output-state register, device id) of every supply and load, on
     their own wires (RTU ports are exclusive: only ``tcp_only`` ones while a run holds them). The
     Maynuo load's state is the coil 0x0510; it is switched by commands to 0x0A00
@@ -69,13 +69,23 @@ def output_registers(
 
 
 def outputs(devices: dict[str, Any], tcp_only: bool = False) -> dict[str, int]:
-    """Output-enable state of every supply and load."""
-    return {
-        name: int(client.read_coils(reg, count=1, device_id=dev_id).bits[0])
-        if reg == LOAD_INPUT_STATE
-        else client.read_holding_registers(reg, count=1, device_id=dev_id).registers[0]
-        for name, client, reg, dev_id in output_registers(devices, tcp_only)
-    }
+    """Output-enable state of every supply and load. Each client is closed before a failed read
+    raises: a generator left suspended inside its ``with`` by the consumer's exception would be
+    closed only by the garbage collector, which may finalize its socket first (an unclosed
+    socket's ResourceWarning)."""
+    found: dict[str, int] = {}
+    registers = output_registers(devices, tcp_only)
+    try:
+        for name, client, reg, dev_id in registers:
+            if reg == LOAD_INPUT_STATE:
+                found[name] = int(client.read_coils(reg, count=1, device_id=dev_id).bits[0])
+            else:
+                found[name] = client.read_holding_registers(
+                    reg, count=1, device_id=dev_id
+                ).registers[0]
+    finally:
+        registers.close()  # the open client's ``with`` ends here, whatever was raised
+    return found
 
 
 def children(pid: int) -> list[int]:

@@ -3,6 +3,7 @@ readable, and the shipped procedures pass."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -231,12 +232,14 @@ def operator_events(runs: Path) -> list[str]:
 
 
 def switch_off(devices: dict[str, Any]) -> None:
-    """Output enable off on every supply and load."""
-    for _, client, reg, dev_id in output_registers(devices):
-        if reg == LOAD_INPUT_STATE:  # the load: the input-off command, by function 16
-            client.write_registers(LOAD_OFF[0], [LOAD_OFF[1]], device_id=dev_id)
-        else:
-            client.write_register(reg, 0, device_id=dev_id)
+    """Output enable off on every supply and load (each client closed even when a write raises:
+    :func:`tests.simproc.outputs`)."""
+    with contextlib.closing(output_registers(devices)) as registers:
+        for _, client, reg, dev_id in registers:
+            if reg == LOAD_INPUT_STATE:  # the load: the input-off command, by function 16
+                client.write_registers(LOAD_OFF[0], [LOAD_OFF[1]], device_id=dev_id)
+            else:
+                client.write_register(reg, 0, device_id=dev_id)
 
 
 @pytest.mark.parametrize(
