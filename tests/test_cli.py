@@ -252,13 +252,15 @@ def test_filter_method_result_and_history(rax_csv: Path, tmp_path: Path) -> None
 def test_method_choices_come_from_the_estimator_table() -> None:
     import argparse
 
-    from rig.calibration.estimators import method_names
+    from rig.calibration.estimators import method_names, spoken
     from rig.cli import build_parser
 
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     method = next(a for a in sub.choices["calibrate"]._actions if a.dest == "method")
     assert tuple(method.choices or ()) == method_names()
-    assert "centered-seq, ekf, ukf and rls are the sequential" in (method.help or "")
+    sequential = spoken(method_names(kind="sequential"), "and")  # the registry's, in its order
+    assert f"{sequential} are the sequential" in (method.help or "")
+    assert set(method_names(kind="sequential")) >= {"centered-seq", "ekf", "ukf", "rls"}
 
 
 def test_cage_set_field_help_and_usage_error() -> None:
