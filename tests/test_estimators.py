@@ -234,3 +234,23 @@ def test_the_table_loads_without_numpy() -> None:
 
     code = "import sys, rig.calibration.estimators, rig.cli; sys.exit('numpy' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_parameters_a_method_holds_are_no_degenerate_fit(cage_case: SyntheticCase) -> None:
+    """A method that holds parameters at their nominal value gives them variance 0 (the guide's
+    rule): they correlate with nothing, and take no degree of freedom from the chi-square (a
+    correlation matrix less the identity had put -1 on their diagonal: 'degenerate fit')."""
+    from rig.calibration.estimate import Estimate
+    from rig.calibration.result import summarize
+
+    fitted = calibrate(cage_case.samples, noise_nt=50.0)
+    held = np.ones(fitted.p.size, bool)
+    held[:9] = False  # scale, axes and offsets fitted; mounting and the rest held
+    cov = fitted.covariance.copy()
+    cov[held, :] = 0.0
+    cov[:, held] = 0.0
+    est = Estimate("vector", fitted.p, cov, rotation_ref=fitted.calibration.rotation)
+    result = summarize(est, cage_case.samples, 50.0)
+    assert not result.chi2.verdict.startswith("degenerate"), result.chi2.verdict
+    assert result.chi2.dof == 3 * cage_case.samples.n - 9
+    assert result.chi2.dof > fitted.chi2.dof

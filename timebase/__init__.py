@@ -36,6 +36,7 @@ from timebase.clock import (
     sleep,
     use,
     wait_any,
+    wake_jitter_s,
     wall_time,
 )
 from timebase.sim_clock import NotOnTheClockError, SimulatedClock
@@ -60,5 +61,6 @@ __all__ = [
     "sleep",
     "use",
     "wait_any",
+    "wake_jitter_s",
     "wall_time",
 ]

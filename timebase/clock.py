@@ -18,6 +18,10 @@ class Clock(Protocol):
     """What every clock offers. Times in seconds; ``monotonic`` never goes back."""
 
     simulated: bool
+    wake_jitter_s: float
+    """How late (s) a thread of this clock may wake, or read what arrived, with no sign of it in
+    what it measures: the least date uncertainty a timing claims (a floor under what arrivals
+    show)."""
 
     def monotonic(self) -> float:
         """Seconds on this clock (an arbitrary origin)."""
@@ -138,6 +142,11 @@ def is_simulated() -> bool:
 def monotonic() -> float:
     """Seconds on the current clock."""
     return current().monotonic()
+
+
+def wake_jitter_s() -> float:
+    """The current clock's unseen wake-up lateness (s): :attr:`Clock.wake_jitter_s`."""
+    return float(current().wake_jitter_s)
 
 
 def wall_time() -> float:

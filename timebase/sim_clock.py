@@ -71,6 +71,9 @@ class SimulatedClock:
     """Simulated time from ``start_s`` (s); ``epoch_s``: the wall date at ``start_s`` (Unix s)."""
 
     simulated = True
+    wake_jitter_s = 0.0
+    """None: a participant runs at the simulated time it waited for (a busy host's lateness,
+    :mod:`timebase.busy_host`, shows in the arrivals it delays)."""
 
     def __init__(self, start_s: float = 0.0, epoch_s: float | None = None) -> None:
         self._state = threading.Lock()

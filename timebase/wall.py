@@ -15,6 +15,9 @@ class WallClock:
     """Real time, for a real rig and the real-time tier of the tests."""
 
     simulated = False
+    wake_jitter_s = 0.001
+    """A scheduler's wake-up lateness on an idle computer, which arrival times cannot show
+    below it (s)."""
 
     def monotonic(self) -> float:
         """``time.monotonic()`` (s)."""

@@ -395,13 +395,16 @@ def summarize(
         residuals_nt = 1000.0 * r
         floor_gain = float(np.sqrt(np.mean(gain**2)))
     n_eff = float(np.sum(robust_w > 0)) * (3 if vector else 1)
-    sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - est.p.size, 1.0)))
+    # a parameter the method holds at its nominal value (variance 0) takes no degree of freedom
+    fitted = int(np.count_nonzero(np.diag(est.covariance) > 0))
+    sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - fitted, 1.0)))
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
     check, covariance, crlb = _noise_model(est, s, vector_rows, weighted, sigma_hat, noise_ut,
                                            fisher)  # fmt: skip
-    corr = correlation_matrix(est.covariance) - np.eye(est.p.size)
+    corr = correlation_matrix(est.covariance)
+    np.fill_diagonal(corr, 0.0)  # (a held parameter's is 0 already: never taken for -1)
     degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if est.p.size > 1 else False
-    chi = _chi_square(weighted, noise_ut, est.p.size, noise_nt is not None, degenerate)
+    chi = _chi_square(weighted, noise_ut, fitted, noise_nt is not None, degenerate)
     result = CalibrationResult(
         model="vector" if vector else "scalar",
         method=est.method,

@@ -72,13 +72,19 @@ def sine_fit(t_s: Array, y: Array, f_hz: float, also_hz: tuple[float, ...] = ())
     t = np.asarray(t_s, float)
     if len(t) < MIN_SAMPLES:
         raise ValueError(f"{len(t)} samples: at least {MIN_SAMPLES} are needed for a sine fit")
-    w = 2.0 * math.pi * f_hz * t
-    extra = [g(2.0 * math.pi * h * t) for h in also_hz for g in (np.cos, np.sin)]
-    design = np.column_stack([np.ones_like(t), t - t.mean(), np.cos(w), np.sin(w), *extra])
+    design = _design(t, f_hz, also_hz)
     coef, *_ = np.linalg.lstsq(design, np.asarray(y, float), rcond=None)
     resid = np.asarray(y, float) - design @ coef
-    inv = np.linalg.inv(design.T @ design)[2:4, 2:4]
+    inv = np.asarray(np.linalg.inv(design.T @ design)[2:4, 2:4], dtype=np.float64)
     return SineFit(complex(float(coef[2]), -float(coef[3])), resid, inv)  # a cos + b sin
+
+
+def _design(t: Array, f_hz: float, also_hz: tuple[float, ...]) -> Array:
+    """The sine fit's columns at times ``t`` (s): constant, slope, cos and sin at ``f_hz``, then
+    cos and sin at each of ``also_hz``."""
+    w = 2.0 * math.pi * f_hz * t
+    extra = [g(2.0 * math.pi * h * t) for h in also_hz for g in (np.cos, np.sin)]
+    return np.column_stack([np.ones_like(t), t - t.mean(), np.cos(w), np.sin(w), *extra])
 
 
 def phasor(t_s: Array, y: Array, f_hz: float, also_hz: tuple[float, ...] = ()) -> Phasor:
@@ -195,11 +201,6 @@ def half_power_hz(f_hz: list[float], amplitude: list[float]) -> float | None:
     return None
 
 
-IMAGE_HARMONICS = 50
-"""The staircase's images looked at: the set-point rate's multiples up to this one, plus and
-minus the sine's frequency (beyond it the hold and the coils leave less than 1e-5 of the sine)."""
-
-
 def corner_hz(f_hz: float, cage_amplitude: float) -> float:
     """The corner (Hz) of a first-order low-pass that is ``cage_amplitude`` at ``f_hz``: the
     cage's high frequencies as one measured point says (infinite when it is not below 0.99)."""
@@ -208,42 +209,16 @@ def corner_hz(f_hz: float, cage_amplitude: float) -> float:
     return f_hz * cage_amplitude / math.sqrt(1.0 - cage_amplitude**2)
 
 
-def image_on_sine(f_hz: float, rate_hz: float, sample_rates_hz: tuple[float, ...], span_s: float,
-                  corner: float) -> float:  # fmt: skip
-    """A bound on the set-points' staircase images a device sees on the sine itself, relative to
-    the sine: an image at ``k rate_hz +- f_hz`` that a device sampling at one of
-    ``sample_rates_hz`` aliases to within a frequency bin (1.5 / ``span_s``) of ``f_hz`` cannot be
-    fitted apart from it. Each counts with the hold's own (sinc) weight at its frequency over the
-    sine's and the cage's first-order fall beyond ``corner`` (Hz); the devices' responses at the
-    image, unknown for the DUT, are bounded by one. Summed (they may add in phase)."""
-    resolution = 1.5 / span_s
-    total = 0.0
-    for k in range(1, IMAGE_HARMONICS + 1):
-        for g in (k * rate_hz - f_hz, k * rate_hz + f_hz):
-            seen = [abs(g - round(g / fs) * fs) for fs in sample_rates_hz if g > fs / 2]
-            if not any(abs(s - f_hz) < resolution for s in seen):
-                continue
-            hold = _sinc(g / rate_hz) / _sinc(f_hz / rate_hz)
-            fall = math.hypot(1.0, f_hz / corner) / math.hypot(1.0, g / corner)
-            total += abs(hold) * fall
-    return total
-
-
-def _sinc(x: float) -> float:
-    return math.sin(math.pi * x) / (math.pi * x) if x else 1.0
-
-
-def with_systematics(point: ResponsePoint, image: float, timing_sigma_s: float) -> ResponsePoint:
+def with_systematics(point: ResponsePoint, image: tuple[float, float],
+                     timing_sigma_s: float) -> ResponsePoint:  # fmt: skip
     """``point`` with two systematic terms added in quadrature to its sigmas: the staircase's
-    images on the sine (``image``, relative: a bound on the amplitude and, in radians, on the
-    phase, of unknown sign: counted as a rectangular distribution within it, 1-sigma
-    ``image / sqrt(3)``, GUM 4.3.7) and
-    the devices' relative date uncertainty (``timing_sigma_s``, 1-sigma): on the phase its angle
-    ``2 pi f sigma``, on the amplitude the loss of a sine whose dates wander by that much within
-    the fit (a phase of rms ``phi`` keeps ``E[cos phi] ~ 1 - phi^2 / 2`` of it)."""
+    images on the sine (``image``: their 1-sigma on the amplitude, relative, and on the phase,
+    rad: :func:`rig.characterization.staircase_images.image_spread`) and the devices' relative
+    date uncertainty (``timing_sigma_s``, 1-sigma): on the phase its angle ``2 pi f sigma``, on
+    the amplitude the loss of a sine whose dates wander by that much within the fit (a phase of
+    rms ``phi`` keeps ``E[cos phi] ~ 1 - phi^2 / 2`` of it)."""
     phi = 2.0 * math.pi * point.f_hz * timing_sigma_s
-    image_sigma = image / math.sqrt(3.0)
-    phase = math.hypot(point.phase_sigma_deg, math.degrees(image_sigma), math.degrees(phi))
-    amplitude = math.hypot(point.amplitude_sigma, point.amplitude * image_sigma,
+    phase = math.hypot(point.phase_sigma_deg, math.degrees(image[1]), math.degrees(phi))
+    amplitude = math.hypot(point.amplitude_sigma, point.amplitude * image[0],
                            point.amplitude * phi**2 / 2.0)  # fmt: skip
     return dataclasses.replace(point, amplitude_sigma=amplitude, phase_sigma_deg=phase)

@@ -99,7 +99,8 @@ class SensorSampler:
 
     def _run(self) -> None:
         period = 1.0 / self.rate_hz
-        clock = StreamClock(period)  # a self-timed sensor's own clock, from the arrivals
+        # a self-timed sensor's own clock, from the arrivals
+        clock = StreamClock(period, timebase.wake_jitter_s())
         next_t = timebase.monotonic()
         failures = 0  # consecutive late or unreadable replies
         counter = self.driver if isinstance(self.driver, CountsLostSamples) else None

@@ -25,12 +25,12 @@ from rig.analysis import settled_samples, to_cage_frame
 from rig.characterization.frequency import (
     ResponsePoint,
     corner_hz,
-    image_on_sine,
     phasor,
     relative_phasors,
     response_point,
     with_systematics,
 )
+from rig.characterization.staircase_images import image_spread
 from rig.steps.base import (
     Array,
     RunContext,
@@ -52,6 +52,9 @@ from rig.steps.sine_fields import (
     staircase,
 )
 from rig.steps.vocabulary import Step, StepParam
+
+Fitted = tuple[Array, tuple[float, ...]]
+"""A device's sample times (s) within a sine and the staircase lines fitted beside it (Hz)."""
 
 
 @dataclass(frozen=True)
@@ -161,7 +164,7 @@ class MeasureFrequencyResponse(StepExecution):
             reader.close()
         m, h, frame = self._frames(rows[:, 1:], to_cage_frame(refs[:, 1:], self.ctx.correction))
         rate = float(p["rate_hz"])
-        measured: list[tuple[Segment, ResponsePoint, tuple[float, float], tuple[float, ...]]] = []
+        measured: list[tuple[Segment, ResponsePoint, tuple[float, float], list[Fitted]]] = []
         slips: dict[str, list[str | None]] = {}
         for s in segments(p):
             c = commanded(self.step, sent, s)
@@ -169,21 +172,24 @@ class MeasureFrequencyResponse(StepExecution):
             span = span_of(c, rate)
             kd = (rows[:, 0] >= span[0]) & (rows[:, 0] < span[1])
             kr = (refs[:, 0] >= span[0]) & (refs[:, 0] < span[1])
-            dut_p, ref_p = relative_phasors(
-                (rows[kd, 0], m[kd, s.axis]), (refs[kr, 0], h[kr, s.axis]), s.f_hz,
-                staircase(rows[kd, 0], rate, s.f_hz), staircase(refs[kr, 0], rate, s.f_hz))  # fmt: skip
+            fits = [(t, staircase(t, rate, s.f_hz)) for t in (rows[kd, 0], refs[kr, 0])]
+            dut_p, ref_p = relative_phasors((rows[kd, 0], m[kd, s.axis]),
+                                            (refs[kr, 0], h[kr, s.axis]), s.f_hz,
+                                            fits[0][1], fits[1][1])  # fmt: skip
             point = response_point(s.f_hz, dut_p, ref_p, phasor(c[:, 0], c[:, 1], s.f_hz),
                                    ref.at(s.f_hz))  # fmt: skip
-            measured.append((s, point, span, (_rate(rows[kd, 0]), _rate(refs[kr, 0]))))
+            measured.append((s, point, span, fits))
         corners: dict[int, float] = {}  # per axis, the cage's fall from its lowest point
         for s, point, *_ in measured:
             corner = corner_hz(point.f_hz, point.cage_amplitude)
             corners[s.axis] = min(corners.get(s.axis, math.inf), corner)
         points: dict[str, list[ResponsePoint]] = {}
-        for s, point, span, rates in measured:
-            image = image_on_sine(s.f_hz, rate, rates, span[1] - span[0], corners[s.axis])
+        for s, point, span, fits in measured:
+            image = image_spread(s.f_hz, rate, fits, corners[s.axis])
             timing = math.hypot(*(_date_sigma_s(d, span) for d in dates))
-            points.setdefault(AXES[s.axis], []).append(with_systematics(point, image, timing))
+            points.setdefault(AXES[s.axis], []).append(
+                with_systematics(point, (image.amplitude, image.phase_rad), timing)
+            )
             at = len(points[AXES[s.axis]]) - 1
             if slips[AXES[s.axis]][at] is None and timing * s.f_hz > MAX_DATE_CYCLES:
                 slips[AXES[s.axis]][at] = (f"{AXES[s.axis]} {s.f_hz:g} Hz: its samples' dates known"
@@ -219,11 +225,6 @@ def _date_sigma_s(dates: Array, span: tuple[float, float]) -> float:
     inside = dates[(dates[:, 0] >= span[0]) & (dates[:, 0] < span[1]), 1]
     inside = inside[np.isfinite(inside)]
     return float(np.median(inside)) / math.sqrt(3.0) if len(inside) else 0.0
-
-
-def _rate(t_s: Array) -> float:
-    """A device's sampling rate (Hz) from its dates."""
-    return 1.0 / float(np.median(np.diff(t_s))) if len(t_s) > 1 else math.inf
 
 
 KIND = FrequencyResponse()

@@ -106,12 +106,19 @@ def bias_fields(params: dict[str, Any]) -> list[tuple[float, Array]]:
     return out
 
 
+def setpoint_count(s: Segment, rate_hz: float) -> int:
+    """How many set-points a segment is planned with: one every ``1 / rate_hz`` s from its start,
+    the last at or before its end (rounded, 4.25 s at 47 Hz put the last one 5 ms past the end:
+    after the next axis's bias, whose field it then put back with a ramp of 0.4 s)."""
+    return math.floor(s.length_s * rate_hz + 1e-9)
+
+
 def sine_commands(params: dict[str, Any]) -> list[Command]:
     """The sines' tracked set-points (each tagged with its ``segment``: axis, frequency)."""
     rate, amp, bias = float(params["rate_hz"]), float(params["amplitude_ut"]), params["bias_ut"]
     cmds: list[Command] = []
     for s in segments(params):
-        for k in range(1, round(s.length_s * rate) + 1):
+        for k in range(1, setpoint_count(s, rate) + 1):
             v = np.zeros(3)
             v[s.axis] = float(bias) + amp * math.sin(2.0 * math.pi * s.f_hz * k / rate)
             cmds.append(FieldCommand(s.start_s + k / rate,
@@ -139,10 +146,12 @@ def _fitted(step: Step, sent: list[tuple[float, dict[str, Any]]],
 
 
 def planned_setpoints(step: Step, s: Segment) -> int:
-    """How many set-points the segment's fitted cycles were planned with."""
+    """How many set-points the segment's fitted cycles were planned with (those :func:`_fitted`
+    keeps: planned after its settle cycles)."""
     p = step.params
     rate = float(p["rate_hz"])
-    return round(s.length_s * rate) - round(int(p["settle_cycles"]) / s.f_hz * rate)
+    settle_s = int(p["settle_cycles"]) / s.f_hz
+    return sum(1 for k in range(1, setpoint_count(s, rate) + 1) if k / rate > settle_s - 1e-9)
 
 
 def commanded(step: Step, sent: list[tuple[float, dict[str, Any]]], s: Segment) -> Array:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -211,3 +212,22 @@ def test_only_calibrate_names_thermometers() -> None:
         "dut_t",
     )
     assert KINDS["calibrate"].thermometers(make_step("calibrate")) == ()
+
+
+@pytest.mark.parametrize("rate_hz", [40.0, 47.0, 50.0, 53.0])
+def test_a_sines_last_set_point_never_follows_the_next_axiss_bias(rate_hz: float) -> None:
+    """Set-points every 1/rate from each sine's start, the last at or before its end: at 47 Hz
+    a 4.25 s sine's rounded count put its last set-point 5 ms past the end, after the next
+    axis's bias (whose field it put back, by a 0.4 s ramp that slipped the sine)."""
+    body = {"frequencies_hz": [0.5, 4], "cycles": 3, "min_s": 4, "rate_hz": rate_hz,
+            "amplitude_ut": 10, "bias_ut": 30, "axes": "xyz"}  # fmt: skip
+    cmds, _ = compile_step(make_step("frequency_response", body))
+    field = [c for c in cmds if c.kind == "field"]
+    for before, after in itertools.pairwise(field):
+        if "segment" in before.payload and "segment" not in after.payload:  # a bias follows
+            assert before.t_s <= after.t_s + 1e-12
+    axis_of = [c.payload["segment"][0] if "segment" in c.payload else
+               int(np.argmax(c.payload["field_ut"])) for c in field]  # fmt: skip
+    # the axes in turn, each once: no axis's set-point after the next one's bias
+    changes = [a for a, b in itertools.pairwise(axis_of) if a != b]
+    assert changes == [0, 1], changes
