@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from rig.calibration.record import latest_calibration
-from rig.engine.runner import Runner
+from rig.engine.page_feed import corrected_dut
 from rig.errors import StoredResultError
 from rig.lab.summary import criteria, stored_verdict
 from rig.report.sections import RunFacts, criteria_section, step_results_section
@@ -271,10 +271,10 @@ def test_corrected_dut_applies_the_latest_calibration_of_the_run() -> None:
 
     runner = SimpleNamespace(results={}, commanded_loads={"bus": 2.0})
     raw = np.array([11.0, 2.0, 3.0])
-    assert Runner.corrected_dut(runner, raw) is None
+    assert corrected_dut(runner, raw) is None
     runner.results = {"first": calibration(2.0), "floor": {"dut_noise_nt": 20.0},
                       "second": calibration(3.0)}  # fmt: skip
     assert latest_calibration(runner.results) is not None
-    corrected = Runner.corrected_dut(runner, raw)
+    corrected = corrected_dut(runner, raw)
     assert np.allclose(corrected, 3.0 * (raw - [1.0, 0, 0] - [1.0, 0, 0]))  # offset, 0.5 uT/A x 2 A
-    assert Runner.corrected_dut(runner, None) is None
+    assert corrected_dut(runner, None) is None

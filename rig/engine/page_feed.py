@@ -25,8 +25,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+import numpy.typing as npt
 
 import timebase
+from rig.analysis import apply_correction
+from rig.calibration.record import latest_calibration
 from rig.engine.run_tracker import RunTracker
 from rig.procedure.language import Procedure
 from rig.store.run_control import CONTROL_DIR, open_box, take_requests, write_live
@@ -50,13 +53,27 @@ def _vec(v: Any) -> list[float] | None:
     return [round(float(x), 4) for x in np.asarray(v, dtype=float).reshape(-1)]
 
 
+def corrected_dut(run: LiveRun, raw_ut: npt.ArrayLike | None) -> npt.NDArray[np.float64] | None:
+    """The DUT reading ``raw_ut`` (uT) corrected by the newest calibration the run has fitted
+    (``latest_calibration``; loads at their commanded currents), None before the first one."""
+    latest = latest_calibration(run.results) if raw_ut is not None else None
+    if latest is None:
+        return None
+    corr = latest[1].correction
+    channels = list(corr.get("k_ut_per_unit", {}))
+    loads = np.array([[run.commanded_loads.get(ch, 0.0) for ch in channels]])
+    rows = apply_correction(corr, np.asarray(raw_ut, float)[None, :], loads, channels)
+    return np.asarray(rows[0], dtype=np.float64)
+
+
 class LiveRun(Protocol):
     """What the live view and the page read of a run (the engine's runner)."""
 
     tracker: RunTracker
     proc: Procedure
-    controller: CageController  # once the devices are open
+    cage_controller: CageController | None  # once the devices are open
     samplers: dict[str, SensorSampler]  # by sampled device name
+    results: dict[str, JsonObject]  # the steps' results so far
     commanded_loads: dict[str, float]
     measured_loads: dict[str, tuple[float, float]]
     status_sources: list[Callable[[], str]]
@@ -70,8 +87,6 @@ class LiveRun(Protocol):
     def event(self, level: str, message: str) -> None: ...
 
     def abort_from(self, reason: str) -> None: ...
-
-    def corrected_dut(self, raw_ut: Any) -> Any: ...
 
 
 class LivePublisher:
@@ -195,7 +210,7 @@ class LivePublisher:
             "pause_requested": r.tracker.pause_requested.is_set(),
             "steps": [{"name": n, "duration_s": round(d, 3)} for n, d in self.timeline],
         }
-        ctl = r.controller
+        ctl = r.cage_controller
         if ctl is not None:
             state["field_cmd_ut"] = _vec(ctl.model.field_ut(ctl.currents))
             state["coil_a"] = _vec(ctl.currents)
@@ -204,7 +219,7 @@ class LivePublisher:
             latest = sampler.latest if sampler is not None else None
             if latest is not None:
                 state[f"{role}_ut"] = _vec(latest[1])
-        corrected = r.corrected_dut(state.get("dut_ut"))
+        corrected = corrected_dut(r, state.get("dut_ut"))
         if corrected is not None:
             state["dut_corrected_ut"] = _vec(corrected)
         state["loads_cmd_a"] = {k: round(float(v), 4) for k, v in r.commanded_loads.items()}

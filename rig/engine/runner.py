@@ -20,15 +20,11 @@ from collections.abc import Callable, Mapping
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 import timebase
 from drivers.errors import DeviceError
 from rig import host_identity
-from rig.analysis import apply_correction
-from rig.calibration.record import latest_calibration
 from rig.config import RigConfig
 from rig.engine.commands import Commands, LoadBook
 from rig.engine.field_guard import guard_the_field
@@ -71,6 +67,11 @@ from rig.store.run_control import run_page_url
 from rig.store.run_states import EXIT_CODES, RunStatus, Verdict
 from rig.store.run_store import RunReader, RunWriter
 from rig.stored import JsonObject, JsonValue
+
+if TYPE_CHECKING:
+    from drivers.protocols import ScalarMagnetometer
+    from rig.cage.controller import CageController
+    from rig.calibration.forecast import SigmaForecast
 from rig.verdict import check_verdict
 
 
@@ -81,7 +82,7 @@ class RunOutcome:
     status: RunStatus
     reason: str
     folder: Path
-    results: dict[str, Any] = field(default_factory=dict)
+    results: dict[str, JsonObject] = field(default_factory=dict)
     outputs: str = ""
     """What became of the outputs at the end, one line (empty: none was ever opened)."""
 
@@ -115,7 +116,7 @@ class Runner:
         self.status_sources: list[Callable[[], str]] = []  # a short text each, for the terminal
         self.live_sources: list[Callable[[], JsonObject]] = []  # the page's values from steps
         self.samplers: dict[str, SensorSampler] = {}
-        self.controller: Any = None
+        self.cage_controller: CageController | None = None  # once the devices are open
         self.correction: dict[str, Any] | None = None
         self.writer: RunWriter | None = None
         self.rig: RigSession | None = None  # the session, once its devices are open
@@ -254,8 +255,8 @@ class Runner:
         elif rig.no_guardian is not None:  # simulated time: nothing to guard outside this process
             self._event("info", rig.no_guardian)
         assert self.commands is not None
-        self.controller = self.commands.controller = rig.cage()
-        instruments = dict(self.controller.instruments())
+        self.cage_controller = self.commands.controller = rig.cage()
+        instruments = dict(self.cage_controller.instruments())
         start_samplers(rig, self.proc, self.cfg, w, self.samplers, instruments, self._event)
         guard_the_field(rig, self.cfg, self.samplers)  # the field limit on what is measured
         open_loads(rig, self.proc, self.cfg, self.loads, instruments, self._event)
@@ -264,7 +265,7 @@ class Runner:
         self.correction = reference_correction(self.proc, self.cfg)
         warn_expired_certificates(self.cfg, self._event)
         w.set_meta(instruments=instruments, reference_correction=self.correction,
-                   cage_model=self.controller.model.to_dict(),
+                   cage_model=self.cage_controller.model.to_dict(),
                    thermometers=thermometers)  # fmt: skip
         self.scheduler = StepScheduler(rig, w, self.tracker, self.commands, self.samplers,
                                        len(self.proc.steps), self._event)  # fmt: skip
@@ -314,21 +315,16 @@ class Runner:
         self.tracker.request_abort(reason)
 
     @property
+    def controller(self) -> CageController:
+        """The cage's controller (RigError before the devices are open: no step runs then)."""
+        if self.cage_controller is None:
+            raise RigError("the cage is not open yet: no step runs before the devices are")
+        return self.cage_controller
+
+    @property
     def fault(self) -> str | None:
         """The first fault found by any thread (None: none so far)."""
         return None if self.rig is None else self.rig.fault
-
-    def corrected_dut(self, raw_ut: Any) -> Any:
-        """The DUT reading ``raw_ut`` (uT) corrected by the newest calibration this run has
-        fitted (``latest_calibration``; loads at their commanded currents), None before the first
-        one."""
-        latest = latest_calibration(self.results) if raw_ut is not None else None
-        if latest is None:
-            return None
-        corr = latest[1].correction
-        channels = list(corr.get("k_ut_per_unit", {}))
-        loads = np.array([[self.commanded_loads.get(ch, 0.0) for ch in channels]])
-        return apply_correction(corr, np.asarray(raw_ut, float)[None, :], loads, channels)[0]
 
     # --- what a step may use (rig.steps.base.RunContext) ------------------------------------------
 
@@ -354,12 +350,12 @@ class Runner:
         self.writer.flush()
         return RunReader(self.writer.folder)
 
-    def scalar_magnetometer(self, name: str) -> Any:
+    def scalar_magnetometer(self, name: str) -> ScalarMagnetometer:
         """Total-field magnetometer ``name`` of the rig, opened for this run (closed with it)."""
         assert self.rig is not None
         return self.rig.scalar_magnetometer(name)
 
-    def live_forecast(self, step: Step, noise_nt: float) -> Any:
+    def live_forecast(self, step: Step, noise_nt: float) -> SigmaForecast | None:
         """A live step's sigmas forecast from its plan (rig.prediction.live_calibrate_stop); None when its plan
         cannot be fitted."""
         from rig.prediction.live_calibrate_stop import live_forecast

@@ -50,7 +50,7 @@ class LiveView:
         parts = [
             f"[{idx + 1}/{len(self.durations)}] {name[:22]:<22} [{bar}] {100 * frac:3.0f}% ETA {_fmt_s(self.total_s - done)}"
         ]
-        ctl = r.controller
+        ctl = r.cage_controller
         if ctl is not None:
             cmd = ctl.model.field_ut(ctl.currents)
             parts.append("B cmd " + " ".join(f"{v:+6.1f}" for v in cmd))

@@ -71,7 +71,6 @@ class RunContext(Protocol):
 
     proc: Procedure
     cfg: RigConfig
-    controller: CageController  # once the devices are open
     results: dict[str, JsonObject]
     """The steps' results so far, by step name (each as stored)."""
     correction: dict[str, Any] | None  # the reference magnetometer's certificate
@@ -84,6 +83,11 @@ class RunContext(Protocol):
     @property
     def folder(self) -> Path:
         """The run folder."""
+        ...
+
+    @property
+    def controller(self) -> CageController:
+        """The cage's controller (the devices are open while a step runs)."""
         ...
 
     @property
