@@ -20,6 +20,13 @@ lowest arrivals is from the nominal period, plus that line's uncertainty; then t
 errors of the fit): a
 sample dated by extrapolation from an arrival many periods away is known less well. A stall or a burst therefore widens the uncertainty of the samples it delayed instead of
 shifting their dates (ADR 0020).
+
+A frame lost without a trace (no byte of it arrived) numbers every sample after it short. A
+read's newest sample cannot be later on the envelope than the next one's arrival, so whole
+periods of lateness are lost samples (:data:`NEXT_LATE`): the read's dates widen by the periods
+in doubt, and the next read, as late, confirms the loss and the stream is numbered past it; a
+single late read (a busy computer) is none. The period is fitted through the newest block minima
+that lie on one line (:data:`STEP_BLOCK`: a loss not seen when it happened steps them).
 """
 
 from __future__ import annotations
@@ -46,17 +53,26 @@ EARLY_BLOCK_S = 0.5
 (s) in the window."""
 MIN_ARRIVALS = 10
 """Below this many arrivals in the window the envelope is not yet known: dates +- a period."""
-FIT_SIGMAS = 3.0
-"""A fitted period's uncertainty is taken as this many standard errors of the fit (a bound)."""
-TIGHT_BATCHES = 10
-"""An unseen loss (a frame that never arrived, so no byte says it was lost) is recognised only
-in a tight stream: single samples whose arrivals, the last this many, sat within
-:data:`TIGHT_SPREAD` of a period of each other above the sensor's clock ..."""
-TIGHT_SPREAD = 0.25
-"""... (a fraction of the period); then one arriving more than :data:`LOSS_JUMP` of a period
-later than they did was preceded by lost samples (as many periods as it is late). A stream read
-in bursts by a busy computer is never tight: there a loss only widens the dates' uncertainty."""
-LOSS_JUMP = 0.5
+FIT_BOUND = (235.8, 19.21, 9.22, 6.62, 5.51, 4.90, 4.53, 4.28, 4.09, 3.96, 3.85, 3.76, 3.69, 3.64,
+             3.59, 3.54, 3.51, 3.48, 3.45, 3.42, 3.40, 3.38)  # fmt: skip
+"""A fitted period's uncertainty is taken as this many standard errors of the fit (a bound): the
+Student t quantile of 3 sigma (99.865 %) for the fit's 1, 2, ... degrees of freedom (three
+standard errors of a line through three block minima, one dof, had claimed 0.57 % where the
+period was 1.8 % off)."""
+NEXT_LATE = 0.25
+"""An unseen loss (a frame that never arrived, so no byte says it was lost) shows in how late a
+read's newest sample arrived on the envelope: the next sample had not arrived when it was read,
+so without a loss it is late by less than a period plus how late that next one may be, at most
+this fraction of a period. Later by whole periods than that, as many samples were lost (or the
+stream paused: the same to the arrivals); within the arrivals' jitter of a whole period, perhaps
+one was. Either way the read's dates widen by the periods in doubt, and the next read, as late,
+confirms the loss: it and the stream are numbered past it. A single late read (a busy computer)
+is no loss: the next one is on time."""
+STEP_BLOCK = 0.5
+"""Block minima this many periods or more off the line through them do not lie on one line: a
+loss not seen when it happened (before the period was known well enough to count periods by)
+numbered every sample after it short, a step of whole periods. The period is fitted through the
+newest blocks that do lie on one line."""
 MIN_RATE_UNCERTAINTY = 1e-5
 """A fitted period is never claimed better than this (relative): a crystal's short-term wander."""
 
@@ -85,12 +101,10 @@ class StreamClock:
         self._blocks: deque[tuple[int, float]] = deque(maxlen=BLOCKS)  # lowest (j, a_j) per block
         self._block_start: float | None = None
         self._block_low: tuple[int, float] | None = None
-        self._arrivals: deque[float] = deque(maxlen=TIGHT_BATCHES)  # residuals of single samples
-        self._suspected = 0  # periods the last single sample arrived late by, not yet confirmed
-        self._tight_residual = 0.0  # the tight arrivals' mean residual it was late against (s)
+        self._doubt = (0, 0)  # periods the last read's newest may be numbered short by (lo, hi)
         self.unseen_lost = 0
-        """Samples found lost by their arrival in a tight stream (none said so; negative: a
-        loss was said that the arrivals deny)."""
+        """Samples found lost by their arrivals (none said so; negative: a loss was said that
+        the arrivals deny)."""
 
     def _residual(self, point: tuple[int, float]) -> float:
         return point[1] - point[0] * self.period_s
@@ -118,13 +132,8 @@ class StreamClock:
             self._k += lost_before[i] if i < len(lost_before) else 0
             ks.append(self._k)
             self._k += 1
-        widen = 0.0  # a single sample that may be numbered a loss away from its own
-        if n == 1:
-            k, widen = self._unseen_loss(ks[0], arrival_s, first)
-            ks = [k]
-        else:
-            self._arrivals.clear()
-            self._suspected = 0
+        # how much wider each date is: a sample that may be numbered a loss away from its own
+        ks, widen = self._late_newest(ks, arrival_s, first)
         for k in ks:
             point = (k, arrival_s)
             self._note_block(point)
@@ -143,43 +152,53 @@ class StreamClock:
             for q in (self.period_s * (1 - delta), self.period_s * (1 + delta))
         ]
         out = []
-        for k in ks:
+        for k, wider in zip(ks, widen, strict=True):
             t = min(arrival_s, k * self.period_s + c)
             if self._last_t is not None:
                 t = max(t, min(arrival_s, self._last_t + 1e-6))
             self._last_t = t
             # the date's sensitivity to the period within its uncertainty
             reach = max(abs(min(arrival_s, k * q + c_q) - t) for q, c_q in bounds)
-            out.append((t, jitter + reach + widen))
+            out.append((t, jitter + reach + wider))
         return out
 
-    def _unseen_loss(self, k: int, arrival_s: float, first: int) -> tuple[int, float]:
-        """The number of a single sample read at ``arrival_s`` (counted ``k``, at least
-        ``first``), corrected by its arrival in a tight stream (see :data:`TIGHT_BATCHES`), and
-        how much wider (s) its date is to be. Whole periods later than the last ones, samples
-        were lost unseen; earlier, a loss was counted that was none. One such arrival is only a
-        suspicion (a busy computer reads a sample late as often): its date keeps its number,
-        widened by the periods in doubt; the next arrival confirms the loss (it is as late) and
-        is numbered past it, or clears the suspicion (issue 54: unconfirmed, late reads on a
-        busy host renumbered the stream and bent the fitted period by 300 ppm)."""
+    def _late_newest(self, ks: list[int], arrival_s: float,
+                     first: int) -> tuple[list[int], list[float]]:  # fmt: skip
+        """The numbers ``ks`` of a read's samples (oldest first) corrected by the read before,
+        and how much wider (s) each date is to be, from how late the read's newest sample arrived
+        on the envelope (:data:`NEXT_LATE`). Whole periods late, samples were lost unseen before
+        it (or the stream paused: the same to the arrivals): the read's samples keep their
+        numbers (a sample numbered short sits above the envelope, never below it) and their
+        dates widen by the periods in doubt; the next read, as late, confirms the loss and it
+        and the stream are numbered past it (issue 54: unseen losses in a stream read in bursts
+        had misdated the samples after them by 22-97 times their dates' width)."""
+        was_lo, was_hi = self._doubt
+        self._doubt = (0, 0)
+        if len(self._recent) < MIN_ARRIVALS or not self._low:
+            return ks, [0.0] * len(ks)
         p = self.period_s
-        recent = self._arrivals
-        suspected, self._suspected = self._suspected, 0
-        if suspected:  # as late as the one before, against the same tight arrivals: confirmed
-            late = arrival_s - k * p - self._tight_residual
-            if abs(late - suspected * p) < LOSS_JUMP * p:
-                self._k += suspected
-                self.unseen_lost += suspected
-                return k + suspected, 0.0
-        if len(recent) == TIGHT_BATCHES and max(recent) - min(recent) < TIGHT_SPREAD * p:
-            self._tight_residual = sum(recent) / len(recent)
-            late = arrival_s - k * p - self._tight_residual
-            shift = max(round(late / p), first - k) if abs(late) > LOSS_JUMP * p else 0
-            if shift:  # suspected: the same number, its date as wide as the loss would move it
-                self._suspected = shift
-                return k, abs(shift) * p
-        recent.append(arrival_s - k * p)
-        return k, 0.0
+        c = self._residual(self._low[0])
+        delta = self.rate_uncertainty if self._fitted else self._early_rate_uncertainty()
+        slack = self._jitter_s(c) + abs(ks[-1] - self._low[0][0]) * p * delta
+        late = arrival_s - (ks[-1] * p + c)
+        if slack > NEXT_LATE * p:  # the period is not known well enough to count periods by:
+            hi = max(was_hi, math.floor((late + slack) / p))  # as many as it might be
+            self._doubt = (was_lo, hi)
+            return ks, [hi * p] * len(ks)
+        if late + slack < 0:  # before its number's time: a loss was said that was none
+            back = max(math.floor((late + slack) / p) + 1, first - ks[0])
+            self._k += back
+            self.unseen_lost += back
+            return [k + back for k in ks], [0.0] * len(ks)
+        seen = math.floor((late + slack) / p)  # periods this read's newest may be late by
+        base = min(was_hi, seen) if was_hi and seen >= max(was_lo, 1) else 0  # confirmed
+        self._k += base
+        self.unseen_lost += base
+        late -= base * p
+        lo = max(0, math.floor((late - NEXT_LATE * p) / p))
+        hi = max(lo, math.floor((late + slack) / p))
+        self._doubt = (lo, hi)
+        return [k + base for k in ks], [hi * p] * len(ks)
 
     def _jitter_s(self, envelope_s: float) -> float:
         """How far the lowest tenth of the window's arrivals sits above the envelope (s), at
@@ -205,12 +224,13 @@ class StreamClock:
         minima (each within a few ms of the envelope); the window minimum is then rebuilt."""
         if len(self._blocks) < 3:
             return
-        line = _line(list(self._blocks))
+        line = _newest_line(list(self._blocks))
         if line is None or abs(line[0] / self.nominal_s - 1.0) > MAX_RATE_ERROR:
+            return
+        if line[1] >= MAX_RATE_ERROR:  # no better than not fitted
             return
         self.period_s, self.rate_uncertainty = line
         self._fitted = True
-        self._arrivals.clear()  # their residuals were taken with the old period
         self._low.clear()
         for point in self._recent:
             self._push(point)
@@ -233,9 +253,25 @@ class StreamClock:
         return min(MAX_RATE_ERROR, abs(slope / self.period_s - 1.0) + unc)
 
 
+def _newest_line(blocks: list[tuple[int, float]]) -> tuple[float, float] | None:
+    """:func:`_line` through the most blocks, newest first, that lie on one line (every one
+    within :data:`STEP_BLOCK` of a period of it), at least three; None when the newest three do
+    not."""
+    for start in range(len(blocks) - 2):
+        part = blocks[start:]
+        line = _line(part)
+        if line is None:
+            continue
+        k0 = sum(j for j, _ in part) / len(part)
+        t0 = sum(a for _, a in part) / len(part)
+        if all(abs(a - t0 - line[0] * (j - k0)) < STEP_BLOCK * line[0] for j, a in part):
+            return line
+    return None
+
+
 def _line(points: list[tuple[int, float]]) -> tuple[float, float] | None:
     """Least-squares period (s) through (sample number, time s) points, and its relative
-    uncertainty (:data:`FIT_SIGMAS` standard errors, at least :data:`MIN_RATE_UNCERTAINTY`);
+    uncertainty (:data:`FIT_BOUND` standard errors, at least :data:`MIN_RATE_UNCERTAINTY`);
     None when the points do not determine a positive slope."""
     ks = [float(j) for j, _ in points]
     ts = [a for _, a in points]
@@ -247,5 +283,7 @@ def _line(points: list[tuple[int, float]]) -> tuple[float, float] | None:
     if slope <= 0:
         return None
     scatter = sum((t - t_mean - slope * (k - k_mean)) ** 2 for k, t in zip(ks, ts, strict=True))
-    scatter /= max(1, len(ks) - 2)
-    return slope, max(MIN_RATE_UNCERTAINTY, FIT_SIGMAS * math.sqrt(scatter / sxx) / slope)
+    dof = len(ks) - 2
+    scatter /= max(1, dof)
+    bound = FIT_BOUND[min(max(dof, 1), len(FIT_BOUND)) - 1]
+    return slope, max(MIN_RATE_UNCERTAINTY, bound * math.sqrt(scatter / sxx) / slope)

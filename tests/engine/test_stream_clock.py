@@ -69,7 +69,9 @@ def test_a_reset_forgets_the_old_stream() -> None:
 def test_every_date_is_within_its_stated_uncertainty(seed: int, rate_error: float) -> None:
     """The uncertainty is a promise: every sample was taken within date +- uncertainty, from the
     first sample on (the period not yet fitted) and through every stall; on time it is about a
-    millisecond, and only samples a stall delayed are known less well."""
+    millisecond, and only samples a stall delayed are known less well: most within 5 ms, and a
+    burst read just as its next sample was due (0-3.4 % of the samples here) within a period, as
+    a frame lost unseen before it would look the same until the next read."""
     nominal = 0.05
     sent, reads = stalled_reads(seed, nominal * (1 + rate_error), 120.0)
     clock = StreamClock(nominal)
@@ -82,7 +84,12 @@ def test_every_date_is_within_its_stated_uncertainty(seed: int, rate_error: floa
     assert np.all(np.abs(error) <= unc), np.max(np.abs(error) / unc)
     fitted = sent > 100.0 + 30.0
     assert np.median(unc[fitted]) < 0.002
-    assert np.quantile(unc[fitted], 0.99) < 0.005
+    # (the record's last read comes at the end of a stall, seconds after its newest sample: to
+    # the arrivals, the stream paused or lost them; that read is widened by as many periods)
+    inner = fitted & (sent < sent[-1] - 1.5)
+    assert np.mean(unc[inner] < 0.005) > 0.95
+    assert np.quantile(unc[inner], 0.999) < 0.06
+    assert clock.unseen_lost == 0
     print(f"seed {seed} rate error {rate_error:+.1e}: worst |error|/uncertainty"
           f" {np.max(np.abs(error) / unc):.2f}, median uncertainty {1000 * np.median(unc):.2f} ms,"
           f" largest {1000 * unc.max():.0f} ms")  # fmt: skip
@@ -147,16 +154,13 @@ def test_a_late_read_in_a_tight_stream_is_no_loss() -> None:
     assert np.percentile(dated[:, 1], 90) < 0.005
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known: a frame lost without a trace while the stream is"
-    " read in bursts misdates the samples after it by up to a period beyond their"
-    " stated uncertainty (22-97x here); the next round of dating (issue 54)",
-)
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_unseen_losses_on_a_busy_computer_widen_dates_never_misdate_them(seed: int) -> None:
-    """Read in bursts (stalls), the arrivals cannot tell a lost frame from a late read: nothing is
-    renumbered, and every date stays within its stated uncertainty."""
+    """Read in bursts (stalls), 20 frames of 2400 lost without a trace: a read's newest sample
+    arrives whole periods late (it cannot be later than the next one's arrival without a loss);
+    the read's dates widen by the periods in doubt, the next read as late confirms the loss and
+    the stream is numbered past it, and every date stays within its stated uncertainty (before,
+    22-97 times beyond it: the dates after a loss kept the old numbers, a period early)."""
     nominal = 0.05
     sent_all, reads = stalled_reads(seed, nominal, 120.0)
     rng = np.random.default_rng(seed)
@@ -174,3 +178,20 @@ def test_unseen_losses_on_a_busy_computer_widen_dates_never_misdate_them(seed: i
     dated = np.array(out)
     error = dated[:, 0] - (np.array(kept_sent) + LATENCY_S)
     assert np.all(np.abs(error) <= dated[:, 1] + 1e-9), np.max(np.abs(error) / dated[:, 1])
+    assert 16 <= clock.unseen_lost <= 20  # (a loss in a stall's burst may stay in doubt)
+    assert np.median(dated[:, 1]) < 0.005
+    print(f"seed {seed}: {clock.unseen_lost} of 20 unseen losses found, worst |error|/uncertainty"
+          f" {np.max(np.abs(error) / dated[:, 1]):.2f}, dates wider than 5 ms"
+          f" {100 * np.mean(dated[:, 1] > 0.005):.1f} %")  # fmt: skip
+
+
+def test_the_fits_bound_is_students_three_sigma_quantile() -> None:
+    """A period fitted through few block minima claims as many standard errors as Student's t
+    gives 99.865 % for its degrees of freedom (three, claimed for a line through three minima,
+    covered 0.57 % where the period was 1.8 % off)."""
+    from scipy.stats import t
+
+    from rig.engine.stream_clock import FIT_BOUND
+
+    for dof, bound in enumerate(FIT_BOUND, start=1):
+        assert bound == pytest.approx(float(t.ppf(0.99865, dof)), rel=0.005)
