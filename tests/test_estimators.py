@@ -254,3 +254,7 @@ def test_parameters_a_method_holds_are_no_degenerate_fit(cage_case: SyntheticCas
     assert not result.chi2.verdict.startswith("degenerate"), result.chi2.verdict
     assert result.chi2.dof == 3 * cage_case.samples.n - 9
     assert result.chi2.dof > fitted.chi2.dof
+    # the bound is over the fitted parameters, the held ones known: none claimed for those, and
+    # none below the sigmas (a bound with them free had read 0.47 for a held-k fit's offsets)
+    assert np.all(result.crlb_sigma[held] == 0.0)
+    assert np.all(result.crlb_ratio[~held] > 0.95), result.crlb_ratio[~held]

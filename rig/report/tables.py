@@ -44,9 +44,8 @@ def _parameter_rows(result: CalibrationResult) -> list[str]:
             value = float(mount["xyz".index(name[-1])])
         val, sig = _fmt(value, float(result.sigma[i] * scale))
         _, crlb = _fmt(value, float(result.crlb_sigma[i] * scale))
-        out.append(
-            f"  {label:<22}{unit:>8}{val:>14}{sig:>12}{crlb:>14}{result.crlb_ratio[i]:>7.2f}"
-        )
+        shown = f"{result.crlb_ratio[i]:>7.2f}" if result.crlb_sigma[i] > 0 else "-".rjust(7)
+        out.append(f"  {label:<22}{unit:>8}{val:>14}{sig:>12}{crlb:>14}{shown}")
     if result.profiled is not None:
         fit = result.profiled
         for prm, v, sig, crlb_sig in zip(fit.params, fit.values, fit.sigma, fit.crlb_sigma,

@@ -296,3 +296,21 @@ def test_a_busy_host_wakes_its_threads_late_the_instruments_on_time_and_the_same
     assert min(late) >= 0.0 and 0.02 < sum(late) / len(late) < 0.1  # mean 0.05 s
     assert once(1) == (host, inst)  # deterministic
     assert once(2)[0] != host  # its own stream per seed
+
+
+def test_a_clock_says_how_late_it_may_wake_unseen() -> None:
+    """A stream's date uncertainty claims at least the clock's unseen wake-up lateness (ADR 0042
+    amended): the wall clock's scheduler, 1 ms; none on simulated time, where a participant runs
+    at the time it waited for (a 1 ms floor there made an idle frequency response's phase sigmas
+    30 times its errors)."""
+    from rig.engine.stream_clock import StreamClock
+
+    assert timebase.wake_jitter_s() == 0.001
+    with timebase.simulated():
+        assert timebase.wake_jitter_s() == 0.0
+    clock = StreamClock(0.05, timebase.wake_jitter_s())
+    exact = [clock.dated(100.0 + 0.05 * k + 0.003)[0] for k in range(400)]
+    assert exact[-1][1] < 1.1e-3  # arrivals within microseconds: the floor is what is claimed
+    on_time = StreamClock(0.05, 0.0)
+    tight = [on_time.dated(100.0 + 0.05 * k + 0.003)[0] for k in range(400)]
+    assert tight[-1][1] < 1e-4 and abs(tight[-1][0] - (100.0 + 0.05 * 399 + 0.003)) < 1e-9
