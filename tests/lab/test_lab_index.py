@@ -394,7 +394,8 @@ def test_the_same_views_on_the_rig_serve_page(synced: str, rig_dirs: list[Path])
         stop_child(server, first=signal.SIGTERM, wait_s=5.0)
     bare, bare_url = serve_process(rig_dirs[0])
     try:
-        r = owner_client(bare_url).get("/lab")
+        with owner_client(bare_url) as client:  # closed: its kept-alive socket too
+            r = client.get("/lab")
         assert r.status_code == 404 and "rig serve --lab" in r.text
     finally:
         stop_child(bare, first=signal.SIGTERM, wait_s=5.0)
