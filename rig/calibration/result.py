@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
+import numpy.typing as npt
 
 from rig.calibration.correlated import NoiseCheck, fit_noise_check
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
@@ -395,16 +396,16 @@ def summarize(
         residuals_nt = 1000.0 * r
         floor_gain = float(np.sqrt(np.mean(gain**2)))
     n_eff = float(np.sum(robust_w > 0)) * (3 if vector else 1)
-    # a parameter the method holds at its nominal value (variance 0) takes no degree of freedom
-    fitted = int(np.count_nonzero(np.diag(est.covariance) > 0))
-    sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - fitted, 1.0)))
+    fitted = np.diag(est.covariance) > 0  # one held at its nominal value takes no dof
+    n_fitted = int(np.count_nonzero(fitted))
+    sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - n_fitted, 1.0)))
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
     check, covariance, crlb = _noise_model(est, s, vector_rows, weighted, sigma_hat, noise_ut,
-                                           fisher)  # fmt: skip
+                                           fisher, fitted)  # fmt: skip
     corr = correlation_matrix(est.covariance)
     np.fill_diagonal(corr, 0.0)  # (a held parameter's is 0 already: never taken for -1)
     degenerate = bool(np.max(np.abs(corr)) > DEGENERATE_CORRELATION) if est.p.size > 1 else False
-    chi = _chi_square(weighted, noise_ut, fitted, noise_nt is not None, degenerate)
+    chi = _chi_square(weighted, noise_ut, n_fitted, noise_nt is not None, degenerate)
     result = CalibrationResult(
         model="vector" if vector else "scalar",
         method=est.method,
@@ -459,13 +460,13 @@ def _noise_model(
     sigma_hat: float,
     noise_ut: float,
     fisher: Array,
+    fitted: npt.NDArray[np.bool_],
 ) -> tuple[NoiseCheck, Array, Array]:
     """The residuals' whiteness test, the covariance (HAC sigmas when correlated) and the
     Cramer-Rao bound for the same noise (white, or an AR model of it) (ADR 0025), over the
     parameters the method fits: one it holds at its nominal value (variance 0) is known, so it
     neither takes a degree of freedom nor loosens the others' bound (a held-k vector fit's offsets
-    had read 0.47 of a bound computed with k free)."""
-    fitted = np.diag(est.covariance) > 0
+    had read 0.47 of a bound computed with k free); ``fitted``: which parameters it fits."""
     # a vector fit's axes each have their own residual variance (as its covariance, ADR 0025)
     variance = (sigma_hat**2 if vector_rows is None
                 else axis_variances(weighted, int(np.count_nonzero(fitted))))  # fmt: skip

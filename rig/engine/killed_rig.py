@@ -2,8 +2,8 @@
 
 A killed process's serial ports are free only once the kernel has torn it down, which on a busy
 computer waits for a CPU too. The guardian waits for that only briefly before it switches off what
-it can reach (a TCP supply is not held by the rig; a held port is retried); the rig's end of the heartbeat pipe closing
-says when the rig had ended, and the guardian's line says it when it was slow.
+it can reach (a TCP supply is not held by the rig; a held port is retried); the rig's end of the
+heartbeat pipe closing says when the rig had ended, and the guardian's line says it when it was slow.
 """
 
 from __future__ import annotations
@@ -28,9 +28,10 @@ the switch-off's own retry pause (``RETRY_PAUSE_S``, 0.2 s) gains nothing over r
 
 def kill_rig(fd: int, pid: int) -> Callable[[], str]:
     """SIGKILL the rig (``pid``; ``fd`` our end of its heartbeat pipe, read by nothing else from
-    now on), wait up to :data:`FIRST_WAIT_S` for its end and watch on beside the caller. The returned function waits for that watch
-    (up to :data:`END_WAIT_S` after the kill) and gives ``"; the killed rig took 940 ms to end"``
-    when that took longer than :data:`SAY_END_AFTER_S`, else ``""``."""
+    now on), wait up to :data:`FIRST_WAIT_S` for its end and watch on beside the caller. The
+    returned function waits for that watch (up to :data:`END_WAIT_S` after the kill) and gives
+    ``"; the killed rig took 940 ms to end"`` when that took longer than
+    :data:`SAY_END_AFTER_S`, else ``""``."""
     t0 = time.monotonic()
     with contextlib.suppress(OSError):
         os.kill(pid, signal.SIGKILL)

@@ -67,12 +67,12 @@ from rig.store.run_control import run_page_url
 from rig.store.run_states import EXIT_CODES, RunStatus, Verdict
 from rig.store.run_store import RunReader, RunWriter
 from rig.stored import JsonObject, JsonValue
+from rig.verdict import check_verdict
 
 if TYPE_CHECKING:
     from drivers.protocols import ScalarMagnetometer
     from rig.cage.controller import CageController
     from rig.calibration.forecast import SigmaForecast
-from rig.verdict import check_verdict
 
 
 @dataclass
