@@ -329,13 +329,14 @@ def calibration_data(
     field_kinds: Collection[str] = (),
     leave_out_late: bool = True,
 ) -> PairedSamples:
-    """DUT readings with the reference field (cage frame) and load currents at the same times.
+    """DUT readings with the reference field (cage frame) and load currents at the same times
+    (with ``settle_s`` > 0 numbered by hold: a field or load change starts the next).
 
     A DUT sample is left out (and counted) when the reference samples around it show the field
     jumping between them (:func:`unresolved_field`): the reference cannot say which field the DUT
     saw. Polarity flips, ramps and commands a supply took late (a busy computer) make such jumps.
-    With holds (``settle_s`` > 0), DUT samples that moved at the edge of a hold while the reference
-    and every command held still contradict their dates and are left out too (rig.timing)."""
+    With holds, DUT samples that moved at the edge of a hold while the reference and every
+    command held still contradict their dates and are left out too (rig.timing)."""
     dated = np.array(reader.dated_samples(dut), float).reshape(-1, 5)
     rows, t_unc = dated[:, :4], dated[:, 4]
     ref = np.array(reader.samples(reference), float).reshape(-1, 4)
@@ -373,10 +374,16 @@ def calibration_data(
     t = t[keep]
     field = interpolated_field(ref, t, correction)
     u = np.column_stack([hold_values(reader, ch, t) for ch in telemetry]) if telemetry else None
-    samples = Samples.build(rows[keep, 1:], field_ut=field, telemetry=u, channels=tuple(telemetry))
-    return PairedSamples(
-        samples, t, int(jumps.sum() + late.sum()), tuple(misdated), int(late.sum())
-    )
+    samples = Samples.build(rows[keep, 1:], field_ut=field, telemetry=u, channels=tuple(telemetry),
+                            holds=hold_numbers(issued_s, t) if settle_s > 0 else None)  # fmt: skip
+    unresolved = int(jumps.sum() + late.sum())
+    return PairedSamples(samples, t, unresolved, tuple(misdated), int(late.sum()))
+
+
+def hold_numbers(changes_s: Array, t_s: Array) -> Array:
+    """Per sample time ``t_s`` (s) the number of changes (issued at ``changes_s``, s) before it:
+    the hold it was taken in."""
+    return np.asarray(np.searchsorted(np.sort(changes_s), t_s, side="right"))
 
 
 def interpolated_field(ref: Array, t_s: Array, correction: dict[str, Any] | None) -> Array:

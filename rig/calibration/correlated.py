@@ -62,9 +62,12 @@ class NoiseCheck:
 
     ``lag1``: lag-1 autocorrelation (the largest over the series); ``ljung_box``/``p_value``: the
     portmanteau statistic at ``lags`` lags and its (Bonferroni) p-value; ``inflation``: per
-    parameter, reported sigma / white-noise sigma (all 1 when white); ``bandwidth``: block length
+    parameter, reported sigma / white-noise sigma (all 1 when white and no hold means); ``bandwidth``: block length
     of the long-run covariance (samples, 0 when white); ``ar_order``: order of the noise model of
-    the Cramer-Rao bound (0: white).
+    the Cramer-Rao bound (0: white); ``holds``: hold means the sigmas come from
+    (:mod:`rig.calibration.hold_means`; 0: from the samples), ``hold_variance_ratio`` per series
+    their variance over the samples', ``between_holds``: whether the hold means correlate in time
+    (their bandwidth in holds, else 0).
     """
 
     lag1: float
@@ -77,10 +80,20 @@ class NoiseCheck:
     inflation: Array
     bandwidth: int = 0
     ar_order: int = 0
+    holds: int = 0
+    hold_variance_ratio: tuple[float, ...] = ()
+    between_holds: int = 0
 
     @property
     def method(self) -> str:
         """How the reported sigmas were obtained."""
+        if self.holds:
+            between = (f", a Newey-West sandwich over {self.between_holds} holds for their"
+                       " correlation in time" if self.between_holds else "")  # fmt: skip
+            return (
+                f"the noise {self.holds} hold means see (per axis the pair means of"
+                " consecutive samples, or the hold means where they scatter more)" + between
+            )
         if not self.correlated:
             return "white-noise least squares"
         return (
@@ -91,14 +104,19 @@ class NoiseCheck:
     def notes(self, robust: bool) -> list[str]:
         """The one-line statements for the output (empty when white and light-tailed)."""
         out = []
+        lo, hi = float(np.min(self.inflation)), float(np.max(self.inflation))
         if self.correlated:
-            lo, hi = float(np.min(self.inflation)), float(np.max(self.inflation))
             out.append(
                 f"residuals correlated (Ljung-Box p {_p_text(self.p_value)} at {self.lags} lags),"
                 f" lag-1 r = {self.lag1:.2f}: sigmas from {self.method}, inflation factor"
-                f" {lo:.2f}-{hi:.2f}; Cramer-Rao bound for an AR({self.ar_order}) noise"
-                " (correlated residuals can also mean a missing term: a channel, a delay)"
+                f" {lo:.2f}-{hi:.2f}; Cramer-Rao bound for "
+                + ("that noise" if self.holds else f"an AR({self.ar_order}) noise")
+                + " (correlated residuals can also mean a missing term: a channel, a delay)"
             )
+        elif self.holds and (lo < 0.9 or hi > 1.1):
+            out.append(f"sigmas from {self.method}: factor {lo:.2f}-{hi:.2f} on the white-noise"
+                       " sigmas (a hold's samples scatter unlike its mean's error: mains ripple the"
+                       " sampling aliases averages out of it, a wander over a hold does not)")  # fmt: skip
         if self.heavy_tailed:
             out.append(
                 f"residuals heavy-tailed (excess kurtosis {self.excess_kurtosis:.1f}, 0 for"
@@ -124,6 +142,8 @@ class NoiseCheck:
                 "max": float(np.max(self.inflation)),
             },
             "crlb_noise_model": f"AR({self.ar_order})" if self.ar_order else "white",
+            "hold_means": self.holds,
+            "hold_variance_ratio": list(self.hold_variance_ratio),
         }
 
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+import numpy.typing as npt
 
 from rig.calibration.params import (
     SPRINGMANN_KEYS,
@@ -33,6 +34,8 @@ from rig.calibration.params import (
 )
 from rig.calibration.solver import NormalEquations
 
+Holds = npt.NDArray[np.int64]
+"""Per sample the number of the hold it was taken in."""
 AXES = ("x", "y", "z")
 ROTATION_KEYS = ("rot_x", "rot_y", "rot_z")
 
@@ -42,6 +45,8 @@ class Samples:
     """Calibration input: raw readings (N, 3) uT, reference field, telemetry (N, J).
 
     ``field_ut`` is (N, 3) for a vector calibration; ``field_magnitude_ut`` (N,) is always set.
+    ``holds`` (N,) numbers the hold each sample was taken in (one field and one set of load
+    currents, settled), None when the field was not held (a tracked field) or not known.
     """
 
     measured_ut: Array
@@ -49,6 +54,7 @@ class Samples:
     telemetry: Array
     channels: tuple[str, ...] = ()
     field_ut: Array | None = None
+    holds: Holds | None = None
 
     @cached_property
     def telemetry_by_channel(self) -> Array:
@@ -73,6 +79,7 @@ class Samples:
         field_magnitude_ut: Array | None = None,
         telemetry: Array | None = None,
         channels: tuple[str, ...] = (),
+        holds: npt.ArrayLike | None = None,
     ) -> Samples:
         """Assemble from arrays; exactly one of ``field_ut`` and ``field_magnitude_ut``."""
         m = np.asarray(measured_ut, dtype=float).reshape(-1, 3)
@@ -88,28 +95,32 @@ class Samples:
         u = u.reshape(m.shape[0], -1)
         if not channels:
             channels = tuple(f"u{j + 1}" for j in range(u.shape[1]))
-        return Samples(m, mag, u, tuple(channels), h)
+        held = None if holds is None else np.asarray(holds, dtype=np.int64).reshape(-1)
+        return Samples(m, mag, u, tuple(channels), h, held)
 
     def head(self, n: int) -> Samples:
         """The first ``n`` samples (scalar: the field vector is dropped)."""
         return Samples(self.measured_ut[:n], self.field_magnitude_ut[:n], self.telemetry[:n],
-                       self.channels)  # fmt: skip
+                       self.channels, None, None if self.holds is None else self.holds[:n])  # fmt: skip
 
     def take(self, keep: Array) -> Samples:
         """The samples where boolean mask ``keep`` (N,) is true (field vector kept if present)."""
         h = None if self.field_ut is None else self.field_ut[keep]
+        held = None if self.holds is None else self.holds[keep]
         return Samples(self.measured_ut[keep], self.field_magnitude_ut[keep],
-                       self.telemetry[keep], self.channels, h)  # fmt: skip
+                       self.telemetry[keep], self.channels, h, held)  # fmt: skip
 
     def rows(self, rows: slice) -> Samples:
         """A range of consecutive samples, as views (field vector kept if present)."""
         h = None if self.field_ut is None else self.field_ut[rows]
+        held = None if self.holds is None else self.holds[rows]
         return Samples(self.measured_ut[rows], self.field_magnitude_ut[rows],
-                       self.telemetry[rows], self.channels, h)  # fmt: skip
+                       self.telemetry[rows], self.channels, h, held)  # fmt: skip
 
     def as_scalar(self) -> Samples:
         """The same samples with the field vector dropped (only ``|h|`` kept)."""
-        return Samples(self.measured_ut, self.field_magnitude_ut, self.telemetry, self.channels)
+        return Samples(self.measured_ut, self.field_magnitude_ut, self.telemetry, self.channels,
+                       None, self.holds)  # fmt: skip
 
 
 def parameter_names(channels: tuple[str, ...], *, vector: bool) -> tuple[str, ...]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
@@ -11,6 +12,7 @@ import numpy.typing as npt
 
 from rig.calibration.correlated import NoiseCheck, fit_noise_check
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
+from rig.calibration.hold_means import fit_hold_noise
 from rig.calibration.params import Array, Calibration, Springmann
 from rig.calibration.residuals import (
     AXES,
@@ -149,6 +151,17 @@ class CalibrationResult:
         return [float(v) for v in np.sqrt(np.mean(self.residuals_nt.reshape(n, 3) ** 2, axis=0))]
 
     @property
+    def noise_axes_nt(self) -> list[float] | None:
+        """A vector fit's noise per DUT axis as its sigmas take it (nT, x y z): the residual rms,
+        scaled to the noise the hold means see when the sigmas come from them (issue 55: aliased
+        mains ripple in the samples, not in the means); None for a scalar fit."""
+        axes = self.residual_rms_axes_nt
+        ratio = () if self.noise_check is None else self.noise_check.hold_variance_ratio
+        if axes is None or len(ratio) != 3:
+            return axes
+        return [float(v * math.sqrt(r)) for v, r in zip(axes, ratio, strict=True)]
+
+    @property
     def residual_mean_nt(self) -> float:
         """Mean corrected-field residual (nT)."""
         return float(np.mean(self.residuals_nt))
@@ -210,7 +223,10 @@ class CalibrationResult:
             "crlb_ratio": self._by_group(self.crlb_ratio, ratio=True),
             "residual_rms_nt": self.residual_rms_nt,
             **(
-                {"residual_rms_axes_nt": self.residual_rms_axes_nt}
+                {
+                    "residual_rms_axes_nt": self.residual_rms_axes_nt,
+                    "noise_axes_nt": self.noise_axes_nt,
+                }
                 if self.residual_rms_axes_nt is not None
                 else {}
             ),
@@ -462,7 +478,8 @@ def _noise_model(
     fisher: Array,
     fitted: npt.NDArray[np.bool_],
 ) -> tuple[NoiseCheck, Array, Array]:
-    """The residuals' whiteness test, the covariance (HAC sigmas when correlated) and the
+    """The residuals' whiteness test, the covariance (from the hold means' scatter where the
+    samples are numbered by hold, else HAC sigmas when correlated) and the
     Cramer-Rao bound for the same noise (white, or an AR model of it) (ADR 0025), over the
     parameters the method fits: one it holds at its nominal value (variance 0) is known, so it
     neither takes a degree of freedom nor loosens the others' bound (a held-k vector fit's offsets
@@ -471,7 +488,16 @@ def _noise_model(
     variance = (sigma_hat**2 if vector_rows is None
                 else axis_variances(weighted, int(np.count_nonzero(fitted))))  # fmt: skip
     check, info, ratio = fit_noise_check(est.p, s, est.sample_weights, vector_rows, variance)
+    held = fit_hold_noise(est.p, s, est.sample_weights, vector_rows, variance, fitted)
+    if held is not None:  # the noise the hold means see (issue 55)
+        check = dataclasses.replace(
+            check, inflation=held.factors(check.inflation), holds=held.holds,
+            hold_variance_ratio=tuple(float(v) for v in held.variance_ratio),
+            between_holds=held.between.bandwidth,
+        )  # fmt: skip
     covariance = est.covariance * np.outer(check.inflation, check.inflation)
+    if held is not None and noise_ut == sigma_hat:
+        return check, covariance, held.crlb
     normal, scale = (fisher, noise_ut**2) if info is None else (info, noise_ut**2 * ratio)
     crlb = np.zeros_like(normal)
     crlb[np.ix_(fitted, fitted)] = covariance_from_normal(normal[np.ix_(fitted, fitted)], scale)

@@ -52,7 +52,7 @@ class SyntheticCase:
         s = self.samples
         return SyntheticCase(
             self.time_s,
-            Samples(m, s.field_magnitude_ut, s.telemetry, s.channels, s.field_ut),
+            Samples(m, s.field_magnitude_ut, s.telemetry, s.channels, s.field_ut, s.holds),
             self.truth,
             self.noise_ut,
             self.field_ut,

@@ -43,7 +43,9 @@ def with_temperature_channel(s: Samples, temperature: Array, reference: float) -
     if CHANNEL in s.channels:
         raise CalibrationError(f"--telemetry already has a channel named {CHANNEL}: rename it")
     u = np.column_stack([s.telemetry, t - reference])
-    return Samples(s.measured_ut, s.field_magnitude_ut, u, (*s.channels, CHANNEL), s.field_ut)
+    return Samples(
+        s.measured_ut, s.field_magnitude_ut, u, (*s.channels, CHANNEL), s.field_ut, s.holds
+    )
 
 
 def scale_parameter(s: Samples) -> Profiled:

@@ -1,8 +1,8 @@
 """The noise a calibration will see: the DUT's readings less the reference field, per DUT axis.
 
 Measured beats stated, and measured where it matters beats measured at rest: the residuals of a
-vector calibration of the same DUT (per axis: ``residual_rms_axes_nt``) are that noise at the
-fields and currents of a sweep (a coil carrying more current may add noise to its axis, which a
+vector calibration of the same DUT (per axis: ``noise_axes_nt``, the noise its sigmas took: what
+its hold means see) are that noise at the fields and currents of a sweep (a coil carrying more current may add noise to its axis, which a
 hold at null field does not show); a ``null_field`` step's ``dut_paired_noise_nt`` is the noise at
 rest (the DUT's own, the reference's, and whatever the two sample differently, such as mains
 ripple at different instants). So the floor is, in order: given on the command line; the newest
@@ -182,9 +182,12 @@ def results_of(runs_dir: Path, dut: str, serial: str | None = None,
 
 
 def _residual_axes(results: Mapping[str, Any]) -> tuple[float, ...] | None:
-    """The last vector calibration's residual rms per axis among a run's results."""
+    """The last vector calibration's noise per axis among a run's results: as its sigmas took it
+    (``noise_axes_nt``: what the hold means see, issue 55), else its residual rms."""
     for value in reversed(list(results.values())):
-        axes = value.get("residual_rms_axes_nt") if isinstance(value, dict) else None
+        if not isinstance(value, dict):
+            continue
+        axes = value.get("noise_axes_nt", value.get("residual_rms_axes_nt"))
         if isinstance(axes, list) and len(axes) == 3 and all(v > 0 for v in axes):
             return tuple(float(v) for v in axes)
     return None

@@ -1,0 +1,228 @@
+"""Sigmas from how the holds' means scatter about the fit, where the field was held (issue 55).
+
+A calibration on held fields learns its parameters from each hold's mean reading: what the
+samples within a hold share (a lab field that wanders) stays in the mean, what alternates between
+them (mains ripple aliased by the sampling: 50 Hz read at 20 Hz alternates sample by sample)
+averages out of it. The per-sample scatter misstates the mean's error both ways, by up to 2x on
+the simulated cage's vertical axis (20-36 nT per sample where the means scatter as 20 nT would).
+So where the samples are numbered by hold (:attr:`Samples.holds`), the noise per series (a
+vector fit's axis, or the scalar fit's one) is taken from the means instead: with ``rho_h =
+sum_k w_k r_k / sqrt(n_h)`` (``n_h = sum_k w_k`` the hold's weight) the variance a sample would
+need for the means to scatter so is ``v_s = sum_h rho_hs^2 / (H - tr_s)``, ``tr_s`` the
+leverage the fit takes from series ``s``'s hold means (the trace of the hat matrix of the
+hold-mean regression, ``sum_s tr_s`` = the fitted parameters). The sigmas are then
+``H^-1 (sum_s v_s H_s) H^-1`` (``H_s`` the normal matrix from series ``s``) against the same with
+the per-sample variances: per parameter a factor above or below 1. What moves slower than a hold
+(the hold means correlated in time) is :func:`rig.calibration.correlated.rows_noise_check`'s on
+the hold-mean series, which only inflates.
+
+Needs enough holds: at least :data:`MIN_HOLD_DOF` hold means per series beyond the leverage the
+fit takes from them; else the per-sample model stands (ADR 0025).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from rig.calibration.correlated import NoiseCheck, RowsFunction, rows_noise_check
+from rig.calibration.params import Array
+from rig.calibration.residuals import (
+    Holds,
+    Samples,
+    row_blocks,
+    scalar_jacobian_rows,
+    scalar_residuals_and_gain,
+)
+from rig.calibration.solver import covariance_from_normal
+from rig.calibration.stats import chi2_sf
+
+SLOW_P_VALUE = 0.01
+"""The hold means count as scattering beyond what the samples within the holds say when their
+chi-square on that variance has a p-value below this."""
+MIN_HOLD_DOF = 8.0
+"""The fewest degrees of freedom (hold means less their leverage) per series for the hold-mean
+noise: with 8 a variance is known to +-50 % (2 sigma), as the per-sample model's worst case."""
+
+
+@dataclass(frozen=True)
+class HoldNoise:
+    """The sigmas' factors from the hold means and what they rest on.
+
+    ``variance_factors`` (P,): per parameter the sigma under the noise the means see over the
+    per-sample white sigma (1 for a held parameter); ``holds``: hold means used; ``variance_ratio``
+    (S,): per series that noise's variance over the per-sample one; ``slow`` (S,): the hold means
+    scattered beyond what the samples within the holds say (their own variance then); ``between``:
+    the hold-mean series' whiteness check (its inflation for correlation between holds);
+    ``crlb``: the Cramer-Rao bound (P, P; uT and rad squared) for that noise, independent between
+    holds.
+    """
+
+    variance_factors: Array
+    holds: int
+    variance_ratio: Array
+    slow: npt.NDArray[np.bool_]
+    between: NoiseCheck
+    crlb: Array
+
+    def factors(self, sample_inflation: Array) -> Array:
+        """The factors on the white sigmas: the noise's, times the larger of the correlation
+        between holds and ``sample_inflation`` (the per-sample check's, for correlation the hold
+        test is too coarse to see), the latter only when no series is slow (its hold means then
+        hold every correlation within the holds already)."""
+        between = self.between_inflation
+        if not np.any(self.slow):
+            between = np.maximum(between, sample_inflation)
+        return np.asarray(self.variance_factors * between)
+
+    @property
+    def between_inflation(self) -> Array:
+        """The hold-mean check's inflation over every parameter (1 for a held one)."""
+        out = np.ones(self.variance_factors.size)
+        out[self.crlb.diagonal() > 0] = self.between.inflation
+        return out
+
+
+@dataclass(frozen=True)
+class _Means:
+    """Group means (holds or pairs) as rows of a regression: ``rho`` (G, S) the weighted residual
+    sums over the root of their weight, ``rows`` (G, S, P) the Jacobian likewise, and per series
+    the variance per sample they imply and its degrees of freedom."""
+
+    rho: Array
+    rows: Array
+    variance: Array
+    dof: Array
+
+
+def fit_hold_noise(
+    p: Array,
+    s: Samples,
+    sample_weights: Array | None,
+    vector_rows: tuple[Array, Array] | None,
+    white_variance: float | Array,
+    fitted: npt.NDArray[np.bool_],
+) -> HoldNoise | None:
+    """:func:`hold_noise` for a fit at ``p`` of ``s`` (None when ``s`` has no hold numbers):
+    ``vector_rows`` are a vector fit's residuals (3N,) and Jacobian (3N, P), None for a scalar
+    fit (its noise-weighted rows, as the ML fit's)."""
+    if s.holds is None:
+        return None
+    w = np.ones(s.n) if sample_weights is None else np.asarray(sample_weights, float)
+    n_series = 1 if vector_rows is None else 3
+    variance = np.broadcast_to(np.asarray(white_variance, float), (n_series,))
+    if vector_rows is not None:
+        raw, jac = vector_rows
+        rows = jac.reshape(s.n, 3, -1)
+        return hold_noise(raw.reshape(s.n, 3), lambda sl: rows[sl], w, s.holds, variance, fitted)
+    r, gain = scalar_residuals_and_gain(p, s)
+
+    def scalar_jac(sl: slice) -> Array:
+        _, jac, gb = scalar_jacobian_rows(p, s.rows(sl))
+        return np.asarray(jac / gb[:, None])[:, None, :]
+
+    return hold_noise((r / gain)[:, None], scalar_jac, w, s.holds, variance, fitted)
+
+
+def hold_noise(
+    series: Array,
+    jac_rows: RowsFunction,
+    weights: Array,
+    holds: Holds,
+    white_variance: Array,
+    fitted: npt.NDArray[np.bool_],
+) -> HoldNoise | None:
+    """The noise hold means see (see the module) for residual ``series`` (N, S; uT, not
+    weighted), their Jacobian rows ``jac_rows`` (slice -> (B, S, P)), per-sample robust
+    ``weights`` (N,), hold numbers ``holds`` (N,), the per-sample white variance per series
+    ``white_variance`` (S,; uT^2) and the ``fitted`` parameters (P,); None when the holds are
+    too few."""
+    index = np.unique(holds, return_inverse=True)[1].reshape(-1)
+    pairs = _pair_index(index)
+    (hold_sums, pair_sums), normal = _group_sums(series, jac_rows, weights, (index, pairs), fitted)
+    h_inv = covariance_from_normal(normal.sum(axis=0), 1.0)
+    hold = _means(*hold_sums, h_inv)
+    pair = _means(*pair_sums, h_inv)
+    if hold is None or float(np.min(hold.dof)) < MIN_HOLD_DOF:
+        return None
+    per_sample = np.broadcast_to(np.asarray(white_variance, float), hold.variance.shape)
+    within = per_sample if pair is None else np.minimum(per_sample, pair.variance)
+    slow = np.array([chi2_sf(float(d * v / max(w, 1e-300)), max(round(float(d)), 1)) < SLOW_P_VALUE
+                     for d, v, w in zip(hold.dof, hold.variance, within, strict=True)])  # fmt: skip
+    use = np.where(slow, hold.variance, within)
+    between, _, _ = rows_noise_check(hold.rho.reshape(-1), hold.rows.reshape(-1, h_inv.shape[0]),
+                                     hold.rho.shape[0], use)  # fmt: skip
+    white = _sandwich_diagonal(h_inv, normal, per_sample)
+    factors = np.ones(fitted.size)
+    factors[fitted] = np.sqrt(_sandwich_diagonal(h_inv, normal, use) / np.maximum(white, 1e-300))
+    crlb = np.zeros((fitted.size, fitted.size))
+    info = np.einsum("s,spq->pq", 1.0 / np.maximum(use, 1e-300), normal)
+    crlb[np.ix_(fitted, fitted)] = covariance_from_normal(info, 1.0)
+    ratio = use / np.maximum(per_sample, 1e-300)
+    return HoldNoise(factors, int(hold.rho.shape[0]), ratio, slow, between, crlb)
+
+
+def _pair_index(index: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:
+    """Per sample its pair (consecutive samples of one hold, the first two, the next two, ...;
+    -1 for a hold's odd last sample): a pair's mean cancels what alternates sample by sample."""
+    n = index.size
+    order = np.argsort(index, kind="stable")
+    ranked = index[order]
+    starts = np.r_[0, np.flatnonzero(np.diff(ranked)) + 1] if n else np.zeros(0, np.intp)
+    lengths = np.diff(np.r_[starts, n])
+    position = np.arange(n) - np.repeat(starts, lengths)
+    paired = position < np.repeat(lengths - lengths % 2, lengths)
+    first = paired & (position % 2 == 0)
+    out = np.full(n, -1, dtype=np.intp)
+    out[order] = np.where(paired, np.cumsum(first) - 1, -1)
+    return out
+
+
+def _group_sums(
+    series: Array,
+    jac_rows: RowsFunction,
+    weights: Array,
+    groupings: tuple[npt.NDArray[np.intp], ...],
+    fitted: npt.NDArray[np.bool_],
+) -> tuple[list[tuple[Array, Array, Array]], Array]:
+    """Per grouping (group number per sample, -1 for none) the groups' weighted sums of residuals
+    (G, S), of Jacobian rows (G, S, P) and their weights (G,), block by block; last the normal
+    matrix per series (S, P, P)."""
+    n, n_series = series.shape
+    n_params = int(np.count_nonzero(fitted))
+    sizes = [int(g.max()) + 1 if g.size and g.max() >= 0 else 0 for g in groupings]
+    sums = [(np.zeros((m, n_series)), np.zeros((m, n_series, n_params)), np.zeros(m))
+            for m in sizes]  # fmt: skip
+    normal = np.zeros((n_series, n_params, n_params))
+    for rows in row_blocks(n):
+        w = weights[rows]
+        jac = jac_rows(rows)[:, :, fitted]
+        normal += np.einsum("bsp,bsq,b->spq", jac, jac, w)
+        for g, (residual, jacobian, weight) in zip(groupings, sums, strict=True):
+            at, keep = g[rows], g[rows] >= 0
+            np.add.at(residual, at[keep], series[rows][keep] * w[keep, None])
+            np.add.at(jacobian, at[keep], jac[keep] * w[keep, None, None])
+            np.add.at(weight, at[keep], w[keep])
+    return sums, normal
+
+
+def _means(residual: Array, jacobian: Array, weight: Array, h_inv: Array) -> _Means | None:
+    """The groups as a regression's rows and the variance per sample their scatter about the fit
+    implies: ``sum rho^2 / (G - leverage)`` per series (None without groups)."""
+    used = weight > 0
+    if not np.any(used):
+        return None
+    root_n = np.sqrt(weight[used])
+    rho = residual[used] / root_n[:, None]
+    rows = jacobian[used] / root_n[:, None, None]
+    dof = rho.shape[0] - np.einsum("gsp,pq,gsq->s", rows, h_inv, rows)
+    variance = np.sum(rho**2, axis=0) / np.maximum(dof, 1.0)
+    return _Means(rho, rows, variance, dof)
+
+
+def _sandwich_diagonal(h_inv: Array, normal_by_series: Array, variance: Array) -> Array:
+    """``diag(H^-1 (sum_s v_s H_s) H^-1)``."""
+    middle = np.einsum("s,spq->pq", variance, normal_by_series)
+    return np.asarray(np.diag(h_inv @ middle @ h_inv))
