@@ -43,18 +43,23 @@ def _figures(runs_dir: Path, exit_code: int, wall_s: float) -> dict[str, Any]:
         return {"status": "no run", "exit": exit_code, "wall_s": wall_s}
     reader = RunReader(max(folders, key=lambda p: p.name))
     try:
-        meta, results = reader.meta(), reader.results()
+        meta, results, steps = reader.meta(), reader.results(), reader.steps()
     finally:
         reader.close()
     out: dict[str, Any] = {"status": meta.get("status"), "reason": meta.get("reason", ""),
                            "exit": exit_code, "wall_s": wall_s, "verdict": "-",
                            "p99_ms": meta.get("command_lateness_p99_ms", float("nan")),
-                           "misdated": 0, "timing_ms": 0.0}  # fmt: skip
+                           "misdated": 0, "timing_ms": 0.0, "failed": [], "targets": 0,
+                           "cage_s": max((t1 for *_, t1 in steps if t1), default=0.0)
+                           - min((t0 for *_, t0, _ in steps), default=0.0)}  # fmt: skip
     for res in results.values():
         if not isinstance(res, dict):
             continue
         if "overall" in res:
             out["verdict"] = res["overall"]
+            criteria = res.get("criteria", [])
+            out["failed"] = [c["name"] for c in criteria if c.get("verdict") != "PASS"]
+            out["targets"] = sum(1 for c in criteria if c["name"].endswith(" 1-sigma"))
         if "residual_rms_nt" in res and res.get("model") in ("vector", "scalar"):
             out[f"{res['model']}_nt"] = float(res["residual_rms_nt"])
             out["misdated"] += int(res.get("misdated_samples", 0))
@@ -67,7 +72,9 @@ def _row(label: str, f: dict[str, Any]) -> str:
             f" vector {f.get('vector_nt', float('nan')):6.1f} nT  scalar"
             f" {f.get('scalar_nt', float('nan')):6.1f} nT  misdated {f.get('misdated', 0):3d}"
             f" (worst {f.get('timing_ms', 0.0):5.0f} ms)  p99 lateness"
-            f" {f.get('p99_ms', float('nan')):6.1f} ms  {f['wall_s']:4.0f} s")  # fmt: skip
+            f" {f.get('p99_ms', float('nan')):6.1f} ms  {f['wall_s']:4.0f} s (cage"
+            f" {f.get('cage_s', float('nan')):5.1f} s)"
+            + (f"  failed: {', '.join(f['failed'])}" if f.get("failed") else ""))  # fmt: skip
 
 
 def run_phase(tmp: Path, runs: int, parallel: bool) -> list[dict[str, Any]]:
@@ -121,9 +128,23 @@ def main() -> int:
     print(f"  misdated samples left out under load: {sum(f['misdated'] for f in loaded)}"
           f" (worst timing error {max((f['timing_ms'] for f in loaded), default=0):.0f} ms)")  # fmt: skip
     print(f"  wrong verdicts {len(wrong)}, runs that did not complete {len(flagged)}")
+    _targets_and_cage_time(idle + loaded)
     if idle and loaded and not args.skip_record:
         record_demo_time(idle, loaded)
     return 0 if not wrong else 1
+
+
+def _targets_and_cage_time(runs: list[dict[str, Any]]) -> None:
+    """Print how many complete runs met every sigma target (criteria named "... 1-sigma") and the
+    cage time the runs took."""
+    done = [f for f in runs if f.get("status") in ("complete", "failed") and f.get("targets")]
+    if not done:
+        return
+    missed = [f for f in done if any(n.endswith(" 1-sigma") for n in f["failed"])]
+    cage = [f["cage_s"] for f in done]
+    print(f"  sigma targets ({done[0]['targets']} each) met in {len(done) - len(missed)} of"
+          f" {len(done)} runs; cage time {min(cage):.1f}-{max(cage):.1f} s,"
+          f" median {statistics.median(cage):.1f} s")  # fmt: skip
 
 
 RECORD = Path(__file__).resolve().parent / "results" / "demo_time.json"

@@ -106,12 +106,14 @@ class NoiseCheck:
         out = []
         lo, hi = float(np.min(self.inflation)), float(np.max(self.inflation))
         if self.correlated:
+            factor = (f"factor {lo:.2f}-{hi:.2f} on the white-noise sigmas" if self.holds
+                      else f"inflation factor {lo:.2f}-{hi:.2f}")  # fmt: skip
+            bound = "that noise" if self.holds else f"an AR({self.ar_order}) noise"
             out.append(
                 f"residuals correlated (Ljung-Box p {_p_text(self.p_value)} at {self.lags} lags),"
-                f" lag-1 r = {self.lag1:.2f}: sigmas from {self.method}, inflation factor"
-                f" {lo:.2f}-{hi:.2f}; Cramer-Rao bound for "
-                + ("that noise" if self.holds else f"an AR({self.ar_order}) noise")
-                + " (correlated residuals can also mean a missing term: a channel, a delay)"
+                f" lag-1 r = {self.lag1:.2f}: sigmas from {self.method}, {factor}; Cramer-Rao"
+                f" bound for {bound} (correlated residuals can also mean a missing term: a channel,"
+                " a delay)"
             )
         elif self.holds and (lo < 0.9 or hi > 1.1):
             out.append(f"sigmas from {self.method}: factor {lo:.2f}-{hi:.2f} on the white-noise"

@@ -279,14 +279,24 @@ def _check_coverage(
 ) -> tuple[Estimate | None, tuple[str, ...]]:
     """Identifiability of a scalar fit on ``s``, from the Fisher information at the linear
     start's maximum-likelihood fit (docs/adr/0026): CalibrationError naming a combination the data
-    cannot determine; else the linear start and warnings when field directions are missing."""
+    cannot determine; else the start (the linear one, or the nominal sensor where the fit runs off
+    from that) and warnings when field directions are missing."""
     from rig.calibration.batch.nonlinear import scalar_start
-    from rig.calibration.identifiability import check_identifiable
+    from rig.calibration.identifiability import check_identifiable, converging_start
 
+    linear = method in ("centered", "ellipsoid", "twostep")
+    start: Estimate | None = None
     try:
         # Only the linear estimators report their start as their answer: the others need a start.
-        start = scalar_start(s, quick=method not in ("centered", "ellipsoid", "twostep"))
+        start = scalar_start(s, quick=not linear)
     except (CalibrationError, np.linalg.LinAlgError):
+        if linear:
+            return None, ()
+    if not linear:
+        p = converging_start(s, None if start is None else start.p)
+        if p is not None and (start is None or p is not start.p):
+            start = Estimate("nominal-start", p, np.zeros((p.size, p.size)))
+    if start is None:
         return None, ()
     # the bias is removed or carried in the sigmas whenever there is no robust loss
     return start, check_identifiable(s, start.p, method, robust is None)

@@ -96,6 +96,19 @@ def information(s: Samples, start: Array) -> Information:
     return _information_at(s, sol.x, sol.converged)
 
 
+def converging_start(s: Samples, start: Array | None) -> Array | None:
+    """``start`` when the scalar ML fit converges from it, else the nominal sensor (unit scales,
+    no offset, angles or coefficients) when the fit converges from there, else ``start`` (None:
+    no linear start could be had). A linear start on few distinct fields can be far off: 19 held
+    fields with two load channels gave scales 1.9-5.6 and a 181 uT offset, and the fit ran off
+    from it (issue 55)."""
+    if start is not None and information(s, start).converged:
+        return start
+    nominal = np.zeros(9 + 3 * s.n_channels)
+    nominal[:3] = 1.0
+    return nominal if information(s, nominal).converged else start
+
+
 def _information_at(s: Samples, p: Array, converged: bool) -> Information:
     """The scalar ML problem's information at ``p`` over all of ``s`` (from at most
     :data:`CHECK_ROWS` rows), the noise from the residuals there."""
@@ -143,7 +156,13 @@ def check_identifiable(
     scales = parameter_scales(s)
     names = parameter_names(s.channels, vector=False)
     rel_sigma, direction = worst_combination(info.fisher, scales)
-    coverage = direction_coverage(s.measured_ut, start[3:6])
+    # about the start's offset, unless the fit ran off from a start whose offset is larger than
+    # the readings (a 181 uT one had made every sample point at -z): then about none
+    wild = float(np.linalg.norm(start[3:6])) > float(
+        np.median(np.linalg.norm(s.measured_ut, axis=1))
+    )
+    centre = np.zeros(3) if wild and not info.converged else start[3:6]
+    coverage = direction_coverage(s.measured_ut, centre)
     missing = missing_caps(coverage)
     if not info.converged:  # the likelihood has no finite maximum: name where the fit ran
         run = (info.p - start) / scales
