@@ -191,6 +191,7 @@ def _description(source: str, replaces: str, seconds: tuple[float, float, bool] 
             " targets judged as criteria.")  # fmt: skip
     if seconds is not None:
         own_s, replaced_s, upper = seconds
-        text += (f" About {own_s:.0f} s on the rig ('{replaces}':"
-                 f" {'at most' if upper else 'about'} {replaced_s:.0f} s).")  # fmt: skip
+        long_form = (f"up to {replaced_s:.0f} s, less when its live step meets its targets"
+                     " sooner" if upper else f"about {replaced_s:.0f} s")  # fmt: skip
+        text += f" About {own_s:.0f} s on the rig ('{replaces}': {long_form})."
     return text
