@@ -76,8 +76,11 @@ def test_the_shipped_designed_acceptance_is_what_rig_design_writes_for_the_simul
     assert doc["steps"][0] == {"prompt": "Mount DUT {dut_serial} on the fixture, connect the"
                                " harness, close the cage door"}  # fmt: skip
     assert set(doc["parameters"]) == {"dut_serial", "operator"}
-    assert re.search(r"About 5\d s on the rig \('dut-acceptance': up to \d+ s, less when its"
-                     " live step meets its targets sooner", doc["description"]), doc["description"]
+    assert re.search(
+        r"About 5\d s on the rig \('dut-acceptance': up to \d+ s, less when its"
+        " live step meets its targets sooner",
+        doc["description"],
+    ), doc["description"]
     kinds = [next(k for k in s if k not in ("name", "loads")) for s in doc["steps"]]
     assert kinds == ["prompt", "characterize_cage", "null_field", "noise_spectrum", "linearity",
                      "field_points", "calibrate", "calibrate", "check", "report"]  # fmt: skip
