@@ -209,6 +209,31 @@ def test_estimator_table_is_the_one_list_of_names() -> None:
         calibrate(Samples.build(np.ones((20, 3)), field_magnitude_ut=np.ones(20)), "lsq")
 
 
+def test_every_estimator_is_in_the_docs_the_guide_names() -> None:
+    """docs/architecture.md's estimator guide: a row in docs/calibration.md's table, the README's
+    `rig calibrate --method` list, and for a filter its `--method` line in docs/calibration.md and
+    the `live_calibrate` row of docs/procedures.md (a fifth walk of the guide found no check)."""
+    import re
+    from pathlib import Path
+
+    from rig.calibration.estimators import method_names
+
+    root = Path(__file__).resolve().parents[1]
+    calibration = (root / "docs" / "calibration.md").read_text(encoding="utf-8")
+    readme = (root / "README.md").read_text(encoding="utf-8")
+    listed = re.search(r"\[--method ([a-z|-]+)\]", readme)
+    assert listed, "README: no [--method a|b|...] in the rig calibrate usage"
+    assert set(listed.group(1).split("|")) == set(method_names())
+    for name in method_names():
+        assert f"| `{name}` |" in calibration, f"docs/calibration.md: no table row for '{name}'"
+    filters = method_names(kind="sequential")
+    line = re.search(r"--method ([a-z|-]+)` runs a filter", calibration)
+    assert line and set(line.group(1).split("|")) == set(filters), "docs/calibration.md --method"
+    procedures = (root / "docs" / "procedures.md").read_text(encoding="utf-8")
+    row = re.search(r"\| `live_calibrate` \| `method: ([a-z/-]+)`", procedures)
+    assert row and set(row.group(1).split("/")) == set(filters), "docs/procedures.md live_calibrate"
+
+
 def test_every_estimator_in_the_table_runs(
     rax_case: SyntheticCase, cage_case: SyntheticCase
 ) -> None:
