@@ -65,7 +65,7 @@ def design(name: str, folder: Path) -> tuple[int, str, Path]:
 
 def one_run(seed: int, procedure: str) -> dict[str, Any]:
     """One run of a designed plan on Dask: its verdict, the failed criteria, its cage time (s)."""
-    from bench.bench_prediction import run_once
+    from bench.bench_prediction import cage_time_s, run_once
     from rig.store import RunReader
 
     with tempfile.TemporaryDirectory(prefix="design-targets-") as tmp:
@@ -79,7 +79,7 @@ def one_run(seed: int, procedure: str) -> dict[str, Any]:
     return {"verdict": verdict.get("overall"),
             "failed": [c["name"] for c in verdict.get("criteria", []) if c["verdict"] != "PASS"],
             "targets": sum(1 for c in verdict.get("criteria", []) if c["name"].endswith(" 1-sigma")),
-            "cage_s": max(t1 for *_, t1 in steps if t1) - min(t0 for *_, t0, _ in steps)}  # fmt: skip
+            "cage_s": cage_time_s(steps)}  # fmt: skip
 
 
 def main() -> int:

@@ -39,6 +39,13 @@ FITTED = ("calibrate", "live_calibrate")
 """The step kinds whose sigmas are predicted and compared."""
 
 
+def cage_time_s(steps: list[tuple[int, str, str, float, float | None]]) -> float:
+    """A run's time on the cage (s): from its first step's start to its last step's end
+    (``RunReader.steps()`` rows; 0 for none)."""
+    ends = [t1 for *_, t1 in steps if t1]
+    return max(ends) - min(t0 for *_, t0, _ in steps) if ends else 0.0
+
+
 def run_once(seed: int, procedure: str, folder: Path) -> tuple[Any, dict[str, Any]]:
     """Run ``procedure`` on a fresh simulated cage (seed ``seed``) with runs and rig.toml in
     ``folder``; (outcome, the simulator's DUT truth by calibrate step as flat arrays)."""
@@ -91,7 +98,7 @@ def one_run(seed: int, procedure: str) -> dict[str, Any]:
     judged = {"verdict": verdict.get("overall"),
               "failed_criteria": [c["name"] for c in verdict.get("criteria", [])
                                   if c.get("verdict") != "PASS"],
-              "cage_s": max(t1 for *_, t1 in steps if t1) - min(t0 for *_, t0, _ in steps)}  # fmt: skip
+              "cage_s": cage_time_s(steps)}  # fmt: skip
     out = {}
     for name, true in truth.items():
         r = outcome.results[name]

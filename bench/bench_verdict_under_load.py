@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench_prediction import cage_time_s
 from under_load import cpu_hogs
 
 from rig.store import RunReader
@@ -50,8 +51,7 @@ def _figures(runs_dir: Path, exit_code: int, wall_s: float) -> dict[str, Any]:
                            "exit": exit_code, "wall_s": wall_s, "verdict": "-",
                            "p99_ms": meta.get("command_lateness_p99_ms", float("nan")),
                            "misdated": 0, "timing_ms": 0.0, "failed": [], "targets": 0,
-                           "cage_s": max((t1 for *_, t1 in steps if t1), default=0.0)
-                           - min((t0 for *_, t0, _ in steps), default=0.0)}  # fmt: skip
+                           "cage_s": cage_time_s(steps)}  # fmt: skip
     for res in results.values():
         if not isinstance(res, dict):
             continue

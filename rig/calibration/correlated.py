@@ -352,36 +352,49 @@ def rows_noise_check(
                        white_variance, jac.shape[1], w)  # fmt: skip
 
 
-def fit_noise_check(
-    p: Array,
-    s: Samples,
-    sample_weights: Array | None,
-    vector_rows: tuple[Array, Array] | None,
-    white_variance: float | Array,
-) -> tuple[NoiseCheck, Array | None, float]:
-    """:func:`check_noise` for a fit at ``p`` of ``s`` (robust ``sample_weights`` or None):
-    ``vector_rows`` are the vector fit's residuals (3N,) and Jacobian (3N, P), None for a scalar
-    fit (its rows are recomputed block by block, in the ML fit's noise-weighted form)."""
-    w = np.ones(s.n) if sample_weights is None else sample_weights
+def fit_rows(
+    p: Array, s: Samples, vector_rows: tuple[Array, Array] | None
+) -> tuple[Array, RowsFunction]:
+    """A fit at ``p`` of ``s`` as its covariance takes it: the residual series (N, S; not
+    robust-weighted) and the Jacobian rows (slice -> (B, S, P)). ``vector_rows``: a vector fit's
+    residuals (3N,) and Jacobian (3N, P), its three axes; None for a scalar fit, one series in the
+    ML fit's noise-weighted form, its rows recomputed block by block."""
     if vector_rows is not None:
-        return rows_noise_check(*vector_rows, s.n, white_variance, w)
+        raw, jac = vector_rows
+        rows = jac.reshape(s.n, 3, -1)
+        return raw.reshape(s.n, 3), lambda sl: rows[sl]
     r, gain = scalar_residuals_and_gain(p, s)
 
-    def scalar_scores(rows: slice) -> Array:
-        rb, jac, gb = scalar_jacobian_rows(p, s.rows(rows))
-        return np.asarray(jac * (rb * w[rows] / gb**2)[:, None])
+    def scalar_rows(sl: slice) -> Array:
+        _, jac, gb = scalar_jacobian_rows(p, s.rows(sl))
+        return np.asarray(jac / gb[:, None])[:, None, :]
 
-    def scalar_jac(rows: slice) -> Array:
-        _, jac, gb = scalar_jacobian_rows(p, s.rows(rows))
-        return np.asarray(jac / gb[:, None])
+    return (r / gain)[:, None], scalar_rows
+
+
+def fit_noise_check(
+    series: Array, jac_rows: RowsFunction, weights: Array, white_variance: float | Array
+) -> tuple[NoiseCheck, Array | None, float]:
+    """:func:`check_noise` for a fit's :func:`fit_rows` with per-sample robust ``weights`` (N,).
+    Three series are a vector fit's, whose rows are held in full; one is a scalar fit's, taken
+    block by block."""
+    n, n_series = series.shape
+    if n_series > 1:
+        jac = jac_rows(slice(None))
+        return rows_noise_check(series.reshape(-1), jac.reshape(n * n_series, -1), n,
+                                white_variance, weights)  # fmt: skip
+
+    def scalar_scores(rows: slice) -> Array:
+        return np.asarray(jac_rows(rows)[:, 0, :] * (series[rows, 0] * weights[rows])[:, None])
+
+    n_params = int(jac_rows(slice(0, 1)).shape[2])
 
     def scalar_normal() -> Array:
-        total = np.zeros((p.size, p.size))
-        for rows in row_blocks(s.n):
-            jac = scalar_jac(rows)
-            total += (jac * w[rows, None]).T @ jac
+        total = np.zeros((n_params, n_params))
+        for rows in row_blocks(n):
+            jac = jac_rows(rows)[:, 0, :]
+            total += (jac * weights[rows, None]).T @ jac
         return total
 
-    series = (r * np.sqrt(w) / gain)[:, None]
-    return check_noise(series, scalar_scores, lambda rows: scalar_jac(rows)[:, None, :],
-                       scalar_normal, white_variance, p.size, w)  # fmt: skip
+    return check_noise(series * np.sqrt(weights)[:, None], scalar_scores, jac_rows, scalar_normal,
+                       white_variance, n_params, weights)  # fmt: skip

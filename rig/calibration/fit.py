@@ -292,14 +292,14 @@ def _check_coverage(
     except (CalibrationError, np.linalg.LinAlgError):
         if linear:
             return None, ()
-    if not linear:
-        p = converging_start(s, None if start is None else start.p)
-        if p is not None and (start is None or p is not start.p):
-            start = Estimate("nominal-start", p, np.zeros((p.size, p.size)))
+    found = None if linear else converging_start(s, None if start is None else start.p)
+    if found is not None and (start is None or found[0] is not start.p):
+        start = Estimate("nominal-start", found[0], np.zeros((found[0].size,) * 2))
     if start is None:
         return None, ()
     # the bias is removed or carried in the sigmas whenever there is no robust loss
-    return start, check_identifiable(s, start.p, method, robust is None)
+    info = None if found is None else found[1]  # the fit from this start, already made
+    return start, check_identifiable(s, start.p, method, robust is None, info)
 
 
 def _batch_noise_ut(s: Samples, start: Array | None = None) -> float:

@@ -27,15 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from rig.calibration.correlated import NoiseCheck, RowsFunction, rows_noise_check
+from rig.calibration.correlated import RowsFunction, rows_noise_check
 from rig.calibration.params import Array
-from rig.calibration.residuals import (
-    Holds,
-    Samples,
-    row_blocks,
-    scalar_jacobian_rows,
-    scalar_residuals_and_gain,
-)
+from rig.calibration.residuals import Holds, row_blocks
 from rig.calibration.solver import covariance_from_normal
 from rig.calibration.stats import chi2_sf
 
@@ -52,19 +46,20 @@ class HoldNoise:
     """The sigmas' factors from the hold means and what they rest on.
 
     ``variance_factors`` (P,): per parameter the sigma under the noise the means see over the
-    per-sample white sigma (1 for a held parameter); ``holds``: hold means used; ``variance_ratio``
-    (S,): per series that noise's variance over the per-sample one; ``slow`` (S,): the hold means
-    scattered beyond what the samples within the holds say (their own variance then); ``between``:
-    the hold-mean series' whiteness check (its inflation for correlation between holds);
-    ``crlb``: the Cramer-Rao bound (P, P; uT and rad squared) for that noise, independent between
-    holds.
+    per-sample white sigma; ``between_inflation`` (P,): the hold-mean series' own inflation for
+    correlation between holds, over ``between_bandwidth`` holds (0: white); both 1 for a held
+    parameter; ``holds``: hold means used; ``variance_ratio`` (S,): per series that noise's
+    variance over the per-sample one; ``slow`` (S,): the hold means scattered beyond what the
+    samples within the holds say (their own variance then); ``crlb``: the Cramer-Rao bound
+    (P, P; uT and rad squared) for that noise, independent between holds.
     """
 
     variance_factors: Array
+    between_inflation: Array
+    between_bandwidth: int
     holds: int
     variance_ratio: Array
     slow: npt.NDArray[np.bool_]
-    between: NoiseCheck
     crlb: Array
 
     def factors(self, sample_inflation: Array) -> Array:
@@ -76,13 +71,6 @@ class HoldNoise:
         if not np.any(self.slow):
             between = np.maximum(between, sample_inflation)
         return np.asarray(self.variance_factors * between)
-
-    @property
-    def between_inflation(self) -> Array:
-        """The hold-mean check's inflation over every parameter (1 for a held one)."""
-        out = np.ones(self.variance_factors.size)
-        out[self.crlb.diagonal() > 0] = self.between.inflation
-        return out
 
 
 @dataclass(frozen=True)
@@ -97,41 +85,12 @@ class _Means:
     dof: Array
 
 
-def fit_hold_noise(
-    p: Array,
-    s: Samples,
-    sample_weights: Array | None,
-    vector_rows: tuple[Array, Array] | None,
-    white_variance: float | Array,
-    fitted: npt.NDArray[np.bool_],
-) -> HoldNoise | None:
-    """:func:`hold_noise` for a fit at ``p`` of ``s`` (None when ``s`` has no hold numbers):
-    ``vector_rows`` are a vector fit's residuals (3N,) and Jacobian (3N, P), None for a scalar
-    fit (its noise-weighted rows, as the ML fit's)."""
-    if s.holds is None:
-        return None
-    w = np.ones(s.n) if sample_weights is None else np.asarray(sample_weights, float)
-    n_series = 1 if vector_rows is None else 3
-    variance = np.broadcast_to(np.asarray(white_variance, float), (n_series,))
-    if vector_rows is not None:
-        raw, jac = vector_rows
-        rows = jac.reshape(s.n, 3, -1)
-        return hold_noise(raw.reshape(s.n, 3), lambda sl: rows[sl], w, s.holds, variance, fitted)
-    r, gain = scalar_residuals_and_gain(p, s)
-
-    def scalar_jac(sl: slice) -> Array:
-        _, jac, gb = scalar_jacobian_rows(p, s.rows(sl))
-        return np.asarray(jac / gb[:, None])[:, None, :]
-
-    return hold_noise((r / gain)[:, None], scalar_jac, w, s.holds, variance, fitted)
-
-
 def hold_noise(
     series: Array,
     jac_rows: RowsFunction,
     weights: Array,
     holds: Holds,
-    white_variance: Array,
+    white_variance: float | Array,
     fitted: npt.NDArray[np.bool_],
 ) -> HoldNoise | None:
     """The noise hold means see (see the module) for residual ``series`` (N, S; uT, not
@@ -155,13 +114,15 @@ def hold_noise(
     between, _, _ = rows_noise_check(hold.rho.reshape(-1), hold.rows.reshape(-1, h_inv.shape[0]),
                                      hold.rho.shape[0], use)  # fmt: skip
     white = _sandwich_diagonal(h_inv, normal, per_sample)
-    factors = np.ones(fitted.size)
+    factors, inflation = np.ones(fitted.size), np.ones(fitted.size)
     factors[fitted] = np.sqrt(_sandwich_diagonal(h_inv, normal, use) / np.maximum(white, 1e-300))
+    inflation[fitted] = between.inflation
     crlb = np.zeros((fitted.size, fitted.size))
     info = np.einsum("s,spq->pq", 1.0 / np.maximum(use, 1e-300), normal)
     crlb[np.ix_(fitted, fitted)] = covariance_from_normal(info, 1.0)
     ratio = use / np.maximum(per_sample, 1e-300)
-    return HoldNoise(factors, int(hold.rho.shape[0]), ratio, slow, between, crlb)
+    return HoldNoise(factors, inflation, between.bandwidth, int(hold.rho.shape[0]), ratio, slow,
+                     crlb)  # fmt: skip
 
 
 def _pair_index(index: npt.NDArray[np.intp]) -> npt.NDArray[np.intp]:

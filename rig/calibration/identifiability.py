@@ -96,17 +96,21 @@ def information(s: Samples, start: Array) -> Information:
     return _information_at(s, sol.x, sol.converged)
 
 
-def converging_start(s: Samples, start: Array | None) -> Array | None:
+def converging_start(s: Samples, start: Array | None) -> tuple[Array, Information] | None:
     """``start`` when the scalar ML fit converges from it, else the nominal sensor (unit scales,
     no offset, angles or coefficients) when the fit converges from there, else ``start`` (None:
-    no linear start could be had). A linear start on few distinct fields can be far off: 19 held
-    fields with two load channels gave scales 1.9-5.6 and a 181 uT offset, and the fit ran off
-    from it (issue 55)."""
-    if start is not None and information(s, start).converged:
-        return start
+    no linear start could be had); with the fit's :func:`information` from the one returned. A
+    linear start on few distinct fields can be far off: 19 held fields with two load channels
+    gave scales 1.9-5.6 and a 181 uT offset, and the fit ran off from it (issue 55)."""
+    info = None if start is None else information(s, start)
+    if start is not None and info is not None and info.converged:
+        return start, info
     nominal = np.zeros(9 + 3 * s.n_channels)
     nominal[:3] = 1.0
-    return nominal if information(s, nominal).converged else start
+    from_nominal = information(s, nominal)
+    if from_nominal.converged:
+        return nominal, from_nominal
+    return None if start is None or info is None else (start, info)
 
 
 def _information_at(s: Samples, p: Array, converged: bool) -> Information:
@@ -146,13 +150,17 @@ def missing_caps(coverage: dict[str, float]) -> list[str]:
 
 
 def check_identifiable(
-    s: Samples, start: Array, method: str, bias_handled: bool = False
+    s: Samples,
+    start: Array,
+    method: str,
+    bias_handled: bool = False,
+    info: Information | None = None,
 ) -> tuple[str, ...]:
     """Raise CalibrationError (one line) when a combination of the scalar parameters is not
     determined by ``s``; else, when field directions are missing, warnings: what recording them
     would do to the sigmas, and the noise bias when it reaches a sigma (none on a full sphere)
     and the fit will neither remove it nor carry it in its sigmas (``bias_handled``)."""
-    info = information(s, start)
+    info = information(s, start) if info is None else info
     scales = parameter_scales(s)
     names = parameter_names(s.channels, vector=False)
     rel_sigma, direction = worst_combination(info.fisher, scales)

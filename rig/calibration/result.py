@@ -10,9 +10,9 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from rig.calibration.correlated import NoiseCheck, fit_noise_check
+from rig.calibration.correlated import NoiseCheck, fit_noise_check, fit_rows
 from rig.calibration.estimate import Estimate, FilterHistory, delta_method
-from rig.calibration.hold_means import fit_hold_noise
+from rig.calibration.hold_means import hold_noise
 from rig.calibration.params import Array, Calibration, Springmann
 from rig.calibration.residuals import (
     AXES,
@@ -416,7 +416,7 @@ def summarize(
     n_fitted = int(np.count_nonzero(fitted))
     sigma_hat = float(np.sqrt(np.sum(weighted**2) / max(n_eff - n_fitted, 1.0)))
     noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
-    check, covariance, crlb = _noise_model(est, s, vector_rows, weighted, sigma_hat, noise_ut,
+    check, covariance, crlb = _noise_model(est, s, vector_rows, weighted, sigma_hat, noise_nt,
                                            fisher, fitted)  # fmt: skip
     corr = correlation_matrix(est.covariance)
     np.fill_diagonal(corr, 0.0)  # (a held parameter's is 0 already: never taken for -1)
@@ -474,7 +474,7 @@ def _noise_model(
     vector_rows: tuple[Array, Array] | None,
     weighted: Array,
     sigma_hat: float,
-    noise_ut: float,
+    noise_nt: float | None,
     fisher: Array,
     fitted: npt.NDArray[np.bool_],
 ) -> tuple[NoiseCheck, Array, Array]:
@@ -483,21 +483,26 @@ def _noise_model(
     Cramer-Rao bound for the same noise (white, or an AR model of it) (ADR 0025), over the
     parameters the method fits: one it holds at its nominal value (variance 0) is known, so it
     neither takes a degree of freedom nor loosens the others' bound (a held-k vector fit's offsets
-    had read 0.47 of a bound computed with k free); ``fitted``: which parameters it fits."""
+    had read 0.47 of a bound computed with k free); ``fitted``: which parameters it fits;
+    ``noise_nt``: the raw noise given for the bound (nT; None: estimated, ``sigma_hat``, uT)."""
     # a vector fit's axes each have their own residual variance (as its covariance, ADR 0025)
     variance = (sigma_hat**2 if vector_rows is None
                 else axis_variances(weighted, int(np.count_nonzero(fitted))))  # fmt: skip
-    check, info, ratio = fit_noise_check(est.p, s, est.sample_weights, vector_rows, variance)
-    held = fit_hold_noise(est.p, s, est.sample_weights, vector_rows, variance, fitted)
+    weights = np.ones(s.n) if est.sample_weights is None else est.sample_weights
+    series, jac_rows = fit_rows(est.p, s, vector_rows)
+    check, info, ratio = fit_noise_check(series, jac_rows, weights, variance)
+    held = (None if s.holds is None
+            else hold_noise(series, jac_rows, weights, s.holds, variance, fitted))  # fmt: skip
     if held is not None:  # the noise the hold means see (issue 55)
         check = dataclasses.replace(
             check, inflation=held.factors(check.inflation), holds=held.holds,
             hold_variance_ratio=tuple(float(v) for v in held.variance_ratio),
-            between_holds=held.between.bandwidth,
+            between_holds=held.between_bandwidth,
         )  # fmt: skip
     covariance = est.covariance * np.outer(check.inflation, check.inflation)
-    if held is not None and noise_ut == sigma_hat:
+    if held is not None and noise_nt is None:
         return check, covariance, held.crlb
+    noise_ut = sigma_hat if noise_nt is None else noise_nt / 1000.0
     normal, scale = (fisher, noise_ut**2) if info is None else (info, noise_ut**2 * ratio)
     crlb = np.zeros_like(normal)
     crlb[np.ix_(fitted, fitted)] = covariance_from_normal(normal[np.ix_(fitted, fitted)], scale)
