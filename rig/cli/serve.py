@@ -79,7 +79,7 @@ def serve(runs_dir: Path, rig_config: Path | None, host: str, port: int, allow_r
     import uvicorn
 
     from rig.web.app import create_app
-    from rig.web.security import new_secret, write_access_file
+    from rig.web.security import access_file_path, new_secret, write_access_file
 
     loopback = is_loopback(host)
     if not loopback and not allow_remote:
@@ -93,6 +93,9 @@ def serve(runs_dir: Path, rig_config: Path | None, host: str, port: int, allow_r
     shown = f"[{host}]" if ":" in host else host
     bound = sock.getsockname()[1]
     url = f"http://{shown}:{bound}/?token={token}"
+    # before the file exists: a SIGTERM from here on removes it (from the printed address on, a
+    # caller may stop us at once, while the page is still being built)
+    _remove_on_sigterm(access_file_path(bound))
     try:
         access_file = write_access_file(url, bound)
     except (OSError, RigError) as exc:
@@ -111,7 +114,6 @@ def serve(runs_dir: Path, rig_config: Path | None, host: str, port: int, allow_r
                                 access_log=False, lifespan="off",
                                 timeout_graceful_shutdown=1)  # fmt: skip
         server = uvicorn.Server(config)
-        _remove_on_sigterm(access_file)
         server.run(sockets=[sock])
     finally:
         with contextlib.suppress(OSError):

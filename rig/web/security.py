@@ -72,10 +72,16 @@ def access_dir() -> Path:
     return Path(base) / "rig-serve"
 
 
+def access_file_path(port: int) -> Path:
+    """Where the server on ``port`` keeps its access address: ``access_dir()/PORT.url``."""
+    return access_dir() / f"{port}.url"
+
+
 def write_access_file(url: str, port: int) -> Path:
-    """Write the access address ``url`` (with its token) to ``access_dir()/PORT.url``, readable by
+    """Write the access address ``url`` (with its token) to :func:`access_file_path`, readable by
     this account only (0600 in a 0700 folder it owns); returns the path."""
-    folder = access_dir()
+    path = access_file_path(port)
+    folder = path.parent
     folder.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
     with contextlib.suppress(FileExistsError):
         os.mkdir(folder, 0o700)
@@ -85,7 +91,6 @@ def write_access_file(url: str, port: int) -> Path:
                              " it, or set XDG_RUNTIME_DIR to a private folder")  # fmt: skip
     if stat.S_IMODE(st.st_mode) & 0o077:
         os.chmod(folder, 0o700)
-    path = folder / f"{port}.url"
     safe_files.write_text(path, url + "\n", mode=0o600)
     return path
 

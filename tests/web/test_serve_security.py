@@ -163,3 +163,19 @@ def test_control_requests_reach_a_running_run_only_whole(tmp_path: Path) -> None
     assert run_control.take_requests(tmp_path) == []
     with pytest.raises(Exception, match="unknown run request"):
         run_control.request(tmp_path, "explode")
+
+
+def test_a_sigterm_the_moment_the_address_is_printed_leaves_no_access_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The address is printed before the page is built (imports, templates: about a second); a
+    caller that stops the server at once must not find the token left behind (a clean-clone CI run
+    did, while the SIGTERM handler was installed only after the page was built)."""
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    for _ in range(3):
+        proc, url = serve_process(tmp_path)
+        proc.send_signal(signal.SIGTERM)
+        assert stop_child(proc, first=signal.SIGTERM, wait_s=60.0) == -signal.SIGTERM
+        port = url.split("://", 1)[1].split("/", 1)[0].rsplit(":", 1)[1]
+        assert not (tmp_path / "rig-serve" / f"{port}.url").exists()
+        assert (tmp_path / "rig-serve").is_dir()  # it was written, then removed
