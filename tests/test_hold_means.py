@@ -11,11 +11,13 @@ failed on that in 2 of 10 real-time runs)."""
 from __future__ import annotations
 
 import numpy as np
+import yaml
 
 from rig.calibration import Samples, calibrate
 from rig.calibration.hold_means import _pair_index
 from rig.calibration.params import Calibration, Springmann, rotation_from_vector
 from rig.calibration.synthetic import SyntheticCase
+from rig.procedure_files import find_procedure
 
 RATE_HZ = 20.0
 HOLDS = 24
@@ -110,3 +112,44 @@ def test_a_wander_within_the_holds_widens_the_sigmas_to_cover() -> None:
     rms = np.sqrt(np.mean(z[:, :9] ** 2, axis=0))
     assert np.all((rms > 0.8) & (rms < 1.25)), rms
     assert float(np.median(sigma[:, 5] / white[:, 5])) > 1.8
+
+
+DESIGNED_LOADS_A = [(0, 0), (0, 0), (0, 0), (0.8, 0), (0.8, 1), (0.8, 1), (1.6, 1), (1.6, 1),
+                    (1.6, 2), (0, 2), (0, 2), (0, 2), (0.8, 2.5), (0.8, 2.5), (0.8, 2.5),
+                    (1.6, 2.5), (1.6, 0), (1.6, 0), (0, 0)]  # fmt: skip
+"""The load currents (A; load_bus, load_panel) the shipped designed acceptance's 19 holds had on
+the simulated cage (its load steps of 2.4 and 3.2 s over holds of 0.8 s and their ramps)."""
+
+
+def designed_case(per_hold: int = 9) -> SyntheticCase:
+    """The shipped designed acceptance's holds: its 19 fields, their loads, ``per_hold`` samples
+    each (9: 0.8 s less 0.25 s settling at 20 Hz, less the edges), truth as in :func:`held_case`."""
+    raw = yaml.safe_load(find_procedure("dut-acceptance-designed").read_text())
+    field = next(s["field_points"]["fields_ut"] for s in raw["steps"] if "field_points" in s)
+    case = held_case(1)
+    f = np.repeat(np.array(field, float), per_hold, axis=0)
+    u = np.repeat(np.array(DESIGNED_LOADS_A, float), per_hold, axis=0)
+    holds = np.repeat(np.arange(len(field)), per_hold)
+    samples = Samples.build(case.truth.predict(f, u), field_ut=f, telemetry=u,
+                            channels=("load_bus", "load_panel"), holds=holds)  # fmt: skip
+    return SyntheticCase(np.arange(f.shape[0]) / RATE_HZ, samples, case.truth, WHITE_UT, f)
+
+
+def test_white_noise_is_called_slow_at_no_more_than_the_tests_level() -> None:
+    """On the designed acceptance's holds (19 of 9 samples, 18 parameters: 13 degrees of
+    freedom per axis) white noise's hold means scatter beyond the samples only by chance, at the
+    test's 1 %. Each call costs a target (that axis's sigmas then rest on 13 degrees of freedom,
+    about 1.5x here): a chi-square against the within-hold variance as if it were known called
+    7 of 600 axes slow on these holds; the F test, with both variances' degrees of freedom, 2."""
+    case = designed_case()
+    clean = case.samples.measured_ut
+    slow = 0
+    for seed in range(200):
+        rng = np.random.default_rng(7000 + seed)
+        m = clean + WHITE_UT * rng.standard_normal(clean.shape)
+        s = Samples(m, case.samples.field_magnitude_ut, case.samples.telemetry,
+                    case.samples.channels, case.samples.field_ut, case.samples.holds)  # fmt: skip
+        ratio = np.array(calibrate(s, "vector").noise_check.hold_variance_ratio)
+        assert ratio.size == 3
+        slow += int(np.count_nonzero(ratio > 1.0 + 1e-9))  # slow: the hold means' own variance
+    assert slow <= 6, slow  # 1 % of 600

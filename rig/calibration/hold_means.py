@@ -31,11 +31,13 @@ from rig.calibration.correlated import RowsFunction, rows_noise_check
 from rig.calibration.params import Array
 from rig.calibration.residuals import Holds, row_blocks
 from rig.calibration.solver import covariance_from_normal
-from rig.calibration.stats import chi2_sf
+from rig.calibration.stats import f_sf
 
 SLOW_P_VALUE = 0.01
-"""The hold means count as scattering beyond what the samples within the holds say when their
-chi-square on that variance has a p-value below this."""
+"""The hold means count as scattering beyond what the samples within the holds say when the ratio
+of their variance to that one has an F test's p-value below this (both estimated, each with its
+degrees of freedom: a chi-square against the within-hold variance as if known had flagged 1.8 %
+of white-noise series on the designed acceptance's 19 holds, not 1 %)."""
 MIN_HOLD_DOF = 8.0
 """The fewest degrees of freedom (hold means less their leverage) per series for the hold-mean
 noise: with 8 a variance is known to +-50 % (2 sigma), as the per-sample model's worst case."""
@@ -107,9 +109,17 @@ def hold_noise(
     if hold is None or float(np.min(hold.dof)) < MIN_HOLD_DOF:
         return None
     per_sample = np.broadcast_to(np.asarray(white_variance, float), hold.variance.shape)
-    within = per_sample if pair is None else np.minimum(per_sample, pair.variance)
-    slow = np.array([chi2_sf(float(d * v / max(w, 1e-300)), max(round(float(d)), 1)) < SLOW_P_VALUE
-                     for d, v, w in zip(hold.dof, hold.variance, within, strict=True)])  # fmt: skip
+    # the per-sample variance's degrees of freedom: each series charged its share of the fit
+    sample_dof = np.full(
+        per_sample.shape, max(series.shape[0] - fitted.sum() / series.shape[1], 1.0)
+    )
+    within, within_dof = per_sample, sample_dof
+    if pair is not None:
+        by_pairs = pair.variance < per_sample
+        within = np.where(by_pairs, pair.variance, per_sample)
+        within_dof = np.where(by_pairs, pair.dof, sample_dof)
+    slow = np.array([f_sf(float(v / max(w, 1e-300)), float(d), float(e)) < SLOW_P_VALUE
+                     for v, w, d, e in zip(hold.variance, within, hold.dof, within_dof, strict=True)])  # fmt: skip
     use = np.where(slow, hold.variance, within)
     between, _, _ = rows_noise_check(hold.rho.reshape(-1), hold.rows.reshape(-1, h_inv.shape[0]),
                                      hold.rho.shape[0], use)  # fmt: skip
