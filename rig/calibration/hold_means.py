@@ -117,7 +117,7 @@ def hold_noise(
     if pair is not None:
         by_pairs = pair.variance < per_sample
         within = np.where(by_pairs, pair.variance, per_sample)
-        within_dof = np.where(by_pairs, pair.dof, sample_dof)
+        within_dof = np.where(by_pairs, np.maximum(pair.dof, 1.0), sample_dof)  # as its variance
     slow = np.array([f_sf(float(v / max(w, 1e-300)), float(d), float(e)) < SLOW_P_VALUE
                      for v, w, d, e in zip(hold.variance, within, hold.dof, within_dof, strict=True)])  # fmt: skip
     use = np.where(slow, hold.variance, within)
