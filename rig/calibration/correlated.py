@@ -62,12 +62,12 @@ class NoiseCheck:
 
     ``lag1``: lag-1 autocorrelation (the largest over the series); ``ljung_box``/``p_value``: the
     portmanteau statistic at ``lags`` lags and its (Bonferroni) p-value; ``inflation``: per
-    parameter, reported sigma / white-noise sigma (all 1 when white and no hold means); ``bandwidth``: block length
-    of the long-run covariance (samples, 0 when white); ``ar_order``: order of the noise model of
-    the Cramer-Rao bound (0: white); ``holds``: hold means the sigmas come from
-    (:mod:`rig.calibration.hold_means`; 0: from the samples), ``hold_variance_ratio`` per series
-    their variance over the samples', ``between_holds``: whether the hold means correlate in time
-    (their bandwidth in holds, else 0).
+    parameter, reported sigma / white-noise sigma (all 1 when white and no hold means);
+    ``bandwidth``: block length of the long-run covariance (samples, 0 when white); ``ar_order``:
+    order of the noise model of the Cramer-Rao bound (0: white); ``holds``: hold means the sigmas
+    come from (:mod:`rig.calibration.hold_means`; 0: from the samples), ``hold_variance_ratio`` per
+    series their variance over the samples', ``between_holds``: whether the hold means correlate in
+    time (their bandwidth in holds, else 0).
     """
 
     lag1: float

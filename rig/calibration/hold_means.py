@@ -117,7 +117,7 @@ def hold_noise(
     if pair is not None:
         by_pairs = pair.variance < per_sample
         within = np.where(by_pairs, pair.variance, per_sample)
-        within_dof = np.where(by_pairs, np.maximum(pair.dof, 1.0), sample_dof)  # as its variance
+        within_dof = np.where(by_pairs, pair.dof, sample_dof)
     slow = np.array([f_sf(float(v / max(w, 1e-300)), float(d), float(e)) < SLOW_P_VALUE
                      for v, w, d, e in zip(hold.variance, within, hold.dof, within_dof, strict=True)])  # fmt: skip
     use = np.where(slow, hold.variance, within)
@@ -181,16 +181,16 @@ def _group_sums(
 
 def _means(residual: Array, jacobian: Array, weight: Array, h_inv: Array) -> _Means | None:
     """The groups as a regression's rows and the variance per sample their scatter about the fit
-    implies: ``sum rho^2 / (G - leverage)`` per series (None without groups)."""
+    implies: ``sum rho^2 / (G - leverage)`` per series, its degrees of freedom at least 1 (None
+    without groups)."""
     used = weight > 0
     if not np.any(used):
         return None
     root_n = np.sqrt(weight[used])
     rho = residual[used] / root_n[:, None]
     rows = jacobian[used] / root_n[:, None, None]
-    dof = rho.shape[0] - np.einsum("gsp,pq,gsq->s", rows, h_inv, rows)
-    variance = np.sum(rho**2, axis=0) / np.maximum(dof, 1.0)
-    return _Means(rho, rows, variance, dof)
+    dof = np.maximum(rho.shape[0] - np.einsum("gsp,pq,gsq->s", rows, h_inv, rows), 1.0)
+    return _Means(rho, rows, np.sum(rho**2, axis=0) / dof, dof)
 
 
 def _sandwich_diagonal(h_inv: Array, normal_by_series: Array, variance: Array) -> Array:

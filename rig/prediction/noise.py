@@ -1,14 +1,14 @@
 """The noise a calibration will see: the DUT's readings less the reference field, per DUT axis.
 
 Measured beats stated, and measured where it matters beats measured at rest: the residuals of a
-vector calibration of the same DUT (per axis: ``noise_axes_nt``, the noise its sigmas took: what
-its hold means see) are that noise at the fields and currents of a sweep (a coil carrying more current may add noise to its axis, which a
-hold at null field does not show); a ``null_field`` step's ``dut_paired_noise_nt`` is the noise at
-rest (the DUT's own, the reference's, and whatever the two sample differently, such as mains
-ripple at different instants). So the floor is, in order: given on the command line; the newest
-runs of the same DUT in the runs folder (their vector calibrations' residuals pooled, else the
-newest null-field noise); the root sum square of the two devices' stated ``noise_nt`` (rig configuration); else
-unknown.
+vector calibration of the same DUT (per axis: ``noise_axes_nt``, the noise its sigmas took: what its
+hold means see) are that noise at the fields and currents of a sweep (a coil carrying more current
+may add noise to its axis, which a hold at null field does not show); a ``null_field`` step's
+``dut_paired_noise_nt`` is the noise at rest (the DUT's own, the reference's, and whatever the two
+sample differently, such as mains ripple at different instants). So the floor is, in order: given on
+the command line; the newest runs of the same DUT in the runs folder (their vector calibrations'
+residuals pooled, else the newest null-field noise); the root sum square of the two devices' stated
+``noise_nt`` (rig configuration); else unknown.
 """
 
 from __future__ import annotations
