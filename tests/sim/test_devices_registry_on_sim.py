@@ -14,6 +14,7 @@ from rig.devices import open_load, open_magnetometer, open_supply
 from rig.engine.sampling import SensorSampler
 from rig.errors import UserInputError
 from sim.cage import SimulatedCage
+from tests.computer_delay import ComputerDelay
 from tests.sim.rig_toml import rig_toml
 
 pytestmark = pytest.mark.realtime
@@ -77,6 +78,7 @@ def test_the_driver_picks_its_sampling_mode(
         uncertainty.append(t_unc_s)
 
     sampler = SensorSampler(name, mag, sink, rate)
+    computer = ComputerDelay()  # this process reads the stream and hosts the simulated sensor
     try:
         sampler.start()
         assert sampler.rate_hz == expected  # the HMR2300 runs at a datasheet rate >= the asked one
@@ -89,8 +91,11 @@ def test_the_driver_picks_its_sampling_mode(
     times = [t for t, _, _ in got]
     assert times == sorted(times)
     # every sample says how well its date is known: a stream within a period, a polled one
-    # within its exchange (ADR 0020)
-    assert all(0.0 < u <= 1.0 / expected + 0.05 for u in uncertainty[5:]), uncertainty
+    # within its exchange (ADR 0020); a read this computer delayed widens its dates by the delay
+    # (a clean-clone CI run with four workers saw one over 70 ms), so that is left out
+    stalled_s = computer.seconds()
+    assert all(0.0 < u <= 1.0 / expected + 0.05 + stalled_s for u in uncertainty[5:]), (
+        stalled_s, uncertainty)  # fmt: skip
 
 
 def test_sim_rig_configuration_still_loads(
